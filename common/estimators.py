@@ -1,0 +1,138 @@
+"""Policy-gradient estimators: REINFORCE (paper eq. 5) and GPOMDP (eq. 6), as pure functions.
+
+Both estimators are linear in the per-step scores ∇ log π(a_t|s_t), so each reduces to one
+coefficient per (step, trajectory):
+
+    g(τ_b | θ) = Σ_t coef[t, b] · ∇ log π_θ(a_t | s_t)
+
+The coefficient functions below are the maths; :func:`estimate_gradient` turns coefficients
+into the batch gradient (1/B) Σ_b g(τ_b) with one autograd pass over the whole batch, and
+:func:`per_trajectory_gradients` gives every g(τ_b) (for tests and variance statistics).
+
+Baselines. ``"mean"`` uses, for trajectory b, the mean over the *other* trajectories of the
+batch (leave-one-out): a baseline built from the same batch including τ_b itself would bias the
+estimate by a factor (B−1)/B; leaving τ_b out keeps it unbiased. With B = 1 it is 0.
+
+Importance weights (FedHPGVR). REINFORCE takes one weight per trajectory [B]; GPOMDP takes the
+per-decision cumulative weights w_{0:h} [T, B] and weighs the reward at step h with w_{0:h}.
+"""
+
+from __future__ import annotations
+
+from typing import Literal
+
+import torch
+from fedhpg.common.policies import Policy, flat_grad
+from torch.func import functional_call, jacrev
+
+EstimatorName = Literal["reinforce", "gpomdp"]
+BaselineName = Literal["none", "mean"]
+ESTIMATORS: tuple[str, ...] = ("reinforce", "gpomdp")
+BASELINES: tuple[str, ...] = ("none", "mean")
+
+
+def _leave_one_out_mean(values: torch.Tensor) -> torch.Tensor:
+    """For each column b of [..., B], the mean of the other columns (0 when B = 1)."""
+    count = values.shape[-1]
+    if count == 1:
+        return torch.zeros_like(values)
+    return (values.sum(dim=-1, keepdim=True) - values) / (count - 1)
+
+
+def _discounts(gamma: float, length: int, like: torch.Tensor) -> torch.Tensor:
+    return gamma ** torch.arange(length, dtype=like.dtype, device=like.device)
+
+
+def reinforce_coefficients(
+    rewards: torch.Tensor,
+    alive: torch.Tensor,
+    *,
+    gamma: float,
+    baseline: BaselineName = "mean",
+    weights: torch.Tensor | None = None,
+) -> torch.Tensor:
+    """Eq. (5): coef[t, b] = w_b · (Σ_h γ^h r_{h,b} − C_b) on alive steps.
+
+    rewards, alive: [T, B]; weights: optional [B] importance weights.
+    """
+    returns = _discounts(gamma, rewards.shape[0], rewards) @ rewards  # [B]
+    centred = returns - _leave_one_out_mean(returns) if baseline == "mean" else returns
+    if weights is not None:
+        centred = centred * weights
+    return alive.to(rewards.dtype) * centred.unsqueeze(0)
+
+
+def gpomdp_coefficients(
+    rewards: torch.Tensor,
+    alive: torch.Tensor,
+    *,
+    gamma: float,
+    baseline: BaselineName = "mean",
+    weights: torch.Tensor | None = None,
+) -> torch.Tensor:
+    """Eq. (6): coef[t, b] = Σ_{h ≥ t} w_{0:h,b} · (γ^h r_{h,b} − C_{h,b}) on alive steps.
+
+    The per-step baseline C_h is applied at every step h < T, dead steps included: masking it
+    by "still alive at h" would correlate it with the earlier actions and bias the estimate.
+    weights: optional [T, B] per-decision cumulative importance weights.
+    """
+    step_rewards = _discounts(gamma, rewards.shape[0], rewards).unsqueeze(1) * rewards  # [T, B]
+    if baseline == "mean":
+        step_rewards = step_rewards - _leave_one_out_mean(step_rewards)
+    if weights is not None:
+        step_rewards = step_rewards * weights
+    reward_to_go = step_rewards.flip(0).cumsum(0).flip(0)
+    return alive.to(rewards.dtype) * reward_to_go
+
+
+def estimator_coefficients(
+    estimator: EstimatorName,
+    rewards: torch.Tensor,
+    alive: torch.Tensor,
+    *,
+    gamma: float,
+    baseline: BaselineName = "mean",
+    weights: torch.Tensor | None = None,
+) -> torch.Tensor:
+    """Dispatch to :func:`reinforce_coefficients` or :func:`gpomdp_coefficients`."""
+    if estimator == "reinforce":
+        return reinforce_coefficients(
+            rewards, alive, gamma=gamma, baseline=baseline, weights=weights
+        )
+    if estimator == "gpomdp":
+        return gpomdp_coefficients(rewards, alive, gamma=gamma, baseline=baseline, weights=weights)
+    raise ValueError(f"estimator must be one of {ESTIMATORS}, got {estimator!r}")
+
+
+def estimate_gradient(
+    policy: Policy, obs: torch.Tensor, actions: torch.Tensor, coefficients: torch.Tensor
+) -> torch.Tensor:
+    """(1/B) Σ_b Σ_t coef[t, b] ∇ log π_θ(a_t|s_t) as one flat vector (one autograd pass)."""
+    log_probs = policy.log_prob(obs, actions)  # [T, B]
+    surrogate = (coefficients.detach().to(log_probs.dtype) * log_probs).sum() / log_probs.shape[1]
+    return flat_grad(surrogate, policy)
+
+
+def per_trajectory_gradients(
+    policy: Policy, obs: torch.Tensor, actions: torch.Tensor, coefficients: torch.Tensor
+) -> torch.Tensor:
+    """Every g(τ_b) as rows of a [B, d] matrix (vectorised Jacobian; for tests and diagnostics)."""
+    params = {name: p.detach() for name, p in policy.named_parameters()}
+    coefficients = coefficients.detach()
+
+    def per_trajectory_surrogate(p: dict[str, torch.Tensor]) -> torch.Tensor:
+        log_probs = functional_call(policy, p, (obs, actions))  # [T, B]
+        return (coefficients.to(log_probs.dtype) * log_probs).sum(dim=0)  # [B]
+
+    jacobian = jacrev(per_trajectory_surrogate)(params)
+    return torch.cat([jacobian[name].reshape(coefficients.shape[1], -1) for name in params], dim=1)
+
+
+def clip_by_norm(gradient: torch.Tensor, max_norm: float | None) -> tuple[torch.Tensor, bool]:
+    """Scale ``gradient`` down to norm ``max_norm`` (Assumption 3); returns (g, was_clipped)."""
+    if max_norm is None:
+        return gradient, False
+    norm = float(gradient.norm())
+    if norm <= max_norm:
+        return gradient, False
+    return gradient * (max_norm / norm), True

@@ -1,0 +1,54 @@
+"""FedHPG's local update: Algorithm 1, lines 5-8, for one agent.
+
+θ^{k,0} ← θ̃_t
+for τ = 0 … τ_k − 1:
+    sample B_k trajectories from p_k(·|θ^{k,τ})
+    θ^{k,τ+1} = θ^{k,τ} + η · (1/B_k) Σ_s g(l_s | θ^{k,τ})
+return θ^{k,τ_k}
+"""
+
+from __future__ import annotations
+
+import time
+
+import torch
+from fedhpg.common.config import AlgoConfig
+from fedhpg.common.estimators import clip_by_norm
+from fedhpg.common.local import (
+    IterationHook,
+    LocalResult,
+    LocalTally,
+    TrajectorySource,
+    apply_ascent,
+    batch_gradient,
+    make_optimizer,
+)
+from fedhpg.common.policies import Policy, get_flat_params, set_flat_params
+
+
+def fedhpg_local_update(
+    theta: torch.Tensor,
+    *,
+    policy: Policy,
+    sample: TrajectorySource,
+    algo: AlgoConfig,
+    gamma: float,
+    batch_size: int,
+    local_iters: int,
+    on_iteration: IterationHook | None = None,
+) -> LocalResult:
+    """Run τ_k = ``local_iters`` policy-gradient ascent steps from the server's θ."""
+    set_flat_params(policy, theta)
+    optimizer = make_optimizer(policy, algo)
+    tally = LocalTally()
+    for iteration in range(local_iters):
+        started = time.perf_counter()
+        batch = sample(batch_size)
+        gradient = batch_gradient(policy, batch, algo=algo, gamma=gamma)
+        gradient, clipped = clip_by_norm(gradient, algo.grad_clip)
+        apply_ascent(policy, optimizer, gradient)
+        compute_s = time.perf_counter() - started
+        tally.add(batch, compute_s=compute_s, clipped=clipped)
+        if on_iteration is not None:
+            on_iteration(iteration, compute_s, batch.num_steps)
+    return tally.result(get_flat_params(policy))

@@ -1,0 +1,109 @@
+"""Pieces every local-update rule shares: batch gradients, ascent steps, bookkeeping."""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+import torch
+from fedhpg.common.config import AlgoConfig
+from fedhpg.common.estimators import estimate_gradient, estimator_coefficients
+from fedhpg.common.policies import Policy
+from fedhpg.common.rollout import TrajectoryBatch
+
+TrajectorySource = Callable[[int], TrajectoryBatch]
+"""n -> n fresh trajectories sampled with the policy's current θ."""
+
+IterationHook = Callable[[int, float, int], None]
+"""(iteration, real compute seconds, env steps) -> None; called after every local iteration."""
+
+
+def batch_tensors(batch: TrajectoryBatch) -> tuple[torch.Tensor, torch.Tensor]:
+    """Observations and actions as tensors, without copying the numpy buffers."""
+    return torch.from_numpy(batch.obs), torch.from_numpy(batch.actions)
+
+
+def batch_gradient(
+    policy: Policy,
+    batch: TrajectoryBatch,
+    *,
+    algo: AlgoConfig,
+    gamma: float,
+    weights: torch.Tensor | None = None,
+) -> torch.Tensor:
+    """(1/B) Σ_b g(τ_b | θ) with the configured estimator and baseline."""
+    coefficients = estimator_coefficients(
+        algo.estimator,  # type: ignore[arg-type]
+        torch.from_numpy(batch.rewards),
+        torch.from_numpy(batch.alive),
+        gamma=gamma,
+        baseline=algo.baseline,  # type: ignore[arg-type]
+        weights=weights,
+    )
+    obs, actions = batch_tensors(batch)
+    return estimate_gradient(policy, obs, actions, coefficients)
+
+
+def make_optimizer(policy: Policy, algo: AlgoConfig) -> torch.optim.Optimizer:
+    """Gradient *ascent*: plain steps θ += η g (the paper) or Adam, fresh every round."""
+    if algo.optimizer == "sgd":
+        return torch.optim.SGD(policy.parameters(), lr=algo.step_size, maximize=True)
+    if algo.optimizer == "adam":
+        return torch.optim.Adam(policy.parameters(), lr=algo.step_size, maximize=True)
+    raise ValueError(f"algo.optimizer must be 'sgd' or 'adam', got {algo.optimizer!r}")
+
+
+def apply_ascent(policy: Policy, optimizer: torch.optim.Optimizer, gradient: torch.Tensor) -> None:
+    """Load the flat ascent direction into ``.grad`` and take one optimizer step."""
+    offset = 0
+    for param in policy.parameters():
+        count = param.numel()
+        param.grad = gradient[offset : offset + count].view_as(param).to(param.dtype).clone()
+        offset += count
+    optimizer.step()
+    optimizer.zero_grad(set_to_none=True)
+
+
+@dataclass(frozen=True, kw_only=True)
+class LocalResult:
+    """What a local update returns to the server."""
+
+    theta: torch.Tensor
+    trajectories: int
+    env_steps: int
+    train_return: float
+    """Mean undiscounted return of the trajectories sampled this round."""
+    compute_s: float
+    """Real compute time of the local update (sampling + estimation + steps)."""
+    extra: dict[str, Any] = field(default_factory=dict)
+
+
+@dataclass
+class LocalTally:
+    """Running totals over a round's local iterations."""
+
+    trajectories: int = 0
+    env_steps: int = 0
+    return_sum: float = 0.0
+    compute_s: float = 0.0
+    clipped: int = 0
+    extra: dict[str, Any] = field(default_factory=dict)
+
+    def add(self, batch: TrajectoryBatch, *, compute_s: float, clipped: bool = False) -> None:
+        self.trajectories += batch.num_trajectories
+        self.env_steps += batch.num_steps
+        self.return_sum += float(np.sum(batch.returns()))
+        self.compute_s += compute_s
+        self.clipped += int(clipped)
+
+    def result(self, theta: torch.Tensor) -> LocalResult:
+        return LocalResult(
+            theta=theta,
+            trajectories=self.trajectories,
+            env_steps=self.env_steps,
+            train_return=self.return_sum / max(self.trajectories, 1),
+            compute_s=self.compute_s,
+            extra={"grad_clipped": self.clipped, **self.extra},
+        )

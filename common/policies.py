@@ -1,0 +1,271 @@
+"""Stochastic policies π_θ(a|s) and the flat parameter vector θ the server averages.
+
+Every policy offers two paths:
+
+- :meth:`Policy.log_prob` — batched, differentiable log π_θ(a|s) over any leading shape; the
+  estimators differentiate it once per batch of trajectories.
+- :meth:`Policy.sampler` — a fast, gradient-free action sampler for the rollout loop, drawing
+  all randomness from a numpy ``Generator`` so a run is reproducible across processes.
+  The sampler is built once per batch (θ is fixed while a batch is collected) and makes at
+  most one batched forward per time step for all B environments.
+"""
+
+from __future__ import annotations
+
+import abc
+import itertools
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+from typing import Literal
+
+import gymnasium as gym
+import numpy as np
+import torch
+from torch import nn
+
+ActionSampler = Callable[[np.ndarray, np.random.Generator, bool], tuple[np.ndarray, np.ndarray]]
+"""(observations [B, ...], rng, greedy) -> (actions [B, ...], log π(a|s) [B]; zeros if greedy)"""
+
+
+class Policy(nn.Module, abc.ABC):
+    """A parameterised stochastic policy."""
+
+    @abc.abstractmethod
+    def log_prob(self, obs: torch.Tensor, act: torch.Tensor) -> torch.Tensor:
+        """log π_θ(act | obs), shape = the leading shape shared by ``obs`` and ``act``."""
+
+    def forward(self, obs: torch.Tensor, act: torch.Tensor) -> torch.Tensor:
+        return self.log_prob(obs, act)
+
+    @abc.abstractmethod
+    def sampler(self) -> ActionSampler:
+        """A gradient-free sampler bound to the current θ."""
+
+    @property
+    def num_params(self) -> int:
+        return sum(p.numel() for p in self.parameters())
+
+
+def _inverse_cdf_sample(probs: np.ndarray, uniforms: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Categorical draws by inverting the CDF (one uniform per row), with their log-probs."""
+    cdf = np.cumsum(probs, axis=-1)
+    actions = np.minimum((uniforms[:, None] > cdf).sum(axis=-1), probs.shape[-1] - 1)
+    return actions, np.log(probs[np.arange(actions.shape[0]), actions])
+
+
+class TabularSoftmaxPolicy(Policy):
+    """π(a|s) = softmax(θ[s])_a for discrete states; θ starts at zero (uniform policy)."""
+
+    def __init__(self, *, num_states: int, num_actions: int) -> None:
+        super().__init__()
+        self.logits = nn.Parameter(torch.zeros(num_states, num_actions))
+
+    def log_prob(self, obs: torch.Tensor, act: torch.Tensor) -> torch.Tensor:
+        log_pi = torch.log_softmax(self.logits, dim=-1)
+        return log_pi[obs.long(), act.long()]
+
+    def sampler(self) -> ActionSampler:
+        # θ is fixed during a batch, so the whole table π(·|s) is one forward, done here once.
+        with torch.no_grad():
+            probs = torch.softmax(self.logits, dim=-1).double().numpy()
+        cdf = np.cumsum(probs, axis=-1)
+        log_probs = np.log(probs)
+        greedy_actions = probs.argmax(axis=-1)
+        last = probs.shape[-1] - 1
+
+        def sample(
+            obs: np.ndarray, rng: np.random.Generator, greedy: bool
+        ) -> tuple[np.ndarray, np.ndarray]:
+            if greedy:
+                return greedy_actions[obs], np.zeros(obs.shape[0])
+            uniforms = rng.random(obs.shape[0])
+            actions = np.minimum((uniforms[:, None] > cdf[obs]).sum(axis=-1), last)
+            return actions, log_probs[obs, actions]
+
+        return sample
+
+
+def _mlp(sizes: Sequence[int], activation: type[nn.Module] = nn.Tanh) -> nn.Sequential:
+    layers: list[nn.Module] = []
+    for i, (n_in, n_out) in enumerate(itertools.pairwise(sizes)):
+        layers.append(nn.Linear(n_in, n_out))
+        if i < len(sizes) - 2:
+            layers.append(activation())
+    return nn.Sequential(*layers)
+
+
+class MLPCategoricalPolicy(Policy):
+    """Box observations, discrete actions: logits = MLP(s) with tanh hidden layers."""
+
+    def __init__(self, *, obs_dim: int, num_actions: int, hidden: Sequence[int] = (64, 64)) -> None:
+        super().__init__()
+        self.net = _mlp([obs_dim, *hidden, num_actions])
+        with torch.no_grad():  # small last layer: a near-uniform initial policy
+            self.net[-1].weight.mul_(0.01)
+            self.net[-1].bias.zero_()
+
+    def log_prob(self, obs: torch.Tensor, act: torch.Tensor) -> torch.Tensor:
+        log_pi = torch.log_softmax(self.net(obs.float()), dim=-1)
+        return log_pi.gather(-1, act.long().unsqueeze(-1)).squeeze(-1)
+
+    def sampler(self) -> ActionSampler:
+        def sample(
+            obs: np.ndarray, rng: np.random.Generator, greedy: bool
+        ) -> tuple[np.ndarray, np.ndarray]:
+            with torch.no_grad():
+                logits = self.net(torch.as_tensor(obs, dtype=torch.float32))
+            if greedy:
+                return logits.argmax(dim=-1).numpy(), np.zeros(obs.shape[0])
+            probs = torch.softmax(logits.double(), dim=-1).numpy()
+            return _inverse_cdf_sample(probs, rng.random(obs.shape[0]))
+
+        return sample
+
+
+LogStdMode = Literal["state_independent", "state_dependent"]
+
+
+class GaussianMLPPolicy(Policy):
+    """Continuous actions: a ~ N(μ_θ(s), diag σ²).
+
+    ``log_std="state_independent"`` learns one log σ per action dimension (the usual choice
+    for policy gradient on locomotion); ``"state_dependent"`` adds a second head so σ depends
+    on s. log σ is clamped to [-5, 2] so the score function stays bounded (Assumption 2).
+    Actions are not squashed: environments clip them to their bounds.
+    """
+
+    LOG_STD_MIN = -5.0
+    LOG_STD_MAX = 2.0
+
+    def __init__(
+        self,
+        *,
+        obs_dim: int,
+        act_dim: int,
+        hidden: Sequence[int] = (64, 64),
+        log_std: LogStdMode = "state_independent",
+        init_log_std: float = -0.5,
+    ) -> None:
+        super().__init__()
+        self.mode: LogStdMode = log_std
+        self.mean_net = _mlp([obs_dim, *hidden, act_dim])
+        with torch.no_grad():
+            self.mean_net[-1].weight.mul_(0.01)
+            self.mean_net[-1].bias.zero_()
+        if log_std == "state_independent":
+            self.log_std = nn.Parameter(torch.full((act_dim,), float(init_log_std)))
+        elif log_std == "state_dependent":
+            self.log_std_net = _mlp([obs_dim, *hidden, act_dim])
+            with torch.no_grad():
+                self.log_std_net[-1].weight.mul_(0.01)
+                self.log_std_net[-1].bias.fill_(float(init_log_std))
+        else:
+            raise ValueError(
+                f"log_std must be 'state_independent' or 'state_dependent', got {log_std!r}"
+            )
+
+    def _mean_and_log_std(self, obs: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        obs = obs.float()
+        mean = self.mean_net(obs)
+        raw = self.log_std if self.mode == "state_independent" else self.log_std_net(obs)
+        return mean, raw.clamp(self.LOG_STD_MIN, self.LOG_STD_MAX).expand_as(mean)
+
+    def log_prob(self, obs: torch.Tensor, act: torch.Tensor) -> torch.Tensor:
+        mean, log_std = self._mean_and_log_std(obs)
+        z = (act.float() - mean) / log_std.exp()
+        per_dim = -0.5 * z.pow(2) - log_std - 0.5 * float(np.log(2.0 * np.pi))
+        return per_dim.sum(dim=-1)
+
+    def sampler(self) -> ActionSampler:
+        def sample(
+            obs: np.ndarray, rng: np.random.Generator, greedy: bool
+        ) -> tuple[np.ndarray, np.ndarray]:
+            with torch.no_grad():
+                mean, log_std = self._mean_and_log_std(torch.as_tensor(obs, dtype=torch.float32))
+            mean_np, log_std_np = mean.numpy(), log_std.numpy().astype(np.float64)
+            if greedy:
+                return mean_np, np.zeros(obs.shape[0])
+            noise = rng.standard_normal(mean_np.shape)
+            actions = (mean_np + np.exp(log_std_np) * noise).astype(np.float32)
+            log_probs = (-0.5 * noise**2 - log_std_np - 0.5 * np.log(2.0 * np.pi)).sum(axis=-1)
+            return actions, log_probs
+
+        return sample
+
+
+@dataclass(kw_only=True)
+class PolicyConfig:
+    """How to build the policy network for the run's spaces."""
+
+    hidden: list[int] = field(default_factory=lambda: [64, 64])
+    """Hidden layer widths of the MLP policies (ignored by the tabular policy)."""
+    log_std: str = "state_independent"
+    """Gaussian policies: 'state_independent' or 'state_dependent' log σ."""
+    init_log_std: float = -0.5
+    """Gaussian policies: initial log σ."""
+
+
+def make_policy(
+    observation_space: gym.Space, action_space: gym.Space, config: PolicyConfig
+) -> Policy:
+    """The policy class that fits the spaces: tabular, MLP-categorical or Gaussian MLP."""
+    if isinstance(observation_space, gym.spaces.Discrete) and isinstance(
+        action_space, gym.spaces.Discrete
+    ):
+        return TabularSoftmaxPolicy(
+            num_states=int(observation_space.n), num_actions=int(action_space.n)
+        )
+    if not isinstance(observation_space, gym.spaces.Box) or len(observation_space.shape) != 1:
+        raise ValueError(
+            f"unsupported observation space {observation_space}: need Discrete or 1-D Box"
+        )
+    obs_dim = int(observation_space.shape[0])
+    if isinstance(action_space, gym.spaces.Discrete):
+        return MLPCategoricalPolicy(
+            obs_dim=obs_dim, num_actions=int(action_space.n), hidden=config.hidden
+        )
+    if isinstance(action_space, gym.spaces.Box) and len(action_space.shape) == 1:
+        if config.log_std not in ("state_independent", "state_dependent"):
+            raise ValueError(
+                "policy.log_std must be 'state_independent' or 'state_dependent', "
+                f"got {config.log_std!r}"
+            )
+        return GaussianMLPPolicy(
+            obs_dim=obs_dim,
+            act_dim=int(action_space.shape[0]),
+            hidden=config.hidden,
+            log_std=config.log_std,  # type: ignore[arg-type]
+            init_log_std=config.init_log_std,
+        )
+    raise ValueError(f"unsupported action space {action_space}: need Discrete or 1-D Box")
+
+
+def get_flat_params(policy: nn.Module) -> torch.Tensor:
+    """All parameters as one detached float32 vector (the order of ``parameters()``)."""
+    return torch.nn.utils.parameters_to_vector(policy.parameters()).detach().clone()
+
+
+def set_flat_params(policy: nn.Module, theta: torch.Tensor | np.ndarray) -> None:
+    """Load a flat vector into the policy, checking its length and finiteness."""
+    vector = torch.as_tensor(theta, dtype=torch.float32)
+    expected = sum(p.numel() for p in policy.parameters())
+    if vector.ndim != 1 or vector.numel() != expected:
+        raise ValueError(
+            f"parameter vector has shape {tuple(vector.shape)}, expected ({expected},)"
+        )
+    if not torch.isfinite(vector).all():
+        raise ValueError("parameter vector contains NaN or Inf")
+    with torch.no_grad():
+        torch.nn.utils.vector_to_parameters(vector, policy.parameters())
+
+
+def flat_grad(loss: torch.Tensor, policy: nn.Module) -> torch.Tensor:
+    """∇ loss as one flat vector in the order of ``parameters()``."""
+    params = list(policy.parameters())
+    grads = torch.autograd.grad(loss, params, allow_unused=True)
+    return torch.cat(
+        [
+            (g if g is not None else torch.zeros_like(p)).reshape(-1)
+            for g, p in zip(grads, params, strict=True)
+        ]
+    )

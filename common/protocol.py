@@ -1,0 +1,122 @@
+"""The wire protocol in one place: message types and their typed payloads.
+
+Every message is one frozen dataclass below. :mod:`fedhpg.common.codec` turns any of them into
+ZeroMQ frames (a msgpack header, then one raw frame per array field) and back; nothing here
+knows about bytes. Fields typed ``np.ndarray`` travel as raw frames, every other field in the
+header as plain msgpack values (None, bool, int, float, str, list, dict).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from enum import StrEnum
+from typing import Any
+
+import numpy as np
+
+PROTOCOL_VERSION = 1
+
+# Liveness: a peer silent for HEARTBEAT_LIVENESS intervals is presumed dead.
+HEARTBEAT_INTERVAL_S = 1.0
+HEARTBEAT_LIVENESS = 5
+
+
+class MsgType(StrEnum):
+    HELLO = "hello"
+    WELCOME = "welcome"
+    TRAIN = "train"
+    UPDATE = "update"
+    EVALUATE = "evaluate"
+    EVALUATION = "evaluation"
+    HEARTBEAT = "heartbeat"
+    SHUTDOWN = "shutdown"
+    ERROR = "error"
+
+
+@dataclass(frozen=True, kw_only=True)
+class Hello:
+    """Agent → server: registration with the agent's environment signature."""
+
+    agent_id: str
+    agent_index: int
+    env_signature: dict[str, str]
+    profile: dict[str, Any] = field(default_factory=dict)
+
+
+@dataclass(frozen=True, kw_only=True)
+class Welcome:
+    """Server → agent: registration accepted; ``run`` holds the shared run settings."""
+
+    run_id: str
+    agent_index: int
+    run: dict[str, Any]
+
+
+@dataclass(frozen=True, kw_only=True, eq=False)
+class Train:
+    """Server → agent: run one round's local update from ``theta``."""
+
+    round: int
+    theta: np.ndarray
+
+
+@dataclass(frozen=True, kw_only=True, eq=False)
+class Update:
+    """Agent → server: the local result θ_k of ``round`` and what it cost."""
+
+    round: int
+    theta: np.ndarray
+    stats: dict[str, Any]
+
+
+@dataclass(frozen=True, kw_only=True, eq=False)
+class Evaluate:
+    """Server → agent: evaluate the unified policy ``theta`` in the agent's environment."""
+
+    round: int
+    theta: np.ndarray
+    episodes: int
+
+
+@dataclass(frozen=True, kw_only=True)
+class Evaluation:
+    """Agent → server: evaluation results for ``round``."""
+
+    round: int
+    stats: dict[str, Any]
+
+
+@dataclass(frozen=True, kw_only=True)
+class Heartbeat:
+    """Either direction: I am alive."""
+
+
+@dataclass(frozen=True, kw_only=True)
+class Shutdown:
+    """Server → agent: the run is over (or aborted); exit cleanly."""
+
+    reason: str
+
+
+@dataclass(frozen=True, kw_only=True)
+class Error:
+    """Either direction: the last message was rejected, and why."""
+
+    code: str
+    reason: str
+
+
+Message = Hello | Welcome | Train | Update | Evaluate | Evaluation | Heartbeat | Shutdown | Error
+
+PAYLOAD_TYPES: dict[MsgType, type] = {
+    MsgType.HELLO: Hello,
+    MsgType.WELCOME: Welcome,
+    MsgType.TRAIN: Train,
+    MsgType.UPDATE: Update,
+    MsgType.EVALUATE: Evaluate,
+    MsgType.EVALUATION: Evaluation,
+    MsgType.HEARTBEAT: Heartbeat,
+    MsgType.SHUTDOWN: Shutdown,
+    MsgType.ERROR: Error,
+}
+MSG_TYPE_OF: dict[type, MsgType] = {cls: kind for kind, cls in PAYLOAD_TYPES.items()}

@@ -1,0 +1,67 @@
+"""A :class:`BatchEnv` over any gymnasium vector environment."""
+
+from __future__ import annotations
+
+from typing import Any
+
+import gymnasium as gym
+import numpy as np
+from fedhpg.envs.base import BatchStep
+
+
+class GymVectorBatchEnv:
+    """B copies of a registered gymnasium env, stepped as one vector env.
+
+    Uses the env's own numpy-vectorised implementation when it has one (CartPole does) and
+    ``SyncVectorEnv`` otherwise. Copies whose episode ended are auto-reset by gymnasium; the
+    sampler masks those steps, so no bookkeeping is needed here.
+    """
+
+    def __init__(
+        self,
+        env_id: str,
+        num_envs: int,
+        *,
+        env_kwargs: dict[str, Any] | None = None,
+        attributes: dict[str, Any] | None = None,
+    ) -> None:
+        if num_envs < 1:
+            raise ValueError(f"num_envs must be >= 1, got {num_envs}")
+        kwargs = dict(env_kwargs or {})
+        spec = gym.spec(env_id)
+        mode = "vector_entry_point" if spec.vector_entry_point is not None else "sync"
+        self._env = gym.make_vec(env_id, num_envs=num_envs, vectorization_mode=mode, **kwargs)
+        for name, value in (attributes or {}).items():
+            self._set_attribute(name, value)
+        self.num_envs = num_envs
+        self.single_observation_space = self._env.single_observation_space
+        self.single_action_space = self._env.single_action_space
+
+    def _set_attribute(self, name: str, value: Any) -> None:
+        """Set a physics attribute on every copy (vector-native envs hold it once)."""
+        base = self._env.unwrapped
+        if isinstance(base, gym.vector.SyncVectorEnv):
+            for env in base.envs:
+                setattr(env.unwrapped, name, value)
+        else:
+            setattr(base, name, value)
+
+    def reset(self, *, seed: int) -> np.ndarray:
+        obs, _ = self._env.reset(seed=seed)
+        return obs
+
+    def step(self, actions: np.ndarray) -> BatchStep:
+        obs, reward, terminated, truncated, info = self._env.step(actions)
+        success = np.asarray(
+            info.get("is_success", np.zeros(self.num_envs, dtype=bool)), dtype=bool
+        )
+        return BatchStep(
+            obs=obs,
+            reward=np.asarray(reward, dtype=np.float64),
+            terminated=np.asarray(terminated, dtype=bool),
+            truncated=np.asarray(truncated, dtype=bool),
+            success=success,
+        )
+
+    def close(self) -> None:
+        self._env.close()

@@ -1,0 +1,120 @@
+"""Per-round checkpoints: msgpack with raw array bytes and a checksum; atomic writes; no pickle."""
+
+from __future__ import annotations
+
+import hashlib
+import logging
+import os
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import msgpack
+import numpy as np
+import torch
+
+logger = logging.getLogger(__name__)
+
+CHECKPOINT_FORMAT = "fedhpg-checkpoint"
+CHECKPOINT_VERSION = 1
+KEEP_CHECKPOINTS = 2
+
+
+class CheckpointError(ValueError):
+    """A checkpoint file is missing, torn, corrupt or of another format."""
+
+
+@dataclass(frozen=True, kw_only=True)
+class Checkpoint:
+    round: int
+    theta: torch.Tensor
+    config: dict[str, Any]
+    metrics_lines: int
+    state: dict[str, Any]
+
+
+def checkpoint_path(directory: Path, round_number: int) -> Path:
+    return directory / f"round-{round_number:06d}.ckpt"
+
+
+def _payload(checkpoint: Checkpoint) -> bytes:
+    theta = checkpoint.theta.detach().cpu().numpy()
+    return msgpack.packb(
+        {
+            "format": CHECKPOINT_FORMAT,
+            "version": CHECKPOINT_VERSION,
+            "round": checkpoint.round,
+            "theta": {
+                "dtype": theta.dtype.str,
+                "shape": list(theta.shape),
+                "data": theta.tobytes(),
+            },
+            "config": checkpoint.config,
+            "metrics_lines": checkpoint.metrics_lines,
+            "state": checkpoint.state,
+        },
+        use_bin_type=True,
+    )
+
+
+def write_atomic(path: Path, data: bytes) -> None:
+    """Write to a temporary file, fsync, then rename over ``path``: readers see old or new."""
+    tmp = path.with_name(f".{path.name}.tmp")
+    with tmp.open("wb") as handle:
+        handle.write(data)
+        handle.flush()
+        os.fsync(handle.fileno())
+    os.replace(tmp, path)
+    directory = os.open(path.parent, os.O_RDONLY)
+    try:
+        os.fsync(directory)
+    finally:
+        os.close(directory)
+
+
+def save_checkpoint(directory: Path, checkpoint: Checkpoint) -> Path:
+    """Write this round's checkpoint atomically and prune all but the newest few."""
+    directory.mkdir(parents=True, exist_ok=True)
+    body = _payload(checkpoint)
+    path = checkpoint_path(directory, checkpoint.round)
+    write_atomic(path, hashlib.sha256(body).digest() + body)
+    for old in sorted(directory.glob("round-*.ckpt"))[:-KEEP_CHECKPOINTS]:
+        old.unlink(missing_ok=True)
+    return path
+
+
+def load_checkpoint(path: Path) -> Checkpoint:
+    try:
+        raw = path.read_bytes()
+    except OSError as error:
+        raise CheckpointError(f"{path}: cannot read ({error.strerror})") from None
+    digest, body = raw[:32], raw[32:]
+    if len(raw) < 32 or hashlib.sha256(body).digest() != digest:
+        raise CheckpointError(f"{path}: checksum mismatch (torn or corrupt file)")
+    try:
+        values = msgpack.unpackb(body, raw=False, strict_map_key=True)
+        if values.get("format") != CHECKPOINT_FORMAT or values.get("version") != CHECKPOINT_VERSION:
+            raise CheckpointError(f"{path}: not a {CHECKPOINT_FORMAT} v{CHECKPOINT_VERSION} file")
+        array = values["theta"]
+        theta = np.frombuffer(array["data"], dtype=np.dtype(array["dtype"])).reshape(array["shape"])
+        return Checkpoint(
+            round=int(values["round"]),
+            theta=torch.from_numpy(theta.copy()),
+            config=values["config"],
+            metrics_lines=int(values["metrics_lines"]),
+            state=values.get("state", {}),
+        )
+    except (KeyError, TypeError, ValueError, msgpack.UnpackException) as error:
+        if isinstance(error, CheckpointError):
+            raise
+        raise CheckpointError(f"{path}: malformed checkpoint ({error})") from None
+
+
+def latest_valid_checkpoint(directory: Path) -> Checkpoint | None:
+    """The newest checkpoint that loads; corrupt newer ones are reported and skipped."""
+    for path in sorted(directory.glob("round-*.ckpt"), reverse=True):
+        try:
+            return load_checkpoint(path)
+        except CheckpointError as error:
+            logger.warning("skipping checkpoint: %s", error)
+    return None

@@ -1,0 +1,135 @@
+"""The round loop of Algorithms 1 and 2, independent of how agents are reached.
+
+The coordinator broadcasts θ̃, collects the K local results through an :class:`AgentPool`
+(in-process workers, or agent processes over ZeroMQ), aggregates them in agent order, records
+metrics, checkpoints, and evaluates the unified policy every E rounds.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from typing import Any, Protocol
+
+import torch
+from fedhpg.common.aggregation import AgentResult, aggregate
+from fedhpg.common.config import RunConfig
+
+logger = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True, kw_only=True)
+class AgentUpdate:
+    """One agent's answer to a train request."""
+
+    agent_index: int
+    agent_id: str
+    theta: torch.Tensor
+    stats: dict[str, Any]
+
+
+class AgentPool(Protocol):
+    """How the coordinator reaches its K agents."""
+
+    @property
+    def agent_ids(self) -> list[str]: ...
+
+    @property
+    def round_failures(self) -> dict[str, str]:
+        """Agents whose update of the last round was rejected, with the reason."""
+        ...
+
+    def train(self, round_index: int, theta: torch.Tensor) -> list[AgentUpdate]:
+        """Every agent's local update of ``round_index`` starting from θ̃."""
+        ...
+
+    def evaluate(self, round_index: int, theta: torch.Tensor, episodes: int) -> dict[str, dict]:
+        """Every agent's evaluation of θ̃, keyed by agent id."""
+        ...
+
+
+@dataclass
+class RoundRecord:
+    """What ``metrics.jsonl`` holds for one round."""
+
+    round: int
+    wall_time_s: float
+    round_time_s: float
+    agents: list[dict[str, Any]]
+    eval: dict[str, dict[str, Any]] | None = None
+    extra: dict[str, Any] = field(default_factory=dict)
+
+    def to_json(self) -> dict[str, Any]:
+        record: dict[str, Any] = {
+            "round": self.round,
+            "wall_time_s": self.wall_time_s,
+            "round_time_s": self.round_time_s,
+            "agents": self.agents,
+        }
+        if self.eval is not None:
+            record["eval"] = self.eval
+        record.update(self.extra)
+        return record
+
+
+RoundCallback = Callable[[RoundRecord, torch.Tensor], None]
+
+
+def should_evaluate(run: RunConfig, round_number: int) -> bool:
+    return round_number % run.eval.every == 0 or round_number == run.rounds
+
+
+class Coordinator:
+    """Drives ``run.rounds`` rounds; rounds are numbered from 1 as in the paper."""
+
+    def __init__(
+        self,
+        *,
+        run: RunConfig,
+        pool: AgentPool,
+        theta: torch.Tensor,
+        start_round: int = 1,
+        on_round: list[RoundCallback] | None = None,
+    ) -> None:
+        self.run = run
+        self.pool = pool
+        self.theta = theta
+        self.start_round = start_round
+        self.on_round = on_round or []
+
+    def run_rounds(self) -> torch.Tensor:
+        started = time.perf_counter()
+        for round_number in range(self.start_round, self.run.rounds + 1):
+            round_started = time.perf_counter()
+            updates = self.pool.train(round_number, self.theta)
+            self.theta = aggregate(
+                [
+                    AgentResult(
+                        agent_index=u.agent_index,
+                        theta=u.theta,
+                        trajectories=int(u.stats["trajectories"]),
+                    )
+                    for u in updates
+                ],
+                rule=self.run.algo.aggregation,
+            )
+            round_time = time.perf_counter() - round_started
+            evaluation = None
+            if should_evaluate(self.run, round_number):
+                evaluation = self.pool.evaluate(round_number, self.theta, self.run.eval.episodes)
+            record = RoundRecord(
+                round=round_number,
+                wall_time_s=time.perf_counter() - started,
+                round_time_s=round_time,
+                agents=[
+                    {"id": u.agent_id, "index": u.agent_index, **u.stats}
+                    for u in sorted(updates, key=lambda u: u.agent_index)
+                ],
+                eval=evaluation,
+                extra={"failures": self.pool.round_failures} if self.pool.round_failures else {},
+            )
+            for callback in self.on_round:
+                callback(record, self.theta)
+        return self.theta

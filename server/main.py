@@ -1,0 +1,166 @@
+"""``fedhpg-server``: bind, wait for the K agents, run the rounds, write the run directory."""
+
+from __future__ import annotations
+
+import json
+import logging
+import sys
+import time
+import uuid
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import torch
+import zmq
+from fedhpg.common.cli import run_entry
+from fedhpg.common.config import RunConfig, to_dict
+from fedhpg.common.progress import Progress
+from fedhpg.common.transport import bind_endpoint, configure_socket, max_message_bytes
+from fedhpg.common.worker import initial_theta
+from fedhpg.server.checkpoint import Checkpoint, save_checkpoint
+from fedhpg.server.coordinator import Coordinator, RoundRecord
+from fedhpg.server.inprocess import run_variants
+from fedhpg.server.metrics import MetricsWriter
+from fedhpg.server.report import evaluation_table
+from fedhpg.server.service import FederationError, ZmqAgentPool
+
+logger = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True, kw_only=True)
+class ServerResult:
+    theta: torch.Tensor
+    out_dir: Path
+    last_evaluation: dict[str, dict[str, Any]] | None
+
+
+def default_out_dir() -> Path:
+    return Path("runs") / time.strftime("%Y%m%d-%H%M%S")
+
+
+def _progress_callback(progress: Progress) -> Callable[[RoundRecord, torch.Tensor], None]:
+    def update(record: RoundRecord, _: torch.Tensor) -> None:
+        status = f"round {record.round_time_s:.2f}s"
+        if record.eval:
+            success = [e["success_rate"] for e in record.eval.values()]
+            returns = [e["return_mean"] for e in record.eval.values()]
+            mean_return = sum(returns) / len(returns)
+            status += f" | eval success min {min(success):.2f}, mean return {mean_return:.3f}"
+        progress.update(1, status)
+
+    return update
+
+
+def _checkpoint_callback(
+    run: RunConfig, directory: Path
+) -> Callable[[RoundRecord, torch.Tensor], None]:
+    settings = to_dict(run)
+
+    def save(record: RoundRecord, theta: torch.Tensor) -> None:
+        save_checkpoint(
+            directory,
+            Checkpoint(
+                round=record.round,
+                theta=theta,
+                config=settings,
+                metrics_lines=record.round,
+                state={},
+            ),
+        )
+
+    return save
+
+
+def serve(
+    run: RunConfig,
+    *,
+    out_dir: Path,
+    on_bound: Callable[[str], None] | None = None,
+    show_progress: bool = True,
+) -> ServerResult:
+    """Run one federation as its server; returns the final θ̃_T."""
+    out_dir.mkdir(parents=True, exist_ok=True)
+    (out_dir / "config.json").write_text(json.dumps(to_dict(run), indent=2))
+    variants = run_variants(run)
+    theta = initial_theta(variants[0], run)
+    context = zmq.Context()
+    socket = context.socket(zmq.ROUTER)
+    configure_socket(socket, run.server)
+    socket.setsockopt(zmq.ROUTER_MANDATORY, 1)
+    endpoint = bind_endpoint(run.server)
+    socket.bind(endpoint)
+    bound = socket.getsockopt_string(zmq.LAST_ENDPOINT)
+    logger.info("server listening on %s, waiting for %d agents", bound, run.agents.num_agents)
+    if on_bound is not None:
+        on_bound(bound)
+    pool = ZmqAgentPool(
+        socket=socket,
+        num_agents=run.agents.num_agents,
+        num_params=int(theta.numel()),
+        env_signature=variants[0].signature(),
+        run_settings=to_dict(run),
+        run_id=uuid.uuid4().hex[:12],
+        max_bytes=max_message_bytes(run.server),
+        round_timeout_s=run.server.round_timeout_s,
+    )
+    metrics = MetricsWriter(out_dir / "metrics.jsonl")
+    last_eval: dict[str, Any] = {}
+
+    def keep_eval(record: RoundRecord, _: torch.Tensor) -> None:
+        if record.eval:
+            last_eval["round"], last_eval["eval"] = record.round, record.eval
+
+    callbacks = [metrics, _checkpoint_callback(run, out_dir / "checkpoints"), keep_eval]
+    if show_progress:
+        callbacks.append(_progress_callback(Progress(run.rounds, "rounds")))
+    try:
+        pool.wait_for_agents(run.server.register_timeout_s)
+        coordinator = Coordinator(run=run, pool=pool, theta=theta, on_round=callbacks)
+        theta = coordinator.run_rounds()
+        pool.shutdown("run complete")
+    except BaseException:
+        pool.shutdown("server stopped")
+        raise
+    finally:
+        metrics.close()
+        socket.close(linger=200)
+        context.term()
+    params = {agent: variants[k].params for k, agent in enumerate(pool.agent_ids)}
+    summary = {
+        "rounds": run.rounds,
+        "final_eval_round": last_eval.get("round"),
+        "eval": last_eval.get("eval"),
+        "rejected_messages": pool.rejected,
+        "variants": params,
+    }
+    (out_dir / "summary.json").write_text(json.dumps(summary, indent=2, default=float))
+    if last_eval:
+        sys.stdout.write(
+            f"\nUnified policy after round {last_eval['round']} "
+            f"({run.eval.episodes} {'greedy' if run.eval.greedy else 'sampled'} episodes "
+            "per environment):\n"
+            + evaluation_table(last_eval["eval"], params)
+            + "\n"
+        )
+    sys.stdout.write(f"run directory: {out_dir.resolve()}\n")
+    sys.stdout.flush()
+    return ServerResult(theta=theta, out_dir=out_dir, last_evaluation=last_eval.get("eval"))
+
+
+def _main(run: RunConfig) -> int:
+    out_dir = Path(run.server.out_dir) if run.server.out_dir else default_out_dir()
+    try:
+        serve(run, out_dir=out_dir)
+    except FederationError as error:
+        logger.error("%s", error)
+        return 1
+    except zmq.ZMQError as error:
+        logger.error("cannot serve on %s: %s", bind_endpoint(run.server), error)
+        return 1
+    return 0
+
+
+def main() -> None:
+    sys.exit(run_entry(_main))

@@ -1,0 +1,32 @@
+"""Human-readable summaries of a run: the per-environment evaluation table."""
+
+from __future__ import annotations
+
+from typing import Any
+
+
+def evaluation_table(
+    evaluation: dict[str, dict[str, Any]], variants_params: dict[str, dict]
+) -> str:
+    """A fixed-width table: one row per agent environment, success rate and returns."""
+    header = (
+        f"{'environment':<12} {'success':>8} {'return':>8} {'disc.ret':>9} {'length':>7}  variant"
+    )
+    lines = [header, "-" * len(header)]
+    for agent, stats in evaluation.items():
+        params = ", ".join(
+            f"{key}={_short(value)}" for key, value in variants_params.get(agent, {}).items()
+        )
+        lines.append(
+            f"{agent:<12} {stats['success_rate']:>8.2f} {stats['return_mean']:>8.3f} "
+            f"{stats['discounted_return_mean']:>9.3f} {stats['length_mean']:>7.1f}  {params}"
+        )
+    return "\n".join(lines)
+
+
+def _short(value: Any) -> str:
+    if isinstance(value, float):
+        return f"{value:.3g}"
+    if isinstance(value, list | tuple) and len(value) > 4:
+        return f"[{len(value)} items]"
+    return str(value)
