@@ -39,7 +39,7 @@ def fedhpg_local_update(
 ) -> LocalResult:
     """Run τ_k = ``local_iters`` policy-gradient ascent steps from the server's θ."""
     set_flat_params(policy, theta)
-    optimizer = make_optimizer(policy, algo)
+    optimizer = make_optimizer(algo)
     tally = LocalTally()
     for iteration in range(local_iters):
         started = time.perf_counter()

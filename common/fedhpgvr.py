@@ -104,7 +104,7 @@ def fedhpgvr_local_update(
     if on_iteration is not None:
         on_iteration(0, compute_s, snapshot_batch.num_steps)
 
-    optimizer = make_optimizer(policy, algo)
+    optimizer = make_optimizer(algo)
     weight_sum = weight_count = clipped_total = 0.0
     weight_max = 0.0
     for step in range(inner_steps):

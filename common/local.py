@@ -46,24 +46,60 @@ def batch_gradient(
     return estimate_gradient(policy, obs, actions, coefficients)
 
 
-def make_optimizer(policy: Policy, algo: AlgoConfig) -> torch.optim.Optimizer:
+class PlainAscent:
+    """θ ← θ + η g: the paper's update (Algorithm 1 line 8, Algorithm 2 line 10)."""
+
+    def __init__(self, step_size: float) -> None:
+        self.step_size = step_size
+
+    def direction(self, gradient: torch.Tensor) -> torch.Tensor:
+        return self.step_size * gradient
+
+
+class AdamAscent:
+    """Adam on the flat parameter vector (ascent), state reset every round.
+
+    Written out rather than taken from ``torch.optim``: the first ``torch.optim`` step imports
+    torch's compiler stack (~1 s per process), and this keeps every operation explicit.
+    """
+
+    def __init__(
+        self, step_size: float, betas: tuple[float, float] = (0.9, 0.999), eps: float = 1e-8
+    ) -> None:
+        self.step_size, self.betas, self.eps = step_size, betas, eps
+        self.steps = 0
+        self.first: torch.Tensor | None = None
+        self.second: torch.Tensor | None = None
+
+    def direction(self, gradient: torch.Tensor) -> torch.Tensor:
+        beta1, beta2 = self.betas
+        if self.first is None or self.second is None:
+            self.first, self.second = torch.zeros_like(gradient), torch.zeros_like(gradient)
+        self.steps += 1
+        self.first = beta1 * self.first + (1 - beta1) * gradient
+        self.second = beta2 * self.second + (1 - beta2) * gradient * gradient
+        first_hat = self.first / (1 - beta1**self.steps)
+        second_hat = self.second / (1 - beta2**self.steps)
+        return self.step_size * first_hat / (second_hat.sqrt() + self.eps)
+
+
+Optimizer = PlainAscent | AdamAscent
+
+
+def make_optimizer(algo: AlgoConfig) -> Optimizer:
     """Gradient *ascent*: plain steps θ += η g (the paper) or Adam, fresh every round."""
     if algo.optimizer == "sgd":
-        return torch.optim.SGD(policy.parameters(), lr=algo.step_size, maximize=True)
+        return PlainAscent(algo.step_size)
     if algo.optimizer == "adam":
-        return torch.optim.Adam(policy.parameters(), lr=algo.step_size, maximize=True)
+        return AdamAscent(algo.step_size)
     raise ValueError(f"algo.optimizer must be 'sgd' or 'adam', got {algo.optimizer!r}")
 
 
-def apply_ascent(policy: Policy, optimizer: torch.optim.Optimizer, gradient: torch.Tensor) -> None:
-    """Load the flat ascent direction into ``.grad`` and take one optimizer step."""
-    offset = 0
-    for param in policy.parameters():
-        count = param.numel()
-        param.grad = gradient[offset : offset + count].view_as(param).to(param.dtype).clone()
-        offset += count
-    optimizer.step()
-    optimizer.zero_grad(set_to_none=True)
+def apply_ascent(policy: Policy, optimizer: Optimizer, gradient: torch.Tensor) -> None:
+    """One ascent step on the policy's flat parameter vector."""
+    theta = torch.nn.utils.parameters_to_vector(policy.parameters()).detach()
+    with torch.no_grad():
+        torch.nn.utils.vector_to_parameters(theta + optimizer.direction(gradient), policy.parameters())
 
 
 @dataclass(frozen=True, kw_only=True)
