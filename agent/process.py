@@ -15,6 +15,7 @@ from dataclasses import replace
 import numpy as np
 import torch
 import zmq
+
 from fedhpg.common.codec import ProtocolError
 from fedhpg.common.config import (
     ConfigError,

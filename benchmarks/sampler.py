@@ -12,9 +12,8 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from fedhpg.common.policies import Policy, make_policy
+from fedhpg.common.policies import Policy, PolicyConfig, make_policy
 from fedhpg.common.rollout import sample_trajectories
-from fedhpg.common.policies import PolicyConfig
 from fedhpg.envs.base import BatchEnv, EnvVariant
 from fedhpg.envs.registry import make_variants
 
@@ -95,4 +94,4 @@ def table(results: list[SamplerResult]) -> str:
 
 
 if __name__ == "__main__":
-    print(table(run()))  # noqa: T201
+    print(table(run()))

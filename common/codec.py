@@ -21,6 +21,7 @@ from typing import Any
 
 import msgpack
 import numpy as np
+
 from fedhpg.common.protocol import MSG_TYPE_OF, PAYLOAD_TYPES, PROTOCOL_VERSION, Message, MsgType
 
 MAX_HEADER_BYTES = 1 << 20

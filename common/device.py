@@ -14,6 +14,7 @@ import time
 from dataclasses import dataclass, field
 
 import numpy as np
+
 from fedhpg.common.config import AgentProfile, RunConfig
 
 

@@ -22,8 +22,9 @@ from __future__ import annotations
 from typing import Literal
 
 import torch
-from fedhpg.common.policies import Policy, flat_grad
 from torch.func import functional_call, jacrev
+
+from fedhpg.common.policies import Policy, flat_grad
 
 EstimatorName = Literal["reinforce", "gpomdp"]
 BaselineName = Literal["none", "mean"]

@@ -12,6 +12,7 @@ from __future__ import annotations
 import time
 
 import torch
+
 from fedhpg.common.config import AlgoConfig
 from fedhpg.common.estimators import clip_by_norm
 from fedhpg.common.local import (

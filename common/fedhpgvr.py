@@ -14,6 +14,7 @@ import copy
 import time
 
 import torch
+
 from fedhpg.common.config import AlgoConfig
 from fedhpg.common.estimators import clip_by_norm
 from fedhpg.common.importance import (

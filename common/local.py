@@ -8,6 +8,7 @@ from typing import Any
 
 import numpy as np
 import torch
+
 from fedhpg.common.config import AlgoConfig
 from fedhpg.common.estimators import estimate_gradient, estimator_coefficients
 from fedhpg.common.policies import Policy
@@ -99,7 +100,9 @@ def apply_ascent(policy: Policy, optimizer: Optimizer, gradient: torch.Tensor) -
     """One ascent step on the policy's flat parameter vector."""
     theta = torch.nn.utils.parameters_to_vector(policy.parameters()).detach()
     with torch.no_grad():
-        torch.nn.utils.vector_to_parameters(theta + optimizer.direction(gradient), policy.parameters())
+        torch.nn.utils.vector_to_parameters(
+            theta + optimizer.direction(gradient), policy.parameters()
+        )
 
 
 @dataclass(frozen=True, kw_only=True)

@@ -9,6 +9,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+
 from fedhpg.common.policies import Policy
 from fedhpg.envs.base import BatchEnv
 

@@ -5,6 +5,7 @@ from __future__ import annotations
 import logging
 
 import zmq
+
 from fedhpg.common.codec import ProtocolError, decode, encode
 from fedhpg.common.config import ServerConfig
 from fedhpg.common.protocol import Message

@@ -12,6 +12,7 @@ from typing import Any
 
 import numpy as np
 import torch
+
 from fedhpg.common.config import AgentProfile, RunConfig
 from fedhpg.common.fedhpg import fedhpg_local_update
 from fedhpg.common.fedhpgvr import fedhpgvr_local_update

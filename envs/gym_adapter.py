@@ -6,6 +6,7 @@ from typing import Any
 
 import gymnasium as gym
 import numpy as np
+
 from fedhpg.envs.base import BatchStep
 
 

@@ -6,6 +6,7 @@ from dataclasses import dataclass, field
 from typing import Any
 
 import gymnasium as gym
+
 from fedhpg.envs.base import BatchEnv, EnvVariant
 from fedhpg.envs.gym_adapter import GymVectorBatchEnv
 

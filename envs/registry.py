@@ -6,6 +6,7 @@ from collections.abc import Callable
 from typing import Any
 
 import numpy as np
+
 from fedhpg.envs.base import EnvVariant
 from fedhpg.envs.gym_variant import GymVariant
 

@@ -14,6 +14,7 @@ from dataclasses import dataclass, field
 from typing import Any, Protocol
 
 import torch
+
 from fedhpg.common.aggregation import AgentResult, aggregate
 from fedhpg.common.config import RunConfig
 

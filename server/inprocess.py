@@ -9,6 +9,7 @@ from __future__ import annotations
 from dataclasses import dataclass, replace
 
 import torch
+
 from fedhpg.common.config import RunConfig, agent_id_of, agent_profile
 from fedhpg.common.device import DeviceModel, device_for
 from fedhpg.common.worker import LocalWorker, initial_theta

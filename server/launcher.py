@@ -187,6 +187,7 @@ def _hydra_task(cfg: object) -> None:
 def main() -> None:
     """Validate the overrides first (one-line errors, exit 2), then let Hydra run the job(s)."""
     import hydra
+
     from fedhpg.common.cli import EXIT_USAGE, compose, register_schema
 
     args = sys.argv[1:]

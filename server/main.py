@@ -14,6 +14,7 @@ from typing import Any
 
 import torch
 import zmq
+
 from fedhpg.common.cli import run_entry
 from fedhpg.common.config import RunConfig, to_dict
 from fedhpg.common.progress import Progress
@@ -140,9 +141,7 @@ def serve(
         sys.stdout.write(
             f"\nUnified policy after round {last_eval['round']} "
             f"({run.eval.episodes} {'greedy' if run.eval.greedy else 'sampled'} episodes "
-            "per environment):\n"
-            + evaluation_table(last_eval["eval"], params)
-            + "\n"
+            "per environment):\n" + evaluation_table(last_eval["eval"], params) + "\n"
         )
     sys.stdout.write(f"run directory: {out_dir.resolve()}\n")
     sys.stdout.flush()

@@ -8,6 +8,7 @@ from pathlib import Path
 from typing import Any
 
 import torch
+
 from fedhpg.server.coordinator import RoundRecord
 
 METRICS_SCHEMA_VERSION = 1

@@ -18,6 +18,7 @@ from typing import Any
 import numpy as np
 import torch
 import zmq
+
 from fedhpg.common.codec import ProtocolError
 from fedhpg.common.protocol import (
     Error,

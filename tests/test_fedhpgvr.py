@@ -18,7 +18,7 @@ from fedhpg.envs.gym_adapter import GymVectorBatchEnv
 
 
 @pytest.fixture(scope="module")
-def cartpole_batch():  # noqa: ANN201
+def cartpole_batch():
     torch.manual_seed(0)
     policy = MLPCategoricalPolicy(obs_dim=4, num_actions=2, hidden=[16])
     env = GymVectorBatchEnv("CartPole-v1", 8)
@@ -31,7 +31,7 @@ def cartpole_batch():  # noqa: ANN201
     ("estimator", "mode"),
     [("reinforce", "trajectory"), ("gpomdp", "per_decision"), ("gpomdp", "trajectory")],
 )
-def test_at_the_snapshot_weights_are_one_and_v_is_mu(cartpole_batch, estimator, mode) -> None:  # noqa: ANN001
+def test_at_the_snapshot_weights_are_one_and_v_is_mu(cartpole_batch, estimator, mode) -> None:
     policy, batch = cartpole_batch
     snapshot = copy.deepcopy(policy)
     algo = AlgoConfig(name="fedhpgvr", estimator=estimator, iw_mode=mode)
@@ -44,7 +44,7 @@ def test_at_the_snapshot_weights_are_one_and_v_is_mu(cartpole_batch, estimator, 
     torch.testing.assert_close(v, mu, atol=1e-6, rtol=0)
 
 
-def test_weights_move_away_from_one_off_the_snapshot(cartpole_batch) -> None:  # noqa: ANN001
+def test_weights_move_away_from_one_off_the_snapshot(cartpole_batch) -> None:
     policy, batch = cartpole_batch
     snapshot = copy.deepcopy(policy)
     with torch.no_grad():
@@ -72,11 +72,13 @@ def test_clip_and_self_normalise() -> None:
     torch.testing.assert_close(per_step.mean(dim=-1), torch.ones(2, dtype=torch.float64))
 
 
-def test_self_normalised_correction_is_a_weighted_mean(cartpole_batch) -> None:  # noqa: ANN001
+def test_self_normalised_correction_is_a_weighted_mean(cartpole_batch) -> None:
     policy, batch = cartpole_batch
     algo = AlgoConfig(name="fedhpgvr", estimator="reinforce", iw_self_normalize=True)
     weights = torch.tensor([0.5, 1.5, 1.0, 2.0, 0.2, 0.3, 0.4, 2.1], dtype=torch.float64)
     scaled = batch_gradient(policy, batch, algo=algo, gamma=0.99, weights=self_normalise(weights))
     unnormalised = batch_gradient(policy, batch, algo=algo, gamma=0.99, weights=weights)
     # (1/b) Σ (b w_j / Σw) g_j = Σ w_j g_j / Σ w_j = (b / Σw) · (1/b) Σ w_j g_j
-    torch.testing.assert_close(scaled, unnormalised * (8 / weights.sum()).float(), atol=1e-5, rtol=1e-4)
+    torch.testing.assert_close(
+        scaled, unnormalised * (8 / weights.sum()).float(), atol=1e-5, rtol=1e-4
+    )

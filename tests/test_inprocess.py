@@ -17,8 +17,11 @@ def _cartpole_run(algo: str, seed: int = 0) -> RunConfig:
         env=EnvConfig(family="cartpole", level=0.5),
         algo=AlgoConfig(name=algo, step_size=0.01, optimizer="adam"),
         agents=AgentsConfig(
-            num_agents=3, batch_sizes=[4, 6, 8], local_iters=[1, 2, 1],
-            inner_steps=[2], mini_batch_sizes=[3],
+            num_agents=3,
+            batch_sizes=[4, 6, 8],
+            local_iters=[1, 2, 1],
+            inner_steps=[2],
+            mini_batch_sizes=[3],
         ),
         eval=EvalConfig(every=3, episodes=4),
     )
@@ -41,7 +44,9 @@ def test_records_count_the_work() -> None:
     assert trajectories == [4 * 1, 6 * 2, 8 * 1], "B_k × τ_k trajectories per round"
     assert all(a["env_steps"] >= a["trajectories"] for a in records[0].agents)
     assert records[-1].eval is not None and set(records[-1].eval) == {
-        "agent-0", "agent-1", "agent-2"
+        "agent-0",
+        "agent-1",
+        "agent-2",
     }
     vr_records: list[RoundRecord] = []
     run_in_process(_cartpole_run("fedhpgvr"), on_round=[lambda r, _: vr_records.append(r)])

@@ -62,8 +62,10 @@ def test_steps_after_episode_end_neither_count_nor_leak(truncate: bool) -> None:
 
 def test_horizon_cuts_episodes() -> None:
     batch = sample_trajectories(
-        CountdownEnv(4), TabularSoftmaxPolicy(num_states=4, num_actions=2),
-        np.random.default_rng(0), horizon=2,
+        CountdownEnv(4),
+        TabularSoftmaxPolicy(num_states=4, num_actions=2),
+        np.random.default_rng(0),
+        horizon=2,
     )
     np.testing.assert_array_equal(batch.lengths, [1, 2, 2, 2])
     assert batch.num_steps == 7
@@ -72,8 +74,10 @@ def test_horizon_cuts_episodes() -> None:
 
 def test_discounted_returns() -> None:
     batch = sample_trajectories(
-        CountdownEnv(3), TabularSoftmaxPolicy(num_states=4, num_actions=2),
-        np.random.default_rng(0), horizon=5,
+        CountdownEnv(3),
+        TabularSoftmaxPolicy(num_states=4, num_actions=2),
+        np.random.default_rng(0),
+        horizon=5,
     )
     np.testing.assert_allclose(batch.returns(0.5), [1.0, 1.5, 1.75])
 
@@ -84,10 +88,10 @@ def test_one_batched_policy_call_per_time_step() -> None:
     calls: list[int] = []
     original = policy.sampler
 
-    def counting_sampler():  # noqa: ANN202
+    def counting_sampler():
         act = original()
 
-        def sample(obs, rng, greedy):  # noqa: ANN001, ANN202
+        def sample(obs, rng, greedy):
             calls.append(obs.shape[0])
             return act(obs, rng, greedy)
 
@@ -128,6 +132,8 @@ def test_same_seed_same_batch() -> None:
 def test_bad_horizon_is_named() -> None:
     with pytest.raises(ValueError, match="horizon must be >= 1, got 0"):
         sample_trajectories(
-            CountdownEnv(2), TabularSoftmaxPolicy(num_states=4, num_actions=2),
-            np.random.default_rng(0), horizon=0,
+            CountdownEnv(2),
+            TabularSoftmaxPolicy(num_states=4, num_actions=2),
+            np.random.default_rng(0),
+            horizon=0,
         )
