@@ -22,7 +22,7 @@ from __future__ import annotations
 from typing import Literal
 
 import torch
-from torch.func import functional_call, jacrev
+from torch.func import functional_call, grad, vmap
 
 from fedhpg.common.policies import Policy, flat_grad
 
@@ -117,16 +117,20 @@ def estimate_gradient(
 def per_trajectory_gradients(
     policy: Policy, obs: torch.Tensor, actions: torch.Tensor, coefficients: torch.Tensor
 ) -> torch.Tensor:
-    """Every g(τ_b) as rows of a [B, d] matrix (vectorised Jacobian; for tests and diagnostics)."""
+    """Every g(τ_b) as rows of a [B, d] matrix (per-trajectory gradients via ``vmap``; for
+    tests and diagnostics)."""
     params = {name: p.detach() for name, p in policy.named_parameters()}
-    coefficients = coefficients.detach()
 
-    def per_trajectory_surrogate(p: dict[str, torch.Tensor]) -> torch.Tensor:
-        log_probs = functional_call(policy, p, (obs, actions))  # [T, B]
-        return (coefficients.to(log_probs.dtype) * log_probs).sum(dim=0)  # [B]
+    def surrogate(
+        p: dict[str, torch.Tensor], obs_b: torch.Tensor, act_b: torch.Tensor, coef_b: torch.Tensor
+    ) -> torch.Tensor:
+        log_probs = functional_call(policy, p, (obs_b, act_b))  # [T]
+        return (coef_b.to(log_probs.dtype) * log_probs).sum()
 
-    jacobian = jacrev(per_trajectory_surrogate)(params)
-    return torch.cat([jacobian[name].reshape(coefficients.shape[1], -1) for name in params], dim=1)
+    grads = vmap(grad(surrogate), in_dims=(None, 1, 1, 1))(
+        params, obs, actions, coefficients.detach()
+    )
+    return torch.cat([grads[name].reshape(coefficients.shape[1], -1) for name in params], dim=1)
 
 
 def clip_by_norm(gradient: torch.Tensor, max_norm: float | None) -> tuple[torch.Tensor, bool]:
