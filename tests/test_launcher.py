@@ -1,0 +1,61 @@
+"""fedhpg-run supervises its processes: a crashed child stops the federation with a non-zero
+status, Ctrl-C stops it too, and no process is left behind either way."""
+
+from __future__ import annotations
+
+import os
+import signal
+from pathlib import Path
+
+from procs import alive, child_pids, processes, start, wait_until
+
+LONG_RUN = [
+    "rounds=1000",
+    "agents.num_agents=3",
+    "agents.batch_sizes=[4]",
+    "agents.local_iters=[1]",
+    "agents.speeds=[1]",
+    "agents.step_delays_s=[0.002]",
+]
+
+
+def _running_federation(started: list, tmp_path: Path):
+    launcher = start(
+        started,
+        "fedhpg-run",
+        [*LONG_RUN, f"server.out_dir={tmp_path / 'run'}", f"hydra.run.dir={tmp_path / 'hydra'}"],
+        cwd=tmp_path,
+    )
+    metrics = tmp_path / "run" / "metrics.jsonl"
+    assert wait_until(lambda: metrics.exists() and metrics.read_text().strip(), 60)
+    children = child_pids(launcher.pid)
+    assert len(children) == 4, children  # the server and three agents
+    return launcher, children
+
+
+def test_a_crashed_agent_stops_the_federation(tmp_path: Path) -> None:
+    with processes() as started:
+        launcher, children = _running_federation(started, tmp_path)
+        os.kill(max(children), signal.SIGKILL)  # the last agent forked
+        launcher.wait(timeout=30)
+        stderr = launcher.stderr.read() + launcher.stdout.read()
+    assert launcher.returncode == 1
+    assert "exited with status -9" in stderr
+    assert wait_until(lambda: not any(alive(pid) for pid in children), 10)
+
+
+def test_ctrl_c_leaves_no_process_behind(tmp_path: Path) -> None:
+    with processes() as started:
+        launcher, children = _running_federation(started, tmp_path)
+        launcher.send_signal(signal.SIGINT)
+        launcher.wait(timeout=30)
+    assert launcher.returncode == 130
+    assert wait_until(lambda: not any(alive(pid) for pid in children), 10)
+
+
+def test_children_die_with_a_killed_launcher(tmp_path: Path) -> None:
+    with processes() as started:
+        launcher, children = _running_federation(started, tmp_path)
+        launcher.kill()
+        launcher.wait(timeout=30)
+    assert wait_until(lambda: not any(alive(pid) for pid in children), 10)
