@@ -18,6 +18,9 @@ from fedhpg.envs.base import BatchEnv, EnvVariant
 from fedhpg.envs.registry import make_variants
 
 
+REPEATS = 7
+
+
 @dataclass(frozen=True)
 class SamplerResult:
     name: str
@@ -64,10 +67,13 @@ def measure(variant: EnvVariant, num_envs: int, *, seconds: float = 3.0) -> Samp
     horizon = variant.max_episode_steps
     rng = np.random.default_rng(0)
     _sampler_loop(env, policy, horizon, 0.3, rng)  # warm-up
-    bare = _bare_loop(env, horizon, seconds, rng)
-    ours = _sampler_loop(env, policy, horizon, seconds, rng)
+    # Interleaved slices, so a change in machine load hits both loops alike.
+    bare, ours = [], []
+    for _ in range(REPEATS):
+        bare.append(_bare_loop(env, horizon, seconds / REPEATS, rng))
+        ours.append(_sampler_loop(env, policy, horizon, seconds / REPEATS, rng))
     env.close()
-    return SamplerResult(variant.family, num_envs, ours, bare)
+    return SamplerResult(variant.family, num_envs, float(np.median(ours)), float(np.median(bare)))
 
 
 def run(seconds: float = 3.0) -> list[SamplerResult]:

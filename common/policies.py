@@ -6,8 +6,9 @@ Every policy offers two paths:
   estimators differentiate it once per batch of trajectories.
 - :meth:`Policy.sampler` — a fast, gradient-free action sampler for the rollout loop, drawing
   all randomness from a numpy ``Generator`` so a run is reproducible across processes.
-  The sampler is built once per batch (θ is fixed while a batch is collected) and makes at
-  most one batched forward per time step for all B environments.
+  The sampler is built once per batch (θ is fixed while a batch is collected) and makes one
+  batched forward per time step for all B environments, in numpy: at these sizes (B ≤ a few
+  hundred, small MLPs) torch's per-call overhead would dominate the rollout loop.
 """
 
 from __future__ import annotations
@@ -23,8 +24,20 @@ import numpy as np
 import torch
 from torch import nn
 
-ActionSampler = Callable[[np.ndarray, np.random.Generator, bool], tuple[np.ndarray, np.ndarray]]
-"""(observations [B, ...], rng, greedy) -> (actions [B, ...], log π(a|s) [B]; zeros if greedy)"""
+
+@dataclass(frozen=True)
+class ActionSampler:
+    """Numpy functions bound to one snapshot of θ.
+
+    ``act(obs [B, ...], rng, greedy) -> actions [B, ...]`` is called once per time step;
+    ``log_prob(obs [N, ...], actions [N, ...]) -> [N]`` once per batch, on all its steps.
+    """
+
+    act: Callable[[np.ndarray, np.random.Generator, bool], np.ndarray]
+    log_prob: Callable[[np.ndarray, np.ndarray], np.ndarray]
+
+    def __call__(self, obs: np.ndarray, rng: np.random.Generator, greedy: bool) -> np.ndarray:
+        return self.act(obs, rng, greedy)
 
 
 class Policy(nn.Module, abc.ABC):
@@ -46,11 +59,35 @@ class Policy(nn.Module, abc.ABC):
         return sum(p.numel() for p in self.parameters())
 
 
-def _inverse_cdf_sample(probs: np.ndarray, uniforms: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Categorical draws by inverting the CDF (one uniform per row), with their log-probs."""
-    cdf = np.cumsum(probs, axis=-1)
-    actions = np.minimum((uniforms[:, None] > cdf).sum(axis=-1), probs.shape[-1] - 1)
-    return actions, np.log(probs[np.arange(actions.shape[0]), actions])
+def _draw(cumulative: np.ndarray, uniforms: np.ndarray) -> np.ndarray:
+    """Categorical draws by inverting each row's (unnormalised) CDF with one uniform.
+
+    The last column is left out of the comparison, so rounding can never yield an action
+    beyond the last one."""
+    thresholds = uniforms * cumulative[:, -1]
+    return (thresholds[:, None] > cumulative[:, :-1]).sum(axis=-1)
+
+
+def _numpy_layers(net: nn.Sequential) -> list[tuple[np.ndarray, np.ndarray]]:
+    """(Wᵀ, b) of each Linear layer as float32 numpy arrays (a snapshot of θ)."""
+    return [
+        (m.weight.detach().numpy().T.copy(), m.bias.detach().numpy().copy())
+        for m in net
+        if isinstance(m, nn.Linear)
+    ]
+
+
+def _numpy_forward(layers: list[tuple[np.ndarray, np.ndarray]], x: np.ndarray) -> np.ndarray:
+    """The tanh MLP of :func:`_mlp` in numpy (in place after each matmul: fewer allocations)."""
+    x = np.asarray(x, dtype=np.float32)
+    for weight, bias in layers[:-1]:
+        x = x @ weight
+        x += bias
+        np.tanh(x, out=x)
+    weight, bias = layers[-1]
+    x = x @ weight
+    x += bias
+    return x
 
 
 class TabularSoftmaxPolicy(Policy):
@@ -71,18 +108,16 @@ class TabularSoftmaxPolicy(Policy):
         cdf = np.cumsum(probs, axis=-1)
         log_probs = np.log(probs)
         greedy_actions = probs.argmax(axis=-1)
-        last = probs.shape[-1] - 1
 
-        def sample(
-            obs: np.ndarray, rng: np.random.Generator, greedy: bool
-        ) -> tuple[np.ndarray, np.ndarray]:
+        def sample(obs: np.ndarray, rng: np.random.Generator, greedy: bool) -> np.ndarray:
             if greedy:
-                return greedy_actions[obs], np.zeros(obs.shape[0])
-            uniforms = rng.random(obs.shape[0])
-            actions = np.minimum((uniforms[:, None] > cdf[obs]).sum(axis=-1), last)
-            return actions, log_probs[obs, actions]
+                return greedy_actions[obs]
+            return _draw(cdf[obs], rng.random(obs.shape[0]))
 
-        return sample
+        def log_prob(obs: np.ndarray, actions: np.ndarray) -> np.ndarray:
+            return log_probs[obs, actions]
+
+        return ActionSampler(sample, log_prob)
 
 
 def _mlp(sizes: Sequence[int], activation: type[nn.Module] = nn.Tanh) -> nn.Sequential:
@@ -109,17 +144,22 @@ class MLPCategoricalPolicy(Policy):
         return log_pi.gather(-1, act.long().unsqueeze(-1)).squeeze(-1)
 
     def sampler(self) -> ActionSampler:
-        def sample(
-            obs: np.ndarray, rng: np.random.Generator, greedy: bool
-        ) -> tuple[np.ndarray, np.ndarray]:
-            with torch.no_grad():
-                logits = self.net(torch.as_tensor(obs, dtype=torch.float32))
-            if greedy:
-                return logits.argmax(dim=-1).numpy(), np.zeros(obs.shape[0])
-            probs = torch.softmax(logits.double(), dim=-1).numpy()
-            return _inverse_cdf_sample(probs, rng.random(obs.shape[0]))
+        layers = _numpy_layers(self.net)
 
-        return sample
+        def sample(obs: np.ndarray, rng: np.random.Generator, greedy: bool) -> np.ndarray:
+            logits = _numpy_forward(layers, obs)
+            if greedy:
+                return logits.argmax(axis=-1)
+            weights = np.exp(logits - logits.max(axis=-1, keepdims=True))
+            return _draw(np.cumsum(weights, axis=-1), rng.random(obs.shape[0]))
+
+        def log_prob(obs: np.ndarray, actions: np.ndarray) -> np.ndarray:
+            logits = _numpy_forward(layers, obs).astype(np.float64)
+            shifted = logits - logits.max(axis=-1, keepdims=True)
+            log_norm = np.log(np.exp(shifted).sum(axis=-1))
+            return np.take_along_axis(shifted, actions[..., None], axis=-1)[..., 0] - log_norm
+
+        return ActionSampler(sample, log_prob)
 
 
 LogStdMode = Literal["state_independent", "state_dependent"]
@@ -177,20 +217,37 @@ class GaussianMLPPolicy(Policy):
         return per_dim.sum(dim=-1)
 
     def sampler(self) -> ActionSampler:
-        def sample(
-            obs: np.ndarray, rng: np.random.Generator, greedy: bool
-        ) -> tuple[np.ndarray, np.ndarray]:
-            with torch.no_grad():
-                mean, log_std = self._mean_and_log_std(torch.as_tensor(obs, dtype=torch.float32))
-            mean_np, log_std_np = mean.numpy(), log_std.numpy().astype(np.float64)
-            if greedy:
-                return mean_np, np.zeros(obs.shape[0])
-            noise = rng.standard_normal(mean_np.shape)
-            actions = (mean_np + np.exp(log_std_np) * noise).astype(np.float32)
-            log_probs = (-0.5 * noise**2 - log_std_np - 0.5 * np.log(2.0 * np.pi)).sum(axis=-1)
-            return actions, log_probs
+        mean_layers = _numpy_layers(self.mean_net)
+        if self.mode == "state_independent":
+            fixed_std = np.exp(
+                self.log_std.detach().clamp(self.LOG_STD_MIN, self.LOG_STD_MAX).numpy()
+            )
+        else:
+            std_layers = _numpy_layers(self.log_std_net)
 
-        return sample
+        def sample(obs: np.ndarray, rng: np.random.Generator, greedy: bool) -> np.ndarray:
+            mean = _numpy_forward(mean_layers, obs)
+            if greedy:
+                return mean
+            if self.mode == "state_independent":
+                std = fixed_std
+            else:
+                log_std = _numpy_forward(std_layers, obs)
+                std = np.exp(np.clip(log_std, self.LOG_STD_MIN, self.LOG_STD_MAX))
+            noise = rng.standard_normal(mean.shape).astype(np.float32)
+            return mean + std * noise
+
+        def log_prob(obs: np.ndarray, actions: np.ndarray) -> np.ndarray:
+            mean = _numpy_forward(mean_layers, obs).astype(np.float64)
+            if self.mode == "state_independent":
+                log_std = np.log(fixed_std).astype(np.float64)
+            else:
+                raw = _numpy_forward(std_layers, obs).astype(np.float64)
+                log_std = np.clip(raw, self.LOG_STD_MIN, self.LOG_STD_MAX)
+            z = (actions - mean) / np.exp(log_std)
+            return (-0.5 * z**2 - log_std - 0.5 * np.log(2.0 * np.pi)).sum(axis=-1)
+
+        return ActionSampler(sample, log_prob)
 
 
 @dataclass(kw_only=True)

@@ -10,7 +10,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from fedhpg.common.policies import Policy
+from fedhpg.common.policies import ActionSampler, Policy
 from fedhpg.envs.base import BatchEnv
 
 
@@ -24,7 +24,7 @@ class TrajectoryBatch:
 
     obs: np.ndarray  # [T, B, *obs_shape]
     actions: np.ndarray  # [T, B, *act_shape]
-    log_probs: np.ndarray  # [T, B] float64, log π(a_t|s_t) of the sampling policy
+    log_probs: np.ndarray  # [T, B] float64, log π(a_t|s_t) of the sampling policy (0 if greedy)
     rewards: np.ndarray  # [T, B] float64
     alive: np.ndarray  # [T, B] bool
     success: np.ndarray  # [B] bool
@@ -67,36 +67,46 @@ def sample_trajectories(
     obs = env.reset(seed=int(rng.integers(2**63 - 1)))
     obs_buf = np.zeros((horizon, *obs.shape), dtype=obs.dtype)
     rewards = np.zeros((horizon, num_envs), dtype=np.float64)
-    log_probs = np.zeros((horizon, num_envs), dtype=np.float64)
     alive = np.zeros((horizon, num_envs), dtype=bool)
     success = np.zeros(num_envs, dtype=bool)
     running = np.ones(num_envs, dtype=bool)
+    ended = np.empty(num_envs, dtype=bool)
     act_buf: np.ndarray | None = None
 
     steps = 0
     while steps < horizon:
-        actions, logp = act(obs, rng, greedy)
+        actions = act(obs, rng, greedy)
         if act_buf is None:
             act_buf = np.zeros((horizon, *actions.shape), dtype=actions.dtype)
         obs_buf[steps] = obs
         act_buf[steps] = actions
-        log_probs[steps] = logp
         alive[steps] = running
         step = env.step(actions)
-        rewards[steps] = np.where(running, step.reward, 0.0)
+        np.multiply(step.reward, running, out=rewards[steps])
         success |= running & step.success
-        running = running & ~(step.terminated | step.truncated)
+        np.logical_or(step.terminated, step.truncated, out=ended)
+        running &= ~ended
         obs = step.obs
         steps += 1
         if not running.any():
             break
 
     assert act_buf is not None
+    obs_buf, act_buf, alive = obs_buf[:steps], act_buf[:steps], alive[:steps]
     return TrajectoryBatch(
-        obs=obs_buf[:steps],
-        actions=act_buf[:steps],
-        log_probs=np.where(alive[:steps], log_probs[:steps], 0.0),
+        obs=obs_buf,
+        actions=act_buf,
+        log_probs=np.zeros(alive.shape) if greedy else _log_probs(act, obs_buf, act_buf, alive),
         rewards=rewards[:steps],
-        alive=alive[:steps],
+        alive=alive,
         success=success,
     )
+
+
+def _log_probs(
+    sampler: ActionSampler, obs: np.ndarray, actions: np.ndarray, alive: np.ndarray
+) -> np.ndarray:
+    """log π(a_t|s_t) on the alive steps of the whole batch in one call (0 on dead steps)."""
+    values = np.zeros(alive.shape, dtype=np.float64)
+    values[alive] = sampler.log_prob(obs[alive], actions[alive])
+    return values

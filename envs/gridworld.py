@@ -223,7 +223,12 @@ class GridWorldBatchEnv:
         self.num_envs = num_envs
         self.single_observation_space = gym.spaces.Discrete(self.model.num_cells)
         self.single_action_space = gym.spaces.Discrete(4)
-        self._flat_next = self.model.next_state.reshape(-1)
+        # Slip lookup: one uniform u picks column j = #{bounds ≤ u}; j < 3 means a slip to
+        # direction (a + 1 + j) mod 4, j = 3 means no slip.
+        self._slip_bounds = np.array([self.slip / 3, 2 * self.slip / 3, self.slip])
+        directions = (np.arange(4)[:, None] + np.array([1, 2, 3, 0])[None, :]) % 4  # [a, j]
+        self._outcome = self.model.next_state[:, directions].reshape(-1)  # [(s·4 + a)·4 + j]
+        self._not_truncated = np.zeros(num_envs, dtype=bool)
         self._state = np.full(num_envs, self.model.start, dtype=np.int64)
         self._steps = 0
         self._rng = np.random.default_rng(0)
@@ -235,17 +240,11 @@ class GridWorldBatchEnv:
         return self._state.copy()
 
     def step(self, actions: np.ndarray) -> BatchStep:
-        directions = np.asarray(actions, dtype=np.int64)
-        if self.slip > 0.0:
-            uniforms = self._rng.random(self.num_envs)
-            slipped = uniforms < self.slip
-            # Given a slip, uniforms / slip is uniform on [0, 1): it picks one of 3 other moves.
-            other = (uniforms * (3.0 / self.slip)).astype(np.int64)
-            directions = np.where(slipped, (directions + 1 + other) % 4, directions)
-        self._state = self._flat_next[self._state * 4 + directions]
+        column = np.searchsorted(self._slip_bounds, self._rng.random(self.num_envs), side="right")
+        self._state = self._outcome[(self._state * 4 + actions) * 4 + column]
         self._steps += 1
         terminated = self.model.terminal[self._state]
-        truncated = np.full(self.num_envs, self._steps >= self.max_steps) & ~terminated
+        truncated = ~terminated if self._steps >= self.max_steps else self._not_truncated
         return BatchStep(
             obs=self._state,
             reward=self.model.reward[self._state],

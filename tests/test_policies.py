@@ -56,13 +56,12 @@ def test_tabular_sampler_frequencies_follow_policy() -> None:
     sample = policy.sampler()
     n = 200_000
     obs = np.repeat([0, 1], n // 2)
-    actions, log_probs = sample(obs, np.random.default_rng(0), False)
+    actions = sample(obs, np.random.default_rng(0), False)
     for state in (0, 1):
         freq = np.bincount(actions[obs == state], minlength=3) / (n // 2)
         stderr = np.sqrt(probs[state] * (1 - probs[state]) / (n // 2))
         assert np.all(np.abs(freq - probs[state]) < 4 * stderr)
-    np.testing.assert_allclose(log_probs, np.log(probs[obs, actions]))
-    greedy, _ = sample(np.array([0, 1]), np.random.default_rng(0), True)
+    greedy = sample(np.array([0, 1]), np.random.default_rng(0), True)
     np.testing.assert_array_equal(greedy, [2, 0])
 
 
@@ -70,12 +69,11 @@ def test_gaussian_sampler_moments() -> None:
     torch.manual_seed(0)
     policy = GaussianMLPPolicy(obs_dim=2, act_dim=1, hidden=[4], init_log_std=np.log(0.5))
     obs = np.zeros((100_000, 2), dtype=np.float32)
-    actions, log_probs = policy.sampler()(obs, np.random.default_rng(0), False)
+    actions = policy.sampler()(obs, np.random.default_rng(0), False)
     mean = policy._mean_and_log_std(torch.zeros(1, 2))[0].item()
     assert abs(actions.mean() - mean) < 4 * 0.5 / np.sqrt(len(obs))
-    assert abs(actions.std() - 0.5) < 0.01
-    recomputed = policy.log_prob(torch.from_numpy(obs[:10]), torch.from_numpy(actions[:10]))
-    np.testing.assert_allclose(log_probs[:10], recomputed.detach().numpy(), atol=1e-4)
+    # std of the sample std of n normals ≈ σ / sqrt(2n) = 0.0011: 0.005 is > 4 of those.
+    assert abs(actions.std() - 0.5) < 0.005
 
 
 def test_flat_params_round_trip_and_checks() -> None:

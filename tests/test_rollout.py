@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 import torch
 
-from fedhpg.common.policies import MLPCategoricalPolicy, TabularSoftmaxPolicy
+from fedhpg.common.policies import ActionSampler, MLPCategoricalPolicy, TabularSoftmaxPolicy
 from fedhpg.common.rollout import sample_trajectories
 from fedhpg.envs.base import BatchStep
 from fedhpg.envs.gym_adapter import GymVectorBatchEnv
@@ -88,14 +88,14 @@ def test_one_batched_policy_call_per_time_step() -> None:
     calls: list[int] = []
     original = policy.sampler
 
-    def counting_sampler():
-        act = original()
+    def counting_sampler() -> ActionSampler:
+        inner = original()
 
-        def sample(obs, rng, greedy):
+        def act(obs, rng, greedy):
             calls.append(obs.shape[0])
-            return act(obs, rng, greedy)
+            return inner.act(obs, rng, greedy)
 
-        return sample
+        return ActionSampler(act, inner.log_prob)
 
     policy.sampler = counting_sampler  # type: ignore[method-assign]
     batch = sample_trajectories(env, policy, np.random.default_rng(1), horizon=500)
