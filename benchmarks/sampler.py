@@ -17,7 +17,6 @@ from fedhpg.common.rollout import sample_trajectories
 from fedhpg.envs.base import BatchEnv, EnvVariant
 from fedhpg.envs.registry import make_variants
 
-
 REPEATS = 7
 
 

@@ -35,6 +35,7 @@ class GymVectorBatchEnv:
         for name, value in (attributes or {}).items():
             self._set_attribute(name, value)
         self.num_envs = num_envs
+        self._no_success = np.zeros(num_envs, dtype=bool)
         self.single_observation_space = self._env.single_observation_space
         self.single_action_space = self._env.single_action_space
 
@@ -53,15 +54,13 @@ class GymVectorBatchEnv:
 
     def step(self, actions: np.ndarray) -> BatchStep:
         obs, reward, terminated, truncated, info = self._env.step(actions)
-        success = np.asarray(
-            info.get("is_success", np.zeros(self.num_envs, dtype=bool)), dtype=bool
-        )
+        success = info.get("is_success")
         return BatchStep(
             obs=obs,
-            reward=np.asarray(reward, dtype=np.float64),
-            terminated=np.asarray(terminated, dtype=bool),
-            truncated=np.asarray(truncated, dtype=bool),
-            success=success,
+            reward=reward,
+            terminated=terminated,
+            truncated=truncated,
+            success=self._no_success if success is None else np.asarray(success, dtype=bool),
         )
 
     def close(self) -> None:
