@@ -257,15 +257,17 @@ class ZmqAgentPool:
                 f"(default ids: {', '.join(f'agent-{k}' for k in missing)})"
             ) from None
 
-    def _broadcast(self, make: Any) -> None:
+    def _broadcast(self, message: Message) -> None:
+        """Send one message to every registered agent (an unreachable one is logged, and the
+        round then waits for it until its timeout names it)."""
         for index in sorted(self.peers):
-            send_message(self.socket, make(), identity=self.peers[index].identity)
+            self._reply(self.peers[index].identity, message)
 
     def train(self, round_index: int, theta: torch.Tensor) -> list[AgentUpdate]:
         self._round = round_index
         self._updates, self._failures = {}, {}
         payload = theta.detach().numpy()
-        self._broadcast(lambda: Train(round=round_index, theta=payload))
+        self._broadcast(Train(round=round_index, theta=payload))
         self._serve_until(
             lambda: len(self._updates) + len(self._failures) == len(self.peers),
             time.monotonic() + self.round_timeout_s,
@@ -292,7 +294,7 @@ class ZmqAgentPool:
     def evaluate(self, round_index: int, theta: torch.Tensor, episodes: int) -> dict[str, dict]:
         self._evaluations = {}
         payload = theta.detach().numpy()
-        self._broadcast(lambda: Evaluate(round=round_index, theta=payload, episodes=episodes))
+        self._broadcast(Evaluate(round=round_index, theta=payload, episodes=episodes))
         self._serve_until(
             lambda: len(self._evaluations) == len(self.peers),
             time.monotonic() + self.round_timeout_s,

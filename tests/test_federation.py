@@ -53,9 +53,14 @@ def _run_federation(tmp_path: Path, overrides: list[str]) -> Path:
     return out_dir
 
 
-@pytest.mark.parametrize("algo", ["fedhpg", "fedhpgvr"])
-def test_distributed_theta_equals_in_process_bit_for_bit(tmp_path: Path, algo: str) -> None:
-    out_dir = _run_federation(tmp_path, _overrides(algo))
+@pytest.mark.parametrize(
+    ("algo", "transport"), [("fedhpg", "tcp"), ("fedhpgvr", "tcp"), ("fedhpg", "ipc")]
+)
+def test_distributed_theta_equals_in_process_bit_for_bit(
+    tmp_path: Path, algo: str, transport: str
+) -> None:
+    endpoint = [f"server.transport={transport}", f"server.ipc_path={tmp_path / 'fed.sock'}"]
+    out_dir = _run_federation(tmp_path, _overrides(algo) + endpoint)
     checkpoint = latest_valid_checkpoint(out_dir / "checkpoints")
     assert checkpoint is not None and checkpoint.round == ROUNDS
     expected = run_in_process(compose(_overrides(algo)))
