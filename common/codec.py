@@ -79,7 +79,9 @@ def encode(message: Message) -> list[Frame]:
     for spec in _field_specs(type(message)):
         value = getattr(message, spec.name)
         if spec.is_array:
-            array = np.ascontiguousarray(value)
+            array = np.asarray(value)
+            if not array.flags.c_contiguous:  # (ascontiguousarray would also turn 0-d into 1-d)
+                array = np.ascontiguousarray(array)
             arrays.append(
                 {"field": spec.name, "dtype": array.dtype.str, "shape": list(array.shape)}
             )
