@@ -34,6 +34,7 @@ def test_overrides_apply() -> None:
             "agents.batch_sizes=[4,6]",
             "agents.local_iters=[1]",
             "agents.speeds=[1]",
+            "agents.step_delays_s=[0]",
         ]
     )
     assert (run.rounds, run.agents.num_agents, run.agents.batch_sizes) == (3, 2, [4, 6])
