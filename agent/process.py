@@ -152,7 +152,7 @@ class AgentProcess:
         self.worker = LocalWorker(
             index=self.index, variant=self.variant, run=run, profile=self.profile
         )
-        logger.info(
+        logger.debug(
             "%s registered in run %s (env %s, B=%d, τ=%d, speed=%g)",
             self.agent_id,
             welcome.run_id,
@@ -206,7 +206,7 @@ class AgentProcess:
             elif isinstance(message, Evaluate):
                 self._send(self._evaluate(message))
             elif isinstance(message, Shutdown):
-                logger.info("%s: shutdown (%s)", self.agent_id, message.reason)
+                logger.debug("%s: shutdown (%s)", self.agent_id, message.reason)
                 return
             elif isinstance(message, Error):
                 logger.warning(

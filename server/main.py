@@ -16,7 +16,7 @@ import torch
 import zmq
 
 from fedhpg.common.cli import run_entry
-from fedhpg.common.config import RunConfig, to_dict
+from fedhpg.common.config import RunConfig, agent_profile, to_dict
 from fedhpg.common.progress import Progress
 from fedhpg.common.transport import bind_endpoint, configure_socket, max_message_bytes
 from fedhpg.common.worker import initial_theta
@@ -24,7 +24,7 @@ from fedhpg.server.checkpoint import Checkpoint, save_checkpoint
 from fedhpg.server.coordinator import Coordinator, RoundRecord
 from fedhpg.server.inprocess import run_variants
 from fedhpg.server.metrics import MetricsWriter
-from fedhpg.server.report import evaluation_table
+from fedhpg.server.report import compute_label, evaluation_table
 from fedhpg.server.service import FederationError, ZmqAgentPool
 
 logger = logging.getLogger(__name__)
@@ -128,7 +128,14 @@ def serve(
         metrics.close()
         socket.close(linger=200)
         context.term()
-    params = {agent: variants[k].params for k, agent in enumerate(pool.agent_ids)}
+    params = {
+        agent: {"gamma": variants[k].gamma, **variants[k].params}
+        for k, agent in enumerate(pool.agent_ids)
+    }
+    compute = {
+        agent: compute_label(agent_profile(run.agents, k), run.algo.name)
+        for k, agent in enumerate(pool.agent_ids)
+    }
     summary = {
         "rounds": run.rounds,
         "final_eval_round": last_eval.get("round"),
@@ -141,7 +148,7 @@ def serve(
         sys.stdout.write(
             f"\nUnified policy after round {last_eval['round']} "
             f"({run.eval.episodes} {'greedy' if run.eval.greedy else 'sampled'} episodes "
-            "per environment):\n" + evaluation_table(last_eval["eval"], params) + "\n"
+            "per environment):\n" + evaluation_table(last_eval["eval"], params, compute) + "\n"
         )
     sys.stdout.write(f"run directory: {out_dir.resolve()}\n")
     sys.stdout.flush()

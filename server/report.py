@@ -4,13 +4,21 @@ from __future__ import annotations
 
 from typing import Any
 
+from fedhpg.common.config import AgentProfile
+
 
 def evaluation_table(
-    evaluation: dict[str, dict[str, Any]], variants_params: dict[str, dict]
+    evaluation: dict[str, dict[str, Any]],
+    variants_params: dict[str, dict],
+    compute: dict[str, str] | None = None,
 ) -> str:
-    """A fixed-width table: one row per agent environment, success rate and returns."""
+    """A fixed-width table: one row per agent environment, success rate and returns, with
+    what makes that agent different (its environment variant and compute budget)."""
+    compute = compute or {}
+    width = max([len(c) for c in compute.values()] + [7])
     header = (
-        f"{'environment':<12} {'success':>8} {'return':>8} {'disc.ret':>9} {'length':>7}  variant"
+        f"{'environment':<12} {'success':>8} {'return':>8} {'disc.ret':>9} {'length':>7}  "
+        f"{'compute':<{width}}  environment variant"
     )
     lines = [header, "-" * len(header)]
     for agent, stats in evaluation.items():
@@ -19,9 +27,19 @@ def evaluation_table(
         )
         lines.append(
             f"{agent:<12} {stats['success_rate']:>8.2f} {stats['return_mean']:>8.3f} "
-            f"{stats['discounted_return_mean']:>9.3f} {stats['length_mean']:>7.1f}  {params}"
+            f"{stats['discounted_return_mean']:>9.3f} {stats['length_mean']:>7.1f}  "
+            f"{compute.get(agent, ''):<{width}}  {params}"
         )
     return "\n".join(lines)
+
+
+def compute_label(profile: AgentProfile, algo: str) -> str:
+    """'B=8 τ=2 speed=0.5' (FedHPG) or 'B=8 b=5 N=3 speed=0.5' (FedHPGVR)."""
+    if algo == "fedhpgvr":
+        budget = f"B={profile.batch_size} b={profile.mini_batch_size} N={profile.inner_steps}"
+    else:
+        budget = f"B={profile.batch_size} τ={profile.local_iters}"
+    return f"{budget} speed={profile.speed:g}"
 
 
 def _short(value: Any) -> str:

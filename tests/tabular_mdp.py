@@ -198,9 +198,7 @@ class TabularMDPBatchEnv:
     def step(self, actions: np.ndarray) -> BatchStep:
         actions = np.asarray(actions, dtype=np.int64)
         previous = self._state
-        self._state = _categorical(
-            self._cdf[previous, actions], self._rng.random(self.num_envs)
-        )
+        self._state = _categorical(self._cdf[previous, actions], self._rng.random(self.num_envs))
         self._steps += 1
         terminated = self._state == TERMINAL
         return BatchStep(
