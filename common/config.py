@@ -67,6 +67,10 @@ class AlgoConfig:
     """Clip each local gradient estimate to this norm (Assumption 3); None = off."""
     aggregation: str = "uniform"
     """'uniform' mean of the K vectors (the paper) or 'weighted' by trajectories used."""
+    server_optimizer: str = "none"
+    """'none': θ̃ = the average (the paper); 'adam': Adam on the average update (FedOpt)."""
+    server_step_size: float = 1e-3
+    """Step size of the server optimizer."""
     iw_mode: str = "auto"
     """FedHPGVR importance weights: 'trajectory', 'per_decision', or 'auto' (by estimator)."""
     iw_clip: list[float] | None = None
@@ -248,6 +252,8 @@ def validate(config: RunConfig) -> RunConfig:
     _check_choice(algo.baseline, "algo.baseline", BASELINES)
     _check_choice(algo.optimizer, "algo.optimizer", OPTIMIZERS)
     _check_choice(algo.aggregation, "algo.aggregation", AGGREGATIONS)
+    _check_choice(algo.server_optimizer, "algo.server_optimizer", ("none", "adam"))
+    _check_number(algo.server_step_size, "algo.server_step_size", low=0.0, low_open=True)
     _check_choice(algo.iw_mode, "algo.iw_mode", IW_MODES)
     _require(
         not (algo.iw_mode == "per_decision" and algo.estimator == "reinforce"),

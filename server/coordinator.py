@@ -16,7 +16,8 @@ from typing import Any, Protocol
 import torch
 
 from fedhpg.common.aggregation import AgentResult, aggregate
-from fedhpg.common.config import RunConfig
+from fedhpg.common.config import AlgoConfig, RunConfig
+from fedhpg.common.local import AdamAscent, Optimizer
 
 logger = logging.getLogger(__name__)
 
@@ -78,6 +79,18 @@ class RoundRecord:
 RoundCallback = Callable[[RoundRecord, torch.Tensor], None]
 
 
+def make_server_optimizer(algo: AlgoConfig) -> Optimizer | None:
+    """None: θ̃ is the plain average (the paper). 'adam': the average update θ̄ − θ̃ is a
+    pseudo-gradient for a server-side Adam (FedOpt), the set-up of FedPG-BR's experiments."""
+    if algo.server_optimizer == "none":
+        return None
+    if algo.server_optimizer == "adam":
+        return AdamAscent(algo.server_step_size)
+    raise ValueError(
+        f"algo.server_optimizer must be 'none' or 'adam', got {algo.server_optimizer!r}"
+    )
+
+
 def should_evaluate(run: RunConfig, round_number: int) -> bool:
     return round_number % run.eval.every == 0 or round_number == run.rounds
 
@@ -99,13 +112,14 @@ class Coordinator:
         self.theta = theta
         self.start_round = start_round
         self.on_round = on_round or []
+        self.server_optimizer = make_server_optimizer(run.algo)
 
     def run_rounds(self) -> torch.Tensor:
         started = time.perf_counter()
         for round_number in range(self.start_round, self.run.rounds + 1):
             round_started = time.perf_counter()
             updates = self.pool.train(round_number, self.theta)
-            self.theta = aggregate(
+            averaged = aggregate(
                 [
                     AgentResult(
                         agent_index=u.agent_index,
@@ -116,6 +130,10 @@ class Coordinator:
                 ],
                 rule=self.run.algo.aggregation,
             )
+            if self.server_optimizer is None:
+                self.theta = averaged  # Algorithm 1 line 9 / Algorithm 2 line 11
+            else:
+                self.theta = self.theta + self.server_optimizer.direction(averaged - self.theta)
             round_time = time.perf_counter() - round_started
             evaluation = None
             if should_evaluate(self.run, round_number):

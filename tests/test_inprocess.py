@@ -6,8 +6,9 @@ import pytest
 import torch
 
 from fedhpg.common.config import AgentsConfig, AlgoConfig, EnvConfig, EvalConfig, RunConfig
+from fedhpg.common.worker import initial_theta
 from fedhpg.server.coordinator import RoundRecord
-from fedhpg.server.inprocess import run_in_process
+from fedhpg.server.inprocess import run_in_process, run_variants
 
 
 def _cartpole_run(algo: str, seed: int = 0) -> RunConfig:
@@ -59,3 +60,18 @@ def test_unknown_env_family_is_named() -> None:
     run.env.family = "atari"
     with pytest.raises(ValueError, match="unknown environment family 'atari'; known: "):
         run_in_process(run)
+
+
+def test_server_adam_takes_sign_sized_first_steps() -> None:
+    """With algo.server_optimizer=adam the server treats θ̄ − θ̃ as a pseudo-gradient: Adam's
+    first step moves every coordinate with a non-zero update by ≈ the server step size."""
+    run = _cartpole_run("fedhpg")
+    run.rounds = 1
+    run.algo.optimizer = "sgd"
+    run.algo.step_size = 1.0
+    run.algo.server_optimizer = "adam"
+    run.algo.server_step_size = 0.01
+    start = initial_theta(run_variants(run)[0], run)
+    moved = (run_in_process(run) - start).abs()
+    assert torch.all(moved <= 0.01 + 1e-6)
+    assert (moved > 0.0099).float().mean() > 0.5
