@@ -1,9 +1,10 @@
 """Emulated device: how slow this agent's hardware is, and how that changes over time.
 
-Real compute runs at this machine's speed; the device model stretches it. A local iteration
-that took ``c`` seconds of real compute is made to take ``c / speed + steps × step_delay_s``
-(the env-step throttle), by sleeping the difference, unless the virtual clock is on, in which
-case the emulated time is only accounted. Speeds above 1 cannot be emulated by sleeping and are
+Compute runs at this machine's speed; the device model stretches it. A local iteration that
+took ``c`` seconds of compute (thread CPU time, so other processes competing for this machine
+do not count as the agent's work) is made to take ``c / speed + steps × step_delay_s`` (the
+env-step throttle) by sleeping the difference, unless the virtual clock is on, in which case
+the emulated time is only accounted. Speeds above 1 cannot be emulated by sleeping and are
 only accounted. Every message also pays ``latency_s`` of one-way network latency.
 """
 

@@ -43,12 +43,12 @@ def fedhpg_local_update(
     optimizer = make_optimizer(algo)
     tally = LocalTally()
     for iteration in range(local_iters):
-        started = time.perf_counter()
+        started = time.thread_time()
         batch = sample(batch_size)
         gradient = batch_gradient(policy, batch, algo=algo, gamma=gamma)
         gradient, clipped = clip_by_norm(gradient, algo.grad_clip)
         apply_ascent(policy, optimizer, gradient)
-        compute_s = time.perf_counter() - started
+        compute_s = time.thread_time() - started
         tally.add(batch, compute_s=compute_s, clipped=clipped)
         if on_iteration is not None:
             on_iteration(iteration, compute_s, batch.num_steps)

@@ -18,7 +18,7 @@ TrajectorySource = Callable[[int], TrajectoryBatch]
 """n -> n fresh trajectories sampled with the policy's current θ."""
 
 IterationHook = Callable[[int, float, int], None]
-"""(iteration, real compute seconds, env steps) -> None; called after every local iteration."""
+"""(iteration, compute seconds (thread CPU time), env steps) -> None; after every iteration."""
 
 
 def batch_tensors(batch: TrajectoryBatch) -> tuple[torch.Tensor, torch.Tensor]:
@@ -115,7 +115,8 @@ class LocalResult:
     train_return: float
     """Mean undiscounted return of the trajectories sampled this round."""
     compute_s: float
-    """Real compute time of the local update (sampling + estimation + steps)."""
+    """CPU time of the local update on this thread (sampling + estimation + steps): the
+    agent's own work, unaffected by other processes competing for the machine."""
     extra: dict[str, Any] = field(default_factory=dict)
 
 

@@ -2,11 +2,15 @@
 
 Heterogeneity across agents: obstacle layout (rewards), slip probability (dynamics) and
 discount factor; optionally the goal cell too. Spaces are identical across variants.
+
+The demo set of the default run (``conf/config.yaml``) is :func:`demo_variants`, that is
+``make_gridworld_variants(seed=0, num_agents=4, level=0.6)``.
 """
 
 from __future__ import annotations
 
-from collections import deque
+import itertools
+import logging
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from typing import Any
@@ -16,11 +20,14 @@ import numpy as np
 
 from fedhpg.envs.base import BatchEnv, BatchStep, EnvVariant
 
+logger = logging.getLogger(__name__)
+
 EMPTY, START, GOAL, OBSTACLE = ".", "S", "G", "X"
 CELL_KINDS = frozenset({EMPTY, START, GOAL, OBSTACLE})
 # Action a moves by MOVES[a] = (row delta, column delta): up, down, left, right.
 MOVES = np.array([[-1, 0], [1, 0], [0, -1], [0, 1]])
 ACTION_NAMES = ("up", "down", "left", "right")
+NUM_ACTIONS = 4
 GOAL_REWARD, OBSTACLE_REWARD = 1.0, -1.0
 DEFAULT_LAYOUT = (
     "S....",
@@ -30,6 +37,10 @@ DEFAULT_LAYOUT = (
     "....G",
 )
 ENV_ID = "fedhpg/GridWorld-v0"
+DEMO = {"seed": 0, "num_agents": 4, "level": 0.6}
+_GENERATOR_STREAM = 0x6121D
+
+Cell = tuple[int, int]
 
 
 @dataclass(frozen=True)
@@ -51,9 +62,11 @@ class GridModel:
 
 def parse_layout(layout: Sequence[str]) -> GridModel:
     """Check a layout and build its tables; ValueError naming what is wrong."""
+    if isinstance(layout, str):
+        raise ValueError(f"layout must be a sequence of row strings, got the string {layout!r}")
     rows = [str(row) for row in layout]
     if not rows or not rows[0]:
-        raise ValueError("layout must have at least one non-empty row")
+        raise ValueError(f"layout must have at least one non-empty row, got {rows!r}")
     width = len(rows[0])
     if any(len(row) != width for row in rows):
         raise ValueError(f"layout rows must have equal length, got {[len(r) for r in rows]}")
@@ -64,7 +77,7 @@ def parse_layout(layout: Sequence[str]) -> GridModel:
     if cells.count(START) != 1:
         raise ValueError(f"layout needs exactly one start 'S', got {cells.count(START)}")
     if GOAL not in cells:
-        raise ValueError("layout needs at least one goal 'G'")
+        raise ValueError(f"layout needs at least one goal 'G', got none in {rows!r}")
     height = len(rows)
     kinds = np.array(list(cells))
     rows_idx, cols_idx = np.divmod(np.arange(height * width), width)
@@ -89,7 +102,7 @@ def _check_slip(slip: float) -> None:
 
 
 def _check_max_steps(max_steps: int) -> None:
-    if int(max_steps) != max_steps or max_steps < 1:
+    if isinstance(max_steps, bool) or int(max_steps) != max_steps or max_steps < 1:
         raise ValueError(f"max_steps must be a positive integer, got {max_steps}")
 
 
@@ -117,8 +130,10 @@ class GridWorldEnv(gym.Env[np.int64, np.int64]):
     ``info["is_success"]`` is True when the episode ended in a goal.
 
     ## Arguments
-    ``layout`` (rows of ``. S G X``), ``slip`` in [0, 1), ``max_steps`` ≥ 1,
-    ``render_mode`` None or ``"ansi"``.
+    ``layout`` (rows of ``. S G X``: empty, start, goal, obstacle; one ``S``, at least one
+    ``G``), ``slip`` in [0, 1), ``max_steps`` ≥ 1, ``render_mode`` None or ``"ansi"``.
+    The exact model is available as :meth:`transition_probs`, :meth:`reward_table` and
+    :meth:`terminal_mask`, for dynamic programming.
     """
 
     metadata = {"render_modes": ["ansi"], "render_fps": 4}  # noqa: RUF012 - gymnasium's convention
@@ -135,13 +150,13 @@ class GridWorldEnv(gym.Env[np.int64, np.int64]):
         _check_max_steps(max_steps)
         if render_mode not in (None, "ansi"):
             raise ValueError(f"render_mode must be None or 'ansi', got {render_mode!r}")
+        self.model = parse_layout(layout)
         self.layout = tuple(layout)
-        self.model = parse_layout(self.layout)
         self.slip = float(slip)
         self.max_steps = int(max_steps)
         self.render_mode = render_mode
         self.observation_space = gym.spaces.Discrete(self.model.num_cells)
-        self.action_space = gym.spaces.Discrete(4)
+        self.action_space = gym.spaces.Discrete(NUM_ACTIONS)
         self._state = self.model.start
         self._steps = 0
 
@@ -157,7 +172,7 @@ class GridWorldEnv(gym.Env[np.int64, np.int64]):
             raise ValueError(f"action must be 0..3, got {action!r}")
         direction = int(action)
         if self.slip > 0.0 and self.np_random.random() < self.slip:
-            direction = (direction + 1 + int(self.np_random.integers(3))) % 4
+            direction = (direction + 1 + int(self.np_random.integers(3))) % NUM_ACTIONS
         self._state = int(self.model.next_state[self._state, direction])
         self._steps += 1
         terminated = bool(self.model.terminal[self._state])
@@ -182,54 +197,61 @@ class GridWorldEnv(gym.Env[np.int64, np.int64]):
         )
 
     def transition_probs(self) -> np.ndarray:
-        """P[s, a, s']: the exact dynamics; terminal cells absorb."""
-        return transition_probs(self.model, self.slip)
+        """P[s, a, s'] in float64: the exact dynamics, with terminal cells absorbing so that
+        value iteration needs no special case for them."""
+        return _transition_table(self.model, self.slip)
 
     def reward_table(self) -> np.ndarray:
-        """R[s']: reward for entering s'."""
+        """R[s']: the reward for entering s' (rewards depend only on the cell entered)."""
         return self.model.reward.copy()
 
     def terminal_mask(self) -> np.ndarray:
+        """bool[s]: cells whose entry ends the episode (goals and obstacles)."""
         return self.model.terminal.copy()
 
 
-def transition_probs(model: GridModel, slip: float) -> np.ndarray:
-    cells = model.num_cells
-    probs = np.zeros((cells, 4, cells))
-    for action in range(4):
-        for direction in range(4):
+def _transition_table(model: GridModel, slip: float) -> np.ndarray:
+    cells = np.arange(model.num_cells)
+    probs = np.zeros((model.num_cells, NUM_ACTIONS, model.num_cells))
+    for action in range(NUM_ACTIONS):
+        for direction in range(NUM_ACTIONS):
             weight = 1.0 - slip if direction == action else slip / 3.0
-            np.add.at(probs[:, action], (np.arange(cells), model.next_state[:, direction]), weight)
-    probs[model.terminal] = 0.0
-    for cell in np.flatnonzero(model.terminal):
-        probs[cell, :, cell] = 1.0
+            np.add.at(probs[:, action], (cells, model.next_state[:, direction]), weight)
+    terminal = np.flatnonzero(model.terminal)
+    probs[terminal] = 0.0
+    probs[terminal, :, terminal] = 1.0
     return probs
 
 
 class GridWorldBatchEnv:
     """B copies of one GridWorld, stepped with a few numpy operations per step (no Python loop
-    over copies). One uniform per copy and step decides both whether and where it slips."""
+    over copies), because the sampler spends most of its time here.
+
+    One uniform u per copy and step decides both whether and where it slips: column
+    j = #{bounds ≤ u} of ``bounds = (slip/3, 2·slip/3, slip)``; j < 3 slips to direction
+    (a + 1 + j) mod 4, j = 3 keeps the chosen direction. ``outcome[s, a, j]`` is precomputed.
+    Each step returns fresh arrays; ``obs`` is also the batch's state, so callers must not
+    write into it (copying it would cost more than the rest of the step's bookkeeping).
+    """
 
     def __init__(
         self, *, layout: Sequence[str], slip: float, max_steps: int, num_envs: int
     ) -> None:
         _check_slip(slip)
         _check_max_steps(max_steps)
-        if num_envs < 1:
-            raise ValueError(f"num_envs must be >= 1, got {num_envs}")
+        if isinstance(num_envs, bool) or int(num_envs) != num_envs or num_envs < 1:
+            raise ValueError(f"num_envs must be a positive integer, got {num_envs}")
         self.model = parse_layout(layout)
         self.slip = float(slip)
         self.max_steps = int(max_steps)
-        self.num_envs = num_envs
+        self.num_envs = int(num_envs)
         self.single_observation_space = gym.spaces.Discrete(self.model.num_cells)
-        self.single_action_space = gym.spaces.Discrete(4)
-        # Slip lookup: one uniform u picks column j = #{bounds ≤ u}; j < 3 means a slip to
-        # direction (a + 1 + j) mod 4, j = 3 means no slip.
+        self.single_action_space = gym.spaces.Discrete(NUM_ACTIONS)
         self._slip_bounds = np.array([self.slip / 3, 2 * self.slip / 3, self.slip])
-        directions = (np.arange(4)[:, None] + np.array([1, 2, 3, 0])[None, :]) % 4  # [a, j]
-        self._outcome = self.model.next_state[:, directions].reshape(-1)  # [(s·4 + a)·4 + j]
-        self._not_truncated = np.zeros(num_envs, dtype=bool)
-        self._state = np.full(num_envs, self.model.start, dtype=np.int64)
+        columns = np.array([1, 2, 3, 0])
+        directions = (np.arange(NUM_ACTIONS)[:, None] + columns[None, :]) % NUM_ACTIONS
+        self._outcome = self.model.next_state[:, directions]  # [s, a, j]
+        self._state = np.full(self.num_envs, self.model.start, dtype=np.int64)
         self._steps = 0
         self._rng = np.random.default_rng(0)
 
@@ -240,17 +262,40 @@ class GridWorldBatchEnv:
         return self._state.copy()
 
     def step(self, actions: np.ndarray) -> BatchStep:
+        """Copies that already ended keep moving; the sampler masks them (see BatchEnv).
+
+        Actions are checked (about 1 µs) because numpy would silently read a negative action as
+        another one, and an action of 4 as the next cell's action 0.
+        """
+        actions = np.asarray(actions)
+        if (
+            actions.shape != self._state.shape
+            or actions.dtype.kind not in "iu"
+            or np.count_nonzero(actions >> 2)
+        ):
+            raise ValueError(self._bad_actions(actions))
         column = np.searchsorted(self._slip_bounds, self._rng.random(self.num_envs), side="right")
-        self._state = self._outcome[(self._state * 4 + actions) * 4 + column]
+        state = self._outcome[self._state, actions, column]
+        self._state = state
         self._steps += 1
-        terminated = self.model.terminal[self._state]
-        truncated = ~terminated if self._steps >= self.max_steps else self._not_truncated
+        terminated = self.model.terminal[state]
+        if self._steps >= self.max_steps:
+            truncated = ~terminated
+        else:
+            truncated = np.zeros(self.num_envs, dtype=bool)
         return BatchStep(
-            obs=self._state,
-            reward=self.model.reward[self._state],
+            obs=state,
+            reward=self.model.reward[state],
             terminated=terminated,
             truncated=truncated,
-            success=self.model.goal[self._state],
+            success=self.model.goal[state],
+        )
+
+    def _bad_actions(self, actions: np.ndarray) -> str:
+        values = np.unique(actions).tolist() if actions.size <= 1000 else "..."
+        return (
+            f"actions must be {self.num_envs} integers in 0..3, got shape {actions.shape}, "
+            f"dtype {actions.dtype} and values {values}"
         )
 
     def close(self) -> None:
@@ -259,15 +304,30 @@ class GridWorldBatchEnv:
 
 @dataclass(frozen=True, kw_only=True)
 class GridWorldVariant(EnvVariant):
-    """One agent's GridWorld: its own obstacles (and goal), slip and discount."""
+    """One agent's GridWorld: its own obstacles (and goal), slip and discount.
+
+    ``safe_path`` lists the cells (indices ``row × width + column``) from start to goal that
+    the generator kept free of obstacles and of obstacle neighbours; empty for hand-made
+    variants. It is not in ``params`` because ``params`` is what runs report per agent.
+    """
 
     family: str = "gridworld"
     layout: tuple[str, ...] = DEFAULT_LAYOUT
     slip: float = 0.0
     max_steps: int = 50
+    safe_path: tuple[int, ...] = ()
     params: dict[str, Any] = field(default_factory=dict)
 
-    def make_env(self, *, render_mode: str | None = None) -> gym.Env:
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "layout", tuple(self.layout))
+        object.__setattr__(self, "safe_path", tuple(int(cell) for cell in self.safe_path))
+        parse_layout(self.layout)
+        _check_slip(self.slip)
+        _check_max_steps(self.max_steps)
+        if not 0.0 < self.gamma <= 1.0:
+            raise ValueError(f"gamma must be in (0, 1], got {self.gamma}")
+
+    def make_env(self, *, render_mode: str | None = None) -> GridWorldEnv:
         return GridWorldEnv(
             layout=self.layout, slip=self.slip, max_steps=self.max_steps, render_mode=render_mode
         )
@@ -282,9 +342,7 @@ class GridWorldVariant(EnvVariant):
         return self.max_steps
 
 
-def _monotone_path(
-    size: int, rng: np.random.Generator, goal: tuple[int, int]
-) -> list[tuple[int, int]]:
+def _monotone_path(rng: np.random.Generator, goal: Cell) -> list[Cell]:
     """A random right/down lattice path from (0, 0) to ``goal``."""
     moves = ["down"] * goal[0] + ["right"] * goal[1]
     rng.shuffle(moves)
@@ -295,27 +353,48 @@ def _monotone_path(
     return path
 
 
-def _neighbours(cell: tuple[int, int], size: int) -> list[tuple[int, int]]:
+def _neighbours(cell: Cell, size: int) -> list[Cell]:
     row, col = cell
     around = [(row - 1, col), (row + 1, col), (row, col - 1), (row, col + 1)]
     return [(r, c) for r, c in around if 0 <= r < size and 0 <= c < size]
 
 
-def _render(size: int, goal: tuple[int, int], obstacles: set[tuple[int, int]]) -> tuple[str, ...]:
-    rows = []
-    for r in range(size):
-        row = []
-        for c in range(size):
-            if (r, c) == (0, 0):
-                row.append(START)
-            elif (r, c) == goal:
-                row.append(GOAL)
-            elif (r, c) in obstacles:
-                row.append(OBSTACLE)
-            else:
-                row.append(EMPTY)
-        rows.append("".join(row))
-    return tuple(rows)
+def _obstacle_candidates(path: Sequence[Cell], size: int) -> list[Cell]:
+    """Cells neither on the path nor 4-adjacent to it (a slip off the path stays safe); only
+    off the path when that leaves no room (grids too small for a margin)."""
+    on_path = set(path)
+    protected = set(on_path)
+    for cell in path:
+        protected.update(_neighbours(cell, size))
+    grid = [(r, c) for r in range(size) for c in range(size)]
+    candidates = [cell for cell in grid if cell not in protected]
+    return candidates or [cell for cell in grid if cell not in on_path]
+
+
+def _obstacle_count(level: float, num_candidates: int) -> int:
+    """Grows with ``level`` but stops at half the candidates: layouts differ most when each
+    agent blocks about half of them, whereas blocking all would make every agent's layout the
+    same again."""
+    return min(round(level * num_candidates), (num_candidates + 1) // 2)
+
+
+def _goal_cells(size: int) -> list[Cell]:
+    """Goals for ``vary_goal``: the bottom row and right column, at least ``size`` steps from
+    the start."""
+    bottom = [(size - 1, c) for c in range(1, size)]
+    right = [(r, size - 1) for r in range(1, size - 1)]
+    return bottom + right
+
+
+def _render(size: int, goal: Cell, obstacles: set[Cell]) -> tuple[str, ...]:
+    def kind(cell: Cell) -> str:
+        if cell == (0, 0):
+            return START
+        if cell == goal:
+            return GOAL
+        return OBSTACLE if cell in obstacles else EMPTY
+
+    return tuple("".join(kind((r, c)) for c in range(size)) for r in range(size))
 
 
 def make_gridworld_variants(
@@ -329,13 +408,16 @@ def make_gridworld_variants(
 ) -> list[GridWorldVariant]:
     """K GridWorlds from (seed, level): 0 = identical, 1 = most different.
 
-    The start is the top-left cell; the goal is the bottom-right one (or, with ``vary_goal``,
-    a per-agent cell of the bottom row / right column: conflicting rewards). A random safe path
-    from start to goal is drawn once per run; obstacles are never placed on it nor next to it
-    (so a slip off the path does not end the episode), which keeps one common policy able to
-    solve every variant. Per agent, with u ~ U(0, 1) drawn from the seed:
-    obstacles: a random subset of round(level · #candidates) cells; slip = 0.1 · level · u;
-    γ = 0.99 − 0.09 · level · u'.
+    The start is the top-left cell and the goal the bottom-right one. A random monotone safe
+    path from start to goal is drawn once per seed; obstacles are never placed on it nor next
+    to it (a slip off the path does not end the episode), so that one common policy, following
+    the path, solves every variant. Per agent, with u, u' ~ U(0, 1) drawn from (seed, agent):
+    obstacles are a random subset of the candidate cells of size :func:`_obstacle_count`;
+    slip = 0.1 · level · u; γ = 0.99 − 0.09 · level · u'.
+
+    With ``vary_goal`` every agent gets its own goal on the bottom row or right column
+    (distinct while there are enough such cells) and its own safe path: rewards that conflict,
+    so no common policy need solve all variants. The goals differ even at level 0.
     """
     if not 0.0 <= level <= 1.0:
         raise ValueError(f"heterogeneity level must be in [0, 1], got {level}")
@@ -344,66 +426,91 @@ def make_gridworld_variants(
     if num_agents < 1:
         raise ValueError(f"num_agents must be >= 1, got {num_agents}")
     _check_max_steps(max_steps)
-    rng = np.random.default_rng([seed, 0x6121D])
+    rng = np.random.default_rng([seed, _GENERATOR_STREAM])
     shared_goal = (size - 1, size - 1)
-    border = [(size - 1, c) for c in range(1, size)] + [(r, size - 1) for r in range(1, size - 1)]
+    shared_path = _monotone_path(rng, shared_goal)
+    if vary_goal:
+        border = _goal_cells(size)
+        order = rng.permutation(len(border))
+        goals = [border[int(order[k % len(border)])] for k in range(num_agents)]
+    else:
+        goals = [shared_goal] * num_agents
     variants = []
-    shared_path = _monotone_path(size, rng, shared_goal)
-    for index in range(num_agents):
-        agent_rng = np.random.default_rng([seed, 0x6121D, index])
-        goal = border[int(agent_rng.integers(len(border)))] if vary_goal else shared_goal
-        path = _monotone_path(size, agent_rng, goal) if vary_goal else shared_path
-        protected = set(path)
-        for cell in path:
-            protected.update(_neighbours(cell, size))
-        candidates = [(r, c) for r in range(size) for c in range(size) if (r, c) not in protected]
-        if not candidates:  # tiny grids: fall back to cells off the path
-            candidates = [
-                (r, c) for r in range(size) for c in range(size) if (r, c) not in set(path)
-            ]
-        count = round(level * len(candidates))
+    for index, goal in enumerate(goals):
+        agent_rng = np.random.default_rng([seed, _GENERATOR_STREAM, index])
+        path = _monotone_path(agent_rng, goal) if vary_goal else shared_path
+        candidates = _obstacle_candidates(path, size)
+        count = _obstacle_count(level, len(candidates))
         chosen = agent_rng.choice(len(candidates), size=count, replace=False) if count else []
         obstacles = {candidates[int(i)] for i in chosen}
         slip = round(0.1 * level * float(agent_rng.random()), 4)
         gamma = round(0.99 - 0.09 * level * float(agent_rng.random()), 4)
-        variants.append(
-            GridWorldVariant(
-                index=index,
-                gamma=gamma,
-                layout=_render(size, goal, obstacles),
-                slip=slip,
-                max_steps=max_steps,
-                params={"slip": slip, "obstacles": len(obstacles), "goal": list(goal)},
-            )
+        variant = GridWorldVariant(
+            index=index,
+            gamma=gamma,
+            layout=_render(size, goal, obstacles),
+            slip=slip,
+            max_steps=max_steps,
+            safe_path=tuple(r * size + c for r, c in path),
+            params={"slip": slip, "obstacles": len(obstacles), "goal": list(goal)},
         )
+        logger.debug("gridworld variant %d: %s slip=%g γ=%g", index, variant.layout, slip, gamma)
+        variants.append(variant)
     return variants
 
 
-def shortest_path_policy(layout: Sequence[str], avoid: Sequence[str] = ()) -> np.ndarray:
-    """Per cell, the action of a shortest route to a goal that avoids the obstacles of
-    ``layout`` and of every layout in ``avoid`` (a common policy for several variants)."""
+def demo_variants() -> list[GridWorldVariant]:
+    """The four agents of the default run (``conf/config.yaml``: seed 0, level 0.6)."""
+    return make_gridworld_variants(**DEMO)
+
+
+def shortest_path_policy(
+    layout: Sequence[str], avoid: Sequence[Sequence[str]] = (), path: Sequence[int] = ()
+) -> np.ndarray:
+    """One deterministic action per cell, common to several variants: along ``path`` (cell
+    indices ending at a goal) follow it; elsewhere take a shortest route to a goal of
+    ``layout`` that avoids the obstacles of ``layout`` and of every layout in ``avoid``."""
     model = parse_layout(layout)
     blocked = model.reward < 0
     for other in avoid:
         blocked |= parse_layout(other).reward < 0
-    distance = np.full(model.num_cells, np.inf)
-    queue = deque(np.flatnonzero(model.goal).tolist())
-    distance[model.goal] = 0
-    while queue:
-        cell = queue.popleft()
-        for source in range(model.num_cells):
-            reachable = distance[source] == np.inf and not blocked[source]
-            if reachable and cell in model.next_state[source]:
-                distance[source] = distance[cell] + 1
-                queue.append(source)
-    best = np.zeros(model.num_cells, dtype=np.int64)
-    for cell in range(model.num_cells):
-        best[cell] = int(np.argmin(distance[model.next_state[cell]]))
-    return best
+    distance = np.where(model.goal, 0.0, np.inf)
+    for _ in range(model.num_cells):
+        relaxed = np.where(
+            model.goal | blocked, distance, distance[model.next_state].min(axis=1) + 1
+        )
+        if np.array_equal(relaxed, distance):
+            break
+        distance = relaxed
+    policy = np.argmin(distance[model.next_state], axis=1).astype(np.int64)
+    for here, there in itertools.pairwise(path):
+        moves = np.flatnonzero(model.next_state[here] == there)
+        if moves.size == 0:
+            raise ValueError(f"path must move between adjacent cells, got {here} -> {there}")
+        policy[here] = moves[0]
+    return policy
+
+
+def success_probability(env: GridWorldEnv, policy: np.ndarray | None = None) -> float:
+    """P(enter a goal within ``env.max_steps`` steps from the start), exactly, by finite-horizon
+    dynamic programming on the env's tables: under a deterministic ``policy`` (one action per
+    cell), or under the best policy for this env alone when ``policy`` is None."""
+    probs = env.transition_probs()
+    goal = env.reward_table() > 0
+    alive = ~env.terminal_mask()
+    into_goal = probs @ goal.astype(np.float64)  # [s, a]
+    staying = probs * alive  # [s, a, s']: transitions that keep the episode going
+    cells = np.arange(probs.shape[0])
+    value = np.zeros(probs.shape[0])
+    for _ in range(env.max_steps):
+        q = into_goal + staying @ value
+        value = q.max(axis=1) if policy is None else q[cells, policy]
+    return float(value[env.model.start])
 
 
 def register_envs() -> None:
-    """Register ``fedhpg/GridWorld-v0`` with gymnasium (idempotent)."""
+    """Register ``fedhpg/GridWorld-v0`` with gymnasium; idempotent, since both the package
+    import and users may call it."""
     if ENV_ID not in gym.registry:
         gym.register(
             id=ENV_ID,

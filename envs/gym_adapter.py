@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from typing import Any
 
 import gymnasium as gym
@@ -24,7 +25,8 @@ class GymVectorBatchEnv:
         num_envs: int,
         *,
         env_kwargs: dict[str, Any] | None = None,
-        attributes: dict[str, Any] | None = None,
+        configure: Callable[[gym.Env], None] | None = None,
+        action_cost: float = 0.0,
     ) -> None:
         if num_envs < 1:
             raise ValueError(f"num_envs must be >= 1, got {num_envs}")
@@ -32,21 +34,22 @@ class GymVectorBatchEnv:
         spec = gym.spec(env_id)
         mode = "vector_entry_point" if spec.vector_entry_point is not None else "sync"
         self._env = gym.make_vec(env_id, num_envs=num_envs, vectorization_mode=mode, **kwargs)
-        for name, value in (attributes or {}).items():
-            self._set_attribute(name, value)
+        if configure is not None:
+            self._configure(configure)
+        self.action_cost = action_cost
         self.num_envs = num_envs
         self._no_success = np.zeros(num_envs, dtype=bool)
         self.single_observation_space = self._env.single_observation_space
         self.single_action_space = self._env.single_action_space
 
-    def _set_attribute(self, name: str, value: Any) -> None:
-        """Set a physics attribute on every copy (vector-native envs hold it once)."""
+    def _configure(self, configure: Callable[[gym.Env], None]) -> None:
+        """Apply a variant's physics to every copy (a vector-native env holds it once)."""
         base = self._env.unwrapped
         if isinstance(base, gym.vector.SyncVectorEnv):
             for env in base.envs:
-                setattr(env.unwrapped, name, value)
+                configure(env.unwrapped)
         else:
-            setattr(base, name, value)
+            configure(base)
 
     def reset(self, *, seed: int) -> np.ndarray:
         obs, _ = self._env.reset(seed=seed)
@@ -54,6 +57,10 @@ class GymVectorBatchEnv:
 
     def step(self, actions: np.ndarray) -> BatchStep:
         obs, reward, terminated, truncated, info = self._env.step(actions)
+        if self.action_cost:
+            reward = reward - self.action_cost * np.square(actions).reshape(self.num_envs, -1).sum(
+                1
+            )
         success = info.get("is_success")
         return BatchStep(
             obs=obs,

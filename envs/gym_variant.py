@@ -6,6 +6,7 @@ from dataclasses import dataclass, field
 from typing import Any
 
 import gymnasium as gym
+import numpy as np
 
 from fedhpg.envs.base import BatchEnv, EnvVariant
 from fedhpg.envs.gym_adapter import GymVectorBatchEnv
@@ -13,23 +14,44 @@ from fedhpg.envs.gym_adapter import GymVectorBatchEnv
 
 @dataclass(frozen=True, kw_only=True)
 class GymVariant(EnvVariant):
-    """A gymnasium env id, constructor kwargs, and physics attributes set after construction."""
+    """A gymnasium env id plus what makes this agent's copy different.
+
+    ``env_kwargs`` go to the constructor; ``attributes`` are set on the unwrapped env after
+    construction (classic-control physics); ``mujoco_scales`` multiply MuJoCo model arrays
+    (``gravity``, ``friction``, ``mass``); ``action_cost`` subtracts c·‖a‖² from every reward
+    (reward heterogeneity for continuous control).
+    """
 
     env_id: str
     env_kwargs: dict[str, Any] = field(default_factory=dict)
     attributes: dict[str, Any] = field(default_factory=dict)
+    mujoco_scales: dict[str, float] = field(default_factory=dict)
+    action_cost: float = 0.0
     step_limit: int = 0
     """Episode step limit; 0 uses the registered ``max_episode_steps``."""
 
+    def configure(self, env: gym.Env) -> None:
+        """Apply this variant's physics to one unwrapped env (or a vector-native env)."""
+        for name, value in self.attributes.items():
+            setattr(env, name, value)
+        if self.mujoco_scales:
+            model = env.model  # type: ignore[attr-defined]
+            model.opt.gravity[:] = model.opt.gravity * self.mujoco_scales.get("gravity", 1.0)
+            model.geom_friction[:] = model.geom_friction * self.mujoco_scales.get("friction", 1.0)
+            model.body_mass[:] = model.body_mass * self.mujoco_scales.get("mass", 1.0)
+
     def make_env(self, *, render_mode: str | None = None) -> gym.Env:
         env = gym.make(self.env_id, render_mode=render_mode, **self.env_kwargs)
-        for name, value in self.attributes.items():
-            setattr(env.unwrapped, name, value)
-        return env
+        self.configure(env.unwrapped)
+        return _ActionCost(env, self.action_cost) if self.action_cost else env
 
     def make_batch_env(self, num_envs: int) -> BatchEnv:
         return GymVectorBatchEnv(
-            self.env_id, num_envs, env_kwargs=self.env_kwargs, attributes=self.attributes
+            self.env_id,
+            num_envs,
+            env_kwargs=self.env_kwargs,
+            configure=self.configure,
+            action_cost=self.action_cost,
         )
 
     @property
@@ -40,3 +62,16 @@ class GymVariant(EnvVariant):
         if limit is None:
             raise ValueError(f"{self.env_id} has no step limit: set env.horizon")
         return int(limit)
+
+
+class _ActionCost(gym.Wrapper):
+    """reward − c·‖a‖²."""
+
+    def __init__(self, env: gym.Env, cost: float) -> None:
+        super().__init__(env)
+        self.cost = cost
+
+    def step(self, action: Any) -> tuple[Any, float, bool, bool, dict[str, Any]]:
+        obs, reward, terminated, truncated, info = self.env.step(action)
+        penalty = self.cost * float(np.sum(np.square(action)))
+        return obs, float(reward) - penalty, terminated, truncated, info

@@ -5,10 +5,8 @@ from __future__ import annotations
 from collections.abc import Callable
 from typing import Any
 
-import numpy as np
-
 from fedhpg.envs.base import EnvVariant
-from fedhpg.envs.gym_variant import GymVariant
+from fedhpg.envs.families import GYM_FAMILIES
 
 VariantFactory = Callable[..., list[EnvVariant]]
 
@@ -23,28 +21,7 @@ def _gridworld(*, seed: int, num_agents: int, level: float, **options: Any) -> l
     return list(make_gridworld_variants(seed=seed, num_agents=num_agents, level=level, **options))
 
 
-def _cartpole(
-    *, seed: int, num_agents: int, level: float, gamma: float = 0.99, **options: Any
-) -> list[EnvVariant]:
-    """CartPole-v1 with the pole half-length spread over 0.5 ± 0.4·level (0.1-0.9 at level 1)."""
-    if options:
-        raise ValueError(f"cartpole does not support the options {sorted(options)}")
-    rng = np.random.default_rng([seed, 0xCA27])
-    lengths = 0.5 + 0.4 * level * rng.uniform(-1.0, 1.0, size=num_agents)
-    return [
-        GymVariant(
-            family="cartpole",
-            index=k,
-            gamma=gamma,
-            params={"length": float(length)},
-            env_id="CartPole-v1",
-            attributes={"length": float(length), "polemass_length": 0.1 * float(length)},
-        )
-        for k, length in enumerate(lengths)
-    ]
-
-
-FAMILIES: dict[str, VariantFactory] = {"gridworld": _gridworld, "cartpole": _cartpole}
+FAMILIES: dict[str, VariantFactory] = {"gridworld": _gridworld, **GYM_FAMILIES}
 
 
 def make_variants(
