@@ -75,3 +75,25 @@ def test_server_adam_takes_sign_sized_first_steps() -> None:
     moved = (run_in_process(run) - start).abs()
     assert torch.all(moved <= 0.01 + 1e-6)
     assert (moved > 0.0099).float().mean() > 0.5
+
+
+@pytest.mark.parametrize("algo", ["fedhpg", "fedhpgvr"])
+@pytest.mark.parametrize("estimator", ["reinforce", "gpomdp"])
+def test_continuous_actions_run_through_both_algorithms(algo: str, estimator: str) -> None:
+    """Pendulum (Box actions, Gaussian policy) through sampler, estimator and algorithm."""
+    run = RunConfig(
+        seed=0,
+        rounds=2,
+        env=EnvConfig(family="pendulum", level=0.5, horizon=50),
+        algo=AlgoConfig(name=algo, estimator=estimator, step_size=1e-3, optimizer="adam"),
+        agents=AgentsConfig(
+            num_agents=2, batch_sizes=[4], local_iters=[2], inner_steps=[2], mini_batch_sizes=[2]
+        ),
+        eval=EvalConfig(every=2, episodes=2),
+    )
+    records: list[RoundRecord] = []
+    theta = run_in_process(run, on_round=[lambda record, _: records.append(record)])
+    start = initial_theta(run_variants(run)[0], run)
+    assert torch.isfinite(theta).all() and not torch.equal(theta, start)
+    assert records[-1].eval is not None
+    assert all(a["env_steps"] == a["trajectories"] * 50 for a in records[0].agents)
