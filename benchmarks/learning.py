@@ -1,0 +1,174 @@
+"""Learning curves on homogeneous CartPole-v1 in FedPG-BR's set-up, through the distributed
+runtime: K=10 (and K=1 beside it), B=16, H=500, γ=0.999, MLP 16-16, τ=1, greedy evaluation
+over 10 episodes per agent. Agents take plain steps of size 1 (θ_k − θ̃ = their gradient) and
+the server applies Adam to the average, as FedPG-BR's server does.
+
+``python -m benchmarks.learning [--seeds 5] [--server-lr 0.01]`` prints a table and writes
+``docs/figures/cartpole_learning.png``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import statistics
+import tempfile
+from dataclasses import dataclass
+from pathlib import Path
+
+from benchmarks.runtime import _federation
+
+TARGET = 475.0
+FIGURE = Path("docs/figures/cartpole_learning.png")
+HETEROGENEOUS_FIGURE = Path("docs/figures/cartpole_heterogeneous.png")
+
+
+@dataclass(frozen=True)
+class Curve:
+    num_agents: int
+    seed: int
+    label: str
+    trajectories: list[float]
+    returns: list[float]
+    wall_s: list[float]
+    peak_pss_mib: float
+
+    def first_reaching(self, target: float) -> tuple[float, float] | None:
+        """(trajectories per agent, wall seconds) when the average greedy return first ≥ target."""
+        for traj, ret, wall in zip(self.trajectories, self.returns, self.wall_s, strict=True):
+            if ret >= target:
+                return traj, wall
+        return None
+
+
+def run_curve(
+    num_agents: int,
+    seed: int,
+    rounds: int,
+    server_lr: float,
+    *,
+    algo: str = "fedhpg",
+    level: float = 0.0,
+    worst_agent: bool = False,
+) -> Curve:
+    """One federation; the curve is the mean (or, with ``worst_agent``, the minimum) over
+    agents of the greedy return in each agent's own environment."""
+    overrides = [
+        f"seed={seed}",
+        f"rounds={rounds}",
+        f"algo.name={algo}",
+        "agents.inner_steps=[2]",
+        "agents.mini_batch_sizes=[8]",
+        "env.family=cartpole",
+        f"env.level={level}",
+        "env.gamma=0.999",
+        f"agents.num_agents={num_agents}",
+        "agents.batch_sizes=[16]",
+        "agents.local_iters=[1]",
+        "agents.speeds=[1]",
+        "agents.step_delays_s=[0]",
+        "policy.hidden=[16,16]",
+        "algo.estimator=gpomdp",
+        "algo.optimizer=sgd",
+        "algo.step_size=1.0",
+        "algo.server_optimizer=adam",
+        f"algo.server_step_size={server_lr}",
+        "eval.every=2",
+        "eval.episodes=10",
+    ]
+    with tempfile.TemporaryDirectory() as tmp:
+        records, _, peak = _federation(overrides, Path(tmp), sample_memory=True)
+    trajectories, returns, walls, total = [], [], [], 0.0
+    for record in records:
+        total += sum(a["trajectories"] for a in record["agents"]) / len(record["agents"])
+        if "eval" in record:
+            trajectories.append(total)
+            per_agent = [e["return_mean"] for e in record["eval"].values()]
+            returns.append(min(per_agent) if worst_agent else statistics.mean(per_agent))
+            walls.append(record["wall_time_s"])
+    label = f"{algo} K={num_agents}" + (f" level={level:g}" if level else "")
+    return Curve(num_agents, seed, label, trajectories, returns, walls, peak / 2**20)
+
+
+def plot(curves: list[Curve], path: Path, title: str, ylabel: str) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    import numpy as np
+
+    figure, axis = plt.subplots(figsize=(7, 4.2))
+    labels = list(dict.fromkeys(c.label for c in curves))
+    for label, colour in zip(labels, ("tab:blue", "tab:orange", "tab:green"), strict=False):
+        group = [c for c in curves if c.label == label]
+        grid = np.linspace(0, max(c.trajectories[-1] for c in group), 200)
+        values = np.array([np.interp(grid, c.trajectories, c.returns) for c in group])
+        median = np.median(values, axis=0)
+        axis.plot(
+            grid, median, color=colour, label=f"{label}: median, min–max of {len(group)} seeds"
+        )
+        axis.fill_between(grid, values.min(axis=0), values.max(axis=0), color=colour, alpha=0.2)
+    axis.axhline(TARGET, color="grey", linestyle="--", linewidth=1, label=f"{TARGET:g}")
+    reached = [hit[0] for c in curves if (hit := c.first_reaching(TARGET))]
+    if reached:
+        axis.set_xlim(0, 2 * max(reached))
+    axis.set_xlabel("trajectories per agent")
+    axis.set_ylabel(ylabel)
+    axis.set_title(title)
+    axis.legend(loc="lower right")
+    figure.tight_layout()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    figure.savefig(path, dpi=120)
+    figure.savefig(path.with_suffix(".svg"))
+    plt.close(figure)
+
+
+def table(curves: list[Curve]) -> str:
+    lines = [
+        "| run | seed | trajectories/agent to ≥475 | wall to ≥475 (s) | final return "
+        "| peak PSS (MiB) |",
+        "|---|---|---|---|---|---|",
+    ]
+    for curve in curves:
+        hit = curve.first_reaching(TARGET)
+        reached = f"{hit[0]:.0f} | {hit[1]:.1f}" if hit else "— | —"
+        lines.append(
+            f"| {curve.label} | {curve.seed} | {reached} | {curve.returns[-1]:.1f} | "
+            f"{curve.peak_pss_mib:.0f} |"
+        )
+    return "\n".join(lines)
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__)
+    parser.add_argument("--seeds", type=int, default=5)
+    parser.add_argument("--server-lr", type=float, default=0.01)
+    parser.add_argument("--rounds-k10", type=int, default=40)
+    parser.add_argument("--rounds-k1", type=int, default=200)
+    args = parser.parse_args()
+    seeds = range(args.seeds)
+    homogeneous = [run_curve(10, s, args.rounds_k10, args.server_lr) for s in seeds]
+    homogeneous += [run_curve(1, s, args.rounds_k1, args.server_lr) for s in seeds]
+    print(table(homogeneous), flush=True)
+    plot(
+        homogeneous,
+        FIGURE,
+        "Homogeneous CartPole-v1, server Adam (FedPG-BR set-up)",
+        "greedy return (mean over agents, 10 episodes each)",
+    )
+    heterogeneous = [
+        run_curve(10, s, args.rounds_k10, args.server_lr, algo=a, level=1.0, worst_agent=True)
+        for a in ("fedhpg", "fedhpgvr")
+        for s in seeds
+    ]
+    print(table(heterogeneous))
+    plot(
+        heterogeneous,
+        HETEROGENEOUS_FIGURE,
+        "Heterogeneous CartPole-v1 (pole half-length 0.1-0.9), K=10",
+        "greedy return in the worst agent's environment",
+    )
+    print(f"\nfigures: {FIGURE}, {HETEROGENEOUS_FIGURE}")
+
+
+if __name__ == "__main__":
+    main()
