@@ -6,7 +6,7 @@ STAMP := $(VENV)/.installed
 export OMP_NUM_THREADS ?= 1
 export MKL_NUM_THREADS ?= 1
 
-.PHONY: setup demo test lint bench bench-learning clean
+.PHONY: setup demo test lint bench bench-learning figures clean
 
 setup: $(STAMP)
 
@@ -26,6 +26,9 @@ test: $(STAMP)
 lint: $(STAMP)
 	$(BIN)/ruff check .
 	$(BIN)/ruff format --check .
+
+figures: $(STAMP)
+	$(BIN)/python -m benchmarks.figures
 
 bench-learning: $(STAMP)
 	$(BIN)/python -m benchmarks.learning

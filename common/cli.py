@@ -45,20 +45,36 @@ def _first_line(error: BaseException) -> str:
     return str(error).strip().splitlines()[0] if str(error).strip() else type(error).__name__
 
 
+def _one_line(error: BaseException) -> str:
+    """Hydra puts the useful part ("could not be converted to Float") on later lines."""
+    lines = [line.strip() for line in str(error).splitlines() if line.strip()]
+    noise = ("full_key", "object_type", "reference_type", "Set the")
+    useful = [line for line in lines if not line.startswith(noise)]
+    return "; ".join(useful[:2]) if useful else type(error).__name__
+
+
 def compose(overrides: Sequence[str]) -> RunConfig:
     """Compose ``conf/config.yaml`` with command-line overrides, without Hydra's run dirs."""
     from hydra import compose as hydra_compose
     from hydra import initialize_config_module
-    from hydra.errors import HydraException
+    from hydra.errors import HydraException, MissingConfigException
     from omegaconf.errors import OmegaConfBaseException
 
     register_schema()
     try:
         with initialize_config_module(config_module=CONFIG_MODULE, version_base=None):
             cfg = hydra_compose(config_name=CONFIG_NAME, overrides=list(overrides))
+    except MissingConfigException as error:
+        key = _override_key(error, overrides)
+        options = getattr(error, "options", None) or []
+        chosen = next((o.split("=", 1)[1] for o in overrides if o.split("=", 1)[0] == key), "?")
+        raise ConfigError(
+            key, f"no such option {chosen!r}; allowed: {', '.join(options)}"
+        ) from None
     except (HydraException, OmegaConfBaseException) as error:
-        key = getattr(error, "full_key", None) or _override_key(error, overrides)
-        raise ConfigError(key, _first_line(error)) from None
+        cause = error.__cause__ if isinstance(error.__cause__, OmegaConfBaseException) else error
+        key = getattr(cause, "full_key", None) or _override_key(error, overrides)
+        raise ConfigError(key, _one_line(cause)) from None
     return to_run_config(cfg)
 
 
