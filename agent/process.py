@@ -107,10 +107,8 @@ class AgentProcess:
             return None
         return decoded
 
-    def register(self) -> Welcome:
-        """Say hello until the server answers, backing off up to BACKOFF_MAX_S between tries."""
-        self.socket.connect(self.endpoint)
-        hello = Hello(
+    def _hello(self) -> Hello:
+        return Hello(
             agent_id=self.agent_id,
             agent_index=self.index,
             env_signature=self.variant.signature(),
@@ -121,6 +119,11 @@ class AgentProcess:
                 "pid": os.getpid(),
             },
         )
+
+    def register(self) -> Welcome:
+        """Say hello until the server answers, backing off up to BACKOFF_MAX_S between tries."""
+        self.socket.connect(self.endpoint)
+        hello = self._hello()
         deadline = time.monotonic() + self.own.agent.connect_timeout_s
         backoff = BACKOFF_INITIAL_S
         while time.monotonic() < deadline:
@@ -208,6 +211,10 @@ class AgentProcess:
             elif isinstance(message, Shutdown):
                 logger.debug("%s: shutdown (%s)", self.agent_id, message.reason)
                 return
+            elif isinstance(message, Error) and message.code == "not_registered":
+                # A restarted server does not know us: register again and carry on.
+                logger.info("%s: server restarted, registering again", self.agent_id)
+                self._send(self._hello())
             elif isinstance(message, Error):
                 logger.warning(
                     "%s: server reported %s: %s", self.agent_id, message.code, message.reason

@@ -171,6 +171,9 @@ class RunConfig:
     eval: EvalConfig = field(default_factory=EvalConfig)
     server: ServerConfig = field(default_factory=ServerConfig)
     agent: AgentConfig = field(default_factory=AgentConfig)
+    resume: str | None = None
+    """Continue a killed run: 'true' resumes ``server.out_dir``; a path resumes that run
+    directory (``fedhpg-run resume=DIR``)."""
 
 
 @dataclass(frozen=True, kw_only=True)

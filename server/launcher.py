@@ -49,6 +49,9 @@ def _server_child(run: RunConfig, out_dir: str, ready: Connection) -> None:
 
     try:
         serve(run, out_dir=Path(out_dir), on_bound=ready.send)
+    except ConfigError as error:
+        sys.stderr.write(f"error: {error}\n")
+        sys.exit(2)
     except FederationError as error:
         logging.getLogger("fedhpg.server").error("%s", error)
         sys.exit(1)
@@ -133,6 +136,8 @@ def launch(run: RunConfig, out_dir: Path) -> int:
             if receive.poll(0.05):
                 endpoint = receive.recv()
             elif server.exitcode is not None:
+                if server.exitcode == 2:  # a configuration error, already reported in one line
+                    return 2
                 logger.error("the server exited with status %s before listening", server.exitcode)
                 return 1
         if run.server.transport == "tcp":
@@ -152,6 +157,8 @@ def launch(run: RunConfig, out_dir: Path) -> int:
 
 
 def _resolve_out_dir(run: RunConfig) -> Path:
+    if run.resume and run.resume.lower() != "true":
+        return Path(run.resume)
     if run.server.out_dir:
         return Path(run.server.out_dir)
     try:

@@ -16,11 +16,16 @@ import torch
 import zmq
 
 from fedhpg.common.cli import run_entry
-from fedhpg.common.config import RunConfig, agent_profile, to_dict
+from fedhpg.common.config import ConfigError, RunConfig, agent_profile, to_dict
 from fedhpg.common.progress import Progress
 from fedhpg.common.transport import bind_endpoint, configure_socket, max_message_bytes
 from fedhpg.common.worker import initial_theta
-from fedhpg.server.checkpoint import Checkpoint, save_checkpoint
+from fedhpg.server.checkpoint import (
+    Checkpoint,
+    latest_valid_checkpoint,
+    save_checkpoint,
+    write_atomic,
+)
 from fedhpg.server.coordinator import Coordinator, RoundRecord
 from fedhpg.server.inprocess import run_variants
 from fedhpg.server.metrics import MetricsWriter
@@ -74,6 +79,31 @@ def _checkpoint_callback(
     return save
 
 
+# Keys whose change would make a resumed run a different run.
+RESUME_MUST_MATCH = ("seed", "env", "algo", "agents", "policy")
+
+
+def resume_point(run: RunConfig, out_dir: Path) -> tuple[torch.Tensor, int]:
+    """θ̃ and the next round from the newest valid checkpoint; metrics cut back to it."""
+    if run.algo.server_optimizer != "none":
+        raise ConfigError("resume", "resuming a run with a server optimizer is not supported yet")
+    checkpoint = latest_valid_checkpoint(out_dir / "checkpoints")
+    if checkpoint is None:
+        raise ConfigError("resume", f"no valid checkpoint in {out_dir / 'checkpoints'}")
+    current = to_dict(run)
+    for key in RESUME_MUST_MATCH:
+        if checkpoint.config.get(key) != current[key]:
+            raise ConfigError(
+                key, f"differs from the checkpointed run in {out_dir}; resume keeps it"
+            )
+    metrics = out_dir / "metrics.jsonl"
+    if metrics.exists():
+        kept = metrics.read_text(encoding="utf-8").splitlines()[: checkpoint.metrics_lines]
+        write_atomic(metrics, "".join(line + "\n" for line in kept).encode())
+    logger.warning("resuming %s after round %d", out_dir, checkpoint.round)
+    return checkpoint.theta, checkpoint.round + 1
+
+
 def serve(
     run: RunConfig,
     *,
@@ -83,9 +113,11 @@ def serve(
 ) -> ServerResult:
     """Run one federation as its server; returns the final θ̃_T."""
     out_dir.mkdir(parents=True, exist_ok=True)
-    (out_dir / "config.json").write_text(json.dumps(to_dict(run), indent=2))
     variants = run_variants(run)
-    theta = initial_theta(variants[0], run)
+    theta, start_round = initial_theta(variants[0], run), 1
+    if run.resume:
+        theta, start_round = resume_point(run, out_dir)
+    (out_dir / "config.json").write_text(json.dumps(to_dict(run), indent=2))
     context = zmq.Context()
     socket = context.socket(zmq.ROUTER)
     configure_socket(socket, run.server)
@@ -115,10 +147,14 @@ def serve(
 
     callbacks = [metrics, _checkpoint_callback(run, out_dir / "checkpoints"), keep_eval]
     if show_progress:
-        callbacks.append(_progress_callback(Progress(run.rounds, "rounds")))
+        progress = Progress(run.rounds, "rounds")
+        progress.done = start_round - 1
+        callbacks.append(_progress_callback(progress))
     try:
         pool.wait_for_agents(run.server.register_timeout_s)
-        coordinator = Coordinator(run=run, pool=pool, theta=theta, on_round=callbacks)
+        coordinator = Coordinator(
+            run=run, pool=pool, theta=theta, start_round=start_round, on_round=callbacks
+        )
         theta = coordinator.run_rounds()
         pool.shutdown("run complete")
     except BaseException:
@@ -157,6 +193,8 @@ def serve(
 
 def _main(run: RunConfig) -> int:
     out_dir = Path(run.server.out_dir) if run.server.out_dir else default_out_dir()
+    if run.resume and run.resume.lower() != "true":
+        out_dir = Path(run.resume)
     try:
         serve(run, out_dir=out_dir)
     except FederationError as error:
