@@ -1,12 +1,17 @@
-"""One generic, versioned codec for every protocol message: msgpack header + raw array frames.
+"""One generic, versioned codec for every protocol message: a msgpack header + raw array frames.
 
-Frame 0 is a msgpack map ``{"v": version, "type": kind, "fields": {...}, "arrays": [...]}``;
-each entry of ``arrays`` (field name, dtype string, shape) describes one following frame that
-holds the array's bytes as they lie in memory. No pickle, no per-message code: the payload
-dataclasses in :mod:`fedhpg.common.protocol` are walked with ``dataclasses.fields``.
+Frame 0 is a msgpack map ``{"v": version, "type": kind, "fields": {...}, "arrays": [...]}``.
+``fields`` holds every field not annotated ``np.ndarray``, as plain msgpack values; each entry
+``{"field", "dtype", "shape"}`` of ``arrays`` describes one following frame holding that array's
+bytes in C order. The payload dataclasses of :mod:`fedhpg.common.protocol` are walked with
+``dataclasses.fields`` and their annotations, so adding a message needs no code here. No pickle.
 
-:func:`decode` accepts anything and either returns a well-formed message or raises
-:class:`ProtocolError` with a reason; decoded arrays are read-only views of the frames.
+:func:`decode` accepts anything at all and either returns a message whose fields match their
+annotations or raises :class:`ProtocolError`, because it runs on bytes from the network.
+:func:`encode` applies the same rules to outgoing messages, so a message it accepts is one the
+peer will accept. Arrays cross without copies in both directions: encode returns views of the
+message's arrays (do not mutate them until the frames are sent) and decode returns read-only
+views of the received frames (``np.array(x)`` for a private, writable copy).
 """
 
 from __future__ import annotations
@@ -14,214 +19,476 @@ from __future__ import annotations
 import dataclasses
 import functools
 import math
+import reprlib
 import types
 import typing
 from collections.abc import Sequence
-from typing import Any
+from typing import TYPE_CHECKING, Any, TypeAlias
 
 import msgpack
 import numpy as np
 
-from fedhpg.common.protocol import MSG_TYPE_OF, PAYLOAD_TYPES, PROTOCOL_VERSION, Message, MsgType
+from fedhpg.common.protocol import MSG_TYPE_OF, PAYLOAD_TYPES, PROTOCOL_VERSION, Message
+
+if TYPE_CHECKING:
+    import zmq
 
 MAX_HEADER_BYTES = 1 << 20
+"""Cap on frame 0: headers carry ids, settings and statistics, never bulk data."""
 DEFAULT_MAX_BYTES = 256 << 20
-ALLOWED_DTYPES = frozenset(
-    np.dtype(name).str for name in ("float32", "float64", "int32", "int64", "uint8", "bool")
-)
-HEADER_KEYS = frozenset({"v", "type", "fields", "arrays"})
+"""Default cap on a whole message (all frames); callers pass their configured limit."""
+MAX_FRAMES = 64
+"""Frames beyond this are rejected before any of them is looked at."""
+MAX_NESTING = 32
+"""Deepest list/dict nesting accepted in header values (bounds recursion on both sides)."""
+MAX_NDIM = 32
+"""Most dimensions an array may declare."""
 
-Frame = Any  # bytes, memoryview, or zmq.Frame
+WIRE_DTYPES: dict[str, np.dtype] = {
+    dtype.str: dtype
+    for dtype in (
+        np.dtype(name).newbyteorder("<")
+        for name in ("float32", "float64", "int32", "int64", "uint8", "bool")
+    )
+}
+"""Array dtypes allowed on the wire (little-endian), by their ``dtype.str``."""
+ALLOWED_DTYPES = frozenset(WIRE_DTYPES)
+
+_HEADER_KEYS = frozenset({"v", "type", "fields", "arrays"})
+_DESCRIPTOR_KEYS = frozenset({"field", "dtype", "shape"})
+_SCALARS: dict[type, str] = {bool: "bool", int: "int", float: "float", str: "str", bytes: "bytes"}
+_INT_MIN, _INT_END = -(1 << 63), 1 << 64  # what msgpack can carry
+_MAX_ADDRESSABLE = np.iinfo(np.intp).max
+_MISSING = object()
+
+Frame: TypeAlias = "bytes | bytearray | memoryview | zmq.Frame"
+"""Anything with the buffer protocol: what zmq hands out with ``copy=False`` or ``copy=True``."""
+
+_short = reprlib.Repr()
+_short.maxstring = _short.maxother = 40
+_short.maxlevel = 2
 
 
 class ProtocolError(ValueError):
-    """A message that cannot be accepted; ``code`` says which rule it broke."""
+    """A message that cannot be accepted; ``code`` says which rule it broke.
+
+    Codes: ``malformed`` (not a msgpack header map of the expected layout), ``version``,
+    ``unknown_type``, ``bad_fields`` (missing, unknown or mistyped header fields), ``bad_array``
+    (array descriptors or frames) and ``too_large``. The reason may quote peer data, shortened.
+    """
 
     def __init__(self, code: str, reason: str) -> None:
         super().__init__(reason)
         self.code = code
+        self.reason = reason
+
+
+# --- the message classes, read once per class ------------------------------------------------
 
 
 @dataclasses.dataclass(frozen=True)
-class _FieldSpec:
+class _Spec:
     name: str
+    hint: Any
     is_array: bool
-    accepts: tuple[type, ...]
-    optional: bool
+
+
+def _is_array_hint(hint: Any) -> bool:
+    return hint is np.ndarray or typing.get_origin(hint) is np.ndarray  # also npt.NDArray[...]
+
+
+def _supported(hint: Any) -> bool:
+    """Whether :func:`_check` knows this annotation (checked once per class, not per message)."""
+    origin = typing.get_origin(hint)
+    if hint is Any or hint is None or hint is type(None) or hint in _SCALARS:
+        return True
+    if origin in (types.UnionType, typing.Union):
+        return all(_supported(arg) for arg in typing.get_args(hint))
+    if hint in (dict, list):
+        return True
+    if origin is dict:
+        key, value = typing.get_args(hint)
+        return key is str and _supported(value)
+    if origin is list:
+        return all(_supported(arg) for arg in typing.get_args(hint))
+    return False
 
 
 @functools.cache
-def _field_specs(cls: type) -> tuple[_FieldSpec, ...]:
+def _specs(cls: type) -> tuple[_Spec, ...]:
+    """The wire layout of a payload class; the annotations are strings, hence get_type_hints."""
     hints = typing.get_type_hints(cls)
     specs = []
     for f in dataclasses.fields(cls):
         hint = hints[f.name]
-        if hint is np.ndarray:
-            specs.append(_FieldSpec(f.name, True, (), False))
-            continue
-        args = typing.get_args(hint) if isinstance(hint, types.UnionType) else ()
-        optional = type(None) in args
-        base = next((a for a in args if a is not type(None)), hint) if args else hint
-        origin = typing.get_origin(base) or base
-        accepts: tuple[type, ...] = (int, float) if origin is float else (origin,)
-        specs.append(_FieldSpec(f.name, False, accepts, optional))
+        is_array = _is_array_hint(hint)
+        if not is_array and not _supported(hint):
+            raise TypeError(f"{cls.__name__}.{f.name}: annotation {hint!r} cannot go on the wire")
+        specs.append(_Spec(f.name, hint, is_array))
     return tuple(specs)
 
 
-def encode(message: Message) -> list[Frame]:
-    """Frames for ``message``: the header, then one raw buffer per array field."""
-    kind = MSG_TYPE_OF.get(type(message))
+# --- header values: one checker for both directions ------------------------------------------
+
+
+def _bad(where: str, problem: str) -> ProtocolError:
+    return ProtocolError("bad_fields", f"{where}: {problem}")
+
+
+def _type_name(value: Any) -> str:
+    return type(value).__name__
+
+
+def _check_plain(value: Any, where: str, depth: int) -> None:
+    """What ``Any`` admits: msgpack's plain values, with string keys, nested boundedly."""
+    if depth > MAX_NESTING:
+        raise _bad(where, f"nested deeper than {MAX_NESTING} levels")
+    if value is None or isinstance(value, bool | float | str | bytes):
+        return
+    if isinstance(value, int):
+        if not _INT_MIN <= value < _INT_END:
+            raise _bad(where, "integer out of the 64-bit range")
+    elif isinstance(value, list):
+        for i, item in enumerate(value):
+            _check_plain(item, f"{where}[{i}]", depth + 1)
+    elif isinstance(value, dict):
+        for key, item in value.items():
+            if not isinstance(key, str):
+                raise _bad(where, f"map key {_short.repr(key)} is not a string")
+            _check_plain(item, f"{where}[{key!r}]", depth + 1)
+    else:
+        raise _bad(where, f"{_type_name(value)} is not a plain msgpack value")
+
+
+def _check(value: Any, hint: Any, where: str, depth: int = 0) -> None:
+    """Raise ProtocolError unless ``value`` fits ``hint`` (bool is no int; an int is a float)."""
+    if hint is Any:
+        _check_plain(value, where, depth)
+        return
+    if hint is None or hint is type(None):
+        if value is not None:
+            raise _bad(where, f"must be None, got {_type_name(value)}")
+        return
+    origin = typing.get_origin(hint)
+    if origin in (types.UnionType, typing.Union):
+        _check_union(value, typing.get_args(hint), where, depth)
+    elif hint is dict or origin is dict:
+        _check_dict(value, typing.get_args(hint), where, depth)
+    elif hint is list or origin is list:
+        _check_list(value, typing.get_args(hint), where, depth)
+    elif hint is float:
+        if not isinstance(value, int | float) or isinstance(value, bool):
+            raise _bad(where, f"must be float, got {_type_name(value)}")
+        _check_plain(value, where, depth)
+    elif hint in (int, str, bytes):
+        if not isinstance(value, hint) or isinstance(value, bool):
+            raise _bad(where, f"must be {hint.__name__}, got {_type_name(value)}")
+        _check_plain(value, where, depth)
+    elif hint is bool:
+        if not isinstance(value, bool):
+            raise _bad(where, f"must be bool, got {_type_name(value)}")
+    else:  # _specs only admits annotations handled above
+        raise TypeError(f"unsupported annotation {hint!r}")
+
+
+def _check_union(value: Any, options: tuple[Any, ...], where: str, depth: int) -> None:
+    for option in options:
+        try:
+            _check(value, option, where, depth)
+        except ProtocolError:
+            continue
+        return
+    names = " | ".join(getattr(o, "__name__", None) or repr(o) for o in options)
+    raise _bad(where, f"must be {names}, got {_type_name(value)}")
+
+
+def _check_dict(value: Any, args: tuple[Any, ...], where: str, depth: int) -> None:
+    if not isinstance(value, dict):
+        raise _bad(where, f"must be a map, got {_type_name(value)}")
+    if depth >= MAX_NESTING:
+        raise _bad(where, f"nested deeper than {MAX_NESTING} levels")
+    item_hint = args[1] if args else Any
+    for key, item in value.items():
+        if not isinstance(key, str):
+            raise _bad(where, f"map key {_short.repr(key)} is not a string")
+        _check(item, item_hint, f"{where}[{key!r}]", depth + 1)
+
+
+def _check_list(value: Any, args: tuple[Any, ...], where: str, depth: int) -> None:
+    if not isinstance(value, list):
+        raise _bad(where, f"must be a list, got {_type_name(value)}")
+    if depth >= MAX_NESTING:
+        raise _bad(where, f"nested deeper than {MAX_NESTING} levels")
+    item_hint = args[0] if args else Any
+    for i, item in enumerate(value):
+        _check(item, item_hint, f"{where}[{i}]", depth + 1)
+
+
+def _to_wire(value: Any, where: str, depth: int = 0) -> Any:
+    """Outgoing header values as decode will see them: numpy scalars become Python scalars and
+    tuples lists, so statistics computed with numpy can be sent as they are."""
+    if depth > MAX_NESTING:
+        raise _bad(where, f"nested deeper than {MAX_NESTING} levels")
+    if isinstance(value, np.generic):
+        return value.item()
+    if isinstance(value, list | tuple):
+        return [_to_wire(item, f"{where}[{i}]", depth + 1) for i, item in enumerate(value)]
+    if isinstance(value, dict):
+        return {key: _to_wire(item, f"{where}[{key!r}]", depth + 1) for key, item in value.items()}
+    return value
+
+
+# --- encode -----------------------------------------------------------------------------------
+
+
+def _wire_array(value: Any, where: str) -> np.ndarray:
+    """The array as it will travel: allowed dtype, little-endian, C-contiguous (copies only if
+    it is not already)."""
+    if not isinstance(value, np.ndarray):
+        raise ProtocolError("bad_array", f"{where}: must be a numpy array, got {_type_name(value)}")
+    wire = value.dtype.newbyteorder("<") if value.dtype.byteorder == ">" else value.dtype
+    if wire.str not in WIRE_DTYPES:
+        allowed = ", ".join(sorted(str(d) for d in WIRE_DTYPES.values()))
+        raise ProtocolError(
+            "bad_array", f"{where}: dtype {value.dtype} cannot be sent (allowed: {allowed})"
+        )
+    if value.ndim > MAX_NDIM:
+        raise ProtocolError("bad_array", f"{where}: {value.ndim} dimensions (max {MAX_NDIM})")
+    array = value.astype(wire, copy=False)
+    # ascontiguousarray would also turn a 0-d array into a 1-d one; 0-d is always contiguous.
+    return array if array.flags.c_contiguous else np.ascontiguousarray(array)
+
+
+def _raw(array: np.ndarray) -> bytes | memoryview:
+    return memoryview(array.reshape(-1).view(np.uint8)) if array.size else b""
+
+
+def encode(message: Message) -> list[bytes | memoryview]:
+    """Frames for ``message``: the header, then one buffer per array field (no copy).
+
+    Raises TypeError for a non-message and ProtocolError for content decode would reject
+    (wrong field types, unsupported dtypes, an oversized header).
+    """
+    cls = type(message)
+    kind = MSG_TYPE_OF.get(cls)
     if kind is None:
-        raise TypeError(f"not a protocol message: {type(message).__name__}")
+        raise TypeError(f"not a protocol message: {cls.__name__}")
     fields: dict[str, Any] = {}
-    arrays: list[dict[str, Any]] = []
-    buffers: list[Frame] = []
-    for spec in _field_specs(type(message)):
+    descriptors: list[dict[str, Any]] = []
+    buffers: list[bytes | memoryview] = []
+    for spec in _specs(cls):
+        where = f"{kind}.{spec.name}"
         value = getattr(message, spec.name)
         if spec.is_array:
-            array = np.asarray(value)
-            if not array.flags.c_contiguous:  # (ascontiguousarray would also turn 0-d into 1-d)
-                array = np.ascontiguousarray(array)
-            arrays.append(
+            array = _wire_array(value, where)
+            descriptors.append(
                 {"field": spec.name, "dtype": array.dtype.str, "shape": list(array.shape)}
             )
-            buffers.append(memoryview(array.reshape(-1).view(np.uint8)) if array.size else b"")
+            buffers.append(_raw(array))
         else:
-            fields[spec.name] = value
+            fields[spec.name] = wire = _to_wire(value, where)
+            _check(wire, spec.hint, where)
     header = msgpack.packb(
-        {"v": PROTOCOL_VERSION, "type": kind.value, "fields": fields, "arrays": arrays},
+        {"v": PROTOCOL_VERSION, "type": str(kind), "fields": fields, "arrays": descriptors},
         use_bin_type=True,
     )
+    if len(header) > MAX_HEADER_BYTES:
+        raise ProtocolError(
+            "too_large", f"{kind}: header of {len(header)} bytes exceeds {MAX_HEADER_BYTES}"
+        )
     return [header, *buffers]
 
 
-def _frame_bytes(frame: Frame) -> memoryview:
-    buffer = getattr(frame, "buffer", frame)  # zmq.Frame exposes .buffer
+# --- decode -----------------------------------------------------------------------------------
+
+
+def _frame_view(frame: Any, index: int) -> memoryview:
     try:
-        return memoryview(buffer).cast("B")
-    except TypeError as error:
-        raise ProtocolError("malformed", f"frame is not a byte buffer: {error}") from None
+        view = memoryview(frame)  # zmq.Frame, bytes, bytearray, memoryview, ndarray...
+    except TypeError:
+        raise ProtocolError(
+            "malformed", f"frame {index} is a {_type_name(frame)}, not a byte buffer"
+        ) from None
+    if not view.c_contiguous:
+        raise ProtocolError("malformed", f"frame {index} is not a contiguous buffer")
+    return view if view.format == "B" and view.ndim == 1 else view.cast("B")
+
+
+def _frame_views(frames: Any, max_bytes: int) -> list[memoryview]:
+    if isinstance(frames, bytes | bytearray | memoryview | str):
+        raise ProtocolError("malformed", "expected a sequence of frames, got a single buffer")
+    try:
+        count = len(frames)
+    except TypeError:
+        raise ProtocolError(
+            "malformed", f"expected a sequence of frames, got {_type_name(frames)}"
+        ) from None
+    if count == 0:
+        raise ProtocolError("malformed", "empty message")
+    if count > MAX_FRAMES:
+        raise ProtocolError("bad_array", f"{count} frames (max {MAX_FRAMES})")
+    views = [_frame_view(frame, i) for i, frame in enumerate(frames)]
+    total = sum(view.nbytes for view in views)
+    if total > max_bytes:
+        raise ProtocolError("too_large", f"message of {total} bytes exceeds the cap of {max_bytes}")
+    return views
 
 
 def _no_ext(code: int, data: bytes) -> Any:
     raise ProtocolError("malformed", f"msgpack extension type {code} is not allowed")
 
 
-def _unpack_header(frame: memoryview) -> dict[str, Any]:
+def _unpack_header(frame: memoryview) -> dict[Any, Any]:
     if frame.nbytes > MAX_HEADER_BYTES:
         raise ProtocolError(
             "too_large", f"header of {frame.nbytes} bytes exceeds {MAX_HEADER_BYTES}"
         )
+    limit = MAX_HEADER_BYTES
     try:
         header = msgpack.unpackb(
-            frame, raw=False, strict_map_key=True, ext_hook=_no_ext, use_list=True
+            frame,
+            raw=False,
+            strict_map_key=True,
+            use_list=True,
+            ext_hook=_no_ext,
+            max_ext_len=0,  # also stops the built-in timestamp extension (-1)
+            max_str_len=limit,
+            max_bin_len=limit,
+            max_array_len=limit,
+            max_map_len=limit,
         )
     except ProtocolError:
         raise
     except Exception as error:  # msgpack raises several unrelated types for garbage
         raise ProtocolError(
-            "malformed", f"header is not valid msgpack ({type(error).__name__})"
+            "malformed", f"header is not valid msgpack ({_type_name(error)}: {error})"
         ) from None
     if not isinstance(header, dict):
-        raise ProtocolError("malformed", f"header must be a map, got {type(header).__name__}")
+        raise ProtocolError("malformed", f"header must be a map, got {_type_name(header)}")
     return header
 
 
-def _check_value(spec: _FieldSpec, value: Any) -> None:
-    if value is None and spec.optional:
-        return
-    if isinstance(value, bool) and bool not in spec.accepts:
-        ok = False
-    else:
-        ok = isinstance(value, spec.accepts)
-    if (
-        ok
-        and isinstance(value, float)
-        and not math.isfinite(value)
-        and spec.accepts == (int, float)
-    ):
-        ok = True  # non-finite statistics are legal header values; parameters travel as arrays
-    if not ok:
-        names = "/".join(t.__name__ for t in spec.accepts)
+def _payload_class(header: dict[Any, Any]) -> type:
+    """Check the envelope: the version first, so a newer peer hears why it is not understood."""
+    version = header.get("v", _MISSING)
+    if version is _MISSING:
+        raise ProtocolError("malformed", "header has no protocol version 'v'")
+    if type(version) is not int or version != PROTOCOL_VERSION:
         raise ProtocolError(
-            "bad_fields", f"field {spec.name!r} must be {names}, got {type(value).__name__}"
+            "version",
+            f"received protocol version {_short.repr(version)}, expected {PROTOCOL_VERSION}",
         )
+    if set(header) != _HEADER_KEYS:
+        raise ProtocolError(
+            "malformed",
+            f"header keys must be {sorted(_HEADER_KEYS)}, got "
+            f"{_short.repr(sorted(map(str, header)))}",
+        )
+    kind = header["type"]
+    cls = PAYLOAD_TYPES.get(kind) if isinstance(kind, str) else None  # StrEnum keys match str
+    if cls is None:
+        raise ProtocolError("unknown_type", f"unknown message type {_short.repr(kind)}")
+    if not isinstance(header["fields"], dict) or not isinstance(header["arrays"], list):
+        raise ProtocolError("malformed", "header 'fields' must be a map and 'arrays' a list")
+    return cls
 
 
-def _decode_array(spec: Any, frame: memoryview, name: str) -> np.ndarray:
-    if not isinstance(spec, dict) or set(spec) != {"field", "dtype", "shape"}:
-        raise ProtocolError("bad_array", f"array descriptor of {name!r} is malformed")
-    dtype_str, shape = spec["dtype"], spec["shape"]
-    if not isinstance(dtype_str, str) or dtype_str not in ALLOWED_DTYPES:
-        raise ProtocolError("bad_array", f"array {name!r}: dtype {dtype_str!r} is not allowed")
+def _decode_fields(kind: str, specs: Sequence[_Spec], fields: dict[Any, Any]) -> dict[str, Any]:
+    expected = {spec.name for spec in specs}
+    if set(fields) != expected:
+        missing = sorted(expected - set(fields))
+        unknown = sorted(_short.repr(k) for k in set(fields) - expected)
+        raise ProtocolError(
+            "bad_fields", f"{kind}: missing fields {missing}, unknown fields {unknown}"
+        )
+    for spec in specs:
+        _check(fields[spec.name], spec.hint, f"{kind}.{spec.name}")
+    return {spec.name: fields[spec.name] for spec in specs}
+
+
+def _shape(shape: Any, where: str) -> tuple[int, ...]:
     if (
         not isinstance(shape, list)
-        or not all(
-            isinstance(d, int) and not isinstance(d, bool) and 0 <= d < 1 << 40 for d in shape
-        )
-        or len(shape) > 8
+        or len(shape) > MAX_NDIM
+        or not all(type(d) is int and 0 <= d < 1 << 48 for d in shape)
     ):
-        raise ProtocolError("bad_array", f"array {name!r}: shape {shape!r} is not a list of sizes")
-    dtype = np.dtype(dtype_str)
+        raise ProtocolError(
+            "bad_array", f"{where}: shape {_short.repr(shape)} is not a list of sizes"
+        )
+    return tuple(shape)
+
+
+def _decode_array(descriptor: Any, frame: memoryview, where: str, name: str) -> np.ndarray:
+    if not isinstance(descriptor, dict) or set(descriptor) != _DESCRIPTOR_KEYS:
+        raise ProtocolError("bad_array", f"{where}: array descriptor {_short.repr(descriptor)}")
+    if descriptor["field"] != name:
+        raise ProtocolError(
+            "bad_array",
+            f"{where}: descriptor names {_short.repr(descriptor['field'])}, expected {name!r}",
+        )
+    dtype_str = descriptor["dtype"]
+    dtype = WIRE_DTYPES.get(dtype_str) if isinstance(dtype_str, str) else None
+    if dtype is None:
+        raise ProtocolError("bad_array", f"{where}: dtype {_short.repr(dtype_str)} is not allowed")
+    shape = _shape(descriptor["shape"], where)
+    if math.prod(d or 1 for d in shape) * dtype.itemsize > _MAX_ADDRESSABLE:
+        # numpy refuses such shapes even with a zero among them
+        raise ProtocolError("bad_array", f"{where}: shape {list(shape)} is too big to address")
     expected = math.prod(shape) * dtype.itemsize
     if frame.nbytes != expected:
         raise ProtocolError(
             "bad_array",
-            f"array {name!r}: {frame.nbytes} bytes do not fit dtype {dtype_str} and shape {shape}",
+            f"{where}: {frame.nbytes} bytes, but dtype {dtype_str} and shape {list(shape)} "
+            f"need {expected}",
         )
-    return np.frombuffer(frame, dtype=dtype).reshape(shape)
+    # numpy assumes bool bytes are 0 or 1; anything else must not reach arithmetic.
+    if dtype.kind == "b" and expected and np.frombuffer(frame, np.uint8).max() > 1:
+        raise ProtocolError("bad_array", f"{where}: bool array holds bytes other than 0 and 1")
+    array = np.frombuffer(frame, dtype=dtype).reshape(shape)
+    array.flags.writeable = False  # a view of the frame, even when the frame is writable
+    return array
+
+
+def _decode_arrays(
+    kind: str, specs: Sequence[_Spec], descriptors: list[Any], frames: Sequence[memoryview]
+) -> dict[str, np.ndarray]:
+    if len(descriptors) != len(specs) or len(frames) != len(specs):
+        raise ProtocolError(
+            "bad_array",
+            f"{kind}: expects {len(specs)} array(s); the header lists {len(descriptors)} and "
+            f"{len(frames)} array frame(s) arrived",
+        )
+    return {
+        spec.name: _decode_array(descriptor, frame, f"{kind}.{spec.name}", spec.name)
+        for spec, descriptor, frame in zip(specs, descriptors, frames, strict=True)
+    }
+
+
+def _decode(frames: Any, max_bytes: int) -> Message:
+    views = _frame_views(frames, max_bytes)
+    header = _unpack_header(views[0])
+    cls = _payload_class(header)
+    kind = str(header["type"])
+    specs = _specs(cls)
+    values = _decode_fields(kind, [s for s in specs if not s.is_array], header["fields"])
+    values |= _decode_arrays(kind, [s for s in specs if s.is_array], header["arrays"], views[1:])
+    try:
+        return cls(**values)
+    except (TypeError, ValueError) as error:  # a payload class that validates in __post_init__
+        raise ProtocolError("bad_fields", f"{kind}: {error}") from None
 
 
 def decode(frames: Sequence[Frame], *, max_bytes: int = DEFAULT_MAX_BYTES) -> Message:
-    """The message in ``frames``; :class:`ProtocolError` for anything else."""
-    if not frames:
-        raise ProtocolError("malformed", "empty message")
-    views = [_frame_bytes(frame) for frame in frames]
-    total = sum(view.nbytes for view in views)
-    if total > max_bytes:
-        raise ProtocolError("too_large", f"message of {total} bytes exceeds the cap of {max_bytes}")
-    header = _unpack_header(views[0])
-    if set(header) != HEADER_KEYS:
-        raise ProtocolError(
-            "malformed",
-            f"header keys must be {sorted(HEADER_KEYS)}, got {sorted(map(str, header))}",
-        )
-    version = header["v"]
-    if version != PROTOCOL_VERSION:
-        raise ProtocolError(
-            "version", f"protocol version {version!r} received, {PROTOCOL_VERSION} expected"
-        )
-    kind = header["type"]
+    """The message in ``frames`` (header frame first, no routing identity).
+
+    Raises ProtocolError, and nothing else, for any input that is not a well-formed message
+    of this protocol version; arrays in the result are read-only views of the frames.
+    """
     try:
-        cls = PAYLOAD_TYPES[MsgType(kind)]
-    except (ValueError, TypeError):
-        raise ProtocolError("unknown_type", f"unknown message type {kind!r}") from None
-    fields, arrays = header["fields"], header["arrays"]
-    if not isinstance(fields, dict) or not isinstance(arrays, list):
-        raise ProtocolError("malformed", "header 'fields' must be a map and 'arrays' a list")
-    specs = _field_specs(cls)
-    array_specs = [s for s in specs if s.is_array]
-    value_specs = {s.name: s for s in specs if not s.is_array}
-    if set(fields) != set(value_specs):
-        missing = sorted(set(value_specs) - set(fields))
-        unknown = sorted(map(str, set(fields) - set(value_specs)))
+        return _decode(frames, max_bytes)
+    except ProtocolError:
+        raise
+    except Exception as error:  # a safety net: a bad frame must never crash a receive loop
         raise ProtocolError(
-            "bad_fields", f"{kind}: missing fields {missing}, unknown fields {unknown}"
-        )
-    if len(arrays) != len(array_specs) or len(views) != 1 + len(array_specs):
-        raise ProtocolError(
-            "bad_array",
-            f"{kind}: expected {len(array_specs)} array frame(s), header lists {len(arrays)} and "
-            f"{len(views) - 1} arrived",
-        )
-    values: dict[str, Any] = {}
-    for name, spec in value_specs.items():
-        _check_value(spec, fields[name])
-        values[name] = fields[name]
-    for spec, descriptor, view in zip(array_specs, arrays, views[1:], strict=True):
-        if not isinstance(descriptor, dict) or descriptor.get("field") != spec.name:
-            raise ProtocolError(
-                "bad_array", f"{kind}: array frames out of order (expected {spec.name!r})"
-            )
-        values[spec.name] = _decode_array(descriptor, view, spec.name)
-    return cls(**values)
+            "malformed", f"undecodable message ({_type_name(error)}: {error})"
+        ) from error
