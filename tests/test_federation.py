@@ -7,6 +7,7 @@ Heterogeneity: emulated device time follows the speed factors; rounds wait for t
 from __future__ import annotations
 
 import json
+import statistics
 from pathlib import Path
 
 import pytest
@@ -80,7 +81,7 @@ def test_distributed_theta_equals_in_process_bit_for_bit(
 def test_emulated_time_follows_the_speed_factor(tmp_path: Path) -> None:
     """Equal work (same B and τ, one-step episodes of an identical environment, so both agents
     do the same arithmetic), speeds 1 and 0.25: the slow agent's emulated time is 4× the fast
-    one's within 20% (summed over rounds 2-10; round 1 pays one-off warm-up costs), and it
+    one's within 20% (median over rounds 2-10; round 1 pays one-off warm-up costs), and it
     really took that long."""
     overrides = [
         "rounds=10",
@@ -105,8 +106,8 @@ def test_emulated_time_follows_the_speed_factor(tmp_path: Path) -> None:
     for record in records:
         for agent, speed in zip(record["agents"], (1.0, 0.25), strict=True):
             assert agent["emulated_s"] == pytest.approx(agent["compute_s"] / speed, rel=1e-9)
-    slow = sum(r["agents"][1]["emulated_s"] for r in records[1:])
-    fast = sum(r["agents"][0]["emulated_s"] for r in records[1:])
-    assert 4 * 0.8 <= slow / fast <= 4 * 1.2, (slow / fast, [r["agents"] for r in records])
+    # Median of the per-round ratios: one round disturbed by the machine cannot decide it.
+    ratios = [r["agents"][1]["emulated_s"] / r["agents"][0]["emulated_s"] for r in records[1:]]
+    assert 4 * 0.8 <= statistics.median(ratios) <= 4 * 1.2, ratios
     for agent in (r["agents"][1] for r in records):
         assert agent["local_wall_s"] >= 0.9 * agent["emulated_s"], "the slowdown was slept"
