@@ -40,6 +40,8 @@ class Task:
     anchor: tuple[float, float]
     """FedPG-BR's published return after 10^4 trajectories per agent (low, high)."""
     eval_every: int
+    horizons: tuple[int, int]
+    """(training, evaluation) episode step limits, for the figure's labels."""
 
 
 # Shared by both tasks: FedPG-BR's arrangement (K=10, τ=1, agents send one plain GPOMDP step
@@ -76,6 +78,7 @@ TASKS = {
         ],
         anchor=(200.0, 200.0),
         eval_every=4,
+        horizons=(1000, 1000),
     ),
     "halfcheetah": Task(
         name="halfcheetah",
@@ -93,6 +96,7 @@ TASKS = {
         ],
         anchor=(2500.0, 2700.0),
         eval_every=4,
+        horizons=(500, 1000),
     ),
 }
 
@@ -238,9 +242,13 @@ def plot(task: Task, results: list[SeedResult], path: Path) -> None:
     end = min(r.trajectories[-1] for r in results)
     grid = np.linspace(0, end, 300)
     curves = (
-        ("greedy (10 episodes)", "tab:blue", lambda r: (r.trajectories, r.returns)),
         (
-            "stochastic (training batch)",
+            f"greedy, 10 episodes ≤ {task.horizons[1]} steps",
+            "tab:blue",
+            lambda r: (r.trajectories, r.returns),
+        ),
+        (
+            f"stochastic, training batch ≤ {task.horizons[0]} steps",
             "tab:orange",
             lambda r: (r.extra["train_trajectories"], r.extra["train_returns"]),
         ),
@@ -262,7 +270,7 @@ def plot(task: Task, results: list[SeedResult], path: Path) -> None:
     axis.set_xlabel("trajectories per agent")
     axis.set_ylabel("return")
     axis.set_title(f"{task.title} (fedhpg-run, server Adam)")
-    axis.legend(loc="lower right")
+    axis.legend(loc="best", fontsize="small")
     figure.tight_layout()
     path.parent.mkdir(parents=True, exist_ok=True)
     figure.savefig(path, dpi=120)
