@@ -87,10 +87,8 @@ class AdamAscent:
         """(scalars, arrays) that :meth:`restore` takes back: a checkpoint's share."""
         if self.first is None or self.second is None:
             return {"steps": self.steps}, {}
-        return {"steps": self.steps}, {
-            "first": self.first.numpy().copy(),
-            "second": self.second.numpy().copy(),
-        }
+        # Views, not copies: direction() replaces the moment tensors, never writes into them.
+        return {"steps": self.steps}, {"first": self.first.numpy(), "second": self.second.numpy()}
 
     def restore(self, scalars: dict[str, Any], arrays: dict[str, np.ndarray]) -> None:
         self.steps = int(scalars["steps"])

@@ -113,7 +113,9 @@ def load_checkpoint(path: Path) -> Checkpoint:
             values.get("format") != CHECKPOINT_FORMAT
             or values.get("version") not in READABLE_VERSIONS
         ):
-            raise CheckpointError(f"{path}: not a {CHECKPOINT_FORMAT} v{CHECKPOINT_VERSION} file")
+            raise CheckpointError(
+                f"{path}: not a {CHECKPOINT_FORMAT} file of a readable version {READABLE_VERSIONS}"
+            )
         return Checkpoint(
             round=int(values["round"]),
             theta=torch.from_numpy(_unpack_array(values["theta"])),
