@@ -6,7 +6,7 @@ STAMP := $(VENV)/.installed
 export OMP_NUM_THREADS ?= 1
 export MKL_NUM_THREADS ?= 1
 
-.PHONY: setup demo test lint bench bench-learning bench-learning-long figures clean
+.PHONY: setup demo test lint typecheck contracts bench bench-learning bench-learning-long figures clean
 
 setup: $(STAMP)
 
@@ -19,9 +19,21 @@ $(STAMP): pyproject.toml constraints.txt
 demo: $(STAMP)
 	$(BIN)/fedhpg-run
 
-test: $(STAMP)
+test: $(STAMP) typecheck contracts
 	$(BIN)/ruff check .
 	$(BIN)/python -m pytest -q
+
+# mypy sees the package as fedhpg.* through links (the folders are mapped by package-dir).
+TYPECHECK := build/typecheck/fedhpg
+typecheck: $(STAMP)
+	rm -rf $(TYPECHECK) && mkdir -p $(TYPECHECK)
+	for d in agent common envs server; do ln -s ../../../$$d $(TYPECHECK)/$$d; done
+	$(BIN)/mypy -p fedhpg.agent -p fedhpg.common -p fedhpg.envs -p fedhpg.server
+
+# Layers (pyproject.toml [tool.importlinter]): agent never imports server, common neither
+# side, envs nothing of the federation, the maths no wire, configs no torch/zmq/gymnasium.
+contracts: $(STAMP)
+	$(BIN)/lint-imports
 
 lint: $(STAMP)
 	$(BIN)/ruff check .

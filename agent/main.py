@@ -6,8 +6,8 @@ import logging
 import sys
 
 from fedhpg.agent.process import AgentFailure, AgentProcess
-from fedhpg.common.cli import run_entry
 from fedhpg.common.config import RunConfig
+from fedhpg.common.runtime.cli import run_entry
 
 logger = logging.getLogger(__name__)
 

@@ -27,16 +27,13 @@ import numpy as np
 import torch
 import zmq
 
-from fedhpg.common.codec import ProtocolError
-from fedhpg.common.config import (
-    ConfigError,
-    RunConfig,
-    agent_id_of,
-    agent_profile,
-    from_dict,
-)
-from fedhpg.common.device import device_for
-from fedhpg.common.protocol import (
+from fedhpg.common.components import agent_profile, validate_run
+from fedhpg.common.config import ConfigError, RunConfig, adopt_settings, agent_id_of, per_agent
+from fedhpg.common.device import DeviceModel, device_for
+from fedhpg.common.runtime.memory import pin_malloc_mmap_threshold
+from fedhpg.common.variants import run_variants, variant_digest
+from fedhpg.common.wire.codec import ProtocolError
+from fedhpg.common.wire.protocol import (
     Error,
     Evaluate,
     Evaluation,
@@ -48,8 +45,8 @@ from fedhpg.common.protocol import (
     Update,
     Welcome,
 )
-from fedhpg.common.security import secure_agent_socket
-from fedhpg.common.transport import (
+from fedhpg.common.wire.security import secure_agent_socket
+from fedhpg.common.wire.transport import (
     configure_socket,
     connect_endpoint,
     max_message_bytes,
@@ -58,7 +55,6 @@ from fedhpg.common.transport import (
 )
 from fedhpg.common.worker import LocalWorker
 from fedhpg.envs.base import EnvVariant
-from fedhpg.server.inprocess import run_variants
 
 logger = logging.getLogger(__name__)
 
@@ -115,10 +111,10 @@ class AgentProcess:
                 "agent.index",
                 f"got {self.index}, must be < agents.num_agents={run.agents.num_agents}",
             )
+        pin_malloc_mmap_threshold()
         self.variant: EnvVariant = run_variants(run)[self.index]
-        self.profile = agent_profile(run.agents, self.index)
-        self.device = device_for(run, self.profile, self.index)
-        self.device.sleep = self._sleep_unless_cancelled
+        self.digest = variant_digest(run, self.variant)
+        self.device: DeviceModel = self._device(run)
         self.interval_s = run.server.heartbeat_interval_s
         self.liveness_s = run.server.heartbeat_interval_s * run.server.heartbeat_liveness
         self.endpoint = connect_endpoint(run.server)
@@ -137,6 +133,11 @@ class AgentProcess:
             target=self._job_loop, name=f"{self.agent_id}-jobs", daemon=True
         )
         self._job_thread.start()
+
+    def _device(self, run: RunConfig) -> DeviceModel:
+        device = device_for(run, self.index)
+        device.sleep = self._sleep_unless_cancelled
+        return device
 
     # -- the socket -------------------------------------------------------------------------
 
@@ -202,10 +203,13 @@ class AgentProcess:
             agent_id=self.agent_id,
             agent_index=self.index,
             env_signature=self.variant.signature(),
+            variant_digest=self.digest,
             profile={
-                "batch_size": self.profile.batch_size,
-                "local_iters": self.profile.local_iters,
-                "speed": self.profile.speed,
+                "budget": {
+                    name: per_agent(values, self.index)
+                    for name, values in self.own.agents.budget.items()
+                },
+                "speed": self.device.speed,
                 "pid": os.getpid(),
             },
         )
@@ -258,31 +262,25 @@ class AgentProcess:
         self.last_heard = time.monotonic()
         if welcome.run == self.settings and self.worker is not None:
             return  # a server we knew, restarted: same run, keep the worker
-        shared = from_dict(welcome.run)
-        run = replace(
-            self.own,
-            seed=shared.seed,
-            rounds=shared.rounds,
-            algo=shared.algo,
-            policy=shared.policy,
-            eval=shared.eval,
-        )
+        try:
+            run = validate_run(adopt_settings(self.own, welcome.run))
+            profile = agent_profile(run, self.index)
+        except ConfigError as error:
+            raise AgentFailure(f"cannot take the server's settings: {error}") from None
         self._retire_job()
         if self.worker is not None:
             self.worker.close()
-        self.worker = LocalWorker(
-            index=self.index, variant=self.variant, run=run, profile=self.profile
-        )
+        self.device = self._device(run)
+        self.worker = LocalWorker(index=self.index, variant=self.variant, run=run, profile=profile)
         self.settings = welcome.run
         self.last_answer = None
         logger.debug(
-            "%s registered in run %s (env %s, B=%d, τ=%d, speed=%g)",
+            "%s registered in run %s (env %s, %s, speed=%g)",
             self.agent_id,
             welcome.run_id,
             self.variant.params,
-            self.profile.batch_size,
-            self.profile.local_iters,
-            self.profile.speed,
+            self.worker.algorithm.describe_budget(profile.budget),
+            profile.speed,
         )
 
     def _reconnect(self, silent_s: float) -> None:
@@ -321,8 +319,8 @@ class AgentProcess:
         request = job.request
         theta = torch.from_numpy(np.array(request.theta))
         if isinstance(request, Evaluate):
-            stats = self.worker.evaluate(request.round, theta, request.episodes)
-            return Evaluation(round=request.round, stats=stats)
+            evaluation = self.worker.evaluate(request.round, theta, request.episodes)
+            return Evaluation(round=request.round, stats=evaluation)
         started = time.perf_counter()
         self.device.take_emulated()
         self.device.transmit()  # the request's one-way latency
@@ -334,20 +332,13 @@ class AgentProcess:
 
         result = self.worker.train(request.round, theta, on_iteration=on_iteration)
         self.device.transmit()  # the answer's
-        return Update(
-            round=request.round,
-            theta=result.theta.numpy(),
-            stats={
-                "trajectories": result.trajectories,
-                "env_steps": result.env_steps,
-                "compute_s": result.compute_s,
-                "emulated_s": self.device.take_emulated(),
-                "local_wall_s": time.perf_counter() - started,
-                "speed": self.device.speed_at(request.round),
-                "train_return": result.train_return,
-                **result.extra,
-            },
+        stats = replace(
+            result.stats,
+            emulated_s=self.device.take_emulated(),
+            local_wall_s=time.perf_counter() - started,
+            speed=self.device.speed_at(request.round),
         )
+        return Update(round=request.round, theta=result.theta.numpy(), stats=stats)
 
     def _start(self, request: Request) -> None:
         self.job = Job(request=request)

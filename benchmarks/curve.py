@@ -15,8 +15,8 @@ import time
 import numpy as np
 import zmq
 
-from fedhpg.common.codec import decode, encode
-from fedhpg.common.protocol import Train
+from fedhpg.common.wire.codec import decode, encode
+from fedhpg.common.wire.protocol import Train
 
 SIZES = (100, 10_000, 1_000_000)
 

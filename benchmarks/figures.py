@@ -23,11 +23,11 @@ FIGURES = Path("docs/figures")
 SUCCESS = 0.9
 
 EXPERIMENTS = {
-    "fig1": ("fig1_batch_size", "agents.batch_sizes=[2],[2,5,10,20],[20]",
+    "fig1": ("fig1_batch_size", "agents.budget.batch_size=[2],[2,5,10,20],[20]",
              "Fig. 1 — batch sizes B_k (4 GridWorld agents, τ=2)"),
-    "fig2": ("fig2_local_iters", "agents.local_iters=[2,2,3,3],[5,5,6,6]",
+    "fig2": ("fig2_local_iters", "agents.budget.local_iters=[2,2,3,3],[5,5,6,6]",
              "Fig. 2 — local iterations τ_k (4 GridWorld agents, B=5)"),
-    "fig3": ("fig3_vr_inner_loops", "agents.inner_steps=[1],[3],[6]",
+    "fig3": ("fig3_vr_inner_loops", "agents.budget.inner_steps=[1],[3],[6]",
              "Fig. 3 — FedHPGVR inner loop N (B=10, b=4)"),
 }  # fmt: skip
 
@@ -97,7 +97,7 @@ def main() -> None:
         sys.stdout.flush()
     heterogeneous = [
         run.path for run in find_runs([SWEEPS / "fig1"])
-        if run.config["agents"]["batch_sizes"] == [2, 5, 10, 20]
+        if run.config["agents"]["budget"]["batch_size"] == [2, 5, 10, 20]
     ]  # fmt: skip
     plot_main(
         [*map(str, heterogeneous), "--per-agent", "--metric", "train_return",

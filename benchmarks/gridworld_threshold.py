@@ -12,9 +12,9 @@ from dataclasses import dataclass
 
 import torch
 
-from fedhpg.common.cli import compose
+from fedhpg.common.runtime.cli import compose
 from fedhpg.server.coordinator import RoundRecord
-from fedhpg.server.inprocess import run_in_process
+from fedhpg.server.pools.inprocess import run_in_process
 
 THRESHOLD = 0.9
 SEEDS = (0, 1, 2, 3, 4)
@@ -35,7 +35,7 @@ def time_to_threshold(algo: str, seed: int) -> ThresholdResult:
     hit: list[tuple[int, float]] = []
 
     def watch(record: RoundRecord, _: torch.Tensor) -> None:
-        solved = record.eval and min(e["success_rate"] for e in record.eval.values()) >= THRESHOLD
+        solved = record.eval and min(e.success_rate for e in record.eval.values()) >= THRESHOLD
         if solved and not hit:
             hit.append((record.round, record.trajectories_per_agent))
 

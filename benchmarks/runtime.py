@@ -114,8 +114,8 @@ def _common(num_agents: int, hidden: int, rounds: int) -> list[str]:
         # not queue for the CPU and the figure is the coordination cost itself.
         "env.horizon=1",
         f"agents.num_agents={num_agents}",
-        "agents.batch_sizes=[1]",
-        "agents.local_iters=[1]",
+        "agents.budget.batch_size=[1]",
+        "agents.budget.local_iters=[1]",
         "agents.speeds=[1]",
         "agents.step_delays_s=[0]",
         f"policy.hidden=[{hidden},{hidden}]",
@@ -150,8 +150,8 @@ def startup_and_memory(num_agents: int = 8) -> tuple[float, float]:
     overrides = [
         "rounds=40",
         f"agents.num_agents={num_agents}",
-        "agents.batch_sizes=[8]",
-        "agents.local_iters=[2]",
+        "agents.budget.batch_size=[8]",
+        "agents.budget.local_iters=[2]",
         "agents.speeds=[1]",
         "agents.step_delays_s=[0.0002]",
     ]

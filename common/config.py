@@ -3,6 +3,14 @@
 The dataclasses double as Hydra structured configs (see ``fedhpg.conf``). Inner code receives
 these objects, never a DictConfig. :func:`validate` raises :class:`ConfigError` naming the key
 and the allowed values; entry points turn it into a one-line message and exit status 2.
+
+This module is pure Python (no torch, zmq or gymnasium): every process imports it first, and
+the checks that need a registry (algorithm, strategy, their options) live beside the registry
+(:mod:`fedhpg.common.components`, :mod:`fedhpg.server.strategies`).
+
+:data:`GROUPS` is the one declaration of what each top-level key is for: whether the server
+dictates it to agents, whether a resumed run must keep it, whether runs that differ in it are
+different experiments (plots group by it).
 """
 
 from __future__ import annotations
@@ -12,18 +20,19 @@ import math
 from dataclasses import dataclass, field
 from typing import Any
 
-from fedhpg.common.estimators import BASELINES, ESTIMATORS
-from fedhpg.common.policies import PolicyConfig
-from fedhpg.common.protocol import HEARTBEAT_INTERVAL_S, HEARTBEAT_LIVENESS
-from fedhpg.common.security import SecurityConfig, validate_security
-
-ALGORITHMS = ("fedhpg", "fedhpgvr")
+ESTIMATORS: tuple[str, ...] = ("reinforce", "gpomdp")
+BASELINES: tuple[str, ...] = ("none", "mean")
 OPTIMIZERS = ("sgd", "adam")
-AGGREGATIONS = ("uniform", "weighted")
-IW_MODES = ("auto", "trajectory", "per_decision")
+ATTACKS = ("none", "zero_gradient", "random_noise", "sign_flip", "reward_flip", "random_action")
 SCHEDULES = ("constant", "periodic", "random_walk")
 TRANSPORTS = ("tcp", "ipc")
 ROUND_POLICIES = ("wait_all", "deadline")
+LOG_STDS = ("state_independent", "state_dependent")
+
+# Liveness, part of the protocol: a peer silent for HEARTBEAT_LIVENESS intervals is presumed
+# dead. (Defaults of ServerConfig; fedhpg.common.wire.protocol re-exports them.)
+HEARTBEAT_INTERVAL_S = 1.0
+HEARTBEAT_LIVENESS = 5
 
 
 class ConfigError(ValueError):
@@ -54,10 +63,10 @@ class EnvConfig:
 
 @dataclass(kw_only=True)
 class AlgoConfig:
-    """The federated algorithm and its local policy-gradient settings."""
+    """The federated algorithm (agent side) and the local policy-gradient settings it uses."""
 
     name: str = "fedhpg"
-    """'fedhpg' (Algorithm 1) or 'fedhpgvr' (Algorithm 2)."""
+    """A registered algorithm: 'fedhpg' (Algorithm 1), 'fedhpgvr' (Algorithm 2), or a plugin's."""
     estimator: str = "gpomdp"
     """'reinforce' (eq. 5) or 'gpomdp' (eq. 6)."""
     baseline: str = "mean"
@@ -68,34 +77,30 @@ class AlgoConfig:
     """'sgd' (plain ascent, as in the paper) or 'adam' (state reset every round)."""
     grad_clip: float | None = None
     """Clip each local gradient estimate to this norm (Assumption 3); None = off."""
-    aggregation: str = "uniform"
-    """'uniform' mean of the K vectors (the paper) or 'weighted' by trajectories used."""
-    server_optimizer: str = "none"
-    """'none': θ̃ = the average (the paper); 'adam': Adam on the average update (FedOpt)."""
-    server_step_size: float = 1e-3
-    """Step size of the server optimizer."""
-    iw_mode: str = "auto"
-    """FedHPGVR importance weights: 'trajectory', 'per_decision', or 'auto' (by estimator)."""
-    iw_clip: list[float] | None = None
-    """FedHPGVR: clip importance weights to [lo, hi]; None = off."""
-    iw_self_normalize: bool = False
-    """FedHPGVR: divide the correction term by Σw instead of b_k."""
+    params: dict[str, Any] = field(default_factory=dict)
+    """The algorithm's own options (its ``Params`` dataclass), e.g. FedHPGVR's ``iw_mode``."""
+
+
+@dataclass(kw_only=True)
+class StrategyConfig:
+    """How the server turns the round's updates into θ̃ (its ``select`` and ``aggregate``)."""
+
+    name: str = "mean"
+    """A registered strategy: mean, weighted, fedadam, median, trimmed_mean, or a plugin's."""
+    params: dict[str, Any] = field(default_factory=dict)
+    """The strategy's own options (its ``Params`` dataclass), e.g. fedadam's ``step_size``."""
 
 
 @dataclass(kw_only=True)
 class AgentsConfig:
-    """Per-agent compute budgets. A one-element list applies to every agent."""
+    """Per-agent compute. A one-element list applies to every agent."""
 
     num_agents: int = 4
     """K, the number of agents."""
-    batch_sizes: list[int] = field(default_factory=lambda: [10])
-    """B_k: trajectories per local iteration (FedHPG) or per snapshot (FedHPGVR)."""
-    local_iters: list[int] = field(default_factory=lambda: [2])
-    """τ_k: local iterations per round (FedHPG)."""
-    inner_steps: list[int] = field(default_factory=lambda: [3])
-    """N: inner steps per round (FedHPGVR)."""
-    mini_batch_sizes: list[int] = field(default_factory=lambda: [5])
-    """b_k: trajectories per inner step (FedHPGVR)."""
+    budget: dict[str, list[Any]] = field(default_factory=dict)
+    """Per-agent compute budget, keyed by the algorithm's ``Budget`` fields (FedHPG:
+    ``batch_size`` B_k and ``local_iters`` τ_k; FedHPGVR: ``batch_size``, ``inner_steps`` N,
+    ``mini_batch_size`` b_k); a missing key takes the algorithm's default."""
     speeds: list[float] = field(default_factory=lambda: [1.0])
     """Emulated device speed: a local iteration takes 1/speed of its real compute time."""
     step_delays_s: list[float] = field(default_factory=lambda: [0.0])
@@ -110,6 +115,39 @@ class AgentsConfig:
     """'periodic' / 'random_walk': relative amplitude (speed × (1 ± amplitude))."""
     virtual_clock: bool = False
     """Account emulated time without sleeping (fast, reproducible heterogeneity studies)."""
+
+
+@dataclass(kw_only=True)
+class AttackConfig:
+    """Byzantine agents, for robustness experiments only (off by default).
+
+    The attacks FedPG-BR evaluates, applied by the attacking agents themselves: the server is
+    never told who attacks.
+    """
+
+    kind: str = "none"
+    """'none', 'zero_gradient' (send θ̃ back), 'random_noise' (add uniform noise of
+    ``noise_scale`` × the update's range), 'sign_flip' (send −``sign_flip_scale`` × the
+    update), 'reward_flip' (learn from negated rewards), 'random_action' (act uniformly at
+    random while sampling)."""
+    agents: list[int] = field(default_factory=list)
+    """Indices of the attacking agents."""
+    sign_flip_scale: float = 2.5
+    """'sign_flip': the update sent is −scale × the honest one (FedPG-BR: 2.5)."""
+    noise_scale: float = 3.0
+    """'random_noise': noise U(−1, 1) × scale × (max − min of the honest update) (FedPG-BR: 3)."""
+
+
+@dataclass(kw_only=True)
+class PolicyConfig:
+    """How to build the policy network for the run's spaces."""
+
+    hidden: list[int] = field(default_factory=lambda: [64, 64])
+    """Hidden layer widths of the MLP policies (ignored by the tabular policy)."""
+    log_std: str = "state_independent"
+    """Gaussian policies: 'state_independent' or 'state_dependent' log σ."""
+    init_log_std: float = -0.5
+    """Gaussian policies: initial log σ."""
 
 
 @dataclass(kw_only=True)
@@ -161,7 +199,7 @@ class ServerConfig:
     """A peer silent for this many heartbeat intervals is presumed dead."""
     max_update_norm: float | None = None
     """Reject an update whose distance ‖θ_k − θ̃‖ exceeds this (a failure for the round);
-    None = no bound. NaN/Inf and wrong shapes are always rejected."""
+    None = no bound. NaN/Inf and wrong shapes are always rejected. Every pool applies it."""
     max_message_mb: float = 256.0
     """Largest message accepted on the socket (ZMQ_MAXMSGSIZE), in MiB."""
     out_dir: str | None = None
@@ -185,15 +223,38 @@ class AgentConfig:
 
 
 @dataclass(kw_only=True)
+class SecurityConfig:
+    """CURVE encryption and agent authentication. Off by default: plaintext on the wire."""
+
+    curve: bool = False
+    """Encrypt every connection with CURVE and admit only agents whose public key is allowed."""
+    keys_dir: str | None = None
+    """Directory written by ``fedhpg-keys``: the default location of every key file below."""
+    server_secret_key: str | None = None
+    """Server: its secret key file; None = ``<keys_dir>/server.key_secret``."""
+    allowed_keys_dir: str | None = None
+    """Server: directory of allowed agent public keys, one ``<agent id>.key`` file per agent;
+    None = ``<keys_dir>/allowed``."""
+    server_public_key: str | None = None
+    """Agent: the server's public key file; None = ``<keys_dir>/server.key``."""
+    agent_secret_key: str | None = None
+    """Agent: its own secret key file; None = ``<keys_dir>/<agent id>.key_secret``."""
+
+
+@dataclass(kw_only=True)
 class RunConfig:
     """One federated run."""
 
     seed: int = 0
     rounds: int = 50
     """T, the number of communication rounds."""
+    plugins: list[str] = field(default_factory=list)
+    """Modules to import first: they register algorithms, strategies or env families."""
     env: EnvConfig = field(default_factory=EnvConfig)
     algo: AlgoConfig = field(default_factory=AlgoConfig)
+    strategy: StrategyConfig = field(default_factory=StrategyConfig)
     agents: AgentsConfig = field(default_factory=AgentsConfig)
+    attack: AttackConfig = field(default_factory=AttackConfig)
     policy: PolicyConfig = field(default_factory=PolicyConfig)
     eval: EvalConfig = field(default_factory=EvalConfig)
     server: ServerConfig = field(default_factory=ServerConfig)
@@ -204,34 +265,64 @@ class RunConfig:
     directory (``fedhpg-run resume=DIR``)."""
 
 
+# --- what each top-level key is for: the one declaration --------------------------------------
+
+
 @dataclass(frozen=True, kw_only=True)
-class AgentProfile:
-    """One agent's resolved compute budget and device model."""
-
-    batch_size: int
-    local_iters: int
-    inner_steps: int
-    mini_batch_size: int
-    speed: float
-    step_delay_s: float
-    latency_s: float
+class GroupRole:
+    dictated: bool
+    """The server sends it in every welcome and agents adopt it (never host-specific)."""
+    fixed: bool
+    """It defines the run: a resumed run must keep it."""
+    compared: bool
+    """Runs that differ in it are different experiments: plots group by it."""
 
 
-def _per_agent(values: list[Any], index: int) -> Any:
+GROUPS: dict[str, GroupRole] = {
+    "seed": GroupRole(dictated=True, fixed=True, compared=False),  # seeds are replicates
+    "rounds": GroupRole(dictated=True, fixed=False, compared=False),  # may grow on resume
+    "plugins": GroupRole(dictated=False, fixed=False, compared=False),  # each host its own
+    "env": GroupRole(dictated=False, fixed=True, compared=True),  # checked at registration
+    "algo": GroupRole(dictated=True, fixed=True, compared=True),
+    "strategy": GroupRole(dictated=False, fixed=True, compared=True),  # the server's alone
+    "agents": GroupRole(dictated=False, fixed=True, compared=True),  # each host its profile
+    "attack": GroupRole(dictated=False, fixed=True, compared=True),  # attackers decide
+    "policy": GroupRole(dictated=True, fixed=True, compared=True),
+    "eval": GroupRole(dictated=True, fixed=False, compared=True),
+    "server": GroupRole(dictated=False, fixed=False, compared=False),
+    "agent": GroupRole(dictated=False, fixed=False, compared=False),
+    "security": GroupRole(dictated=False, fixed=False, compared=False),  # paths stay on host
+    "resume": GroupRole(dictated=False, fixed=False, compared=False),
+}
+REPLICATE_KEYS = ("seed", "env.seed")
+"""Keys whose values are replicates of one experiment (plots average over them)."""
+
+
+def groups(flag: str) -> tuple[str, ...]:
+    """The top-level keys whose role has ``flag`` ('dictated', 'fixed' or 'compared')."""
+    return tuple(name for name, role in GROUPS.items() if getattr(role, flag))
+
+
+def dictated_settings(config: RunConfig) -> dict[str, Any]:
+    """What the server sends agents: the dictated keys only (so no host's paths leave it)."""
+    values = to_dict(config)
+    return {key: values[key] for key in groups("dictated")}
+
+
+def adopt_settings(own: RunConfig, dictated: dict[str, Any]) -> RunConfig:
+    """This host's config with the server's dictated keys in place of its own."""
+    unknown = sorted(set(dictated) - set(groups("dictated")))
+    if unknown:
+        raise ConfigError(unknown[0], "the server may not dictate this key")
+    return from_dict({**to_dict(own), **dictated})
+
+
+# --- checks -----------------------------------------------------------------------------------
+
+
+def per_agent(values: list[Any], index: int) -> Any:
+    """Agent ``index``'s entry of a per-agent list (one entry = every agent's)."""
     return values[0] if len(values) == 1 else values[index]
-
-
-def agent_profile(agents: AgentsConfig, index: int) -> AgentProfile:
-    """Agent ``index``'s budget from the per-agent lists."""
-    return AgentProfile(
-        batch_size=int(_per_agent(agents.batch_sizes, index)),
-        local_iters=int(_per_agent(agents.local_iters, index)),
-        inner_steps=int(_per_agent(agents.inner_steps, index)),
-        mini_batch_size=int(_per_agent(agents.mini_batch_sizes, index)),
-        speed=float(_per_agent(agents.speeds, index)),
-        step_delay_s=float(_per_agent(agents.step_delays_s, index)),
-        latency_s=float(_per_agent(agents.latencies_s, index)),
-    )
 
 
 def _require(condition: bool, key: str, message: str) -> None:
@@ -263,67 +354,40 @@ def _check_agent_list(values: Any, key: str, num_agents: int) -> None:
     )
 
 
-def validate(config: RunConfig) -> RunConfig:
-    """Check every value once; raise :class:`ConfigError` naming the first bad key."""
-    _check_int(config.seed, "seed", low=0)
-    _check_int(config.rounds, "rounds", low=1)
-
-    env = config.env
+def _validate_env(env: EnvConfig) -> None:
     _check_number(env.level, "env.level", low=0.0)
     _require(env.level <= 1.0, "env.level", f"got {env.level!r}, must be in [0, 1]")
+    if env.seed is not None:
+        _check_int(env.seed, "env.seed", low=0)
     if env.horizon is not None:
         _check_int(env.horizon, "env.horizon", low=1)
     if env.gamma is not None:
         _check_number(env.gamma, "env.gamma", low=0.0, low_open=True)
         _require(env.gamma <= 1.0, "env.gamma", f"got {env.gamma!r}, must be in (0, 1]")
 
-    algo = config.algo
-    _check_choice(algo.name, "algo.name", ALGORITHMS)
+
+def _validate_algo(algo: AlgoConfig) -> None:
     _check_choice(algo.estimator, "algo.estimator", ESTIMATORS)
     _check_choice(algo.baseline, "algo.baseline", BASELINES)
     _check_choice(algo.optimizer, "algo.optimizer", OPTIMIZERS)
-    _check_choice(algo.aggregation, "algo.aggregation", AGGREGATIONS)
-    _check_choice(algo.server_optimizer, "algo.server_optimizer", ("none", "adam"))
-    _check_number(algo.server_step_size, "algo.server_step_size", low=0.0, low_open=True)
-    _check_choice(algo.iw_mode, "algo.iw_mode", IW_MODES)
-    _require(
-        not (algo.iw_mode == "per_decision" and algo.estimator == "reinforce"),
-        "algo.iw_mode",
-        "per-decision weights need estimator 'gpomdp'; REINFORCE takes 'trajectory' or 'auto'",
-    )
     _check_number(algo.step_size, "algo.step_size", low=0.0, low_open=True)
     if algo.grad_clip is not None:
         _check_number(algo.grad_clip, "algo.grad_clip", low=0.0, low_open=True)
-    if algo.iw_clip is not None:
-        _require(
-            isinstance(algo.iw_clip, list) and len(algo.iw_clip) == 2,
-            "algo.iw_clip",
-            f"needs two bounds [lo, hi], got {algo.iw_clip!r}",
-        )
-        lo, hi = algo.iw_clip
-        _check_number(lo, "algo.iw_clip[0]", low=0.0)
-        _check_number(hi, "algo.iw_clip[1]", low=0.0, low_open=True)
-        _require(lo <= hi, "algo.iw_clip", f"needs lo <= hi, got lo={lo!r} > hi={hi!r}")
 
-    agents = config.agents
+
+def _validate_agents(agents: AgentsConfig) -> None:
     _check_int(agents.num_agents, "agents.num_agents", low=1)
     k = agents.num_agents
-    for key, values, check in (
-        ("batch_sizes", agents.batch_sizes, "int"),
-        ("local_iters", agents.local_iters, "int"),
-        ("inner_steps", agents.inner_steps, "int"),
-        ("mini_batch_sizes", agents.mini_batch_sizes, "int"),
-        ("speeds", agents.speeds, "positive"),
-        ("step_delays_s", agents.step_delays_s, "nonneg"),
-        ("latencies_s", agents.latencies_s, "nonneg"),
+    for name, values in agents.budget.items():
+        _check_agent_list(values, f"agents.budget.{name}", k)
+    for key, values, positive in (
+        ("speeds", agents.speeds, True),
+        ("step_delays_s", agents.step_delays_s, False),
+        ("latencies_s", agents.latencies_s, False),
     ):
         _check_agent_list(values, f"agents.{key}", k)
         for i, value in enumerate(values):
-            item = f"agents.{key}[{i}]"
-            if check == "int":
-                _check_int(value, item, low=1)
-            else:
-                _check_number(value, item, low=0.0, low_open=check == "positive")
+            _check_number(value, f"agents.{key}[{i}]", low=0.0, low_open=positive)
     _check_choice(agents.schedule, "agents.schedule", SCHEDULES)
     _check_int(agents.schedule_period_rounds, "agents.schedule_period_rounds", low=1)
     _check_number(agents.schedule_amplitude, "agents.schedule_amplitude", low=0.0)
@@ -333,21 +397,26 @@ def validate(config: RunConfig) -> RunConfig:
         f"got {agents.schedule_amplitude!r}, must be in [0, 1)",
     )
 
-    policy = config.policy
+
+def _validate_attack(attack: AttackConfig, num_agents: int) -> None:
+    _check_choice(attack.kind, "attack.kind", ATTACKS)
+    for i, index in enumerate(attack.agents):
+        _check_int(index, f"attack.agents[{i}]", low=0)
+        _require(
+            index < num_agents,
+            f"attack.agents[{i}]",
+            f"got {index}, must be < agents.num_agents={num_agents}",
+        )
     _require(
-        isinstance(policy.hidden, list)
-        and all(isinstance(h, int) and h >= 1 for h in policy.hidden),
-        "policy.hidden",
-        f"needs a list of positive layer widths, got {policy.hidden!r}",
+        len(set(attack.agents)) == len(attack.agents),
+        "attack.agents",
+        f"lists an agent twice: {attack.agents}",
     )
-    _check_choice(policy.log_std, "policy.log_std", ("state_independent", "state_dependent"))
+    _check_number(attack.sign_flip_scale, "attack.sign_flip_scale", low=0.0)
+    _check_number(attack.noise_scale, "attack.noise_scale", low=0.0)
 
-    _check_int(config.eval.every, "eval.every", low=1)
-    _check_int(config.eval.episodes, "eval.episodes", low=1)
-    if config.eval.horizon is not None:
-        _check_int(config.eval.horizon, "eval.horizon", low=1)
 
-    server = config.server
+def _validate_server(server: ServerConfig, num_agents: int) -> None:
     _check_int(server.port, "server.port", low=0)
     _require(server.port <= 65535, "server.port", f"got {server.port!r}, must be <= 65535")
     _check_choice(server.transport, "server.transport", TRANSPORTS)
@@ -363,17 +432,54 @@ def validate(config: RunConfig) -> RunConfig:
     _check_choice(server.round_policy, "server.round_policy", ROUND_POLICIES)
     _check_int(server.min_agents, "server.min_agents", low=1)
     _require(
-        server.min_agents <= config.agents.num_agents,
+        server.min_agents <= num_agents,
         "server.min_agents",
-        f"got {server.min_agents}, must be <= agents.num_agents={config.agents.num_agents}",
+        f"got {server.min_agents}, must be <= agents.num_agents={num_agents}",
     )
     _check_int(server.heartbeat_liveness, "server.heartbeat_liveness", low=2)
     if server.max_update_norm is not None:
         _check_number(server.max_update_norm, "server.max_update_norm", low=0.0, low_open=True)
+
+
+def validate(config: RunConfig) -> RunConfig:
+    """Check every value this module can judge; raise :class:`ConfigError` naming the first bad
+    key. (Names and options of registry entries: :func:`fedhpg.common.components.validate_run`.)"""
+    _check_int(config.seed, "seed", low=0)
+    _check_int(config.rounds, "rounds", low=1)
+    for i, module in enumerate(config.plugins):
+        _require(
+            isinstance(module, str) and bool(module.strip()),
+            f"plugins[{i}]",
+            f"got {module!r}, must be a module name",
+        )
+    _validate_env(config.env)
+    _validate_algo(config.algo)
+    _validate_agents(config.agents)
+    _validate_attack(config.attack, config.agents.num_agents)
+
+    policy = config.policy
+    _require(
+        isinstance(policy.hidden, list)
+        and all(isinstance(h, int) and h >= 1 for h in policy.hidden),
+        "policy.hidden",
+        f"needs a list of positive layer widths, got {policy.hidden!r}",
+    )
+    _check_choice(policy.log_std, "policy.log_std", LOG_STDS)
+
+    _check_int(config.eval.every, "eval.every", low=1)
+    _check_int(config.eval.episodes, "eval.episodes", low=1)
+    if config.eval.horizon is not None:
+        _check_int(config.eval.horizon, "eval.horizon", low=1)
+
+    _validate_server(config.server, config.agents.num_agents)
     _check_int(config.agent.index, "agent.index", low=0)
     _check_number(config.agent.connect_timeout_s, "agent.connect_timeout_s", low=0.0, low_open=True)
     _check_int(config.agent.max_restarts, "agent.max_restarts", low=0)
-    validate_security(config.security)
+    _require(
+        isinstance(config.security.curve, bool),
+        "security.curve",
+        f"got {config.security.curve!r}, must be true or false",
+    )
     return config
 
 

@@ -18,7 +18,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from fedhpg.common.config import AgentProfile, RunConfig
+from fedhpg.common.config import RunConfig, per_agent
 
 
 @dataclass(kw_only=True)
@@ -86,13 +86,13 @@ class DeviceModel:
             self.sleep(seconds)
 
 
-def device_for(run: RunConfig, profile: AgentProfile, index: int) -> DeviceModel:
+def device_for(run: RunConfig, index: int) -> DeviceModel:
     """Agent ``index``'s device as the run configures it."""
     agents = run.agents
     return DeviceModel(
-        speed=profile.speed,
-        step_delay_s=profile.step_delay_s,
-        latency_s=profile.latency_s,
+        speed=float(per_agent(agents.speeds, index)),
+        step_delay_s=float(per_agent(agents.step_delays_s, index)),
+        latency_s=float(per_agent(agents.latencies_s, index)),
         schedule=agents.schedule,
         period_rounds=agents.schedule_period_rounds,
         amplitude=agents.schedule_amplitude,

@@ -24,12 +24,11 @@ from typing import Literal
 import torch
 from torch.func import functional_call, grad, vmap
 
+from fedhpg.common.config import ESTIMATORS
 from fedhpg.common.policies import Policy, flat_grad
 
 EstimatorName = Literal["reinforce", "gpomdp"]
 BaselineName = Literal["none", "mean"]
-ESTIMATORS: tuple[str, ...] = ("reinforce", "gpomdp")
-BASELINES: tuple[str, ...] = ("none", "mean")
 
 
 def _leave_one_out_mean(values: torch.Tensor) -> torch.Tensor:

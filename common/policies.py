@@ -16,13 +16,15 @@ from __future__ import annotations
 import abc
 import itertools
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import Literal
 
 import gymnasium as gym
 import numpy as np
 import torch
 from torch import nn
+
+from fedhpg.common.config import LOG_STDS, PolicyConfig
 
 
 @dataclass(frozen=True)
@@ -66,6 +68,12 @@ def _draw(cumulative: np.ndarray, uniforms: np.ndarray) -> np.ndarray:
     beyond the last one."""
     thresholds = uniforms * cumulative[:, -1]
     return (thresholds[:, None] > cumulative[:, :-1]).sum(axis=-1)
+
+
+def _last_linear(net: nn.Sequential) -> nn.Linear:
+    layer = net[-1]
+    assert isinstance(layer, nn.Linear)
+    return layer
 
 
 def _numpy_layers(net: nn.Sequential) -> list[tuple[np.ndarray, np.ndarray]]:
@@ -112,7 +120,7 @@ class TabularSoftmaxPolicy(Policy):
         def sample(obs: np.ndarray, rng: np.random.Generator, greedy: bool) -> np.ndarray:
             if greedy:
                 return greedy_actions[obs]
-            return _draw(cdf[obs], rng.random(obs.shape[0]))
+            return _draw(cdf[obs], rng.random(int(obs.shape[0])))
 
         def log_prob(obs: np.ndarray, actions: np.ndarray) -> np.ndarray:
             return log_probs[obs, actions]
@@ -136,8 +144,8 @@ class MLPCategoricalPolicy(Policy):
         super().__init__()
         self.net = _mlp([obs_dim, *hidden, num_actions])
         with torch.no_grad():  # small last layer: a near-uniform initial policy
-            self.net[-1].weight.mul_(0.01)
-            self.net[-1].bias.zero_()
+            _last_linear(self.net).weight.mul_(0.01)
+            _last_linear(self.net).bias.zero_()
 
     def log_prob(self, obs: torch.Tensor, act: torch.Tensor) -> torch.Tensor:
         log_pi = torch.log_softmax(self.net(obs.float()), dim=-1)
@@ -151,7 +159,7 @@ class MLPCategoricalPolicy(Policy):
             if greedy:
                 return logits.argmax(axis=-1)
             weights = np.exp(logits - logits.max(axis=-1, keepdims=True))
-            return _draw(np.cumsum(weights, axis=-1), rng.random(obs.shape[0]))
+            return _draw(np.cumsum(weights, axis=-1), rng.random(int(obs.shape[0])))
 
         def log_prob(obs: np.ndarray, actions: np.ndarray) -> np.ndarray:
             logits = _numpy_forward(layers, obs).astype(np.float64)
@@ -190,15 +198,15 @@ class GaussianMLPPolicy(Policy):
         self.mode: LogStdMode = log_std
         self.mean_net = _mlp([obs_dim, *hidden, act_dim])
         with torch.no_grad():
-            self.mean_net[-1].weight.mul_(0.01)
-            self.mean_net[-1].bias.zero_()
+            _last_linear(self.mean_net).weight.mul_(0.01)
+            _last_linear(self.mean_net).bias.zero_()
         if log_std == "state_independent":
             self.log_std = nn.Parameter(torch.full((act_dim,), float(init_log_std)))
         elif log_std == "state_dependent":
             self.log_std_net = _mlp([obs_dim, *hidden, act_dim])
             with torch.no_grad():
-                self.log_std_net[-1].weight.mul_(0.01)
-                self.log_std_net[-1].bias.fill_(float(init_log_std))
+                _last_linear(self.log_std_net).weight.mul_(0.01)
+                _last_linear(self.log_std_net).bias.fill_(float(init_log_std))
         else:
             raise ValueError(
                 f"log_std must be 'state_independent' or 'state_dependent', got {log_std!r}"
@@ -250,18 +258,6 @@ class GaussianMLPPolicy(Policy):
         return ActionSampler(sample, log_prob)
 
 
-@dataclass(kw_only=True)
-class PolicyConfig:
-    """How to build the policy network for the run's spaces."""
-
-    hidden: list[int] = field(default_factory=lambda: [64, 64])
-    """Hidden layer widths of the MLP policies (ignored by the tabular policy)."""
-    log_std: str = "state_independent"
-    """Gaussian policies: 'state_independent' or 'state_dependent' log σ."""
-    init_log_std: float = -0.5
-    """Gaussian policies: initial log σ."""
-
-
 def make_policy(
     observation_space: gym.Space, action_space: gym.Space, config: PolicyConfig
 ) -> Policy:
@@ -282,7 +278,7 @@ def make_policy(
             obs_dim=obs_dim, num_actions=int(action_space.n), hidden=config.hidden
         )
     if isinstance(action_space, gym.spaces.Box) and len(action_space.shape) == 1:
-        if config.log_std not in ("state_independent", "state_dependent"):
+        if config.log_std not in LOG_STDS:
             raise ValueError(
                 "policy.log_std must be 'state_independent' or 'state_dependent', "
                 f"got {config.log_std!r}"

@@ -55,15 +55,18 @@ def sample_trajectories(
     *,
     horizon: int,
     greedy: bool = False,
+    sampler: ActionSampler | None = None,
 ) -> TrajectoryBatch:
     """Run one episode (at most ``horizon`` steps) in each of the ``env.num_envs`` copies.
 
     All randomness comes from ``rng``: the environment's seed and the policy's action noise.
+    ``sampler`` replaces the policy's own action sampler (a Byzantine agent's random actions);
+    log-probabilities are always the sampler's.
     """
     if horizon < 1:
         raise ValueError(f"horizon must be >= 1, got {horizon}")
     num_envs = env.num_envs
-    act = policy.sampler()
+    act = sampler if sampler is not None else policy.sampler()
     obs = env.reset(seed=int(rng.integers(2**63 - 1)))
     obs_buf = np.zeros((horizon, *obs.shape), dtype=obs.dtype)
     rewards = np.zeros((horizon, num_envs), dtype=np.float64)

@@ -1,30 +1,33 @@
 """One agent's learning side: its environment variant, policy, random streams and updates.
 
 The agent process wraps a :class:`LocalWorker` with sockets and device emulation; the
-in-process runner drives K of them directly. Both therefore compute exactly the same numbers.
+in-process pool drives K of them directly. Both therefore compute exactly the same numbers.
 """
 
 from __future__ import annotations
 
-import ctypes
-import functools
-import logging
-import sys
+import dataclasses
 from enum import IntEnum
-from typing import Any
 
 import numpy as np
 import torch
 
-from fedhpg.common.config import AgentProfile, RunConfig
-from fedhpg.common.fedhpg import fedhpg_local_update
-from fedhpg.common.fedhpgvr import fedhpgvr_local_update
-from fedhpg.common.local import IterationHook, LocalResult
+from fedhpg.common.algorithms import LocalContext
+from fedhpg.common.attacks import (
+    UPDATE_ATTACKS,
+    attack_of,
+    corrupt_batch,
+    corrupt_update,
+    random_action_sampler,
+)
+from fedhpg.common.components import AgentProfile, resolve_algorithm
+from fedhpg.common.config import RunConfig
+from fedhpg.common.local import IterationHook, TrajectorySource
 from fedhpg.common.policies import Policy, get_flat_params, make_policy, set_flat_params
 from fedhpg.common.rollout import TrajectoryBatch, sample_trajectories
+from fedhpg.common.types import EvaluationStats, LocalResult
+from fedhpg.common.variants import discount, training_horizon
 from fedhpg.envs.base import BatchEnv, EnvVariant
-
-logger = logging.getLogger(__name__)
 
 
 class Stream(IntEnum):
@@ -32,6 +35,7 @@ class Stream(IntEnum):
 
     TRAIN = 0
     EVALUATE = 1
+    ATTACK = 2
 
 
 def random_stream(
@@ -60,43 +64,21 @@ def initial_theta(variant: EnvVariant, run: RunConfig) -> torch.Tensor:
     return get_flat_params(build_policy(variant, run))
 
 
-M_MMAP_THRESHOLD = -3  # glibc's mallopt parameter number
-
-
-@functools.cache
-def pin_malloc_mmap_threshold(size: int = 128 * 1024) -> bool:
-    """Fix glibc's mmap threshold at its default 128 KiB (True if it was set).
-
-    glibc raises the threshold each time a large mmapped block is freed, so afterwards the
-    rollout buffers and gradient temporaries, whose sizes change with every batch's longest
-    episode, come from the heap and fragment it: on LunarLander an agent process grew by
-    ~1 GB per minute (17 GB for a 10-agent run); with the threshold pinned it stays at ~0.3 GB.
-    Blocks ≥ ``size`` are then always mmapped and returned on free, which costs a few page
-    faults per batch. Does nothing outside glibc.
-    """
-    if not sys.platform.startswith("linux"):
-        return False
-    try:
-        mallopt = ctypes.CDLL("libc.so.6").mallopt
-    except (OSError, AttributeError):  # not glibc (e.g. musl)
-        return False
-    return bool(mallopt(M_MMAP_THRESHOLD, size))
-
-
 class LocalWorker:
     """Agent ``index`` of a run: samples, estimates and steps in its own environment."""
 
     def __init__(
         self, *, index: int, variant: EnvVariant, run: RunConfig, profile: AgentProfile
     ) -> None:
-        pin_malloc_mmap_threshold()
         self.index = index
         self.variant = variant
         self.run = run
         self.profile = profile
+        self.algorithm, self.params = resolve_algorithm(run)
+        self.attack = attack_of(run.attack, index)
         self.policy = build_policy(variant, run)
-        self.horizon = run.env.horizon or variant.max_episode_steps
-        self.gamma = run.env.gamma if run.env.gamma is not None else variant.gamma
+        self.horizon = training_horizon(run, variant)
+        self.gamma = discount(run, variant)
         self._batch_envs: dict[int, BatchEnv] = {}
 
     @property
@@ -108,46 +90,39 @@ class LocalWorker:
             self._batch_envs[num_envs] = self.variant.make_batch_env(num_envs)
         return self._batch_envs[num_envs]
 
-    def _sampler(self, rng: np.random.Generator):
+    def _sampler(self, rng: np.random.Generator) -> TrajectorySource:
         def sample(num_trajectories: int) -> TrajectoryBatch:
-            return sample_trajectories(
-                self._batch_env(num_trajectories), self.policy, rng, horizon=self.horizon
+            env = self._batch_env(num_trajectories)
+            actions = None
+            if self.attack == "random_action":
+                actions = random_action_sampler(env.single_action_space, self.policy.sampler())
+            batch = sample_trajectories(
+                env, self.policy, rng, horizon=self.horizon, sampler=actions
             )
+            return corrupt_batch(self.attack, batch)
 
         return sample
 
     def train(
         self, round_index: int, theta: torch.Tensor, *, on_iteration: IterationHook | None = None
     ) -> LocalResult:
-        """One round's local update from the server's θ̃ (Algorithm 1 or 2)."""
+        """One round's local update from the server's θ̃ (the run's algorithm)."""
         rng = random_stream(self.run.seed, self.index, round_index, Stream.TRAIN)
-        algo = self.run.algo
-        if algo.name == "fedhpg":
-            return fedhpg_local_update(
-                theta,
-                policy=self.policy,
-                sample=self._sampler(rng),
-                algo=algo,
-                gamma=self.gamma,
-                batch_size=self.profile.batch_size,
-                local_iters=self.profile.local_iters,
-                on_iteration=on_iteration,
-            )
-        if algo.name == "fedhpgvr":
-            return fedhpgvr_local_update(
-                theta,
-                policy=self.policy,
-                sample=self._sampler(rng),
-                algo=algo,
-                gamma=self.gamma,
-                batch_size=self.profile.batch_size,
-                mini_batch_size=self.profile.mini_batch_size,
-                inner_steps=self.profile.inner_steps,
-                on_iteration=on_iteration,
-            )
-        raise ValueError(f"algo.name must be 'fedhpg' or 'fedhpgvr', got {algo.name!r}")
+        context = LocalContext(
+            policy=self.policy,
+            sample=self._sampler(rng),
+            settings=self.run.algo,
+            gamma=self.gamma,
+            on_iteration=on_iteration,
+        )
+        result = self.algorithm.local_update(theta, context, self.params, self.profile.budget)
+        if self.attack in UPDATE_ATTACKS:
+            attack_rng = random_stream(self.run.seed, self.index, round_index, Stream.ATTACK)
+            sent = corrupt_update(self.attack, theta, result.theta, self.run.attack, attack_rng)
+            result = dataclasses.replace(result, theta=sent)
+        return result
 
-    def evaluate(self, round_index: int, theta: torch.Tensor, episodes: int) -> dict[str, Any]:
+    def evaluate(self, round_index: int, theta: torch.Tensor, episodes: int) -> EvaluationStats:
         """Return and success rate of the unified policy over ``episodes`` episodes here."""
         set_flat_params(self.policy, theta)
         rng = random_stream(self.run.seed, self.index, round_index, Stream.EVALUATE)
@@ -158,14 +133,15 @@ class LocalWorker:
             horizon=self.run.eval.horizon or self.horizon,
             greedy=self.run.eval.greedy,
         )
-        return {
-            "return_mean": float(batch.returns().mean()),
-            "return_std": float(batch.returns().std()),
-            "discounted_return_mean": float(batch.returns(self.gamma).mean()),
-            "success_rate": float(batch.success.mean()),
-            "length_mean": float(batch.lengths.mean()),
-            "episodes": int(batch.num_trajectories),
-        }
+        returns = batch.returns()
+        return EvaluationStats(
+            return_mean=float(returns.mean()),
+            return_std=float(returns.std()),
+            discounted_return_mean=float(batch.returns(self.gamma).mean()),
+            success_rate=float(batch.success.mean()),
+            length_mean=float(batch.lengths.mean()),
+            episodes=int(batch.num_trajectories),
+        )
 
     def close(self) -> None:
         for env in self._batch_envs.values():

@@ -9,6 +9,7 @@ of one variant with one array of actions.
 from __future__ import annotations
 
 import abc
+import hashlib
 from dataclasses import dataclass, field
 from typing import Any, NamedTuple, Protocol, runtime_checkable
 
@@ -35,9 +36,14 @@ class BatchEnv(Protocol):
     implementation may keep stepping, reset, or freeze that copy, whichever is cheapest.
     """
 
-    num_envs: int
-    single_observation_space: gym.Space
-    single_action_space: gym.Space
+    @property
+    def num_envs(self) -> int: ...
+
+    @property
+    def single_observation_space(self) -> gym.Space: ...
+
+    @property
+    def single_action_space(self) -> gym.Space: ...
 
     def reset(self, *, seed: int) -> np.ndarray:
         """Start one episode in every copy; ``seed`` fixes all randomness of the batch."""
@@ -71,6 +77,12 @@ class EnvVariant(abc.ABC):
     @abc.abstractmethod
     def max_episode_steps(self) -> int:
         """The step limit of one episode (the horizon H unless the run asks for less)."""
+
+    def digest(self) -> str:
+        """A fingerprint of everything that makes this variant's MDP: two hosts that built the
+        same variant (same generator, seed, level, library versions) agree on it. The dataclass
+        repr holds every field, floats written exactly."""
+        return hashlib.sha256(repr(self).encode()).hexdigest()[:32]
 
     def signature(self) -> dict[str, str]:
         """What must agree across agents: the observation and action spaces."""

@@ -37,7 +37,6 @@ DEFAULT_LAYOUT = (
     "....G",
 )
 ENV_ID = "fedhpg/GridWorld-v0"
-DEMO = {"seed": 0, "num_agents": 4, "level": 0.6}
 _GENERATOR_STREAM = 0x6121D
 
 Cell = tuple[int, int]
@@ -167,7 +166,7 @@ class GridWorldEnv(gym.Env[np.int64, np.int64]):
         self._state, self._steps = self.model.start, 0
         return np.int64(self._state), {}
 
-    def step(self, action: int) -> tuple[np.int64, float, bool, bool, dict[str, Any]]:
+    def step(self, action: int | np.int64) -> tuple[np.int64, float, bool, bool, dict[str, Any]]:
         if not self.action_space.contains(action):
             raise ValueError(f"action must be 0..3, got {action!r}")
         direction = int(action)
@@ -441,7 +440,9 @@ def make_gridworld_variants(
         path = _monotone_path(agent_rng, goal) if vary_goal else shared_path
         candidates = _obstacle_candidates(path, size)
         count = _obstacle_count(level, len(candidates))
-        chosen = agent_rng.choice(len(candidates), size=count, replace=False) if count else []
+        chosen: list[int] = (
+            agent_rng.choice(len(candidates), size=count, replace=False).tolist() if count else []
+        )
         obstacles = {candidates[int(i)] for i in chosen}
         slip = round(0.1 * level * float(agent_rng.random()), 4)
         gamma = round(0.99 - 0.09 * level * float(agent_rng.random()), 4)
@@ -461,7 +462,7 @@ def make_gridworld_variants(
 
 def demo_variants() -> list[GridWorldVariant]:
     """The four agents of the default run (``conf/config.yaml``: seed 0, level 0.6)."""
-    return make_gridworld_variants(**DEMO)
+    return make_gridworld_variants(seed=0, num_agents=4, level=0.6)
 
 
 def shortest_path_policy(

@@ -27,7 +27,7 @@ class GymVectorBatchEnv:
         num_envs: int,
         *,
         env_kwargs: dict[str, Any] | None = None,
-        configure: Callable[[gym.Env], None] | None = None,
+        configure: Callable[[Any], None] | None = None,
         action_cost: float = 0.0,
     ) -> None:
         if num_envs < 1:
@@ -44,7 +44,7 @@ class GymVectorBatchEnv:
         self.single_observation_space = self._env.single_observation_space
         self.single_action_space = self._env.single_action_space
 
-    def _configure(self, configure: Callable[[gym.Env], None]) -> None:
+    def _configure(self, configure: Callable[[Any], None]) -> None:
         """Apply a variant's physics to every copy (a vector-native env holds it once)."""
         base = self._env.unwrapped
         if isinstance(base, gym.vector.SyncVectorEnv):
@@ -95,7 +95,7 @@ class GymLoopBatchEnv:
         num_envs: int,
         *,
         env_kwargs: dict[str, Any] | None = None,
-        configure: Callable[[gym.Env], None] | None = None,
+        configure: Callable[[Any], None] | None = None,
         action_cost: float = 0.0,
     ) -> None:
         if num_envs < 1:

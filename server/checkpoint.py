@@ -1,9 +1,10 @@
 """Per-round checkpoints: msgpack with raw array bytes and a checksum; atomic writes; no pickle.
 
 A checkpoint holds everything a killed server needs to continue exactly: θ̃, the round, the
-server optimizer's state (its arrays under ``arrays``), the run's counters (``state``) and how
-many ``metrics.jsonl`` lines belong to it. There are no random-number states to keep: every
-random stream of a run is derived from (seed, agent, round, purpose) where it is used.
+strategy's state (whatever :meth:`Strategy.state` returned, e.g. fedadam's moments), the run's
+counters (``state``) and how many ``metrics.jsonl`` lines belong to it. There are no
+random-number states to keep: every random stream of a run is derived from (seed, agent,
+round, purpose) where it is used.
 """
 
 from __future__ import annotations
@@ -19,11 +20,15 @@ import msgpack
 import numpy as np
 import torch
 
+from fedhpg.common.types import SavedState
+
 logger = logging.getLogger(__name__)
 
 CHECKPOINT_FORMAT = "fedhpg-checkpoint"
-CHECKPOINT_VERSION = 2
-READABLE_VERSIONS = (1, 2)
+CHECKPOINT_VERSION = 3
+"""3: the strategy's state under ``strategy``; 2 kept the server optimizer's in ``state`` and
+``server_optimizer.*`` arrays (read as the strategy's state)."""
+READABLE_VERSIONS = (1, 2, 3)
 KEEP_CHECKPOINTS = 2
 
 
@@ -38,8 +43,11 @@ class Checkpoint:
     config: dict[str, Any]
     metrics_lines: int
     state: dict[str, Any]
-    arrays: dict[str, np.ndarray] = field(default_factory=dict)
-    """Named float arrays besides θ̃ (e.g. the server optimizer's moments)."""
+    """The run's counters (trajectories per agent, elapsed time)."""
+    strategy: SavedState = field(default_factory=SavedState)
+    """The server strategy's state."""
+    version: int = CHECKPOINT_VERSION
+    """The format version the file was written in."""
 
 
 def _pack_array(array: np.ndarray) -> dict[str, Any]:
@@ -67,7 +75,10 @@ def _payload(checkpoint: Checkpoint) -> bytes:
             "config": checkpoint.config,
             "metrics_lines": checkpoint.metrics_lines,
             "state": checkpoint.state,
-            "arrays": {name: _pack_array(a) for name, a in checkpoint.arrays.items()},
+            "strategy": {
+                "scalars": checkpoint.strategy.scalars,
+                "arrays": {name: _pack_array(a) for name, a in checkpoint.strategy.arrays.items()},
+            },
         },
         use_bin_type=True,
     )
@@ -116,13 +127,35 @@ def load_checkpoint(path: Path) -> Checkpoint:
             raise CheckpointError(
                 f"{path}: not a {CHECKPOINT_FORMAT} file of a readable version {READABLE_VERSIONS}"
             )
+        version = int(values["version"])
+        state = dict(values.get("state", {}))
+        if version >= 3:
+            saved = values["strategy"]
+            strategy = SavedState(
+                scalars=dict(saved["scalars"]),
+                arrays={name: _unpack_array(a) for name, a in saved["arrays"].items()},
+            )
+        else:  # v2: the server optimizer (today's fedadam) kept its state beside the counters
+            prefix = "server_optimizer."
+            strategy = SavedState(
+                scalars=dict(state.pop("server_optimizer", {})),
+                arrays={
+                    name[len(prefix) :]: _unpack_array(a)
+                    for name, a in values.get("arrays", {}).items()
+                    if name.startswith(prefix)
+                },
+            )
+        theta = _unpack_array(values["theta"])
+        if theta.dtype != np.float32 or theta.ndim != 1 or not np.isfinite(theta).all():
+            raise CheckpointError(f"{path}: θ̃ is not a finite float32 vector")
         return Checkpoint(
             round=int(values["round"]),
-            theta=torch.from_numpy(_unpack_array(values["theta"])),
+            theta=torch.from_numpy(theta),
             config=values["config"],
             metrics_lines=int(values["metrics_lines"]),
-            state=values.get("state", {}),
-            arrays={name: _unpack_array(a) for name, a in values.get("arrays", {}).items()},
+            state=state,
+            strategy=strategy,
+            version=version,
         )
     except (KeyError, TypeError, ValueError, AttributeError, msgpack.UnpackException) as error:
         if isinstance(error, CheckpointError):

@@ -26,7 +26,7 @@ from typing import NoReturn
 import zmq
 import zmq.auth
 
-from fedhpg.common.security import (
+from fedhpg.common.wire.security import (
     ALLOWED_DIR,
     PUBLIC_SUFFIX,
     SECRET_SUFFIX,

@@ -15,6 +15,7 @@ import os
 import signal
 import sys
 import time
+from collections.abc import Callable
 from dataclasses import replace
 from multiprocessing.connection import Connection
 from pathlib import Path
@@ -45,7 +46,7 @@ def _child_setup() -> None:
 def _server_child(run: RunConfig, out_dir: str, ready: Connection) -> None:
     _child_setup()
     from fedhpg.server.main import serve
-    from fedhpg.server.service import FederationError
+    from fedhpg.server.pools.zmq_pool import FederationError
 
     try:
         # Bytes, not Connection.send: that would pickle (harmless here, but no pickle anywhere).
@@ -76,10 +77,12 @@ class Supervisor:
         self.context = multiprocessing.get_context("fork")
         self.children: list[multiprocessing.process.BaseProcess] = []
         self.max_restarts = max_restarts
-        self._how: dict[str, tuple[object, tuple]] = {}
+        self._how: dict[str, tuple[Callable[..., None], tuple]] = {}
         self._restarts: dict[str, int] = {}
 
-    def start(self, target: object, args: tuple, name: str) -> multiprocessing.process.BaseProcess:
+    def start(
+        self, target: Callable[..., None], args: tuple, name: str
+    ) -> multiprocessing.process.BaseProcess:
         process = self.context.Process(target=target, args=args, name=name, daemon=False)
         process.start()
         self.children.append(process)
@@ -201,11 +204,13 @@ def run_federation(run: RunConfig) -> int:
 
 
 def _hydra_task(cfg: object) -> None:
-    from fedhpg.common.cli import limit_threads, to_run_config
-    from fedhpg.common.security import check_launch_keys
+    from fedhpg.common.runtime.cli import limit_threads, to_run_config
+    from fedhpg.common.wire.security import check_launch_keys
+    from fedhpg.server.strategies import validate_strategy
 
     try:
         run = to_run_config(cfg)
+        validate_strategy(run)
         check_launch_keys(run)  # security: every agent's key, before anything is forked
     except ConfigError as error:
         sys.stderr.write(f"error: {error}\n")
@@ -220,13 +225,14 @@ def main() -> None:
     """Validate the overrides first (one-line errors, exit 2), then let Hydra run the job(s)."""
     import hydra
 
-    from fedhpg.common.cli import EXIT_USAGE, compose, register_schema
+    from fedhpg.common.runtime.cli import EXIT_USAGE, compose, register_schema
+    from fedhpg.server.strategies import validate_strategy
 
     args = sys.argv[1:]
     multirun = any(a in ("-m", "--multirun") for a in args)
     if not multirun and not any(a.startswith("-") and a not in ("-m",) for a in args):
         try:
-            compose([a for a in args if not a.startswith("hydra.")])
+            validate_strategy(compose([a for a in args if not a.startswith("hydra.")]))
         except ConfigError as error:
             sys.stderr.write(f"error: {error}\n")
             sys.exit(EXIT_USAGE)

@@ -15,11 +15,14 @@ from typing import Any
 import torch
 import zmq
 
-from fedhpg.common.cli import run_entry
-from fedhpg.common.config import ConfigError, RunConfig, agent_profile, to_dict
-from fedhpg.common.progress import Progress
-from fedhpg.common.security import public_settings, secure_server_socket
-from fedhpg.common.transport import bind_endpoint, configure_socket, max_message_bytes
+from fedhpg.common.components import agent_profile, resolve_algorithm
+from fedhpg.common.config import ConfigError, RunConfig, dictated_settings, groups, to_dict
+from fedhpg.common.runtime.cli import run_entry
+from fedhpg.common.runtime.progress import Progress
+from fedhpg.common.types import EvaluationStats
+from fedhpg.common.variants import run_variants, variant_digest
+from fedhpg.common.wire.security import secure_server_socket
+from fedhpg.common.wire.transport import bind_endpoint, configure_socket, max_message_bytes
 from fedhpg.common.worker import initial_theta
 from fedhpg.server.checkpoint import (
     Checkpoint,
@@ -27,11 +30,13 @@ from fedhpg.server.checkpoint import (
     save_checkpoint,
     write_atomic,
 )
-from fedhpg.server.coordinator import Coordinator, RoundRecord, RunProgress
-from fedhpg.server.inprocess import run_variants
+from fedhpg.server.coordinator import Coordinator, RoundCallback, RoundRecord, RunProgress
 from fedhpg.server.metrics import MetricsWriter
-from fedhpg.server.report import compute_label, evaluation_table
-from fedhpg.server.service import FederationError, ZmqAgentPool
+from fedhpg.server.pools import FederationError
+from fedhpg.server.pools.zmq_pool import ZmqAgentPool
+from fedhpg.server.report import evaluation_table
+from fedhpg.server.strategies import Strategy, make_strategy, validate_strategy
+from fedhpg.server.validation import UpdateCheck
 
 logger = logging.getLogger(__name__)
 
@@ -40,7 +45,7 @@ logger = logging.getLogger(__name__)
 class ServerResult:
     theta: torch.Tensor
     out_dir: Path
-    last_evaluation: dict[str, dict[str, Any]] | None
+    last_evaluation: dict[str, EvaluationStats] | None
 
 
 def default_out_dir() -> Path:
@@ -51,8 +56,8 @@ def _progress_callback(progress: Progress) -> Callable[[RoundRecord, torch.Tenso
     def update(record: RoundRecord, _: torch.Tensor) -> None:
         status = f"round {record.round_time_s:.2f}s"
         if record.eval:
-            success = [e["success_rate"] for e in record.eval.values()]
-            returns = [e["return_mean"] for e in record.eval.values()]
+            success = [e.success_rate for e in record.eval.values()]
+            returns = [e.return_mean for e in record.eval.values()]
             mean_return = sum(returns) / len(returns)
             status += f" | eval success min {min(success):.2f}, mean return {mean_return:.3f}"
         progress.update(1, status)
@@ -76,26 +81,23 @@ def _checkpoint_callback(
                 state={
                     "trajectories_per_agent": progress.trajectories_per_agent,
                     "elapsed_s": progress.elapsed_s,
-                    "server_optimizer": progress.optimizer_scalars,
                 },
-                arrays={f"server_optimizer.{k}": v for k, v in progress.optimizer_arrays.items()},
+                strategy=progress.strategy_state,
             ),
         )
 
     return save
 
 
-# Keys whose change would make a resumed run a different run.
-RESUME_MUST_MATCH = ("seed", "env", "algo", "agents", "policy")
-
-
-def resume_point(run: RunConfig, out_dir: Path) -> tuple[torch.Tensor, RunProgress]:
+def resume_point(
+    run: RunConfig, out_dir: Path, strategy: Strategy[Any]
+) -> tuple[torch.Tensor, RunProgress]:
     """θ̃ and the run's progress from the newest valid checkpoint; metrics cut back to it."""
     checkpoint = latest_valid_checkpoint(out_dir / "checkpoints")
     if checkpoint is None:
         raise ConfigError("resume", f"no valid checkpoint in {out_dir / 'checkpoints'}")
     current = to_dict(run)
-    for key in RESUME_MUST_MATCH:
+    for key in groups("fixed"):
         if checkpoint.config.get(key) != current[key]:
             raise ConfigError(
                 key, f"differs from the checkpointed run in {out_dir}; resume keeps it"
@@ -105,22 +107,17 @@ def resume_point(run: RunConfig, out_dir: Path) -> tuple[torch.Tensor, RunProgre
         kept = metrics.read_text(encoding="utf-8").splitlines()[: checkpoint.metrics_lines]
         write_atomic(metrics, "".join(line + "\n" for line in kept).encode())
     logger.warning("resuming %s after round %d", out_dir, checkpoint.round)
-    prefix = "server_optimizer."
+    if strategy.state().scalars and not checkpoint.strategy.scalars:
+        raise ConfigError(
+            "resume",
+            f"the checkpoint holds no state of strategy {strategy.name!r}; it cannot be resumed",
+        )
     progress = RunProgress(
         next_round=checkpoint.round + 1,
         trajectories_per_agent=float(checkpoint.state.get("trajectories_per_agent", 0.0)),
         elapsed_s=float(checkpoint.state.get("elapsed_s", 0.0)),
-        optimizer_scalars=dict(checkpoint.state.get("server_optimizer", {})),
-        optimizer_arrays={
-            name[len(prefix) :]: array
-            for name, array in checkpoint.arrays.items()
-            if name.startswith(prefix)
-        },
+        strategy_state=checkpoint.strategy,
     )
-    if run.algo.server_optimizer != "none" and not progress.optimizer_scalars:
-        raise ConfigError(
-            "resume", "the checkpoint predates server-optimizer state; it cannot be resumed"
-        )
     return checkpoint.theta, progress
 
 
@@ -132,11 +129,13 @@ def serve(
     show_progress: bool = True,
 ) -> ServerResult:
     """Run one federation as its server; returns the final θ̃_T."""
+    validate_strategy(run)
+    strategy = make_strategy(run.strategy)
     out_dir.mkdir(parents=True, exist_ok=True)
     variants = run_variants(run)
     theta, progress = initial_theta(variants[0], run), RunProgress()
     if run.resume:
-        theta, progress = resume_point(run, out_dir)
+        theta, progress = resume_point(run, out_dir, strategy)
     (out_dir / "config.json").write_text(json.dumps(to_dict(run), indent=2))
     context = zmq.Context()
     socket = context.socket(zmq.ROUTER)
@@ -152,9 +151,12 @@ def serve(
     pool = ZmqAgentPool(
         socket=socket,
         num_agents=run.agents.num_agents,
-        num_params=int(theta.numel()),
+        check=UpdateCheck(
+            num_params=int(theta.numel()), max_update_norm=run.server.max_update_norm
+        ),
         env_signature=variants[0].signature(),
-        run_settings=public_settings(to_dict(run)),  # security: key paths stay on the server
+        variant_digests=[variant_digest(run, v) for v in variants],
+        run_settings=dictated_settings(run),  # security: only dictated keys leave the server
         run_id=uuid.uuid4().hex[:12],
         max_bytes=max_message_bytes(run.server),
         settings=run.server,
@@ -166,7 +168,7 @@ def serve(
         if record.eval:
             last_eval["round"], last_eval["eval"] = record.round, record.eval
 
-    callbacks = [metrics, _checkpoint_callback(run, out_dir / "checkpoints", progress), keep_eval]
+    callbacks: list[RoundCallback] = [metrics, _checkpoint_callback(run, out_dir / "checkpoints", progress), keep_eval]
     if show_progress:
         bar = Progress(run.rounds, "rounds")
         bar.done = progress.next_round - 1
@@ -174,7 +176,12 @@ def serve(
     try:
         pool.wait_for_agents(run.server.register_timeout_s)
         coordinator = Coordinator(
-            run=run, pool=pool, theta=theta, progress=progress, on_round=callbacks
+            run=run,
+            pool=pool,
+            strategy=strategy,
+            theta=theta,
+            progress=progress,
+            on_round=callbacks,
         )
         theta = coordinator.run_rounds()
         pool.shutdown("run complete")
@@ -190,14 +197,15 @@ def serve(
         agent: {"gamma": variants[k].gamma, **variants[k].params}
         for k, agent in enumerate(pool.agent_ids)
     }
-    compute = {
-        agent: compute_label(agent_profile(run.agents, k), run.algo.name)
-        for k, agent in enumerate(pool.agent_ids)
-    }
+    algorithm, _ = resolve_algorithm(run)
+    compute = {}
+    for k, agent in enumerate(pool.agent_ids):
+        profile = agent_profile(run, k)
+        compute[agent] = f"{algorithm.describe_budget(profile.budget)} speed={profile.speed:g}"
     summary = {
         "rounds": run.rounds,
         "final_eval_round": last_eval.get("round"),
-        "eval": last_eval.get("eval"),
+        "eval": {a: e.to_json() for a, e in last_eval["eval"].items()} if last_eval else None,
         "rejected_messages": pool.rejected,
         "late_answers": pool.late_answers,
         "agent_deaths": pool.deaths,

@@ -24,7 +24,7 @@ class MetricsWriter:
 
     def __call__(self, record: RoundRecord, theta: torch.Tensor) -> None:
         line: dict[str, Any] = {"schema": METRICS_SCHEMA_VERSION, **record.to_json()}
-        self._file.write(json.dumps(line, default=float) + "\n")
+        self._file.write(json.dumps(line) + "\n")
         self._file.flush()
         os.fsync(self._file.fileno())
 

@@ -4,11 +4,11 @@ from __future__ import annotations
 
 from typing import Any
 
-from fedhpg.common.config import AgentProfile
+from fedhpg.common.types import EvaluationStats
 
 
 def evaluation_table(
-    evaluation: dict[str, dict[str, Any]],
+    evaluation: dict[str, EvaluationStats],
     variants_params: dict[str, dict],
     compute: dict[str, str] | None = None,
 ) -> str:
@@ -26,20 +26,11 @@ def evaluation_table(
             f"{key}={_short(value)}" for key, value in variants_params.get(agent, {}).items()
         )
         lines.append(
-            f"{agent:<12} {stats['success_rate']:>8.2f} {stats['return_mean']:>8.3f} "
-            f"{stats['discounted_return_mean']:>9.3f} {stats['length_mean']:>7.1f}  "
+            f"{agent:<12} {stats.success_rate:>8.2f} {stats.return_mean:>8.3f} "
+            f"{stats.discounted_return_mean:>9.3f} {stats.length_mean:>7.1f}  "
             f"{compute.get(agent, ''):<{width}}  {params}"
         )
     return "\n".join(lines)
-
-
-def compute_label(profile: AgentProfile, algo: str) -> str:
-    """'B=8 τ=2 speed=0.5' (FedHPG) or 'B=8 b=5 N=3 speed=0.5' (FedHPGVR)."""
-    if algo == "fedhpgvr":
-        budget = f"B={profile.batch_size} b={profile.mini_batch_size} N={profile.inner_steps}"
-    else:
-        budget = f"B={profile.batch_size} τ={profile.local_iters}"
-    return f"{budget} speed={profile.speed:g}"
 
 
 def _short(value: Any) -> str:

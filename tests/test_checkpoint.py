@@ -13,8 +13,9 @@ import numpy as np
 import pytest
 import torch
 
-from fedhpg.common.cli import compose
 from fedhpg.common.config import ConfigError, to_dict
+from fedhpg.common.runtime.cli import compose
+from fedhpg.common.types import SavedState
 from fedhpg.server.checkpoint import (
     Checkpoint,
     CheckpointError,
@@ -25,6 +26,7 @@ from fedhpg.server.checkpoint import (
     write_atomic,
 )
 from fedhpg.server.main import resume_point
+from fedhpg.server.strategies import make_strategy
 
 
 def _checkpoint(round_number: int) -> Checkpoint:
@@ -33,8 +35,11 @@ def _checkpoint(round_number: int) -> Checkpoint:
         theta=torch.arange(6, dtype=torch.float32) * round_number,
         config={"seed": 1},
         metrics_lines=round_number,
-        state={"trajectories_per_agent": 12.0 * round_number, "server_optimizer": {"steps": 3}},
-        arrays={"server_optimizer.first": np.full(6, 0.5, dtype=np.float32)},
+        state={"trajectories_per_agent": 12.0 * round_number},
+        strategy=SavedState(
+            scalars={"steps": 3, "inner": {}},
+            arrays={"first": np.full(6, 0.5, dtype=np.float32)},
+        ),
     )
 
 
@@ -44,7 +49,8 @@ def test_round_trip_keeps_every_field(tmp_path: Path) -> None:
     assert loaded.round == 3 and loaded.metrics_lines == 3 and loaded.config == {"seed": 1}
     assert torch.equal(loaded.theta, saved.theta)
     assert loaded.state == saved.state
-    assert np.array_equal(loaded.arrays["server_optimizer.first"], np.full(6, 0.5))
+    assert loaded.strategy.scalars == saved.strategy.scalars
+    assert np.array_equal(loaded.strategy.arrays["first"], np.full(6, 0.5))
 
 
 def test_only_the_newest_checkpoints_are_kept(tmp_path: Path) -> None:
@@ -120,8 +126,9 @@ def test_only_plain_numbers_are_ever_loaded(
 
 def test_resume_refuses_a_changed_run_and_a_missing_checkpoint(tmp_path: Path) -> None:
     run = compose(["rounds=5", "seed=3"])
+    strategy = make_strategy(run.strategy)
     with pytest.raises(ConfigError, match="no valid checkpoint"):
-        resume_point(run, tmp_path)
+        resume_point(run, tmp_path, strategy)
     checkpoint = _checkpoint(2)
     save_checkpoint(
         tmp_path / "checkpoints",
@@ -133,10 +140,52 @@ def test_resume_refuses_a_changed_run_and_a_missing_checkpoint(tmp_path: Path) -
             state={"trajectories_per_agent": 24.0, "elapsed_s": 1.5},
         ),
     )
-    theta, progress = resume_point(run, tmp_path)
+    theta, progress = resume_point(run, tmp_path, strategy)
     assert torch.equal(theta, checkpoint.theta)
     assert (progress.next_round, progress.trajectories_per_agent) == (3, 24.0)
     assert progress.elapsed_s == 1.5
     with pytest.raises(ConfigError, match="differs from the checkpointed run") as error:
-        resume_point(compose(["rounds=5", "seed=4"]), tmp_path)
+        resume_point(compose(["rounds=5", "seed=4"]), tmp_path, strategy)
     assert error.value.key == "seed"
+    with pytest.raises(ConfigError, match="differs from the checkpointed run") as error:
+        resume_point(compose(["rounds=5", "seed=3", "strategy=median"]), tmp_path, strategy)
+    assert error.value.key == "strategy"
+    fedadam = compose(["rounds=5", "seed=3", "strategy=fedadam"])
+    save_checkpoint(
+        tmp_path / "checkpoints",
+        Checkpoint(round=3, theta=checkpoint.theta, config=to_dict(fedadam), metrics_lines=3,
+                   state={}),
+    )  # fmt: skip
+    with pytest.raises(ConfigError, match="holds no state of strategy 'fedadam'"):
+        resume_point(fedadam, tmp_path, make_strategy(fedadam.strategy))
+
+
+def test_a_checkpoint_of_a_non_finite_theta_is_never_valid(tmp_path: Path) -> None:
+    save_checkpoint(tmp_path, _checkpoint(1))
+    bad = _checkpoint(2)
+    save_checkpoint(
+        tmp_path,
+        Checkpoint(round=2, theta=bad.theta * float("nan"), config={}, metrics_lines=2, state={}),
+    )
+    with pytest.raises(CheckpointError, match="not a finite float32 vector"):
+        load_checkpoint(checkpoint_path(tmp_path, 2))
+    loaded = latest_valid_checkpoint(tmp_path)
+    assert loaded is not None and loaded.round == 1
+
+
+def test_version_2_files_give_their_server_optimizer_state_to_the_strategy(tmp_path: Path) -> None:
+    """Files written before strategies kept the server Adam's state beside the counters."""
+    theta = np.arange(4, dtype=np.float32)
+    packed = {"dtype": "<f4", "shape": [4], "data": theta.tobytes()}
+    body = msgpack.packb(
+        {
+            "format": "fedhpg-checkpoint", "version": 2, "round": 7, "theta": packed,
+            "config": {}, "metrics_lines": 7,
+            "state": {"trajectories_per_agent": 5.0, "server_optimizer": {"steps": 7}},
+            "arrays": {"server_optimizer.first": packed, "server_optimizer.second": packed},
+        }
+    )  # fmt: skip
+    loaded = load_checkpoint(_sealed(checkpoint_path(tmp_path, 7), body))
+    assert loaded.version == 2 and loaded.state == {"trajectories_per_agent": 5.0}
+    assert loaded.strategy.scalars == {"steps": 7}
+    assert sorted(loaded.strategy.arrays) == ["first", "second"]

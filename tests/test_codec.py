@@ -17,9 +17,10 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 from hypothesis.extra import numpy as hnp
 
-from fedhpg.common import codec
-from fedhpg.common.codec import ProtocolError, decode, encode
-from fedhpg.common.protocol import (
+from fedhpg.common.types import EvaluationStats, UpdateStats
+from fedhpg.common.wire import codec
+from fedhpg.common.wire.codec import ProtocolError, decode, encode
+from fedhpg.common.wire.protocol import (
     MSG_TYPE_OF,
     PAYLOAD_TYPES,
     PROTOCOL_VERSION,
@@ -35,12 +36,31 @@ from fedhpg.common.protocol import (
 )
 
 THETA = np.random.default_rng(0).standard_normal(1000).astype(np.float32)
+STATS = UpdateStats(
+    trajectories=10,
+    env_steps=321,
+    compute_s=0.5,
+    train_return=-1.25,
+    emulated_s=2.0,
+    speed=0.25,
+    local_wall_s=2.5,
+    algorithm={"iw_mean": 1.0, "nan": math.nan},
+)
+EVALUATION = EvaluationStats(
+    return_mean=-1.5,
+    return_std=0.5,
+    discounted_return_mean=-1.0,
+    success_rate=1.0,
+    length_mean=12.0,
+    episodes=20,
+)
 SAMPLES = [
     Hello(
         agent_id="agent-0",
         agent_index=0,
         env_signature={"observation": "Discrete(25)", "action": "Discrete(4)"},
-        profile={"batch_size": 16, "speed": 0.5, "pid": 4242},
+        variant_digest="0123456789abcdef",
+        profile={"budget": {"batch_size": 16}, "speed": 0.5, "pid": 4242, "raw": b"\x00\xff"},
     ),
     Welcome(
         run_id="abc",
@@ -48,13 +68,9 @@ SAMPLES = [
         run={"seed": 1, "algo": {"name": "fedhpg", "lr": 0.01}, "tags": ["a", None, True]},
     ),
     Train(round=7, theta=THETA),
-    Update(
-        round=7,
-        theta=THETA,
-        stats={"trajectories": 10, "compute_s": 0.5, "extra": [1, 2], "nan": math.nan},
-    ),
+    Update(round=7, theta=THETA, stats=STATS),
     Evaluate(round=9, theta=THETA.astype(np.float64), episodes=20),
-    Evaluation(round=9, stats={"return_mean": -1.5, "success_rate": 1.0, "raw": b"\x00\xff"}),
+    Evaluation(round=9, stats=EVALUATION),
     Heartbeat(),
     Shutdown(reason="run complete"),
     Error(code="bad_update", reason="parameters contain NaN or Inf"),
@@ -64,6 +80,8 @@ WIRE_DTYPES = ["float32", "float64", "int32", "int64", "uint8", "bool"]
 
 def _same_value(a: Any, b: Any) -> bool:
     """Bit-exact equality: msgpack encodes NaN payloads, -0.0 and int-vs-float distinctly."""
+    if dataclasses.is_dataclass(a):
+        return _equal(a, b)
     if isinstance(a, np.ndarray):
         return (
             isinstance(b, np.ndarray)
@@ -102,12 +120,13 @@ def test_round_trip(message: object) -> None:
 
 
 def test_header_layout() -> None:
-    frames = encode(Update(round=3, theta=THETA, stats={"k": 1}))
+    stats = dataclasses.replace(STATS, algorithm={"iw_mean": 1.0})  # NaN != NaN
+    frames = encode(Update(round=3, theta=THETA, stats=stats))
     assert len(frames) == 2
     assert msgpack.unpackb(frames[0]) == {
         "v": PROTOCOL_VERSION,
         "type": "update",
-        "fields": {"round": 3, "stats": {"k": 1}},
+        "fields": {"round": 3, "stats": dataclasses.asdict(stats)},
         "arrays": [{"field": "theta", "dtype": "<f4", "shape": [1000]}],
     }
     assert bytes(frames[1]) == THETA.tobytes()
@@ -150,9 +169,21 @@ def test_encode_and_decode_do_not_copy_arrays() -> None:
 
 def test_encode_normalises_numpy_scalars_and_tuples() -> None:
     stats = {"a": np.float32(0.5), "b": np.int64(3), "c": np.bool_(True), "d": (1, np.str_("x"))}
-    decoded = decode(_wire(Evaluation(round=1, stats=stats)))
-    assert decoded.stats == {"a": 0.5, "b": 3, "c": True, "d": [1, "x"]}  # type: ignore[union-attr]
-    assert type(decoded.stats["b"]) is int and type(decoded.stats["c"]) is bool  # type: ignore[union-attr]
+    decoded = decode(_wire(Welcome(run_id="r", agent_index=0, run=stats)))
+    assert decoded.run == {"a": 0.5, "b": 3, "c": True, "d": [1, "x"]}  # type: ignore[union-attr]
+    assert type(decoded.run["b"]) is int and type(decoded.run["c"]) is bool  # type: ignore[union-attr]
+    update = decode(
+        _wire(
+            Update(
+                round=1,
+                theta=THETA,
+                stats=dataclasses.replace(
+                    STATS, trajectories=np.int64(4), algorithm={"w": np.float32(0.5)}
+                ),
+            )
+        )
+    )  # type: ignore[arg-type]
+    assert update.stats == dataclasses.replace(STATS, trajectories=4, algorithm={"w": 0.5})  # type: ignore[union-attr]
 
 
 @pytest.mark.parametrize(
@@ -164,10 +195,20 @@ def test_encode_normalises_numpy_scalars_and_tuples() -> None:
         (Train(round=1, theta=[1.0, 2.0]), "bad_array"),  # type: ignore[arg-type]
         (Train(round=True, theta=THETA), "bad_fields"),
         (Train(round="1", theta=THETA), "bad_fields"),  # type: ignore[arg-type]
-        (Evaluation(round=1, stats={1: "int key"}), "bad_fields"),
-        (Evaluation(round=1, stats={"x": object()}), "bad_fields"),
-        (Evaluation(round=1, stats={"x": 1 << 64}), "bad_fields"),
-        (Evaluation(round=1, stats={"x": THETA}), "bad_fields"),
+        (Welcome(run_id="r", agent_index=0, run={1: "int key"}), "bad_fields"),  # type: ignore[dict-item]
+        (Welcome(run_id="r", agent_index=0, run={"x": object()}), "bad_fields"),
+        (Welcome(run_id="r", agent_index=0, run={"x": 1 << 64}), "bad_fields"),
+        (Welcome(run_id="r", agent_index=0, run={"x": THETA}), "bad_fields"),
+        (Update(round=1, theta=THETA, stats={"trajectories": 1}), "bad_fields"),  # type: ignore[arg-type]
+        (
+            Update(round=1, theta=THETA, stats=dataclasses.replace(STATS, algorithm={"x": b"1"})),
+            "bad_fields",
+        ),  # type: ignore[dict-item]
+        (
+            Update(round=1, theta=THETA, stats=dataclasses.replace(STATS, compute_s="0")),
+            "bad_fields",
+        ),  # type: ignore[arg-type]
+        (Evaluation(round=1, stats=dataclasses.replace(EVALUATION, episodes=1.5)), "bad_fields"),  # type: ignore[arg-type]
         (Hello(agent_id="a", agent_index=0, env_signature={"obs": 3}), "bad_fields"),
         (Shutdown(reason="x" * (2 << 20)), "too_large"),
     ],
@@ -181,7 +222,7 @@ def test_encode_refuses_what_decode_would_reject(message: object, code: str) -> 
 
 def test_encode_refuses_deep_nesting_and_non_messages() -> None:
     with pytest.raises(ProtocolError, match="deeper"):
-        encode(Evaluation(round=1, stats={"deep": _nested(codec.MAX_NESTING + 2)}))
+        encode(Welcome(run_id="r", agent_index=0, run={"deep": _nested(codec.MAX_NESTING + 2)}))
     with pytest.raises(TypeError):
         encode("hello")  # type: ignore[arg-type]
 
@@ -200,6 +241,29 @@ _PLAIN = st.recursive(
     max_leaves=12,
 )
 _STATS = st.dictionaries(_KEYS, _PLAIN, max_size=6)
+_INTS = st.integers(-(2**63), 2**64 - 1)
+_FLOATS = st.floats(allow_nan=True, allow_infinity=True)
+_UPDATE_STATS = st.builds(
+    UpdateStats,
+    trajectories=_INTS,
+    env_steps=_INTS,
+    compute_s=_FLOATS,
+    train_return=_FLOATS,
+    grad_clipped=_INTS,
+    emulated_s=_FLOATS,
+    speed=_FLOATS,
+    local_wall_s=st.none() | _FLOATS,
+    algorithm=st.dictionaries(_KEYS, _FLOATS, max_size=4),
+)
+_EVALUATION_STATS = st.builds(
+    EvaluationStats,
+    return_mean=_FLOATS,
+    return_std=_FLOATS,
+    discounted_return_mean=_FLOATS,
+    success_rate=_FLOATS,
+    length_mean=_FLOATS,
+    episodes=_INTS,
+)
 _ARRAYS = hnp.arrays(
     dtype=st.sampled_from(WIRE_DTYPES),
     shape=hnp.array_shapes(min_dims=0, max_dims=4, min_side=0, max_side=6),
@@ -208,14 +272,15 @@ _ARRAYS = hnp.arrays(
 _ROUNDS = st.integers(-(2**63), 2**64 - 1)
 _MESSAGES = st.one_of(
     st.builds(Train, round=_ROUNDS, theta=_ARRAYS),
-    st.builds(Update, round=_ROUNDS, theta=_ARRAYS, stats=_STATS),
+    st.builds(Update, round=_ROUNDS, theta=_ARRAYS, stats=_UPDATE_STATS),
     st.builds(Evaluate, round=_ROUNDS, theta=_ARRAYS, episodes=_ROUNDS),
-    st.builds(Evaluation, round=_ROUNDS, stats=_STATS),
+    st.builds(Evaluation, round=_ROUNDS, stats=_EVALUATION_STATS),
     st.builds(
         Hello,
         agent_id=st.text(),
         agent_index=_ROUNDS,
         env_signature=st.dictionaries(_KEYS, st.text(max_size=20), max_size=4),
+        variant_digest=st.text(max_size=40),
         profile=_STATS,
     ),
     st.builds(Welcome, run_id=st.text(), agent_index=_ROUNDS, run=_STATS),
@@ -281,11 +346,12 @@ REJECTIONS: list[tuple[str, list[Any], str]] = [
     ("too deep", [b"\x91" * 5000 + b"\xc0"], "malformed"),
     # envelope
     ("no version", [_header(v=_DROP), GOOD_ARRAY], "malformed"),
-    ("version 2", [_header(v=2), GOOD_ARRAY], "version"),
+    ("version 3", [_header(v=3), GOOD_ARRAY], "version"),
+    ("version 1", [_header(v=1), GOOD_ARRAY], "version"),
     ("version 0", [_header(v=0), GOOD_ARRAY], "version"),
     ("version True", [_header(v=True), GOOD_ARRAY], "version"),
-    ("version 1.0", [_header(v=1.0), GOOD_ARRAY], "version"),
-    ("version '1'", [_header(v="1"), GOOD_ARRAY], "version"),
+    ("version 2.0", [_header(v=2.0), GOOD_ARRAY], "version"),
+    ("version '2'", [_header(v="2"), GOOD_ARRAY], "version"),
     ("missing key", [_header(arrays=_DROP), GOOD_ARRAY], "malformed"),
     ("extra key", [_header(extra=1), GOOD_ARRAY], "malformed"),
     ("unknown type", [_header(type="nope"), GOOD_ARRAY], "unknown_type"),
@@ -346,8 +412,8 @@ def test_rejections_carry_a_code(frames: list[Any], code: str) -> None:
 
 
 def test_version_error_names_both_versions() -> None:
-    with pytest.raises(ProtocolError, match=r"received protocol version 2, expected 1"):
-        decode([_header(v=2), GOOD_ARRAY])
+    with pytest.raises(ProtocolError, match=r"received protocol version 3, expected 2"):
+        decode([_header(v=3), GOOD_ARRAY])
 
 
 def test_size_cap() -> None:
@@ -573,7 +639,7 @@ def router_dealer() -> Iterator[tuple[zmq.Socket, zmq.Socket]]:
 
 def test_over_real_sockets(router_dealer: tuple[zmq.Socket, zmq.Socket]) -> None:
     router, dealer = router_dealer
-    big = Update(round=1, theta=np.arange(1_000_000, dtype=np.float32), stats={"k": 1})
+    big = Update(round=1, theta=np.arange(1_000_000, dtype=np.float32), stats=STATS)
     for message in (SAMPLES[3], big):
         dealer.send_multipart(encode(message), copy=False)
         assert router.poll(5000)

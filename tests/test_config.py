@@ -2,22 +2,23 @@
 
 from __future__ import annotations
 
+import dataclasses
 import subprocess
 import sys
 
 import pytest
 
-from fedhpg.common.cli import compose
+from fedhpg.common.components import agent_profile, validate_run
 from fedhpg.common.config import (
+    GROUPS,
     AgentsConfig,
     AlgoConfig,
     ConfigError,
     RunConfig,
-    agent_profile,
     from_dict,
     to_dict,
-    validate,
 )
+from fedhpg.common.runtime.cli import compose
 
 
 def test_default_config_composes_and_validates() -> None:
@@ -31,13 +32,13 @@ def test_overrides_apply() -> None:
         [
             "rounds=3",
             "agents.num_agents=2",
-            "agents.batch_sizes=[4,6]",
-            "agents.local_iters=[1]",
+            "agents.budget.batch_size=[4,6]",
+            "agents.budget.local_iters=[1]",
             "agents.speeds=[1]",
             "agents.step_delays_s=[0]",
         ]
     )
-    assert (run.rounds, run.agents.num_agents, run.agents.batch_sizes) == (3, 2, [4, 6])
+    assert (run.rounds, run.agents.num_agents, run.agents.budget["batch_size"]) == (3, 2, [4, 6])
 
 
 def test_per_agent_lists_must_match_the_agent_count() -> None:
@@ -48,15 +49,29 @@ def test_per_agent_lists_must_match_the_agent_count() -> None:
 @pytest.mark.parametrize(
     ("overrides", "key"),
     [
-        (["agents.batch_sizes=[0]"], "agents.batch_sizes[0]"),
-        (["agents.batch_sizes=[4,5]"], "agents.batch_sizes"),
+        (["agents.budget.batch_size=[0]"], "agents.budget.batch_size[0]"),
+        (["agents.budget.batch_size=[4,5]"], "agents.budget.batch_size"),
+        (["agents.budget.local_iters=[1.5]"], "agents.budget.local_iters[0]"),
+        (["++agents.budget.batch_szie=[4]"], "agents.budget.batch_szie"),
         (["algo.name=nope"], "algo.name"),
         (["algo.step_size=-1"], "algo.step_size"),
         (["algo.step_size=fast"], "algo.step_size"),
         (["rounds=many"], "rounds"),
-        (["algo.iw_clip=[2.0,1.0]"], "algo.iw_clip"),
-        (["agents.inner_steps=[0]"], "agents.inner_steps[0]"),
-        (["agents.mini_batch_sizes=[0]"], "agents.mini_batch_sizes[0]"),
+        (["algo=fedhpgvr", "algo.params.iw_clip=[2.0,1.0]"], "algo.params.iw_clip"),
+        (["algo=fedhpgvr", "algo.params.iw_mode=sometimes"], "algo.params.iw_mode"),
+        (
+            ["algo=fedhpgvr", "algo.estimator=reinforce", "algo.params.iw_mode=per_decision"],
+            "algo.params.iw_mode",
+        ),
+        (["algo=fedhpgvr", "+algo.params.iw_kind=1"], "algo.params.iw_kind"),
+        (["algo=fedhpgvr", "agents.budget.inner_steps=[0]"], "agents.budget.inner_steps[0]"),
+        (
+            ["algo=fedhpgvr", "agents.budget.mini_batch_size=[0]"],
+            "agents.budget.mini_batch_size[0]",
+        ),
+        (["attack.kind=sign_flip", "attack.agents=[9]"], "attack.agents[0]"),
+        (["attack.kind=lies"], "attack.kind"),
+        (["plugins=[no_such_fedhpg_plugin]"], "plugins[0]"),
         (["no_such_key=1"], "no_such_key"),
         (["env.level=2"], "env.level"),
         (["eval.horizon=0"], "eval.horizon"),
@@ -68,29 +83,45 @@ def test_bad_values_name_the_key(overrides: list[str], key: str) -> None:
     assert info.value.key == key, str(info.value)
 
 
-def test_choice_errors_list_allowed_values() -> None:
-    with pytest.raises(ConfigError, match="allowed: fedhpg, fedhpgvr"):
-        validate(RunConfig(algo=AlgoConfig(name="nope")))
+def test_unknown_algorithm_lists_the_known_ones() -> None:
+    with pytest.raises(ConfigError, match="known: fedhpg, fedhpgvr"):
+        validate_run(RunConfig(algo=AlgoConfig(name="nope")))
 
 
 def test_dict_round_trip() -> None:
-    run = RunConfig(agents=AgentsConfig(num_agents=2, speeds=[1.0, 0.25]))
+    run = RunConfig(
+        agents=AgentsConfig(num_agents=2, speeds=[1.0, 0.25], budget={"batch_size": [3]})
+    )
     assert from_dict(to_dict(run)) == run
 
 
 def test_one_value_applies_to_every_agent() -> None:
-    agents = AgentsConfig(num_agents=3, batch_sizes=[7], local_iters=[1, 2, 3])
-    assert [agent_profile(agents, k).batch_size for k in range(3)] == [7, 7, 7]
-    assert [agent_profile(agents, k).local_iters for k in range(3)] == [1, 2, 3]
+    run = RunConfig(
+        agents=AgentsConfig(num_agents=3, budget={"batch_size": [7], "local_iters": [1, 2, 3]})
+    )
+    assert [agent_profile(run, k).budget.batch_size for k in range(3)] == [7, 7, 7]
+    assert [agent_profile(run, k).budget.local_iters for k in range(3)] == [1, 2, 3]
+
+
+def test_a_budget_takes_the_algorithms_defaults_and_ignores_other_algorithms_keys() -> None:
+    """demo4 sets FedHPG's local_iters; FedHPGVR takes batch_size, its own N and b_k."""
+    run = compose(["algo=fedhpgvr"])
+    budget = agent_profile(run, 3).budget
+    assert (budget.batch_size, budget.inner_steps, budget.mini_batch_size) == (20, 3, 5)
+    assert run.agents.budget["local_iters"] == [2, 2, 3, 3]
+
+
+def test_every_config_key_has_one_declared_role() -> None:
+    assert list(GROUPS) == [f.name for f in dataclasses.fields(RunConfig)]
 
 
 @pytest.mark.parametrize("script", ["fedhpg-run", "fedhpg-server", "fedhpg-agent"])
 def test_console_scripts_exit_2_with_one_line(script: str) -> None:
     executable = f"{sys.prefix}/bin/{script}"
     result = subprocess.run(
-        [executable, "agents.batch_sizes=[0]"], capture_output=True, text=True, timeout=60
+        [executable, "agents.budget.batch_size=[0]"], capture_output=True, text=True, timeout=60
     )
     assert result.returncode == 2, result.stderr
-    assert "agents.batch_sizes[0]" in result.stderr
+    assert "agents.budget.batch_size[0]" in result.stderr
     assert "Traceback" not in result.stderr
     assert len(result.stderr.strip().splitlines()) == 1

@@ -8,13 +8,16 @@ from pathlib import Path
 import pytest
 from procs import BIN, processes, start
 
-from fedhpg.common.cli import compose
 from fedhpg.common.config import ConfigError
+from fedhpg.common.runtime.cli import compose
 from fedhpg.server.plot import main as plot_main
 
 CONF = Path(__file__).parents[1] / "conf"
 PRESETS = sorted(p.stem for p in (CONF / "experiment").glob("*.yaml"))
-GROUPS = {g: sorted(p.stem for p in (CONF / g).glob("*.yaml")) for g in ("algo", "env", "agents")}
+GROUPS = {
+    g: sorted(p.stem for p in (CONF / g).glob("*.yaml"))
+    for g in ("algo", "env", "agents", "strategy", "attack")
+}
 
 
 def test_the_paper_presets_exist() -> None:
@@ -37,7 +40,7 @@ def test_every_group_option_composes(group: str, option: str) -> None:
     [
         ("algo=nope", "algo", "allowed: fedhpg, fedhpgvr"),
         ("experiment=fig9", "experiment", "allowed: fig1_batch_size"),
-        ("agents.batch_sizes=[0]", "agents.batch_sizes[0]", "integer >= 1"),
+        ("agents.budget.batch_size=[0]", "agents.budget.batch_size[0]", "integer >= 1"),
         ("algo.step_size=fast", "algo.step_size", "could not be converted to Float"),
     ],
 )

@@ -12,11 +12,13 @@ import torch
 import zmq
 from procs import BIN, free_port, processes, start, wait_until
 
-from fedhpg.common.cli import compose
-from fedhpg.common.codec import decode, encode
-from fedhpg.common.protocol import Error, Hello, Update
+from fedhpg.common.runtime.cli import compose
+from fedhpg.common.types import UpdateStats
+from fedhpg.common.variants import run_variants
+from fedhpg.common.wire.codec import decode, encode
+from fedhpg.common.wire.protocol import PROTOCOL_VERSION, Error, Hello, Update
 from fedhpg.server.checkpoint import latest_valid_checkpoint
-from fedhpg.server.inprocess import run_in_process
+from fedhpg.server.pools.inprocess import run_in_process
 
 TIMEOUT_S = 120
 
@@ -26,8 +28,8 @@ def _overrides(port: int, out_dir: Path) -> list[str]:
         "rounds=10",
         "seed=3",
         "agents.num_agents=3",
-        "agents.batch_sizes=[6]",
-        "agents.local_iters=[2]",
+        "agents.budget.batch_size=[6]",
+        "agents.budget.local_iters=[2]",
         "agents.speeds=[1]",
         "agents.step_delays_s=[0.003]",
         "eval.every=3",
@@ -60,15 +62,14 @@ class Rogue:
 
 
 def _header(**overrides: object) -> bytes:
-    header = {"v": 1, "type": "heartbeat", "fields": {}, "arrays": []}
+    header = {"v": PROTOCOL_VERSION, "type": "heartbeat", "fields": {}, "arrays": []}
     header.update(overrides)
     return msgpack.packb(header)
 
 
 def _update(theta: np.ndarray) -> list:
-    return encode(
-        Update(round=1, theta=theta, stats={"trajectories": 1, "env_steps": 1, "compute_s": 0.0})
-    )
+    stats = UpdateStats(trajectories=1, env_steps=1, compute_s=0.0, train_return=0.0)
+    return encode(Update(round=1, theta=theta, stats=stats))
 
 
 def test_server_survives_bad_input_and_finishes_right(tmp_path: Path) -> None:
@@ -106,6 +107,14 @@ def test_server_survives_bad_input_and_finishes_right(tmp_path: Path) -> None:
             )
             reply = rogue.ask(encode(bad_signature))
             assert reply is not None and reply.code == "env_signature"
+            signature = run_variants(
+                compose([o for o in overrides if not o.startswith("server.")])
+            )[0].signature()
+            reply = rogue.ask(
+                encode(Hello(agent_id="mallory", agent_index=0, env_signature=signature,
+                             variant_digest="not-the-run's"))
+            )  # fmt: skip
+            assert reply is not None and reply.code == "variant_mismatch"
             reply = rogue.ask(encode(Hello(agent_id="mallory", agent_index=9, env_signature={})))
             assert reply is not None and reply.code == "bad_index"
             # Over the 1 MiB cap: libzmq drops the connection, no reply is possible.
@@ -137,7 +146,7 @@ def test_server_survives_bad_input_and_finishes_right(tmp_path: Path) -> None:
                 process.wait(timeout=30)
             assert all(p.returncode == 0 for p in started[1:4]), [p.returncode for p in started]
     finally:
-        context.term()
+        context.destroy(linger=0)  # also closes the rogues' sockets when an assertion failed
     assert "rejected message from rogue#1" in server_err
     checkpoint = latest_valid_checkpoint(out_dir / "checkpoints")
     assert checkpoint is not None and checkpoint.round == 10
@@ -149,8 +158,8 @@ def test_missing_agents_are_named_after_the_timeout(tmp_path: Path) -> None:
     port = free_port()
     overrides = [
         "agents.num_agents=3",
-        "agents.batch_sizes=[4]",
-        "agents.local_iters=[1]",
+        "agents.budget.batch_size=[4]",
+        "agents.budget.local_iters=[1]",
         "agents.speeds=[1]",
         "agents.step_delays_s=[0]",
         f"server.port={port}",
@@ -169,8 +178,8 @@ def test_missing_agents_are_named_after_the_timeout(tmp_path: Path) -> None:
 def test_agent_gives_up_clearly_without_a_server(tmp_path: Path) -> None:
     overrides = [
         "agents.num_agents=1",
-        "agents.batch_sizes=[4]",
-        "agents.local_iters=[1]",
+        "agents.budget.batch_size=[4]",
+        "agents.budget.local_iters=[1]",
         "agents.speeds=[1]",
         "agents.step_delays_s=[0]",
         f"server.port={free_port()}",

@@ -14,9 +14,9 @@ import pytest
 import torch
 from procs import processes, start
 
-from fedhpg.common.cli import compose
+from fedhpg.common.runtime.cli import compose
 from fedhpg.server.checkpoint import latest_valid_checkpoint
-from fedhpg.server.inprocess import run_in_process
+from fedhpg.server.pools.inprocess import run_in_process
 
 ROUNDS = 4
 TIMEOUT_S = 180
@@ -28,10 +28,10 @@ def _overrides(algo: str) -> list[str]:
         "seed=7",
         f"algo.name={algo}",
         "agents.num_agents=3",
-        "agents.batch_sizes=[6,8,10]",
-        "agents.local_iters=[1,2,3]",
-        "agents.inner_steps=[2,3,2]",
-        "agents.mini_batch_sizes=[3]",
+        "agents.budget.batch_size=[6,8,10]",
+        "agents.budget.local_iters=[1,2,3]",
+        "++agents.budget.inner_steps=[2,3,2]",
+        "++agents.budget.mini_batch_size=[3]",
         "agents.speeds=[1.0,1.0,0.25]",
         "agents.step_delays_s=[0]",
         "eval.every=2",
@@ -90,8 +90,8 @@ def test_emulated_time_follows_the_speed_factor(tmp_path: Path) -> None:
         "env.level=0",
         "env.horizon=1",
         "agents.num_agents=2",
-        "agents.batch_sizes=[256]",
-        "agents.local_iters=[3]",
+        "agents.budget.batch_size=[256]",
+        "agents.budget.local_iters=[3]",
         "agents.speeds=[1.0,0.25]",
         "agents.step_delays_s=[0]",
         "algo.step_size=0.01",

@@ -8,8 +8,12 @@ import numpy as np
 import pytest
 import torch
 
+from fedhpg.common.algorithms.fedhpgvr import (
+    FedHPGVRParams,
+    importance_weights,
+    semi_stochastic_gradient,
+)
 from fedhpg.common.config import AlgoConfig
-from fedhpg.common.fedhpgvr import importance_weights, semi_stochastic_gradient
 from fedhpg.common.importance import clip_weights, self_normalise
 from fedhpg.common.local import batch_gradient
 from fedhpg.common.policies import MLPCategoricalPolicy
@@ -34,12 +38,15 @@ def cartpole_batch():
 def test_at_the_snapshot_weights_are_one_and_v_is_mu(cartpole_batch, estimator, mode) -> None:
     policy, batch = cartpole_batch
     snapshot = copy.deepcopy(policy)
-    algo = AlgoConfig(name="fedhpgvr", estimator=estimator, iw_mode=mode)
-    weights, clipped = importance_weights(snapshot, policy, batch, algo)
+    algo = AlgoConfig(name="fedhpgvr", estimator=estimator)
+    params = FedHPGVRParams(iw_mode=mode)  # type: ignore[arg-type]
+    weights, clipped = importance_weights(snapshot, policy, batch, algo, params)
     assert torch.equal(weights, torch.ones_like(weights)), "θ_n = θ_0 ⇒ every w is exactly 1"
     assert clipped == 0.0
     mu = torch.randn(policy.num_params, generator=torch.Generator().manual_seed(1))
-    v, _, _ = semi_stochastic_gradient(policy, snapshot, batch, mu, algo=algo, gamma=0.99)
+    v, _, _ = semi_stochastic_gradient(
+        policy, snapshot, batch, mu, algo=algo, params=params, gamma=0.99
+    )
     # g(τ|θ_n) − 1·g(τ|θ_0) vanishes term by term when θ_n = θ_0.
     torch.testing.assert_close(v, mu, atol=1e-6, rtol=0)
 
@@ -51,7 +58,7 @@ def test_weights_move_away_from_one_off_the_snapshot(cartpole_batch) -> None:
         for p in policy.parameters():
             p.add_(0.3 * torch.randn_like(p))
     algo = AlgoConfig(name="fedhpgvr", estimator="reinforce")
-    weights, _ = importance_weights(snapshot, policy, batch, algo)
+    weights, _ = importance_weights(snapshot, policy, batch, algo, FedHPGVRParams())
     obs, act = torch.from_numpy(batch.obs), torch.from_numpy(batch.actions)
     alive = torch.from_numpy(batch.alive)
     with torch.no_grad():
@@ -74,7 +81,7 @@ def test_clip_and_self_normalise() -> None:
 
 def test_self_normalised_correction_is_a_weighted_mean(cartpole_batch) -> None:
     policy, batch = cartpole_batch
-    algo = AlgoConfig(name="fedhpgvr", estimator="reinforce", iw_self_normalize=True)
+    algo = AlgoConfig(name="fedhpgvr", estimator="reinforce")
     weights = torch.tensor([0.5, 1.5, 1.0, 2.0, 0.2, 0.3, 0.4, 2.1], dtype=torch.float64)
     scaled = batch_gradient(policy, batch, algo=algo, gamma=0.99, weights=self_normalise(weights))
     unnormalised = batch_gradient(policy, batch, algo=algo, gamma=0.99, weights=weights)

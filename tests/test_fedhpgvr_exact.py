@@ -18,9 +18,9 @@ from exact_mdp import (
     trajectory_log_probability,
 )
 
+from fedhpg.common.algorithms.fedhpgvr import FedHPGVRParams, importance_weights
 from fedhpg.common.config import AlgoConfig
 from fedhpg.common.estimators import estimator_coefficients, per_trajectory_gradients
-from fedhpg.common.fedhpgvr import importance_weights
 from fedhpg.common.policies import TabularSoftmaxPolicy
 from fedhpg.common.rollout import TrajectoryBatch
 
@@ -68,14 +68,18 @@ def _group_gradients(
 
 
 def _v_draws(
-    algo: AlgoConfig, snapshot: TabularSoftmaxPolicy, current: TabularSoftmaxPolicy, seed: int
+    algo: AlgoConfig,
+    params: FedHPGVRParams,
+    snapshot: TabularSoftmaxPolicy,
+    current: TabularSoftmaxPolicy,
+    seed: int,
 ) -> torch.Tensor:
     """DRAWS independent semi-stochastic gradients v = mean_j[g_n − w g_0] + μ."""
     mu = _group_gradients(
         snapshot, sample(snapshot, DRAWS * SNAPSHOT_BATCH, seed), SNAPSHOT_BATCH, algo
     )
     fresh = sample(current, DRAWS * MINI_BATCH, seed + 1)
-    weights, _ = importance_weights(snapshot, current, fresh, algo)
+    weights, _ = importance_weights(snapshot, current, fresh, algo, params)
     current_term = _group_gradients(current, fresh, MINI_BATCH, algo)
     correction = _group_gradients(snapshot, fresh, MINI_BATCH, algo, weights=weights)
     return current_term - correction + mu
@@ -85,8 +89,10 @@ def test_weights_are_the_exact_trajectory_probability_ratio() -> None:
     snapshot = make_policy(seed=0)
     current = _moved(snapshot, 0.5, seed=1)
     batch = sample(current, 256, seed=2)
-    algo = AlgoConfig(name="fedhpgvr", estimator="reinforce", iw_mode="trajectory")
-    weights, _ = importance_weights(snapshot, current, batch, algo)
+    algo = AlgoConfig(name="fedhpgvr", estimator="reinforce")
+    weights, _ = importance_weights(
+        snapshot, current, batch, algo, FedHPGVRParams(iw_mode="trajectory")
+    )
     exact = np.exp(
         trajectory_log_probability(snapshot.logits, batch.obs, batch.actions, batch.alive)
         - trajectory_log_probability(current.logits, batch.obs, batch.actions, batch.alive)
@@ -95,7 +101,11 @@ def test_weights_are_the_exact_trajectory_probability_ratio() -> None:
     assert np.ptp(exact) > 0.5, "the policies differ enough for the weights to matter"
 
     per_decision, _ = importance_weights(
-        snapshot, current, batch, AlgoConfig(name="fedhpgvr", iw_mode="per_decision")
+        snapshot,
+        current,
+        batch,
+        AlgoConfig(name="fedhpgvr"),
+        FedHPGVRParams(iw_mode="per_decision"),
     )
     np.testing.assert_allclose(per_decision[-1].numpy(), exact, rtol=1e-5)  # w_{0:H-1} = w(τ)
     assert per_decision.shape == (batch.obs.shape[0], 256)
@@ -107,8 +117,9 @@ def test_weights_are_the_exact_trajectory_probability_ratio() -> None:
 def test_v_is_unbiased_for_the_gradient_at_theta_n(estimator: str, mode: str) -> None:
     snapshot = make_policy(seed=0)
     current = _moved(snapshot, 0.5, seed=1)
-    algo = AlgoConfig(name="fedhpgvr", estimator=estimator, iw_mode=mode, baseline="none")
-    draws = _v_draws(algo, snapshot, current, seed=10)
+    algo = AlgoConfig(name="fedhpgvr", estimator=estimator, baseline="none")
+    params = FedHPGVRParams(iw_mode=mode)  # type: ignore[arg-type]
+    draws = _v_draws(algo, params, snapshot, current, seed=10)
     exact_current = exact_gradient(current.logits, GAMMA)
     z = max_standard_errors(draws, exact_current)
     assert z < Z_LIMIT, f"{estimator}/{mode}: E[v] is {z:.2f} standard errors from ∇J(θ_n)"
@@ -119,8 +130,8 @@ def test_v_is_unbiased_for_the_gradient_at_theta_n(estimator: str, mode: str) ->
 def test_near_the_snapshot_v_has_less_variance_than_plain_gpomdp() -> None:
     snapshot = make_policy(seed=0)
     current = _moved(snapshot, 0.05, seed=1)
-    algo = AlgoConfig(name="fedhpgvr", estimator="gpomdp", iw_mode="per_decision")
-    v = _v_draws(algo, snapshot, current, seed=20)
+    algo = AlgoConfig(name="fedhpgvr", estimator="gpomdp")
+    v = _v_draws(algo, FedHPGVRParams(iw_mode="per_decision"), snapshot, current, seed=20)
     plain = _group_gradients(
         current, sample(current, DRAWS * MINI_BATCH, seed=30), MINI_BATCH, algo
     )

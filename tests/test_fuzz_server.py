@@ -16,9 +16,11 @@ from hypothesis import HealthCheck, Phase, given, settings
 from hypothesis import strategies as st
 from procs import free_port, processes, start_federation, wait_until
 
-from fedhpg.common.cli import compose
-from fedhpg.common.codec import encode
-from fedhpg.common.protocol import (
+from fedhpg.common.runtime.cli import compose
+from fedhpg.common.types import EvaluationStats, UpdateStats
+from fedhpg.common.variants import run_variants
+from fedhpg.common.wire.codec import encode
+from fedhpg.common.wire.protocol import (
     Error,
     Evaluate,
     Evaluation,
@@ -30,7 +32,7 @@ from fedhpg.common.protocol import (
     Welcome,
 )
 from fedhpg.server.checkpoint import latest_valid_checkpoint
-from fedhpg.server.inprocess import run_in_process, run_variants
+from fedhpg.server.pools.inprocess import run_in_process
 
 FRAMES = 10_000
 TIMEOUT_S = 240
@@ -49,8 +51,27 @@ arrays = st.one_of(
     st.just(np.ones(NUM_PARAMS, dtype=np.float64)),
     st.just(np.zeros((NUM_PARAMS, 1), dtype=np.float32)),
 )
-stats = st.dictionaries(names, plain_values, max_size=4) | st.just(
-    {"trajectories": 1, "env_steps": 1, "compute_s": 0.0}
+numbers = st.floats() | small_ints
+stats = st.builds(
+    UpdateStats,
+    trajectories=small_ints,
+    env_steps=small_ints,
+    compute_s=numbers,
+    train_return=numbers,
+    grad_clipped=small_ints,
+    emulated_s=numbers,
+    speed=numbers,
+    local_wall_s=st.none() | numbers,
+    algorithm=st.dictionaries(names, st.floats(), max_size=3),
+)
+evaluation_stats = st.builds(
+    EvaluationStats,
+    return_mean=numbers,
+    return_std=numbers,
+    discounted_return_mean=numbers,
+    success_rate=numbers,
+    length_mean=numbers,
+    episodes=small_ints,
 )
 
 
@@ -61,6 +82,7 @@ def _hello(signature: dict[str, str]) -> st.SearchStrategy:
         agent_id=st.sampled_from(["agent-0", "agent-1", "mallory"]) | names,
         agent_index=st.integers(-2, 4),
         env_signature=st.just(signature) | st.dictionaries(names, names, max_size=2),
+        variant_digest=names,
         profile=st.dictionaries(names, plain_values, max_size=2),
     )
 
@@ -70,7 +92,7 @@ def _messages(signature: dict[str, str]) -> st.SearchStrategy:
     return st.one_of(
         _hello(signature),
         st.builds(Update, round=rounds, theta=arrays, stats=stats),
-        st.builds(Evaluation, round=rounds, stats=stats),
+        st.builds(Evaluation, round=rounds, stats=evaluation_stats),
         st.builds(Train, round=rounds, theta=arrays),
         st.builds(Evaluate, round=rounds, theta=arrays, episodes=small_ints),
         st.builds(Welcome, run_id=names, agent_index=small_ints, run=st.just({})),
@@ -150,14 +172,14 @@ def _fuzz(port: int, signature: dict[str, str]) -> int:
     finally:
         for socket in rogues:
             socket.close()
-        context.term()
+        context.destroy(linger=0)
     return sent[0]
 
 
 def test_live_server_survives_ten_thousand_fuzzed_frames(tmp_path: Path) -> None:
     run_keys = [
-        "rounds=40", "seed=11", "agents.num_agents=2", "agents.batch_sizes=[6]",
-        "agents.local_iters=[2]", "agents.speeds=[1]", "agents.step_delays_s=[0.002]",
+        "rounds=40", "seed=11", "agents.num_agents=2", "agents.budget.batch_size=[6]",
+        "agents.budget.local_iters=[2]", "agents.speeds=[1]", "agents.step_delays_s=[0.002]",
         "eval.every=10", "eval.episodes=5",
     ]  # fmt: skip
     port = free_port()

@@ -7,10 +7,19 @@ import platform
 import pytest
 import torch
 
-from fedhpg.common.config import AgentsConfig, AlgoConfig, EnvConfig, EvalConfig, RunConfig
-from fedhpg.common.worker import initial_theta, pin_malloc_mmap_threshold
+from fedhpg.common.config import (
+    AgentsConfig,
+    AlgoConfig,
+    EnvConfig,
+    EvalConfig,
+    RunConfig,
+    StrategyConfig,
+)
+from fedhpg.common.runtime.memory import pin_malloc_mmap_threshold
+from fedhpg.common.variants import run_variants
+from fedhpg.common.worker import initial_theta
 from fedhpg.server.coordinator import RoundRecord
-from fedhpg.server.inprocess import run_in_process, run_variants
+from fedhpg.server.pools.inprocess import run_in_process
 
 
 def _cartpole_run(algo: str, seed: int = 0) -> RunConfig:
@@ -21,10 +30,12 @@ def _cartpole_run(algo: str, seed: int = 0) -> RunConfig:
         algo=AlgoConfig(name=algo, step_size=0.01, optimizer="adam"),
         agents=AgentsConfig(
             num_agents=3,
-            batch_sizes=[4, 6, 8],
-            local_iters=[1, 2, 1],
-            inner_steps=[2],
-            mini_batch_sizes=[3],
+            budget={
+                "batch_size": [4, 6, 8],
+                "local_iters": [1, 2, 1],
+                "inner_steps": [2],
+                "mini_batch_size": [3],
+            },
         ),
         eval=EvalConfig(every=3, episodes=4),
     )
@@ -43,12 +54,12 @@ def test_records_count_the_work() -> None:
     run = _cartpole_run("fedhpg")
     run_in_process(run, on_round=[lambda record, _: records.append(record)])
     assert [r.round for r in records] == [1, 2, 3]
-    trajectories = [a["trajectories"] for a in records[0].agents]
+    trajectories = [a.stats.trajectories for a in records[0].agents]
     assert trajectories == [4 * 1, 6 * 2, 8 * 1], "B_k × τ_k trajectories per round"
-    assert all(a["env_steps"] >= a["trajectories"] for a in records[0].agents)
+    assert all(a.stats.env_steps >= a.stats.trajectories for a in records[0].agents)
     per_round = (4 + 12 + 8) / 3
     assert [r.trajectories_per_agent for r in records] == [per_round * t for t in (1, 2, 3)]
-    assert all(r.extra["updates"] == 3 for r in records)
+    assert all(r.to_json()["updates"] == 3 for r in records)
     assert records[-1].eval is not None and set(records[-1].eval) == {
         "agent-0",
         "agent-1",
@@ -56,8 +67,8 @@ def test_records_count_the_work() -> None:
     }
     vr_records: list[RoundRecord] = []
     run_in_process(_cartpole_run("fedhpgvr"), on_round=[lambda r, _: vr_records.append(r)])
-    assert [a["trajectories"] for a in vr_records[0].agents] == [4 + 2 * 3, 6 + 2 * 3, 8 + 2 * 3]
-    assert {"iw_mean", "iw_max", "iw_clipped_fraction"} <= set(vr_records[0].agents[0])
+    assert [a.stats.trajectories for a in vr_records[0].agents] == [4 + 2 * 3, 6 + 2 * 3, 8 + 2 * 3]
+    assert {"iw_mean", "iw_max", "iw_clipped_fraction"} <= set(vr_records[0].agents[0].to_json())
 
 
 def test_unknown_env_family_is_named() -> None:
@@ -68,14 +79,13 @@ def test_unknown_env_family_is_named() -> None:
 
 
 def test_server_adam_takes_sign_sized_first_steps() -> None:
-    """With algo.server_optimizer=adam the server treats θ̄ − θ̃ as a pseudo-gradient: Adam's
+    """With strategy=fedadam the server treats θ̄ − θ̃ as a pseudo-gradient: Adam's
     first step moves every coordinate with a non-zero update by ≈ the server step size."""
     run = _cartpole_run("fedhpg")
     run.rounds = 1
     run.algo.optimizer = "sgd"
     run.algo.step_size = 1.0
-    run.algo.server_optimizer = "adam"
-    run.algo.server_step_size = 0.01
+    run.strategy = StrategyConfig(name="fedadam", params={"step_size": 0.01})
     start = initial_theta(run_variants(run)[0], run)
     moved = (run_in_process(run) - start).abs()
     assert torch.all(moved <= 0.01 + 1e-6)
@@ -92,7 +102,13 @@ def test_continuous_actions_run_through_both_algorithms(algo: str, estimator: st
         env=EnvConfig(family="pendulum", level=0.5, horizon=50),
         algo=AlgoConfig(name=algo, estimator=estimator, step_size=1e-3, optimizer="adam"),
         agents=AgentsConfig(
-            num_agents=2, batch_sizes=[4], local_iters=[2], inner_steps=[2], mini_batch_sizes=[2]
+            num_agents=2,
+            budget={
+                "batch_size": [4],
+                "local_iters": [2],
+                "inner_steps": [2],
+                "mini_batch_size": [2],
+            },
         ),
         eval=EvalConfig(every=2, episodes=2),
     )
@@ -101,7 +117,7 @@ def test_continuous_actions_run_through_both_algorithms(algo: str, estimator: st
     start = initial_theta(run_variants(run)[0], run)
     assert torch.isfinite(theta).all() and not torch.equal(theta, start)
     assert records[-1].eval is not None
-    assert all(a["env_steps"] == a["trajectories"] * 50 for a in records[0].agents)
+    assert all(a.stats.env_steps == a.stats.trajectories * 50 for a in records[0].agents)
 
 
 @pytest.mark.parametrize(("eval_horizon", "length"), [(None, 20), (50, 50)])
@@ -110,14 +126,14 @@ def test_evaluation_horizon(eval_horizon: int | None, length: int) -> None:
     run = RunConfig(
         rounds=1,
         env=EnvConfig(family="pendulum", level=0.0, horizon=20),
-        agents=AgentsConfig(num_agents=1, batch_sizes=[2], local_iters=[1]),
+        agents=AgentsConfig(num_agents=1, budget={"batch_size": [2], "local_iters": [1]}),
         eval=EvalConfig(every=1, episodes=2, horizon=eval_horizon),
     )
     records: list[RoundRecord] = []
     run_in_process(run, on_round=[lambda record, _: records.append(record)])
-    assert records[0].agents[0]["env_steps"] == 2 * 20, "training keeps env.horizon"
+    assert records[0].agents[0].stats.env_steps == 2 * 20, "training keeps env.horizon"
     assert records[0].eval is not None
-    assert records[0].eval["agent-0"]["length_mean"] == length
+    assert records[0].eval["agent-0"].length_mean == length
 
 
 @pytest.mark.skipif(platform.libc_ver()[0] != "glibc", reason="mallopt is glibc's")

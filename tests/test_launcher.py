@@ -11,15 +11,15 @@ from pathlib import Path
 import torch
 from procs import alive, child_pids, processes, start, wait_until
 
-from fedhpg.common.cli import compose
+from fedhpg.common.runtime.cli import compose
 from fedhpg.server.checkpoint import latest_valid_checkpoint
-from fedhpg.server.inprocess import run_in_process
+from fedhpg.server.pools.inprocess import run_in_process
 
 LONG_RUN = [
     "rounds=1000",
     "agents.num_agents=3",
-    "agents.batch_sizes=[4]",
-    "agents.local_iters=[1]",
+    "agents.budget.batch_size=[4]",
+    "agents.budget.local_iters=[1]",
     "agents.speeds=[1]",
     "agents.step_delays_s=[0.002]",
 ]
@@ -76,8 +76,8 @@ def test_a_killed_agent_is_restarted_and_the_run_ends_as_if_nothing_happened(
     tmp_path: Path,
 ) -> None:
     keys = [
-        "rounds=12", "seed=3", "agents.num_agents=3", "agents.batch_sizes=[4]",
-        "agents.local_iters=[1]", "agents.speeds=[1]", "agents.step_delays_s=[0.004]",
+        "rounds=12", "seed=3", "agents.num_agents=3", "agents.budget.batch_size=[4]",
+        "agents.budget.local_iters=[1]", "agents.speeds=[1]", "agents.step_delays_s=[0.004]",
         "eval.every=6", "eval.episodes=5",
         "server.heartbeat_interval_s=0.25", "server.heartbeat_liveness=4",
     ]  # fmt: skip

@@ -4,9 +4,9 @@ from __future__ import annotations
 
 import pytest
 
-from fedhpg.common.cli import compose
+from fedhpg.common.runtime.cli import compose
 from fedhpg.server.coordinator import RoundRecord
-from fedhpg.server.inprocess import run_in_process
+from fedhpg.server.pools.inprocess import run_in_process
 
 THRESHOLD = 0.9
 
@@ -18,7 +18,7 @@ def test_demo_federation_solves_every_environment(algo: str, seed: int) -> None:
     reached: list[int] = []
 
     def watch(record: RoundRecord, _: object) -> None:
-        if record.eval and min(e["success_rate"] for e in record.eval.values()) >= THRESHOLD:
+        if record.eval and min(e.success_rate for e in record.eval.values()) >= THRESHOLD:
             reached.append(record.round)
 
     run_in_process(run, on_round=[watch])

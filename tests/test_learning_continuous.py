@@ -21,10 +21,11 @@ import statistics
 import pytest
 import torch
 
-from fedhpg.common.cli import compose
 from fedhpg.common.config import RunConfig
+from fedhpg.common.runtime.cli import compose
+from fedhpg.common.variants import run_variants
 from fedhpg.common.worker import initial_theta
-from fedhpg.server.inprocess import make_in_process_pool, run_in_process, run_variants
+from fedhpg.server.pools.inprocess import make_in_process_pool, run_in_process
 
 MIN_GAIN = 5.0
 EPISODES = 20
@@ -39,8 +40,8 @@ def _run(server_step_size: float) -> RunConfig:
             "env.level=0",
             "env.horizon=100",
             "agents.num_agents=2",
-            "agents.batch_sizes=[16]",
-            "agents.local_iters=[1]",
+            "agents.budget.batch_size=[16]",
+            "agents.budget.local_iters=[1]",
             "agents.speeds=[1]",
             "agents.step_delays_s=[0]",
             "agents.latencies_s=[0]",
@@ -48,8 +49,8 @@ def _run(server_step_size: float) -> RunConfig:
             "algo.name=fedhpg",
             "algo.optimizer=sgd",
             "algo.step_size=1.0",
-            "algo.server_optimizer=adam",
-            f"algo.server_step_size={server_step_size}",
+            "strategy=fedadam",
+            f"strategy.params.step_size={server_step_size}",
             f"eval.episodes={EPISODES}",
             "eval.every=40",
         ]
@@ -63,7 +64,7 @@ def _greedy_return(run: RunConfig, theta: torch.Tensor, round_index: int) -> flo
         evals = pool.evaluate(round_index, theta, EPISODES)
     finally:
         pool.close()
-    return statistics.mean(e["return_mean"] for e in evals.values())
+    return statistics.mean(e.return_mean for e in evals.values())
 
 
 def _gain(server_step_size: float) -> float:

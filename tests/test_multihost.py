@@ -90,8 +90,8 @@ def _start(
 
 def _common(out_dir: Path, rounds: int) -> list[str]:
     return [
-        f"rounds={rounds}", f"agents.num_agents={NUM_AGENTS}", "agents.batch_sizes=[6]",
-        "agents.local_iters=[1]", "agents.speeds=[1]", "agents.step_delays_s=[0.002]",
+        f"rounds={rounds}", f"agents.num_agents={NUM_AGENTS}", "agents.budget.batch_size=[6]",
+        "agents.budget.local_iters=[1]", "agents.speeds=[1]", "agents.step_delays_s=[0.002]",
         "server.port=5555", f"server.out_dir={out_dir}", "eval.every=5", "eval.episodes=5",
         f"server.heartbeat_interval_s={HEARTBEAT_S}", f"server.heartbeat_liveness={LIVENESS}",
         f"server.rejoin_timeout_s={REJOIN_S}",

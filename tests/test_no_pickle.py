@@ -19,8 +19,9 @@ import numpy as np
 import pytest
 import torch
 
-from fedhpg.common.codec import ProtocolError, decode, encode
-from fedhpg.common.protocol import Update
+from fedhpg.common.wire.codec import ProtocolError, decode, encode
+from fedhpg.common.types import UpdateStats
+from fedhpg.common.wire.protocol import PROTOCOL_VERSION, Update
 from fedhpg.server.checkpoint import (
     Checkpoint,
     CheckpointError,
@@ -117,7 +118,7 @@ def test_the_package_has_no_pickle_anywhere() -> None:
     files = _package_modules()
     names = {f"{f.parent.name}/{f.name}" for f in files}
     # The scan really covers the wire, the checkpoints and the launcher.
-    assert {"common/codec.py", "server/checkpoint.py", "server/launcher.py"} <= names
+    assert {"wire/codec.py", "server/checkpoint.py", "server/launcher.py"} <= names
     assert len(files) > 30, files
     found = [hit for path in files for hit in offences(path.read_text(), str(path))]
     assert found == [], "\n".join(found)
@@ -183,7 +184,7 @@ def test_a_pickle_on_the_wire_is_refused_unopened(tmp_path: Path) -> None:
     payload = _armed(marker)
     header = msgpack.packb(
         {
-            "v": 1,
+            "v": PROTOCOL_VERSION,
             "type": "update",
             "fields": {"round": 1, "stats": {}},
             "arrays": [{"field": "theta", "dtype": "|O", "shape": [1]}],
@@ -245,6 +246,7 @@ def test_wire_and_checkpoints_work_with_unpickling_disabled(
     )
     loaded = load_checkpoint(tmp_path / "round-000003.ckpt")
     assert torch.equal(loaded.theta, theta) and loaded.config == {"seed": 1}
-    update = Update(round=1, theta=theta.numpy(), stats={"trajectories": 1})
+    stats = UpdateStats(trajectories=1, env_steps=1, compute_s=0.0, train_return=0.0)
+    update = Update(round=1, theta=theta.numpy(), stats=stats)
     decoded = decode([bytes(f) for f in encode(update)])
     assert isinstance(decoded, Update) and np.array_equal(decoded.theta, update.theta)

@@ -18,9 +18,11 @@ import torch
 import zmq
 from procs import free_port, processes, start, start_federation, wait_until
 
-from fedhpg.common.cli import compose
-from fedhpg.common.codec import decode, encode
-from fedhpg.common.protocol import (
+from fedhpg.common.runtime.cli import compose
+from fedhpg.common.types import EvaluationStats, UpdateStats
+from fedhpg.common.variants import run_variants, variant_digest
+from fedhpg.common.wire.codec import decode, encode
+from fedhpg.common.wire.protocol import (
     Error,
     Evaluate,
     Evaluation,
@@ -33,7 +35,7 @@ from fedhpg.common.protocol import (
     Welcome,
 )
 from fedhpg.server.checkpoint import latest_valid_checkpoint
-from fedhpg.server.inprocess import run_in_process, run_variants
+from fedhpg.server.pools.inprocess import run_in_process
 
 TIMEOUT_S = 120
 FAST_LIVENESS = ["server.heartbeat_interval_s=0.25", "server.heartbeat_liveness=4"]
@@ -56,8 +58,8 @@ def test_agent_killed_mid_round_rejoins_and_theta_is_unchanged(tmp_path: Path) -
     the open round, redoes exactly the lost work, and the run ends with the θ of an
     uninterrupted run, every round averaged over all K agents."""
     run_keys = [
-        "rounds=10", "seed=7", "agents.num_agents=3", "agents.batch_sizes=[6]",
-        "agents.local_iters=[2]", "agents.speeds=[1]", "agents.step_delays_s=[0.002]",
+        "rounds=10", "seed=7", "agents.num_agents=3", "agents.budget.batch_size=[6]",
+        "agents.budget.local_iters=[2]", "agents.speeds=[1]", "agents.step_delays_s=[0.002]",
         "eval.every=5", "eval.episodes=5",
     ]  # fmt: skip
     out_dir = tmp_path / "run"
@@ -92,8 +94,8 @@ def test_deadline_policy_aggregates_without_the_dead_and_the_slow(tmp_path: Path
     never comes back; every round still completes, from the updates that arrived, and the
     metrics name who is missing."""
     run_keys = [
-        "rounds=8", "seed=2", "agents.num_agents=3", "agents.batch_sizes=[6]",
-        "agents.local_iters=[1]", "agents.speeds=[1]",
+        "rounds=8", "seed=2", "agents.num_agents=3", "agents.budget.batch_size=[6]",
+        "agents.budget.local_iters=[1]", "agents.speeds=[1]",
         # agent-1's env steps cost 50 ms: one iteration takes seconds, far past the deadline.
         "agents.step_delays_s=[0.001,0.05,0.001]",
         "eval.every=4", "eval.episodes=5",
@@ -162,10 +164,10 @@ class ScriptedAgent:
                     for reply in self.answer(message):
                         self._send(reply)
                 elif isinstance(message, Evaluate):
-                    stats = {
-                        "return_mean": 0.0, "discounted_return_mean": 0.0,
-                        "success_rate": 0.0, "length_mean": 1.0, "episodes": 1,
-                    }  # fmt: skip
+                    stats = EvaluationStats(
+                        return_mean=0.0, return_std=0.0, discounted_return_mean=0.0,
+                        success_rate=0.0, length_mean=1.0, episodes=1,
+                    )  # fmt: skip
                     self._send(Evaluation(round=message.round, stats=stats))
                 elif isinstance(message, Shutdown):
                     break
@@ -185,7 +187,7 @@ class ScriptedAgent:
 
 
 def _update(round_index: int, theta: np.ndarray) -> Update:
-    stats = {"trajectories": 1, "env_steps": 1, "compute_s": 0.0}
+    stats = UpdateStats(trajectories=1, env_steps=1, compute_s=0.0, train_return=0.0)
     return Update(round=round_index, theta=theta.astype(np.float32), stats=stats)
 
 
@@ -194,15 +196,22 @@ def test_bad_and_late_updates_of_a_registered_agent_are_never_averaged(tmp_path:
     failure for the round; its update for a round that has closed is discarded with a log
     line; a well-formed update is averaged."""
     run_keys = [
-        "rounds=5", "seed=4", "agents.num_agents=2", "agents.batch_sizes=[6]",
-        "agents.local_iters=[1]", "agents.speeds=[1]", "agents.step_delays_s=[0.001]",
+        "rounds=5", "seed=4", "agents.num_agents=2", "agents.budget.batch_size=[6]",
+        "agents.budget.local_iters=[1]", "agents.speeds=[1]", "agents.step_delays_s=[0.001]",
         "eval.every=5", "eval.episodes=5", "server.round_policy=deadline",
         "server.round_deadline_s=1.0", "server.min_agents=1", "server.max_update_norm=5",
     ]  # fmt: skip
     port = free_port()
     out_dir = tmp_path / "run"
     wire = [f"server.port={port}", f"server.out_dir={out_dir}", *FAST_LIVENESS]
-    signature = run_variants(compose(run_keys))[1].signature()
+    run = compose(run_keys)
+    variant = run_variants(run)[1]
+    hello = Hello(
+        agent_id="agent-1",
+        agent_index=1,
+        env_signature=variant.signature(),
+        variant_digest=variant_digest(run, variant),
+    )
     held: list[Train] = []
 
     def answer(train: Train) -> list[Update]:
@@ -216,9 +225,7 @@ def test_bad_and_late_updates_of_a_registered_agent_are_never_averaged(tmp_path:
 
     with processes() as started:
         server = start(started, "fedhpg-server", [*run_keys, *wire], cwd=tmp_path)
-        scripted = ScriptedAgent(
-            port, Hello(agent_id="agent-1", agent_index=1, env_signature=signature), answer
-        )
+        scripted = ScriptedAgent(port, hello, answer)
         scripted.thread.start()
         try:
             agent = start(

@@ -13,22 +13,29 @@ import pytest
 import torch
 from procs import free_port, processes, start, start_federation, wait_until
 
-from fedhpg.common.cli import compose
+from fedhpg.common.runtime.cli import compose
 from fedhpg.server.checkpoint import latest_valid_checkpoint
-from fedhpg.server.inprocess import run_in_process
+from fedhpg.server.pools.inprocess import run_in_process
 
 ROUNDS = 10
 
 
-@pytest.mark.parametrize("server_optimizer", ["none", "adam"])
-def test_killed_server_resumes_to_the_same_theta(tmp_path: Path, server_optimizer: str) -> None:
+@pytest.mark.parametrize(
+    "strategy",
+    [["strategy=mean"], ["strategy=fedadam"], ["strategy=fedadam", "strategy.params.inner=median"]],
+    ids=["mean", "fedadam", "fedadam-median"],
+)
+def test_killed_server_resumes_to_the_same_theta(tmp_path: Path, strategy: list[str]) -> None:
+    """Kill -9 the server mid-run, tear its newest checkpoint, resume: the final θ̃ is the
+    uninterrupted in-process one, bit for bit, also with fedadam's moments in the checkpoint."""
     out_dir = tmp_path / "run"
     run_keys = [
-        f"rounds={ROUNDS}", "seed=5", "agents.num_agents=2", "agents.batch_sizes=[6]",
-        "agents.local_iters=[2]", "agents.speeds=[1]", "agents.step_delays_s=[0.003]",
-        "eval.every=5", "eval.episodes=5", f"algo.server_optimizer={server_optimizer}",
-        "algo.server_step_size=0.05",
+        f"rounds={ROUNDS}", "seed=5", "agents.num_agents=2", "agents.budget.batch_size=[6]",
+        "agents.budget.local_iters=[2]", "agents.speeds=[1]", "agents.step_delays_s=[0.003]",
+        "eval.every=5", "eval.episodes=5", *strategy,
     ]  # fmt: skip
+    if "strategy=fedadam" in strategy:
+        run_keys.append("strategy.params.step_size=0.05")
     wire = [f"server.port={free_port()}", f"server.out_dir={out_dir}"]
     metrics = out_dir / "metrics.jsonl"
     with processes() as started:
@@ -62,8 +69,8 @@ def test_killed_launcher_resumes_with_fedhpg_run_resume_dir(tmp_path: Path) -> N
     it), then resumed from the run directory; the final θ̃ is the uninterrupted one."""
     out_dir = tmp_path / "run"
     run_keys = [
-        f"rounds={ROUNDS}", "seed=8", "agents.num_agents=2", "agents.batch_sizes=[6]",
-        "agents.local_iters=[2]", "agents.speeds=[1]", "agents.step_delays_s=[0.003]",
+        f"rounds={ROUNDS}", "seed=8", "agents.num_agents=2", "agents.budget.batch_size=[6]",
+        "agents.budget.local_iters=[2]", "agents.speeds=[1]", "agents.step_delays_s=[0.003]",
         "eval.every=5", "eval.episodes=5",
     ]  # fmt: skip
     metrics = out_dir / "metrics.jsonl"

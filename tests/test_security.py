@@ -22,15 +22,21 @@ import zmq
 import zmq.auth
 from procs import BIN, free_port, processes, start
 
-from fedhpg.common.cli import compose
-from fedhpg.common.codec import decode
-from fedhpg.common.config import ConfigError, RunConfig, from_dict, to_dict
-from fedhpg.common.protocol import Error
-from fedhpg.common.security import (
+from fedhpg.common.config import (
+    ConfigError,
+    RunConfig,
+    adopt_settings,
+    dictated_settings,
+    from_dict,
+    to_dict,
+)
+from fedhpg.common.runtime.cli import compose, validate_config
+from fedhpg.common.wire.codec import decode
+from fedhpg.common.wire.protocol import PROTOCOL_VERSION, Error
+from fedhpg.common.wire.security import (
     KEY_MISMATCH,
     SecurityConfig,
     authenticated_name,
-    public_settings,
     secure_server_socket,
 )
 
@@ -63,8 +69,8 @@ def _overrides(port: int, out_dir: Path, *, agents: int = 2, rounds: int = 3) ->
     return [
         f"rounds={rounds}",
         f"agents.num_agents={agents}",
-        "agents.batch_sizes=[4]",
-        "agents.local_iters=[1]",
+        "agents.budget.batch_size=[4]",
+        "agents.budget.local_iters=[1]",
         "agents.speeds=[1]",
         "agents.step_delays_s=[0]",
         f"eval.every={rounds}",
@@ -122,7 +128,10 @@ def _curve_dealer(context: zmq.Context, port: int, secret: Path, server_key: Pat
 
 
 def _heartbeat(*extra: bytes) -> list[bytes]:
-    return [msgpack.packb({"v": 1, "type": "heartbeat", "fields": {}, "arrays": []}), *extra]
+    return [
+        msgpack.packb({"v": PROTOCOL_VERSION, "type": "heartbeat", "fields": {}, "arrays": []}),
+        *extra,
+    ]
 
 
 # --- with the right keys ----------------------------------------------------------------------
@@ -488,11 +497,13 @@ def test_bad_security_values_name_the_key(
 
 
 def test_agents_never_see_the_servers_key_paths() -> None:
-    """The server sends its run settings to every agent, which validates them on its own host:
-    the server's key paths would fail there (and concern no agent), so they are not sent."""
+    """The server sends agents only the keys it dictates (config.GROUPS): its key paths, which
+    would fail on an agent's host and concern no agent, never leave it."""
     run = RunConfig(security=SecurityConfig(curve=True, keys_dir="/only/on/the/server"))
     with pytest.raises(ConfigError, match=r"security\.keys_dir"):
-        from_dict(to_dict(run))
-    shared = from_dict(public_settings(to_dict(run)))
-    assert shared.security == SecurityConfig()
-    assert shared.seed == run.seed and shared.algo == run.algo
+        validate_config(from_dict(to_dict(run)))
+    dictated = dictated_settings(run)
+    assert "security" not in dictated and "server" not in dictated
+    agent = adopt_settings(RunConfig(seed=5), dictated)
+    assert agent.security == SecurityConfig()
+    assert agent.seed == run.seed and agent.algo == run.algo

@@ -6,9 +6,9 @@ import logging
 
 import zmq
 
-from fedhpg.common.codec import ProtocolError, decode, encode
 from fedhpg.common.config import ServerConfig
-from fedhpg.common.protocol import Message
+from fedhpg.common.wire.codec import ProtocolError, decode, encode
+from fedhpg.common.wire.protocol import Message
 
 logger = logging.getLogger(__name__)
 

@@ -1,28 +1,27 @@
 """The server side of the wire: registration, liveness, request/response rounds, bad input.
 
-:class:`ZmqAgentPool` is the coordinator's :class:`~fedhpg.server.coordinator.AgentPool` over
+:class:`ZmqAgentPool` is the coordinator's :class:`~fedhpg.server.pools.AgentPool` over
 one ROUTER socket. One loop (:meth:`ZmqAgentPool._pump`) handles every incoming message,
 whatever state the run is in, then keeps the peers alive, in the order of the zguide's
 Paranoid Pirate: handle messages, purge dead peers, send heartbeats.
 
 - Bad input (malformed frames, unknown types, wrong versions, bad shapes, dtypes, non-finite
-  or too-large updates, duplicate ids, signature mismatches) is logged and answered with an
-  ``Error``; the run goes on.
+  or too-large updates, duplicate ids, space or variant mismatches) is logged and answered
+  with an ``Error``; the run goes on. Updates pass the same
+  :class:`~fedhpg.server.validation.UpdateCheck` as in the in-process pool.
 - Liveness: every registered agent gets a heartbeat every ``server.heartbeat_interval_s``; an
   agent silent for ``heartbeat_liveness`` intervals, or one its connection is gone for, is
   presumed dead and unregistered. It may register again at any time (a restarted process, a
   healed link) and is then sent the request still open for it, with the current θ̃.
-- Round policies (``server.round_policy``): ``wait_all`` collects every agent's answer and
-  waits up to ``rejoin_timeout_s`` for a dead agent to come back; ``deadline`` aggregates what
-  arrived by ``round_deadline_s`` once at least ``min_agents`` answered; late answers for a
-  closed round are discarded with a log line.
+- Round policies (:mod:`fedhpg.server.rounds`) decide when a request's answers are complete;
+  late answers for a closed round are discarded with a log line.
 """
 
 from __future__ import annotations
 
 import logging
-import math
 import time
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -30,9 +29,10 @@ import numpy as np
 import torch
 import zmq
 
-from fedhpg.common.codec import ProtocolError
 from fedhpg.common.config import ServerConfig
-from fedhpg.common.protocol import (
+from fedhpg.common.types import AgentUpdate, EvaluationStats
+from fedhpg.common.wire.codec import ProtocolError
+from fedhpg.common.wire.protocol import (
     Error,
     Evaluate,
     Evaluation,
@@ -44,24 +44,20 @@ from fedhpg.common.protocol import (
     Update,
     Welcome,
 )
-from fedhpg.common.security import KEY_MISMATCH, key_mismatch
-from fedhpg.common.transport import send_message, try_decode
-from fedhpg.server.coordinator import AgentUpdate
+from fedhpg.common.wire.security import KEY_MISMATCH, key_mismatch
+from fedhpg.common.wire.transport import send_message, try_decode
+from fedhpg.server.pools import FederationError, RoundAnswers
+from fedhpg.server.rounds import request_complete
+from fedhpg.server.validation import UpdateCheck
 
 logger = logging.getLogger(__name__)
 
 POLL_INTERVAL_S = 0.2
 """Longest wait on the socket: deadlines and liveness are checked at least this often."""
-REQUIRED_UPDATE_STATS = ("trajectories", "env_steps", "compute_s")
-REQUIRED_EVALUATION_STATS = ("return_mean", "discounted_return_mean", "success_rate", "length_mean")
 NOISY_LOG_BURST = 20
 """Warnings about peers' messages logged one by one per window; beyond that only counted (a
 flood of junk must not turn into a flood of log lines)."""
 NOISY_LOG_WINDOW_S = 10.0
-
-
-class FederationError(RuntimeError):
-    """The federation cannot go on (agents missing, a round timed out)."""
 
 
 @dataclass
@@ -80,6 +76,8 @@ class Collection:
     """One request sent to every agent (a round's Train, or an Evaluate) and its answers."""
 
     request: Train | Evaluate
+    expected: frozenset[int]
+    """The agents asked (the strategy's selection; every agent for an evaluation)."""
     started: float = field(default_factory=time.monotonic)
     answers: dict[int, Update | Evaluation] = field(default_factory=dict)
     failures: dict[int, str] = field(default_factory=dict)
@@ -119,19 +117,6 @@ class RateLimitedLog:
             self._suppressed += 1
 
 
-def _lacking_numbers(stats: dict[str, Any], keys: tuple[str, ...]) -> list[str]:
-    """The ``keys`` whose value in ``stats`` is not a finite number."""
-    return [
-        key
-        for key in keys
-        if not (
-            isinstance(stats.get(key), int | float)
-            and not isinstance(stats.get(key), bool)
-            and math.isfinite(stats[key])
-        )
-    ]
-
-
 def _identity_label(identity: bytes) -> str:
     return identity.decode("utf-8", "replace")[:64]
 
@@ -144,8 +129,9 @@ class ZmqAgentPool:
         *,
         socket: zmq.Socket,
         num_agents: int,
-        num_params: int,
+        check: UpdateCheck,
         env_signature: dict[str, str],
+        variant_digests: list[str],
         run_settings: dict[str, Any],
         run_id: str,
         max_bytes: int,
@@ -153,8 +139,9 @@ class ZmqAgentPool:
     ) -> None:
         self.socket = socket
         self.num_agents = num_agents
-        self.num_params = num_params
+        self.check = check
         self.env_signature = env_signature
+        self.variant_digests = variant_digests
         self.run_settings = run_settings
         self.run_id = run_id
         self.max_bytes = max_bytes
@@ -166,7 +153,6 @@ class ZmqAgentPool:
         """Agent id per index, kept after an agent dies (metrics still name it)."""
         self._absent_since: dict[int, float] = {}
         self._collection: Collection | None = None
-        self._last_train: Collection | None = None
         self._last_heartbeat = 0.0
         self._noisy = RateLimitedLog(NOISY_LOG_BURST, NOISY_LOG_WINDOW_S)
         self.rejected = 0
@@ -257,13 +243,18 @@ class ZmqAgentPool:
         self._by_identity.pop(peer.identity, None)
         self._absent_since[peer.index] = time.monotonic()
         self.deaths += 1
-        pending = self._collection is not None and not self._collection.answered(peer.index)
+        collection = self._collection
+        pending = (
+            collection is not None
+            and peer.index in collection.expected
+            and not collection.answered(peer.index)
+        )
         logger.warning(
             "%s presumed dead: %s%s",
             peer.agent_id,
             why,
-            f"; its answer for round {self._collection.round} is missing"
-            if pending and self._collection
+            f"; its answer for round {collection.round} is missing"
+            if pending and collection
             else "",
         )
 
@@ -278,7 +269,7 @@ class ZmqAgentPool:
             return
         peer = self._by_identity.get(identity)
         # security: with CURVE, a key speaks only for the agent its allow-list file names
-        claimed = decoded.agent_id if isinstance(decoded, Hello) else peer and peer.agent_id
+        claimed = decoded.agent_id if isinstance(decoded, Hello) else peer.agent_id if peer else None
         if (mismatch := key_mismatch(frames[1], claimed)) is not None:
             self._reject(identity, KEY_MISMATCH, mismatch)
             return
@@ -324,6 +315,16 @@ class ZmqAgentPool:
                 f"run has {self.env_signature}",
             )
             return
+        expected = self.variant_digests[hello.agent_index]
+        if hello.variant_digest != expected:
+            self._reject(
+                identity,
+                "variant_mismatch",
+                f"the environment variant of {hello.agent_id!r} (index {hello.agent_index}) is "
+                f"not the run's: its digest is {hello.variant_digest[:12] or 'missing'}, the run's "
+                f"is {expected[:12]}; start it with the server's seed and env.* settings",
+            )
+            return
         holder = self.peers.get(hello.agent_index) or next(
             (p for p in self.peers.values() if p.agent_id == hello.agent_id), None
         )
@@ -352,7 +353,11 @@ class ZmqAgentPool:
         away = self._absent_since.pop(peer.index, None)
         self._send(identity, self._welcome(peer))
         collection = self._collection
-        resend = collection is not None and not collection.answered(peer.index)
+        resend = (
+            collection is not None
+            and peer.index in collection.expected
+            and not collection.answered(peer.index)
+        )
         if away is None:
             logger.info("registered %s (index %d, %s)", peer.agent_id, peer.index, peer.profile)
         else:
@@ -373,29 +378,11 @@ class ZmqAgentPool:
 
     # -- answers -----------------------------------------------------------------------------
 
-    def _check_theta(self, theta: np.ndarray) -> str | None:
-        if theta.dtype != np.float32:
-            return f"parameters must be float32, got {theta.dtype}"
-        if theta.shape != (self.num_params,):
-            return f"parameters must have shape ({self.num_params},), got {theta.shape}"
-        if not np.isfinite(theta).all():
-            return "parameters contain NaN or Inf"
-        return None
-
     def _check_update(self, update: Update) -> str | None:
-        problem = self._check_theta(update.theta)
-        if problem is not None:
-            return problem
-        missing = _lacking_numbers(update.stats, REQUIRED_UPDATE_STATS)
-        if missing:
-            return f"update stats lack finite numbers {missing}"
-        bound = self.settings.max_update_norm
         collection = self._collection
-        if bound is not None and collection is not None and collection.round == update.round:
-            step = float(np.linalg.norm(update.theta.astype(np.float64) - collection.request.theta))
-            if step > bound:
-                return f"update moves θ by {step:.4g} > server.max_update_norm={bound:g}"
-        return None
+        open_round = collection is not None and collection.round == update.round
+        broadcast = collection.request.theta if open_round and collection else None
+        return self.check.problem(update.theta, update.stats, broadcast)
 
     def _open_for(self, peer: Peer | None, answer: Update | Evaluation, kind: type) -> bool:
         """Whether ``answer`` belongs to the request still open for this peer; logs if not."""
@@ -406,6 +393,7 @@ class ZmqAgentPool:
             collection is not None
             and isinstance(collection.request, kind)
             and collection.round == answer.round
+            and peer.index in collection.expected
             and not collection.answered(peer.index)
         ):
             return True
@@ -433,9 +421,9 @@ class ZmqAgentPool:
             self._collection.answers[peer.index] = update
 
     def _on_evaluation(self, identity: bytes, peer: Peer | None, evaluation: Evaluation) -> None:
-        missing = _lacking_numbers(evaluation.stats, REQUIRED_EVALUATION_STATS)
-        if missing:
-            problem = f"evaluation stats lack finite numbers {missing}"
+        problems = evaluation.stats.problems()
+        if problems:
+            problem = "evaluation stats: " + "; ".join(problems)
             self._reject(identity, "bad_evaluation", problem)
             if self._open_for(peer, evaluation, Evaluate):
                 assert self._collection is not None and peer is not None
@@ -448,12 +436,14 @@ class ZmqAgentPool:
 
     # -- collecting a request's answers --------------------------------------------------------
 
-    def _collect(self, request: Train | Evaluate, what: str) -> Collection:
-        """Send ``request`` to every agent and gather answers as the round policy says."""
-        collection = Collection(request=request)
+    def _collect(self, request: Train | Evaluate, what: str, agents: Sequence[int]) -> Collection:
+        """Send ``request`` to the selected agents and gather answers as the round policy says."""
+        collection = Collection(request=request, expected=frozenset(agents))
         self._collection = collection
-        for peer in list(self.peers.values()):
-            self._send_to_peer(peer, request)
+        for index in sorted(collection.expected):
+            peer = self.peers.get(index)
+            if peer is not None:
+                self._send_to_peer(peer, request)
         try:
             while not self._complete(collection, what):
                 self._pump(POLL_INTERVAL_S)
@@ -462,29 +452,19 @@ class ZmqAgentPool:
         return collection
 
     def _complete(self, collection: Collection, what: str) -> bool:
-        settings = self.settings
         now = time.monotonic()
-        if all(collection.answered(k) for k in range(self.num_agents)):
-            return True
-        enough = len(collection.answers) >= settings.min_agents
-        if settings.round_policy == "deadline" and enough:
-            registered_done = all(collection.answered(k) for k in self.peers)
-            if registered_done or now >= collection.started + settings.round_deadline_s:
-                return True
-        if settings.round_policy == "wait_all":
-            for index, since in self._absent_since.items():
-                if now - since > settings.rejoin_timeout_s:
-                    raise FederationError(
-                        f"{what} {collection.round}: {self._name(index)} died and did not "
-                        f"rejoin within {settings.rejoin_timeout_s:g} s (server.rejoin_timeout_s)"
-                    )
-        if now - collection.started > settings.round_timeout_s:
-            missing = [self._name(k) for k in range(self.num_agents) if not collection.answered(k)]
-            raise FederationError(
-                f"timed out after {settings.round_timeout_s:g} s (server.round_timeout_s) "
-                f"waiting for {what} {collection.round} from {missing}"
-            )
-        return False
+        return request_complete(
+            settings=self.settings,
+            what=f"{what} {collection.round}",
+            expected=collection.expected,
+            answered=collection.answers.keys() | collection.failures.keys(),
+            accepted=len(collection.answers),
+            live=self.peers.keys(),
+            absent_since=self._absent_since,
+            elapsed_s=now - collection.started,
+            now=now,
+            name=self._name,
+        )
 
     # -- the pool interface ----------------------------------------------------------------
 
@@ -500,52 +480,42 @@ class ZmqAgentPool:
                 )
             self._pump(deadline - time.monotonic())
 
-    def train(self, round_index: int, theta: torch.Tensor) -> list[AgentUpdate]:
+    def train(self, round_index: int, theta: torch.Tensor, agents: Sequence[int]) -> RoundAnswers:
         request = Train(round=round_index, theta=theta.detach().numpy())
-        collection = self._collect(request, "round")
-        self._last_train = collection
-        if not collection.answers:
-            raise FederationError(
-                f"round {round_index}: every agent's update was rejected: "
-                f"{ {self._name(k): r for k, r in collection.failures.items()} }"
-            )
-        stragglers = self.round_stragglers
+        collection = self._collect(request, "round", agents)
+        stragglers = [
+            self._name(k) for k in sorted(collection.expected) if not collection.answered(k)
+        ]
         if stragglers:
             logger.warning(
                 "round %d aggregated %d of %d updates; stragglers: %s",
                 round_index,
                 len(collection.answers),
-                self.num_agents,
+                len(collection.expected),
                 ", ".join(stragglers),
             )
-        return [
-            AgentUpdate(
-                agent_index=index,
-                agent_id=self._name(index),
-                theta=torch.from_numpy(np.array(update.theta)),
-                stats=dict(update.stats),
-            )
-            for index, update in sorted(collection.answers.items())
-            if isinstance(update, Update)
-        ]
+        return RoundAnswers(
+            updates=[
+                AgentUpdate(
+                    agent_index=index,
+                    agent_id=self._name(index),
+                    theta=torch.from_numpy(np.array(update.theta)),
+                    stats=update.stats,
+                )
+                for index, update in sorted(collection.answers.items())
+                if isinstance(update, Update)
+            ],
+            failures={self._name(k): r for k, r in sorted(collection.failures.items())},
+            stragglers=stragglers,
+        )
 
-    @property
-    def round_failures(self) -> dict[str, str]:
-        last = self._last_train
-        return {} if last is None else {self._name(k): r for k, r in sorted(last.failures.items())}
-
-    @property
-    def round_stragglers(self) -> list[str]:
-        last = self._last_train
-        if last is None:
-            return []
-        return [self._name(k) for k in range(self.num_agents) if not last.answered(k)]
-
-    def evaluate(self, round_index: int, theta: torch.Tensor, episodes: int) -> dict[str, dict]:
+    def evaluate(
+        self, round_index: int, theta: torch.Tensor, episodes: int
+    ) -> dict[str, EvaluationStats]:
         request = Evaluate(round=round_index, theta=theta.detach().numpy(), episodes=episodes)
-        collection = self._collect(request, "evaluation of round")
+        collection = self._collect(request, "evaluation of round", range(self.num_agents))
         return {
-            self._name(k): dict(answer.stats)
+            self._name(k): answer.stats
             for k, answer in sorted(collection.answers.items())
             if isinstance(answer, Evaluation)
         }

@@ -1,9 +1,10 @@
 """The wire protocol in one place: message types and their typed payloads.
 
-Every message is one frozen dataclass below. :mod:`fedhpg.common.codec` turns any of them into
+Every message is one frozen dataclass below. :mod:`fedhpg.common.wire.codec` turns any of them into
 ZeroMQ frames (a msgpack header, then one raw frame per array field) and back; nothing here
 knows about bytes. Fields typed ``np.ndarray`` travel as raw frames, every other field in the
-header as plain msgpack values (None, bool, int, float, str, list, dict).
+header as plain msgpack values (None, bool, int, float, str, list, dict) or, for the typed
+results of :mod:`fedhpg.common.types`, as maps of exactly their fields.
 """
 
 from __future__ import annotations
@@ -14,11 +15,10 @@ from typing import Any
 
 import numpy as np
 
-PROTOCOL_VERSION = 1
+from fedhpg.common.types import EvaluationStats, UpdateStats
 
-# Liveness: a peer silent for HEARTBEAT_LIVENESS intervals is presumed dead.
-HEARTBEAT_INTERVAL_S = 1.0
-HEARTBEAT_LIVENESS = 5
+PROTOCOL_VERSION = 2
+"""2: typed ``Update.stats`` / ``Evaluation.stats``; ``Hello.variant_digest``."""
 
 
 class MsgType(StrEnum):
@@ -35,17 +35,22 @@ class MsgType(StrEnum):
 
 @dataclass(frozen=True, kw_only=True)
 class Hello:
-    """Agent → server: registration with the agent's environment signature."""
+    """Agent → server: registration with the agent's environment signature and variant."""
 
     agent_id: str
     agent_index: int
     env_signature: dict[str, str]
+    """The observation and action spaces: every agent's must be the run's."""
+    variant_digest: str = ""
+    """Digest of the agent's environment variant (family, parameters, γ_k, horizon): must be
+    the one the server expects for ``agent_index``, so no host trains on another MDP."""
     profile: dict[str, Any] = field(default_factory=dict)
 
 
 @dataclass(frozen=True, kw_only=True)
 class Welcome:
-    """Server → agent: registration accepted; ``run`` holds the shared run settings."""
+    """Server → agent: registration accepted; ``run`` holds the settings the server dictates
+    (``fedhpg.common.config.GROUPS``)."""
 
     run_id: str
     agent_index: int
@@ -66,7 +71,7 @@ class Update:
 
     round: int
     theta: np.ndarray
-    stats: dict[str, Any]
+    stats: UpdateStats
 
 
 @dataclass(frozen=True, kw_only=True, eq=False)
@@ -83,7 +88,7 @@ class Evaluation:
     """Agent → server: evaluation results for ``round``."""
 
     round: int
-    stats: dict[str, Any]
+    stats: EvaluationStats
 
 
 @dataclass(frozen=True, kw_only=True)

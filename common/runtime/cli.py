@@ -7,7 +7,7 @@ import os
 import sys
 from collections.abc import Callable, Sequence
 
-from fedhpg.common.config import ConfigError, RunConfig, validate
+from fedhpg.common.config import ConfigError, RunConfig
 
 logger = logging.getLogger(__name__)
 
@@ -38,7 +38,18 @@ def to_run_config(cfg: object) -> RunConfig:
         ) from None
     if not isinstance(config, RunConfig):
         raise ConfigError("config", "the composed config is not a fedhpg run config")
-    return validate(config)
+    return validate_config(config)
+
+
+def validate_config(config: RunConfig) -> RunConfig:
+    """Every check a process can make of its own config: values, plugins, the algorithm and
+    budgets, the key files it names. (The server also checks ``strategy``.)"""
+    from fedhpg.common.components import validate_run
+    from fedhpg.common.wire.security import validate_security
+
+    validate_run(config)
+    validate_security(config.security)
+    return config
 
 
 def _first_line(error: BaseException) -> str:
@@ -74,6 +85,12 @@ def compose(overrides: Sequence[str]) -> RunConfig:
     except (HydraException, OmegaConfBaseException) as error:
         cause = error.__cause__ if isinstance(error.__cause__, OmegaConfBaseException) else error
         key = getattr(cause, "full_key", None) or _override_key(error, overrides)
+        if "To append to your config use +" in str(error):
+            raise ConfigError(
+                key,
+                f"not in the composed config; add it with +{key}=... (an algorithm's budget and "
+                "options come with its group: algo=NAME)",
+            ) from None
         raise ConfigError(key, _one_line(cause)) from None
     return to_run_config(cfg)
 

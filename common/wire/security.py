@@ -27,15 +27,15 @@ import threading
 import time
 from dataclasses import dataclass
 from pathlib import Path
-from typing import TYPE_CHECKING, Any, NoReturn
+from typing import NoReturn
 
 import zmq
+import zmq.auth
 from zmq.auth.thread import ThreadAuthenticator
 from zmq.utils import z85
 from zmq.utils.monitor import recv_monitor_message
 
-if TYPE_CHECKING:
-    from fedhpg.common.config import RunConfig
+from fedhpg.common.config import ConfigError, RunConfig, SecurityConfig, agent_id_of
 
 logger = logging.getLogger(__name__)
 
@@ -53,25 +53,6 @@ LOG_EVERY_S = 60.0
 refused peer retries every few seconds."""
 
 
-@dataclass(kw_only=True)
-class SecurityConfig:
-    """CURVE encryption and agent authentication. Off by default: plaintext on the wire."""
-
-    curve: bool = False
-    """Encrypt every connection with CURVE and admit only agents whose public key is allowed."""
-    keys_dir: str | None = None
-    """Directory written by ``fedhpg-keys``: the default location of every key file below."""
-    server_secret_key: str | None = None
-    """Server: its secret key file; None = ``<keys_dir>/server.key_secret``."""
-    allowed_keys_dir: str | None = None
-    """Server: directory of allowed agent public keys, one ``<agent id>.key`` file per agent;
-    None = ``<keys_dir>/allowed``."""
-    server_public_key: str | None = None
-    """Agent: the server's public key file; None = ``<keys_dir>/server.key``."""
-    agent_secret_key: str | None = None
-    """Agent: its own secret key file; None = ``<keys_dir>/<agent id>.key_secret``."""
-
-
 @dataclass(frozen=True, kw_only=True)
 class KeyPair:
     """A CURVE key pair, both halves z85-encoded (40 characters each)."""
@@ -81,9 +62,6 @@ class KeyPair:
 
 
 def _fail(key: str, message: str) -> NoReturn:
-    # config.py imports this module for SecurityConfig, so ConfigError is looked up late.
-    from fedhpg.common.config import ConfigError
-
     raise ConfigError(key, message)
 
 
@@ -159,14 +137,12 @@ def _path(security: SecurityConfig, key: str, default: str) -> tuple[Path, str]:
 
 
 def validate_security(security: SecurityConfig) -> None:
-    """The checks that hold for every role: called from ``config.validate``.
+    """The checks that hold for every role: called where a config is validated.
 
     Each explicitly given file is loaded and checked. Files found through ``keys_dir`` are
     checked where they are used (the server needs its own, an agent its own), by
     :func:`server_keys` and :func:`agent_keys`, with the same one-line errors.
     """
-    if not isinstance(security.curve, bool):
-        _fail("security.curve", f"got {security.curve!r}, must be true or false")
     if not security.curve:
         return
     if not zmq.has("curve"):
@@ -236,8 +212,6 @@ def check_launch_keys(run: RunConfig) -> None:
     security = run.security
     if not security.curve:
         return
-    from fedhpg.common.config import agent_id_of  # late: config imports this module
-
     if security.agent_secret_key is not None and run.agents.num_agents > 1:
         _fail(
             "security.agent_secret_key",
@@ -254,12 +228,6 @@ def check_launch_keys(run: RunConfig) -> None:
                 "security.allowed_keys_dir",
                 f"{server.allowed_dir}: {agent_id}'s public key is not allowed as {agent_id!r}",
             )
-
-
-def public_settings(settings: dict[str, Any]) -> dict[str, Any]:
-    """Run settings fit to send to agents: without ``security``, whose paths are the server
-    host's (an agent would check them against its own files) and concern no agent."""
-    return {key: value for key, value in settings.items() if key != "security"}
 
 
 # --- server side --------------------------------------------------------------------------------

@@ -1,9 +1,10 @@
 """One generic, versioned codec for every protocol message: a msgpack header + raw array frames.
 
 Frame 0 is a msgpack map ``{"v": version, "type": kind, "fields": {...}, "arrays": [...]}``.
-``fields`` holds every field not annotated ``np.ndarray``, as plain msgpack values; each entry
+``fields`` holds every field not annotated ``np.ndarray``, as plain msgpack values (a nested
+frozen dataclass, such as ``Update.stats``, as a map of exactly its fields); each entry
 ``{"field", "dtype", "shape"}`` of ``arrays`` describes one following frame holding that array's
-bytes in C order. The payload dataclasses of :mod:`fedhpg.common.protocol` are walked with
+bytes in C order. The payload dataclasses of :mod:`fedhpg.common.wire.protocol` are walked with
 ``dataclasses.fields`` and their annotations, so adding a message needs no code here. No pickle.
 
 :func:`decode` accepts anything at all and either returns a message whose fields match their
@@ -28,7 +29,13 @@ from typing import TYPE_CHECKING, Any, TypeAlias
 import msgpack
 import numpy as np
 
-from fedhpg.common.protocol import MSG_TYPE_OF, PAYLOAD_TYPES, PROTOCOL_VERSION, Message
+from fedhpg.common.wire.protocol import (
+    MSG_TYPE_OF,
+    PAYLOAD_TYPES,
+    PROTOCOL_VERSION,
+    Message,
+    MsgType,
+)
 
 if TYPE_CHECKING:
     import zmq
@@ -106,12 +113,19 @@ def _supported(hint: Any) -> bool:
         return all(_supported(arg) for arg in typing.get_args(hint))
     if hint in (dict, list):
         return True
+    if _is_record(hint):
+        return all(_supported(spec.hint) and not spec.is_array for spec in _specs(hint))
     if origin is dict:
         key, value = typing.get_args(hint)
         return key is str and _supported(value)
     if origin is list:
         return all(_supported(arg) for arg in typing.get_args(hint))
     return False
+
+
+def _is_record(hint: Any) -> bool:
+    """A frozen dataclass nested in a message (e.g. ``Update.stats``): a map on the wire."""
+    return isinstance(hint, type) and dataclasses.is_dataclass(hint)
 
 
 @functools.cache
@@ -160,23 +174,26 @@ def _check_plain(value: Any, where: str, depth: int) -> None:
         raise _bad(where, f"{_type_name(value)} is not a plain msgpack value")
 
 
-def _check(value: Any, hint: Any, where: str, depth: int = 0) -> None:
-    """Raise ProtocolError unless ``value`` fits ``hint`` (bool is no int; an int is a float)."""
+def _check(value: Any, hint: Any, where: str, depth: int = 0) -> Any:
+    """``value`` if it fits ``hint`` (bool is no int; an int is a float), with nested records
+    built as their dataclasses; else ProtocolError."""
     if hint is Any:
         _check_plain(value, where, depth)
-        return
+        return value
     if hint is None or hint is type(None):
         if value is not None:
             raise _bad(where, f"must be None, got {_type_name(value)}")
-        return
+        return value
     origin = typing.get_origin(hint)
     if origin in (types.UnionType, typing.Union):
-        _check_union(value, typing.get_args(hint), where, depth)
-    elif hint is dict or origin is dict:
-        _check_dict(value, typing.get_args(hint), where, depth)
-    elif hint is list or origin is list:
-        _check_list(value, typing.get_args(hint), where, depth)
-    elif hint is float:
+        return _check_union(value, typing.get_args(hint), where, depth)
+    if hint is dict or origin is dict:
+        return _check_dict(value, typing.get_args(hint), where, depth)
+    if hint is list or origin is list:
+        return _check_list(value, typing.get_args(hint), where, depth)
+    if _is_record(hint):
+        return _check_record(value, hint, where, depth)
+    if hint is float:
         if not isinstance(value, int | float) or isinstance(value, bool):
             raise _bad(where, f"must be float, got {_type_name(value)}")
         _check_plain(value, where, depth)
@@ -189,39 +206,62 @@ def _check(value: Any, hint: Any, where: str, depth: int = 0) -> None:
             raise _bad(where, f"must be bool, got {_type_name(value)}")
     else:  # _specs only admits annotations handled above
         raise TypeError(f"unsupported annotation {hint!r}")
+    return value
 
 
-def _check_union(value: Any, options: tuple[Any, ...], where: str, depth: int) -> None:
+def _check_union(value: Any, options: tuple[Any, ...], where: str, depth: int) -> Any:
     for option in options:
         try:
-            _check(value, option, where, depth)
+            return _check(value, option, where, depth)
         except ProtocolError:
             continue
-        return
     names = " | ".join(getattr(o, "__name__", None) or repr(o) for o in options)
     raise _bad(where, f"must be {names}, got {_type_name(value)}")
 
 
-def _check_dict(value: Any, args: tuple[Any, ...], where: str, depth: int) -> None:
+def _check_dict(value: Any, args: tuple[Any, ...], where: str, depth: int) -> dict[str, Any]:
     if not isinstance(value, dict):
         raise _bad(where, f"must be a map, got {_type_name(value)}")
     if depth >= MAX_NESTING:
         raise _bad(where, f"nested deeper than {MAX_NESTING} levels")
     item_hint = args[1] if args else Any
+    checked = {}
     for key, item in value.items():
         if not isinstance(key, str):
             raise _bad(where, f"map key {_short.repr(key)} is not a string")
-        _check(item, item_hint, f"{where}[{key!r}]", depth + 1)
+        checked[key] = _check(item, item_hint, f"{where}[{key!r}]", depth + 1)
+    return checked
 
 
-def _check_list(value: Any, args: tuple[Any, ...], where: str, depth: int) -> None:
+def _check_list(value: Any, args: tuple[Any, ...], where: str, depth: int) -> list[Any]:
     if not isinstance(value, list):
         raise _bad(where, f"must be a list, got {_type_name(value)}")
     if depth >= MAX_NESTING:
         raise _bad(where, f"nested deeper than {MAX_NESTING} levels")
     item_hint = args[0] if args else Any
-    for i, item in enumerate(value):
-        _check(item, item_hint, f"{where}[{i}]", depth + 1)
+    return [_check(item, item_hint, f"{where}[{i}]", depth + 1) for i, item in enumerate(value)]
+
+
+def _check_record(value: Any, cls: type, where: str, depth: int) -> Any:
+    """A map holding exactly the record's fields, each of its type, built into ``cls``."""
+    if not isinstance(value, dict):
+        raise _bad(where, f"must be a map of {cls.__name__} fields, got {_type_name(value)}")
+    if depth >= MAX_NESTING:
+        raise _bad(where, f"nested deeper than {MAX_NESTING} levels")
+    specs = _specs(cls)
+    expected = {spec.name for spec in specs}
+    if set(value) != expected:
+        missing = sorted(expected - set(value))
+        unknown = sorted(_short.repr(k) for k in set(value) - expected)
+        raise _bad(where, f"missing fields {missing}, unknown fields {unknown}")
+    built = {
+        spec.name: _check(value[spec.name], spec.hint, f"{where}.{spec.name}", depth + 1)
+        for spec in specs
+    }
+    try:
+        return cls(**built)
+    except (TypeError, ValueError) as error:  # a record that validates in __post_init__
+        raise _bad(where, str(error)) from None
 
 
 def _to_wire(value: Any, where: str, depth: int = 0) -> Any:
@@ -231,6 +271,11 @@ def _to_wire(value: Any, where: str, depth: int = 0) -> Any:
         raise _bad(where, f"nested deeper than {MAX_NESTING} levels")
     if isinstance(value, np.generic):
         return value.item()
+    if dataclasses.is_dataclass(value) and not isinstance(value, type):
+        return {
+            f.name: _to_wire(getattr(value, f.name), f"{where}.{f.name}", depth + 1)
+            for f in dataclasses.fields(value)
+        }
     if isinstance(value, list | tuple):
         return [_to_wire(item, f"{where}[{i}]", depth + 1) for i, item in enumerate(value)]
     if isinstance(value, dict):
@@ -260,7 +305,7 @@ def _wire_array(value: Any, where: str) -> np.ndarray:
 
 
 def _raw(array: np.ndarray) -> bytes | memoryview:
-    return memoryview(array.reshape(-1).view(np.uint8)) if array.size else b""
+    return memoryview(array.reshape(-1).view(np.uint8).data) if array.size else b""
 
 
 def encode(message: Message) -> list[bytes | memoryview]:
@@ -269,7 +314,7 @@ def encode(message: Message) -> list[bytes | memoryview]:
     Raises TypeError for a non-message and ProtocolError for content decode would reject
     (wrong field types, unsupported dtypes, an oversized header).
     """
-    cls = type(message)
+    cls: type = type(message)
     kind = MSG_TYPE_OF.get(cls)
     if kind is None:
         raise TypeError(f"not a protocol message: {cls.__name__}")
@@ -385,7 +430,8 @@ def _payload_class(header: dict[Any, Any]) -> type:
             f"{_short.repr(sorted(map(str, header)))}",
         )
     kind = header["type"]
-    cls = PAYLOAD_TYPES.get(kind) if isinstance(kind, str) else None  # StrEnum keys match str
+    known = kind in PAYLOAD_TYPES.keys() if isinstance(kind, str) else False
+    cls = PAYLOAD_TYPES[MsgType(kind)] if known else None
     if cls is None:
         raise ProtocolError("unknown_type", f"unknown message type {_short.repr(kind)}")
     if not isinstance(header["fields"], dict) or not isinstance(header["arrays"], list):
@@ -401,9 +447,9 @@ def _decode_fields(kind: str, specs: Sequence[_Spec], fields: dict[Any, Any]) ->
         raise ProtocolError(
             "bad_fields", f"{kind}: missing fields {missing}, unknown fields {unknown}"
         )
-    for spec in specs:
-        _check(fields[spec.name], spec.hint, f"{kind}.{spec.name}")
-    return {spec.name: fields[spec.name] for spec in specs}
+    return {
+        spec.name: _check(fields[spec.name], spec.hint, f"{kind}.{spec.name}") for spec in specs
+    }
 
 
 def _shape(shape: Any, where: str) -> tuple[int, ...]:

@@ -10,21 +10,43 @@ return θ^{k,τ_k}
 from __future__ import annotations
 
 import time
+from dataclasses import dataclass
 
 import torch
 
+from fedhpg.common.algorithms import (
+    Algorithm,
+    LocalContext,
+    NoParams,
+    at_least_one,
+    register_algorithm,
+)
 from fedhpg.common.config import AlgoConfig
 from fedhpg.common.estimators import clip_by_norm
 from fedhpg.common.local import (
     IterationHook,
-    LocalResult,
     LocalTally,
     TrajectorySource,
     apply_ascent,
     batch_gradient,
-    make_optimizer,
 )
+from fedhpg.common.optim import make_optimizer
 from fedhpg.common.policies import Policy, get_flat_params, set_flat_params
+from fedhpg.common.types import LocalResult
+
+
+@dataclass(frozen=True, kw_only=True)
+class FedHPGBudget:
+    """One agent's compute per round in Algorithm 1."""
+
+    batch_size: int = 10
+    """B_k: trajectories per local iteration."""
+    local_iters: int = 2
+    """τ_k: local iterations per round."""
+
+    def __post_init__(self) -> None:
+        at_least_one("batch_size", self.batch_size)
+        at_least_one("local_iters", self.local_iters)
 
 
 def fedhpg_local_update(
@@ -53,3 +75,28 @@ def fedhpg_local_update(
         if on_iteration is not None:
             on_iteration(iteration, compute_s, batch.num_steps)
     return tally.result(get_flat_params(policy))
+
+
+@register_algorithm
+class FedHPG(Algorithm[NoParams, FedHPGBudget]):
+    """Algorithm 1: τ_k local policy-gradient steps on B_k trajectories each."""
+
+    name = "fedhpg"
+    Budget = FedHPGBudget
+
+    def local_update(
+        self, theta: torch.Tensor, context: LocalContext, params: NoParams, budget: FedHPGBudget
+    ) -> LocalResult:
+        return fedhpg_local_update(
+            theta,
+            policy=context.policy,
+            sample=context.sample,
+            algo=context.settings,
+            gamma=context.gamma,
+            batch_size=budget.batch_size,
+            local_iters=budget.local_iters,
+            on_iteration=context.on_iteration,
+        )
+
+    def describe_budget(self, budget: FedHPGBudget) -> str:
+        return f"B={budget.batch_size} τ={budget.local_iters}"

@@ -1,0 +1,90 @@
+"""What the names in a run's config resolve to on an agent's side: its algorithm (with its
+options) and each agent's budget and device profile. Validation of those names lives here,
+beside the registry; the server's strategy is resolved in :mod:`fedhpg.server.strategies`."""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass
+from typing import Any
+
+from fedhpg.common.algorithms import ALGORITHMS, Algorithm
+from fedhpg.common.config import ConfigError, RunConfig, per_agent, validate
+from fedhpg.common.registry import OptionError, import_plugins, parse_options
+
+logger = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True, kw_only=True)
+class AgentProfile:
+    """One agent's resolved compute: its algorithm's budget and its device's base speed (the
+    whole device model: :func:`fedhpg.common.device.device_for`)."""
+
+    budget: Any
+    """The algorithm's ``Budget`` dataclass for this agent."""
+    speed: float
+
+
+def resolve_algorithm(run: RunConfig) -> tuple[Algorithm[Any, Any], Any]:
+    """The run's algorithm and its parsed ``algo.params``."""
+    algorithm = ALGORITHMS.get(run.algo.name)
+    params = parse_options(algorithm.Params, run.algo.params, "algo.params")
+    try:
+        algorithm.check(run.algo, params)
+    except OptionError as error:
+        raise ConfigError(f"algo.params.{error.field}", str(error)) from None
+    return algorithm, params
+
+
+def agent_budget(run: RunConfig, algorithm: Algorithm[Any, Any], index: int) -> Any:
+    """Agent ``index``'s entry of each ``agents.budget`` list the algorithm uses."""
+    fields = algorithm.Budget.__dataclass_fields__
+    values = {
+        name: per_agent(entries, index)
+        for name, entries in run.agents.budget.items()
+        if name in fields
+    }
+    return parse_options(algorithm.Budget, values, "agents.budget")
+
+
+def agent_profile(run: RunConfig, index: int) -> AgentProfile:
+    algorithm, _ = resolve_algorithm(run)
+    agents = run.agents
+    return AgentProfile(
+        budget=agent_budget(run, algorithm, index),
+        speed=float(per_agent(agents.speeds, index)),
+    )
+
+
+def _check_budget_keys(run: RunConfig, algorithm: Algorithm[Any, Any]) -> None:
+    """A key no registered algorithm knows is a typo; one of another algorithm is unused."""
+    mine = set(algorithm.Budget.__dataclass_fields__)
+    anyone = {name for _, other in ALGORITHMS for name in other.Budget.__dataclass_fields__}
+    for name in run.agents.budget:
+        if name not in anyone:
+            raise ConfigError(
+                f"agents.budget.{name}",
+                f"no algorithm has this budget; {algorithm.name} takes: {', '.join(sorted(mine))}",
+            )
+        if name not in mine:
+            logger.debug("agents.budget.%s is not used by %s", name, algorithm.name)
+
+
+def validate_run(run: RunConfig) -> RunConfig:
+    """Everything an agent-side process can check: the config's values, the plugins, the
+    algorithm, its options and every agent's budget. Raises ConfigError naming the key."""
+    validate(run)
+    import_plugins(run.plugins)
+    algorithm, _ = resolve_algorithm(run)
+    _check_budget_keys(run, algorithm)
+    for index in range(run.agents.num_agents):
+        try:
+            agent_budget(run, algorithm, index)
+        except ConfigError as error:
+            field = error.key.rsplit(".", 1)[-1]
+            entries = run.agents.budget.get(field)
+            key = f"agents.budget.{field}"
+            if entries is not None:
+                key += f"[{index if len(entries) > 1 else 0}]"
+            raise ConfigError(key, str(error).split(": ", 1)[-1]) from None
+    return run

@@ -1,0 +1,78 @@
+"""Gradient-ascent steps on a flat parameter vector: the paper's plain step, and Adam.
+
+Agents use them for local steps (fresh every round); the ``fedadam`` server strategy keeps one
+Adam across rounds, whose :meth:`AdamAscent.state` a checkpoint saves.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import torch
+
+from fedhpg.common.config import AlgoConfig
+from fedhpg.common.types import SavedState
+
+
+class PlainAscent:
+    """θ ← θ + η g: the paper's update (Algorithm 1 line 8, Algorithm 2 line 10)."""
+
+    def __init__(self, step_size: float) -> None:
+        self.step_size = step_size
+
+    def direction(self, gradient: torch.Tensor) -> torch.Tensor:
+        return self.step_size * gradient
+
+
+class AdamAscent:
+    """Adam on the flat parameter vector (ascent).
+
+    Written out rather than taken from ``torch.optim``: the first ``torch.optim`` step imports
+    torch's compiler stack (~1 s per process), and this keeps every operation explicit.
+    """
+
+    def __init__(
+        self, step_size: float, betas: tuple[float, float] = (0.9, 0.999), eps: float = 1e-8
+    ) -> None:
+        self.step_size, self.betas, self.eps = step_size, betas, eps
+        self.steps = 0
+        self.first: torch.Tensor | None = None
+        self.second: torch.Tensor | None = None
+
+    def direction(self, gradient: torch.Tensor) -> torch.Tensor:
+        beta1, beta2 = self.betas
+        if self.first is None or self.second is None:
+            self.first, self.second = torch.zeros_like(gradient), torch.zeros_like(gradient)
+        self.steps += 1
+        self.first = beta1 * self.first + (1 - beta1) * gradient
+        self.second = beta2 * self.second + (1 - beta2) * gradient * gradient
+        first_hat = self.first / (1 - beta1**self.steps)
+        second_hat = self.second / (1 - beta2**self.steps)
+        return self.step_size * first_hat / (second_hat.sqrt() + self.eps)
+
+    def state(self) -> SavedState:
+        """The step count and both moments: what :meth:`restore` takes back."""
+        if self.first is None or self.second is None:
+            return SavedState(scalars={"steps": self.steps})
+        # Views, not copies: direction() replaces the moment tensors, never writes into them.
+        return SavedState(
+            scalars={"steps": self.steps},
+            arrays={"first": self.first.numpy(), "second": self.second.numpy()},
+        )
+
+    def restore(self, state: SavedState) -> None:
+        self.steps = int(state.scalars.get("steps", 0))
+        if self.steps:
+            self.first = torch.from_numpy(np.array(state.arrays["first"]))
+            self.second = torch.from_numpy(np.array(state.arrays["second"]))
+
+
+Optimizer = PlainAscent | AdamAscent
+
+
+def make_optimizer(algo: AlgoConfig) -> Optimizer:
+    """Gradient *ascent*: plain steps θ += η g (the paper) or Adam, fresh every round."""
+    if algo.optimizer == "sgd":
+        return PlainAscent(algo.step_size)
+    if algo.optimizer == "adam":
+        return AdamAscent(algo.step_size)
+    raise ValueError(f"algo.optimizer must be 'sgd' or 'adam', got {algo.optimizer!r}")

@@ -1,0 +1,1 @@
+"""Process plumbing: Hydra entry points, progress display, memory settings."""

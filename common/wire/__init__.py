@@ -1,0 +1,1 @@
+"""The wire: protocol messages, their codec, ZeroMQ transport and CURVE security."""

@@ -1,0 +1,49 @@
+"""How the coordinator reaches its agents: an :class:`AgentPool` collects one round's answers.
+
+Two pools: :mod:`.inprocess` (K workers on this thread: tests and sweeps) and :mod:`.zmq_pool`
+(agent processes over one ROUTER socket: the product). Both check every update with the same
+:class:`~fedhpg.server.validation.UpdateCheck`, so they compute the same θ̃ bit for bit.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from typing import Protocol
+
+import torch
+
+from fedhpg.common.types import AgentUpdate, EvaluationStats
+
+
+class FederationError(RuntimeError):
+    """The federation cannot go on (agents missing, a round timed out, nothing to aggregate)."""
+
+
+@dataclass(frozen=True, kw_only=True)
+class RoundAnswers:
+    """What a pool collected for one round's train request."""
+
+    updates: list[AgentUpdate]
+    """Accepted updates, in agent-index order."""
+    failures: dict[str, str] = field(default_factory=dict)
+    """Agent id → why its update was rejected (it answered, but is not aggregated)."""
+    stragglers: list[str] = field(default_factory=list)
+    """Selected agents whose update never arrived in time (late or dead)."""
+
+
+class AgentPool(Protocol):
+    """How the coordinator reaches its K agents."""
+
+    @property
+    def agent_ids(self) -> list[str]: ...
+
+    def train(self, round_index: int, theta: torch.Tensor, agents: Sequence[int]) -> RoundAnswers:
+        """The local updates of ``round_index`` from θ̃ of the selected agent indices."""
+        ...
+
+    def evaluate(
+        self, round_index: int, theta: torch.Tensor, episodes: int
+    ) -> dict[str, EvaluationStats]:
+        """Every agent's evaluation of θ̃, keyed by agent id."""
+        ...

@@ -1,0 +1,97 @@
+"""The server half of a federated method: which agents a round asks, and how their updates
+become θ̃ (in the spirit of Flower's ``configure_fit`` / ``aggregate_fit``).
+
+A strategy is one module of this package (or of a plugin) and a YAML in ``conf/strategy/``::
+
+    @register_strategy
+    class MyStrategy(Strategy[MyParams]):
+        name = "mine"
+        Params = MyParams            # its options, from strategy.params
+
+        def aggregate(self, round_index, theta, results, failures) -> torch.Tensor: ...
+
+``results`` are the round's accepted updates in agent-index order (arrival order never
+changes a bit of θ̃); ``failures`` names the agents whose update was rejected, and why. A
+strategy with state across rounds (fedadam's moments) returns it from :meth:`Strategy.state`;
+checkpoints save it and :meth:`Strategy.restore` takes it back on resume.
+"""
+
+from __future__ import annotations
+
+import abc
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
+from typing import Any, ClassVar, Generic, TypeVar
+
+import torch
+
+from fedhpg.common.config import RunConfig, StrategyConfig
+from fedhpg.common.registry import Registry, import_plugins, parse_options
+from fedhpg.common.types import AgentUpdate, SavedState
+
+P = TypeVar("P")
+
+
+@dataclass(frozen=True, kw_only=True)
+class NoParams:
+    """For strategies without options."""
+
+
+class Strategy(abc.ABC, Generic[P]):
+    """Select the round's agents, aggregate their updates, keep state across rounds."""
+
+    name: ClassVar[str]
+    Params: ClassVar[type[Any]] = NoParams
+
+    def __init__(self, params: P) -> None:
+        self.params = params
+
+    def select(self, round_index: int, agents: Sequence[int]) -> list[int]:
+        """The agent indices asked to train in ``round_index``: all of them (the paper)."""
+        return list(agents)
+
+    @abc.abstractmethod
+    def aggregate(
+        self,
+        round_index: int,
+        theta: torch.Tensor,
+        results: Sequence[AgentUpdate],
+        failures: Mapping[str, str],
+    ) -> torch.Tensor:
+        """θ̃_{t+1} from θ̃_t and the accepted updates (never empty)."""
+
+    def state(self) -> SavedState:
+        """What a checkpoint must keep to continue exactly (nothing, for stateless rules)."""
+        return SavedState()
+
+    def restore(self, state: SavedState) -> None:
+        """Take back what :meth:`state` returned (on resume)."""
+
+
+STRATEGIES: Registry[type[Strategy[Any]]] = Registry("strategy", "strategy.name", __name__)
+
+S = TypeVar("S", bound=type[Strategy[Any]])
+
+
+def register_strategy(cls: S) -> S:
+    """Class decorator: register ``cls`` under ``cls.name``."""
+    STRATEGIES.register(cls.name)(cls)
+    return cls
+
+
+def make_strategy(config: StrategyConfig, key: str = "strategy") -> Strategy[Any]:
+    """A fresh strategy from its config; ConfigError naming the key when it is wrong."""
+    cls = STRATEGIES.get(config.name)
+    return cls(parse_options(cls.Params, config.params, f"{key}.params"))
+
+
+def validate_strategy(run: RunConfig) -> None:
+    """The server-side checks of a run config (the agents never see ``strategy``)."""
+    import_plugins(run.plugins)
+    make_strategy(run.strategy)
+
+
+def stacked(results: Sequence[AgentUpdate]) -> torch.Tensor:
+    """The updates' θ_k as rows of a [K, d] matrix, in agent-index order."""
+    ordered = sorted(results, key=lambda r: r.agent_index)
+    return torch.stack([r.theta for r in ordered])

@@ -1,0 +1,37 @@
+"""``median``: θ̃ = the coordinate-wise median of the θ_k (robust to fewer than K/2 attackers)."""
+
+from __future__ import annotations
+
+from collections.abc import Mapping, Sequence
+
+import torch
+
+from fedhpg.common.types import AgentUpdate
+from fedhpg.server.strategies import NoParams, Strategy, register_strategy, stacked
+
+
+def coordinate_median(rows: torch.Tensor) -> torch.Tensor:
+    """Per column of [K, d]: the middle value (the mean of the two middle ones for even K)."""
+    ordered = rows.sort(dim=0).values
+    count = rows.shape[0]
+    middle = count // 2
+    if count % 2:
+        return ordered[middle]
+    return (ordered[middle - 1] + ordered[middle]) / 2
+
+
+@register_strategy
+class Median(Strategy[NoParams]):
+    """Coordinate-wise median (Yin et al., 2018): any coordinate stays between honest values
+    while attackers are fewer than half."""
+
+    name = "median"
+
+    def aggregate(
+        self,
+        round_index: int,
+        theta: torch.Tensor,
+        results: Sequence[AgentUpdate],
+        failures: Mapping[str, str],
+    ) -> torch.Tensor:
+        return coordinate_median(stacked(results))

@@ -1,0 +1,50 @@
+"""``trimmed_mean``: per coordinate, drop the ⌊βK⌋ largest and smallest θ_k, average the rest."""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
+
+import torch
+
+from fedhpg.common.registry import OptionError
+from fedhpg.common.types import AgentUpdate
+from fedhpg.server.strategies import Strategy, register_strategy, stacked
+
+
+@dataclass(frozen=True, kw_only=True)
+class TrimmedMeanParams:
+    trim_fraction: float = 0.2
+    """β: the fraction of updates trimmed from each end, per coordinate. Tolerates up to βK
+    attackers; set it to at least the share you expect."""
+
+    def __post_init__(self) -> None:
+        if not 0.0 <= self.trim_fraction < 0.5:
+            raise OptionError("trim_fraction", f"got {self.trim_fraction!r}, must be in [0, 0.5)")
+
+
+def trimmed_mean(rows: torch.Tensor, trim_fraction: float) -> torch.Tensor:
+    """Mean of each column of [K, d] without its ⌊βK⌋ smallest and largest entries."""
+    count = rows.shape[0]
+    cut = math.floor(trim_fraction * count)
+    if cut == 0:
+        return rows.mean(dim=0)
+    return rows.sort(dim=0).values[cut : count - cut].mean(dim=0)
+
+
+@register_strategy
+class TrimmedMean(Strategy[TrimmedMeanParams]):
+    """Coordinate-wise trimmed mean (Yin et al., 2018)."""
+
+    name = "trimmed_mean"
+    Params = TrimmedMeanParams
+
+    def aggregate(
+        self,
+        round_index: int,
+        theta: torch.Tensor,
+        results: Sequence[AgentUpdate],
+        failures: Mapping[str, str],
+    ) -> torch.Tensor:
+        return trimmed_mean(stacked(results), self.params.trim_fraction)

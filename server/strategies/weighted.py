@@ -1,0 +1,32 @@
+"""``weighted``: θ̃ = Σ_k n_k θ_k / Σ_k n_k, with n_k the trajectories agent k sampled."""
+
+from __future__ import annotations
+
+from collections.abc import Mapping, Sequence
+
+import torch
+
+from fedhpg.common.types import AgentUpdate
+from fedhpg.server.strategies import NoParams, Strategy, register_strategy, stacked
+
+
+@register_strategy
+class Weighted(Strategy[NoParams]):
+    """Agents that sampled more trajectories count for more (FedAvg's data weighting)."""
+
+    name = "weighted"
+
+    def aggregate(
+        self,
+        round_index: int,
+        theta: torch.Tensor,
+        results: Sequence[AgentUpdate],
+        failures: Mapping[str, str],
+    ) -> torch.Tensor:
+        ordered = sorted(results, key=lambda r: r.agent_index)
+        # Normalised in float64: counts near float32's range must not overflow to inf/NaN.
+        counts = torch.tensor([float(r.stats.trajectories) for r in ordered], dtype=torch.float64)
+        if not bool(counts.sum() > 0):
+            return stacked(ordered).mean(dim=0)
+        weights = (counts / counts.sum()).to(torch.float32)
+        return weights @ stacked(ordered)

@@ -1,0 +1,162 @@
+"""Server strategies: each rule against a hand-written reference, arrival order irrelevant,
+robust rules robust, state that survives a checkpoint, options checked by name."""
+
+from __future__ import annotations
+
+import itertools
+
+import numpy as np
+import pytest
+import torch
+
+from fedhpg.common.config import ConfigError, StrategyConfig
+from fedhpg.common.types import AgentUpdate, UpdateStats
+from fedhpg.server.strategies import STRATEGIES, make_strategy
+
+SHIPPED = ["fedadam", "mean", "median", "trimmed_mean", "weighted"]
+
+
+def _updates(count: int = 5, size: int = 300, seed: int = 0) -> list[AgentUpdate]:
+    generator = torch.Generator().manual_seed(seed)
+    return [
+        AgentUpdate(
+            agent_index=k,
+            agent_id=f"agent-{k}",
+            theta=torch.randn(size, generator=generator),
+            stats=UpdateStats(
+                trajectories=10 * (k + 1), env_steps=1, compute_s=0.0, train_return=0
+            ),
+        )
+        for k in range(count)
+    ]
+
+
+def _aggregate(name: str, updates: list[AgentUpdate], **params: object) -> torch.Tensor:
+    strategy = make_strategy(StrategyConfig(name=name, params=dict(params)))
+    return strategy.aggregate(1, torch.zeros_like(updates[0].theta), updates, {})
+
+
+def _rows(updates: list[AgentUpdate]) -> np.ndarray:
+    return np.stack([u.theta.numpy() for u in updates]).astype(np.float64)
+
+
+def test_every_shipped_strategy_is_registered() -> None:
+    assert set(SHIPPED) <= set(STRATEGIES.names())
+
+
+def test_mean_and_weighted() -> None:
+    updates = _updates()
+    rows = _rows(updates)
+    np.testing.assert_allclose(_aggregate("mean", updates).numpy(), rows.mean(0), atol=1e-6)
+    weights = np.array([10, 20, 30, 40, 50]) / 150
+    np.testing.assert_allclose(_aggregate("weighted", updates).numpy(), weights @ rows, atol=1e-6)
+
+
+@pytest.mark.parametrize("count", [4, 5])
+def test_median_is_numpys_median(count: int) -> None:
+    updates = _updates(count)
+    expected = np.median(_rows(updates), axis=0)  # the mean of the middle two for even K
+    np.testing.assert_allclose(_aggregate("median", updates).numpy(), expected, atol=1e-6)
+
+
+@pytest.mark.parametrize(("count", "fraction", "cut"), [(10, 0.2, 2), (10, 0.29, 2), (5, 0.1, 0)])
+def test_trimmed_mean_drops_the_extremes(count: int, fraction: float, cut: int) -> None:
+    updates = _updates(count)
+    ordered = np.sort(_rows(updates), axis=0)
+    expected = ordered[cut : count - cut].mean(0)
+    result = _aggregate("trimmed_mean", updates, trim_fraction=fraction)
+    np.testing.assert_allclose(result.numpy(), expected, atol=1e-6)
+
+
+@pytest.mark.parametrize("name", SHIPPED)
+def test_arrival_order_cannot_change_a_bit(name: str) -> None:
+    updates = _updates(4)
+    reference = _aggregate(name, updates)
+    for order in itertools.permutations(updates):
+        assert torch.equal(_aggregate(name, list(order)), reference)
+
+
+def test_robust_rules_ignore_a_minority_of_huge_updates() -> None:
+    """3 of 10 send 1e6 · their update: median and a trim of 0.3 stay inside the honest
+    values of every coordinate; the mean is dragged far outside."""
+    updates = _updates(10)
+    attacked = [
+        AgentUpdate(
+            agent_index=u.agent_index, agent_id=u.agent_id, theta=u.theta * 1e6, stats=u.stats
+        )
+        if u.agent_index < 3
+        else u
+        for u in updates
+    ]
+    honest = _rows(updates[3:])
+    low, high = honest.min(0) - 1e-6, honest.max(0) + 1e-6
+    for name, params in [("median", {}), ("trimmed_mean", {"trim_fraction": 0.3})]:
+        result = _aggregate(name, attacked, **params).numpy()
+        assert np.all((low <= result) & (result <= high)), name
+    assert np.abs(_aggregate("mean", attacked).numpy()).max() > 1e4
+
+
+def test_weighted_survives_counts_beyond_float32() -> None:
+    """Counts are normalised in float64: 3e38 trajectories do not overflow to inf/NaN."""
+    updates = _updates(3)
+    huge = [
+        AgentUpdate(
+            agent_index=u.agent_index,
+            agent_id=u.agent_id,
+            theta=u.theta,
+            stats=UpdateStats(trajectories=int(3e38) if u.agent_index == 0 else 1, env_steps=1,
+                              compute_s=0.0, train_return=0.0),
+        )
+        for u in updates
+    ]  # fmt: skip
+    result = _aggregate("weighted", huge)
+    assert torch.isfinite(result).all()
+    torch.testing.assert_close(result, updates[0].theta)
+
+
+def test_fedadam_first_step_is_sign_sized_and_its_state_resumes_exactly() -> None:
+    updates = _updates(4)
+    config = StrategyConfig(name="fedadam", params={"step_size": 0.01})
+    strategy = make_strategy(config)
+    theta = torch.zeros(300)
+    first = strategy.aggregate(1, theta, updates, {})
+    # Adam's first step is η·m̂/(√v̂ + ε) = η·g/(|g| + ε) with g the mean update: ±η.
+    mean = torch.stack([u.theta for u in updates]).mean(0)
+    torch.testing.assert_close(first, 0.01 * mean / (mean.abs() + 1e-8))
+    assert bool(((first.abs() - 0.01).abs() < 1e-6)[mean.abs() > 1e-3].all())
+    second = strategy.aggregate(2, first, updates, {})
+    saved = strategy.state()
+    resumed = make_strategy(config)
+    resumed.restore(saved)
+    assert torch.equal(
+        strategy.aggregate(3, second, updates, {}), resumed.aggregate(3, second, updates, {})
+    )
+
+
+def test_fedadam_over_median_uses_the_inner_rule() -> None:
+    updates = _updates(5)
+    median = _aggregate("median", updates)
+    strategy = make_strategy(
+        StrategyConfig(name="fedadam", params={"step_size": 1.0, "inner": "median"})
+    )
+    step = strategy.aggregate(1, torch.zeros(300), updates, {})
+    assert torch.equal(torch.sign(step), torch.sign(median))
+
+
+@pytest.mark.parametrize(
+    ("name", "params", "key", "hint"),
+    [
+        ("nope", {}, "strategy.name", "known: fedadam, mean, median, trimmed_mean, weighted"),
+        ("trimmed_mean", {"trim_fraction": 0.5}, "strategy.params.trim_fraction", r"\[0, 0.5\)"),
+        ("trimmed_mean", {"trim": 0.1}, "strategy.params.trim", "allowed: trim_fraction"),
+        ("mean", {"x": 1}, "strategy.params.x", "allowed: none"),
+        ("fedadam", {"step_size": "big"}, "strategy.params.step_size", "must be float"),
+        ("fedadam", {"inner": "nope"}, "strategy.name", "no strategy 'nope'"),
+        ("fedadam", {"inner": "trimmed_mean", "inner_params": {"trim_fraction": 2.0}},
+         "strategy.params.inner.params.trim_fraction", r"\[0, 0.5\)"),
+    ],
+)  # fmt: skip
+def test_bad_options_name_the_key(name: str, params: dict, key: str, hint: str) -> None:
+    with pytest.raises(ConfigError, match=hint) as info:
+        make_strategy(StrategyConfig(name=name, params=params))
+    assert info.value.key == key
