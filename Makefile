@@ -6,7 +6,7 @@ STAMP := $(VENV)/.installed
 export OMP_NUM_THREADS ?= 1
 export MKL_NUM_THREADS ?= 1
 
-.PHONY: setup demo test lint typecheck contracts bench bench-learning bench-learning-long figures clean
+.PHONY: setup demo test lint typecheck contracts bench bench-learning bench-learning-long bench-robustness figures clean
 
 setup: $(STAMP)
 
@@ -50,6 +50,10 @@ bench-learning: $(STAMP)
 bench-learning-long: $(STAMP)
 	nice -n 19 $(BIN)/python -m benchmarks.learning_long --task lunarlander
 	nice -n 19 $(BIN)/python -m benchmarks.learning_long --task halfcheetah
+
+# CartPole K=10 with 3 sign-flipping agents: mean, median, trimmed mean (~10 min).
+bench-robustness: $(STAMP)
+	$(BIN)/python -m benchmarks.robustness
 
 bench: $(STAMP)
 	$(BIN)/python -m benchmarks.run_all | tee benchmarks/latest.md

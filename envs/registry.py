@@ -24,6 +24,19 @@ def _gridworld(*, seed: int, num_agents: int, level: float, **options: Any) -> l
 FAMILIES: dict[str, VariantFactory] = {"gridworld": _gridworld, **GYM_FAMILIES}
 
 
+def register_family(name: str) -> Callable[[VariantFactory], VariantFactory]:
+    """Decorator for a plugin's family: ``factory(*, seed, num_agents, level, **options)``
+    returns the K variants (same spaces, different MDPs)."""
+
+    def add(factory: VariantFactory) -> VariantFactory:
+        if FAMILIES.get(name, factory) is not factory:
+            raise ValueError(f"environment family {name!r} is already registered")
+        FAMILIES[name] = factory
+        return factory
+
+    return add
+
+
 def make_variants(
     family: str, *, seed: int, num_agents: int, level: float, **options: Any
 ) -> list[EnvVariant]:

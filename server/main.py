@@ -168,7 +168,11 @@ def serve(
         if record.eval:
             last_eval["round"], last_eval["eval"] = record.round, record.eval
 
-    callbacks: list[RoundCallback] = [metrics, _checkpoint_callback(run, out_dir / "checkpoints", progress), keep_eval]
+    callbacks: list[RoundCallback] = [
+        metrics,
+        _checkpoint_callback(run, out_dir / "checkpoints", progress),
+        keep_eval,
+    ]
     if show_progress:
         bar = Progress(run.rounds, "rounds")
         bar.done = progress.next_round - 1

@@ -18,6 +18,8 @@ from typing import Any
 
 import numpy as np
 
+from fedhpg.common.config import GROUPS, REPLICATE_KEYS
+
 logger = logging.getLogger(__name__)
 
 X_AXES = {
@@ -31,7 +33,6 @@ METRICS = {
     "eval_worst_return": "greedy return in the worst environment",
     "train_return": "training return, mean over agents",
 }
-IGNORED_KEYS = ("seed", "server.", "agent.", "env.seed")
 # Two-sided 97.5% Student-t quantiles by degrees of freedom (1..30); normal beyond.
 T_975 = [12.706, 4.303, 3.182, 2.776, 2.571, 2.447, 2.365, 2.306, 2.262, 2.228, 2.201, 2.179,
          2.160, 2.145, 2.131, 2.120, 2.110, 2.101, 2.093, 2.086, 2.080, 2.074, 2.069, 2.064,
@@ -76,15 +77,20 @@ def find_runs(paths: list[Path]) -> list[Run]:
     return runs
 
 
+def _compared(key: str) -> bool:
+    """Whether runs that differ in ``key`` are different experiments (config.GROUPS); seeds
+    are replicates, and operational keys (server, security, ...) never matter."""
+    if key in REPLICATE_KEYS:
+        return False
+    role = GROUPS.get(key.split(".", 1)[0])
+    return role is None or role.compared
+
+
 def group_runs(runs: list[Run]) -> dict[str, list[Run]]:
-    """Label each run by the config keys whose values differ across runs (seed aside)."""
+    """Label each run by the compared config keys whose values differ across runs."""
     flats = [_flatten(run.config) for run in runs]
     keys = sorted({k for flat in flats for k in flat})
-    varying = [
-        k
-        for k in keys
-        if not k.startswith(IGNORED_KEYS) and len({json.dumps(f.get(k)) for f in flats}) > 1
-    ]
+    varying = [k for k in keys if _compared(k) and len({json.dumps(f.get(k)) for f in flats}) > 1]
     groups: dict[str, list[Run]] = {}
     for run, flat in zip(runs, flats, strict=True):
         label = (

@@ -125,3 +125,17 @@ def test_console_scripts_exit_2_with_one_line(script: str) -> None:
     assert "agents.budget.batch_size[0]" in result.stderr
     assert "Traceback" not in result.stderr
     assert len(result.stderr.strip().splitlines()) == 1
+
+
+def test_the_config_module_imports_no_heavy_library() -> None:
+    """Every process imports the config first: it must not pull torch, zmq or gymnasium
+    (import-linter checks the static imports; this checks what really gets loaded)."""
+    probe = (
+        "import sys, fedhpg.common.config, fedhpg.common.registry, fedhpg.common.types; "
+        "print([m for m in ('torch', 'zmq', 'gymnasium', 'hydra') if m in sys.modules])"
+    )
+    result = subprocess.run(
+        [sys.executable, "-c", probe], capture_output=True, text=True, timeout=60
+    )
+    assert result.returncode == 0, result.stderr
+    assert result.stdout.strip() == "[]"

@@ -16,6 +16,7 @@ from procs import processes, start
 
 from fedhpg.common.runtime.cli import compose
 from fedhpg.server.checkpoint import latest_valid_checkpoint
+from fedhpg.server.coordinator import RoundRecord
 from fedhpg.server.pools.inprocess import run_in_process
 
 ROUNDS = 4
@@ -55,16 +56,28 @@ def _run_federation(tmp_path: Path, overrides: list[str]) -> Path:
 
 
 @pytest.mark.parametrize(
-    ("algo", "transport"), [("fedhpg", "tcp"), ("fedhpgvr", "tcp"), ("fedhpg", "ipc")]
+    ("algo", "transport", "extra"),
+    [
+        ("fedhpg", "tcp", ["strategy=mean"]),
+        ("fedhpgvr", "tcp", ["strategy=weighted"]),
+        ("fedhpg", "ipc", ["strategy=median"]),
+        ("fedhpg", "tcp", ["strategy=trimmed_mean", "strategy.params.trim_fraction=0.34"]),
+        ("fedhpgvr", "tcp", ["strategy=fedadam", "strategy.params.step_size=0.05"]),
+        ("fedhpg", "tcp", ["strategy=mean", "server.max_update_norm=0.3"]),
+    ],
+    ids=["mean", "weighted-vr", "median-ipc", "trimmed_mean", "fedadam-vr", "update-norm-bound"],
 )
 def test_distributed_theta_equals_in_process_bit_for_bit(
-    tmp_path: Path, algo: str, transport: str
+    tmp_path: Path, algo: str, transport: str, extra: list[str]
 ) -> None:
     endpoint = [f"server.transport={transport}", f"server.ipc_path={tmp_path / 'fed.sock'}"]
-    out_dir = _run_federation(tmp_path, _overrides(algo) + endpoint)
+    out_dir = _run_federation(tmp_path, _overrides(algo) + extra + endpoint)
     checkpoint = latest_valid_checkpoint(out_dir / "checkpoints")
     assert checkpoint is not None and checkpoint.round == ROUNDS
-    expected = run_in_process(compose(_overrides(algo)))
+    in_process: list[RoundRecord] = []
+    expected = run_in_process(
+        compose(_overrides(algo) + extra), on_round=[lambda record, _: in_process.append(record)]
+    )
     assert torch.equal(checkpoint.theta, expected)
 
     records = [json.loads(line) for line in (out_dir / "metrics.jsonl").read_text().splitlines()]
@@ -72,8 +85,14 @@ def test_distributed_theta_equals_in_process_bit_for_bit(
     assert [sorted(r["eval"]) for r in records if "eval" in r] == [
         ["agent-0", "agent-1", "agent-2"]
     ] * 2
+    assert [sorted(r.get("failures", {})) for r in records] == [
+        sorted(r.failures) for r in in_process
+    ], "both pools reject the same updates"
+    if "server.max_update_norm=0.3" in extra:
+        assert all(r["failures"] for r in records), "the bound is exercised every round"
     for record in records:
-        assert [a["id"] for a in record["agents"]] == ["agent-0", "agent-1", "agent-2"]
+        ids = [f"agent-{k}" for k in range(3) if f"agent-{k}" not in record.get("failures", {})]
+        assert [a["id"] for a in record["agents"]] == ids
         slowest = max(a["local_wall_s"] for a in record["agents"])
         assert record["round_time_s"] >= slowest, "a round waits for every agent (Algorithm 1)"
 

@@ -19,8 +19,8 @@ import numpy as np
 import pytest
 import torch
 
-from fedhpg.common.wire.codec import ProtocolError, decode, encode
 from fedhpg.common.types import UpdateStats
+from fedhpg.common.wire.codec import ProtocolError, decode, encode
 from fedhpg.common.wire.protocol import PROTOCOL_VERSION, Update
 from fedhpg.server.checkpoint import (
     Checkpoint,

@@ -430,7 +430,7 @@ def _payload_class(header: dict[Any, Any]) -> type:
             f"{_short.repr(sorted(map(str, header)))}",
         )
     kind = header["type"]
-    known = kind in PAYLOAD_TYPES.keys() if isinstance(kind, str) else False
+    known = isinstance(kind, str) and kind in PAYLOAD_TYPES  # StrEnum keys match str
     cls = PAYLOAD_TYPES[MsgType(kind)] if known else None
     if cls is None:
         raise ProtocolError("unknown_type", f"unknown message type {_short.repr(kind)}")

@@ -73,7 +73,7 @@ class Peer:
 
 @dataclass
 class Collection:
-    """One request sent to every agent (a round's Train, or an Evaluate) and its answers."""
+    """One request sent to the selected agents (a round's Train, or an Evaluate) and its answers."""
 
     request: Train | Evaluate
     expected: frozenset[int]
@@ -269,7 +269,9 @@ class ZmqAgentPool:
             return
         peer = self._by_identity.get(identity)
         # security: with CURVE, a key speaks only for the agent its allow-list file names
-        claimed = decoded.agent_id if isinstance(decoded, Hello) else peer.agent_id if peer else None
+        claimed = (
+            decoded.agent_id if isinstance(decoded, Hello) else peer.agent_id if peer else None
+        )
         if (mismatch := key_mismatch(frames[1], claimed)) is not None:
             self._reject(identity, KEY_MISMATCH, mismatch)
             return
