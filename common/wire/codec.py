@@ -34,7 +34,6 @@ from fedhpg.common.wire.protocol import (
     PAYLOAD_TYPES,
     PROTOCOL_VERSION,
     Message,
-    MsgType,
 )
 
 if TYPE_CHECKING:
@@ -430,8 +429,7 @@ def _payload_class(header: dict[Any, Any]) -> type:
             f"{_short.repr(sorted(map(str, header)))}",
         )
     kind = header["type"]
-    known = isinstance(kind, str) and kind in PAYLOAD_TYPES  # StrEnum keys match str
-    cls = PAYLOAD_TYPES[MsgType(kind)] if known else None
+    cls = PAYLOAD_TYPES.get(kind) if isinstance(kind, str) else None
     if cls is None:
         raise ProtocolError("unknown_type", f"unknown message type {_short.repr(kind)}")
     if not isinstance(header["fields"], dict) or not isinstance(header["arrays"], list):

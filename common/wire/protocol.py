@@ -113,7 +113,7 @@ class Error:
 
 Message = Hello | Welcome | Train | Update | Evaluate | Evaluation | Heartbeat | Shutdown | Error
 
-PAYLOAD_TYPES: dict[MsgType, type] = {
+PAYLOAD_TYPES: dict[str, type] = {  # keyed by MsgType, a str: decode looks up plain str
     MsgType.HELLO: Hello,
     MsgType.WELCOME: Welcome,
     MsgType.TRAIN: Train,
@@ -124,4 +124,4 @@ PAYLOAD_TYPES: dict[MsgType, type] = {
     MsgType.SHUTDOWN: Shutdown,
     MsgType.ERROR: Error,
 }
-MSG_TYPE_OF: dict[type, MsgType] = {cls: kind for kind, cls in PAYLOAD_TYPES.items()}
+MSG_TYPE_OF: dict[type, str] = {cls: kind for kind, cls in PAYLOAD_TYPES.items()}
