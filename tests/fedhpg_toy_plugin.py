@@ -12,7 +12,7 @@ Imported by name (``plugins=[fedhpg_toy_plugin]``); nothing in fedhpg knows of i
 from __future__ import annotations
 
 import time
-from collections.abc import Mapping, Sequence
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import torch
@@ -21,8 +21,8 @@ from fedhpg.common.algorithms import Algorithm, LocalContext, at_least_one, regi
 from fedhpg.common.local import LocalTally, batch_gradient
 from fedhpg.common.policies import get_flat_params, set_flat_params
 from fedhpg.common.registry import OptionError
-from fedhpg.common.types import AgentUpdate, LocalResult
-from fedhpg.server.strategies import NoParams, Strategy, register_strategy, stacked
+from fedhpg.common.types import LocalResult
+from fedhpg.server.strategies import CoordinateRule, NoParams, register_strategy
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -79,17 +79,11 @@ class ToySign(Algorithm[ToySignParams, ToySignBudget]):
 
 
 @register_strategy
-class ToyAlternate(Strategy[NoParams]):
+class ToyAlternate(CoordinateRule[NoParams]):
     name = "toy_alternate"
 
     def select(self, round_index: int, agents: Sequence[int]) -> list[int]:
         return list(agents) if round_index % 2 else [k for k in agents if k % 2 == 0]
 
-    def aggregate(
-        self,
-        round_index: int,
-        theta: torch.Tensor,
-        results: Sequence[AgentUpdate],
-        failures: Mapping[str, str],
-    ) -> torch.Tensor:
-        return stacked(results).mean(dim=0)
+    def combine(self, rows: torch.Tensor) -> torch.Tensor:
+        return rows.mean(dim=0)

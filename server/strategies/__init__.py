@@ -10,6 +10,7 @@ A strategy is one module of this package (or of a plugin) and a YAML in ``conf/s
 
         def aggregate(self, round_index, theta, results, failures) -> torch.Tensor: ...
 
+A rule of the θ_k alone subclasses :class:`CoordinateRule` and writes ``combine(rows)``.
 ``results`` are the round's accepted updates in agent-index order (arrival order never
 changes a bit of θ̃); ``failures`` names the agents whose update was rejected, and why. A
 strategy with state across rounds (fedadam's moments) returns it from :meth:`Strategy.state`;
@@ -66,6 +67,24 @@ class Strategy(abc.ABC, Generic[P]):
 
     def restore(self, state: SavedState) -> None:
         """Take back what :meth:`state` returned (on resume)."""
+
+
+class CoordinateRule(Strategy[P]):
+    """A strategy whose θ̃ depends on the θ_k alone: :meth:`combine` maps the [K, d] matrix of
+    the accepted updates (rows in agent-index order) to θ̃."""
+
+    def aggregate(
+        self,
+        round_index: int,
+        theta: torch.Tensor,
+        results: Sequence[AgentUpdate],
+        failures: Mapping[str, str],
+    ) -> torch.Tensor:
+        return self.combine(stacked(results))
+
+    @abc.abstractmethod
+    def combine(self, rows: torch.Tensor) -> torch.Tensor:
+        """θ̃ from the [K, d] matrix of updates."""
 
 
 STRATEGIES: Registry[type[Strategy[Any]]] = Registry("strategy", "strategy.name", __name__)

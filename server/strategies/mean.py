@@ -2,25 +2,16 @@
 
 from __future__ import annotations
 
-from collections.abc import Mapping, Sequence
-
 import torch
 
-from fedhpg.common.types import AgentUpdate
-from fedhpg.server.strategies import NoParams, Strategy, register_strategy, stacked
+from fedhpg.server.strategies import CoordinateRule, NoParams, register_strategy
 
 
 @register_strategy
-class Mean(Strategy[NoParams]):
+class Mean(CoordinateRule[NoParams]):
     """The paper's server: the plain average of the returned parameter vectors."""
 
     name = "mean"
 
-    def aggregate(
-        self,
-        round_index: int,
-        theta: torch.Tensor,
-        results: Sequence[AgentUpdate],
-        failures: Mapping[str, str],
-    ) -> torch.Tensor:
-        return stacked(results).mean(dim=0)
+    def combine(self, rows: torch.Tensor) -> torch.Tensor:
+        return rows.mean(dim=0)

@@ -2,12 +2,9 @@
 
 from __future__ import annotations
 
-from collections.abc import Mapping, Sequence
-
 import torch
 
-from fedhpg.common.types import AgentUpdate
-from fedhpg.server.strategies import NoParams, Strategy, register_strategy, stacked
+from fedhpg.server.strategies import CoordinateRule, NoParams, register_strategy
 
 
 def coordinate_median(rows: torch.Tensor) -> torch.Tensor:
@@ -21,17 +18,11 @@ def coordinate_median(rows: torch.Tensor) -> torch.Tensor:
 
 
 @register_strategy
-class Median(Strategy[NoParams]):
+class Median(CoordinateRule[NoParams]):
     """Coordinate-wise median (Yin et al., 2018): any coordinate stays between honest values
     while attackers are fewer than half."""
 
     name = "median"
 
-    def aggregate(
-        self,
-        round_index: int,
-        theta: torch.Tensor,
-        results: Sequence[AgentUpdate],
-        failures: Mapping[str, str],
-    ) -> torch.Tensor:
-        return coordinate_median(stacked(results))
+    def combine(self, rows: torch.Tensor) -> torch.Tensor:
+        return coordinate_median(rows)

@@ -3,14 +3,12 @@
 from __future__ import annotations
 
 import math
-from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 
 import torch
 
 from fedhpg.common.registry import OptionError
-from fedhpg.common.types import AgentUpdate
-from fedhpg.server.strategies import Strategy, register_strategy, stacked
+from fedhpg.server.strategies import CoordinateRule, register_strategy
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -34,17 +32,11 @@ def trimmed_mean(rows: torch.Tensor, trim_fraction: float) -> torch.Tensor:
 
 
 @register_strategy
-class TrimmedMean(Strategy[TrimmedMeanParams]):
+class TrimmedMean(CoordinateRule[TrimmedMeanParams]):
     """Coordinate-wise trimmed mean (Yin et al., 2018)."""
 
     name = "trimmed_mean"
     Params = TrimmedMeanParams
 
-    def aggregate(
-        self,
-        round_index: int,
-        theta: torch.Tensor,
-        results: Sequence[AgentUpdate],
-        failures: Mapping[str, str],
-    ) -> torch.Tensor:
-        return trimmed_mean(stacked(results), self.params.trim_fraction)
+    def combine(self, rows: torch.Tensor) -> torch.Tensor:
+        return trimmed_mean(rows, self.params.trim_fraction)
