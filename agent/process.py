@@ -32,7 +32,7 @@ from fedhpg.common.config import ConfigError, RunConfig, adopt_settings, agent_i
 from fedhpg.common.device import DeviceModel, device_for
 from fedhpg.common.runtime.memory import pin_malloc_mmap_threshold
 from fedhpg.common.variants import run_variants, variant_digest
-from fedhpg.common.wire.codec import ProtocolError
+from fedhpg.common.wire.codec import MAX_HEADER_BYTES, ProtocolError
 from fedhpg.common.wire.protocol import (
     Error,
     Evaluate,
@@ -58,6 +58,7 @@ from fedhpg.envs.base import EnvVariant
 
 logger = logging.getLogger(__name__)
 
+HANDSHAKE_TIMEOUT_S = 3.0
 BACKOFF_INITIAL_S = 0.1
 BACKOFF_MAX_S = 2.0
 DUPLICATE_GRACE_LIVENESS = 1.5
@@ -149,6 +150,9 @@ class AgentProcess:
         # in about half of our runs. Stale queued messages die with the socket on reconnect.
         socket.setsockopt(zmq.RECONNECT_IVL, int(BACKOFF_INITIAL_S * 1000))
         socket.setsockopt(zmq.RECONNECT_IVL_MAX, int(BACKOFF_MAX_S * 1000))
+        # A peer that accepts TCP but never speaks ZMTP (no fedhpg server) fails the handshake
+        # after this, not libzmq's 30 s: three failures give the one-line hint in seconds.
+        socket.setsockopt(zmq.HANDSHAKE_IVL, int(HANDSHAKE_TIMEOUT_S * 1000))
         # CURVE client keys (if on) and a watch on the handshake: set before connecting.
         self.handshake = secure_agent_socket(socket, self.own.security, self.agent_id)
         socket.connect(self.endpoint)
@@ -272,6 +276,12 @@ class AgentProcess:
             self.worker.close()
         self.device = self._device(run)
         self.worker = LocalWorker(index=self.index, variant=self.variant, run=run, profile=profile)
+        needed = MAX_HEADER_BYTES + 4 * self.worker.num_params
+        if self.max_bytes < needed:
+            raise AgentFailure(
+                f"server.max_message_mb={self.own.server.max_message_mb:g} is below the "
+                f"{needed / 2**20:.3g} MiB of this run's parameter messages"
+            )
         self.settings = welcome.run
         self.last_answer = None
         logger.debug(
@@ -402,6 +412,8 @@ class AgentProcess:
             self._on_request(message)
         elif isinstance(message, Shutdown):
             logger.debug("%s: shutdown (%s)", self.agent_id, message.reason)
+            if not message.complete:
+                raise AgentFailure(f"the run was aborted: {message.reason}")
             return False
         elif isinstance(message, Error) and message.code == "not_registered":
             # A restarted server, or one that gave up on us: register again and carry on.

@@ -201,7 +201,14 @@ class ServerConfig:
     """Reject an update whose distance ‖θ_k − θ̃‖ exceeds this (a failure for the round);
     None = no bound. NaN/Inf and wrong shapes are always rejected. Every pool applies it."""
     max_message_mb: float = 256.0
-    """Largest message accepted on the socket (ZMQ_MAXMSGSIZE), in MiB."""
+    """Upper bound on a message, in MiB. The server accepts no more than its run needs (a
+    1 MiB header and θ as float32: ZMQ_MAXMSGSIZE and the codec's cap) and refuses to start
+    if this is lower than that."""
+    max_connections: int | None = None
+    """Most connections the server keeps open (the oldest unregistered ones are closed past
+    it); None = 2 × agents.num_agents + 64, lowered to what the descriptor limit allows."""
+    hello_timeout_s: float = 10.0
+    """A connection that has not registered within this time is closed."""
     out_dir: str | None = None
     """Run directory for metrics and checkpoints; None = the Hydra run directory / cwd."""
 
@@ -427,6 +434,7 @@ def _validate_server(server: ServerConfig, num_agents: int) -> None:
         "rejoin_timeout_s",
         "heartbeat_interval_s",
         "max_message_mb",
+        "hello_timeout_s",
     ):
         _check_number(getattr(server, key), f"server.{key}", low=0.0, low_open=True)
     _check_choice(server.round_policy, "server.round_policy", ROUND_POLICIES)
@@ -439,6 +447,8 @@ def _validate_server(server: ServerConfig, num_agents: int) -> None:
     _check_int(server.heartbeat_liveness, "server.heartbeat_liveness", low=2)
     if server.max_update_norm is not None:
         _check_number(server.max_update_norm, "server.max_update_norm", low=0.0, low_open=True)
+    if server.max_connections is not None:
+        _check_int(server.max_connections, "server.max_connections", low=num_agents)
 
 
 def validate(config: RunConfig) -> RunConfig:

@@ -10,54 +10,61 @@ evaluation travels as :class:`EvaluationStats`. torch is imported for type check
 from __future__ import annotations
 
 import dataclasses
-import math
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Annotated, Any
+
+from fedhpg.common.limits import (
+    MAX_COUNT,
+    Bound,
+    Count,
+    Finite,
+    Fraction,
+    Seconds,
+    Speed,
+    record_problems,
+)
 
 if TYPE_CHECKING:
     import numpy as np
     import torch
 
 
+ALGORITHM_STATS = 32
+"""Most entries an algorithm may report per round (``UpdateStats.algorithm``)."""
+
+
 @dataclass(frozen=True, kw_only=True)
 class UpdateStats:
-    """What one round's local update cost and measured (``metrics.jsonl``'s ``agents[]``)."""
+    """What one round's local update cost and measured (``metrics.jsonl``'s ``agents[]``).
 
-    trajectories: int
+    Every field is bounded (:mod:`fedhpg.common.limits`): the codec refuses values out of
+    range, and the server's update check applies the same bounds to in-process updates.
+    """
+
+    trajectories: Count
     """Trajectories sampled this round (B_k·τ_k for FedHPG, B_k + N·b_k for FedHPGVR)."""
-    env_steps: int
+    env_steps: Count
     """Environment steps of those trajectories (steps after an episode's end not counted)."""
-    compute_s: float
+    compute_s: Seconds
     """CPU time of the local update on the agent's thread (sampling, estimation, steps)."""
-    train_return: float
+    train_return: Finite
     """Mean undiscounted return of the round's training trajectories."""
-    grad_clipped: int = 0
+    grad_clipped: Count = 0
     """Local steps whose gradient was clipped to ``algo.grad_clip``."""
-    emulated_s: float = 0.0
+    emulated_s: Seconds = 0.0
     """Emulated device time: compute_s / speed + env_steps × step_delay_s (+ latency)."""
-    speed: float = 1.0
+    speed: Speed = 1.0
     """The device speed during the round (after the schedule)."""
-    local_wall_s: float | None = None
+    local_wall_s: Seconds | None = None
     """Wall time the agent process spent on the round, sleeps included (distributed only)."""
-    algorithm: dict[str, float] = field(default_factory=dict)
+    algorithm: Annotated[dict[str, Finite], Bound(max_len=ALGORITHM_STATS, key_len=64)] = field(
+        default_factory=dict
+    )
     """The algorithm's own per-round statistics (FedHPGVR: ``iw_mean``, ``iw_max``, ...)."""
 
     def problems(self) -> list[str]:
-        """What makes these stats unusable: non-finite or negative numbers."""
-        found = []
-        for name in ("trajectories", "env_steps", "grad_clipped"):
-            if getattr(self, name) < 0:
-                found.append(f"{name} is negative")
-        numbers = {
-            "compute_s": self.compute_s,
-            "train_return": self.train_return,
-            "emulated_s": self.emulated_s,
-            "speed": self.speed,
-            **({"local_wall_s": self.local_wall_s} if self.local_wall_s is not None else {}),
-            **{f"algorithm[{k!r}]": v for k, v in self.algorithm.items()},
-        }
-        found += [f"{name} is not finite" for name, v in numbers.items() if not math.isfinite(v)]
-        return found
+        """The bounds these stats break (none when they came through the codec)."""
+        return record_problems(self)
 
     def to_json(self) -> dict[str, Any]:
         """The flat ``agents[]`` entry of metrics.jsonl (schema 1): algorithm stats inline,
@@ -73,23 +80,17 @@ class UpdateStats:
 class EvaluationStats:
     """The unified policy's performance over ``episodes`` episodes in one agent's environment."""
 
-    return_mean: float
-    return_std: float
-    discounted_return_mean: float
+    return_mean: Finite
+    return_std: Finite
+    discounted_return_mean: Finite
     """Mean return discounted with that agent's γ_k."""
-    success_rate: float
+    success_rate: Fraction
     """Fraction of episodes that reached the goal (0 where the env has no goal)."""
-    length_mean: float
-    episodes: int
+    length_mean: Annotated[float, Bound(low=0.0, high=MAX_COUNT, finite=True)]
+    episodes: Annotated[int, Bound(low=1, high=MAX_COUNT)]
 
     def problems(self) -> list[str]:
-        numbers = dataclasses.asdict(self)
-        found = [f"{name} is not finite" for name, v in numbers.items() if not math.isfinite(v)]
-        if not 0.0 <= self.success_rate <= 1.0:
-            found.append("success_rate is outside [0, 1]")
-        if self.episodes < 1:
-            found.append("episodes < 1")
-        return found
+        return record_problems(self)
 
     def to_json(self) -> dict[str, Any]:
         return dataclasses.asdict(self)

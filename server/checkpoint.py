@@ -9,12 +9,15 @@ round, purpose) where it is used.
 
 from __future__ import annotations
 
+import errno
 import hashlib
 import logging
 import os
+import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, TypeVar
 
 import msgpack
 import numpy as np
@@ -23,6 +26,7 @@ import torch
 from fedhpg.common.types import SavedState
 
 logger = logging.getLogger(__name__)
+T = TypeVar("T")
 
 CHECKPOINT_FORMAT = "fedhpg-checkpoint"
 CHECKPOINT_VERSION = 3
@@ -84,15 +88,38 @@ def _payload(checkpoint: Checkpoint) -> bytes:
     )
 
 
+FD_RETRIES = 20
+"""Tries of an open that failed for want of descriptors (EMFILE), 50 ms apart: the server's
+connection guard frees descriptors within that time."""
+
+
+def _open_retrying(opener: Callable[[], T]) -> T:
+    for attempt in range(FD_RETRIES):
+        try:
+            return opener()
+        except OSError as error:
+            if error.errno not in (errno.EMFILE, errno.ENFILE) or attempt == FD_RETRIES - 1:
+                raise
+            time.sleep(0.05)
+    raise AssertionError("unreachable")
+
+
 def write_atomic(path: Path, data: bytes) -> None:
-    """Write to a temporary file, fsync, then rename over ``path``: readers see old or new."""
+    """Write to a temporary file, fsync, then rename over ``path``: readers see old or new.
+
+    On any failure (a full disk, no descriptors) the temporary file is removed and ``path`` is
+    as it was; the OSError propagates."""
     tmp = path.with_name(f".{path.name}.tmp")
-    with tmp.open("wb") as handle:
-        handle.write(data)
-        handle.flush()
-        os.fsync(handle.fileno())
-    os.replace(tmp, path)
-    directory = os.open(path.parent, os.O_RDONLY)
+    try:
+        with _open_retrying(lambda: tmp.open("wb")) as handle:
+            handle.write(data)
+            handle.flush()
+            os.fsync(handle.fileno())
+        os.replace(tmp, path)
+    except BaseException:
+        tmp.unlink(missing_ok=True)
+        raise
+    directory = _open_retrying(lambda: os.open(path.parent, os.O_RDONLY))
     try:
         os.fsync(directory)
     finally:

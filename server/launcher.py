@@ -46,7 +46,8 @@ def _child_setup() -> None:
 def _server_child(run: RunConfig, out_dir: str, ready: Connection) -> None:
     _child_setup()
     from fedhpg.server.main import serve
-    from fedhpg.server.pools.zmq_pool import FederationError
+    from fedhpg.server.pools import FederationError
+    from fedhpg.server.run_dir import RunDirectoryError
 
     try:
         # Bytes, not Connection.send: that would pickle (harmless here, but no pickle anywhere).
@@ -54,7 +55,7 @@ def _server_child(run: RunConfig, out_dir: str, ready: Connection) -> None:
     except ConfigError as error:
         sys.stderr.write(f"error: {error}\n")
         sys.exit(2)
-    except FederationError as error:
+    except (FederationError, RunDirectoryError) as error:
         logging.getLogger("fedhpg.server").error("%s", error)
         sys.exit(1)
 

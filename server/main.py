@@ -21,20 +21,24 @@ from fedhpg.common.runtime.cli import run_entry
 from fedhpg.common.runtime.progress import Progress
 from fedhpg.common.types import EvaluationStats
 from fedhpg.common.variants import run_variants, variant_digest
-from fedhpg.common.wire.security import secure_server_socket
+from fedhpg.common.wire.codec import MAX_HEADER_BYTES
+from fedhpg.common.wire.security import handshake_failure_logger, secure_server_socket
 from fedhpg.common.wire.transport import bind_endpoint, configure_socket, max_message_bytes
 from fedhpg.common.worker import initial_theta
+from fedhpg.envs.base import EnvVariant
 from fedhpg.server.checkpoint import (
     Checkpoint,
     latest_valid_checkpoint,
     save_checkpoint,
     write_atomic,
 )
+from fedhpg.server.connections import ConnectionGuard, connection_budget
 from fedhpg.server.coordinator import Coordinator, RoundCallback, RoundRecord, RunProgress
 from fedhpg.server.metrics import MetricsWriter
 from fedhpg.server.pools import FederationError
 from fedhpg.server.pools.zmq_pool import ZmqAgentPool
 from fedhpg.server.report import evaluation_table
+from fedhpg.server.run_dir import RunDirectory, RunDirectoryError
 from fedhpg.server.strategies import Strategy, make_strategy, validate_strategy
 from fedhpg.server.validation import UpdateCheck
 
@@ -66,33 +70,44 @@ def _progress_callback(progress: Progress) -> Callable[[RoundRecord, torch.Tenso
 
 
 def _checkpoint_callback(
-    run: RunConfig, directory: Path, progress: RunProgress
-) -> Callable[[RoundRecord, torch.Tensor], None]:
+    run: RunConfig,
+    directory: Path,
+    progress: RunProgress,
+    counters: Callable[[], dict[str, int]],
+) -> RoundCallback:
     settings = to_dict(run)
 
     def save(record: RoundRecord, theta: torch.Tensor) -> None:
-        save_checkpoint(
-            directory,
-            Checkpoint(
-                round=record.round,
-                theta=theta,
-                config=settings,
-                metrics_lines=record.round,
-                state={
-                    "trajectories_per_agent": progress.trajectories_per_agent,
-                    "elapsed_s": progress.elapsed_s,
-                },
-                strategy=progress.strategy_state,
-            ),
+        checkpoint = Checkpoint(
+            round=record.round,
+            theta=theta,
+            config=settings,
+            metrics_lines=record.round,
+            state={
+                "trajectories_per_agent": progress.trajectories_per_agent,
+                "elapsed_s": progress.elapsed_s,
+                "counters": counters(),
+            },
+            strategy=progress.strategy_state,
         )
+        try:
+            save_checkpoint(directory, checkpoint)
+        except OSError as error:
+            raise RunDirectoryError(
+                f"cannot write the checkpoint of round {record.round} in {directory}: "
+                f"{error.strerror or error}; the newest complete checkpoint is kept"
+            ) from None
 
     return save
 
 
 def resume_point(
-    run: RunConfig, out_dir: Path, strategy: Strategy[Any]
-) -> tuple[torch.Tensor, RunProgress]:
-    """θ̃ and the run's progress from the newest valid checkpoint; metrics cut back to it."""
+    run: RunConfig, run_dir: RunDirectory, strategy: Strategy[Any]
+) -> tuple[torch.Tensor, RunProgress, dict[str, int]]:
+    """θ̃, the run's progress and its counters from the newest valid checkpoint. Everything is
+    checked first (the config, rounds, the strategy's state, metrics.jsonl up to the
+    checkpoint); only then is metrics.jsonl cut back to the checkpoint."""
+    out_dir = run_dir.path
     checkpoint = latest_valid_checkpoint(out_dir / "checkpoints")
     if checkpoint is None:
         raise ConfigError("resume", f"no valid checkpoint in {out_dir / 'checkpoints'}")
@@ -102,23 +117,42 @@ def resume_point(
             raise ConfigError(
                 key, f"differs from the checkpointed run in {out_dir}; resume keeps it"
             )
-    metrics = out_dir / "metrics.jsonl"
-    if metrics.exists():
-        kept = metrics.read_text(encoding="utf-8").splitlines()[: checkpoint.metrics_lines]
-        write_atomic(metrics, "".join(line + "\n" for line in kept).encode())
-    logger.warning("resuming %s after round %d", out_dir, checkpoint.round)
+    if run.rounds < checkpoint.round:
+        raise ConfigError(
+            "rounds",
+            f"got {run.rounds}, but {out_dir} is checkpointed at round {checkpoint.round}; a "
+            "resume may keep or raise rounds",
+        )
     if strategy.state().scalars and not checkpoint.strategy.scalars:
         raise ConfigError(
             "resume",
             f"the checkpoint holds no state of strategy {strategy.name!r}; it cannot be resumed",
         )
+    kept = run_dir.checked_metrics(checkpoint.metrics_lines)
+    write_atomic(run_dir.metrics, "".join(line + "\n" for line in kept).encode())
+    logger.warning("resuming %s after round %d", out_dir, checkpoint.round)
     progress = RunProgress(
         next_round=checkpoint.round + 1,
         trajectories_per_agent=float(checkpoint.state.get("trajectories_per_agent", 0.0)),
         elapsed_s=float(checkpoint.state.get("elapsed_s", 0.0)),
         strategy_state=checkpoint.strategy,
     )
-    return checkpoint.theta, progress
+    counters = checkpoint.state.get("counters", {})
+    return checkpoint.theta, progress, {k: int(v) for k, v in dict(counters).items()}
+
+
+def message_cap(run: RunConfig, num_params: int) -> int:
+    """The largest message this run's agents may send: a header and θ_k (ZMQ_MAXMSGSIZE and
+    the codec's cap). ``server.max_message_mb`` may lower it only as far as that."""
+    needed = MAX_HEADER_BYTES + 4 * num_params + 4096
+    configured = max_message_bytes(run.server)
+    if configured < needed:
+        raise ConfigError(
+            "server.max_message_mb",
+            f"got {run.server.max_message_mb:g}, below the {needed / 2**20:.3g} MiB this run's "
+            f"updates need (θ of {num_params} float32 and a header of up to 1 MiB)",
+        )
+    return needed
 
 
 def serve(
@@ -131,23 +165,60 @@ def serve(
     """Run one federation as its server; returns the final θ̃_T."""
     validate_strategy(run)
     strategy = make_strategy(run.strategy)
-    out_dir.mkdir(parents=True, exist_ok=True)
     variants = run_variants(run)
     theta, progress = initial_theta(variants[0], run), RunProgress()
-    if run.resume:
-        theta, progress = resume_point(run, out_dir, strategy)
-    (out_dir / "config.json").write_text(json.dumps(to_dict(run), indent=2))
+    counters: dict[str, int] = {}
+    cap = message_cap(run, int(theta.numel()))
+    run_dir = RunDirectory.claim(out_dir, resume=bool(run.resume))
+    try:
+        if run.resume:
+            theta, progress, counters = resume_point(run, run_dir, strategy)
+        write_atomic(out_dir / "config.json", json.dumps(to_dict(run), indent=2).encode())
+        return _serve_claimed(
+            run,
+            run_dir=run_dir,
+            strategy=strategy,
+            variants=variants,
+            theta=theta,
+            progress=progress,
+            counters=counters,
+            cap=cap,
+            on_bound=on_bound,
+            show_progress=show_progress,
+        )
+    except OSError as error:
+        raise RunDirectoryError(f"cannot write {out_dir}: {error.strerror or error}") from None
+    finally:
+        run_dir.release()
+
+
+def _serve_claimed(
+    run: RunConfig,
+    *,
+    run_dir: RunDirectory,
+    strategy: Strategy[Any],
+    variants: list[EnvVariant],
+    theta: torch.Tensor,
+    progress: RunProgress,
+    counters: dict[str, int],
+    cap: int,
+    on_bound: Callable[[str], None] | None,
+    show_progress: bool,
+) -> ServerResult:
+    out_dir = run_dir.path
     context = zmq.Context()
     socket = context.socket(zmq.ROUTER)
     configure_socket(socket, run.server)
-    guard = secure_server_socket(socket, context, run.security)  # security: CURVE+ZAP, pre-bind
+    socket.setsockopt(zmq.MAXMSGSIZE, cap)
+    security = secure_server_socket(socket, context, run.security)  # CURVE+ZAP, pre-bind
     socket.setsockopt(zmq.ROUTER_MANDATORY, 1)
-    endpoint = bind_endpoint(run.server)
-    socket.bind(endpoint)
-    bound = socket.getsockopt_string(zmq.LAST_ENDPOINT)
-    logger.info("server listening on %s, waiting for %d agents", bound, run.agents.num_agents)
-    if on_bound is not None:
-        on_bound(bound)
+    connections = ConnectionGuard(
+        socket,
+        max_inflight_bytes=2 * cap + 64 * 1024,
+        hello_timeout_s=run.server.hello_timeout_s,
+        max_connections=connection_budget(max_connections(run)),
+        on_handshake_failed=handshake_failure_logger(curve=run.security.curve),
+    ).start()  # before bind: every connection is seen
     pool = ZmqAgentPool(
         socket=socket,
         num_agents=run.agents.num_agents,
@@ -158,10 +229,12 @@ def serve(
         variant_digests=[variant_digest(run, v) for v in variants],
         run_settings=dictated_settings(run),  # security: only dictated keys leave the server
         run_id=uuid.uuid4().hex[:12],
-        max_bytes=max_message_bytes(run.server),
+        max_bytes=cap,
         settings=run.server,
+        guard=connections,
     )
-    metrics = MetricsWriter(out_dir / "metrics.jsonl")
+    pool.restore_counters(counters)
+    metrics = MetricsWriter(run_dir.metrics)
     last_eval: dict[str, Any] = {}
 
     def keep_eval(record: RoundRecord, _: torch.Tensor) -> None:
@@ -170,7 +243,7 @@ def serve(
 
     callbacks: list[RoundCallback] = [
         metrics,
-        _checkpoint_callback(run, out_dir / "checkpoints", progress),
+        _checkpoint_callback(run, out_dir / "checkpoints", progress, pool.counters),
         keep_eval,
     ]
     if show_progress:
@@ -178,6 +251,11 @@ def serve(
         bar.done = progress.next_round - 1
         callbacks.append(_progress_callback(bar))
     try:
+        socket.bind(bind_endpoint(run.server))
+        bound = socket.getsockopt_string(zmq.LAST_ENDPOINT)
+        logger.info("server listening on %s, waiting for %d agents", bound, run.agents.num_agents)
+        if on_bound is not None:
+            on_bound(bound)
         pool.wait_for_agents(run.server.register_timeout_s)
         coordinator = Coordinator(
             run=run,
@@ -189,12 +267,13 @@ def serve(
         )
         theta = coordinator.run_rounds()
         pool.shutdown("run complete")
-    except BaseException:
-        pool.shutdown("server stopped")
+    except BaseException as error:
+        pool.shutdown(f"the server stopped: {error or type(error).__name__}", complete=False)
         raise
     finally:
         metrics.close()
-        guard.stop()  # security: the ZAP thread and the handshake log
+        connections.stop()
+        security.stop()  # the ZAP thread
         socket.close(linger=200)
         context.term()
     params = {
@@ -210,13 +289,11 @@ def serve(
         "rounds": run.rounds,
         "final_eval_round": last_eval.get("round"),
         "eval": {a: e.to_json() for a, e in last_eval["eval"].items()} if last_eval else None,
-        "rejected_messages": pool.rejected,
-        "late_answers": pool.late_answers,
-        "agent_deaths": pool.deaths,
-        "agent_rejoins": pool.rejoins,
+        **pool.counters(),
+        **connections.counts.as_dict(),
         "variants": params,
     }
-    (out_dir / "summary.json").write_text(json.dumps(summary, indent=2, default=float))
+    write_atomic(out_dir / "summary.json", json.dumps(summary, indent=2).encode())
     if last_eval:
         sys.stdout.write(
             f"\nUnified policy after round {last_eval['round']} "
@@ -228,13 +305,20 @@ def serve(
     return ServerResult(theta=theta, out_dir=out_dir, last_evaluation=last_eval.get("eval"))
 
 
+def max_connections(run: RunConfig) -> int:
+    """``server.max_connections``, or by default room for every agent twice over (a restarted
+    agent's new connection while its old one closes) and 64 more."""
+    configured = run.server.max_connections
+    return configured if configured is not None else 2 * run.agents.num_agents + 64
+
+
 def _main(run: RunConfig) -> int:
     out_dir = Path(run.server.out_dir) if run.server.out_dir else default_out_dir()
     if run.resume and run.resume.lower() != "true":
         out_dir = Path(run.resume)
     try:
         serve(run, out_dir=out_dir)
-    except FederationError as error:
+    except (FederationError, RunDirectoryError) as error:
         logger.error("%s", error)
         return 1
     except zmq.ZMQError as error:

@@ -10,6 +10,7 @@ from typing import Any
 import torch
 
 from fedhpg.server.coordinator import RoundRecord
+from fedhpg.server.run_dir import RunDirectoryError
 
 METRICS_SCHEMA_VERSION = 1
 
@@ -24,9 +25,15 @@ class MetricsWriter:
 
     def __call__(self, record: RoundRecord, theta: torch.Tensor) -> None:
         line: dict[str, Any] = {"schema": METRICS_SCHEMA_VERSION, **record.to_json()}
-        self._file.write(json.dumps(line) + "\n")
-        self._file.flush()
-        os.fsync(self._file.fileno())
+        try:
+            self._file.write(json.dumps(line) + "\n")
+            self._file.flush()
+            os.fsync(self._file.fileno())
+        except OSError as error:
+            raise RunDirectoryError(
+                f"cannot write round {record.round} to {self.path}: {error.strerror or error}; "
+                "the rounds before it are in the file and the checkpoints"
+            ) from None
 
     def close(self) -> None:
         self._file.close()

@@ -17,6 +17,7 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 from hypothesis.extra import numpy as hnp
 
+from fedhpg.common import limits
 from fedhpg.common.types import EvaluationStats, UpdateStats
 from fedhpg.common.wire import codec
 from fedhpg.common.wire.codec import ProtocolError, decode, encode
@@ -44,7 +45,7 @@ STATS = UpdateStats(
     emulated_s=2.0,
     speed=0.25,
     local_wall_s=2.5,
-    algorithm={"iw_mean": 1.0, "nan": math.nan},
+    algorithm={"iw_mean": 1.0, "iw_max": 2.5},
 )
 EVALUATION = EvaluationStats(
     return_mean=-1.5,
@@ -120,7 +121,7 @@ def test_round_trip(message: object) -> None:
 
 
 def test_header_layout() -> None:
-    stats = dataclasses.replace(STATS, algorithm={"iw_mean": 1.0})  # NaN != NaN
+    stats = STATS
     frames = encode(Update(round=3, theta=THETA, stats=stats))
     assert len(frames) == 2
     assert msgpack.unpackb(frames[0]) == {
@@ -210,7 +211,59 @@ def test_encode_normalises_numpy_scalars_and_tuples() -> None:
         ),  # type: ignore[arg-type]
         (Evaluation(round=1, stats=dataclasses.replace(EVALUATION, episodes=1.5)), "bad_fields"),  # type: ignore[arg-type]
         (Hello(agent_id="a", agent_index=0, env_signature={"obs": 3}), "bad_fields"),
-        (Shutdown(reason="x" * (2 << 20)), "too_large"),
+        (Welcome(run_id="r", agent_index=0, run={"x": "x" * (2 << 20)}), "too_large"),
+        (
+            Hello(
+                agent_id="a",
+                agent_index=0,
+                env_signature={},
+                profile={f"k{i}": "x" * 8000 for i in range(9)},
+            ),
+            "too_large",
+        ),  # > 64 KiB
+        (Shutdown(reason="x" * 5000), "bad_fields"),
+        (Hello(agent_id="a" * 129, agent_index=0, env_signature={}), "bad_fields"),
+        (Hello(agent_id="a", agent_index=-1, env_signature={}), "bad_fields"),
+        (
+            Hello(
+                agent_id="a",
+                agent_index=0,
+                env_signature={},
+                profile={f"k{i}": i for i in range(17)},
+            ),
+            "bad_fields",
+        ),
+        (Train(round=-1, theta=THETA), "bad_fields"),
+        (
+            Update(
+                round=1,
+                theta=THETA,
+                stats=dataclasses.replace(STATS, trajectories=limits.MAX_COUNT + 1),
+            ),
+            "bad_fields",
+        ),
+        (
+            Update(round=1, theta=THETA, stats=dataclasses.replace(STATS, compute_s=math.inf)),
+            "bad_fields",
+        ),
+        (
+            Update(
+                round=1, theta=THETA, stats=dataclasses.replace(STATS, algorithm={"w": math.nan})
+            ),
+            "bad_fields",
+        ),
+        (
+            Update(
+                round=1,
+                theta=THETA,
+                stats=dataclasses.replace(STATS, algorithm={f"s{i}": 1.0 for i in range(33)}),
+            ),
+            "bad_fields",
+        ),
+        (
+            Evaluation(round=1, stats=dataclasses.replace(EVALUATION, success_rate=1.5)),
+            "bad_fields",
+        ),
     ],
     ids=lambda v: v if isinstance(v, str) else type(v).__name__,
 )
@@ -241,50 +294,53 @@ _PLAIN = st.recursive(
     max_leaves=12,
 )
 _STATS = st.dictionaries(_KEYS, _PLAIN, max_size=6)
-_INTS = st.integers(-(2**63), 2**64 - 1)
-_FLOATS = st.floats(allow_nan=True, allow_infinity=True)
+# Within the fields' bounds (common/limits.py), extremes included.
+_COUNTS = st.integers(0, limits.MAX_COUNT)
+_FINITE = st.floats(allow_nan=False, allow_infinity=False)
+_SECONDS = st.floats(0.0, limits.MAX_SECONDS)
 _UPDATE_STATS = st.builds(
     UpdateStats,
-    trajectories=_INTS,
-    env_steps=_INTS,
-    compute_s=_FLOATS,
-    train_return=_FLOATS,
-    grad_clipped=_INTS,
-    emulated_s=_FLOATS,
-    speed=_FLOATS,
-    local_wall_s=st.none() | _FLOATS,
-    algorithm=st.dictionaries(_KEYS, _FLOATS, max_size=4),
+    trajectories=_COUNTS,
+    env_steps=_COUNTS,
+    compute_s=_SECONDS,
+    train_return=_FINITE,
+    grad_clipped=_COUNTS,
+    emulated_s=_SECONDS,
+    speed=st.floats(0.0, 1e9),
+    local_wall_s=st.none() | _SECONDS,
+    algorithm=st.dictionaries(st.text(max_size=64), _FINITE, max_size=32),
 )
 _EVALUATION_STATS = st.builds(
     EvaluationStats,
-    return_mean=_FLOATS,
-    return_std=_FLOATS,
-    discounted_return_mean=_FLOATS,
-    success_rate=_FLOATS,
-    length_mean=_FLOATS,
-    episodes=_INTS,
+    return_mean=_FINITE,
+    return_std=_FINITE,
+    discounted_return_mean=_FINITE,
+    success_rate=st.floats(0.0, 1.0),
+    length_mean=st.floats(0.0, limits.MAX_COUNT),
+    episodes=st.integers(1, limits.MAX_COUNT),
 )
 _ARRAYS = hnp.arrays(
     dtype=st.sampled_from(WIRE_DTYPES),
     shape=hnp.array_shapes(min_dims=0, max_dims=4, min_side=0, max_side=6),
     elements=None,
 )
-_ROUNDS = st.integers(-(2**63), 2**64 - 1)
+_ROUNDS = st.integers(0, limits.MAX_ROUND)
 _MESSAGES = st.one_of(
     st.builds(Train, round=_ROUNDS, theta=_ARRAYS),
     st.builds(Update, round=_ROUNDS, theta=_ARRAYS, stats=_UPDATE_STATS),
-    st.builds(Evaluate, round=_ROUNDS, theta=_ARRAYS, episodes=_ROUNDS),
+    st.builds(Evaluate, round=_ROUNDS, theta=_ARRAYS, episodes=st.integers(1, 2**20)),
     st.builds(Evaluation, round=_ROUNDS, stats=_EVALUATION_STATS),
     st.builds(
         Hello,
-        agent_id=st.text(),
+        agent_id=st.text(max_size=128),
         agent_index=_ROUNDS,
-        env_signature=st.dictionaries(_KEYS, st.text(max_size=20), max_size=4),
-        variant_digest=st.text(max_size=40),
-        profile=_STATS,
+        env_signature=st.dictionaries(st.text(max_size=64), st.text(max_size=20), max_size=8),
+        variant_digest=st.text(max_size=128),
+        profile=st.dictionaries(st.text(max_size=64), _PLAIN, max_size=16),
     ),
-    st.builds(Welcome, run_id=st.text(), agent_index=_ROUNDS, run=_STATS),
-    st.builds(Error, code=st.text(), reason=st.text()),
+    st.builds(Welcome, run_id=st.text(max_size=128), agent_index=_ROUNDS, run=_STATS),
+    st.builds(Error, code=st.text(max_size=128), reason=st.text(max_size=4096)),
+    st.builds(Shutdown, reason=st.text(max_size=200), complete=st.booleans()),
 )
 
 
@@ -346,12 +402,13 @@ REJECTIONS: list[tuple[str, list[Any], str]] = [
     ("too deep", [b"\x91" * 5000 + b"\xc0"], "malformed"),
     # envelope
     ("no version", [_header(v=_DROP), GOOD_ARRAY], "malformed"),
-    ("version 3", [_header(v=3), GOOD_ARRAY], "version"),
+    ("version 4", [_header(v=4), GOOD_ARRAY], "version"),
+    ("version 2", [_header(v=2), GOOD_ARRAY], "version"),
     ("version 1", [_header(v=1), GOOD_ARRAY], "version"),
     ("version 0", [_header(v=0), GOOD_ARRAY], "version"),
     ("version True", [_header(v=True), GOOD_ARRAY], "version"),
-    ("version 2.0", [_header(v=2.0), GOOD_ARRAY], "version"),
-    ("version '2'", [_header(v="2"), GOOD_ARRAY], "version"),
+    ("version 3.0", [_header(v=3.0), GOOD_ARRAY], "version"),
+    ("version '3'", [_header(v="3"), GOOD_ARRAY], "version"),
     ("missing key", [_header(arrays=_DROP), GOOD_ARRAY], "malformed"),
     ("extra key", [_header(extra=1), GOOD_ARRAY], "malformed"),
     ("unknown type", [_header(type="nope"), GOOD_ARRAY], "unknown_type"),
@@ -412,8 +469,8 @@ def test_rejections_carry_a_code(frames: list[Any], code: str) -> None:
 
 
 def test_version_error_names_both_versions() -> None:
-    with pytest.raises(ProtocolError, match=r"received protocol version 3, expected 2"):
-        decode([_header(v=3), GOOD_ARRAY])
+    with pytest.raises(ProtocolError, match=r"received protocol version 4, expected 3"):
+        decode([_header(v=4), GOOD_ARRAY])
 
 
 def test_size_cap() -> None:

@@ -35,7 +35,6 @@ def _overrides(port: int, out_dir: Path) -> list[str]:
         "eval.every=3",
         "eval.episodes=5",
         f"server.port={port}",
-        "server.max_message_mb=1",
         f"server.out_dir={out_dir}",
     ]
 
@@ -117,7 +116,7 @@ def test_server_survives_bad_input_and_finishes_right(tmp_path: Path) -> None:
             assert reply is not None and reply.code == "variant_mismatch"
             reply = rogue.ask(encode(Hello(agent_id="mallory", agent_index=9, env_signature={})))
             assert reply is not None and reply.code == "bad_index"
-            # Over the 1 MiB cap: libzmq drops the connection, no reply is possible.
+            # Over the run's cap (a 1 MiB header and θ): libzmq drops the connection, no reply.
             oversized = Rogue(context, port, b"rogue#2")
             assert oversized.ask([_header(), b"\x00" * (2 << 20)], timeout_s=1.0) is None
             oversized.close()

@@ -9,30 +9,19 @@ from __future__ import annotations
 
 import json
 import signal
-import threading
 import time
 from pathlib import Path
 
 import numpy as np
 import torch
-import zmq
+from peers import ScriptedAgent, hello_for
 from procs import free_port, processes, start, start_federation, wait_until
 
 from fedhpg.common.runtime.cli import compose
-from fedhpg.common.types import EvaluationStats, UpdateStats
-from fedhpg.common.variants import run_variants, variant_digest
-from fedhpg.common.wire.codec import decode, encode
+from fedhpg.common.types import UpdateStats
 from fedhpg.common.wire.protocol import (
-    Error,
-    Evaluate,
-    Evaluation,
-    Heartbeat,
-    Hello,
-    Message,
-    Shutdown,
     Train,
     Update,
-    Welcome,
 )
 from fedhpg.server.checkpoint import latest_valid_checkpoint
 from fedhpg.server.pools.inprocess import run_in_process
@@ -131,61 +120,6 @@ def test_deadline_policy_aggregates_without_the_dead_and_the_slow(tmp_path: Path
     assert summary["agent_deaths"] >= 1
 
 
-class ScriptedAgent:
-    """A registered agent that follows a script instead of learning (a misbehaving device).
-
-    ``answer(train) -> Update | None`` decides each round's update (None: stay silent); it
-    heartbeats like a real agent and evaluates with fixed, well-formed statistics."""
-
-    def __init__(self, port: int, hello: Hello, answer) -> None:
-        self.context = zmq.Context()
-        self.socket = self.context.socket(zmq.DEALER)
-        self.socket.setsockopt(zmq.IDENTITY, b"scripted#1")
-        self.socket.setsockopt(zmq.LINGER, 0)
-        self.socket.connect(f"tcp://127.0.0.1:{port}")
-        self.hello, self.answer = hello, answer
-        self.errors: list[str] = []
-        self.refusals: list[str] = []
-        self.rounds_seen: list[int] = []
-        self.done = threading.Event()
-        self.thread = threading.Thread(target=self._loop, daemon=True)
-
-    def _send(self, message: Message) -> None:
-        self.socket.send_multipart(encode(message))
-
-    def _loop(self) -> None:
-        self._send(self.hello)
-        last_beat = time.monotonic()
-        while not self.done.is_set():
-            if self.socket.poll(100):
-                message = decode(self.socket.recv_multipart())
-                if isinstance(message, Train):
-                    self.rounds_seen.append(message.round)
-                    for reply in self.answer(message):
-                        self._send(reply)
-                elif isinstance(message, Evaluate):
-                    stats = EvaluationStats(
-                        return_mean=0.0, return_std=0.0, discounted_return_mean=0.0,
-                        success_rate=0.0, length_mean=1.0, episodes=1,
-                    )  # fmt: skip
-                    self._send(Evaluation(round=message.round, stats=stats))
-                elif isinstance(message, Shutdown):
-                    break
-                elif isinstance(message, Error):
-                    self.refusals.append(message.code)
-                elif not isinstance(message, Heartbeat | Welcome):
-                    self.errors.append(repr(message))
-            if time.monotonic() - last_beat > 0.25:
-                self._send(Heartbeat())
-                last_beat = time.monotonic()
-
-    def close(self) -> None:
-        self.done.set()
-        self.thread.join(timeout=10)
-        self.socket.close()
-        self.context.term()
-
-
 def _update(round_index: int, theta: np.ndarray) -> Update:
     stats = UpdateStats(trajectories=1, env_steps=1, compute_s=0.0, train_return=0.0)
     return Update(round=round_index, theta=theta.astype(np.float32), stats=stats)
@@ -204,14 +138,7 @@ def test_bad_and_late_updates_of_a_registered_agent_are_never_averaged(tmp_path:
     port = free_port()
     out_dir = tmp_path / "run"
     wire = [f"server.port={port}", f"server.out_dir={out_dir}", *FAST_LIVENESS]
-    run = compose(run_keys)
-    variant = run_variants(run)[1]
-    hello = Hello(
-        agent_id="agent-1",
-        agent_index=1,
-        env_signature=variant.signature(),
-        variant_digest=variant_digest(run, variant),
-    )
+    hello = hello_for(compose(run_keys), 1)
     held: list[Train] = []
 
     def answer(train: Train) -> list[Update]:

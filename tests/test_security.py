@@ -141,7 +141,7 @@ def _heartbeat(*extra: bytes) -> list[bytes]:
 def test_curve_federation_with_allowed_keys_completes(tmp_path: Path, started: list) -> None:
     keys = _keys(tmp_path, "keys", "--agents", "2")
     port, out_dir = free_port(), tmp_path / "run"
-    overrides = [*_overrides(port, out_dir), *_curve(keys), "server.max_message_mb=1"]
+    overrides = [*_overrides(port, out_dir), *_curve(keys)]
     server = start(started, "fedhpg-server", overrides, cwd=tmp_path)
     context = zmq.Context()
     try:

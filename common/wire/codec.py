@@ -29,7 +29,9 @@ from typing import TYPE_CHECKING, Any, TypeAlias
 import msgpack
 import numpy as np
 
+from fedhpg.common.limits import bounds_of
 from fedhpg.common.wire.protocol import (
+    HEADER_LIMITS,
     MSG_TYPE_OF,
     PAYLOAD_TYPES,
     PROTOCOL_VERSION,
@@ -100,12 +102,15 @@ class _Spec:
 
 
 def _is_array_hint(hint: Any) -> bool:
+    hint, _ = bounds_of(hint)
     return hint is np.ndarray or typing.get_origin(hint) is np.ndarray  # also npt.NDArray[...]
 
 
 def _supported(hint: Any) -> bool:
     """Whether :func:`_check` knows this annotation (checked once per class, not per message)."""
     origin = typing.get_origin(hint)
+    if origin is typing.Annotated:
+        return _supported(typing.get_args(hint)[0])
     if hint is Any or hint is None or hint is type(None) or hint in _SCALARS:
         return True
     if origin in (types.UnionType, typing.Union):
@@ -130,7 +135,7 @@ def _is_record(hint: Any) -> bool:
 @functools.cache
 def _specs(cls: type) -> tuple[_Spec, ...]:
     """The wire layout of a payload class; the annotations are strings, hence get_type_hints."""
-    hints = typing.get_type_hints(cls)
+    hints = typing.get_type_hints(cls, include_extras=True)
     specs = []
     for f in dataclasses.fields(cls):
         hint = hints[f.name]
@@ -176,6 +181,13 @@ def _check_plain(value: Any, where: str, depth: int) -> None:
 def _check(value: Any, hint: Any, where: str, depth: int = 0) -> Any:
     """``value`` if it fits ``hint`` (bool is no int; an int is a float), with nested records
     built as their dataclasses; else ProtocolError."""
+    if typing.get_origin(hint) is typing.Annotated:
+        base, bounds = bounds_of(hint)
+        checked = _check(value, base, where, depth)
+        for bound in bounds:
+            if (problem := bound.problem(checked)) is not None:
+                raise _bad(where, problem)
+        return checked
     if hint is Any:
         _check_plain(value, where, depth)
         return value
@@ -336,10 +348,9 @@ def encode(message: Message) -> list[bytes | memoryview]:
         {"v": PROTOCOL_VERSION, "type": str(kind), "fields": fields, "arrays": descriptors},
         use_bin_type=True,
     )
-    if len(header) > MAX_HEADER_BYTES:
-        raise ProtocolError(
-            "too_large", f"{kind}: header of {len(header)} bytes exceeds {MAX_HEADER_BYTES}"
-        )
+    limit = HEADER_LIMITS.get(cls, MAX_HEADER_BYTES)
+    if len(header) > limit:
+        raise ProtocolError("too_large", f"{kind}: header of {len(header)} bytes exceeds {limit}")
     return [header, *buffers]
 
 
@@ -513,6 +524,11 @@ def _decode(frames: Any, max_bytes: int) -> Message:
     header = _unpack_header(views[0])
     cls = _payload_class(header)
     kind = str(header["type"])
+    limit = HEADER_LIMITS.get(cls, MAX_HEADER_BYTES)
+    if views[0].nbytes > limit:
+        raise ProtocolError(
+            "too_large", f"{kind}: header of {views[0].nbytes} bytes exceeds {limit}"
+        )
     specs = _specs(cls)
     values = _decode_fields(kind, [s for s in specs if not s.is_array], header["fields"])
     values |= _decode_arrays(kind, [s for s in specs if s.is_array], header["arrays"], views[1:])

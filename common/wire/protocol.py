@@ -11,14 +11,18 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 from enum import StrEnum
-from typing import Any
+from typing import Annotated, Any
 
 import numpy as np
 
+from fedhpg.common.limits import AgentIndex, Bound, Name, Round, Text
 from fedhpg.common.types import EvaluationStats, UpdateStats
 
-PROTOCOL_VERSION = 2
-"""2: typed ``Update.stats`` / ``Evaluation.stats``; ``Hello.variant_digest``."""
+PROTOCOL_VERSION = 3
+"""2: typed ``Update.stats`` / ``Evaluation.stats``; ``Hello.variant_digest``.
+3: every field bounded (:mod:`fedhpg.common.limits`); ``Shutdown.complete``."""
+
+KIB = 1024
 
 
 class MsgType(StrEnum):
@@ -37,14 +41,15 @@ class MsgType(StrEnum):
 class Hello:
     """Agent → server: registration with the agent's environment signature and variant."""
 
-    agent_id: str
-    agent_index: int
-    env_signature: dict[str, str]
+    agent_id: Name
+    agent_index: AgentIndex
+    env_signature: Annotated[dict[str, Text], Bound(max_len=8, key_len=64)]
     """The observation and action spaces: every agent's must be the run's."""
-    variant_digest: str = ""
+    variant_digest: Name = ""
     """Digest of the agent's environment variant (family, parameters, γ_k, horizon): must be
     the one the server expects for ``agent_index``, so no host trains on another MDP."""
-    profile: dict[str, Any] = field(default_factory=dict)
+    profile: Annotated[dict[str, Any], Bound(max_len=16, key_len=64)] = field(default_factory=dict)
+    """What the agent says of its compute (logged at registration)."""
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -52,8 +57,8 @@ class Welcome:
     """Server → agent: registration accepted; ``run`` holds the settings the server dictates
     (``fedhpg.common.config.GROUPS``)."""
 
-    run_id: str
-    agent_index: int
+    run_id: Name
+    agent_index: AgentIndex
     run: dict[str, Any]
 
 
@@ -61,7 +66,7 @@ class Welcome:
 class Train:
     """Server → agent: run one round's local update from ``theta``."""
 
-    round: int
+    round: Round
     theta: np.ndarray
 
 
@@ -69,7 +74,7 @@ class Train:
 class Update:
     """Agent → server: the local result θ_k of ``round`` and what it cost."""
 
-    round: int
+    round: Round
     theta: np.ndarray
     stats: UpdateStats
 
@@ -78,16 +83,16 @@ class Update:
 class Evaluate:
     """Server → agent: evaluate the unified policy ``theta`` in the agent's environment."""
 
-    round: int
+    round: Round
     theta: np.ndarray
-    episodes: int
+    episodes: Annotated[int, Bound(low=1, high=2**20)]
 
 
 @dataclass(frozen=True, kw_only=True)
 class Evaluation:
     """Agent → server: evaluation results for ``round``."""
 
-    round: int
+    round: Round
     stats: EvaluationStats
 
 
@@ -98,17 +103,19 @@ class Heartbeat:
 
 @dataclass(frozen=True, kw_only=True)
 class Shutdown:
-    """Server → agent: the run is over (or aborted); exit cleanly."""
+    """Server → agent: the run is over; ``complete`` says whether it finished or was aborted
+    (the agent exits 0 or 1 accordingly)."""
 
-    reason: str
+    reason: Text
+    complete: bool = True
 
 
 @dataclass(frozen=True, kw_only=True)
 class Error:
     """Either direction: the last message was rejected, and why."""
 
-    code: str
-    reason: str
+    code: Name
+    reason: Text
 
 
 Message = Hello | Welcome | Train | Update | Evaluate | Evaluation | Heartbeat | Shutdown | Error
@@ -124,4 +131,14 @@ PAYLOAD_TYPES: dict[str, type] = {  # keyed by MsgType, a str: decode looks up p
     MsgType.SHUTDOWN: Shutdown,
     MsgType.ERROR: Error,
 }
+HEADER_LIMITS: dict[type, int] = {
+    Hello: 64 * KIB,
+    Update: 64 * KIB,
+    Evaluation: 16 * KIB,
+    Heartbeat: 1 * KIB,
+    Shutdown: 16 * KIB,
+    Error: 16 * KIB,
+}
+"""Largest header of a message type (the codec's MAX_HEADER_BYTES for the rest, which only the
+server sends): a peer cannot make a small message big."""
 MSG_TYPE_OF: dict[type, str] = {cls: kind for kind, cls in PAYLOAD_TYPES.items()}

@@ -23,8 +23,8 @@ from __future__ import annotations
 import atexit
 import logging
 import os
-import threading
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import NoReturn
@@ -298,45 +298,23 @@ def _protocol_error(value: int, *, curve: bool) -> str:
     return f"ZMTP protocol error {value:#x}"
 
 
-class _HandshakeLog(threading.Thread):
-    """Logs the server socket's failed handshakes (a refused key is logged by the ZAP handler)."""
+def handshake_failure_logger(*, curve: bool) -> Callable[[int], None]:
+    """What to do with a failed handshake on the server socket (a refused key is logged by the
+    ZAP handler): a warning naming the likely cause, at most once a minute per cause."""
+    throttle = _Throttle()
 
-    def __init__(self, monitor: zmq.Socket, *, curve: bool) -> None:
-        super().__init__(name="fedhpg-handshake-log", daemon=True)
-        self.monitor = monitor
-        self.curve = curve
-        self.stopping = threading.Event()
-        self._throttle = _Throttle()
+    def log(value: int) -> None:
+        level = logging.WARNING if throttle.due(value) else logging.DEBUG
+        logger.log(level, "refused a connection: %s", _protocol_error(value, curve=curve))
 
-    def run(self) -> None:
-        try:
-            while not self.stopping.is_set():
-                if not self.monitor.poll(100):
-                    continue
-                event = recv_monitor_message(self.monitor)
-                if event["event"] == zmq.EVENT_HANDSHAKE_FAILED_PROTOCOL:
-                    value = int(event["value"])
-                    level = logging.WARNING if self._throttle.due(value) else logging.DEBUG
-                    reason = _protocol_error(value, curve=self.curve)
-                    logger.log(level, "refused a connection: %s", reason)
-        except zmq.ZMQError as error:  # the context is going away: nothing left to watch
-            logger.debug("handshake log stopped: %s", error)
-        finally:
-            self.monitor.close(linger=0)
+    return log
 
 
 class ServerGuard:
     """What :func:`secure_server_socket` started; :meth:`stop` ends it (idempotent)."""
 
-    def __init__(
-        self,
-        socket: zmq.Socket,
-        authenticator: _AllowListAuthenticator | None,
-        handshake_log: _HandshakeLog,
-    ) -> None:
-        self.socket = socket
+    def __init__(self, authenticator: _AllowListAuthenticator | None) -> None:
         self.authenticator = authenticator
-        self.handshake_log = handshake_log
         self._stopped = False
         # A failed bind between setup and the caller's try/finally must not leave threads.
         atexit.register(self.stop)
@@ -346,24 +324,20 @@ class ServerGuard:
             return
         self._stopped = True
         atexit.unregister(self.stop)
-        try:
-            if not self.socket.closed:
-                self.socket.disable_monitor()
-        finally:
-            self.handshake_log.stopping.set()
-            self.handshake_log.join(timeout=5)
-            if self.authenticator is not None:
-                self.authenticator.stop()
+        if self.authenticator is not None:
+            self.authenticator.stop()
 
 
 def secure_server_socket(
     socket: zmq.Socket, context: zmq.Context, security: SecurityConfig
 ) -> ServerGuard:
-    """Make the ROUTER a CURVE server guarded by the allow-list (when ``security.curve``), and log
-    failed handshakes. Call before ``bind``: libzmq admits every CURVE client while no ZAP
-    handler is running (its fail-closed option, ZAP_ENFORCE_DOMAIN, is a draft API; setting it
-    on this non-draft build turned ZAP off altogether). Call :meth:`ServerGuard.stop` on the
-    way out, before closing the socket and terminating the context."""
+    """Make the ROUTER a CURVE server guarded by the allow-list (when ``security.curve``).
+    Failed handshakes are reported to :func:`handshake_failure_logger` by the server's
+    connection guard (one socket monitor for all). Call before ``bind``: libzmq admits every
+    CURVE client while no ZAP handler is running (its fail-closed option, ZAP_ENFORCE_DOMAIN,
+    is a draft API; setting it on this non-draft build turned ZAP off altogether). Call
+    :meth:`ServerGuard.stop` on the way out, before closing the socket and terminating the
+    context."""
     authenticator = None
     if security.curve:
         keys = server_keys(security)  # first: a bad key file must not leave a thread behind
@@ -378,10 +352,7 @@ def secure_server_socket(
             keys.allowed_dir,
             ", ".join(sorted(keys.allowed.values())),
         )
-    monitor = _monitor(socket, zmq.EVENT_HANDSHAKE_FAILED_PROTOCOL)
-    handshake_log = _HandshakeLog(monitor, curve=security.curve)
-    handshake_log.start()
-    return ServerGuard(socket, authenticator, handshake_log)
+    return ServerGuard(authenticator)
 
 
 def _monitor(socket: zmq.Socket, events: int) -> zmq.Socket:
@@ -503,8 +474,9 @@ class HandshakeWatch:
             )
         return (
             f"the handshake with the server failed {self._no_detail} times without a reason: "
-            "the server probably requires CURVE (run this agent with security.curve=true and "
-            "its keys)"
+            "the server requires CURVE (run this agent with security.curve=true and its "
+            "keys), or what listens there is no fedhpg server (check server.host and "
+            "server.port)"
         )
 
     def close(self) -> None:

@@ -46,6 +46,7 @@ from fedhpg.common.wire.protocol import (
 )
 from fedhpg.common.wire.security import KEY_MISMATCH, key_mismatch
 from fedhpg.common.wire.transport import send_message, try_decode
+from fedhpg.server.connections import ConnectionGuard
 from fedhpg.server.pools import FederationError, RoundAnswers
 from fedhpg.server.rounds import request_complete
 from fedhpg.server.validation import UpdateCheck
@@ -54,6 +55,18 @@ logger = logging.getLogger(__name__)
 
 POLL_INTERVAL_S = 0.2
 """Longest wait on the socket: deadlines and liveness are checked at least this often."""
+TURN_MESSAGES = 512
+TURN_S = 0.05
+"""One turn of the loop handles at most this many messages, or this long, before it purges,
+heartbeats and checks the round: a flooding peer cannot starve the others."""
+PEER_TURN_MESSAGES = 64
+"""Messages of one identity handled per turn; the rest of its turn is dropped unread (libzmq
+fair-queues peers, so the others' messages still come through)."""
+REPLY_BURST = 32
+REPLY_RATE = 10.0
+"""Error replies to an unregistered peer: a bucket of this many, refilled at this rate per
+second (a flood gets no flood back; a confused client still hears why)."""
+REPLY_MEMORY = 4096
 NOISY_LOG_BURST = 20
 """Warnings about peers' messages logged one by one per window; beyond that only counted (a
 flood of junk must not turn into a flood of log lines)."""
@@ -68,6 +81,8 @@ class Peer:
     index: int
     identity: bytes
     profile: dict[str, Any]
+    fd: int = -1
+    """The connection's descriptor (``ZMQ_SRCFD``), for the connection guard."""
     last_seen: float = field(default_factory=time.monotonic)
 
 
@@ -100,21 +115,35 @@ class RateLimitedLog:
         self._logged = 0
         self._suppressed = 0
 
+    def flush(self, now: float | None = None) -> None:
+        """Report the suppressed count once its window is over (also when the flood ended)."""
+        now = time.monotonic() if now is None else now
+        if self._suppressed and now - self._window_start >= self.window_s:
+            logger.warning(
+                "%d more warnings about peers' messages in the last %.0f s (not logged)",
+                self._suppressed,
+                min(now - self._window_start, 1e9),
+            )
+            self._suppressed = 0
+
     def warning(self, message: str, *args: object) -> None:
         now = time.monotonic()
         if now - self._window_start >= self.window_s:
-            if self._suppressed:
-                logger.warning(
-                    "%d more warnings about peers' messages in the last %.0f s (not logged)",
-                    self._suppressed,
-                    now - self._window_start,
-                )
+            self.flush(now)
             self._window_start, self._logged, self._suppressed = now, 0, 0
         if self._logged < self.burst:
             self._logged += 1
             logger.warning(message, *args)
         else:
             self._suppressed += 1
+
+
+def _source_fd(frame: zmq.Frame) -> int:
+    """The descriptor of the connection a message came on (-1 where libzmq has none)."""
+    try:
+        return int(frame.get(zmq.SRCFD))
+    except (zmq.ZMQError, TypeError, ValueError):
+        return -1
 
 
 def _identity_label(identity: bytes) -> str:
@@ -136,6 +165,7 @@ class ZmqAgentPool:
         run_id: str,
         max_bytes: int,
         settings: ServerConfig,
+        guard: ConnectionGuard | None = None,
     ) -> None:
         self.socket = socket
         self.num_agents = num_agents
@@ -146,6 +176,10 @@ class ZmqAgentPool:
         self.run_id = run_id
         self.max_bytes = max_bytes
         self.settings = settings
+        self.guard = guard
+        self._replied: dict[bytes, tuple[float, float]] = {}
+        self.dropped = 0
+        """Messages of flooding peers dropped unread."""
         self.liveness_s = settings.heartbeat_interval_s * settings.heartbeat_liveness
         self.peers: dict[int, Peer] = {}
         self._by_identity: dict[bytes, Peer] = {}
@@ -205,24 +239,47 @@ class ZmqAgentPool:
         self._noisy.warning(
             "rejected message from %s: %s: %s", _identity_label(identity), code, reason
         )
-        self._send(identity, Error(code=code, reason=reason))
+        if identity not in self._by_identity and not self._may_reply(identity):
+            return
+        self._send(identity, Error(code=code, reason=reason[:1000]))
+
+    def _may_reply(self, identity: bytes) -> bool:
+        """Take a token from the stranger's bucket (REPLY_BURST, refilled at REPLY_RATE/s)."""
+        now = time.monotonic()
+        tokens, since = self._replied.get(identity, (float(REPLY_BURST), now))
+        tokens = min(REPLY_BURST, tokens + (now - since) * REPLY_RATE)
+        if len(self._replied) >= REPLY_MEMORY:
+            self._replied.clear()
+        self._replied[identity] = (tokens - 1.0, now) if tokens >= 1.0 else (tokens, now)
+        return tokens >= 1.0
 
     # -- the loop --------------------------------------------------------------------------
 
     def _pump(self, timeout_s: float) -> None:
-        """Handle what arrives within ``timeout_s`` (capped), then purge and heartbeat."""
+        """Handle what arrives within ``timeout_s`` (capped), one bounded turn, then purge
+        and heartbeat."""
         wait_ms = int(max(min(timeout_s, POLL_INTERVAL_S), 0.0) * 1000)
         if self.socket.poll(wait_ms):
-            while True:  # drain everything already queued before looking at the clock again
+            turn_end = time.monotonic() + TURN_S
+            per_peer: dict[bytes, int] = {}
+            for _ in range(TURN_MESSAGES):
                 try:
                     frames = self.socket.recv_multipart(copy=False, flags=zmq.NOBLOCK)
                 except zmq.Again:
                     break
+                identity = frames[0].bytes
+                seen = per_peer[identity] = per_peer.get(identity, 0) + 1
+                if seen > PEER_TURN_MESSAGES:
+                    self.dropped += 1
+                    continue
                 self._handle(frames)
+                if time.monotonic() >= turn_end:
+                    break
         self._keep_alive()
 
     def _keep_alive(self) -> None:
         now = time.monotonic()
+        self._noisy.flush(now)
         for peer in list(self.peers.values()):
             silent = now - peer.last_seen
             if silent > self.liveness_s:
@@ -241,6 +298,8 @@ class ZmqAgentPool:
             return
         del self.peers[peer.index]
         self._by_identity.pop(peer.identity, None)
+        if self.guard is not None:
+            self.guard.registered(peer.fd, False)
         self._absent_since[peer.index] = time.monotonic()
         self.deaths += 1
         collection = self._collection
@@ -263,6 +322,9 @@ class ZmqAgentPool:
             logger.warning("dropped a message without routing identity")
             return
         identity = bytes(frames[0].buffer)
+        fd = _source_fd(frames[1])
+        if self.guard is not None:
+            self.guard.delivered(fd)
         decoded = try_decode(frames[1:], max_bytes=self.max_bytes)
         if isinstance(decoded, ProtocolError):
             self._reject(identity, decoded.code, str(decoded))
@@ -278,7 +340,7 @@ class ZmqAgentPool:
         if peer is not None:
             peer.last_seen = time.monotonic()
         if isinstance(decoded, Hello):
-            self._on_hello(identity, decoded)
+            self._on_hello(identity, decoded, fd)
         elif isinstance(decoded, Update):
             self._on_update(identity, peer, decoded)
         elif isinstance(decoded, Evaluation):
@@ -297,7 +359,7 @@ class ZmqAgentPool:
 
     # -- registration ------------------------------------------------------------------------
 
-    def _on_hello(self, identity: bytes, hello: Hello) -> None:
+    def _on_hello(self, identity: bytes, hello: Hello, fd: int) -> None:
         known = self._by_identity.get(identity)
         if known is not None:  # a resent hello: answer again, idempotently
             self._send(identity, self._welcome(known))
@@ -340,15 +402,18 @@ class ZmqAgentPool:
                 )
                 return
             self._on_dead(holder, "a new connection claims its place")
-        self._register(identity, hello)
+        self._register(identity, hello, fd)
 
-    def _register(self, identity: bytes, hello: Hello) -> None:
+    def _register(self, identity: bytes, hello: Hello, fd: int) -> None:
         peer = Peer(
             agent_id=hello.agent_id,
             index=hello.agent_index,
             identity=identity,
             profile=hello.profile,
+            fd=fd,
         )
+        if self.guard is not None:
+            self.guard.registered(fd, True)
         self.peers[peer.index] = peer
         self._by_identity[identity] = peer
         self._names[peer.index] = peer.agent_id
@@ -522,6 +587,25 @@ class ZmqAgentPool:
             if isinstance(answer, Evaluation)
         }
 
-    def shutdown(self, reason: str) -> None:
+    def counters(self) -> dict[str, int]:
+        """What went wrong so far, for summary.json (kept across resumes by the checkpoints)."""
+        return {
+            "rejected_messages": self.rejected,
+            "late_answers": self.late_answers,
+            "agent_deaths": self.deaths,
+            "agent_rejoins": self.rejoins,
+            "dropped_flood_messages": self.dropped,
+        }
+
+    def restore_counters(self, counters: dict[str, int]) -> None:
+        self.rejected = counters.get("rejected_messages", 0)
+        self.late_answers = counters.get("late_answers", 0)
+        self.deaths = counters.get("agent_deaths", 0)
+        self.rejoins = counters.get("agent_rejoins", 0)
+        self.dropped = counters.get("dropped_flood_messages", 0)
+
+    def shutdown(self, reason: str, *, complete: bool = True) -> None:
+        """Tell every agent the run is over (``complete``) or was aborted."""
+        message = Shutdown(reason=reason[:1000], complete=complete)
         for peer in self.peers.values():
-            self._send(peer.identity, Shutdown(reason=reason))
+            self._send(peer.identity, message)

@@ -1,0 +1,272 @@
+"""The server socket's connections, watched and bounded (a thread beside the round loop).
+
+libzmq accepts every TCP connection and hands a multipart message to the application only once
+all of its frames have arrived, so a single peer could make the server hold gigabytes (frames
+each under ``ZMQ_MAXMSGSIZE``, as many as it likes) before any check of ours runs. This guard
+sees the connections through a socket monitor (accepted, closed, failed handshakes) and reads
+each one's received byte count from the kernel (``TCP_INFO``). It closes, with
+``shutdown(2)`` on libzmq's own descriptor (libzmq then drops the connection and what it
+buffered):
+
+- a connection that has received more than ``max_inflight_bytes`` since its last message was
+  delivered (a message larger than any this run sends, still arriving);
+- a connection that has not registered within ``hello_timeout_s`` (idle connections cost a
+  descriptor each);
+- connections beyond ``max_connections`` (the newest unregistered ones), so descriptors remain
+  for checkpoints, metrics and the registered agents.
+
+The round loop tells it which descriptor each message came from (``ZMQ_SRCFD``) and which ones
+belong to registered agents. Linux only (``TCP_INFO``); elsewhere, or for IPC, only the
+connection count and the hello timeout apply.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import ctypes
+import logging
+import resource
+import socket as pysocket
+import struct
+import sys
+import threading
+import time
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass, field
+from typing import Any
+
+import zmq
+from zmq.utils.monitor import recv_monitor_message
+
+logger = logging.getLogger(__name__)
+
+WATCH_INTERVAL_S = 0.01
+"""How often connections are looked at: at loopback speed a peer sends ~10-30 MB meanwhile."""
+REPORT_EVERY_S = 10.0
+FD_RESERVE = 64
+"""Descriptors kept free of connections: files, the ZAP and monitor sockets, libzmq's own."""
+_TCP_INFO = 11
+_BYTES_RECEIVED_OFFSET = 128  # struct tcp_info.tcpi_bytes_received (Linux >= 4.1)
+_EVENTS = (
+    zmq.EVENT_ACCEPTED
+    | zmq.EVENT_DISCONNECTED
+    | zmq.EVENT_CLOSED
+    | zmq.EVENT_HANDSHAKE_FAILED_PROTOCOL
+)
+
+_libc: ctypes.CDLL | None = None
+if sys.platform.startswith("linux"):
+    try:
+        _libc = ctypes.CDLL(None, use_errno=True)
+    except OSError:  # pragma: no cover - no libc to load
+        _libc = None
+
+
+def _bytes_received(fd: int) -> int | None:
+    """Bytes the kernel has received on this TCP socket (None if not TCP, or not Linux)."""
+    if _libc is None:
+        return None
+    buffer = ctypes.create_string_buffer(256)
+    length = ctypes.c_uint32(256)
+    if _libc.getsockopt(fd, pysocket.IPPROTO_TCP, _TCP_INFO, buffer, ctypes.byref(length)):
+        return None
+    if length.value < _BYTES_RECEIVED_OFFSET + 8:
+        return None
+    return int(struct.unpack_from("Q", buffer.raw, _BYTES_RECEIVED_OFFSET)[0])
+
+
+def _peer_name(fd: int) -> bytes | None:
+    """The raw peer address of a socket: tells a descriptor number reused by libzmq for another
+    connection from the one that was accepted under it."""
+    if _libc is None:
+        return None
+    buffer = ctypes.create_string_buffer(128)
+    length = ctypes.c_uint32(128)
+    if _libc.getpeername(fd, buffer, ctypes.byref(length)):
+        return None
+    return buffer.raw[: length.value]
+
+
+def _shutdown(fd: int) -> bool:
+    """End a connection libzmq owns without closing its descriptor (libzmq does that)."""
+    if _libc is None:
+        return False
+    return _libc.shutdown(fd, pysocket.SHUT_RDWR) == 0
+
+
+def connection_budget(requested: int) -> int:
+    """``requested``, lowered to what the process's descriptor limit leaves after the reserve."""
+    soft, _ = resource.getrlimit(resource.RLIMIT_NOFILE)
+    if soft == resource.RLIM_INFINITY:
+        return requested
+    return max(1, min(requested, soft - FD_RESERVE))
+
+
+@dataclass
+class _Connection:
+    fd: int
+    peer: bytes | None
+    accepted: float
+    baseline: int = 0
+    """Bytes received when its last message was delivered (or when it was accepted)."""
+    delivered: int = 0
+    seen_delivered: int = 0
+    registered: bool = False
+
+
+@dataclass
+class GuardCounts:
+    """What the guard did, for ``summary.json`` and the logs."""
+
+    oversized: int = 0
+    idle: int = 0
+    over_budget: int = 0
+    accepted: int = 0
+
+    def as_dict(self) -> dict[str, int]:
+        return {
+            "closed_oversized": self.oversized,
+            "closed_idle": self.idle,
+            "closed_over_budget": self.over_budget,
+            "connections_accepted": self.accepted,
+        }
+
+
+@dataclass
+class ConnectionGuard:
+    """Watches ``socket`` (a bound ROUTER) from its own thread until :meth:`stop`."""
+
+    socket: zmq.Socket
+    max_inflight_bytes: int
+    hello_timeout_s: float
+    max_connections: int
+    on_handshake_failed: Callable[[int], None] = lambda value: None
+    counts: GuardCounts = field(default_factory=GuardCounts)
+    _connections: dict[int, _Connection] = field(default_factory=dict)
+    _lock: threading.Lock = field(default_factory=threading.Lock)
+    _stopping: threading.Event = field(default_factory=threading.Event)
+    _thread: threading.Thread | None = None
+    _monitor: zmq.Socket | None = None
+    _reported_at: float = 0.0
+    _reported: tuple[int, int, int] = (0, 0, 0)
+
+    def start(self) -> ConnectionGuard:
+        self._monitor = self.socket.get_monitor_socket(_EVENTS)
+        self._thread = threading.Thread(target=self._run, name="fedhpg-connections", daemon=True)
+        self._thread.start()
+        return self
+
+    def stop(self) -> None:
+        self._stopping.set()
+        if self._thread is not None:
+            self._thread.join(timeout=5)
+        self._report(float("inf"))
+        if not self.socket.closed:
+            with contextlib.suppress(zmq.ZMQError):
+                self.socket.disable_monitor()
+
+    # -- called from the round loop's thread -----------------------------------------------
+
+    def delivered(self, fd: int) -> None:
+        """A whole message came from ``fd``."""
+        connection = self._connections.get(fd)
+        if connection is not None:
+            connection.delivered += 1  # read by the guard thread: an int store is atomic
+
+    def registered(self, fd: int, registered: bool) -> None:
+        with self._lock:
+            connection = self._connections.get(fd)
+            if connection is not None:
+                connection.registered = registered
+
+    def open_connections(self) -> int:
+        return len(self._connections)
+
+    # -- the guard thread ------------------------------------------------------------------
+
+    def _run(self) -> None:
+        assert self._monitor is not None
+        try:
+            while not self._stopping.is_set():
+                while self._monitor.poll(0):
+                    self._on_event(recv_monitor_message(self._monitor))
+                self._watch(time.monotonic())
+                self._monitor.poll(int(WATCH_INTERVAL_S * 1000))
+        except zmq.ZMQError as error:  # the context is going away
+            logger.debug("connection guard stopped: %s", error)
+        finally:
+            self._monitor.close(linger=0)
+
+    def _on_event(self, event: Mapping[str, Any]) -> None:
+        kind, value = event["event"], int(event["value"])
+        if kind == zmq.EVENT_ACCEPTED:
+            self.counts.accepted += 1
+            with self._lock:
+                self._connections[value] = _Connection(
+                    fd=value,
+                    peer=_peer_name(value),
+                    accepted=time.monotonic(),
+                    baseline=_bytes_received(value) or 0,
+                )
+            if len(self._connections) > self.max_connections:
+                self._evict()
+        elif kind in (zmq.EVENT_DISCONNECTED, zmq.EVENT_CLOSED):
+            with self._lock:
+                self._connections.pop(value, None)
+        elif kind == zmq.EVENT_HANDSHAKE_FAILED_PROTOCOL:
+            self.on_handshake_failed(value)
+
+    def _evict(self) -> None:
+        """Over budget: close the oldest unregistered connection (a newcomer that says hello
+        at once survives a stream of idle ones)."""
+        with self._lock:
+            waiting = [c for c in self._connections.values() if not c.registered]
+        if waiting:
+            self._close(min(waiting, key=lambda c: c.accepted), "over_budget")
+
+    def _report(self, now: float) -> None:
+        """One warning per window with what was closed in it (never a line per connection)."""
+        if now - self._reported_at < REPORT_EVERY_S:
+            return
+        current = (self.counts.oversized, self.counts.idle, self.counts.over_budget)
+        closed = [now_ - before for now_, before in zip(current, self._reported, strict=True)]
+        self._reported_at, self._reported = now, current
+        if any(closed):
+            logger.warning(
+                "closed %d connections (in %.0f s or less): %d sending a message larger than "
+                "%d bytes, %d not registered within %g s, %d beyond the budget of %d",
+                sum(closed), REPORT_EVERY_S, closed[0], self.max_inflight_bytes, closed[1],
+                self.hello_timeout_s, closed[2], self.max_connections,
+            )  # fmt: skip
+
+    def _watch(self, now: float) -> None:
+        self._report(now)
+        with self._lock:
+            connections = list(self._connections.values())
+        for connection in connections:
+            received = _bytes_received(connection.fd)
+            if received is not None:
+                if connection.delivered != connection.seen_delivered:
+                    connection.seen_delivered = connection.delivered
+                    connection.baseline = received
+                elif received - connection.baseline > self.max_inflight_bytes:
+                    self._close(connection, "oversized")
+                    continue
+            if not connection.registered and now - connection.accepted > self.hello_timeout_s:
+                self._close(connection, "idle")
+
+    def _close(self, connection: _Connection, why: str) -> None:
+        with self._lock:
+            if self._connections.get(connection.fd) is not connection:
+                return
+            del self._connections[connection.fd]
+        if connection.peer is not None and _peer_name(connection.fd) != connection.peer:
+            return  # the descriptor now belongs to another connection
+        if not _shutdown(connection.fd):
+            return
+        if why == "oversized":
+            self.counts.oversized += 1
+        elif why == "idle":
+            self.counts.idle += 1
+        else:
+            self.counts.over_budget += 1

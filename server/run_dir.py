@@ -1,0 +1,110 @@
+"""A run directory owned by one server at a time, checked before anything in it is touched.
+
+:meth:`RunDirectory.claim` takes an exclusive ``flock`` on ``<out_dir>/.lock`` (held until
+:meth:`release`, dropped by the kernel if the server dies), refuses an ``out_dir`` that is a
+file, one that another live server holds, and one that already holds a run unless the run is
+being resumed. Every refusal is a :class:`~fedhpg.common.config.ConfigError` naming the
+setting: the entry point prints one line and exits 2, and nothing has been written.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import fcntl
+import json
+import os
+from dataclasses import dataclass
+from pathlib import Path
+
+from fedhpg.common.config import ConfigError
+
+LOCK_NAME = ".lock"
+METRICS_NAME = "metrics.jsonl"
+RUN_FILES = (METRICS_NAME, "summary.json", "config.json", "checkpoints")
+"""What makes a directory hold a run (Hydra's own ``.hydra/`` and logs do not)."""
+
+
+class RunDirectoryError(RuntimeError):
+    """The run directory cannot be written (disk full, descriptors exhausted, removed)."""
+
+
+@dataclass
+class RunDirectory:
+    path: Path
+    _lock_fd: int = -1
+
+    @classmethod
+    def claim(cls, path: Path, *, resume: bool, key: str = "server.out_dir") -> RunDirectory:
+        """Own ``path`` for this server, or raise ConfigError without having changed it."""
+        if path.exists() and not path.is_dir():
+            raise ConfigError(key, f"{path} is a file, not a directory")
+        try:
+            path.mkdir(parents=True, exist_ok=True)
+            fd = os.open(path / LOCK_NAME, os.O_RDWR | os.O_CREAT, 0o644)
+        except OSError as error:
+            raise ConfigError(key, f"cannot use {path}: {error.strerror or error}") from None
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except OSError:
+            holder = os.pread(fd, 32, 0).decode("ascii", "replace").strip() or "?"
+            os.close(fd)
+            raise ConfigError(
+                key, f"{path} is in use by another fedhpg-server (pid {holder}); wait for it"
+            ) from None
+        directory = cls(path, fd)
+        try:
+            if not resume and directory.holds_run():
+                raise ConfigError(
+                    key,
+                    f"{path} holds a run already: continue it with resume=true, or choose an "
+                    "empty directory",
+                )
+            os.ftruncate(fd, 0)
+            os.pwrite(fd, f"{os.getpid()}\n".encode(), 0)
+        except BaseException:
+            directory.release()
+            raise
+        return directory
+
+    def holds_run(self) -> bool:
+        return any((self.path / name).exists() for name in RUN_FILES)
+
+    def release(self) -> None:
+        if self._lock_fd >= 0:
+            with contextlib.suppress(OSError):
+                os.ftruncate(self._lock_fd, 0)
+            os.close(self._lock_fd)  # closing drops the flock
+            self._lock_fd = -1
+
+    @property
+    def metrics(self) -> Path:
+        return self.path / METRICS_NAME
+
+    def checked_metrics(self, rounds: int) -> list[str]:
+        """The first ``rounds`` lines of metrics.jsonl, each the JSON record of its round;
+        ConfigError naming the first line that is missing, torn or out of order."""
+        try:
+            lines = self.metrics.read_text(encoding="utf-8").splitlines()
+        except FileNotFoundError:
+            lines = []
+        except (OSError, UnicodeDecodeError) as error:
+            raise ConfigError("resume", f"cannot read {self.metrics}: {error}") from None
+        for number in range(1, rounds + 1):
+            problem = None
+            if number > len(lines):
+                problem = "is missing"
+            else:
+                try:
+                    record = json.loads(lines[number - 1])
+                except json.JSONDecodeError:
+                    problem = "is not a JSON record (torn or overwritten)"
+                else:
+                    if not isinstance(record, dict) or record.get("round") != number:
+                        problem = f"is not round {number}'s record (a gap or a foreign line)"
+            if problem is not None:
+                raise ConfigError(
+                    "resume",
+                    f"{self.metrics} line {number} {problem}; the checkpoint is of round "
+                    f"{rounds}: restore the file, or start a new run",
+                )
+        return lines[:rounds]
