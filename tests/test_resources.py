@@ -194,6 +194,7 @@ def test_resource_attacks_leave_the_run_intact(tmp_path: Path) -> None:
     assert watch.peak_fds < FD_LIMIT, watch.peak_fds
     assert "presumed dead" not in server_err and "reconnecting" not in agent_err
     assert "Traceback" not in server_err
+    assert "more warnings about peers' messages" in server_err, "the suppressed count is told"
     summary = json.loads((out_dir / "summary.json").read_text())
     assert summary["closed_oversized"] >= 1
     # More connections were accepted (and closed) than the descriptor limit could have held.
