@@ -4,6 +4,7 @@ warning, nothing but plain numbers ever loaded (no pickle), and resume refusing 
 from __future__ import annotations
 
 import hashlib
+import json
 import logging
 import pickle
 from pathlib import Path
@@ -26,6 +27,7 @@ from fedhpg.server.checkpoint import (
     write_atomic,
 )
 from fedhpg.server.main import resume_point
+from fedhpg.server.run_dir import RunDirectory
 from fedhpg.server.strategies import make_strategy
 
 
@@ -127,8 +129,12 @@ def test_only_plain_numbers_are_ever_loaded(
 def test_resume_refuses_a_changed_run_and_a_missing_checkpoint(tmp_path: Path) -> None:
     run = compose(["rounds=5", "seed=3"])
     strategy = make_strategy(run.strategy)
+    run_dir = RunDirectory(tmp_path)
     with pytest.raises(ConfigError, match="no valid checkpoint"):
-        resume_point(run, tmp_path, strategy)
+        resume_point(run, run_dir, strategy)
+    (tmp_path / "metrics.jsonl").write_text(
+        "".join(json.dumps({"round": r}) + "\n" for r in (1, 2, 3))  # round 3: after the kill
+    )
     checkpoint = _checkpoint(2)
     save_checkpoint(
         tmp_path / "checkpoints",
@@ -140,15 +146,16 @@ def test_resume_refuses_a_changed_run_and_a_missing_checkpoint(tmp_path: Path) -
             state={"trajectories_per_agent": 24.0, "elapsed_s": 1.5},
         ),
     )
-    theta, progress = resume_point(run, tmp_path, strategy)
+    theta, progress, _ = resume_point(run, run_dir, strategy)
     assert torch.equal(theta, checkpoint.theta)
+    assert (tmp_path / "metrics.jsonl").read_text().count("\n") == 2, "cut back to round 2"
     assert (progress.next_round, progress.trajectories_per_agent) == (3, 24.0)
     assert progress.elapsed_s == 1.5
     with pytest.raises(ConfigError, match="differs from the checkpointed run") as error:
-        resume_point(compose(["rounds=5", "seed=4"]), tmp_path, strategy)
+        resume_point(compose(["rounds=5", "seed=4"]), run_dir, strategy)
     assert error.value.key == "seed"
     with pytest.raises(ConfigError, match="differs from the checkpointed run") as error:
-        resume_point(compose(["rounds=5", "seed=3", "strategy=median"]), tmp_path, strategy)
+        resume_point(compose(["rounds=5", "seed=3", "strategy=median"]), run_dir, strategy)
     assert error.value.key == "strategy"
     fedadam = compose(["rounds=5", "seed=3", "strategy=fedadam"])
     save_checkpoint(
@@ -157,7 +164,7 @@ def test_resume_refuses_a_changed_run_and_a_missing_checkpoint(tmp_path: Path) -
                    state={}),
     )  # fmt: skip
     with pytest.raises(ConfigError, match="holds no state of strategy 'fedadam'"):
-        resume_point(fedadam, tmp_path, make_strategy(fedadam.strategy))
+        resume_point(fedadam, run_dir, make_strategy(fedadam.strategy))
 
 
 def test_a_checkpoint_of_a_non_finite_theta_is_never_valid(tmp_path: Path) -> None:

@@ -155,7 +155,7 @@ def test_operator_mistakes_end_in_one_line_and_touch_nothing(tmp_path: Path) -> 
 def test_a_second_server_cannot_take_a_live_run_directory(tmp_path: Path) -> None:
     out_dir = tmp_path / "run"
     port = free_port()
-    run_keys = [*RUN, SLOW, "rounds=30"]
+    run_keys = [*RUN, SLOW, "rounds=16"]
     wire = [f"server.port={port}", f"server.out_dir={out_dir}"]
     metrics = out_dir / "metrics.jsonl"
     with processes() as started:
@@ -173,7 +173,7 @@ def test_a_second_server_cannot_take_a_live_run_directory(tmp_path: Path) -> Non
     assert f"pid {server.pid}" in lines[0]
     assert server.returncode == 0, server_err[-2000:]
     rounds = [json.loads(line)["round"] for line in metrics.read_text().splitlines()]
-    assert rounds == list(range(1, 31)), "the live run lost nothing"
+    assert rounds == list(range(1, 17)), "the live run lost nothing"
 
 
 def test_a_full_disk_stops_the_run_cleanly_and_the_agents_say_so(tmp_path: Path) -> None:
