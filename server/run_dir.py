@@ -20,8 +20,9 @@ from fedhpg.common.config import ConfigError
 
 LOCK_NAME = ".lock"
 METRICS_NAME = "metrics.jsonl"
-RUN_FILES = (METRICS_NAME, "summary.json", "config.json", "checkpoints")
-"""What makes a directory hold a run (Hydra's own ``.hydra/`` and logs do not)."""
+RUN_FILES = (METRICS_NAME, "summary.json", "checkpoints")
+"""What makes a directory hold a run: rounds or results. (A ``config.json`` alone, left by a
+server that could not bind, does not; nor do Hydra's ``.hydra/`` and logs.)"""
 
 
 class RunDirectoryError(RuntimeError):
