@@ -70,11 +70,29 @@ def _check_budget_keys(run: RunConfig, algorithm: Algorithm[Any, Any]) -> None:
             logger.debug("agents.budget.%s is not used by %s", name, algorithm.name)
 
 
+def validate_env_family(run: RunConfig) -> None:
+    """``env.family`` and ``env.options``, checked by generating the K variants through the
+    family registry (whatever a family is: built in, a plugin's, a dotted path). Cheap: a
+    variant holds parameters, its environment is built later (~2 ms for K=10 GridWorlds)."""
+    from fedhpg.common.variants import run_variants
+    from fedhpg.envs.registry import UnknownEnvFamilyError
+
+    try:
+        run_variants(run)
+    except UnknownEnvFamilyError as error:
+        raise ConfigError("env.family", str(error)) from None
+    except (TypeError, ValueError) as error:
+        key = "env.options" if run.env.options else "env"
+        raise ConfigError(key, str(error).splitlines()[0] if str(error) else repr(error)) from None
+
+
 def validate_run(run: RunConfig) -> RunConfig:
     """Everything an agent-side process can check: the config's values, the plugins, the
-    algorithm, its options and every agent's budget. Raises ConfigError naming the key."""
+    environment family and its options, the algorithm, its options and every agent's budget.
+    Raises ConfigError naming the key."""
     validate(run)
     import_plugins(run.plugins)
+    validate_env_family(run)
     algorithm, _ = resolve_algorithm(run)
     _check_budget_keys(run, algorithm)
     for index in range(run.agents.num_agents):

@@ -253,6 +253,7 @@ class RunConfig:
     """One federated run."""
 
     seed: int = 0
+    """Run seed: every agent's randomness derives from (seed, agent index, round, purpose)."""
     rounds: int = 50
     """T, the number of communication rounds."""
     plugins: list[str] = field(default_factory=list)
@@ -515,3 +516,87 @@ def from_dict(values: dict[str, Any]) -> RunConfig:
         raise ConfigError(str(key), str(error).splitlines()[0]) from None
     assert isinstance(config, RunConfig)
     return validate(config)
+
+
+# --- keys: typos, and what a resume may change -------------------------------------------------
+
+FREE_DICTS = ("env.options", "algo.params", "strategy.params", "agents.budget")
+"""Dicts whose keys belong to a registry entry (a family's options, an algorithm's ``Params``
+and ``Budget``, a strategy's ``Params``): checked by their owners, not by this schema."""
+
+
+def unknown_key(values: dict[str, Any], schema: type = RunConfig, prefix: str = "") -> str | None:
+    """The first key of ``values`` that ``schema`` (a config dataclass) has no field for, as a
+    one-line message with the nearest known key; None when every key is known. Hydra's ``+``
+    adds keys beyond the schema, which OmegaConf would drop without a word."""
+    import difflib
+
+    fields = {f.name: f for f in dataclasses.fields(schema)}
+    for name, value in values.items():
+        key = f"{prefix}{name}"
+        if name not in fields:
+            close = difflib.get_close_matches(name, fields, n=1)
+            if not close:  # a typo of a nested key, e.g. rounds → server.rounds_timeout_s
+                close = difflib.get_close_matches(key, all_keys(), n=1)
+            else:
+                close = [f"{prefix}{close[0]}"]
+            hint = f"; did you mean {close[0]}?" if close else ""
+            return f"{key}: not a fedhpg key{hint}"
+        inner = fields[name].type
+        nested = _dataclass_named(inner) if isinstance(inner, str) else None
+        if nested is not None and isinstance(value, dict) and key not in FREE_DICTS:
+            found = unknown_key(value, nested, f"{key}.")
+            if found is not None:
+                return found
+    return None
+
+
+def _dataclass_named(annotation: str) -> type | None:
+    candidate = globals().get(annotation)
+    return candidate if dataclasses.is_dataclass(candidate) else None  # type: ignore[return-value]
+
+
+def all_keys(schema: type = RunConfig, prefix: str = "") -> list[str]:
+    """Every dotted key of the schema (nested config dataclasses expanded)."""
+    keys = []
+    for f in dataclasses.fields(schema):
+        nested = _dataclass_named(f.type) if isinstance(f.type, str) else None
+        if nested is not None:
+            keys.extend(all_keys(nested, f"{prefix}{f.name}."))
+        else:
+            keys.append(f"{prefix}{f.name}")
+    return keys
+
+
+def flatten(values: Any, prefix: str = "") -> dict[str, Any]:
+    """Dotted leaves of nested dicts: {"algo": {"step_size": 1}} → {"algo.step_size": 1}."""
+    if not isinstance(values, dict) or (not values and prefix):
+        return {prefix.rstrip("."): values}
+    leaves: dict[str, Any] = {}
+    for name, value in values.items():
+        leaves.update(flatten(value, f"{prefix}{name}."))
+    return leaves
+
+
+def fixed_difference(run: dict[str, Any], invocation: dict[str, Any]) -> ConfigError | None:
+    """The first key that a resume must keep (``GROUPS`` fixed) and this invocation changes,
+    as an error naming the dotted key and both values; None when every fixed key is kept."""
+    for group in groups("fixed"):
+        before = flatten(run.get(group), f"{group}.")
+        after = flatten(invocation.get(group), f"{group}.")
+        for key in sorted(set(before) | set(after)):
+            old, new = before.get(key, _UNSET), after.get(key, _UNSET)
+            if old != new:
+                return ConfigError(
+                    key,
+                    f"the run has {_show(old)}, this invocation {_show(new)}; a resume keeps "
+                    f"{group} as it was",
+                )
+    return None
+
+
+_UNSET = object()
+
+
+def _show(value: Any) -> str:
+    return "no such key" if value is _UNSET else repr(value)

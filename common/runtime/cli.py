@@ -1,13 +1,22 @@
-"""Entry-point plumbing: compose the Hydra config, validate it once, report user errors briefly."""
+"""Entry-point plumbing: compose the Hydra config, validate it once, report user errors briefly.
+
+Every check runs before anything is started or written: a single run, every point of a
+``-m`` sweep, a resume (which starts from the run directory's ``config.json``). A user mistake
+is one line on stderr and exit status 2.
+"""
 
 from __future__ import annotations
 
+import contextlib
+import json
 import logging
 import os
 import sys
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterator, Sequence
+from pathlib import Path
+from typing import Any
 
-from fedhpg.common.config import ConfigError, RunConfig
+from fedhpg.common.config import ConfigError, RunConfig, fixed_difference, to_dict, unknown_key
 
 logger = logging.getLogger(__name__)
 
@@ -15,6 +24,9 @@ CONFIG_MODULE = "fedhpg.conf"
 CONFIG_NAME = "config"
 SCHEMA_NAME = "run_schema"
 EXIT_USAGE = 2
+LOG_FORMAT = "%(asctime)s %(levelname)s %(name)s: %(message)s"
+LOG_DATE_FORMAT = "%H:%M:%S"
+HELP_FLAGS = ("-h", "--help")
 
 
 def register_schema() -> None:
@@ -25,12 +37,20 @@ def register_schema() -> None:
 
 
 def to_run_config(cfg: object) -> RunConfig:
-    """DictConfig → validated RunConfig; OmegaConf type errors become ConfigError."""
+    """DictConfig → validated RunConfig; unknown keys and OmegaConf type errors become
+    ConfigError."""
     from omegaconf import DictConfig, OmegaConf
     from omegaconf.errors import OmegaConfBaseException
 
     assert isinstance(cfg, DictConfig)
     try:
+        values = OmegaConf.to_container(cfg, resolve=True)
+        assert isinstance(values, dict)
+        values.pop("hydra", None)
+        typo = unknown_key(values)
+        if typo is not None:
+            key, message = typo.split(": ", 1)
+            raise ConfigError(key, message)
         config = OmegaConf.to_object(cfg)
     except OmegaConfBaseException as error:
         raise ConfigError(
@@ -42,8 +62,9 @@ def to_run_config(cfg: object) -> RunConfig:
 
 
 def validate_config(config: RunConfig) -> RunConfig:
-    """Every check a process can make of its own config: values, plugins, the algorithm and
-    budgets, the key files it names. (The server also checks ``strategy``.)"""
+    """Every check a process can make of its own config: values, plugins, the environment
+    family and its options, the algorithm and budgets, the key files it names. (The server
+    also checks ``strategy``.)"""
     from fedhpg.common.components import validate_run
     from fedhpg.common.wire.security import validate_security
 
@@ -64,17 +85,24 @@ def _one_line(error: BaseException) -> str:
     return "; ".join(useful[:2]) if useful else type(error).__name__
 
 
-def compose(overrides: Sequence[str]) -> RunConfig:
-    """Compose ``conf/config.yaml`` with command-line overrides, without Hydra's run dirs."""
-    from hydra import compose as hydra_compose
+@contextlib.contextmanager
+def hydra_context() -> Iterator[None]:
+    """Hydra initialised on ``fedhpg.conf`` (no run directory, no logging set up)."""
     from hydra import initialize_config_module
+
+    register_schema()
+    with initialize_config_module(config_module=CONFIG_MODULE, version_base=None):
+        yield
+
+
+@contextlib.contextmanager
+def _hydra_errors(overrides: Sequence[str]) -> Iterator[None]:
+    """Hydra's and OmegaConf's errors about overrides, as one ConfigError naming the key."""
     from hydra.errors import HydraException, MissingConfigException
     from omegaconf.errors import OmegaConfBaseException
 
-    register_schema()
     try:
-        with initialize_config_module(config_module=CONFIG_MODULE, version_base=None):
-            cfg = hydra_compose(config_name=CONFIG_NAME, overrides=list(overrides))
+        yield
     except MissingConfigException as error:
         key = _override_key(error, overrides)
         options = getattr(error, "options", None) or []
@@ -92,7 +120,135 @@ def compose(overrides: Sequence[str]) -> RunConfig:
                 "options come with its group: algo=NAME)",
             ) from None
         raise ConfigError(key, _one_line(cause)) from None
-    return to_run_config(cfg)
+
+
+def _compose_cfg(overrides: Sequence[str]) -> Any:
+    """The composed DictConfig (inside :func:`hydra_context`)."""
+    from hydra import compose as hydra_compose
+
+    with _hydra_errors(overrides):
+        return hydra_compose(config_name=CONFIG_NAME, overrides=list(overrides))
+
+
+def own_overrides(args: Sequence[str]) -> list[str]:
+    """The config overrides among the arguments: no flags, no ``hydra.*`` settings."""
+    return [a for a in args if not a.startswith("-") and not a.lstrip("+~").startswith("hydra.")]
+
+
+def compose(overrides: Sequence[str], *, resumable: bool = False) -> RunConfig:
+    """Compose ``conf/config.yaml`` with command-line overrides, without Hydra's run dirs.
+    With ``resumable`` and a ``resume=`` override, start from the run's ``config.json``."""
+    overrides = own_overrides(overrides)
+    with hydra_context():
+        if resumable and resume_value(overrides) is not None:
+            return _compose_resume(overrides)
+        return to_run_config(_compose_cfg(overrides))
+
+
+def sweep_points(overrides: Sequence[str]) -> list[list[str]]:
+    """The overrides of every job a ``-m`` sweep would run (Hydra's parser expands
+    ``a=1,2``, ``range(…)``, ``glob(…)``; the basic sweeper's cartesian product)."""
+    from hydra._internal.core_plugins.basic_sweeper import BasicSweeper
+    from hydra.core.global_hydra import GlobalHydra
+    from hydra.core.override_parser.overrides_parser import OverridesParser
+
+    with _hydra_errors(overrides):
+        parser = OverridesParser.create(config_loader=GlobalHydra.instance().config_loader())
+        batches = BasicSweeper.split_arguments(parser.parse_overrides(list(overrides)), None)
+    return [list(point) for batch in batches for point in batch]
+
+
+def compose_sweep(overrides: Sequence[str]) -> list[RunConfig]:
+    """Compose and validate every point of a sweep before any job starts; an error names the
+    point (its swept values) that fails."""
+    overrides = own_overrides(overrides)
+    if resume_value(overrides) is not None:
+        raise ConfigError("resume", "resume one run directory at a time, without -m")
+    runs = []
+    with hydra_context():
+        points = sweep_points(overrides)
+        values: dict[str, set[str]] = {}
+        for point in points:
+            for item in point:
+                values.setdefault(item.split("=", 1)[0], set()).add(item)
+        swept = {key for key, seen in values.items() if len(seen) > 1}
+        for number, point in enumerate(points, 1):
+            try:
+                runs.append(to_run_config(_compose_cfg(point)))
+            except ConfigError as error:
+                where = " ".join(p for p in point if p.split("=", 1)[0] in swept)
+                label = f"sweep point {number}/{len(points)}" + (f" ({where})" if where else "")
+                raise ConfigError(f"{label}: {error.key}", str(error).split(": ", 1)[1]) from None
+    return runs
+
+
+# --- resume: the run's own config.json, overrides on top ----------------------------------------
+
+
+def resume_value(overrides: Sequence[str]) -> str | None:
+    values = [o.split("=", 1)[1] for o in overrides if o.split("=", 1)[0].lstrip("+") == "resume"]
+    return values[-1] if values and values[-1] not in ("", "null", "false") else None
+
+
+def resume_directory(overrides: Sequence[str]) -> Path:
+    """``resume=DIR``, or ``resume=true`` with ``server.out_dir=DIR``."""
+    value = resume_value(overrides)
+    assert value is not None
+    if value.lower() != "true":
+        return Path(value)
+    out_dirs = [o.split("=", 1)[1] for o in overrides if o.split("=", 1)[0] == "server.out_dir"]
+    if not out_dirs:
+        raise ConfigError("resume", "resume=true needs server.out_dir=DIR (or give resume=DIR)")
+    return Path(out_dirs[-1])
+
+
+def run_config_file(directory: Path) -> dict[str, Any]:
+    """A run directory's ``config.json``, the run's resolved config."""
+    path = directory / "config.json"
+    try:
+        values = json.loads(path.read_text(encoding="utf-8"))
+    except FileNotFoundError:
+        what = "no such directory" if not directory.is_dir() else "it has no config.json"
+        raise ConfigError("resume", f"{directory}: {what}; not a fedhpg run directory") from None
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as error:
+        raise ConfigError("resume", f"cannot read {path}: {error}") from None
+    if not isinstance(values, dict):
+        raise ConfigError("resume", f"{path} is not a fedhpg config")
+    return values
+
+
+def _compose_resume(overrides: list[str]) -> RunConfig:
+    """The run's ``config.json``; then each config group named on the command line sets what
+    that group sets, and each key override applies on top (Hydra's own override rules). A
+    change to a key that a resume must keep (``GROUPS`` fixed) is refused naming it."""
+    from hydra._internal.config_loader_impl import ConfigLoaderImpl
+    from hydra.core.global_hydra import GlobalHydra
+    from hydra.core.override_parser.overrides_parser import OverridesParser
+    from omegaconf import OmegaConf
+
+    from fedhpg.common.config import flatten
+
+    directory = resume_directory(overrides)
+    before = run_config_file(directory)
+    loader = GlobalHydra.instance().config_loader()
+    group_names = set(loader.list_groups(""))
+    with _hydra_errors(overrides):
+        parsed = OverridesParser.create(config_loader=loader).parse_overrides(overrides)
+        cfg = OmegaConf.merge(OmegaConf.structured(RunConfig), before)
+        defaults = flatten(OmegaConf.to_container(_compose_cfg([])))
+        for override in parsed:
+            if override.key_or_group.split("/")[0] in group_names:
+                chosen = flatten(OmegaConf.to_container(_compose_cfg([override.input_line])))
+                for key, value in chosen.items():
+                    if defaults.get(key) != value:
+                        OmegaConf.update(cfg, key, value, merge=False, force_add=True)
+        keys = [o for o in parsed if o.key_or_group.split("/")[0] not in group_names]
+        ConfigLoaderImpl._apply_overrides_to_config(keys, cfg)
+    run = to_run_config(cfg)
+    changed = fixed_difference(before, to_dict(run))
+    if changed is not None:
+        raise ConfigError(changed.key, f"{str(changed).split(': ', 1)[1]} (resuming {directory})")
+    return run
 
 
 def _override_key(error: BaseException, overrides: Sequence[str]) -> str:
@@ -105,12 +261,33 @@ def _override_key(error: BaseException, overrides: Sequence[str]) -> str:
     return "overrides"
 
 
-def setup_logging(level: str | int = "INFO") -> None:
-    logging.basicConfig(
-        level=level,
-        format="%(asctime)s %(levelname)s %(name)s: %(message)s",
-        datefmt="%H:%M:%S",
-    )
+# --- logging, threads, the entry ------------------------------------------------------------------
+
+
+class _StderrHandler(logging.StreamHandler):  # type: ignore[type-arg]
+    """Writes to whatever ``sys.stderr`` is now, so a live progress bar (which redirects it)
+    keeps log lines above itself."""
+
+    @property  # type: ignore[override]
+    def stream(self) -> Any:
+        return sys.stderr
+
+    @stream.setter
+    def stream(self, _value: Any) -> None:
+        pass
+
+
+def setup_logging(level: str | int | None = None) -> None:
+    """The one log format of every entry point and forked child: ``time LEVEL logger: text``
+    on stderr. (conf/config.yaml turns Hydra's own logging setup off.)"""
+    level = level or os.environ.get("FEDHPG_LOG_LEVEL", "INFO")
+    root = logging.getLogger()
+    for handler in list(root.handlers):
+        root.removeHandler(handler)
+    handler = _StderrHandler()
+    handler.setFormatter(logging.Formatter(LOG_FORMAT, datefmt=LOG_DATE_FORMAT))
+    root.addHandler(handler)
+    root.setLevel(level)
 
 
 def limit_threads() -> None:
@@ -122,28 +299,37 @@ def limit_threads() -> None:
     torch.set_num_threads(1)
 
 
-def run_entry(main: Callable[[RunConfig], int], argv: Sequence[str] | None = None) -> int:
+def fail(error: ConfigError) -> int:
+    sys.stderr.write(f"error: {error}\n")
+    return EXIT_USAGE
+
+
+def run_entry(
+    main: Callable[[RunConfig], int],
+    argv: Sequence[str] | None = None,
+    *,
+    resumable: bool = False,
+) -> int:
     """Compose, validate and run ``main``; user mistakes exit 2 with one line, never a trace."""
     args = list(sys.argv[1:] if argv is None else argv)
-    if any(a in ("-h", "--help") for a in args):
-        program = os.path.basename(sys.argv[0])
-        sys.stdout.write(
-            f"usage: {program} [key=value ...]\n"
-            "Hydra overrides of conf/config.yaml, e.g. agents.num_agents=3 rounds=20 seed=1\n"
-        )
+    if any(a in HELP_FLAGS for a in args):
+        from fedhpg.common.runtime.help import help_text
+
+        sys.stdout.write(help_text(os.path.basename(sys.argv[0])))
         return 0
-    setup_logging(os.environ.get("FEDHPG_LOG_LEVEL", "INFO"))
+    flags = [a for a in args if a.startswith("-")]
+    if flags:
+        return fail(ConfigError(flags[0], "not an option; give key=value overrides (see --help)"))
+    setup_logging()
     try:
-        run = compose(args)
+        run = compose(args, resumable=resumable)
     except ConfigError as error:
-        sys.stderr.write(f"error: {error}\n")
-        return EXIT_USAGE
+        return fail(error)
     limit_threads()
     try:
         return main(run)
     except ConfigError as error:
-        sys.stderr.write(f"error: {error}\n")
-        return EXIT_USAGE
+        return fail(error)
     except KeyboardInterrupt:
         sys.stderr.write("interrupted\n")
         return 130

@@ -1,0 +1,153 @@
+"""``--help`` of the entry points, generated at help time from the config itself: the
+docstring under each field of :mod:`fedhpg.common.config` (read with ``ast``), the defaults of
+the composed ``conf/config.yaml`` and the config groups in ``conf/``. New fields, groups and
+options appear by themselves."""
+
+from __future__ import annotations
+
+import ast
+import dataclasses
+import inspect
+from typing import Any
+
+from fedhpg.common import config as config_module
+from fedhpg.common.config import RunConfig, flatten
+
+USAGE = {
+    "fedhpg-run": "[-m] [group=option ...] [key=value ...]",
+    "fedhpg-server": "[key=value ...]",
+    "fedhpg-agent": "agent.index=K [key=value ...]",
+}
+WHAT = {
+    "fedhpg-run": "Run a whole federation on this machine: one server and K agent processes.",
+    "fedhpg-server": "Run the server of a federation: bind, wait for K agents, run the rounds.",
+    "fedhpg-agent": "Run one agent of a federation: connect to the server, train when asked.",
+}
+EXAMPLES = {
+    "fedhpg-run": [
+        "fedhpg-run rounds=20 seed=3 algo=fedhpgvr",
+        "fedhpg-run env=cartpole agents=homogeneous4 server.port=5601",
+        "fedhpg-run -m seed=0,1,2 algo.step_size=0.5,1.0      # a sweep: every point checked first",
+        "fedhpg-run resume=outputs/2026-01-01/12-00-00 rounds=80   # continue a run, its own config",
+    ],
+    "fedhpg-server": [
+        "fedhpg-server server.port=5555 server.out_dir=runs/manual",
+        "fedhpg-server resume=true server.out_dir=runs/manual rounds=80",
+    ],
+    "fedhpg-agent": ["fedhpg-agent agent.index=0 server.host=127.0.0.1 server.port=5555"],
+}
+LINE_WIDTH = 110
+KEY_COLUMN = 40
+
+
+def field_docs() -> dict[str, dict[str, str]]:
+    """``{class name: {field: first sentence of its docstring}}`` for every config dataclass."""
+    tree = ast.parse(inspect.getsource(config_module))
+    docs: dict[str, dict[str, str]] = {}
+    for node in tree.body:
+        if not isinstance(node, ast.ClassDef):
+            continue
+        fields = docs.setdefault(node.name, {})
+        for current, following in zip(node.body, node.body[1:], strict=False):
+            if (
+                isinstance(current, ast.AnnAssign)
+                and isinstance(current.target, ast.Name)
+                and isinstance(following, ast.Expr)
+                and isinstance(following.value, ast.Constant)
+                and isinstance(following.value.value, str)
+            ):
+                fields[current.target.id] = _first_sentence(following.value.value)
+    return docs
+
+
+def _first_sentence(text: str) -> str:
+    """The docstring's first sentence (a period before a capital), on one line."""
+    import re
+
+    text = " ".join(text.replace("``", "").split())
+    first = re.split(r"(?<!e\.g)(?<!i\.e)(?<=[a-z0-9)'\]])\. (?=[A-Z])", text, maxsplit=1)[0]
+    return first.rstrip(".")
+
+
+def _key_docs() -> dict[str, str]:
+    """Dotted key → doc, following RunConfig's nested dataclasses."""
+    docs = field_docs()
+    keyed: dict[str, str] = {}
+    for top in dataclasses.fields(RunConfig):
+        nested = getattr(config_module, str(top.type), None)
+        if dataclasses.is_dataclass(nested):
+            for inner in dataclasses.fields(nested):
+                keyed[f"{top.name}.{inner.name}"] = docs.get(nested.__name__, {}).get(inner.name, "")
+        else:
+            keyed[top.name] = docs["RunConfig"].get(top.name, "")
+    return keyed
+
+
+def _defaults() -> tuple[dict[str, Any], dict[str, list[str]], dict[str, str]]:
+    """The composed default config's leaves, each config group's options and default."""
+    from hydra.core.global_hydra import GlobalHydra
+    from omegaconf import OmegaConf
+
+    from fedhpg.common.runtime.cli import hydra_context
+
+    with hydra_context():
+        loader = GlobalHydra.instance().config_loader()
+        groups = {
+            name: loader.get_group_options(name)
+            for name in loader.list_groups("")
+            if name != "hydra"
+        }
+        from hydra import compose
+
+        cfg = compose(config_name="config", return_hydra_config=True)
+    chosen = {str(k): str(v) for k, v in cfg.hydra.runtime.choices.items()}
+    cfg = OmegaConf.to_container(cfg)
+    cfg.pop("hydra")
+    return flatten(cfg), groups, chosen
+
+
+def help_text(program: str) -> str:
+    values, groups, chosen = _defaults()
+    lines = [
+        f"usage: {program} {USAGE.get(program, '[key=value ...]')}",
+        "",
+        WHAT.get(program, ""),
+        "Settings are Hydra overrides of conf/config.yaml, typed by fedhpg.common.config.",
+        "A bad value is one line on stderr and exit status 2; nothing is started.",
+        "",
+        "config groups (group=option):",
+    ]
+    for name, options in sorted(groups.items()):
+        marked = [f"{o} (default)" if o == chosen.get(name) else o for o in options]
+        lines.append(f"  {name + '=':<12} {', '.join(marked)}")
+    lines += ["", "keys (key=value; default, then what it is):"]
+    section = ""
+    for key, doc in _key_docs().items():
+        if "." in key and key.split(".")[0] != section:
+            section = key.split(".")[0]
+            lines.append(f" {section}.*")
+        left = f"  {key}={_short(_value(values, key))}"
+        room = LINE_WIDTH - max(len(left), KEY_COLUMN) - 2
+        doc = doc if len(doc) <= room else doc[: room - 1] + "…"
+        lines.append(f"{left:<{KEY_COLUMN}}  {doc}".rstrip())
+    lines += ["", "examples:"] + [f"  {example}" for example in EXAMPLES.get(program, [])]
+    lines += ["", "More: README.md (Running a federation, Configuration, resume)."]
+    return "\n".join(lines) + "\n"
+
+
+def _value(leaves: dict[str, Any], key: str) -> Any:
+    """A key's default; a dict key (e.g. agents.budget) is gathered from its leaves."""
+    if key in leaves:
+        return leaves[key]
+    inner = {k[len(key) + 1 :]: v for k, v in leaves.items() if k.startswith(key + ".")}
+    return inner or None
+
+
+def _short(value: Any) -> str:
+    if isinstance(value, dict):
+        return "{" + ", ".join(f"{k}: {_short(v)}" for k, v in value.items()) + "}"
+    if value is None:
+        return "null"
+    if isinstance(value, bool):
+        return str(value).lower()
+    return str(value)
