@@ -11,7 +11,7 @@ from __future__ import annotations
 import abc
 import hashlib
 from dataclasses import dataclass, field
-from typing import Any, NamedTuple, Protocol, runtime_checkable
+from typing import Any, ClassVar, NamedTuple, Protocol, runtime_checkable
 
 import gymnasium as gym
 import numpy as np
@@ -59,6 +59,10 @@ class BatchEnv(Protocol):
 @dataclass(frozen=True, kw_only=True)
 class EnvVariant(abc.ABC):
     """One agent's environment: the same spaces as its siblings, its own MDP and discount."""
+
+    has_goal: ClassVar[bool] = False
+    """Whether episodes can end in a goal (``BatchStep.success``); else a success rate means
+    nothing and reports leave it out."""
 
     family: str
     index: int

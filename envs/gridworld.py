@@ -13,7 +13,7 @@ import itertools
 import logging
 from collections.abc import Sequence
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, ClassVar
 
 import gymnasium as gym
 import numpy as np
@@ -310,6 +310,7 @@ class GridWorldVariant(EnvVariant):
     variants. It is not in ``params`` because ``params`` is what runs report per agent.
     """
 
+    has_goal: ClassVar[bool] = True
     family: str = "gridworld"
     layout: tuple[str, ...] = DEFAULT_LAYOUT
     slip: float = 0.0

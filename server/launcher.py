@@ -27,6 +27,8 @@ logger = logging.getLogger(__name__)
 PR_SET_PDEATHSIG = 1
 STOP_GRACE_S = 3.0
 EXIT_INTERRUPTED = 130
+BIND_FAILED = b"!"
+"""Prefix of the server child's message on the ready pipe when it could not bind."""
 
 
 def _die_with_parent() -> None:
@@ -45,7 +47,9 @@ def _child_setup() -> None:
 
 def _server_child(run: RunConfig, out_dir: str, ready: Connection) -> None:
     _child_setup()
-    from fedhpg.server.main import serve
+    import zmq
+
+    from fedhpg.server.main import bind_error, serve
     from fedhpg.server.pools import FederationError
     from fedhpg.server.run_dir import RunDirectoryError
 
@@ -57,6 +61,9 @@ def _server_child(run: RunConfig, out_dir: str, ready: Connection) -> None:
         sys.exit(2)
     except (FederationError, RunDirectoryError) as error:
         logging.getLogger("fedhpg.server").error("%s", error)
+        sys.exit(1)
+    except zmq.ZMQError as error:  # the launcher reports it in one line, before any agent starts
+        ready.send_bytes(BIND_FAILED + bind_error(run, error).encode())
         sys.exit(1)
 
 
@@ -144,10 +151,20 @@ class Supervisor:
             time.sleep(0.05)
 
 
-def launch(run: RunConfig, out_dir: Path) -> int:
-    """Run a whole federation on loopback; returns the process exit status."""
+def check_launch(run: RunConfig) -> None:
+    """What fedhpg-run checks of a composed run before starting anything: the strategy, every
+    agent's key files, loopback."""
+    from fedhpg.common.wire.security import check_launch_keys
+    from fedhpg.server.strategies import validate_strategy
+
+    validate_strategy(run)
     if run.server.transport == "tcp" and run.server.bind_all:
         raise ConfigError("server.bind_all", "fedhpg-run runs every process here: keep loopback")
+    check_launch_keys(run)  # security: every agent's key, before anything is forked
+
+
+def launch(run: RunConfig, out_dir: Path) -> int:
+    """Run a whole federation on loopback; returns the process exit status."""
     supervisor = Supervisor(max_restarts=run.agent.max_restarts)
     previous = {sig: signal.getsignal(sig) for sig in (signal.SIGINT, signal.SIGTERM)}
 
@@ -161,7 +178,12 @@ def launch(run: RunConfig, out_dir: Path) -> int:
         endpoint = None
         while endpoint is None:
             if receive.poll(0.05):
-                endpoint = receive.recv_bytes().decode()
+                message = receive.recv_bytes()
+                if message.startswith(BIND_FAILED):
+                    server.join()
+                    sys.stderr.write(f"error: {message[len(BIND_FAILED) :].decode()}\n")
+                    return 1
+                endpoint = message.decode()
             elif server.exitcode is not None:
                 if server.exitcode == 2:  # a configuration error, already reported in one line
                     return 2
@@ -196,47 +218,110 @@ def _resolve_out_dir(run: RunConfig) -> Path:
         return Path("runs") / time.strftime("%Y%m%d-%H%M%S")
 
 
-def run_federation(run: RunConfig) -> int:
-    if run.server.transport == "tcp" and run.server.port != 0:
-        # Forked children bind their own free port; a fixed port is for fedhpg-server.
+def port_named(overrides: list[str]) -> bool:
+    """Whether the command line sets ``server.port``: fedhpg-run then listens there; otherwise
+    on a free port (the default 5555 is for fedhpg-server and agents started by hand)."""
+    return any(o.split("=", 1)[0].lstrip("+") == "server.port" for o in overrides)
+
+
+def check_port_free(run: RunConfig) -> None:
+    """A named port that something else holds: one line and exit 1 before anything starts
+    (the setting is valid; the machine's state is what fails, as with a full disk)."""
+    import socket
+
+    if run.server.transport != "tcp" or run.server.port == 0:
+        return
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as probe:
+        probe.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)  # as libzmq binds
+        try:
+            probe.bind((run.server.host, run.server.port))
+        except OSError as error:
+            sys.stderr.write(
+                f"error: server.port: cannot listen on {run.server.host}:{run.server.port}: "
+                f"{error.strerror or error} (choose another port, or leave server.port unset "
+                "for a free one)\n"
+            )
+            sys.exit(1)
+
+
+def run_federation(run: RunConfig, *, port: bool = False) -> int:
+    """The federation of ``run``; on the port it names if ``port``, else on a free one."""
+    if run.server.transport == "tcp" and not port:
         run = replace(run, server=replace(run.server, port=0))
     os.environ.setdefault("OMP_NUM_THREADS", "1")
     return launch(run, _resolve_out_dir(run))
 
 
 def _hydra_task(cfg: object) -> None:
-    from fedhpg.common.runtime.cli import limit_threads, to_run_config
-    from fedhpg.common.wire.security import check_launch_keys
-    from fedhpg.server.strategies import validate_strategy
+    from hydra.core.hydra_config import HydraConfig
 
-    try:
+    from fedhpg.common.runtime.cli import limit_threads, to_run_config
+
+    try:  # checked before Hydra started; again here for what only the job sees
         run = to_run_config(cfg)
-        validate_strategy(run)
-        check_launch_keys(run)  # security: every agent's key, before anything is forked
+        check_launch(run)
     except ConfigError as error:
         sys.stderr.write(f"error: {error}\n")
         sys.exit(2)
     limit_threads()
-    status = run_federation(run)
+    status = run_federation(run, port=port_named(list(HydraConfig.get().overrides.task)))
     if status != 0:
         sys.exit(status)
 
 
 def main() -> None:
-    """Validate the overrides first (one-line errors, exit 2), then let Hydra run the job(s)."""
+    """Every check first (one-line errors, exit 2, nothing created): the run, every point of a
+    ``-m`` sweep, or a resume from its run directory's config.json (run here, without Hydra's
+    job machinery, so no outputs/ directory appears). Then Hydra runs the job(s)."""
     import hydra
 
-    from fedhpg.common.runtime.cli import EXIT_USAGE, compose, register_schema
-    from fedhpg.server.strategies import validate_strategy
+    from fedhpg.common.runtime.cli import (
+        EXIT_USAGE,
+        HELP_FLAGS,
+        compose,
+        compose_sweep,
+        limit_threads,
+        own_overrides,
+        register_schema,
+        resume_value,
+        setup_logging,
+        unknown_flag,
+    )
 
     args = sys.argv[1:]
+    if any(a in HELP_FLAGS for a in args):
+        from fedhpg.common.runtime.help import help_text
+
+        sys.stdout.write(help_text("fedhpg-run"))
+        sys.exit(0)
+    flag = unknown_flag(args)
+    if flag is not None:
+        sys.stderr.write(f"error: {flag}\n")
+        sys.exit(EXIT_USAGE)
+    setup_logging()
     multirun = any(a in ("-m", "--multirun") for a in args)
-    if not multirun and not any(a.startswith("-") and a not in ("-m",) for a in args):
-        try:
-            validate_strategy(compose([a for a in args if not a.startswith("hydra.")]))
-        except ConfigError as error:
-            sys.stderr.write(f"error: {error}\n")
-            sys.exit(EXIT_USAGE)
+    hydra_flags = any(a.startswith("-") and a not in ("-m", "--multirun") for a in args)
+    overrides = own_overrides(args)
+    resume = resume_value(overrides) is not None and not multirun
+    try:
+        if hydra_flags:
+            runs: list[RunConfig] = []  # --cfg, --info, ...: Hydra's own, it runs no job
+        elif multirun:
+            runs = compose_sweep(overrides)
+        else:
+            runs = [compose(overrides, resumable=resume)]
+        for run in runs:
+            check_launch(run)
+    except ConfigError as error:
+        sys.stderr.write(f"error: {error}\n")
+        sys.exit(EXIT_USAGE)
+    port = port_named(overrides)
+    if port:
+        for run in runs[:1]:
+            check_port_free(run)
+    if resume:
+        limit_threads()
+        sys.exit(run_federation(runs[0], port=port))
     register_schema()
     app = hydra.main(config_path="pkg://fedhpg.conf", config_name="config", version_base=None)(
         _hydra_task

@@ -16,7 +16,13 @@ import torch
 import zmq
 
 from fedhpg.common.components import agent_profile, resolve_algorithm
-from fedhpg.common.config import ConfigError, RunConfig, dictated_settings, groups, to_dict
+from fedhpg.common.config import (
+    ConfigError,
+    RunConfig,
+    dictated_settings,
+    fixed_difference,
+    to_dict,
+)
 from fedhpg.common.runtime.cli import run_entry
 from fedhpg.common.runtime.progress import Progress
 from fedhpg.common.types import EvaluationStats
@@ -56,14 +62,18 @@ def default_out_dir() -> Path:
     return Path("runs") / time.strftime("%Y%m%d-%H%M%S")
 
 
-def _progress_callback(progress: Progress) -> Callable[[RoundRecord, torch.Tensor], None]:
+def _progress_callback(
+    progress: Progress, *, has_goal: bool
+) -> Callable[[RoundRecord, torch.Tensor], None]:
     def update(record: RoundRecord, _: torch.Tensor) -> None:
         status = f"round {record.round_time_s:.2f}s"
         if record.eval:
             success = [e.success_rate for e in record.eval.values()]
             returns = [e.return_mean for e in record.eval.values()]
             mean_return = sum(returns) / len(returns)
-            status += f" | eval success min {min(success):.2f}, mean return {mean_return:.3f}"
+            status += " | eval "
+            status += f"success min {min(success):.2f}, " if has_goal else ""
+            status += f"mean return {mean_return:.3f}"
         progress.update(1, status)
 
     return update
@@ -111,12 +121,10 @@ def resume_point(
     checkpoint = latest_valid_checkpoint(out_dir / "checkpoints")
     if checkpoint is None:
         raise ConfigError("resume", f"no valid checkpoint in {out_dir / 'checkpoints'}")
-    current = to_dict(run)
-    for key in groups("fixed"):
-        if checkpoint.config.get(key) != current[key]:
-            raise ConfigError(
-                key, f"differs from the checkpointed run in {out_dir}; resume keeps it"
-            )
+    changed = fixed_difference(checkpoint.config, to_dict(run))
+    if changed is not None:
+        message = str(changed).split(": ", 1)[1]
+        raise ConfigError(changed.key, f"{message} (the checkpoint in {out_dir})")
     if run.rounds < checkpoint.round:
         raise ConfigError(
             "rounds",
@@ -246,10 +254,7 @@ def _serve_claimed(
         _checkpoint_callback(run, out_dir / "checkpoints", progress, pool.counters),
         keep_eval,
     ]
-    if show_progress:
-        bar = Progress(run.rounds, "rounds")
-        bar.done = progress.next_round - 1
-        callbacks.append(_progress_callback(bar))
+    bar: Progress | None = None
     try:
         socket.bind(bind_endpoint(run.server))
         bound = socket.getsockopt_string(zmq.LAST_ENDPOINT)
@@ -257,6 +262,9 @@ def _serve_claimed(
         if on_bound is not None:
             on_bound(bound)
         pool.wait_for_agents(run.server.register_timeout_s)
+        if show_progress:  # timed from the first round on, not the wait for agents
+            bar = Progress(run.rounds, "rounds", done=progress.next_round - 1)
+            callbacks.append(_progress_callback(bar, has_goal=variants[0].has_goal))
         coordinator = Coordinator(
             run=run,
             pool=pool,
@@ -271,6 +279,8 @@ def _serve_claimed(
         pool.shutdown(f"the server stopped: {error or type(error).__name__}", complete=False)
         raise
     finally:
+        if bar is not None:
+            bar.close()
         metrics.close()
         connections.stop()
         security.stop()  # the ZAP thread
@@ -298,7 +308,9 @@ def _serve_claimed(
         sys.stdout.write(
             f"\nUnified policy after round {last_eval['round']} "
             f"({run.eval.episodes} {'greedy' if run.eval.greedy else 'sampled'} episodes "
-            "per environment):\n" + evaluation_table(last_eval["eval"], params, compute) + "\n"
+            "per environment):\n"
+            + evaluation_table(last_eval["eval"], params, compute, has_goal=variants[0].has_goal)
+            + "\n"
         )
     sys.stdout.write(f"run directory: {out_dir.resolve()}\n")
     sys.stdout.flush()
@@ -322,10 +334,17 @@ def _main(run: RunConfig) -> int:
         logger.error("%s", error)
         return 1
     except zmq.ZMQError as error:
-        logger.error("cannot serve on %s: %s", bind_endpoint(run.server), error)
+        sys.stderr.write(f"error: {bind_error(run, error)}\n")
         return 1
     return 0
 
 
+def bind_error(run: RunConfig, error: zmq.ZMQError) -> str:
+    """One line for an endpoint the server cannot listen on (a port in use, a bad address):
+    exit status 1, since the setting may be right and the machine's state is what fails."""
+    key = "server.port" if run.server.transport == "tcp" else "server.ipc_path"
+    return f"{key}: cannot listen on {bind_endpoint(run.server)}: {error.strerror or error}"
+
+
 def main() -> None:
-    sys.exit(run_entry(_main))
+    sys.exit(run_entry(_main, resumable=True))

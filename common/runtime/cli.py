@@ -47,7 +47,7 @@ def to_run_config(cfg: object) -> RunConfig:
         values = OmegaConf.to_container(cfg, resolve=True)
         assert isinstance(values, dict)
         values.pop("hydra", None)
-        typo = unknown_key(values)
+        typo = unknown_key({str(k): v for k, v in values.items()})
         if typo is not None:
             key, message = typo.split(": ", 1)
             raise ConfigError(key, message)
@@ -114,12 +114,46 @@ def _hydra_errors(overrides: Sequence[str]) -> Iterator[None]:
         cause = error.__cause__ if isinstance(error.__cause__, OmegaConfBaseException) else error
         key = getattr(cause, "full_key", None) or _override_key(error, overrides)
         if "To append to your config use +" in str(error):
+            typo = _typo(key)
+            if typo is not None:
+                raise ConfigError(key, typo) from None
             raise ConfigError(
                 key,
                 f"not in the composed config; add it with +{key}=... (an algorithm's budget and "
                 "options come with its group: algo=NAME)",
             ) from None
         raise ConfigError(key, _one_line(cause)) from None
+
+
+def _typo(key: str) -> str | None:
+    """Why ``key`` is no fedhpg key (with the nearest one), or None if it could be one."""
+    from fedhpg.common.config import FREE_DICTS
+
+    if any(key.startswith(f"{free}.") for free in FREE_DICTS):
+        return None
+    nested: dict[str, object] = {}
+    node = nested
+    parts = key.split(".")
+    for part in parts[:-1]:
+        node[part] = node = {}
+    node[parts[-1]] = None
+    found = unknown_key(nested)
+    return found.split(": ", 1)[1] if found is not None else None
+
+
+HYDRA_FLAGS = (
+    "--hydra-help", "--version", "--cfg", "-c", "--resolve", "--package", "-p", "--run", "-r",
+    "--multirun", "-m", "--shell-completion", "-sc", "--config-path", "-cp", "--config-name",
+    "-cn", "--config-dir", "-cd", "--experimental-rerun", "--info", "-i",
+)  # fmt: skip
+"""Hydra's own command-line flags (fedhpg-run passes them on)."""
+
+
+def unknown_flag(args: Sequence[str], known: Sequence[str] = HYDRA_FLAGS) -> ConfigError | None:
+    for arg in args:
+        if arg.startswith("-") and arg.split("=", 1)[0] not in known:
+            return ConfigError(arg, "not an option; give key=value overrides (see --help)")
+    return None
 
 
 def _compose_cfg(overrides: Sequence[str]) -> Any:
@@ -224,7 +258,7 @@ def _compose_resume(overrides: list[str]) -> RunConfig:
     from hydra._internal.config_loader_impl import ConfigLoaderImpl
     from hydra.core.global_hydra import GlobalHydra
     from hydra.core.override_parser.overrides_parser import OverridesParser
-    from omegaconf import OmegaConf
+    from omegaconf import DictConfig, OmegaConf
 
     from fedhpg.common.config import flatten
 
@@ -235,10 +269,12 @@ def _compose_resume(overrides: list[str]) -> RunConfig:
     with _hydra_errors(overrides):
         parsed = OverridesParser.create(config_loader=loader).parse_overrides(overrides)
         cfg = OmegaConf.merge(OmegaConf.structured(RunConfig), before)
+        assert isinstance(cfg, DictConfig)
         defaults = flatten(OmegaConf.to_container(_compose_cfg([])))
         for override in parsed:
             if override.key_or_group.split("/")[0] in group_names:
-                chosen = flatten(OmegaConf.to_container(_compose_cfg([override.input_line])))
+                line = f"{override.get_key_element()}={override.get_value_element_as_str()}"
+                chosen = flatten(OmegaConf.to_container(_compose_cfg([line])))
                 for key, value in chosen.items():
                     if defaults.get(key) != value:
                         OmegaConf.update(cfg, key, value, merge=False, force_add=True)
@@ -264,11 +300,11 @@ def _override_key(error: BaseException, overrides: Sequence[str]) -> str:
 # --- logging, threads, the entry ------------------------------------------------------------------
 
 
-class _StderrHandler(logging.StreamHandler):  # type: ignore[type-arg]
+class _StderrHandler(logging.StreamHandler):
     """Writes to whatever ``sys.stderr`` is now, so a live progress bar (which redirects it)
     keeps log lines above itself."""
 
-    @property  # type: ignore[override]
+    @property
     def stream(self) -> Any:
         return sys.stderr
 
@@ -317,9 +353,9 @@ def run_entry(
 
         sys.stdout.write(help_text(os.path.basename(sys.argv[0])))
         return 0
-    flags = [a for a in args if a.startswith("-")]
-    if flags:
-        return fail(ConfigError(flags[0], "not an option; give key=value overrides (see --help)"))
+    flag = unknown_flag(args, known=())
+    if flag is not None:
+        return fail(flag)
     setup_logging()
     try:
         run = compose(args, resumable=resumable)

@@ -27,8 +27,8 @@ EXAMPLES = {
     "fedhpg-run": [
         "fedhpg-run rounds=20 seed=3 algo=fedhpgvr",
         "fedhpg-run env=cartpole agents=homogeneous4 server.port=5601",
-        "fedhpg-run -m seed=0,1,2 algo.step_size=0.5,1.0      # a sweep: every point checked first",
-        "fedhpg-run resume=outputs/2026-01-01/12-00-00 rounds=80   # continue a run, its own config",
+        "fedhpg-run -m seed=0,1,2 algo.step_size=0.5,1.0  # a sweep: every point checked first",
+        "fedhpg-run resume=outputs/2026-01-01/12-00-00 rounds=80  # continue, with its own config",
     ],
     "fedhpg-server": [
         "fedhpg-server server.port=5555 server.out_dir=runs/manual",
@@ -75,9 +75,11 @@ def _key_docs() -> dict[str, str]:
     keyed: dict[str, str] = {}
     for top in dataclasses.fields(RunConfig):
         nested = getattr(config_module, str(top.type), None)
-        if dataclasses.is_dataclass(nested):
+        if isinstance(nested, type) and dataclasses.is_dataclass(nested):
             for inner in dataclasses.fields(nested):
-                keyed[f"{top.name}.{inner.name}"] = docs.get(nested.__name__, {}).get(inner.name, "")
+                keyed[f"{top.name}.{inner.name}"] = docs.get(nested.__name__, {}).get(
+                    inner.name, ""
+                )
         else:
             keyed[top.name] = docs["RunConfig"].get(top.name, "")
     return keyed
@@ -101,9 +103,10 @@ def _defaults() -> tuple[dict[str, Any], dict[str, list[str]], dict[str, str]]:
 
         cfg = compose(config_name="config", return_hydra_config=True)
     chosen = {str(k): str(v) for k, v in cfg.hydra.runtime.choices.items()}
-    cfg = OmegaConf.to_container(cfg)
-    cfg.pop("hydra")
-    return flatten(cfg), groups, chosen
+    values = OmegaConf.to_container(cfg)
+    assert isinstance(values, dict)
+    values.pop("hydra")
+    return flatten(values), groups, chosen
 
 
 def help_text(program: str) -> str:

@@ -1,45 +1,91 @@
-"""A dependency-free progress line: redrawn in place on a terminal, logged otherwise."""
+"""Round progress: a live bar on a terminal (rich), plain log lines anywhere else (a file, a
+pipe, a CI log), so a redirected log stays readable line by line."""
 
 from __future__ import annotations
 
 import logging
 import sys
 import time
-from typing import TextIO
+from typing import Any, TextIO
 
 logger = logging.getLogger(__name__)
 
 
 class Progress:
-    """``Progress(total, "rounds")``; call :meth:`update` after each unit of work."""
+    """``Progress(total, "rounds")``; call :meth:`update` after each unit of work and
+    :meth:`close` at the end. The clock starts here: create it when the work starts."""
 
     def __init__(
-        self, total: int, unit: str, *, stream: TextIO | None = None, log_every_s: float = 5.0
+        self,
+        total: int,
+        unit: str,
+        *,
+        stream: TextIO | None = None,
+        log_every_s: float = 5.0,
+        done: int = 0,
     ) -> None:
         self.total = total
         self.unit = unit
-        self.done = 0
+        self.done = done
         self.stream = stream if stream is not None else sys.stderr
         self.interactive = self.stream.isatty()
         self.started = time.monotonic()
+        self._first = done  # a resumed run's rate counts only this process's units
         self._last_log = -float("inf")
         self.log_every_s = log_every_s
+        self._bar: Any = None
+        if self.interactive:
+            self._bar, self._task = _live_bar(self.stream, total, done, unit)
 
     def update(self, advance: int = 1, status: str = "") -> None:
         self.done += advance
         elapsed = time.monotonic() - self.started
-        rate = self.done / elapsed if elapsed > 0 else 0.0
-        remaining = (self.total - self.done) / rate if rate > 0 else float("nan")
-        line = f"{self.done}/{self.total} {self.unit} [{elapsed:5.1f}s, eta {remaining:5.1f}s]"
-        line = f"{line} {status}"
-        if self.interactive:
-            width = 24
-            filled = int(width * self.done / max(self.total, 1))
-            bar = "#" * filled + "-" * (width - filled)
-            self.stream.write(f"\r[{bar}] {line}\x1b[K")
-            self.stream.flush()
+        if self._bar is not None:
+            self._bar.update(self._task, advance=advance, status=status)
             if self.done >= self.total:
-                self.stream.write("\n")
-        elif elapsed - self._last_log >= self.log_every_s or self.done >= self.total:
+                self.close()
+            return
+        rate = (self.done - self._first) / elapsed if elapsed > 0 else 0.0
+        remaining = (self.total - self.done) / rate if rate > 0 else float("nan")
+        if elapsed - self._last_log >= self.log_every_s or self.done >= self.total:
             self._last_log = elapsed
-            logger.info("progress %s", line)
+            logger.info(
+                "progress %d/%d %s [%.1fs, eta %.1fs] %s",
+                self.done,
+                self.total,
+                self.unit,
+                elapsed,
+                remaining,
+                status,
+            )
+
+    def close(self) -> None:
+        if self._bar is not None:
+            self._bar.stop()
+            self._bar = None
+
+
+def _live_bar(stream: TextIO, total: int, done: int, unit: str) -> tuple[Any, Any]:
+    from rich.console import Console
+    from rich.progress import (
+        BarColumn,
+        MofNCompleteColumn,
+        TextColumn,
+        TimeElapsedColumn,
+        TimeRemainingColumn,
+    )
+    from rich.progress import Progress as RichProgress
+
+    bar = RichProgress(
+        BarColumn(),
+        MofNCompleteColumn(),
+        TextColumn(unit),
+        TimeElapsedColumn(),
+        TextColumn("eta"),
+        TimeRemainingColumn(),
+        TextColumn("{task.fields[status]}"),
+        console=Console(file=stream),
+    )
+    task = bar.add_task(unit, total=total, completed=done, status="")
+    bar.start()
+    return bar, task
