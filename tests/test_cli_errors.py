@@ -1,0 +1,137 @@
+"""Every bad input through the real entry points: exit status 2, exactly one line on stderr,
+no traceback, and nothing left behind in the working directory (not even Hydra's
+``outputs/<date>/<time>/``).
+
+Each case runs in its own process and working directory. A few go through the console
+scripts as subprocesses; the rest are forked from this process (already holding torch and
+Hydra's imports, as ``fedhpg-run`` forks its children) and call the same installed entry
+function with the same argv: ~0.2 s a case instead of ~1.7 s of imports.
+"""
+
+from __future__ import annotations
+
+import importlib.metadata
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from fedhpg.common.config import to_dict
+from fedhpg.common.runtime.cli import compose
+from tests.procs import BIN, QUIET
+
+RUN_DIR = "old-run"  # a run directory's config.json, made before the cases start
+AS_SUBPROCESS = {"unknown-family", "sweep-bad-point", "server-unknown-family", "agent-typo"}
+CASES: dict[str, tuple[str, list[str], str]] = {
+    # id: (script, arguments, what the one line must say)
+    "unknown-family": ("fedhpg-run", ["env.family=foo"], "env.family: unknown environment family 'foo'; known: acrobot"),
+    "bad-option": ("fedhpg-run", ["+env.options.bogus=1"], "env.options: bad options for env family 'gridworld'"),
+    "wrong-typed-option": ("fedhpg-run", ["+env.options.size=abc"], "env.options:"),
+    "option-of-another-family": ("fedhpg-run", ["env=cartpole", "+env.options.size=7"], "env.options:"),
+    "unknown-top-key": ("fedhpg-run", ["+foo=1"], "foo: not a fedhpg key"),
+    "typo-added-with-plus": ("fedhpg-run", ["+rouds=3"], "rouds: not a fedhpg key; did you mean rounds?"),
+    "typo": ("fedhpg-run", ["rouds=3"], "rouds: not a fedhpg key; did you mean rounds?"),
+    "nested-typo": ("fedhpg-run", ["+algo.stepsize=0.1"], "algo.stepsize: not a fedhpg key; did you mean algo.step_size?"),
+    "bad-value": ("fedhpg-run", ["agents.budget.batch_size=[0]"], "agents.budget.batch_size[0]: got 0"),
+    "unknown-group-option": ("fedhpg-run", ["algo=nope"], "algo: no such option 'nope'"),
+    "bad-port": ("fedhpg-run", ["server.port=70000"], "server.port: got 70000, must be <= 65535"),
+    "bind-all": ("fedhpg-run", ["server.bind_all=true"], "server.bind_all:"),
+    "unknown-flag": ("fedhpg-run", ["--bogus"], "--bogus: not an option"),
+    "sweep-bad-point": ("fedhpg-run", ["-m", "seed=0,1", "algo.step_size=1,-1"], "sweep point 2/4 (seed=0 algo.step_size=-1): algo.step_size: got -1.0"),
+    "sweep-unknown-family": ("fedhpg-run", ["-m", "env.family=gridworld,foo"], "sweep point 2/2 (env.family=foo): env.family: unknown"),
+    "sweep-typo": ("fedhpg-run", ["--multirun", "+rouds=3,4"], "sweep point 1/2 (+rouds=3): rouds: not a fedhpg key"),
+    "sweep-resume": ("fedhpg-run", ["-m", f"resume={RUN_DIR}"], "resume: resume one run directory at a time"),
+    "resume-missing": ("fedhpg-run", ["resume=no-such-run"], "resume: no-such-run: no such directory"),
+    "resume-fixed-key": ("fedhpg-run", [f"resume={RUN_DIR}", "algo.step_size=0.1"], "algo.step_size: the run has 0.5, this invocation 0.1"),
+    "resume-fixed-group": ("fedhpg-run", [f"resume={RUN_DIR}", "strategy=median"], "strategy.name: the run has 'mean', this invocation 'median'"),
+    "server-unknown-family": ("fedhpg-server", ["env.family=foo"], "env.family: unknown environment family"),
+    "server-resume-no-dir": ("fedhpg-server", ["resume=true"], "resume: resume=true needs server.out_dir"),
+    "server-resume-fixed-key": ("fedhpg-server", ["resume=true", f"server.out_dir={RUN_DIR}", "seed=9"], "seed: the run has 0, this invocation 9"),
+    "agent-typo": ("fedhpg-agent", ["+rouds=3"], "rouds: not a fedhpg key; did you mean rounds?"),
+    "agent-flag": ("fedhpg-agent", ["-x"], "-x: not an option"),
+}  # fmt: skip
+
+
+def _listing(root: Path) -> set[str]:
+    return {str(path.relative_to(root)) for path in root.rglob("*")}
+
+
+def _forked(script: str, args: list[str], cwd: Path) -> tuple[int, str]:
+    """Run the console script's entry function in a forked child, in ``cwd``."""
+    (entry,) = importlib.metadata.entry_points(group="console_scripts", name=script)
+    main = entry.load()
+    err_path = cwd.parent / f"{cwd.name}.stderr"
+    pid = os.fork()
+    if pid == 0:  # the child: never returns into pytest
+        code = 70
+        try:
+            os.chdir(cwd)
+            sys.stdout = open(os.devnull, "w")  # noqa: SIM115
+            sys.stderr = open(err_path, "w")  # noqa: SIM115
+            sys.argv = [str(BIN / script), *args]
+            os.environ.update(QUIET)
+            try:
+                main()
+                code = 0
+            except SystemExit as exit_:
+                code = exit_.code if isinstance(exit_.code, int) else 1
+            sys.stderr.flush()
+        finally:
+            os._exit(code)
+    _, status = os.waitpid(pid, 0)
+    return os.waitstatus_to_exitcode(status), err_path.read_text()
+
+
+@pytest.fixture(scope="module")
+def outcomes(tmp_path_factory: pytest.TempPathFactory) -> dict[str, tuple[int, str, set, set]]:
+    """Every case, each in its own fresh working directory; the subprocesses start at once."""
+    base = tmp_path_factory.mktemp("cli-errors")
+    config = json.dumps(to_dict(compose([])))
+    prepared = {}
+    for name in CASES:
+        cwd = base / name
+        (cwd / RUN_DIR).mkdir(parents=True)
+        (cwd / RUN_DIR / "config.json").write_text(config)
+        prepared[name] = (cwd, _listing(cwd))
+    started = {
+        name: subprocess.Popen(
+            [str(BIN / CASES[name][0]), *CASES[name][1]],
+            cwd=prepared[name][0],
+            stdout=subprocess.DEVNULL,
+            stderr=subprocess.PIPE,
+            text=True,
+            env={**os.environ, **QUIET},
+        )
+        for name in AS_SUBPROCESS
+    }
+    results = {}
+    try:
+        for name, (script, args, _) in CASES.items():
+            cwd, before = prepared[name]
+            if name not in AS_SUBPROCESS:
+                returncode, stderr = _forked(script, args, cwd)
+                results[name] = (returncode, stderr, before, _listing(cwd))
+        for name, process in started.items():
+            _, stderr = process.communicate(timeout=120)
+            cwd, before = prepared[name]
+            results[name] = (process.returncode, stderr, before, _listing(cwd))
+    finally:
+        for process in started.values():
+            if process.poll() is None:
+                process.kill()
+                process.wait()
+    return results
+
+
+@pytest.mark.parametrize("case", list(CASES))
+def test_a_bad_input_is_one_line_exit_2_and_leaves_nothing(case: str, outcomes: dict) -> None:
+    returncode, stderr, before, after = outcomes[case]
+    expected = CASES[case][2]
+    assert returncode == 2, stderr
+    assert "Traceback" not in stderr
+    assert stderr.count("\n") == 1 and stderr.endswith("\n"), stderr
+    assert stderr.startswith("error: ") and expected in stderr, stderr
+    assert after == before, f"left behind: {sorted(after - before)}"
