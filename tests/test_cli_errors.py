@@ -27,32 +27,96 @@ RUN_DIR = "old-run"  # a run directory's config.json, made before the cases star
 AS_SUBPROCESS = {"unknown-family", "sweep-bad-point", "server-unknown-family", "agent-typo"}
 CASES: dict[str, tuple[str, list[str], str]] = {
     # id: (script, arguments, what the one line must say)
-    "unknown-family": ("fedhpg-run", ["env.family=foo"], "env.family: unknown environment family 'foo'; known: acrobot"),
-    "bad-option": ("fedhpg-run", ["+env.options.bogus=1"], "env.options: bad options for env family 'gridworld'"),
+    "unknown-family": (
+        "fedhpg-run",
+        ["env.family=foo"],
+        "env.family: unknown environment family 'foo'; known: acrobot",
+    ),
+    "bad-option": (
+        "fedhpg-run",
+        ["+env.options.bogus=1"],
+        "env.options: bad options for env family 'gridworld'",
+    ),
     "wrong-typed-option": ("fedhpg-run", ["+env.options.size=abc"], "env.options:"),
-    "option-of-another-family": ("fedhpg-run", ["env=cartpole", "+env.options.size=7"], "env.options:"),
+    "option-of-another-family": (
+        "fedhpg-run",
+        ["env=cartpole", "+env.options.size=7"],
+        "env.options:",
+    ),
     "unknown-top-key": ("fedhpg-run", ["+foo=1"], "foo: not a fedhpg key"),
-    "typo-added-with-plus": ("fedhpg-run", ["+rouds=3"], "rouds: not a fedhpg key; did you mean rounds?"),
+    "typo-added-with-plus": (
+        "fedhpg-run",
+        ["+rouds=3"],
+        "rouds: not a fedhpg key; did you mean rounds?",
+    ),
     "typo": ("fedhpg-run", ["rouds=3"], "rouds: not a fedhpg key; did you mean rounds?"),
-    "nested-typo": ("fedhpg-run", ["+algo.stepsize=0.1"], "algo.stepsize: not a fedhpg key; did you mean algo.step_size?"),
-    "bad-value": ("fedhpg-run", ["agents.budget.batch_size=[0]"], "agents.budget.batch_size[0]: got 0"),
+    "nested-typo": (
+        "fedhpg-run",
+        ["+algo.stepsize=0.1"],
+        "algo.stepsize: not a fedhpg key; did you mean algo.step_size?",
+    ),
+    "bad-value": (
+        "fedhpg-run",
+        ["agents.budget.batch_size=[0]"],
+        "agents.budget.batch_size[0]: got 0",
+    ),
     "unknown-group-option": ("fedhpg-run", ["algo=nope"], "algo: no such option 'nope'"),
     "bad-port": ("fedhpg-run", ["server.port=70000"], "server.port: got 70000, must be <= 65535"),
     "bind-all": ("fedhpg-run", ["server.bind_all=true"], "server.bind_all:"),
     "unknown-flag": ("fedhpg-run", ["--bogus"], "--bogus: not an option"),
-    "sweep-bad-point": ("fedhpg-run", ["-m", "seed=0,1", "algo.step_size=1,-1"], "sweep point 2/4 (seed=0 algo.step_size=-1): algo.step_size: got -1.0"),
-    "sweep-unknown-family": ("fedhpg-run", ["-m", "env.family=gridworld,foo"], "sweep point 2/2 (env.family=foo): env.family: unknown"),
-    "sweep-typo": ("fedhpg-run", ["--multirun", "+rouds=3,4"], "sweep point 1/2 (+rouds=3): rouds: not a fedhpg key"),
-    "sweep-resume": ("fedhpg-run", ["-m", f"resume={RUN_DIR}"], "resume: resume one run directory at a time"),
-    "resume-missing": ("fedhpg-run", ["resume=no-such-run"], "resume: no-such-run: no such directory"),
-    "resume-fixed-key": ("fedhpg-run", [f"resume={RUN_DIR}", "algo.step_size=0.1"], "algo.step_size: the run has 0.5, this invocation 0.1"),
-    "resume-fixed-group": ("fedhpg-run", [f"resume={RUN_DIR}", "strategy=median"], "strategy.name: the run has 'mean', this invocation 'median'"),
-    "server-unknown-family": ("fedhpg-server", ["env.family=foo"], "env.family: unknown environment family"),
-    "server-resume-no-dir": ("fedhpg-server", ["resume=true"], "resume: resume=true needs server.out_dir"),
-    "server-resume-fixed-key": ("fedhpg-server", ["resume=true", f"server.out_dir={RUN_DIR}", "seed=9"], "seed: the run has 0, this invocation 9"),
+    "sweep-bad-point": (
+        "fedhpg-run",
+        ["-m", "seed=0,1", "algo.step_size=1,-1"],
+        "sweep point 2/4 (seed=0 algo.step_size=-1): algo.step_size: got -1.0",
+    ),
+    "sweep-unknown-family": (
+        "fedhpg-run",
+        ["-m", "env.family=gridworld,foo"],
+        "sweep point 2/2 (env.family=foo): env.family: unknown",
+    ),
+    "sweep-typo": (
+        "fedhpg-run",
+        ["--multirun", "+rouds=3,4"],
+        "sweep point 1/2 (+rouds=3): rouds: not a fedhpg key",
+    ),
+    "sweep-resume": (
+        "fedhpg-run",
+        ["-m", f"resume={RUN_DIR}"],
+        "resume: resume one run directory at a time",
+    ),
+    "resume-missing": (
+        "fedhpg-run",
+        ["resume=no-such-run"],
+        "resume: no-such-run: no such directory",
+    ),
+    "resume-fixed-key": (
+        "fedhpg-run",
+        [f"resume={RUN_DIR}", "algo.step_size=0.1"],
+        "algo.step_size: the run has 0.5, this invocation 0.1",
+    ),
+    "resume-fixed-group": (
+        "fedhpg-run",
+        [f"resume={RUN_DIR}", "strategy=median"],
+        "strategy.name: the run has 'mean', this invocation 'median'",
+    ),
+    "server-unknown-family": (
+        "fedhpg-server",
+        ["env.family=foo"],
+        "env.family: unknown environment family",
+    ),
+    "server-resume-no-dir": (
+        "fedhpg-server",
+        ["resume=true"],
+        "resume: resume=true needs server.out_dir",
+    ),
+    "server-resume-fixed-key": (
+        "fedhpg-server",
+        ["resume=true", f"server.out_dir={RUN_DIR}", "seed=9"],
+        "seed: the run has 0, this invocation 9",
+    ),
     "agent-typo": ("fedhpg-agent", ["+rouds=3"], "rouds: not a fedhpg key; did you mean rounds?"),
     "agent-flag": ("fedhpg-agent", ["-x"], "-x: not an option"),
-}  # fmt: skip
+}
 
 
 def _listing(root: Path) -> set[str]:

@@ -41,7 +41,7 @@ class Progress:
         self.done += advance
         elapsed = time.monotonic() - self.started
         if self._bar is not None:
-            self._bar.update(self._task, advance=advance, status=status)
+            self._bar.update(self._task, advance=advance, status=status, refresh=True)
             if self.done >= self.total:
                 self.close()
             return

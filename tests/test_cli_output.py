@@ -1,0 +1,155 @@
+"""What the entry points say and where they listen: help generated from the config's
+docstrings, one log format, a progress bar only on a terminal, the named port, a busy port in
+one line, and ``fedhpg-run resume=DIR`` continuing a run from its own config.json."""
+
+from __future__ import annotations
+
+import io
+import json
+import logging
+import os
+import re
+import select
+import socket
+import subprocess
+from pathlib import Path
+
+import pytest
+
+from fedhpg.common.runtime.progress import Progress
+from fedhpg.common.types import EvaluationStats
+from fedhpg.server.report import evaluation_table
+from tests.procs import BIN, free_port
+
+LOG_LINE = re.compile(r"^\d\d:\d\d:\d\d (DEBUG|INFO|WARNING|ERROR|CRITICAL) [\w.]+: ")
+SMALL = [
+    "seed=5", "agents.num_agents=2", "agents.budget.batch_size=[4]",
+    "agents.budget.local_iters=[1]", "agents.speeds=[1]", "agents.step_delays_s=[0]",
+    "eval.every=2", "eval.episodes=2",
+]  # fmt: skip
+
+
+def _run(args: list[str], cwd: Path, level: str = "INFO") -> subprocess.CompletedProcess[str]:
+    return subprocess.run(
+        [str(BIN / "fedhpg-run"), *args],
+        cwd=cwd,
+        capture_output=True,
+        text=True,
+        timeout=120,
+        env={**os.environ, "FEDHPG_LOG_LEVEL": level},
+    )
+
+
+def _listening_port(stderr: str) -> int:
+    found = re.search(r"server listening on tcp://\S+:(\d+)", stderr)
+    assert found, stderr[-2000:]
+    return int(found.group(1))
+
+
+def test_help_comes_from_the_config_docstrings_and_starts_nothing(tmp_path: Path) -> None:
+    scripts = ("fedhpg-run", "fedhpg-server", "fedhpg-agent")
+    started = [
+        subprocess.Popen(
+            [str(BIN / script), "--help"], cwd=tmp_path, stdout=subprocess.PIPE, text=True
+        )
+        for script in scripts
+    ]
+    outputs = [process.communicate(timeout=60)[0] for process in started]
+    for script, process, text in zip(scripts, started, outputs, strict=True):
+        assert process.returncode == 0, script
+        assert text.startswith(f"usage: {script}")
+        assert "T, the number of communication rounds" in text  # RunConfig.rounds' docstring
+        assert "server.port=5555" in text and "rounds=60" in text  # conf/config.yaml defaults
+        assert re.search(r"algo=\s+fedhpg \(default\), fedhpgvr", text)
+        assert len(text.splitlines()) < 120
+    assert list(tmp_path.iterdir()) == [], "help writes nothing"
+
+
+def test_progress_is_plain_log_lines_off_a_terminal(caplog: pytest.LogCaptureFixture) -> None:
+    stream = io.StringIO()
+    with caplog.at_level(logging.INFO, logger="fedhpg.common.runtime.progress"):
+        progress = Progress(3, "rounds", stream=stream, log_every_s=0.0)
+        for _ in range(3):
+            progress.update(1, "round 0.10s")
+        progress.close()
+    assert stream.getvalue() == "", "nothing drawn on a non-terminal"
+    lines = [r.getMessage() for r in caplog.records]
+    assert [line.split(" [")[0] for line in lines] == [
+        "progress 1/3 rounds",
+        "progress 2/3 rounds",
+        "progress 3/3 rounds",
+    ]
+
+
+def test_progress_is_a_bar_on_a_terminal() -> None:
+    leader, follower = os.openpty()
+    with open(follower, "w") as terminal:
+        progress = Progress(4, "rounds", stream=terminal, done=1)  # a resumed run: 1 done
+        for _ in range(3):
+            progress.update(1, "round 0.10s")
+        progress.close()
+    chunks = []
+    while select.select([leader], [], [], 0.2)[0]:
+        try:
+            chunks.append(os.read(leader, 65536))
+        except OSError:  # EIO: the terminal's other end is closed and everything was read
+            break
+    os.close(leader)
+    drawn = b"".join(chunks).decode(errors="replace")
+    assert "4/4" in drawn and "━" in drawn, drawn  # rich's bar, redrawn in place
+
+
+def test_the_evaluation_table_shows_success_only_with_a_goal() -> None:
+    stats = {
+        "agent-0": EvaluationStats(
+            return_mean=200.0, return_std=0.0, discounted_return_mean=80.0, success_rate=0.0,
+            length_mean=200.0, episodes=5,
+        )
+    }
+    without = evaluation_table(stats, {}, has_goal=False).splitlines()[2]
+    with_goal = evaluation_table(stats, {}, has_goal=True).splitlines()[2]
+    assert without.split()[:3] == ["agent-0", "—", "200.000"]
+    assert with_goal.split()[:3] == ["agent-0", "0.00", "200.000"]
+
+
+def test_named_port_one_log_format_and_resume_from_the_run_directory(tmp_path: Path) -> None:
+    port = free_port()
+    first = _run([*SMALL, "rounds=2", f"server.port={port}", "server.out_dir=run",
+                  f"hydra.run.dir={tmp_path / 'hydra'}"], tmp_path)  # fmt: skip
+    assert first.returncode == 0, first.stderr[-2000:]
+    assert _listening_port(first.stderr) == port, "fedhpg-run listens on the port it is given"
+    for line in first.stderr.splitlines():  # the launcher, the server and agent children
+        assert LOG_LINE.match(line), line
+    assert not (tmp_path / "outputs").exists()
+
+    resumed = _run(["resume=run", "rounds=4"], tmp_path)  # no other override: config.json
+    assert resumed.returncode == 0, resumed.stderr[-2000:]
+    assert "resuming run after round 2" in resumed.stderr
+    assert _listening_port(resumed.stderr) != port, "unnamed: a free port"
+    records = [json.loads(line) for line in (tmp_path / "run/metrics.jsonl").read_text().splitlines()]
+    assert [r["round"] for r in records] == [1, 2, 3, 4]
+    assert [a["id"] for a in records[-1]["agents"]] == ["agent-0", "agent-1"], "its num_agents"
+    config = json.loads((tmp_path / "run/config.json").read_text())
+    assert (config["seed"], config["rounds"], config["agents"]["num_agents"]) == (5, 4, 2)
+    assert not (tmp_path / "outputs").exists(), "a resume leaves no Hydra directory"
+
+    refused = _run(["resume=run", "rounds=6", "agents.budget.batch_size=[8]"], tmp_path)
+    assert refused.returncode == 2
+    assert refused.stderr.splitlines() == [
+        "error: agents.budget.batch_size: the run has [4], this invocation [8]; a resume keeps "
+        "agents as it was (resuming run)"
+    ]
+
+
+def test_a_busy_port_is_one_line_and_exit_1(tmp_path: Path) -> None:
+    with socket.socket() as holder:
+        holder.bind(("127.0.0.1", 0))
+        holder.listen()
+        busy = holder.getsockname()[1]
+        result = _run([*SMALL, f"server.port={busy}"], tmp_path, level="WARNING")
+    assert result.returncode == 1
+    assert result.stderr.splitlines() == [
+        f"error: server.port: cannot listen on 127.0.0.1:{busy}: Address already in use "
+        "(choose another port, or leave server.port unset for a free one)"
+    ]
+    assert list(tmp_path.iterdir()) == []
