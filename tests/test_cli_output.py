@@ -102,8 +102,12 @@ def test_progress_is_a_bar_on_a_terminal() -> None:
 def test_the_evaluation_table_shows_success_only_with_a_goal() -> None:
     stats = {
         "agent-0": EvaluationStats(
-            return_mean=200.0, return_std=0.0, discounted_return_mean=80.0, success_rate=0.0,
-            length_mean=200.0, episodes=5,
+            return_mean=200.0,
+            return_std=0.0,
+            discounted_return_mean=80.0,
+            success_rate=0.0,
+            length_mean=200.0,
+            episodes=5,
         )
     }
     without = evaluation_table(stats, {}, has_goal=False).splitlines()[2]
@@ -126,7 +130,8 @@ def test_named_port_one_log_format_and_resume_from_the_run_directory(tmp_path: P
     assert resumed.returncode == 0, resumed.stderr[-2000:]
     assert "resuming run after round 2" in resumed.stderr
     assert _listening_port(resumed.stderr) != port, "unnamed: a free port"
-    records = [json.loads(line) for line in (tmp_path / "run/metrics.jsonl").read_text().splitlines()]
+    metrics = (tmp_path / "run/metrics.jsonl").read_text().splitlines()
+    records = [json.loads(line) for line in metrics]
     assert [r["round"] for r in records] == [1, 2, 3, 4]
     assert [a["id"] for a in records[-1]["agents"]] == ["agent-0", "agent-1"], "its num_agents"
     config = json.loads((tmp_path / "run/config.json").read_text())
