@@ -15,10 +15,12 @@ from fedhpg.common.config import (
     AlgoConfig,
     ConfigError,
     RunConfig,
+    fixed_difference,
     from_dict,
     to_dict,
+    unknown_key,
 )
-from fedhpg.common.runtime.cli import compose
+from fedhpg.common.runtime.cli import compose, compose_sweep
 
 
 def test_default_config_composes_and_validates() -> None:
@@ -139,3 +141,36 @@ def test_the_config_module_imports_no_heavy_library() -> None:
     )
     assert result.returncode == 0, result.stderr
     assert result.stdout.strip() == "[]"
+
+
+def test_an_unknown_key_names_the_nearest_known_one() -> None:
+    assert unknown_key({"rouds": 3}) == "rouds: not a fedhpg key; did you mean rounds?"
+    assert unknown_key({"algo": {"stepsize": 1}}) == (
+        "algo.stepsize: not a fedhpg key; did you mean algo.step_size?"
+    )
+    assert unknown_key({"round_timeout_s": 1}) == (
+        "round_timeout_s: not a fedhpg key; did you mean server.round_timeout_s?"
+    )
+    assert unknown_key({"foo": 1}) == "foo: not a fedhpg key"
+    free = {"env": {"options": {"any": 1}}, "algo": {"params": {"x": 1}}}
+    assert unknown_key(free) is None, "registry entries check their own options"
+    assert unknown_key(to_dict(compose([]))) is None
+
+
+def test_a_resume_names_the_exact_fixed_key_that_changed() -> None:
+    run = to_dict(compose(["algo.step_size=0.5"]))
+    changed = fixed_difference(run, to_dict(compose(["algo.step_size=0.1"])))
+    assert changed is not None and changed.key == "algo.step_size"
+    assert "the run has 0.5, this invocation 0.1" in str(changed)
+    may_change = compose(["algo.step_size=0.5", "rounds=90", "eval.every=2", "server.port=7"])
+    assert fixed_difference(run, to_dict(may_change)) is None
+
+
+def test_a_sweep_is_checked_point_by_point() -> None:
+    runs = compose_sweep(["seed=0,1", "agents.budget.batch_size=[8],[4,5,6,7]"])
+    assert [(r.seed, r.agents.budget["batch_size"]) for r in runs] == [
+        (0, [8]), (0, [4, 5, 6, 7]), (1, [8]), (1, [4, 5, 6, 7]),
+    ]  # fmt: skip
+    with pytest.raises(ConfigError, match=r"sweep point 2/2 \(env.family=foo\)") as error:
+        compose_sweep(["env.family=gridworld,foo"])
+    assert error.value.key == "sweep point 2/2 (env.family=foo): env.family"

@@ -67,6 +67,7 @@ class Progress:
 
 def _live_bar(stream: TextIO, total: int, done: int, unit: str) -> tuple[Any, Any]:
     from rich.console import Console
+    from rich.table import Column
     from rich.progress import (
         BarColumn,
         MofNCompleteColumn,
@@ -77,14 +78,19 @@ def _live_bar(stream: TextIO, total: int, done: int, unit: str) -> tuple[Any, An
     from rich.progress import Progress as RichProgress
 
     bar = RichProgress(
-        BarColumn(),
+        BarColumn(bar_width=20),
         MofNCompleteColumn(),
         TextColumn(unit),
         TimeElapsedColumn(),
         TextColumn("eta"),
         TimeRemainingColumn(),
-        TextColumn("{task.fields[status]}"),
+        # the status takes what is left of the line and is cut short, never the counts
+        TextColumn(
+            "{task.fields[status]}",
+            table_column=Column(ratio=1, no_wrap=True, overflow="ellipsis"),
+        ),
         console=Console(file=stream),
+        expand=True,  # so the status column (ratio=1) gets the rest of the line
     )
     task = bar.add_task(unit, total=total, completed=done, status="")
     bar.start()
