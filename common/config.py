@@ -578,9 +578,25 @@ def flatten(values: Any, prefix: str = "") -> dict[str, Any]:
     return leaves
 
 
+def with_defaults(values: dict[str, Any]) -> dict[str, Any]:
+    """A stored config (config.json, a checkpoint's copy) with every field the schema has
+    now, so that a field added since it was written is not taken for a change."""
+    from omegaconf import OmegaConf
+    from omegaconf.errors import OmegaConfBaseException
+
+    try:
+        merged = OmegaConf.to_container(OmegaConf.merge(OmegaConf.structured(RunConfig), values))
+    except OmegaConfBaseException as error:
+        key = getattr(error, "full_key", None) or "config"
+        raise ConfigError(str(key), str(error).splitlines()[0]) from None
+    assert isinstance(merged, dict)
+    return {str(k): v for k, v in merged.items()}
+
+
 def fixed_difference(run: dict[str, Any], invocation: dict[str, Any]) -> ConfigError | None:
     """The first key that a resume must keep (``GROUPS`` fixed) and this invocation changes,
     as an error naming the dotted key and both values; None when every fixed key is kept."""
+    run = with_defaults(run)
     for group in groups("fixed"):
         before = flatten(run.get(group), f"{group}.")
         after = flatten(invocation.get(group), f"{group}.")

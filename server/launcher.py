@@ -283,10 +283,10 @@ def main() -> None:
         limit_threads,
         own_overrides,
         register_schema,
-        resume_value,
         setup_logging,
         unknown_flag,
     )
+    from fedhpg.common.runtime.resume import resume_value
 
     args = sys.argv[1:]
     if any(a in HELP_FLAGS for a in args):

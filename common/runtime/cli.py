@@ -8,15 +8,13 @@ is one line on stderr and exit status 2.
 from __future__ import annotations
 
 import contextlib
-import json
 import logging
 import os
 import sys
 from collections.abc import Callable, Iterator, Sequence
-from pathlib import Path
 from typing import Any
 
-from fedhpg.common.config import ConfigError, RunConfig, fixed_difference, to_dict, unknown_key
+from fedhpg.common.config import ConfigError, RunConfig, unknown_key
 
 logger = logging.getLogger(__name__)
 
@@ -96,7 +94,7 @@ def hydra_context() -> Iterator[None]:
 
 
 @contextlib.contextmanager
-def _hydra_errors(overrides: Sequence[str]) -> Iterator[None]:
+def hydra_errors(overrides: Sequence[str]) -> Iterator[None]:
     """Hydra's and OmegaConf's errors about overrides, as one ConfigError naming the key."""
     from hydra.errors import HydraException, MissingConfigException
     from omegaconf.errors import OmegaConfBaseException
@@ -156,11 +154,11 @@ def unknown_flag(args: Sequence[str], known: Sequence[str] = HYDRA_FLAGS) -> Con
     return None
 
 
-def _compose_cfg(overrides: Sequence[str]) -> Any:
+def compose_cfg(overrides: Sequence[str]) -> Any:
     """The composed DictConfig (inside :func:`hydra_context`)."""
     from hydra import compose as hydra_compose
 
-    with _hydra_errors(overrides):
+    with hydra_errors(overrides):
         return hydra_compose(config_name=CONFIG_NAME, overrides=list(overrides))
 
 
@@ -172,11 +170,13 @@ def own_overrides(args: Sequence[str]) -> list[str]:
 def compose(overrides: Sequence[str], *, resumable: bool = False) -> RunConfig:
     """Compose ``conf/config.yaml`` with command-line overrides, without Hydra's run dirs.
     With ``resumable`` and a ``resume=`` override, start from the run's ``config.json``."""
+    from fedhpg.common.runtime.resume import compose_resume, resume_value
+
     overrides = own_overrides(overrides)
     with hydra_context():
         if resumable and resume_value(overrides) is not None:
-            return _compose_resume(overrides)
-        return to_run_config(_compose_cfg(overrides))
+            return compose_resume(overrides)
+        return to_run_config(compose_cfg(overrides))
 
 
 def sweep_points(overrides: Sequence[str]) -> list[list[str]]:
@@ -186,7 +186,7 @@ def sweep_points(overrides: Sequence[str]) -> list[list[str]]:
     from hydra.core.global_hydra import GlobalHydra
     from hydra.core.override_parser.overrides_parser import OverridesParser
 
-    with _hydra_errors(overrides):
+    with hydra_errors(overrides):
         parser = OverridesParser.create(config_loader=GlobalHydra.instance().config_loader())
         batches = BasicSweeper.split_arguments(parser.parse_overrides(list(overrides)), None)
     return [list(point) for batch in batches for point in batch]
@@ -195,6 +195,8 @@ def sweep_points(overrides: Sequence[str]) -> list[list[str]]:
 def compose_sweep(overrides: Sequence[str]) -> list[RunConfig]:
     """Compose and validate every point of a sweep before any job starts; an error names the
     point (its swept values) that fails."""
+    from fedhpg.common.runtime.resume import resume_value
+
     overrides = own_overrides(overrides)
     if resume_value(overrides) is not None:
         raise ConfigError("resume", "resume one run directory at a time, without -m")
@@ -208,83 +210,12 @@ def compose_sweep(overrides: Sequence[str]) -> list[RunConfig]:
         swept = {key for key, seen in values.items() if len(seen) > 1}
         for number, point in enumerate(points, 1):
             try:
-                runs.append(to_run_config(_compose_cfg(point)))
+                runs.append(to_run_config(compose_cfg(point)))
             except ConfigError as error:
                 where = " ".join(p for p in point if p.split("=", 1)[0] in swept)
                 label = f"sweep point {number}/{len(points)}" + (f" ({where})" if where else "")
                 raise ConfigError(f"{label}: {error.key}", str(error).split(": ", 1)[1]) from None
     return runs
-
-
-# --- resume: the run's own config.json, overrides on top ----------------------------------------
-
-
-def resume_value(overrides: Sequence[str]) -> str | None:
-    values = [o.split("=", 1)[1] for o in overrides if o.split("=", 1)[0].lstrip("+") == "resume"]
-    return values[-1] if values and values[-1] not in ("", "null", "false") else None
-
-
-def resume_directory(overrides: Sequence[str]) -> Path:
-    """``resume=DIR``, or ``resume=true`` with ``server.out_dir=DIR``."""
-    value = resume_value(overrides)
-    assert value is not None
-    if value.lower() != "true":
-        return Path(value)
-    out_dirs = [o.split("=", 1)[1] for o in overrides if o.split("=", 1)[0] == "server.out_dir"]
-    if not out_dirs:
-        raise ConfigError("resume", "resume=true needs server.out_dir=DIR (or give resume=DIR)")
-    return Path(out_dirs[-1])
-
-
-def run_config_file(directory: Path) -> dict[str, Any]:
-    """A run directory's ``config.json``, the run's resolved config."""
-    path = directory / "config.json"
-    try:
-        values = json.loads(path.read_text(encoding="utf-8"))
-    except FileNotFoundError:
-        what = "no such directory" if not directory.is_dir() else "it has no config.json"
-        raise ConfigError("resume", f"{directory}: {what}; not a fedhpg run directory") from None
-    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as error:
-        raise ConfigError("resume", f"cannot read {path}: {error}") from None
-    if not isinstance(values, dict):
-        raise ConfigError("resume", f"{path} is not a fedhpg config")
-    return values
-
-
-def _compose_resume(overrides: list[str]) -> RunConfig:
-    """The run's ``config.json``; then each config group named on the command line sets what
-    that group sets, and each key override applies on top (Hydra's own override rules). A
-    change to a key that a resume must keep (``GROUPS`` fixed) is refused naming it."""
-    from hydra._internal.config_loader_impl import ConfigLoaderImpl
-    from hydra.core.global_hydra import GlobalHydra
-    from hydra.core.override_parser.overrides_parser import OverridesParser
-    from omegaconf import DictConfig, OmegaConf
-
-    from fedhpg.common.config import flatten
-
-    directory = resume_directory(overrides)
-    before = run_config_file(directory)
-    loader = GlobalHydra.instance().config_loader()
-    group_names = set(loader.list_groups(""))
-    with _hydra_errors(overrides):
-        parsed = OverridesParser.create(config_loader=loader).parse_overrides(overrides)
-        cfg = OmegaConf.merge(OmegaConf.structured(RunConfig), before)
-        assert isinstance(cfg, DictConfig)
-        defaults = flatten(OmegaConf.to_container(_compose_cfg([])))
-        for override in parsed:
-            if override.key_or_group.split("/")[0] in group_names:
-                line = f"{override.get_key_element()}={override.get_value_element_as_str()}"
-                chosen = flatten(OmegaConf.to_container(_compose_cfg([line])))
-                for key, value in chosen.items():
-                    if defaults.get(key) != value:
-                        OmegaConf.update(cfg, key, value, merge=False, force_add=True)
-        keys = [o for o in parsed if o.key_or_group.split("/")[0] not in group_names]
-        ConfigLoaderImpl._apply_overrides_to_config(keys, cfg)
-    run = to_run_config(cfg)
-    changed = fixed_difference(before, to_dict(run))
-    if changed is not None:
-        raise ConfigError(changed.key, f"{str(changed).split(': ', 1)[1]} (resuming {directory})")
-    return run
 
 
 def _override_key(error: BaseException, overrides: Sequence[str]) -> str:

@@ -67,7 +67,6 @@ class Progress:
 
 def _live_bar(stream: TextIO, total: int, done: int, unit: str) -> tuple[Any, Any]:
     from rich.console import Console
-    from rich.table import Column
     from rich.progress import (
         BarColumn,
         MofNCompleteColumn,
@@ -76,6 +75,7 @@ def _live_bar(stream: TextIO, total: int, done: int, unit: str) -> tuple[Any, An
         TimeRemainingColumn,
     )
     from rich.progress import Progress as RichProgress
+    from rich.table import Column
 
     bar = RichProgress(
         BarColumn(bar_width=20),
