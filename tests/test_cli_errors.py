@@ -92,7 +92,7 @@ CASES: dict[str, tuple[str, list[str], str]] = {
     "resume-fixed-key": (
         "fedhpg-run",
         [f"resume={RUN_DIR}", "algo.step_size=0.1"],
-        "algo.step_size: the run has 0.5, this invocation 0.1",
+        "algo.step_size: the run has 0.25, this invocation 0.1",
     ),
     "resume-fixed-group": (
         "fedhpg-run",
@@ -153,7 +153,7 @@ def _forked(script: str, args: list[str], cwd: Path) -> tuple[int, str]:
 def outcomes(tmp_path_factory: pytest.TempPathFactory) -> dict[str, tuple[int, str, set, set]]:
     """Every case, each in its own fresh working directory; the subprocesses start at once."""
     base = tmp_path_factory.mktemp("cli-errors")
-    config = json.dumps(to_dict(compose([])))
+    config = json.dumps(to_dict(compose(["algo.step_size=0.25"])))
     prepared = {}
     for name in CASES:
         cwd = base / name
