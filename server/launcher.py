@@ -224,24 +224,32 @@ def port_named(overrides: list[str]) -> bool:
     return any(o.split("=", 1)[0].lstrip("+") == "server.port" for o in overrides)
 
 
-def check_port_free(run: RunConfig) -> None:
-    """A named port that something else holds: one line and exit 1 before anything starts
-    (the setting is valid; the machine's state is what fails, as with a full disk)."""
+def check_endpoint(run: RunConfig) -> None:
+    """Probe the address the server will bind, before anything starts. A host this machine
+    cannot listen on is a setting: one line, exit 2. A named port that something else holds
+    is one line and exit 1: the setting is valid, the machine's state is what fails (as with
+    a full disk), and the same command may work a minute later."""
+    import errno
     import socket
 
-    if run.server.transport != "tcp" or run.server.port == 0:
+    if run.server.transport != "tcp":
         return
-    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as probe:
-        probe.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)  # as libzmq binds
-        try:
-            probe.bind((run.server.host, run.server.port))
-        except OSError as error:
+    host, port = run.server.host, run.server.port
+    try:
+        family, kind, _, _, address = socket.getaddrinfo(host, port, type=socket.SOCK_STREAM)[0]
+        with socket.socket(family, kind) as probe:
+            probe.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)  # as libzmq binds
+            probe.bind(address)
+    except OSError as error:
+        reason = error.strerror or str(error)
+        if error.errno == errno.EADDRINUSE:
             sys.stderr.write(
-                f"error: server.port: cannot listen on {run.server.host}:{run.server.port}: "
-                f"{error.strerror or error} (choose another port, or leave server.port unset "
-                "for a free one)\n"
+                f"error: server.port: cannot listen on {host}:{port}: {reason} (choose another "
+                "port, or leave server.port unset for a free one)\n"
             )
             sys.exit(1)
+        sys.stderr.write(f"error: server.host: cannot listen on {host}: {reason}\n")
+        sys.exit(2)
 
 
 def run_federation(run: RunConfig, *, port: bool = False) -> int:
@@ -316,9 +324,8 @@ def main() -> None:
         sys.stderr.write(f"error: {error}\n")
         sys.exit(EXIT_USAGE)
     port = port_named(overrides)
-    if port:
-        for run in runs[:1]:
-            check_port_free(run)
+    for run in runs[:1]:
+        check_endpoint(run if port else replace(run, server=replace(run.server, port=0)))
     if resume:
         limit_threads()
         sys.exit(run_federation(runs[0], port=port))

@@ -62,6 +62,11 @@ CASES: dict[str, tuple[str, list[str], str]] = {
     ),
     "unknown-group-option": ("fedhpg-run", ["algo=nope"], "algo: no such option 'nope'"),
     "bad-port": ("fedhpg-run", ["server.port=70000"], "server.port: got 70000, must be <= 65535"),
+    "host-not-here": (
+        "fedhpg-run",
+        ["server.host=192.0.2.1"],  # TEST-NET-1: no interface of this machine has it
+        "server.host: cannot listen on 192.0.2.1: Cannot assign requested address",
+    ),
     "bind-all": ("fedhpg-run", ["server.bind_all=true"], "server.bind_all:"),
     "unknown-flag": ("fedhpg-run", ["--bogus"], "--bogus: not an option"),
     "sweep-bad-point": (
