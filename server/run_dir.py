@@ -67,6 +67,19 @@ class RunDirectory:
             raise
         return directory
 
+    @staticmethod
+    def precheck(path: Path, *, resume: bool, key: str = "server.out_dir") -> None:
+        """What :meth:`claim` would refuse that can be seen without touching anything (a
+        file, a run already there): for entry points that check before they start."""
+        if path.exists() and not path.is_dir():
+            raise ConfigError(key, f"{path} is a file, not a directory")
+        if not resume and any((path / name).exists() for name in RUN_FILES):
+            raise ConfigError(
+                key,
+                f"{path} holds a run already: continue it with resume=true, or choose an "
+                "empty directory",
+            )
+
     def holds_run(self) -> bool:
         return any((self.path / name).exists() for name in RUN_FILES)
 

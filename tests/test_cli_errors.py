@@ -67,6 +67,16 @@ CASES: dict[str, tuple[str, list[str], str]] = {
         ["server.host=192.0.2.1"],  # TEST-NET-1: no interface of this machine has it
         "server.host: cannot listen on 192.0.2.1: Cannot assign requested address",
     ),
+    "out-dir-holds-a-run": (
+        "fedhpg-run",
+        [f"server.out_dir={RUN_DIR}"],
+        f"server.out_dir: {RUN_DIR} holds a run already: continue it with resume=true",
+    ),
+    "out-dir-is-a-file": (
+        "fedhpg-run",
+        [f"server.out_dir={RUN_DIR}/config.json"],
+        "is a file, not a directory",
+    ),
     "bind-all": ("fedhpg-run", ["server.bind_all=true"], "server.bind_all:"),
     "unknown-flag": ("fedhpg-run", ["--bogus"], "--bogus: not an option"),
     "sweep-bad-point": (
@@ -164,6 +174,7 @@ def outcomes(tmp_path_factory: pytest.TempPathFactory) -> dict[str, tuple[int, s
         cwd = base / name
         (cwd / RUN_DIR).mkdir(parents=True)
         (cwd / RUN_DIR / "config.json").write_text(config)
+        (cwd / RUN_DIR / "metrics.jsonl").write_text("")  # a run's first file
         prepared[name] = (cwd, _listing(cwd))
     started = {
         name: subprocess.Popen(
