@@ -311,12 +311,14 @@ def main() -> None:
         sys.exit(EXIT_USAGE)
     setup_logging()
     multirun = any(a in ("-m", "--multirun") for a in args)
-    hydra_flags = any(a.startswith("-") and a not in ("-m", "--multirun") for a in args)
+    # --cfg, --info, --config-dir ...: Hydra's own (it prints, or reads other configs)
+    modes = ("-m", "--multirun", "-r", "--run")
+    hydra_flags = any(a.startswith("-") and a not in modes for a in args)
     overrides = own_overrides(args)
     resume = resume_value(overrides) is not None and not multirun
     try:
         if hydra_flags:
-            runs: list[RunConfig] = []  # --cfg, --info, ...: Hydra's own, it runs no job
+            runs: list[RunConfig] = []
         elif multirun:
             runs = compose_sweep(overrides)
         else:
