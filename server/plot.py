@@ -375,7 +375,7 @@ def curves_of(
             name = label
             if agent is not None:  # the agent's id and its own settings; the group if several
                 own = agent_setting(runs[0], agent["index"])
-                name = f"{agent_id} ({own})" if own else str(agent_id)
+                name = f"{agent_id}: {own}" if own else str(agent_id)
                 name = name if len(groups) == 1 else f"{label}, {name}"
             drawn.append((name, curves))
     if not drawn:

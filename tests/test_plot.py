@@ -121,7 +121,7 @@ def test_figure_says_what_the_curves_and_bands_are(sweep: Path) -> None:
     assert per_agent.axes[0].get_ylabel() == "training return of the agent's own batch"
     assert len(per_agent.axes[0].get_lines()) == 2 * 4, "one curve per group and agent"
     texts = [t.get_text() for t in per_agent.axes[0].get_legend().get_texts()]
-    assert texts[1] == "B=(2, 5, 10, 20), agent-1 (B=5) (2 seeds)"
+    assert texts[1] == "B=(2, 5, 10, 20), agent-1: B=5 (2 seeds)"
     assert texts[5] == "B=20, agent-1 (2 seeds)", "the same B everywhere: nothing to add"
     plt.close(figure)
     plt.close(per_agent)
