@@ -105,6 +105,8 @@ def _read_run(metrics: Path) -> Run | None:
         lines = metrics.read_text(encoding="utf-8").splitlines()
     except (OSError, UnicodeDecodeError, json.JSONDecodeError) as error:
         raise PlotError(f"{metrics.parent}: cannot read its run files: {error}") from None
+    if not isinstance(config, dict):
+        raise PlotError(f"{config_path}: not a fedhpg run config")
     records = []
     for number, line in enumerate(lines, 1):
         if not line.strip():
@@ -242,9 +244,10 @@ def series(
         # Files written before the counter existed: sum it here the same way.
         trajectories = record.get(
             "trajectories_per_agent",
-            trajectories + sum(a["trajectories"] for a in agents) / len(agents),
+            trajectories + sum(a["trajectories"] for a in agents) / max(len(agents), 1),
         )
-        emulated += max(a.get("emulated_s", 0.0) for a in agents)
+        # A round in which no update arrived (deadline policy) took no device time here.
+        emulated += max((a.get("emulated_s", 0.0) for a in agents), default=0.0)
         x = {"rounds": record["round"], "trajectories": trajectories, "emulated": emulated}[x_axis]
         if metric == "train_return":
             chosen = [a for a in agents if agent is None or a["id"] == agent]

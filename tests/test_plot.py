@@ -228,6 +228,7 @@ def test_out_into_a_missing_directory_is_one_line_and_creates_nothing(
         (["{sweep}", "--out", "{tmp}"], "--out: {tmp} is a directory"),
         (["{one}", "--per-agent", "--metric", "eval_worst_return"], "--per-agent: eval_worst"),
         (["{torn}"], "{torn}/metrics.jsonl line 2: not a JSON record"),
+        (["{noeval}"], "nothing to plot for eval_return: the runs have no evaluation rounds"),
     ],
 )
 def test_bad_input_is_one_line_exit_2(
@@ -245,7 +246,13 @@ def test_bad_input_is_one_line_exit_2(
     (torn / "config.json").write_text((single_point / "config.json").read_text())
     first = (single_point / "metrics.jsonl").read_text().splitlines()[0]
     (torn / "metrics.jsonl").write_text(first + "\n" + first[:20] + "\n")
-    names = {"tmp": tmp_path, "sweep": sweep, "one": single_point, "torn": torn}
+    noeval = tmp_path / "noeval"
+    noeval.mkdir()
+    (noeval / "config.json").write_text((single_point / "config.json").read_text())
+    record = json.loads(first)
+    del record["eval"]
+    (noeval / "metrics.jsonl").write_text(json.dumps(record) + "\n")
+    names = {"tmp": tmp_path, "sweep": sweep, "one": single_point, "torn": torn, "noeval": noeval}
     before = sorted(tmp_path.rglob("*"))
     try:
         code = main([a.format(**names) for a in arguments])
