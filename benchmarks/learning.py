@@ -91,36 +91,35 @@ def run_curve(
 
 
 def plot(curves: list[Curve], path: Path, title: str, ylabel: str) -> None:
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    """Mean over seeds and its 95% percentile-bootstrap band (the project's one convention,
+    :mod:`fedhpg.server.plot`), the target as a dashed line."""
     import numpy as np
 
-    figure, axis = plt.subplots(figsize=(7, 4.2))
+    from fedhpg.server.plot import draw_band, figure_and_axis, legend, save
+
+    figure, axis = figure_and_axis()
     labels = list(dict.fromkeys(c.label for c in curves))
     for label, colour in zip(labels, ("tab:blue", "tab:orange", "tab:green"), strict=False):
         group = [c for c in curves if c.label == label]
-        grid = np.linspace(0, max(c.trajectories[-1] for c in group), 200)
-        values = np.array([np.interp(grid, c.trajectories, c.returns) for c in group])
-        median = np.median(values, axis=0)
-        axis.plot(
-            grid, median, color=colour, label=f"{label}: median, min–max of {len(group)} seeds"
-        )
-        axis.fill_between(grid, values.min(axis=0), values.max(axis=0), color=colour, alpha=0.2)
-    axis.axhline(TARGET, color="grey", linestyle="--", linewidth=1, label=f"{TARGET:g}")
+        seeds = [(np.array(c.trajectories), np.array(c.returns)) for c in group]
+        draw_band(axis, _readable(label), seeds, color=colour)
+    axis.axhline(TARGET, color="grey", linestyle="--", linewidth=1, label=f"target {TARGET:g}")
     reached = [hit[0] for c in curves if (hit := c.first_reaching(TARGET))]
     if reached:
         axis.set_xlim(0, 2 * max(reached))
     axis.set_xlabel("trajectories per agent")
     axis.set_ylabel(ylabel)
     axis.set_title(title)
-    axis.legend(loc="lower right")
-    figure.tight_layout()
+    legend(axis, "mean", loc="lower right")
     path.parent.mkdir(parents=True, exist_ok=True)
-    figure.savefig(path, dpi=120)
-    figure.savefig(path.with_suffix(".svg"))
-    plt.close(figure)
+    save(figure, path)
+
+
+def _readable(label: str) -> str:
+    """ "fedhpgvr K=10 level=1" → "FedHPGVR, K=10, level 1"."""
+    algo, *rest = label.split(" ")
+    names = {"fedhpg": "FedHPG", "fedhpgvr": "FedHPGVR"}
+    return ", ".join([names.get(algo, algo), *(r.replace("level=", "level ") for r in rest)])
 
 
 def table(curves: list[Curve]) -> str:

@@ -232,15 +232,13 @@ def table(task: Task, results: list[SeedResult]) -> str:
 
 
 def plot(task: Task, results: list[SeedResult], path: Path) -> None:
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    """Greedy and stochastic return: the mean over seeds and its 95% percentile-bootstrap
+    band (the project's one convention, :mod:`fedhpg.server.plot`), FedPG-BR's return."""
     import numpy as np
 
-    figure, axis = plt.subplots(figsize=(7, 4.2))
-    end = min(r.trajectories[-1] for r in results)
-    grid = np.linspace(0, end, 300)
+    from fedhpg.server.plot import draw_band, figure_and_axis, legend, save
+
+    figure, axis = figure_and_axis()
     curves = (
         (
             f"greedy, 10 episodes ≤ {task.horizons[1]} steps",
@@ -254,28 +252,24 @@ def plot(task: Task, results: list[SeedResult], path: Path) -> None:
         ),
     )
     for label, colour, curve in curves:
-        values = np.array([np.interp(grid, *curve(r)) for r in results])
-        axis.plot(
-            grid,
-            np.median(values, axis=0),
-            color=colour,
-            label=f"{label}: median, min–max of {len(results)} seeds",
-        )
-        axis.fill_between(grid, values.min(axis=0), values.max(axis=0), color=colour, alpha=0.2)
+        seeds = [
+            (np.asarray(x, dtype=float), np.asarray(y, dtype=float)) for x, y in map(curve, results)
+        ]
+        draw_band(axis, label, seeds, color=colour)
     low, high = task.anchor
     if low == high:
         axis.axhline(low, color="grey", linestyle="--", linewidth=1, label=f"FedPG-BR ≈{low:g}")
     else:
         axis.axhspan(low, high, color="grey", alpha=0.25, label=f"FedPG-BR ≈{low:g}–{high:g}")
     axis.set_xlabel("trajectories per agent")
-    axis.set_ylabel("return")
+    axis.set_ylabel("undiscounted episode return")
     axis.set_title(f"{task.title} (fedhpg-run, server Adam)")
-    axis.legend(loc="best", fontsize="small")
-    figure.tight_layout()
+    # Room above the curves for the legend: both tasks rise from the lower left.
+    bottom, top = axis.get_ylim()
+    axis.set_ylim(bottom, top + 0.35 * (top - bottom))
+    legend(axis, "mean", loc="upper left")
     path.parent.mkdir(parents=True, exist_ok=True)
-    figure.savefig(path, dpi=120)
-    figure.savefig(path.with_suffix(".svg"))
-    plt.close(figure)
+    save(figure, path)
 
 
 def main() -> None:

@@ -104,41 +104,48 @@ def table(curves: list[Curve]) -> str:
 
 
 def plot(curves: list[Curve], path: Path) -> None:
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    """Each strategy with and without the attack: the mean over seeds and its 95%
+    percentile-bootstrap band (the project's one convention, :mod:`fedhpg.server.plot`)."""
     import numpy as np
 
-    figure, axis = plt.subplots(figsize=(7, 4.2))
+    from fedhpg.server.plot import draw_band, figure_and_axis, legend, save
+
+    figure, axis = figure_and_axis()
     colours = {"mean": "tab:red", "median": "tab:blue", "trimmed_mean": "tab:green"}
     for strategy, colour in colours.items():
         for attack, style in (("none", ":"), ("sign_flip", "-")):
             group = [c for c in curves if (c.strategy, c.attack) == (strategy, attack)]
             if not group:
                 continue
-            x = np.array(group[0].trajectories)
-            values = np.array([c.returns for c in group])
+            seeds = [(np.array(c.trajectories), np.array(c.returns)) for c in group]
             label = f"{strategy}, {'3 sign-flippers' if attack != 'none' else 'no attack'}"
-            axis.plot(x, np.median(values, axis=0), color=colour, linestyle=style, label=label)
-            axis.fill_between(x, values.min(0), values.max(0), color=colour, alpha=0.12)
+            draw_band(axis, label, seeds, color=colour, linestyle=style, band_alpha=0.12)
     axis.axhline(TARGET, color="grey", linestyle="--", linewidth=1)
     axis.set_xlabel("trajectories per agent")
-    axis.set_ylabel("greedy return (mean over agents)")
-    axis.set_title("CartPole-v1, K=10, 3 agents send −2.5 × their update (median, min–max)")
-    axis.legend(loc="center right", fontsize=8, framealpha=0.9)
-    figure.tight_layout()
+    axis.set_ylabel("greedy return, mean over the agents' environments")
+    axis.set_title("CartPole-v1, K=10, 3 agents send −2.5 × their update")
+    legend(axis, "mean", loc="center right", fontsize=8, framealpha=0.9)
     path.parent.mkdir(parents=True, exist_ok=True)
-    figure.savefig(path, dpi=120)
-    figure.savefig(path.with_suffix(".svg"))
-    plt.close(figure)
+    save(figure, path)
+
+
+def load(path: Path) -> list[Curve]:
+    """The curves a previous run stored (``--plot-only`` redraws the figure from them)."""
+    return [Curve(**curve) for curve in json.loads(path.read_text())]
 
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__)
     parser.add_argument("--seeds", type=int, default=3)
     parser.add_argument("--rounds", type=int, default=30)
+    parser.add_argument("--plot-only", action="store_true", help=f"redraw from {RESULTS}")
     args = parser.parse_args()
+    if args.plot_only:
+        curves = load(RESULTS)
+        print(table(curves))
+        plot(curves, FIGURE)
+        print(f"\nfigure: {FIGURE}")
+        return
     curves = []
     for seed in range(args.seeds):
         for strategy in STRATEGIES:
