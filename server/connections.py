@@ -157,13 +157,17 @@ class ConnectionGuard:
         return self
 
     def stop(self) -> None:
+        # Disable the monitor while the thread still reads it: libzmq sends each event (and the
+        # last, MONITOR_STOPPED) with a blocking send under the socket's monitor lock, so an
+        # event sent to a closed reader stalls its I/O thread and the next call that takes the
+        # lock hangs. (A server hung so after its last round when agents left in that window.)
+        if not self.socket.closed:
+            with contextlib.suppress(zmq.ZMQError):
+                self.socket.disable_monitor()
         self._stopping.set()
         if self._thread is not None:
             self._thread.join(timeout=5)
         self._report(float("inf"))
-        if not self.socket.closed:
-            with contextlib.suppress(zmq.ZMQError):
-                self.socket.disable_monitor()
 
     # -- called from the round loop's thread -----------------------------------------------
 
@@ -188,14 +192,21 @@ class ConnectionGuard:
         assert self._monitor is not None
         try:
             while not self._stopping.is_set():
-                while self._monitor.poll(0):
-                    self._on_event(recv_monitor_message(self._monitor))
-                self._watch(time.monotonic())
-                self._monitor.poll(int(WATCH_INTERVAL_S * 1000))
-        except zmq.ZMQError as error:  # the context is going away
-            logger.debug("connection guard stopped: %s", error)
+                try:
+                    self._turn()
+                except zmq.ContextTerminated:
+                    break
+                except Exception:  # a reader left unread would stall libzmq: outlive any bug
+                    logger.exception("connection guard: an event could not be handled")
         finally:
             self._monitor.close(linger=0)
+
+    def _turn(self) -> None:
+        assert self._monitor is not None
+        while self._monitor.poll(0):
+            self._on_event(recv_monitor_message(self._monitor))
+        self._watch(time.monotonic())
+        self._monitor.poll(int(WATCH_INTERVAL_S * 1000))
 
     def _on_event(self, event: Mapping[str, Any]) -> None:
         kind, value = event["event"], int(event["value"])
