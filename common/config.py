@@ -215,6 +215,9 @@ class ServerConfig:
     """A connection that has not registered within this time is closed."""
     out_dir: str | None = None
     """Run directory for metrics and checkpoints; None = the Hydra run directory / cwd."""
+    tensorboard: bool = True
+    """Also write TensorBoard event files to ``<out_dir>/tensorboard/`` (needs the optional
+    ``tensorboard`` package; without it a warning, and metrics.jsonl alone)."""
 
 
 @dataclass(kw_only=True)

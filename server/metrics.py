@@ -1,16 +1,21 @@
-"""Round metrics: one JSON object per line in ``metrics.jsonl`` (schema: docs/metrics.md)."""
+"""Round metrics: one JSON object per line in ``metrics.jsonl`` (schema: docs/metrics.md), and
+the same rounds as TensorBoard scalars beside it."""
 
 from __future__ import annotations
 
 import json
+import logging
 import os
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import torch
 
 from fedhpg.server.coordinator import RoundRecord
 from fedhpg.server.run_dir import RunDirectoryError
+
+logger = logging.getLogger(__name__)
 
 METRICS_SCHEMA_VERSION = 1
 
@@ -42,3 +47,93 @@ class MetricsWriter:
 def read_metrics(path: Path) -> list[dict[str, Any]]:
     with path.open(encoding="utf-8") as handle:
         return [json.loads(line) for line in handle if line.strip()]
+
+
+# --- TensorBoard: a view of the same records (metrics.jsonl stays the source of truth) ------
+
+TENSORBOARD_DIR = "tensorboard"
+FLUSH_SECS = 10
+"""The event writer's thread flushes this often (and on close); losing a few seconds of the
+view in a crash is harmless, since metrics.jsonl holds every round."""
+
+
+def _finite(value: float) -> bool:
+    return bool(np.isfinite(value))
+
+
+class TensorBoardWriter:
+    """Scalars of each round, step = round: ``fed/…`` for the federation, ``agent/<k>/…`` for
+    agent k's update, ``eval/<id>/…`` (and ``eval/mean/…``) for the unified policy's evaluation.
+    Keys: docs/metrics.md."""
+
+    def __init__(self, writer: Any, theta: torch.Tensor) -> None:
+        self._writer = writer
+        self._previous = theta.detach().numpy().astype(np.float64)
+        """θ̃ before the round: the update norms are measured from it."""
+
+    def _add(self, key: str, value: float, step: int) -> None:
+        if _finite(value):  # NaN/Inf never reach metrics.jsonl either
+            self._writer.add_scalar(key, float(value), step)
+
+    def __call__(self, record: RoundRecord, theta: torch.Tensor) -> None:
+        step = record.round
+        before, after = self._previous, theta.detach().numpy().astype(np.float64)
+        add = self._add
+        add("fed/round_time_s", record.round_time_s, step)
+        add("fed/wall_time_s", record.wall_time_s, step)
+        add("fed/trajectories_per_agent", record.trajectories_per_agent, step)
+        add("fed/updates", len(record.agents), step)
+        add("fed/failures", len(record.failures), step)
+        add("fed/stragglers", len(record.stragglers), step)
+        add("fed/theta_norm", float(np.linalg.norm(after)), step)
+        add("fed/theta_step_norm", float(np.linalg.norm(after - before)), step)
+        if record.agents:
+            stats = [u.stats for u in record.agents]
+            # The round's emulated duration is its slowest agent's emulated time.
+            add("fed/emulated_round_s", max(s.emulated_s for s in stats), step)
+            add("fed/trajectories", sum(s.trajectories for s in stats), step)
+        for update in record.agents:
+            prefix = f"agent/{update.agent_index}/"
+            for name, value in update.stats.to_json().items():
+                add(prefix + name, value, step)
+            norm = np.linalg.norm(update.theta.numpy().astype(np.float64) - before)
+            add(prefix + "update_norm", float(norm), step)
+        if record.eval:
+            for agent, evaluation in record.eval.items():
+                add(f"eval/{agent}/return", evaluation.return_mean, step)
+                add(f"eval/{agent}/discounted_return", evaluation.discounted_return_mean, step)
+                add(f"eval/{agent}/success_rate", evaluation.success_rate, step)
+                add(f"eval/{agent}/length", evaluation.length_mean, step)
+            values = list(record.eval.values())
+            add("eval/mean/return", float(np.mean([e.return_mean for e in values])), step)
+            add("eval/mean/success_rate", float(np.mean([e.success_rate for e in values])), step)
+            add("eval/min/return", min(e.return_mean for e in values), step)
+        self._previous = after
+
+    def close(self) -> None:
+        self._writer.close()
+
+
+def tensorboard_sink(
+    enabled: bool, out_dir: Path, *, first_round: int, theta: torch.Tensor
+) -> TensorBoardWriter | None:
+    """A TensorBoard writer for ``out_dir/tensorboard``, or None when off or not installed.
+
+    A resumed run (``first_round`` > 1) purges the steps from ``first_round`` on that an
+    earlier process wrote, so no round is shown twice."""
+    if not enabled:
+        return None
+    try:
+        from torch.utils.tensorboard import SummaryWriter
+    except ImportError:
+        logger.warning(
+            "tensorboard is not installed (pip install 'fedhpg[tensorboard]'): no event "
+            "files, metrics.jsonl only (server.tensorboard=false silences this)"
+        )
+        return None
+    writer = SummaryWriter(
+        log_dir=str(out_dir / TENSORBOARD_DIR),
+        purge_step=first_round if first_round > 1 else None,
+        flush_secs=FLUSH_SECS,
+    )
+    return TensorBoardWriter(writer, theta)
