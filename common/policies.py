@@ -387,7 +387,7 @@ def _import_dotted(path: str) -> PolicyFactory:
         raise ConfigError("policy.name", f"cannot import {path!r}: {error}") from None
     if not callable(found):
         raise ConfigError("policy.name", f"{path!r} is not a class or a factory")
-    return found  # type: ignore[no-any-return]
+    return found
 
 
 def _from_entry_points(name: str) -> PolicyFactory | None:

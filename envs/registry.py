@@ -55,7 +55,7 @@ def _import_dotted(path: str) -> VariantFactory:
         raise UnknownEnvFamilyError(f"cannot import environment family {path!r}: {error}") from None
     if not callable(factory):
         raise UnknownEnvFamilyError(f"environment family {path!r} is not a function")
-    return factory  # type: ignore[no-any-return]
+    return factory
 
 
 def _installed_names() -> list[str]:
