@@ -57,61 +57,68 @@ FLUSH_SECS = 10
 view in a crash is harmless, since metrics.jsonl holds every round."""
 
 
-def _finite(value: float) -> bool:
-    return bool(np.isfinite(value))
-
-
 class TensorBoardWriter:
     """Scalars of each round, step = round: ``fed/…`` for the federation, ``agent/<k>/…`` for
     agent k's update, ``eval/<id>/…`` (and ``eval/mean/…``) for the unified policy's evaluation.
-    Keys: docs/metrics.md."""
+    Keys: docs/metrics.md. A round's scalars go out as one event (one summary of many values),
+    not one event per scalar: a fraction of the cost."""
 
-    def __init__(self, writer: Any, theta: torch.Tensor) -> None:
-        self._writer = writer
+    def __init__(self, file_writer: Any, summary: Any, theta: torch.Tensor) -> None:
+        self._file_writer = file_writer
+        self._summary = summary
+        """tensorboard's ``Summary`` message class."""
         self._previous = theta.detach().numpy().astype(np.float64)
         """θ̃ before the round: the update norms are measured from it."""
 
-    def _add(self, key: str, value: float, step: int) -> None:
-        if _finite(value):  # NaN/Inf never reach metrics.jsonl either
-            self._writer.add_scalar(key, float(value), step)
-
-    def __call__(self, record: RoundRecord, theta: torch.Tensor) -> None:
-        step = record.round
-        before, after = self._previous, theta.detach().numpy().astype(np.float64)
-        add = self._add
-        add("fed/round_time_s", record.round_time_s, step)
-        add("fed/wall_time_s", record.wall_time_s, step)
-        add("fed/trajectories_per_agent", record.trajectories_per_agent, step)
-        add("fed/updates", len(record.agents), step)
-        add("fed/failures", len(record.failures), step)
-        add("fed/stragglers", len(record.stragglers), step)
-        add("fed/theta_norm", float(np.linalg.norm(after)), step)
-        add("fed/theta_step_norm", float(np.linalg.norm(after - before)), step)
+    def _values(self, record: RoundRecord, after: np.ndarray) -> dict[str, float]:
+        before = self._previous
+        values: dict[str, float] = {
+            "fed/round_time_s": record.round_time_s,
+            "fed/wall_time_s": record.wall_time_s,
+            "fed/trajectories_per_agent": record.trajectories_per_agent,
+            "fed/updates": len(record.agents),
+            "fed/failures": len(record.failures),
+            "fed/stragglers": len(record.stragglers),
+            "fed/theta_norm": float(np.linalg.norm(after)),
+            "fed/theta_step_norm": float(np.linalg.norm(after - before)),
+        }
         if record.agents:
             stats = [u.stats for u in record.agents]
             # The round's emulated duration is its slowest agent's emulated time.
-            add("fed/emulated_round_s", max(s.emulated_s for s in stats), step)
-            add("fed/trajectories", sum(s.trajectories for s in stats), step)
+            values["fed/emulated_round_s"] = max(s.emulated_s for s in stats)
+            values["fed/trajectories"] = sum(s.trajectories for s in stats)
         for update in record.agents:
             prefix = f"agent/{update.agent_index}/"
             for name, value in update.stats.to_json().items():
-                add(prefix + name, value, step)
+                values[prefix + name] = value
             norm = np.linalg.norm(update.theta.numpy().astype(np.float64) - before)
-            add(prefix + "update_norm", float(norm), step)
+            values[prefix + "update_norm"] = float(norm)
         if record.eval:
             for agent, evaluation in record.eval.items():
-                add(f"eval/{agent}/return", evaluation.return_mean, step)
-                add(f"eval/{agent}/discounted_return", evaluation.discounted_return_mean, step)
-                add(f"eval/{agent}/success_rate", evaluation.success_rate, step)
-                add(f"eval/{agent}/length", evaluation.length_mean, step)
-            values = list(record.eval.values())
-            add("eval/mean/return", float(np.mean([e.return_mean for e in values])), step)
-            add("eval/mean/success_rate", float(np.mean([e.success_rate for e in values])), step)
-            add("eval/min/return", min(e.return_mean for e in values), step)
+                values[f"eval/{agent}/return"] = evaluation.return_mean
+                values[f"eval/{agent}/discounted_return"] = evaluation.discounted_return_mean
+                values[f"eval/{agent}/success_rate"] = evaluation.success_rate
+                values[f"eval/{agent}/length"] = evaluation.length_mean
+            evaluations = list(record.eval.values())
+            values["eval/mean/return"] = float(np.mean([e.return_mean for e in evaluations]))
+            values["eval/mean/success_rate"] = float(np.mean([e.success_rate for e in evaluations]))
+            values["eval/min/return"] = min(e.return_mean for e in evaluations)
+        return values
+
+    def __call__(self, record: RoundRecord, theta: torch.Tensor) -> None:
+        after = theta.detach().numpy().astype(np.float64)
+        summary = self._summary(
+            value=[
+                self._summary.Value(tag=key, simple_value=float(value))
+                for key, value in self._values(record, after).items()
+                if np.isfinite(value)  # NaN/Inf never reach metrics.jsonl either
+            ]
+        )
+        self._file_writer.add_summary(summary, record.round)
         self._previous = after
 
     def close(self) -> None:
-        self._writer.close()
+        self._file_writer.close()
 
 
 def tensorboard_sink(
@@ -124,16 +131,18 @@ def tensorboard_sink(
     if not enabled:
         return None
     try:
-        from torch.utils.tensorboard import SummaryWriter
+        from tensorboard.compat.proto.event_pb2 import Event, SessionLog
+        from tensorboard.compat.proto.summary_pb2 import Summary
+        from torch.utils.tensorboard.writer import FileWriter
     except ImportError:
         logger.warning(
             "tensorboard is not installed (pip install 'fedhpg[tensorboard]'): no event "
             "files, metrics.jsonl only (server.tensorboard=false silences this)"
         )
         return None
-    writer = SummaryWriter(
-        log_dir=str(out_dir / TENSORBOARD_DIR),
-        purge_step=first_round if first_round > 1 else None,
-        flush_secs=FLUSH_SECS,
-    )
-    return TensorBoardWriter(writer, theta)
+    writer = FileWriter(str(out_dir / TENSORBOARD_DIR), flush_secs=FLUSH_SECS)
+    if first_round > 1:
+        # What SummaryWriter(purge_step=...) writes: readers drop older events of later steps.
+        writer.add_event(Event(step=first_round, file_version="brain.Event:2"))
+        writer.add_event(Event(step=first_round, session_log=SessionLog(status=SessionLog.START)))
+    return TensorBoardWriter(writer, Summary, theta)
