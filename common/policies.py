@@ -288,8 +288,12 @@ def _tabular(observation_space: gym.Space, action_space: gym.Space, _: PolicyCon
     )
 
 
-def _box_dim(observation_space: gym.Space) -> int:
+def _box_dim(observation_space: gym.Space, policy: str | None = None) -> int:
     if not isinstance(observation_space, gym.spaces.Box) or len(observation_space.shape) != 1:
+        if policy is not None:
+            raise ValueError(
+                f"policy {policy!r} needs 1-D Box observations, got {observation_space}"
+            )
         raise ValueError(
             f"unsupported observation space {observation_space}: need Discrete or 1-D Box"
         )
@@ -299,7 +303,7 @@ def _box_dim(observation_space: gym.Space) -> int:
 def _mlp_categorical(
     observation_space: gym.Space, action_space: gym.Space, config: PolicyConfig
 ) -> Policy:
-    obs_dim = _box_dim(observation_space)
+    obs_dim = _box_dim(observation_space, "mlp_categorical")
     if not isinstance(action_space, gym.spaces.Discrete):
         raise ValueError(f"policy 'mlp_categorical' needs Discrete actions, got {action_space}")
     return MLPCategoricalPolicy(
@@ -310,7 +314,7 @@ def _mlp_categorical(
 def _gaussian_mlp(
     observation_space: gym.Space, action_space: gym.Space, config: PolicyConfig
 ) -> Policy:
-    obs_dim = _box_dim(observation_space)
+    obs_dim = _box_dim(observation_space, "gaussian_mlp")
     if not isinstance(action_space, gym.spaces.Box) or len(action_space.shape) != 1:
         raise ValueError(f"policy 'gaussian_mlp' needs 1-D Box actions, got {action_space}")
     if config.log_std not in LOG_STDS:
@@ -411,7 +415,16 @@ def make_policy(
     name = config.name
     if name == AUTO_POLICY:
         name = _auto_name(observation_space, action_space)
-    policy = resolve_policy(name)(observation_space, action_space, config)
+    factory = resolve_policy(name)
+    try:
+        policy = factory(observation_space, action_space, config)
+    except ConfigError:
+        raise
+    except ValueError as error:
+        if config.name == AUTO_POLICY:  # the spaces fit no built-in policy: not a config key
+            raise
+        # a chosen policy that does not fit the run's spaces: the user's choice, one line
+        raise ConfigError("policy.name", str(error)) from None
     if not isinstance(policy, Policy):
         raise ConfigError(
             "policy.name",

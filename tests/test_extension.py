@@ -165,3 +165,24 @@ def test_a_policy_that_is_no_policy_subclass_is_refused() -> None:
     with pytest.raises(ConfigError, match="not a fedhpg Policy subclass") as info:
         run_in_process(compose([*TOY_RUN, f"policy.name={ENV_PLUGIN}:not_a_policy"]))
     assert info.value.key == "policy.name"
+
+
+@pytest.mark.parametrize(
+    ("env", "name"),
+    [("gridworld", "tabular"), ("cartpole", "mlp_categorical"), ("pendulum", "gaussian_mlp")],
+)
+def test_built_in_policies_by_name_are_the_auto_choice_bit_for_bit(env: str, name: str) -> None:
+    from fedhpg.common.worker import initial_theta
+
+    run = compose([f"env={env}", "agents=homogeneous4"])
+    variant = run_variants(run)[0]
+    auto = initial_theta(variant, run)
+    named = initial_theta(
+        variant, compose([f"env={env}", "agents=homogeneous4", f"policy.name={name}"])
+    )
+    assert run.policy.name == "auto" and torch.equal(auto, named)
+    wrong = "gaussian_mlp" if name != "gaussian_mlp" else "mlp_categorical"
+    with pytest.raises(ConfigError, match=f"policy '{wrong}' needs"):
+        initial_theta(
+            variant, compose([f"env={env}", "agents=homogeneous4", f"policy.name={wrong}"])
+        )
