@@ -157,13 +157,16 @@ class ConnectionGuard:
         return self
 
     def stop(self) -> None:
+        # Stop the monitor while the guard thread still drains its socket: libzmq's last
+        # event (MONITOR_STOPPED) is a blocking send to that socket, which could hang for
+        # good once the thread had closed it (seen as a server stuck at the end of a run).
+        if not self.socket.closed:
+            with contextlib.suppress(zmq.ZMQError):
+                self.socket.disable_monitor()
         self._stopping.set()
         if self._thread is not None:
             self._thread.join(timeout=5)
         self._report(float("inf"))
-        if not self.socket.closed:
-            with contextlib.suppress(zmq.ZMQError):
-                self.socket.disable_monitor()
 
     # -- called from the round loop's thread -----------------------------------------------
 

@@ -3,9 +3,12 @@ the same rounds as TensorBoard scalars beside it."""
 
 from __future__ import annotations
 
+import itertools
 import json
 import logging
 import os
+import socket
+import time
 from pathlib import Path
 from typing import Any
 
@@ -52,9 +55,36 @@ def read_metrics(path: Path) -> list[dict[str, Any]]:
 # --- TensorBoard: a view of the same records (metrics.jsonl stays the source of truth) ------
 
 TENSORBOARD_DIR = "tensorboard"
-FLUSH_SECS = 10
-"""The event writer's thread flushes this often (and on close); losing a few seconds of the
-view in a crash is harmless, since metrics.jsonl holds every round."""
+_files_opened = itertools.count()
+
+
+class EventFile:
+    """One TensorBoard event file, written on the caller's thread.
+
+    TensorBoard's own writers queue events to a thread of theirs; the server already runs
+    ZeroMQ's and the connection guard's threads and is forked, so it writes here, one record
+    per round (microseconds), flushed to the OS at once."""
+
+    def __init__(self, directory: Path, event: Any, record_writer: Any) -> None:
+        directory.mkdir(parents=True, exist_ok=True)
+        name = (
+            f"events.out.tfevents.{int(time.time()):010d}.{socket.gethostname()}."
+            f"{os.getpid()}.{next(_files_opened):04d}"
+        )
+        self._file = (directory / name).open("wb")
+        self._records = record_writer(self._file)
+        self._event = event
+        self.add_event(event(wall_time=time.time(), file_version="brain.Event:2"))
+
+    def add_event(self, event: Any) -> None:
+        self._records.write(event.SerializeToString())
+        self._file.flush()
+
+    def add_summary(self, summary: Any, step: int) -> None:
+        self.add_event(self._event(wall_time=time.time(), step=step, summary=summary))
+
+    def close(self) -> None:
+        self._file.close()
 
 
 class TensorBoardWriter:
@@ -133,16 +163,15 @@ def tensorboard_sink(
     try:
         from tensorboard.compat.proto.event_pb2 import Event, SessionLog
         from tensorboard.compat.proto.summary_pb2 import Summary
-        from torch.utils.tensorboard.writer import FileWriter
+        from tensorboard.summary.writer.record_writer import RecordWriter
     except ImportError:
         logger.warning(
             "tensorboard is not installed (pip install 'fedhpg[tensorboard]'): no event "
             "files, metrics.jsonl only (server.tensorboard=false silences this)"
         )
         return None
-    writer = FileWriter(str(out_dir / TENSORBOARD_DIR), flush_secs=FLUSH_SECS)
+    events = EventFile(out_dir / TENSORBOARD_DIR, Event, RecordWriter)
     if first_round > 1:
-        # What SummaryWriter(purge_step=...) writes: readers drop older events of later steps.
-        writer.add_event(Event(step=first_round, file_version="brain.Event:2"))
-        writer.add_event(Event(step=first_round, session_log=SessionLog(status=SessionLog.START)))
-    return TensorBoardWriter(writer, Summary, theta)
+        # What TensorBoard's purge_step writes: readers drop older events of later steps.
+        events.add_event(Event(step=first_round, session_log=SessionLog(status=SessionLog.START)))
+    return TensorBoardWriter(events, Summary, theta)

@@ -80,7 +80,7 @@ def test_without_tensorboard_installed_a_warning_and_the_run_goes_on(
     tmp_path: Path, monkeypatch: pytest.MonkeyPatch, caplog: pytest.LogCaptureFixture
 ) -> None:
     # The package cannot be uninstalled for one test: a None entry makes its import fail.
-    monkeypatch.setitem(sys.modules, "torch.utils.tensorboard.writer", None)
+    monkeypatch.setitem(sys.modules, "tensorboard.summary.writer.record_writer", None)
     out_dir = tmp_path / "run"
     with caplog.at_level(logging.WARNING, logger="fedhpg.server.metrics"):
         result = api.run(overrides=[*RUN, "rounds=2"], out_dir=out_dir)
