@@ -124,10 +124,13 @@ def run(
     """Run one federation and return θ̃, the round records and the last evaluation.
 
     ``callbacks`` are called after every round with the typed :class:`RoundRecord` and θ̃ (in
-    this process, so in-process runs only). ``out_dir``: write the run directory there
-    (metrics.jsonl, config.json, summary.json, checkpoints/, tensorboard/), as the server does.
+    this process, so in-process runs only). ``out_dir`` (default: ``server.out_dir``, else
+    none): write the run directory there (metrics.jsonl, config.json, summary.json,
+    checkpoints/, tensorboard/), as the server does.
     """
     run_config = resolve_config(config, overrides)
+    if out_dir is None and run_config.server.out_dir:
+        out_dir = run_config.server.out_dir
     directory = Path(out_dir) if out_dir is not None else None
     if distributed:
         if callbacks:
