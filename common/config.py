@@ -142,6 +142,10 @@ class AttackConfig:
 class PolicyConfig:
     """How to build the policy network for the run's spaces."""
 
+    name: str = "auto"
+    """'auto' (the built-in policy that fits the spaces: tabular, MLP-categorical or Gaussian
+    MLP), a registered name ('tabular', 'mlp_categorical', 'gaussian_mlp', a plugin's), or a
+    dotted path 'package.module:Class' to a fedhpg Policy subclass."""
     hidden: list[int] = field(default_factory=lambda: [64, 64])
     """Hidden layer widths of the MLP policies (ignored by the tabular policy)."""
     log_std: str = "state_independent"
@@ -211,6 +215,9 @@ class ServerConfig:
     """A connection that has not registered within this time is closed."""
     out_dir: str | None = None
     """Run directory for metrics and checkpoints; None = the Hydra run directory / cwd."""
+    tensorboard: bool = True
+    """Also write TensorBoard event files to ``<out_dir>/tensorboard/`` (needs the optional
+    ``tensorboard`` package; without it a warning, and metrics.jsonl alone)."""
 
 
 @dataclass(kw_only=True)
@@ -476,6 +483,11 @@ def validate(config: RunConfig) -> RunConfig:
         f"needs a list of positive layer widths, got {policy.hidden!r}",
     )
     _check_choice(policy.log_std, "policy.log_std", LOG_STDS)
+    _require(
+        isinstance(policy.name, str) and bool(policy.name.strip()),
+        "policy.name",
+        f"got {policy.name!r}, must be 'auto', a registered policy or package.module:Class",
+    )
 
     _check_int(config.eval.every, "eval.every", low=1)
     _check_int(config.eval.episodes, "eval.episodes", low=1)

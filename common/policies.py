@@ -14,6 +14,8 @@ Every policy offers two paths:
 from __future__ import annotations
 
 import abc
+import importlib
+import importlib.metadata
 import itertools
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
@@ -24,7 +26,7 @@ import numpy as np
 import torch
 from torch import nn
 
-from fedhpg.common.config import LOG_STDS, PolicyConfig
+from fedhpg.common.config import LOG_STDS, ConfigError, PolicyConfig
 
 
 @dataclass(frozen=True)
@@ -43,7 +45,14 @@ class ActionSampler:
 
 
 class Policy(nn.Module, abc.ABC):
-    """A parameterised stochastic policy."""
+    """A parameterised stochastic policy.
+
+    The contract a custom policy (``policy.name``) keeps: θ is ``parameters()`` in their
+    order, float32 (the server averages the flat vector); :meth:`log_prob` is differentiable
+    in θ; :meth:`sampler` draws every random number from the ``Generator`` it is handed (so
+    runs are reproducible across processes) and its ``log_prob`` equals :meth:`log_prob`'s.
+    Build it deterministically from ``torch``'s RNG: every process seeds it with the run seed.
+    """
 
     @abc.abstractmethod
     def log_prob(self, obs: torch.Tensor, act: torch.Tensor) -> torch.Tensor:
@@ -258,39 +267,170 @@ class GaussianMLPPolicy(Policy):
         return ActionSampler(sample, log_prob)
 
 
-def make_policy(
-    observation_space: gym.Space, action_space: gym.Space, config: PolicyConfig
-) -> Policy:
-    """The policy class that fits the spaces: tabular, MLP-categorical or Gaussian MLP."""
-    if isinstance(observation_space, gym.spaces.Discrete) and isinstance(
-        action_space, gym.spaces.Discrete
+PolicyFactory = Callable[[gym.Space, gym.Space, PolicyConfig], Policy]
+"""``factory(observation_space, action_space, config) -> Policy``: a Policy subclass whose
+``__init__`` takes these three arguments is one."""
+
+POLICY_ENTRY_POINTS = "fedhpg.policies"
+"""Entry-point group through which an installed package offers policies by name."""
+
+AUTO_POLICY = "auto"
+
+
+def _tabular(observation_space: gym.Space, action_space: gym.Space, _: PolicyConfig) -> Policy:
+    if not (
+        isinstance(observation_space, gym.spaces.Discrete)
+        and isinstance(action_space, gym.spaces.Discrete)
     ):
-        return TabularSoftmaxPolicy(
-            num_states=int(observation_space.n), num_actions=int(action_space.n)
-        )
+        raise ValueError("policy 'tabular' needs Discrete observations and actions")
+    return TabularSoftmaxPolicy(
+        num_states=int(observation_space.n), num_actions=int(action_space.n)
+    )
+
+
+def _box_dim(observation_space: gym.Space, policy: str | None = None) -> int:
     if not isinstance(observation_space, gym.spaces.Box) or len(observation_space.shape) != 1:
+        if policy is not None:
+            raise ValueError(
+                f"policy {policy!r} needs 1-D Box observations, got {observation_space}"
+            )
         raise ValueError(
             f"unsupported observation space {observation_space}: need Discrete or 1-D Box"
         )
-    obs_dim = int(observation_space.shape[0])
+    return int(observation_space.shape[0])
+
+
+def _mlp_categorical(
+    observation_space: gym.Space, action_space: gym.Space, config: PolicyConfig
+) -> Policy:
+    obs_dim = _box_dim(observation_space, "mlp_categorical")
+    if not isinstance(action_space, gym.spaces.Discrete):
+        raise ValueError(f"policy 'mlp_categorical' needs Discrete actions, got {action_space}")
+    return MLPCategoricalPolicy(
+        obs_dim=obs_dim, num_actions=int(action_space.n), hidden=config.hidden
+    )
+
+
+def _gaussian_mlp(
+    observation_space: gym.Space, action_space: gym.Space, config: PolicyConfig
+) -> Policy:
+    obs_dim = _box_dim(observation_space, "gaussian_mlp")
+    if not isinstance(action_space, gym.spaces.Box) or len(action_space.shape) != 1:
+        raise ValueError(f"policy 'gaussian_mlp' needs 1-D Box actions, got {action_space}")
+    if config.log_std not in LOG_STDS:
+        raise ValueError(
+            "policy.log_std must be 'state_independent' or 'state_dependent', "
+            f"got {config.log_std!r}"
+        )
+    return GaussianMLPPolicy(
+        obs_dim=obs_dim,
+        act_dim=int(action_space.shape[0]),
+        hidden=config.hidden,
+        log_std=config.log_std,  # type: ignore[arg-type]
+        init_log_std=config.init_log_std,
+    )
+
+
+POLICIES: dict[str, PolicyFactory] = {
+    "tabular": _tabular,
+    "mlp_categorical": _mlp_categorical,
+    "gaussian_mlp": _gaussian_mlp,
+}
+
+
+def register_policy(name: str) -> Callable[[PolicyFactory], PolicyFactory]:
+    """Decorator: ``@register_policy("mine")`` on a Policy subclass (or a factory) taking
+    ``(observation_space, action_space, config)``; then ``policy.name=mine`` picks it."""
+
+    def add(factory: PolicyFactory) -> PolicyFactory:
+        known = POLICIES.get(name)
+        if name == AUTO_POLICY or (known is not None and known is not factory):
+            raise ValueError(f"policy {name!r} is already registered")
+        POLICIES[name] = factory
+        return factory
+
+    return add
+
+
+def _auto_name(observation_space: gym.Space, action_space: gym.Space) -> str:
+    """The built-in policy for the spaces: tabular, MLP-categorical or Gaussian MLP."""
+    if isinstance(observation_space, gym.spaces.Discrete) and isinstance(
+        action_space, gym.spaces.Discrete
+    ):
+        return "tabular"
+    _box_dim(observation_space)
     if isinstance(action_space, gym.spaces.Discrete):
-        return MLPCategoricalPolicy(
-            obs_dim=obs_dim, num_actions=int(action_space.n), hidden=config.hidden
-        )
+        return "mlp_categorical"
     if isinstance(action_space, gym.spaces.Box) and len(action_space.shape) == 1:
-        if config.log_std not in LOG_STDS:
-            raise ValueError(
-                "policy.log_std must be 'state_independent' or 'state_dependent', "
-                f"got {config.log_std!r}"
-            )
-        return GaussianMLPPolicy(
-            obs_dim=obs_dim,
-            act_dim=int(action_space.shape[0]),
-            hidden=config.hidden,
-            log_std=config.log_std,  # type: ignore[arg-type]
-            init_log_std=config.init_log_std,
-        )
+        return "gaussian_mlp"
     raise ValueError(f"unsupported action space {action_space}: need Discrete or 1-D Box")
+
+
+def resolve_policy(name: str) -> PolicyFactory:
+    """A registered name, one offered by an installed package (entry-point group
+    ``fedhpg.policies``), or a dotted path ``package.module:Class``; else a ConfigError."""
+    factory = POLICIES.get(name)
+    if factory is None and ":" in name:
+        factory = _import_dotted(name)
+    if factory is None:
+        factory = _from_entry_points(name)
+    if factory is None:
+        raise ConfigError(
+            "policy.name",
+            f"no policy {name!r}; known: {', '.join([AUTO_POLICY, *sorted(POLICIES)])} (or "
+            "a dotted path package.module:Class, or a plugin that registers one)",
+        )
+    return factory
+
+
+def _import_dotted(path: str) -> PolicyFactory:
+    module_name, _, attribute = path.partition(":")
+    try:
+        found = getattr(importlib.import_module(module_name), attribute)
+    except (ImportError, AttributeError) as error:
+        raise ConfigError("policy.name", f"cannot import {path!r}: {error}") from None
+    if not callable(found):
+        raise ConfigError("policy.name", f"{path!r} is not a class or a factory")
+    return found
+
+
+def _from_entry_points(name: str) -> PolicyFactory | None:
+    for entry in importlib.metadata.entry_points(group=POLICY_ENTRY_POINTS, name=name):
+        try:
+            factory = entry.load()
+        except (ImportError, AttributeError) as error:
+            raise ConfigError(
+                "policy.name", f"cannot load entry point {entry.value!r}: {error}"
+            ) from None
+        POLICIES.setdefault(name, factory)
+        return POLICIES[name]
+    return None
+
+
+def make_policy(
+    observation_space: gym.Space, action_space: gym.Space, config: PolicyConfig
+) -> Policy:
+    """The policy ``config.name`` names, built for the spaces; 'auto' = the built-in one that
+    fits them (tabular, MLP-categorical or Gaussian MLP)."""
+    name = config.name
+    if name == AUTO_POLICY:
+        name = _auto_name(observation_space, action_space)
+    factory = resolve_policy(name)
+    try:
+        policy = factory(observation_space, action_space, config)
+    except ConfigError:
+        raise
+    except ValueError as error:
+        if config.name == AUTO_POLICY:  # the spaces fit no built-in policy: not a config key
+            raise
+        # a chosen policy that does not fit the run's spaces: the user's choice, one line
+        raise ConfigError("policy.name", str(error)) from None
+    if not isinstance(policy, Policy):
+        raise ConfigError(
+            "policy.name",
+            f"{config.name!r} built a {type(policy).__name__}, not a fedhpg Policy subclass",
+        )
+    return policy
 
 
 def get_flat_params(policy: nn.Module) -> torch.Tensor:

@@ -40,7 +40,7 @@ from fedhpg.server.checkpoint import (
 )
 from fedhpg.server.connections import ConnectionGuard, connection_budget
 from fedhpg.server.coordinator import Coordinator, RoundCallback, RoundRecord, RunProgress
-from fedhpg.server.metrics import MetricsWriter
+from fedhpg.server.metrics import MetricsWriter, tensorboard_sink
 from fedhpg.server.pools import FederationError
 from fedhpg.server.pools.zmq_pool import ZmqAgentPool
 from fedhpg.server.report import evaluation_table
@@ -243,6 +243,9 @@ def _serve_claimed(
     )
     pool.restore_counters(counters)
     metrics = MetricsWriter(run_dir.metrics)
+    board = tensorboard_sink(
+        run.server.tensorboard, out_dir, first_round=progress.next_round, theta=theta
+    )
     last_eval: dict[str, Any] = {}
 
     def keep_eval(record: RoundRecord, _: torch.Tensor) -> None:
@@ -253,6 +256,7 @@ def _serve_claimed(
         metrics,
         _checkpoint_callback(run, out_dir / "checkpoints", progress, pool.counters),
         keep_eval,
+        *([board] if board is not None else []),
     ]
     bar: Progress | None = None
     try:
@@ -282,6 +286,8 @@ def _serve_claimed(
         if bar is not None:
             bar.close()
         metrics.close()
+        if board is not None:
+            board.close()
         connections.stop()
         security.stop()  # the ZAP thread
         socket.close(linger=200)

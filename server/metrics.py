@@ -1,16 +1,24 @@
-"""Round metrics: one JSON object per line in ``metrics.jsonl`` (schema: docs/metrics.md)."""
+"""Round metrics: one JSON object per line in ``metrics.jsonl`` (schema: docs/metrics.md), and
+the same rounds as TensorBoard scalars beside it."""
 
 from __future__ import annotations
 
+import itertools
 import json
+import logging
 import os
+import socket
+import time
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import torch
 
 from fedhpg.server.coordinator import RoundRecord
 from fedhpg.server.run_dir import RunDirectoryError
+
+logger = logging.getLogger(__name__)
 
 METRICS_SCHEMA_VERSION = 1
 
@@ -42,3 +50,128 @@ class MetricsWriter:
 def read_metrics(path: Path) -> list[dict[str, Any]]:
     with path.open(encoding="utf-8") as handle:
         return [json.loads(line) for line in handle if line.strip()]
+
+
+# --- TensorBoard: a view of the same records (metrics.jsonl stays the source of truth) ------
+
+TENSORBOARD_DIR = "tensorboard"
+_files_opened = itertools.count()
+
+
+class EventFile:
+    """One TensorBoard event file, written on the caller's thread.
+
+    TensorBoard's own writers queue events to a thread of theirs; the server already runs
+    ZeroMQ's and the connection guard's threads and is forked, so it writes here, one record
+    per round (microseconds), flushed to the OS at once."""
+
+    def __init__(self, directory: Path, event: Any, record_writer: Any) -> None:
+        directory.mkdir(parents=True, exist_ok=True)
+        name = (
+            f"events.out.tfevents.{int(time.time()):010d}.{socket.gethostname()}."
+            f"{os.getpid()}.{next(_files_opened):04d}"
+        )
+        self._file = (directory / name).open("wb")
+        self._records = record_writer(self._file)
+        self._event = event
+        self.add_event(event(wall_time=time.time(), file_version="brain.Event:2"))
+
+    def add_event(self, event: Any) -> None:
+        self._records.write(event.SerializeToString())
+        self._file.flush()
+
+    def add_summary(self, summary: Any, step: int) -> None:
+        self.add_event(self._event(wall_time=time.time(), step=step, summary=summary))
+
+    def close(self) -> None:
+        self._file.close()
+
+
+class TensorBoardWriter:
+    """Scalars of each round, step = round: ``fed/…`` for the federation, ``agent/<k>/…`` for
+    agent k's update, ``eval/<id>/…`` (and ``eval/mean/…``) for the unified policy's evaluation.
+    Keys: docs/metrics.md. A round's scalars go out as one event (one summary of many values),
+    not one event per scalar: a fraction of the cost."""
+
+    def __init__(self, file_writer: Any, summary: Any, theta: torch.Tensor) -> None:
+        self._file_writer = file_writer
+        self._summary = summary
+        """tensorboard's ``Summary`` message class."""
+        self._previous = theta.detach().numpy().astype(np.float64)
+        """θ̃ before the round: the update norms are measured from it."""
+
+    def _values(self, record: RoundRecord, after: np.ndarray) -> dict[str, float]:
+        before = self._previous
+        values: dict[str, float] = {
+            "fed/round_time_s": record.round_time_s,
+            "fed/wall_time_s": record.wall_time_s,
+            "fed/trajectories_per_agent": record.trajectories_per_agent,
+            "fed/updates": len(record.agents),
+            "fed/failures": len(record.failures),
+            "fed/stragglers": len(record.stragglers),
+            "fed/theta_norm": float(np.linalg.norm(after)),
+            "fed/theta_step_norm": float(np.linalg.norm(after - before)),
+        }
+        if record.agents:
+            stats = [u.stats for u in record.agents]
+            # The round's emulated duration is its slowest agent's emulated time.
+            values["fed/emulated_round_s"] = max(s.emulated_s for s in stats)
+            values["fed/trajectories"] = sum(s.trajectories for s in stats)
+        for update in record.agents:
+            prefix = f"agent/{update.agent_index}/"
+            for name, value in update.stats.to_json().items():
+                values[prefix + name] = value
+            norm = np.linalg.norm(update.theta.numpy().astype(np.float64) - before)
+            values[prefix + "update_norm"] = float(norm)
+        if record.eval:
+            for agent, evaluation in record.eval.items():
+                values[f"eval/{agent}/return"] = evaluation.return_mean
+                values[f"eval/{agent}/discounted_return"] = evaluation.discounted_return_mean
+                values[f"eval/{agent}/success_rate"] = evaluation.success_rate
+                values[f"eval/{agent}/length"] = evaluation.length_mean
+            evaluations = list(record.eval.values())
+            values["eval/mean/return"] = float(np.mean([e.return_mean for e in evaluations]))
+            values["eval/mean/success_rate"] = float(np.mean([e.success_rate for e in evaluations]))
+            values["eval/min/return"] = min(e.return_mean for e in evaluations)
+        return values
+
+    def __call__(self, record: RoundRecord, theta: torch.Tensor) -> None:
+        after = theta.detach().numpy().astype(np.float64)
+        summary = self._summary(
+            value=[
+                self._summary.Value(tag=key, simple_value=float(value))
+                for key, value in self._values(record, after).items()
+                if np.isfinite(value)  # NaN/Inf never reach metrics.jsonl either
+            ]
+        )
+        self._file_writer.add_summary(summary, record.round)
+        self._previous = after
+
+    def close(self) -> None:
+        self._file_writer.close()
+
+
+def tensorboard_sink(
+    enabled: bool, out_dir: Path, *, first_round: int, theta: torch.Tensor
+) -> TensorBoardWriter | None:
+    """A TensorBoard writer for ``out_dir/tensorboard``, or None when off or not installed.
+
+    A resumed run (``first_round`` > 1) purges the steps from ``first_round`` on that an
+    earlier process wrote, so no round is shown twice."""
+    if not enabled:
+        return None
+    try:
+        from tensorboard.compat.proto.event_pb2 import Event, SessionLog
+        from tensorboard.compat.proto.summary_pb2 import Summary
+        from tensorboard.summary.writer.record_writer import RecordWriter
+    except ImportError:
+        logger.warning(
+            "tensorboard is not installed (pip install 'fedhpg[tensorboard]'): no event "
+            "files, metrics.jsonl only (server.tensorboard=false silences this)"
+        )
+        return None
+    events = EventFile(out_dir / TENSORBOARD_DIR, Event, RecordWriter)
+    if first_round > 1:
+        # What TensorBoard's purge_step writes: readers drop older events of later steps.
+        events.add_event(Event(step=first_round, session_log=SessionLog(status=SessionLog.START)))
+    return TensorBoardWriter(events, Summary, theta)

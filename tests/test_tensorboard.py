@@ -1,0 +1,89 @@
+"""TensorBoard event files beside metrics.jsonl: TensorBoard's own reader finds every round's
+scalars under grouped keys with the values metrics.jsonl holds; a resumed run shows no round
+twice; the sink can be turned off, and a missing tensorboard package only costs a warning."""
+
+from __future__ import annotations
+
+import json
+import logging
+import sys
+from pathlib import Path
+
+import pytest
+from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+
+from fedhpg.server import api
+from fedhpg.server.checkpoint import checkpoint_path
+
+RUN = ["rounds=4", "seed=3", "eval.every=2", "eval.episodes=4"]
+
+
+def scalars(out_dir: Path) -> dict[str, list[tuple[int, float]]]:
+    events = EventAccumulator(str(out_dir / "tensorboard"), size_guidance={"scalars": 0})
+    events.Reload()
+    return {
+        tag: [(e.step, e.value) for e in events.Scalars(tag)] for tag in events.Tags()["scalars"]
+    }
+
+
+def metrics(out_dir: Path) -> list[dict]:
+    return [json.loads(line) for line in (out_dir / "metrics.jsonl").read_text().splitlines()]
+
+
+def test_tensorboard_reads_each_rounds_scalars_under_grouped_keys(tmp_path: Path) -> None:
+    out_dir = tmp_path / "run"
+    api.run(overrides=RUN, out_dir=out_dir)
+    board, records = scalars(out_dir), metrics(out_dir)
+    approx = pytest.approx  # event files hold float32
+    assert [step for step, _ in board["fed/round_time_s"]] == [1, 2, 3, 4]
+    assert [v for _, v in board["fed/round_time_s"]] == approx(
+        [r["round_time_s"] for r in records], rel=1e-6
+    )
+    assert [v for _, v in board["fed/trajectories_per_agent"]] == approx(
+        [r["trajectories_per_agent"] for r in records], rel=1e-6
+    )
+    for k in range(4):
+        assert [v for _, v in board[f"agent/{k}/train_return"]] == approx(
+            [r["agents"][k]["train_return"] for r in records], rel=1e-6, abs=1e-7
+        )
+        assert [v for _, v in board[f"agent/{k}/trajectories"]] == [
+            r["agents"][k]["trajectories"] for r in records
+        ]
+        evaluated = [(r["round"], r["eval"][f"agent-{k}"]["return_mean"]) for r in records[1::2]]
+        assert board[f"eval/agent-{k}/return"] == [(s, approx(v, abs=1e-7)) for s, v in evaluated]
+    assert [s for s, _ in board["eval/mean/return"]] == [2, 4]
+    assert all(v > 0 for _, v in board["fed/theta_step_norm"]), "θ̃ moved every round"
+
+
+def test_a_resumed_run_shows_no_round_twice(tmp_path: Path) -> None:
+    out_dir = tmp_path / "run"
+    api.run(overrides=[*RUN[1:], "rounds=3"], out_dir=out_dir)
+    # A crash after round 3 was shown but before its checkpoint was kept: resume from round 2.
+    checkpoint_path(out_dir / "checkpoints", 3).unlink()
+    before = dict(scalars(out_dir)["fed/round_time_s"])
+    api.run(overrides=[*RUN, "resume=true"], out_dir=out_dir)
+    after = scalars(out_dir)["fed/round_time_s"]
+    assert [step for step, _ in after] == [1, 2, 3, 4]
+    records = metrics(out_dir)
+    assert dict(after)[3] == pytest.approx(records[2]["round_time_s"], rel=1e-6)
+    assert dict(after)[3] != before[3], "round 3 is the resumed run's, the old one was purged"
+    assert dict(after)[1] == before[1]
+
+
+def test_the_sink_can_be_turned_off(tmp_path: Path) -> None:
+    out_dir = tmp_path / "run"
+    api.run(overrides=[*RUN, "rounds=1", "server.tensorboard=false"], out_dir=out_dir)
+    assert (out_dir / "metrics.jsonl").exists() and not (out_dir / "tensorboard").exists()
+
+
+def test_without_tensorboard_installed_a_warning_and_the_run_goes_on(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, caplog: pytest.LogCaptureFixture
+) -> None:
+    # The package cannot be uninstalled for one test: a None entry makes its import fail.
+    monkeypatch.setitem(sys.modules, "tensorboard.summary.writer.record_writer", None)
+    out_dir = tmp_path / "run"
+    with caplog.at_level(logging.WARNING, logger="fedhpg.server.metrics"):
+        result = api.run(overrides=[*RUN, "rounds=2"], out_dir=out_dir)
+    assert len(result.records) == 2 and not (out_dir / "tensorboard").exists()
+    warnings = [r for r in caplog.records if "tensorboard is not installed" in r.getMessage()]
+    assert len(warnings) == 1
