@@ -77,8 +77,9 @@ def diverged_message(run: RunConfig, round_number: int) -> str:
         f"round {round_number}: every agent's update was rejected: parameters contain NaN or "
         f"Inf; the local steps diverged with algo.step_size={algo.step_size:g} "
         f"(algo.optimizer={algo.optimizer}, algo.grad_clip={clip}, strategy={server}, "
-        f"env.family={run.env.family}): lower algo.step_size, set algo.grad_clip, or use the "
-        f"family's preset (env={run.env.family} without these overrides)"
+        f"env.family={run.env.family}): lower algo.step_size below {algo.step_size:g}, set "
+        f"algo.grad_clip, or run the family's preset, env={run.env.family}, without "
+        f"overriding these (plain steps of size 1 with strategy=fedadam)"
     )
 
 
