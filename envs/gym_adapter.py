@@ -24,9 +24,10 @@ class ActionBounds:
     """
 
     def __init__(self, space: gym.Space) -> None:
-        box = isinstance(space, gym.spaces.Box)
-        self._low = np.asarray(space.low) if box else None
-        self._high = np.asarray(space.high) if box else None
+        self._low: np.ndarray | None = None
+        self._high: np.ndarray | None = None
+        if isinstance(space, gym.spaces.Box):
+            self._low, self._high = np.asarray(space.low), np.asarray(space.high)
 
     def __call__(self, actions: np.ndarray) -> np.ndarray:
         if self._low is None:

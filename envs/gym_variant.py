@@ -90,6 +90,6 @@ class _ClippedActions(gym.Wrapper):
             action = self._bound(np.asarray(action, dtype=self.action_space.dtype))
         obs, reward, terminated, truncated, info = self.env.step(action)
         if not self.cost:
-            return obs, reward, terminated, truncated, info
+            return obs, float(reward), terminated, truncated, info
         penalty = self.cost * float(np.sum(np.square(action)))
         return obs, float(reward) - penalty, terminated, truncated, info

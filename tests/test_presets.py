@@ -12,13 +12,20 @@ with the final evaluation's seeds: that is what the test computes, no second run
 The margin. The control's own spread is how much the greedy return of one fixed policy moves
 from one set of evaluation seeds to another: ``CONTROL_SD`` holds its standard deviation for
 each group, measured over 20 seed sets (evaluation rounds R … R + 19) of θ̃₀ with the test's
-episode count (``python /tmp``-free: ``control_spread()`` below recomputes it). Two policies
+episode count (``control_spread()`` below recomputes it). Two policies
 of equal value, each evaluated on its own seeds, would then differ by √2·sd in standard
 deviation; the margin is three of those, 3·√2·sd ≈ 4.2·sd, so a policy that did not improve
 passes with a probability below ~0.1%, even though the test pairs the seeds (which only
 removes noise). Where θ̃₀'s return does not move at all (Acrobot: −500, the swing-up never
-happens in 500 steps) the floor ``MIN_MARGIN`` is 5% of the control's magnitude. Measured
-gains (seed 0) are in ``GAIN_SEEN`` for the record; the assertion uses the margin alone.
+happens in 500 steps) the floor ``MIN_MARGIN`` is 5% of the control's magnitude.
+
+Measured (seed 0, the one tested; control → final, gain / margin): gridworld −0.06 → 0.41,
+0.47 / 0.07; cartpole 10.3 → 247.0, 237 / 0.96; acrobot −500 → −91.3, 409 / 25; pendulum
+−1,219.5 → −967.3, 252 / 108; lunarlander −417.8 → −137.1, 281 / 132; lunarlander-continuous
+−331.7 → −151.8, 180 / 73; halfcheetah −0.03 → 663.8, 664 / 1.3. Pendulum needs the most
+rounds (60): its greedy return is flat for ~40 rounds while σ shrinks. Runtimes on the shared
+2-core machine: pendulum ~37 s, halfcheetah ~24 s, acrobot ~11 s, the others < 10 s each,
+~90 s for the file.
 """
 
 from __future__ import annotations
