@@ -19,13 +19,15 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import statistics
+import subprocess
 import tempfile
 import time
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
-from benchmarks.runtime import _federation
+from benchmarks.runtime import BIN
 
 RESULTS = Path("benchmarks/results/presets.json")
 
@@ -78,7 +80,9 @@ class RunResult:
     initial: float
     """θ̃₀'s greedy return with the final evaluation's seeds."""
     wall_s: float
-    """Launch to exit of fedhpg-run."""
+    """Launch to exit of fedhpg-run (less the grace period when it hung at exit)."""
+    hung_at_exit: bool = False
+    """The server did not exit after its last round and was stopped (see ``federation``)."""
 
 
 def overrides_for(plan: Plan, seed: int, kind: str) -> list[str]:
@@ -109,12 +113,58 @@ def initial_return(overrides: list[str], round_index: int) -> float:
     return statistics.mean(e.return_mean for e in evaluations.values())
 
 
+EXIT_GRACE_S = 60.0
+"""How long the launcher may take to exit after the last round's metrics line."""
+
+
+def federation(overrides: list[str], out_dir: Path, rounds: int) -> tuple[list[dict], bool]:
+    """Run fedhpg-run; returns (metrics records, whether it hung after its last round).
+
+    A server can hang at exit in ``ConnectionGuard.stop`` (``socket.disable_monitor`` blocks;
+    seen on this machine, reported for the lead): once every round is in ``metrics.jsonl``
+    the run's results are complete, so after ``EXIT_GRACE_S`` the launcher is stopped and the
+    run is recorded as ``hung_at_exit`` instead of blocking the sweep forever."""
+    metrics = out_dir / "metrics.jsonl"
+    with (out_dir / "fedhpg-run.stderr").open("w+") as stderr:
+        process = subprocess.Popen(
+            [
+                str(BIN / "fedhpg-run"),
+                *overrides,
+                f"server.out_dir={out_dir}",
+                f"hydra.run.dir={out_dir / 'hydra'}",
+            ],
+            stdout=subprocess.DEVNULL,
+            stderr=stderr,
+            env={**os.environ, "OMP_NUM_THREADS": "1"},
+        )
+        finished_at: float | None = None
+        hung = False
+        try:
+            while process.poll() is None:
+                time.sleep(0.5)
+                if finished_at is None and metrics.exists():
+                    if len(metrics.read_text().splitlines()) >= rounds:
+                        finished_at = time.monotonic()
+                elif finished_at is not None and time.monotonic() - finished_at > EXIT_GRACE_S:
+                    hung = True
+                    process.terminate()  # its children die with it
+                    process.wait(timeout=30)
+        finally:
+            if process.poll() is None:
+                process.kill()
+                process.wait()
+        if process.returncode != 0 and not hung:
+            stderr.seek(0)
+            raise RuntimeError(f"fedhpg-run failed: {stderr.read()[-2000:]}")
+    return [json.loads(line) for line in metrics.read_text().splitlines()], hung
+
+
 def run_one(plan: Plan, seed: int, kind: str) -> RunResult:
     overrides = overrides_for(plan, seed, kind)
     started = time.monotonic()
     with tempfile.TemporaryDirectory() as tmp:
-        records, _, _ = _federation(overrides, Path(tmp), poll_s=0.5)
-    wall = time.monotonic() - started
+        records, hung = federation(overrides, Path(tmp), plan.rounds)
+    wall = time.monotonic() - started - (EXIT_GRACE_S if hung else 0.0)
     evaluated = [r for r in records if "eval" in r]
     return RunResult(
         name=plan.name,
@@ -125,6 +175,7 @@ def run_one(plan: Plan, seed: int, kind: str) -> RunResult:
         returns=[statistics.mean(e["return_mean"] for e in r["eval"].values()) for r in evaluated],
         initial=initial_return(overrides, plan.rounds),
         wall_s=wall,
+        hung_at_exit=hung,
     )
 
 
@@ -169,11 +220,13 @@ def table(results: dict[str, RunResult]) -> str:
         single = _fmt([r.returns[-1] for r in singles]) if singles else "—"
         threshold = f"{plan.threshold:g}" if plan.threshold is not None else "none"
         walls = [r.wall_s for r in runs]
+        hung = sum(r.hung_at_exit for r in runs + singles)
+        hung_note = f" ({hung} hung at exit)" if hung else ""
         lines.append(
             f"| `{plan.name}` | {', '.join(str(r.seed) for r in runs)} | {plan.rounds} "
             f"| {runs[0].trajectories[-1]:,.0f} | {_fmt([r.initial for r in runs])} "
             f"| **{_fmt([r.returns[-1] for r in runs])}** | {_fmt([max(r.returns) for r in runs])} "
-            f"| {single} | {threshold} | {min(walls):.0f}–{max(walls):.0f} |"
+            f"| {single} | {threshold} | {min(walls):.0f}–{max(walls):.0f}{hung_note} |"
         )
     return "\n".join(lines)
 
