@@ -61,7 +61,7 @@ PLANS = {
         Plan("pendulum", 200, 20, 10, (0, 1), None),
         Plan("lunarlander", 150, 15, 10, (0, 1), 200.0, single_agent=False),
         Plan("lunarlander-continuous", 150, 15, 10, (0, 1), 200.0, single_agent=False),
-        Plan("halfcheetah", 60, 10, 5, (0, 1), None, single_agent=False),
+        Plan("halfcheetah", 200, 20, 5, (0, 1), 4800.0, single_agent=False),
     )
 }
 
