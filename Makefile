@@ -6,7 +6,7 @@ STAMP := $(VENV)/.installed
 export OMP_NUM_THREADS ?= 1
 export MKL_NUM_THREADS ?= 1
 
-.PHONY: setup demo test lint typecheck contracts bench bench-learning bench-learning-long bench-robustness figures clean
+.PHONY: setup demo test lint typecheck contracts bench bench-learning bench-learning-long bench-robustness bench-presets figures clean
 
 setup: $(STAMP)
 
@@ -50,6 +50,11 @@ bench-learning: $(STAMP)
 bench-learning-long: $(STAMP)
 	nice -n 19 $(BIN)/python -m benchmarks.learning_long --task lunarlander
 	nice -n 19 $(BIN)/python -m benchmarks.learning_long --task halfcheetah
+
+# One learning result per shipped env group (fedhpg-run env=NAME), with K=1 baselines (~40 min
+# on 2 cores). Results in benchmarks/results/presets.json, the table on stdout.
+bench-presets: $(STAMP)
+	nice -n 10 $(BIN)/python -m benchmarks.presets
 
 # CartPole K=10 with 3 sign-flipping agents: mean, median, trimmed mean (~10 min).
 bench-robustness: $(STAMP)

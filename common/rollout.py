@@ -82,6 +82,9 @@ def sample_trajectories(
         if act_buf is None:
             act_buf = np.zeros((horizon, *actions.shape), dtype=actions.dtype)
         obs_buf[steps] = obs
+        # The raw sample is recorded and its log-probability taken, not the clipped action the
+        # env receives (Box actions are clipped to the bounds inside the batch env): the
+        # gradient is that of log π at the sample the policy drew.
         act_buf[steps] = actions
         alive[steps] = running
         step = env.step(actions)

@@ -12,6 +12,29 @@ import numpy as np
 from fedhpg.envs.base import BatchStep
 
 
+class ActionBounds:
+    """Clips continuous actions to a Box action space's bounds.
+
+    A Gaussian policy's sample is unbounded. Some environments clip it themselves (Pendulum,
+    LunarLander), others pass it to the simulator's own clamp (MuJoCo's ``ctrlrange``) and
+    still charge their action cost on the raw value, as does our per-variant action cost:
+    an unclipped sample of 10⁴ then costs 10⁸ per step and the returns blow up. Clipping here,
+    before the env and before any action cost, makes every family see only valid actions.
+    Discrete spaces pass through unchanged.
+    """
+
+    def __init__(self, space: gym.Space) -> None:
+        self._low: np.ndarray | None = None
+        self._high: np.ndarray | None = None
+        if isinstance(space, gym.spaces.Box):
+            self._low, self._high = np.asarray(space.low), np.asarray(space.high)
+
+    def __call__(self, actions: np.ndarray) -> np.ndarray:
+        if self._low is None:
+            return actions
+        return np.clip(actions, self._low, self._high)
+
+
 class GymVectorBatchEnv:
     """B copies of a registered gymnasium env, stepped as one vector env.
 
@@ -43,6 +66,7 @@ class GymVectorBatchEnv:
         self._no_success = np.zeros(num_envs, dtype=bool)
         self.single_observation_space = self._env.single_observation_space
         self.single_action_space = self._env.single_action_space
+        self._bound = ActionBounds(self.single_action_space)
 
     def _configure(self, configure: Callable[[Any], None]) -> None:
         """Apply a variant's physics to every copy (a vector-native env holds it once)."""
@@ -58,6 +82,7 @@ class GymVectorBatchEnv:
         return obs
 
     def step(self, actions: np.ndarray) -> BatchStep:
+        actions = self._bound(actions)
         obs, reward, terminated, truncated, info = self._env.step(actions)
         if self.action_cost:
             reward = reward - self.action_cost * np.square(actions).reshape(self.num_envs, -1).sum(
@@ -111,6 +136,7 @@ class GymLoopBatchEnv:
         self.num_envs = num_envs
         self.single_observation_space = self._envs[0].observation_space
         self.single_action_space = self._envs[0].action_space
+        self._bound = ActionBounds(self.single_action_space)
         shape, dtype = self.single_observation_space.shape, self.single_observation_space.dtype
         self._obs = np.zeros((num_envs, *(shape or ())), dtype=dtype)
         self._running = np.zeros(num_envs, dtype=bool)
@@ -128,6 +154,7 @@ class GymLoopBatchEnv:
         return self._obs.copy()
 
     def step(self, actions: np.ndarray) -> BatchStep:
+        actions = self._bound(actions)
         reward = np.zeros(self.num_envs, dtype=np.float64)
         success = np.zeros(self.num_envs, dtype=bool)
         running = np.flatnonzero(self._running)

@@ -9,7 +9,7 @@ import gymnasium as gym
 import numpy as np
 
 from fedhpg.envs.base import BatchEnv, EnvVariant
-from fedhpg.envs.gym_adapter import GymLoopBatchEnv, GymVectorBatchEnv
+from fedhpg.envs.gym_adapter import ActionBounds, GymLoopBatchEnv, GymVectorBatchEnv
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -50,7 +50,9 @@ class GymVariant(EnvVariant):
     def make_env(self, *, render_mode: str | None = None) -> gym.Env:
         env = gym.make(self.env_id, render_mode=render_mode, **self.env_kwargs)
         self.configure(env.unwrapped)
-        return _ActionCost(env, self.action_cost) if self.action_cost else env
+        if isinstance(env.action_space, gym.spaces.Box) or self.action_cost:
+            return _ClippedActions(env, self.action_cost)
+        return env
 
     def make_batch_env(self, num_envs: int) -> BatchEnv:
         """The env's own vectorised implementation if it has one (CartPole), else B plain
@@ -75,14 +77,19 @@ class GymVariant(EnvVariant):
         return int(limit)
 
 
-class _ActionCost(gym.Wrapper):
-    """reward − c·‖a‖²."""
+class _ClippedActions(gym.Wrapper):
+    """The action clipped to the space's bounds (as the batch envs do), then reward − c·‖a‖²."""
 
     def __init__(self, env: gym.Env, cost: float) -> None:
         super().__init__(env)
         self.cost = cost
+        self._bound = ActionBounds(env.action_space)
 
     def step(self, action: Any) -> tuple[Any, float, bool, bool, dict[str, Any]]:
+        if isinstance(self.action_space, gym.spaces.Box):
+            action = self._bound(np.asarray(action, dtype=self.action_space.dtype))
         obs, reward, terminated, truncated, info = self.env.step(action)
+        if not self.cost:
+            return obs, float(reward), terminated, truncated, info
         penalty = self.cost * float(np.sum(np.square(action)))
         return obs, float(reward) - penalty, terminated, truncated, info

@@ -59,6 +59,29 @@ class RoundRecord:
 
 RoundCallback = Callable[[RoundRecord, torch.Tensor], None]
 
+NON_FINITE = "NaN or Inf"
+"""What server/validation.py says of an update with non-finite parameters."""
+
+
+def diverged_message(run: RunConfig, round_number: int) -> str:
+    """One line for a run whose every local update diverged: what was set, and what to change.
+
+    Every update being non-finite means the local steps themselves blew up (not one bad
+    agent), so the remedy is in the step sizes, not in the agents."""
+    algo, strategy = run.algo, run.strategy
+    clip = "off" if algo.grad_clip is None else f"{algo.grad_clip:g}"
+    server = strategy.name
+    if "step_size" in strategy.params:
+        server += f" (strategy.params.step_size={strategy.params['step_size']:g})"
+    return (
+        f"round {round_number}: every agent's update was rejected: parameters contain NaN or "
+        f"Inf; the local steps diverged with algo.step_size={algo.step_size:g} "
+        f"(algo.optimizer={algo.optimizer}, algo.grad_clip={clip}, strategy={server}, "
+        f"env.family={run.env.family}): lower algo.step_size below {algo.step_size:g}, set "
+        f"algo.grad_clip, or run the family's preset, env={run.env.family}, without "
+        f"overriding these (plain steps of size 1 with strategy=fedadam)"
+    )
+
 
 def should_evaluate(run: RunConfig, round_number: int) -> bool:
     return round_number % run.eval.every == 0 or round_number == run.rounds
@@ -99,6 +122,8 @@ class Coordinator:
 
     def _aggregate(self, round_number: int, updates: list[AgentUpdate], failures: dict) -> None:
         if not updates:
+            if failures and all(NON_FINITE in why for why in failures.values()):
+                raise FederationError(diverged_message(self.run, round_number))
             raise FederationError(
                 f"round {round_number}: no update to aggregate (rejected: {failures})"
             )

@@ -1,0 +1,149 @@
+"""Every shipped env group learns with its own defaults: ``env=NAME`` plus a shorter run
+(``rounds``, one evaluation at the end with fewer episodes) and nothing else, in-process
+(``run_in_process`` computes bit for bit the θ̃ of the distributed runtime,
+tests/test_federation.py). The greedy return of the final θ̃ must beat a no-learning control
+by a margin derived from that control's spread, and no round may produce NaN or Inf.
+
+The control is the same run with step size 0. The config refuses a zero step (fedadam's and
+the agents' steps must be > 0), but with a server step of 0 θ̃ never leaves θ̃₀, and an
+evaluation depends only on (θ̃, seed, agent, round), so the control is exactly θ̃₀ evaluated
+with the final evaluation's seeds: that is what the test computes, no second run needed.
+
+The margin. The control's own spread is how much the greedy return of one fixed policy moves
+from one set of evaluation seeds to another: ``CONTROL_SD`` holds its standard deviation for
+each group, measured over 20 seed sets (evaluation rounds R … R + 19) of θ̃₀ with the test's
+episode count (``control_spread()`` below recomputes it). Two policies
+of equal value, each evaluated on its own seeds, would then differ by √2·sd in standard
+deviation; the margin is three of those, 3·√2·sd ≈ 4.2·sd, so a policy that did not improve
+passes with a probability below ~0.1%, even though the test pairs the seeds (which only
+removes noise). Where θ̃₀'s return does not move at all (Acrobot: −500, the swing-up never
+happens in 500 steps) the floor ``MIN_MARGIN`` is 5% of the control's magnitude.
+
+Measured (seed 0, the one tested; control → final, gain / margin): gridworld −0.06 → 0.41,
+0.47 / 0.07; cartpole 10.3 → 247.0, 237 / 0.96; acrobot −500 → −91.3, 409 / 25; pendulum
+−1,219.5 → −967.3, 252 / 108; lunarlander −417.8 → −137.1, 281 / 132; lunarlander-continuous
+−331.7 → −151.8, 180 / 73; halfcheetah −0.03 → 663.8, 664 / 1.3. Pendulum needs the most
+rounds (60): its greedy return is flat for ~40 rounds while σ shrinks. Runtimes on the shared
+2-core machine: pendulum ~37 s, halfcheetah ~24 s, acrobot ~11 s, the others < 10 s each,
+~90 s for the file.
+"""
+
+from __future__ import annotations
+
+import math
+import statistics
+from dataclasses import dataclass
+
+import numpy as np
+import pytest
+import torch
+
+from fedhpg.common.config import RunConfig
+from fedhpg.common.runtime.cli import compose
+from fedhpg.common.variants import run_variants
+from fedhpg.common.worker import initial_theta
+from fedhpg.server.coordinator import RoundRecord
+from fedhpg.server.pools import FederationError
+from fedhpg.server.pools.inprocess import make_in_process_pool, run_in_process
+
+MIN_MARGIN = 0.05
+"""Floor of the margin, as a share of |control| (for a control that never moves)."""
+
+
+@dataclass(frozen=True)
+class Case:
+    rounds: int
+    episodes: int
+    """Evaluation episodes per agent (K = 4 agents, the default devices)."""
+    control_sd: float
+    """Measured sd of θ̃₀'s greedy return (mean over agents) across 20 evaluation seed sets."""
+
+
+CASES: dict[str, Case] = {
+    "gridworld": Case(rounds=10, episodes=20, control_sd=0.0168),
+    "cartpole": Case(rounds=10, episodes=10, control_sd=0.225),
+    "acrobot": Case(rounds=10, episodes=5, control_sd=0.0),
+    "pendulum": Case(rounds=60, episodes=30, control_sd=25.4),
+    "lunarlander": Case(rounds=10, episodes=20, control_sd=31.1),
+    "lunarlander-continuous": Case(rounds=10, episodes=10, control_sd=17.3),
+    "halfcheetah": Case(rounds=12, episodes=2, control_sd=0.31),
+}
+
+
+def preset(name: str, case: Case) -> RunConfig:
+    return compose(
+        [
+            f"env={name}",
+            f"rounds={case.rounds}",
+            f"eval.every={case.rounds}",
+            f"eval.episodes={case.episodes}",
+        ]
+    )
+
+
+def greedy_return(run: RunConfig, theta: torch.Tensor, round_index: int) -> float:
+    """Mean over agents of the greedy return, with round ``round_index``'s evaluation seeds."""
+    pool = make_in_process_pool(run, run_variants(run))
+    try:
+        evaluations = pool.evaluate(round_index, theta, run.eval.episodes)
+    finally:
+        pool.close()
+    return statistics.mean(e.return_mean for e in evaluations.values())
+
+
+def control_spread(name: str, sets: int = 20) -> float:
+    """sd of θ̃₀'s greedy return over ``sets`` evaluation seed sets (how CONTROL_SD was made)."""
+    case = CASES[name]
+    run = preset(name, case)
+    theta = initial_theta(run_variants(run)[0], run)
+    values = [greedy_return(run, theta, case.rounds + i) for i in range(sets)]
+    return statistics.stdev(values)
+
+
+def margin(case: Case, control: float) -> float:
+    return max(3.0 * math.sqrt(2.0) * case.control_sd, MIN_MARGIN * abs(control))
+
+
+@pytest.mark.parametrize("name", sorted(CASES))
+def test_preset_learns(name: str) -> None:
+    case = CASES[name]
+    run = preset(name, case)
+    records: list[RoundRecord] = []
+    theta = run_in_process(run, on_round=[lambda record, _: records.append(record)])
+    assert [r.round for r in records] == list(range(1, case.rounds + 1))
+    assert bool(np.isfinite(theta.numpy()).all()), "θ̃ is not finite"
+    for record in records:
+        assert not record.failures, f"round {record.round}: rejected updates {record.failures}"
+        for update in record.agents:
+            assert math.isfinite(update.stats.train_return), f"round {record.round}: NaN return"
+    final_eval = records[-1].eval
+    assert final_eval is not None
+    final = statistics.mean(e.return_mean for e in final_eval.values())
+    control = greedy_return(run, initial_theta(run_variants(run)[0], run), case.rounds)
+    assert math.isfinite(final) and math.isfinite(control)
+    need = margin(case, control)
+    assert final - control >= need, (
+        f"env={name}: greedy return {final:.2f} after {case.rounds} rounds against the "
+        f"no-learning control's {control:.2f}: gain {final - control:.2f} < margin {need:.2f}"
+    )
+
+
+def test_every_update_diverging_ends_in_one_line_that_says_what_to_change() -> None:
+    """A step of 1e38 overflows float32 in the first local step of every agent."""
+    run = compose(
+        ["env.family=cartpole", "rounds=2", "algo.step_size=1e38", "agents.step_delays_s=[0]"]
+    )
+    with pytest.raises(FederationError) as raised:
+        run_in_process(run)
+    message = str(raised.value)
+    assert "\n" not in message
+    assert message.startswith("round 1: every agent's update was rejected: parameters contain")
+    for expected in (
+        "algo.step_size=1e+38",
+        "algo.optimizer=sgd",
+        "algo.grad_clip=off",
+        "strategy=mean",
+        "lower algo.step_size below 1e+38",
+        "env=cartpole",
+    ):
+        assert expected in message, expected
