@@ -5,9 +5,9 @@ from __future__ import annotations
 import logging
 import sys
 
-from fedhpg.agent.process import AgentFailure, AgentProcess
+from fedhpg.agent.process import AgentFailure, AgentProcess, RunAborted
 from fedhpg.common.config import RunConfig
-from fedhpg.common.runtime.cli import run_entry
+from fedhpg.common.runtime.cli import EXIT_RUN_ABORTED, run_entry
 
 logger = logging.getLogger(__name__)
 
@@ -15,6 +15,9 @@ logger = logging.getLogger(__name__)
 def run_agent(run: RunConfig) -> int:
     try:
         AgentProcess(run).run()
+    except RunAborted as error:
+        logger.error("agent %d: %s", run.agent.index, error)
+        return EXIT_RUN_ABORTED
     except AgentFailure as error:
         logger.error("agent %d: %s", run.agent.index, error)
         return 1

@@ -73,6 +73,10 @@ class AgentFailure(RuntimeError):
     """The agent cannot go on (refused by the server, server unreachable, ...)."""
 
 
+class RunAborted(AgentFailure):
+    """The server ended the run before its last round (it says why, and exits non-zero)."""
+
+
 class Cancelled(Exception):
     """The server moved on (or went away): the job's result is no longer wanted."""
 
@@ -413,7 +417,7 @@ class AgentProcess:
         elif isinstance(message, Shutdown):
             logger.debug("%s: shutdown (%s)", self.agent_id, message.reason)
             if not message.complete:
-                raise AgentFailure(f"the run was aborted: {message.reason}")
+                raise RunAborted(f"the run was aborted: {message.reason}")
             return False
         elif isinstance(message, Error) and message.code == "not_registered":
             # A restarted server, or one that gave up on us: register again and carry on.

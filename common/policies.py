@@ -123,7 +123,8 @@ class TabularSoftmaxPolicy(Policy):
         with torch.no_grad():
             probs = torch.softmax(self.logits, dim=-1).double().numpy()
         cdf = np.cumsum(probs, axis=-1)
-        log_probs = np.log(probs)
+        with np.errstate(divide="ignore"):  # a saturated softmax has π = 0: log π = -inf is right
+            log_probs = np.log(probs)
         greedy_actions = probs.argmax(axis=-1)
 
         def sample(obs: np.ndarray, rng: np.random.Generator, greedy: bool) -> np.ndarray:
@@ -188,7 +189,8 @@ class GaussianMLPPolicy(Policy):
     ``log_std="state_independent"`` learns one log σ per action dimension (the usual choice
     for policy gradient on locomotion); ``"state_dependent"`` adds a second head so σ depends
     on s. log σ is clamped to [-5, 2] so the score function stays bounded (Assumption 2).
-    Actions are not squashed: environments clip them to their bounds.
+    Actions are not squashed: the batch envs clip them to the action bounds before the env and
+    its action cost (envs/gym_adapter.py); the log-probability is that of the raw sample.
     """
 
     LOG_STD_MIN = -5.0

@@ -21,6 +21,7 @@ from multiprocessing.connection import Connection
 from pathlib import Path
 
 from fedhpg.common.config import ConfigError, RunConfig
+from fedhpg.common.runtime.cli import EXIT_RUN_ABORTED
 
 logger = logging.getLogger(__name__)
 
@@ -130,6 +131,8 @@ class Supervisor:
         """Until the server ends: 0 if every process ended well, else 1."""
         while True:
             for child in list(self.children):
+                if child.exitcode == EXIT_RUN_ABORTED:
+                    continue  # the server ended the run: its own exit status tells how
                 if child.exitcode not in (None, 0) and not self._restart(child):
                     logger.error(
                         "%s exited with status %s; stopping the federation",

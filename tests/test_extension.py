@@ -88,7 +88,8 @@ def test_plugin_options_are_checked_by_name() -> None:
 
 ENV_PLUGIN = "fedhpg_toy_env_plugin"
 TOY_RUN = [
-    "env=cartpole",
+    "env=cartpole",  # the CartPole preset's learning settings; its family options are cartpole's
+    "~env.options.gamma",
     "agents=homogeneous4",
     "agents.num_agents=3",
     "agents.budget.batch_size=[4]",

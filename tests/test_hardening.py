@@ -206,7 +206,7 @@ def test_a_full_disk_stops_the_run_cleanly_and_the_agents_say_so(tmp_path: Path)
     checkpoint = latest_valid_checkpoint(out_dir / "checkpoints")
     assert checkpoint is not None and 1 <= checkpoint.round < 200
     for agent, err in zip(agents, agent_errs, strict=True):
-        assert agent.returncode == 1 and "the run was aborted" in err, err[-1000:]
+        assert agent.returncode == 3 and "the run was aborted" in err, err[-1000:]
 
 
 def test_counters_survive_a_resume(tmp_path: Path) -> None:

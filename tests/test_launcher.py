@@ -100,3 +100,28 @@ def test_a_killed_agent_is_restarted_and_the_run_ends_as_if_nothing_happened(
     checkpoint = latest_valid_checkpoint(out_dir / "checkpoints")
     assert checkpoint is not None and checkpoint.round == 12
     assert torch.equal(checkpoint.theta, run_in_process(compose(keys)))
+
+
+def test_agents_of_a_run_the_server_aborts_are_not_restarted(tmp_path: Path) -> None:
+    """Every update diverges in round 1 (a step of 1e38 overflows float32): the server stops
+    the run and tells its agents, which exit 3; restarting them would mend nothing."""
+    with processes() as started:
+        launcher = start(
+            started,
+            "fedhpg-run",
+            [
+                *LONG_RUN[1:],
+                "env.family=cartpole",
+                "rounds=3",
+                "algo.step_size=1e38",
+                "agent.max_restarts=2",
+                f"server.out_dir={tmp_path / 'run'}",
+            ],
+            cwd=tmp_path,
+        )
+        stdout, stderr = launcher.communicate(timeout=120)
+    assert launcher.returncode == 1, stderr[-2000:]
+    assert "every agent's update was rejected" in stderr and "lower algo.step_size" in stderr
+    assert "the run was aborted" in stderr
+    assert "restarting it" not in stderr, stderr[-2000:]
+    assert "Traceback" not in stderr + stdout

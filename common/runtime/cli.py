@@ -22,6 +22,8 @@ CONFIG_MODULE = "fedhpg.conf"
 CONFIG_NAME = "config"
 SCHEMA_NAME = "run_schema"
 EXIT_USAGE = 2
+EXIT_RUN_ABORTED = 3
+"""An agent whose server ended the run early: nothing a restart could mend."""
 LOG_FORMAT = "%(asctime)s %(levelname)s %(name)s: %(message)s"
 LOG_DATE_FORMAT = "%H:%M:%S"
 HELP_FLAGS = ("-h", "--help")
