@@ -29,7 +29,7 @@ import zmq
 
 from fedhpg.common.components import agent_profile, validate_run
 from fedhpg.common.config import ConfigError, RunConfig, adopt_settings, agent_id_of, per_agent
-from fedhpg.common.device import DeviceModel, device_for
+from fedhpg.common.device import DeviceModel, device_for, message_bytes
 from fedhpg.common.runtime.memory import pin_malloc_mmap_threshold
 from fedhpg.common.variants import run_variants, variant_digest
 from fedhpg.common.wire.codec import MAX_HEADER_BYTES, ProtocolError
@@ -53,7 +53,7 @@ from fedhpg.common.wire.transport import (
     send_message,
     try_decode,
 )
-from fedhpg.common.worker import LocalWorker
+from fedhpg.common.worker import IterationWork, LocalWorker
 from fedhpg.envs.base import EnvVariant
 
 logger = logging.getLogger(__name__)
@@ -336,16 +336,26 @@ class AgentProcess:
             evaluation = self.worker.evaluate(request.round, theta, request.episodes)
             return Evaluation(round=request.round, stats=evaluation)
         started = time.perf_counter()
+        num_params = self.worker.num_params
+        # The counted clock charges θ's float32 bytes plus a fixed header for the request and
+        # for the answer (not the encoded lengths), exactly what the in-process pool charges.
+        message = message_bytes(num_params)
         self.device.take_emulated()
-        self.device.transmit()  # the request's one-way latency
+        self.device.transmit(message)  # the request's one-way latency (and transfer)
 
-        def on_iteration(_: int, compute_s: float, env_steps: int) -> None:
+        def on_iteration(work: IterationWork) -> None:
             if job.cancel.is_set():
                 raise Cancelled
-            self.device.spend(compute_s, env_steps, request.round)
+            self.device.spend(
+                work.compute_s,
+                work.env_steps,
+                request.round,
+                grad_steps=work.grad_steps,
+                num_params=num_params,
+            )
 
         result = self.worker.train(request.round, theta, on_iteration=on_iteration)
-        self.device.transmit()  # the answer's
+        self.device.transmit(message)  # the answer's
         stats = replace(
             result.stats,
             emulated_s=self.device.take_emulated(),

@@ -25,6 +25,7 @@ BASELINES: tuple[str, ...] = ("none", "mean")
 OPTIMIZERS = ("sgd", "adam")
 ATTACKS = ("none", "zero_gradient", "random_noise", "sign_flip", "reward_flip", "random_action")
 SCHEDULES = ("constant", "periodic", "random_walk")
+CLOCKS = ("measured", "counted")
 TRANSPORTS = ("tcp", "ipc")
 ROUND_POLICIES = ("wait_all", "deadline")
 LOG_STDS = ("state_independent", "state_dependent")
@@ -115,6 +116,17 @@ class AgentsConfig:
     """'periodic' / 'random_walk': relative amplitude (speed × (1 ± amplitude))."""
     virtual_clock: bool = False
     """Account emulated time without sleeping (fast, reproducible heterogeneity studies)."""
+    # The counted clock (issue 17): emulated time priced from the work counted.
+    clock: str = "measured"
+    """'measured': emulated compute = thread CPU time measured here / speed (follows this
+    machine's load); 'counted': priced from counted env steps, gradient steps and message
+    bytes with the costs below, identical bit for bit on any machine."""
+    step_costs_s: list[float] = field(default_factory=lambda: [1.2e-5])
+    """Counted clock: seconds of one env step at speed 1 (sampling + the policy's forward)."""
+    grad_costs_s: list[float] = field(default_factory=lambda: [1.1e-5])
+    """Counted clock: seconds of one trajectory step's backward pass per 1e4 parameters."""
+    bandwidths_mbps: list[float] = field(default_factory=lambda: [100.0])
+    """Counted clock: link bandwidth in Mbit/s (0 = unlimited); message bytes are charged."""
 
 
 @dataclass(kw_only=True)
@@ -399,11 +411,15 @@ def _validate_agents(agents: AgentsConfig) -> None:
         ("speeds", agents.speeds, True),
         ("step_delays_s", agents.step_delays_s, False),
         ("latencies_s", agents.latencies_s, False),
+        ("step_costs_s", agents.step_costs_s, False),
+        ("grad_costs_s", agents.grad_costs_s, False),
+        ("bandwidths_mbps", agents.bandwidths_mbps, False),
     ):
         _check_agent_list(values, f"agents.{key}", k)
         for i, value in enumerate(values):
             _check_number(value, f"agents.{key}[{i}]", low=0.0, low_open=positive)
     _check_choice(agents.schedule, "agents.schedule", SCHEDULES)
+    _check_choice(agents.clock, "agents.clock", CLOCKS)
     _check_int(agents.schedule_period_rounds, "agents.schedule_period_rounds", low=1)
     _check_number(agents.schedule_amplitude, "agents.schedule_amplitude", low=0.0)
     _require(

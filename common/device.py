@@ -1,12 +1,24 @@
 """Emulated device: how slow this agent's hardware is, and how that changes over time.
 
-Compute runs at this machine's speed; the device model stretches it. A local iteration that
-took ``c`` seconds of compute (thread CPU time, so other processes competing for this machine
-do not count as the agent's work) is made to take ``c / speed + steps × step_delay_s`` (the
-env-step throttle) by sleeping the difference, unless the virtual clock is on, in which case
-the emulated time is only accounted. Speeds above 1 cannot be emulated by sleeping and are
-only accounted. Every request and every answer also pays ``latency_s`` of one-way network
-latency.
+Two clocks tell how long a local iteration takes on the emulated device.
+
+``measured`` (the default): compute runs at this machine's speed and the device stretches
+it. An iteration that took ``c`` seconds of compute (thread CPU time, so other processes
+competing for this machine do not count as the agent's work) takes ``c / speed + steps ×
+step_delay_s`` (the env-step throttle). Every message pays ``latency_s`` of one-way latency.
+This follows the machine: a loaded or slower machine gives other emulated times.
+
+``counted``: the time is computed from the work counted, never from a measurement, so it is
+the same bit for bit on any machine under any load. An iteration that ran ``steps`` env
+steps and differentiated ``grad_steps`` trajectory steps through a policy of ``d``
+parameters takes ``(steps × step_cost_s + grad_steps × grad_cost_s × d / 1e4) / speed +
+steps × step_delay_s``; a message of ``n`` bytes takes ``latency_s + 8n / (bandwidth_mbps ×
+1e6)``. The in-process pool and the agent process charge the same two messages per round
+(θ̃ down, θ up), of :func:`message_bytes` each, so both runtimes give the same emulated time.
+
+Unless the virtual clock is on, the device sleeps the emulated time minus the compute time
+(speeds above 1 cannot be emulated by sleeping and are only accounted); with it on, the
+emulated time is only accounted.
 """
 
 from __future__ import annotations
@@ -20,10 +32,25 @@ import numpy as np
 
 from fedhpg.common.config import RunConfig, per_agent
 
+GRAD_PARAMS_UNIT = 10_000
+"""``grad_cost_s`` is the cost of one trajectory step's backward pass per this many
+parameters: the backward pass of a small MLP costs about linearly in its parameters."""
+
+MESSAGE_HEADER_BYTES = 512
+"""What the counted clock charges per message on top of θ's float32 bytes: the envelope,
+round number and statistics, rounded up (encoded, a Train request carries 71 bytes besides
+θ and an Update about 240 plus its algorithm's statistics). A fixed figure rather than the
+encoded length so that the in-process pool, which encodes nothing, charges the same bytes."""
+
+
+def message_bytes(num_params: int) -> int:
+    """Bytes the counted clock charges for a message carrying a θ of ``num_params``."""
+    return 4 * num_params + MESSAGE_HEADER_BYTES
+
 
 @dataclass(kw_only=True)
 class DeviceModel:
-    """One agent's device: base speed, throttle, latency and time-varying schedule."""
+    """One agent's device: base speed, throttle, latency, costs and time-varying schedule."""
 
     speed: float = 1.0
     step_delay_s: float = 0.0
@@ -32,6 +59,14 @@ class DeviceModel:
     period_rounds: int = 10
     amplitude: float = 0.5
     virtual_clock: bool = False
+    clock: str = "measured"
+    """'measured' (compute time as measured here) or 'counted' (from the work counted)."""
+    step_cost_s: float = 0.0
+    """Counted clock: seconds of one env step (sampling and the policy's forward pass)."""
+    grad_cost_s: float = 0.0
+    """Counted clock: seconds of one trajectory step's backward pass per 1e4 parameters."""
+    bandwidth_mbps: float = 0.0
+    """Counted clock: link bandwidth in megabits per second; 0 = unlimited."""
     seed: int = 0
     emulated_s: float = 0.0
     """Emulated seconds accumulated since the last :meth:`take_emulated`."""
@@ -39,6 +74,10 @@ class DeviceModel:
     """How waiting is done; the agent process swaps in a sleep its server can interrupt."""
     _walk: float = field(default=1.0, init=False)
     _walk_round: int = field(default=0, init=False)
+
+    @property
+    def counted(self) -> bool:
+        return self.clock == "counted"
 
     def speed_at(self, round_index: int) -> float:
         """The device speed during ``round_index`` (rounds count from 1)."""
@@ -64,18 +103,46 @@ class DeviceModel:
             )
         return self._walk
 
-    def spend(self, real_s: float, env_steps: int, round_index: int) -> float:
-        """Emulate one local iteration; returns its emulated duration."""
-        emulated = real_s / self.speed_at(round_index) + env_steps * self.step_delay_s
+    def compute_s(
+        self, real_s: float, env_steps: int, grad_steps: int = 0, num_params: int = 0
+    ) -> float:
+        """Compute seconds of an iteration at speed 1: measured, or priced from the counts."""
+        if not self.counted:
+            return real_s
+        gradient_s = grad_steps * self.grad_cost_s * num_params / GRAD_PARAMS_UNIT
+        return env_steps * self.step_cost_s + gradient_s
+
+    def spend(
+        self,
+        real_s: float,
+        env_steps: int,
+        round_index: int,
+        *,
+        grad_steps: int = 0,
+        num_params: int = 0,
+    ) -> float:
+        """Emulate one local iteration; returns its emulated duration.
+
+        ``grad_steps`` and ``num_params`` only matter to the counted clock.
+        """
+        compute = self.compute_s(real_s, env_steps, grad_steps, num_params)
+        emulated = compute / self.speed_at(round_index) + env_steps * self.step_delay_s
         self._wait(emulated - real_s)
         self.emulated_s += emulated
         return emulated
 
-    def transmit(self) -> None:
-        """Emulate the one-way latency of a message."""
-        if self.latency_s > 0:
-            self._wait(self.latency_s)
-            self.emulated_s += self.latency_s
+    def transfer_s(self, num_bytes: int) -> float:
+        """One-way time of a message of ``num_bytes`` (bytes count on the counted clock only)."""
+        if not self.counted or self.bandwidth_mbps <= 0:
+            return self.latency_s
+        return self.latency_s + 8.0 * num_bytes / (self.bandwidth_mbps * 1e6)
+
+    def transmit(self, num_bytes: int = 0) -> None:
+        """Emulate the one-way latency (and, on the counted clock, transfer) of a message."""
+        seconds = self.transfer_s(num_bytes)
+        if seconds > 0:
+            self._wait(seconds)
+            self.emulated_s += seconds
 
     def take_emulated(self) -> float:
         spent, self.emulated_s = self.emulated_s, 0.0
@@ -97,5 +164,9 @@ def device_for(run: RunConfig, index: int) -> DeviceModel:
         period_rounds=agents.schedule_period_rounds,
         amplitude=agents.schedule_amplitude,
         virtual_clock=agents.virtual_clock,
+        clock=agents.clock,
+        step_cost_s=float(per_agent(agents.step_costs_s, index)),
+        grad_cost_s=float(per_agent(agents.grad_costs_s, index)),
+        bandwidth_mbps=float(per_agent(agents.bandwidths_mbps, index)),
         seed=int(np.random.SeedSequence([run.seed, index]).generate_state(1)[0]),
     )

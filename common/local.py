@@ -2,7 +2,9 @@
 
 from __future__ import annotations
 
-from collections.abc import Callable
+import threading
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -20,6 +22,37 @@ TrajectorySource = Callable[[int], TrajectoryBatch]
 
 IterationHook = Callable[[int, float, int], None]
 """(iteration, compute seconds (thread CPU time), env steps) -> None; after every iteration."""
+
+
+class GradientCount:
+    """Trajectory steps differentiated so far: what the counted clock prices as gradient work.
+
+    Counted inside :func:`batch_gradient`, which every local-update rule calls, so no rule has
+    to report it; :meth:`take` gives the steps since the last call (one iteration's).
+    """
+
+    def __init__(self) -> None:
+        self.steps = 0
+
+    def take(self) -> int:
+        steps, self.steps = self.steps, 0
+        return steps
+
+
+# Per thread: the in-process pool trains on the main thread, the agent process on its job
+# thread, and each counts only the gradients its own thread computes.
+_active = threading.local()
+
+
+@contextmanager
+def counting_gradients() -> Iterator[GradientCount]:
+    """Count the trajectory steps :func:`batch_gradient` differentiates on this thread."""
+    outer = getattr(_active, "count", None)
+    count = _active.count = GradientCount()
+    try:
+        yield count
+    finally:
+        _active.count = outer
 
 
 def batch_tensors(batch: TrajectoryBatch) -> tuple[torch.Tensor, torch.Tensor]:
@@ -45,6 +78,9 @@ def batch_gradient(
         weights=weights,
     )
     obs, actions = batch_tensors(batch)
+    count: GradientCount | None = getattr(_active, "count", None)
+    if count is not None:
+        count.steps += batch.num_steps
     return estimate_gradient(policy, obs, actions, coefficients)
 
 

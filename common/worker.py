@@ -7,6 +7,8 @@ in-process pool drives K of them directly. Both therefore compute exactly the sa
 from __future__ import annotations
 
 import dataclasses
+from collections.abc import Callable
+from dataclasses import dataclass
 from enum import IntEnum
 
 import numpy as np
@@ -22,7 +24,7 @@ from fedhpg.common.attacks import (
 )
 from fedhpg.common.components import AgentProfile, resolve_algorithm
 from fedhpg.common.config import RunConfig
-from fedhpg.common.local import IterationHook, TrajectorySource
+from fedhpg.common.local import TrajectorySource, counting_gradients
 from fedhpg.common.policies import Policy, get_flat_params, make_policy, set_flat_params
 from fedhpg.common.rollout import TrajectoryBatch, sample_trajectories
 from fedhpg.common.types import EvaluationStats, LocalResult
@@ -62,6 +64,21 @@ def build_policy(variant: EnvVariant, run: RunConfig) -> Policy:
 def initial_theta(variant: EnvVariant, run: RunConfig) -> torch.Tensor:
     """θ̃_0, the server's starting point: deterministic in the run seed."""
     return get_flat_params(build_policy(variant, run))
+
+
+@dataclass(frozen=True)
+class IterationWork:
+    """The work of one local iteration, as the device emulation prices it."""
+
+    iteration: int
+    compute_s: float
+    """Thread CPU time the iteration took here (what the measured clock stretches)."""
+    env_steps: int
+    grad_steps: int
+    """Trajectory steps differentiated (a VR step differentiates its mini-batch twice)."""
+
+
+WorkHook = Callable[[IterationWork], None]
 
 
 class LocalWorker:
@@ -104,18 +121,25 @@ class LocalWorker:
         return sample
 
     def train(
-        self, round_index: int, theta: torch.Tensor, *, on_iteration: IterationHook | None = None
+        self, round_index: int, theta: torch.Tensor, *, on_iteration: WorkHook | None = None
     ) -> LocalResult:
         """One round's local update from the server's θ̃ (the run's algorithm)."""
         rng = random_stream(self.run.seed, self.index, round_index, Stream.TRAIN)
-        context = LocalContext(
-            policy=self.policy,
-            sample=self._sampler(rng),
-            settings=self.run.algo,
-            gamma=self.gamma,
-            on_iteration=on_iteration,
-        )
-        result = self.algorithm.local_update(theta, context, self.params, self.profile.budget)
+        with counting_gradients() as gradients:
+
+            def hook(iteration: int, compute_s: float, env_steps: int) -> None:
+                if on_iteration is not None:
+                    work = IterationWork(iteration, compute_s, env_steps, gradients.take())
+                    on_iteration(work)
+
+            context = LocalContext(
+                policy=self.policy,
+                sample=self._sampler(rng),
+                settings=self.run.algo,
+                gamma=self.gamma,
+                on_iteration=hook,
+            )
+            result = self.algorithm.local_update(theta, context, self.params, self.profile.budget)
         if self.attack in UPDATE_ATTACKS:
             attack_rng = random_stream(self.run.seed, self.index, round_index, Stream.ATTACK)
             sent = corrupt_update(self.attack, theta, result.theta, self.run.attack, attack_rng)

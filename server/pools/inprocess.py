@@ -15,11 +15,11 @@ import torch
 
 from fedhpg.common.components import agent_profile, validate_run
 from fedhpg.common.config import RunConfig, agent_id_of
-from fedhpg.common.device import DeviceModel, device_for
+from fedhpg.common.device import DeviceModel, device_for, message_bytes
 from fedhpg.common.runtime.memory import pin_malloc_mmap_threshold
 from fedhpg.common.types import AgentUpdate, EvaluationStats
 from fedhpg.common.variants import run_variants
-from fedhpg.common.worker import LocalWorker, initial_theta
+from fedhpg.common.worker import IterationWork, LocalWorker, initial_theta
 from fedhpg.envs.base import EnvVariant
 from fedhpg.server.coordinator import Coordinator, RoundCallback
 from fedhpg.server.pools import RoundAnswers
@@ -45,11 +45,24 @@ class InProcessPool:
     def _train_one(self, k: int, round_index: int, theta: torch.Tensor) -> AgentUpdate:
         worker, device = self.workers[k], self.devices[k]
         device.take_emulated()
+        # The counted clock charges the two messages an agent process would exchange (θ̃
+        # down, θ up), so both runtimes agree; the measured clock charges none here, as before.
+        message = message_bytes(worker.num_params)
+        if device.counted:
+            device.transmit(message)
 
-        def on_iteration(_: int, compute_s: float, env_steps: int) -> None:
-            device.spend(compute_s, env_steps, round_index)
+        def on_iteration(work: IterationWork) -> None:
+            device.spend(
+                work.compute_s,
+                work.env_steps,
+                round_index,
+                grad_steps=work.grad_steps,
+                num_params=worker.num_params,
+            )
 
         result = worker.train(round_index, theta.clone(), on_iteration=on_iteration)
+        if device.counted:
+            device.transmit(message)
         stats = dataclasses.replace(
             result.stats, emulated_s=device.take_emulated(), speed=device.speed_at(round_index)
         )
