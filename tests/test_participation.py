@@ -223,3 +223,12 @@ def test_defaults_select_every_agent() -> None:
     records: list = []
     run_in_process(compose([*SMALL, "rounds=2"]), on_round=[lambda r, _: records.append(r)])
     assert [r.selected for r in records] == [[0, 1, 2, 3]] * 2
+
+
+def test_a_resume_keeps_the_participation(tmp_path: Path) -> None:
+    out_dir = tmp_path / "run"
+    api.run(overrides=[*UNIFORM, "rounds=2"], out_dir=out_dir)
+    changed = [*UNIFORM, "rounds=3", "resume=true", "strategy.participation.per_round=3"]
+    with pytest.raises(ConfigError) as info:
+        api.run(overrides=changed, out_dir=out_dir)
+    assert info.value.key == "strategy.participation.per_round"
