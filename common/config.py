@@ -28,6 +28,7 @@ SCHEDULES = ("constant", "periodic", "random_walk")
 CLOCKS = ("measured", "counted")
 TRANSPORTS = ("tcp", "ipc")
 ROUND_POLICIES = ("wait_all", "deadline")
+PARTICIPATION_MODES = ("all", "uniform", "trace")
 LOG_STDS = ("state_independent", "state_dependent")
 
 # Liveness, part of the protocol: a peer silent for HEARTBEAT_LIVENESS intervals is presumed
@@ -82,6 +83,51 @@ class AlgoConfig:
     """The algorithm's own options (its ``Params`` dataclass), e.g. FedHPGVR's ``iw_mode``."""
 
 
+# --- participation: who trains each round (server/participation.py applies it) ---------------
+
+
+@dataclass(kw_only=True)
+class ParticipationConfig:
+    """Which agents are asked to train each round, before the strategy's own ``select``.
+
+    Under ``strategy`` because it is the server's alone (agents never see it), a resumed run
+    must keep it, and runs that differ in it are different experiments: the strategy group's
+    roles exactly."""
+
+    mode: str = "all"
+    """'all' (the paper: every agent, every round), 'uniform' (``per_round`` agents drawn
+    uniformly without replacement, from (seed, round) alone), 'trace' (the agents that the
+    ``trace`` file does not mark offline in that round)."""
+    per_round: int | None = None
+    """'uniform': C, agents per round, in [1, agents.num_agents]."""
+    trace: str | None = None
+    """'trace': a CSV file ``agent,offline_from,offline_to`` (one offline interval of rounds,
+    inclusive, per row; format in the README, Participation)."""
+
+
+def _validate_participation(participation: ParticipationConfig, num_agents: int) -> None:
+    key = "strategy.participation"
+    _check_choice(participation.mode, f"{key}.mode", PARTICIPATION_MODES)
+    if participation.mode == "uniform":
+        _require(
+            participation.per_round is not None,
+            f"{key}.per_round",
+            "mode 'uniform' needs per_round, the number of agents asked each round",
+        )
+        _check_int(participation.per_round, f"{key}.per_round", low=1)
+        _require(
+            participation.per_round <= num_agents,  # type: ignore[operator]
+            f"{key}.per_round",
+            f"got {participation.per_round}, must be <= agents.num_agents={num_agents}",
+        )
+    if participation.mode == "trace":
+        _require(
+            isinstance(participation.trace, str) and bool(participation.trace.strip()),
+            f"{key}.trace",
+            "mode 'trace' needs trace, the path of an availability CSV",
+        )
+
+
 @dataclass(kw_only=True)
 class StrategyConfig:
     """How the server turns the round's updates into θ̃ (its ``select`` and ``aggregate``)."""
@@ -90,6 +136,8 @@ class StrategyConfig:
     """A registered strategy: mean, weighted, fedadam, median, trimmed_mean, or a plugin's."""
     params: dict[str, Any] = field(default_factory=dict)
     """The strategy's own options (its ``Params`` dataclass), e.g. fedadam's ``step_size``."""
+    participation: ParticipationConfig = field(default_factory=ParticipationConfig)
+    """Who trains each round (default: every agent, as in the paper)."""
 
 
 @dataclass(kw_only=True)
@@ -490,6 +538,7 @@ def validate(config: RunConfig) -> RunConfig:
     _validate_algo(config.algo)
     _validate_agents(config.agents)
     _validate_attack(config.attack, config.agents.num_agents)
+    _validate_participation(config.strategy.participation, config.agents.num_agents)
 
     policy = config.policy
     _require(

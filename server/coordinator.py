@@ -18,6 +18,7 @@ import torch
 
 from fedhpg.common.config import RunConfig
 from fedhpg.common.types import AgentUpdate, EvaluationStats, SavedState
+from fedhpg.server.participation import make_participation
 from fedhpg.server.pools import AgentPool, FederationError
 from fedhpg.server.strategies import Strategy
 
@@ -38,6 +39,8 @@ class RoundRecord:
     eval: dict[str, EvaluationStats] | None = None
     failures: dict[str, str] = field(default_factory=dict)
     stragglers: list[str] = field(default_factory=list)
+    selected: list[int] = field(default_factory=list)
+    """The agent indices asked to train (participation, then the strategy's select)."""
 
     def to_json(self) -> dict[str, Any]:
         record: dict[str, Any] = {
@@ -45,6 +48,7 @@ class RoundRecord:
             "wall_time_s": self.wall_time_s,
             "round_time_s": self.round_time_s,
             "trajectories_per_agent": self.trajectories_per_agent,
+            "selected": list(self.selected),
             "agents": [update.to_json() for update in self.agents],
         }
         if self.eval is not None:
@@ -117,6 +121,7 @@ class Coordinator:
         self.theta = theta
         self.progress = progress or RunProgress()
         self.on_round = on_round or []
+        self.participation = make_participation(run)
         if self.progress.next_round > 1:
             strategy.restore(self.progress.strategy_state)
 
@@ -140,10 +145,11 @@ class Coordinator:
 
     def run_rounds(self) -> torch.Tensor:
         started = time.perf_counter() - self.progress.elapsed_s
-        agents = list(range(self.run.agents.num_agents))
         for round_number in range(self.progress.next_round, self.run.rounds + 1):
             round_started = time.perf_counter()
-            selected = self.strategy.select(round_number, agents)
+            # participation first: every strategy chooses among the agents that take part
+            participating = self.participation.select(round_number)
+            selected = self.strategy.select(round_number, participating)
             answers = self.pool.train(round_number, self.theta, selected)
             self._aggregate(round_number, answers.updates, answers.failures)
             round_time = time.perf_counter() - round_started
@@ -167,6 +173,7 @@ class Coordinator:
                 eval=evaluation,
                 failures=answers.failures,
                 stragglers=answers.stragglers,
+                selected=sorted(selected),
             )
             for callback in self.on_round:
                 callback(record, self.theta)

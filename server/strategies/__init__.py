@@ -29,6 +29,7 @@ import torch
 from fedhpg.common.config import RunConfig, StrategyConfig
 from fedhpg.common.registry import Registry, import_plugins, parse_options
 from fedhpg.common.types import AgentUpdate, SavedState
+from fedhpg.server.participation import validate_participation
 
 P = TypeVar("P")
 
@@ -48,7 +49,8 @@ class Strategy(abc.ABC, Generic[P]):
         self.params = params
 
     def select(self, round_index: int, agents: Sequence[int]) -> list[int]:
-        """The agent indices asked to train in ``round_index``: all of them (the paper)."""
+        """The agent indices asked to train in ``round_index``, chosen among ``agents``, those
+        that participate this round (``strategy.participation``, applied first): all of them."""
         return list(agents)
 
     @abc.abstractmethod
@@ -108,6 +110,7 @@ def validate_strategy(run: RunConfig) -> None:
     """The server-side checks of a run config (the agents never see ``strategy``)."""
     import_plugins(run.plugins)
     make_strategy(run.strategy)
+    validate_participation(run)
 
 
 def stacked(results: Sequence[AgentUpdate]) -> torch.Tensor:

@@ -1,0 +1,141 @@
+"""Participation: which agents are asked to train each round (``strategy.participation``).
+
+Applied by the coordinator before any strategy's own ``select``, so every strategy, a plugin's
+included, gets it: the strategy chooses among the participating agents.
+
+- ``all``: every agent, every round (the paper).
+- ``uniform``: ``per_round`` distinct agents drawn uniformly from a generator seeded by
+  (run seed, round) alone. Nothing is kept between rounds, so a resumed run, or the
+  in-process and the distributed runtimes, select exactly the same agents.
+- ``trace``: the agents a CSV file does not mark offline in that round. A round in which
+  every agent is offline is a configuration error, reported before the run starts.
+
+The trace format: a header ``agent,offline_from,offline_to`` then one row per offline
+interval (rounds inclusive, from 1); an agent may have several rows, an agent without a row is
+always available, and lines starting with ``#`` are comments.
+"""
+
+from __future__ import annotations
+
+import csv
+from collections.abc import Sequence
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from fedhpg.common.config import ConfigError, ParticipationConfig, RunConfig
+
+TRACE_KEY = "strategy.participation.trace"
+TRACE_COLUMNS = ("agent", "offline_from", "offline_to")
+SELECTION_STREAM = 0x5E1EC7
+"""Tags the draw's seed, so it shares no stream with an agent's (seed, agent, round, purpose)."""
+
+
+@dataclass(frozen=True)
+class OfflineInterval:
+    agent: int
+    first_round: int
+    last_round: int
+
+    def covers(self, round_number: int) -> bool:
+        return self.first_round <= round_number <= self.last_round
+
+
+def read_trace(path: str, num_agents: int) -> list[OfflineInterval]:
+    """The offline intervals of a trace file; ConfigError naming the file and row if wrong."""
+    file = Path(path)
+    if not file.is_file():
+        raise ConfigError(TRACE_KEY, f"no such file: {path}")
+    try:
+        text = file.read_text(encoding="utf-8")
+    except (OSError, UnicodeDecodeError) as error:
+        raise ConfigError(TRACE_KEY, f"cannot read {path}: {error}") from None
+    rows = [
+        (number, line)
+        for number, line in enumerate(text.splitlines(), start=1)
+        if line.strip() and not line.lstrip().startswith("#")
+    ]
+    if not rows:
+        raise ConfigError(TRACE_KEY, f"{path} is empty; needs a header {','.join(TRACE_COLUMNS)}")
+    header_line, header = rows[0]
+    if tuple(cell.strip() for cell in next(csv.reader([header]))) != TRACE_COLUMNS:
+        raise ConfigError(
+            TRACE_KEY,
+            f"{path} line {header_line}: the header must be {','.join(TRACE_COLUMNS)}, "
+            f"got {header.strip()!r}",
+        )
+    intervals = []
+    for number, line in rows[1:]:
+        cells = [cell.strip() for cell in next(csv.reader([line]))]
+        where = f"{path} line {number}"
+        if len(cells) != len(TRACE_COLUMNS) or not all(c.isdigit() for c in cells):
+            raise ConfigError(
+                TRACE_KEY, f"{where}: needs three non-negative integers, got {line.strip()!r}"
+            )
+        agent, first, last = (int(c) for c in cells)
+        if agent >= num_agents:
+            raise ConfigError(
+                TRACE_KEY, f"{where}: agent {agent} is not < agents.num_agents={num_agents}"
+            )
+        if not 1 <= first <= last:
+            raise ConfigError(
+                TRACE_KEY, f"{where}: needs 1 <= offline_from <= offline_to, got {first}, {last}"
+            )
+        intervals.append(OfflineInterval(agent, first, last))
+    return intervals
+
+
+class Participation:
+    """Who is asked to train in a round; a function of the round alone (no state)."""
+
+    def __init__(
+        self,
+        config: ParticipationConfig,
+        *,
+        seed: int,
+        num_agents: int,
+        offline: Sequence[OfflineInterval] = (),
+    ) -> None:
+        self.config = config
+        self.seed = seed
+        self.num_agents = num_agents
+        self.offline = list(offline)
+
+    def select(self, round_number: int) -> list[int]:
+        """The participating agent indices of ``round_number``, in increasing order."""
+        agents = range(self.num_agents)
+        if self.config.mode == "uniform":
+            assert self.config.per_round is not None  # validated
+            rng = np.random.default_rng([self.seed, round_number, SELECTION_STREAM])
+            drawn = rng.choice(self.num_agents, size=self.config.per_round, replace=False)
+            return sorted(int(k) for k in drawn)
+        if self.config.mode == "trace":
+            away = {i.agent for i in self.offline if i.covers(round_number)}
+            return [k for k in agents if k not in away]
+        return list(agents)
+
+
+def make_participation(run: RunConfig) -> Participation:
+    """The run's participation rule (reads the trace file of mode 'trace')."""
+    config = run.strategy.participation
+    num_agents = run.agents.num_agents
+    offline: list[OfflineInterval] = []
+    if config.mode == "trace":
+        assert config.trace is not None  # validated
+        offline = read_trace(config.trace, num_agents)
+    return Participation(config, seed=run.seed, num_agents=num_agents, offline=offline)
+
+
+def validate_participation(run: RunConfig) -> None:
+    """Server-side checks: the trace parses and leaves somebody available in every round."""
+    participation = make_participation(run)
+    if run.strategy.participation.mode != "trace":
+        return
+    for round_number in range(1, run.rounds + 1):
+        if not participation.select(round_number):
+            raise ConfigError(
+                TRACE_KEY,
+                f"every agent is offline in round {round_number} of "
+                f"{run.strategy.participation.trace}; a round needs at least one agent",
+            )
