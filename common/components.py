@@ -10,6 +10,13 @@ from typing import Any
 
 from fedhpg.common.algorithms import ALGORITHMS, Algorithm
 from fedhpg.common.config import ConfigError, RunConfig, per_agent, validate
+from fedhpg.common.population import (
+    DEVICE_FIELDS,
+    budget_domain,
+    budget_overrides,
+    device_value,
+    fields_of,
+)
 from fedhpg.common.registry import OptionError, import_plugins, parse_options
 
 logger = logging.getLogger(__name__)
@@ -36,23 +43,28 @@ def resolve_algorithm(run: RunConfig) -> tuple[Algorithm[Any, Any], Any]:
     return algorithm, params
 
 
-def agent_budget(run: RunConfig, algorithm: Algorithm[Any, Any], index: int) -> Any:
-    """Agent ``index``'s entry of each ``agents.budget`` list the algorithm uses."""
+def _listed_budget(run: RunConfig, algorithm: Algorithm[Any, Any], index: int) -> dict[str, Any]:
     fields = algorithm.Budget.__dataclass_fields__
-    values = {
+    return {
         name: per_agent(entries, index)
         for name, entries in run.agents.budget.items()
         if name in fields
     }
+
+
+def agent_budget(run: RunConfig, algorithm: Algorithm[Any, Any], index: int) -> Any:
+    """Agent ``index``'s budget: the population's value of each field the algorithm uses,
+    else that field's ``agents.budget`` list entry."""
+    values = _listed_budget(run, algorithm, index)
+    values.update(budget_overrides(run, index, tuple(algorithm.Budget.__dataclass_fields__)))
     return parse_options(algorithm.Budget, values, "agents.budget")
 
 
 def agent_profile(run: RunConfig, index: int) -> AgentProfile:
     algorithm, _ = resolve_algorithm(run)
-    agents = run.agents
     return AgentProfile(
         budget=agent_budget(run, algorithm, index),
-        speed=float(per_agent(agents.speeds, index)),
+        speed=device_value(run, index, "speed"),
     )
 
 
@@ -68,6 +80,26 @@ def _check_budget_keys(run: RunConfig, algorithm: Algorithm[Any, Any]) -> None:
             )
         if name not in mine:
             logger.debug("agents.budget.%s is not used by %s", name, algorithm.name)
+    for name in fields_of(run.agents.population):
+        if name not in anyone and name not in DEVICE_FIELDS:
+            known = sorted(anyone | set(DEVICE_FIELDS))
+            raise ConfigError(
+                f"agents.population.{'draw.' + name if run.agents.population.draw else 'trace'}",
+                f"{name!r} is no budget or device field; known: {', '.join(known)}",
+            )
+
+
+def _check_population_budgets(run: RunConfig, algorithm: Algorithm[Any, Any]) -> None:
+    """Every budget value the population can give, through the algorithm's own check (a
+    choice of 0, a trace row with a non-positive batch)."""
+    mine = algorithm.Budget.__dataclass_fields__
+    for key, values in budget_domain(run):
+        try:
+            parse_options(algorithm.Budget, {n: v for n, v in values.items() if n in mine}, "b")
+        except ConfigError as error:
+            if run.agents.population.kind == "trace":  # name the row's cell
+                key = f"{key}.{error.key.rsplit('.', 1)[-1]}"
+            raise ConfigError(key, str(error).split(": ", 1)[-1]) from None
 
 
 def validate_env_family(run: RunConfig) -> None:
@@ -95,9 +127,12 @@ def validate_run(run: RunConfig) -> RunConfig:
     validate_env_family(run)
     algorithm, _ = resolve_algorithm(run)
     _check_budget_keys(run, algorithm)
-    for index in range(run.agents.num_agents):
+    _check_population_budgets(run, algorithm)
+    # Lists of one entry are every agent's: only the longest list's indices can differ.
+    longest = max((len(entries) for entries in run.agents.budget.values()), default=1)
+    for index in range(min(run.agents.num_agents, longest)):
         try:
-            agent_budget(run, algorithm, index)
+            parse_options(algorithm.Budget, _listed_budget(run, algorithm, index), "agents.budget")
         except ConfigError as error:
             field = error.key.rsplit(".", 1)[-1]
             entries = run.agents.budget.get(field)

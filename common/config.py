@@ -141,6 +141,25 @@ class StrategyConfig:
 
 
 @dataclass(kw_only=True)
+class PopulationConfig:
+    """Per-agent budgets and device profiles drawn from seeded distributions or read from a
+    trace file, resolved lazily per agent index (never a K-long list): see
+    :mod:`fedhpg.common.population` and the README, "Populations"."""
+
+    kind: str = "none"
+    """'none' (the per-agent lists alone), 'drawn' (``draw``: one seeded distribution per
+    field) or 'trace' (``trace``: a CSV, one row per agent). A field the population sets
+    overrides its list; a field it leaves keeps the list."""
+    draw: dict[str, Any] = field(default_factory=dict)
+    """'drawn': field → distribution, e.g. ``batch_size: {choice: [8, 16], weights: [3, 1]}``,
+    ``speed: {lognormal: {median: 1, sigma: 0.5}, min: 0.1, max: 4}`` or ``{uniform: {low:
+    0, high: 1e-3}}``; agent k's value depends only on (seed, k, field)."""
+    trace: str | None = None
+    """'trace': a CSV path (absolute or relative to the working directory; every host needs
+    it); header ``agent,<field>,...``, row i is agent i; agent k takes row k mod rows."""
+
+
+@dataclass(kw_only=True)
 class AgentsConfig:
     """Per-agent compute. A one-element list applies to every agent."""
 
@@ -175,6 +194,8 @@ class AgentsConfig:
     """Counted clock: seconds of one trajectory step's backward pass per 1e4 parameters."""
     bandwidths_mbps: list[float] = field(default_factory=lambda: [100.0])
     """Counted clock: link bandwidth in Mbit/s (0 = unlimited); message bytes are charged."""
+    population: PopulationConfig = field(default_factory=PopulationConfig)
+    """Budgets and device profiles per agent index from a distribution or a trace file."""
 
 
 @dataclass(kw_only=True)
@@ -475,6 +496,9 @@ def _validate_agents(agents: AgentsConfig) -> None:
         "agents.schedule_amplitude",
         f"got {agents.schedule_amplitude!r}, must be in [0, 1)",
     )
+    from fedhpg.common.population import validate_population  # it imports this module
+
+    validate_population(agents.population)
 
 
 def _validate_attack(attack: AttackConfig, num_agents: int) -> None:
@@ -597,7 +621,13 @@ def from_dict(values: dict[str, Any]) -> RunConfig:
 
 # --- keys: typos, and what a resume may change -------------------------------------------------
 
-FREE_DICTS = ("env.options", "algo.params", "strategy.params", "agents.budget")
+FREE_DICTS = (
+    "env.options",
+    "algo.params",
+    "strategy.params",
+    "agents.budget",
+    "agents.population.draw",
+)
 """Dicts whose keys belong to a registry entry (a family's options, an algorithm's ``Params``
 and ``Budget``, a strategy's ``Params``): checked by their owners, not by this schema."""
 

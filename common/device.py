@@ -30,7 +30,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from fedhpg.common.config import RunConfig, per_agent
+from fedhpg.common.config import RunConfig
+from fedhpg.common.population import device_value
 
 GRAD_PARAMS_UNIT = 10_000
 """``grad_cost_s`` is the cost of one trajectory step's backward pass per this many
@@ -154,19 +155,20 @@ class DeviceModel:
 
 
 def device_for(run: RunConfig, index: int) -> DeviceModel:
-    """Agent ``index``'s device as the run configures it."""
+    """Agent ``index``'s device as the run configures it: each field from
+    ``agents.population`` where it sets one, else from its ``agents.*`` list."""
     agents = run.agents
     return DeviceModel(
-        speed=float(per_agent(agents.speeds, index)),
-        step_delay_s=float(per_agent(agents.step_delays_s, index)),
-        latency_s=float(per_agent(agents.latencies_s, index)),
+        speed=device_value(run, index, "speed"),
+        step_delay_s=device_value(run, index, "step_delay_s"),
+        latency_s=device_value(run, index, "latency_s"),
         schedule=agents.schedule,
         period_rounds=agents.schedule_period_rounds,
         amplitude=agents.schedule_amplitude,
         virtual_clock=agents.virtual_clock,
         clock=agents.clock,
-        step_cost_s=float(per_agent(agents.step_costs_s, index)),
-        grad_cost_s=float(per_agent(agents.grad_costs_s, index)),
-        bandwidth_mbps=float(per_agent(agents.bandwidths_mbps, index)),
+        step_cost_s=device_value(run, index, "step_cost_s"),
+        grad_cost_s=device_value(run, index, "grad_cost_s"),
+        bandwidth_mbps=device_value(run, index, "bandwidth_mbps"),
         seed=int(np.random.SeedSequence([run.seed, index]).generate_state(1)[0]),
     )
