@@ -16,6 +16,7 @@ would otherwise drop silently.
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import os
 import queue
@@ -28,7 +29,7 @@ import torch
 import zmq
 
 from fedhpg.common.components import agent_profile, validate_run
-from fedhpg.common.config import ConfigError, RunConfig, adopt_settings, agent_id_of, per_agent
+from fedhpg.common.config import ConfigError, RunConfig, adopt_settings, agent_id_of
 from fedhpg.common.device import DeviceModel, device_for, message_bytes
 from fedhpg.common.runtime.memory import pin_malloc_mmap_threshold
 from fedhpg.common.variants import run_variants, variant_digest
@@ -213,10 +214,8 @@ class AgentProcess:
             env_signature=self.variant.signature(),
             variant_digest=self.digest,
             profile={
-                "budget": {
-                    name: per_agent(values, self.index)
-                    for name, values in self.own.agents.budget.items()
-                },
+                # what it will train with: its list entries or its population's draw
+                "budget": dataclasses.asdict(agent_profile(self.own, self.index).budget),
                 "speed": self.device.speed,
                 "pid": os.getpid(),
             },
