@@ -31,7 +31,7 @@ from fedhpg.common.variants import run_variants
 from fedhpg.common.worker import LocalWorker, build_policy, initial_theta
 from fedhpg.envs.registry import register_family
 from fedhpg.server.checkpoint import latest_valid_checkpoint, write_atomic
-from fedhpg.server.coordinator import Coordinator, RoundCallback, RoundRecord, RunProgress
+from fedhpg.server.coordinator import RoundCallback, RoundRecord, RunProgress
 from fedhpg.server.metrics import (
     METRICS_SCHEMA_VERSION,
     MetricsWriter,
@@ -39,7 +39,7 @@ from fedhpg.server.metrics import (
     tensorboard_sink,
 )
 from fedhpg.server.pools import FederationError
-from fedhpg.server.pools.inprocess import make_in_process_pool
+from fedhpg.server.pools.inprocess import run_in_process
 from fedhpg.server.run_dir import RunDirectory, RunDirectoryError
 from fedhpg.server.strategies import make_strategy, validate_strategy
 
@@ -145,31 +145,6 @@ def run(
 # --- in-process ---------------------------------------------------------------------------------
 
 
-def _in_process(
-    run_config: RunConfig,
-    callbacks: list[RoundCallback],
-    *,
-    theta: torch.Tensor | None = None,
-    progress: RunProgress | None = None,
-) -> torch.Tensor:
-    """The federation of :func:`fedhpg.server.pools.inprocess.run_in_process`, with a
-    progress object the caller keeps (the checkpoints need it)."""
-    variants = run_variants(run_config)
-    pool = make_in_process_pool(run_config, variants)
-    try:
-        coordinator = Coordinator(
-            run=run_config,
-            pool=pool,
-            strategy=make_strategy(run_config.strategy),
-            theta=initial_theta(variants[0], run_config) if theta is None else theta,
-            progress=progress,
-            on_round=callbacks,
-        )
-        return coordinator.run_rounds()
-    finally:
-        pool.close()
-
-
 class _Collect:
     def __init__(self) -> None:
         self.records: list[dict[str, Any]] = []
@@ -189,7 +164,7 @@ def _run_in_process(
     if directory is None:
         if run_config.resume:
             raise ConfigError("resume", "resuming needs the run directory: pass out_dir")
-        theta = _in_process(run_config, [collect, *callbacks])
+        theta = run_in_process(run_config, on_round=[collect, *callbacks])
         return RunResult(
             config=run_config,
             theta=theta,
@@ -226,8 +201,8 @@ def _in_process_with_directory(
     callbacks: list[RoundCallback],
 ) -> torch.Tensor:
     # The server's own pieces, so the directory is one fedhpg-server would have written (and
-    # can resume). Its checkpoint callback is private to fedhpg.server.main; reused, not copied.
-    from fedhpg.server.main import _checkpoint_callback, resume_point
+    # can resume).
+    from fedhpg.server.main import checkpoint_callback, resume_point
 
     directory = run_dir.path
     theta: torch.Tensor | None = None
@@ -242,12 +217,14 @@ def _in_process_with_directory(
     )
     sinks: list[RoundCallback] = [
         metrics,
-        _checkpoint_callback(run_config, directory / "checkpoints", progress, dict),
+        checkpoint_callback(run_config, directory / "checkpoints", progress, dict),
         collect,
         *([board] if board is not None else []),
     ]
     try:
-        theta = _in_process(run_config, [*sinks, *callbacks], theta=start, progress=progress)
+        theta = run_in_process(
+            run_config, on_round=[*sinks, *callbacks], theta=start, progress=progress
+        )
     finally:
         metrics.close()
         if board is not None:

@@ -79,7 +79,7 @@ def _progress_callback(
     return update
 
 
-def _checkpoint_callback(
+def checkpoint_callback(
     run: RunConfig,
     directory: Path,
     progress: RunProgress,
@@ -254,7 +254,7 @@ def _serve_claimed(
 
     callbacks: list[RoundCallback] = [
         metrics,
-        _checkpoint_callback(run, out_dir / "checkpoints", progress, pool.counters),
+        checkpoint_callback(run, out_dir / "checkpoints", progress, pool.counters),
         keep_eval,
         *([board] if board is not None else []),
     ]

@@ -21,7 +21,7 @@ from fedhpg.common.types import AgentUpdate, EvaluationStats
 from fedhpg.common.variants import run_variants
 from fedhpg.common.worker import IterationWork, LocalWorker, initial_theta
 from fedhpg.envs.base import EnvVariant
-from fedhpg.server.coordinator import Coordinator, RoundCallback
+from fedhpg.server.coordinator import Coordinator, RoundCallback, RunProgress
 from fedhpg.server.pools import RoundAnswers
 from fedhpg.server.strategies import make_strategy, validate_strategy
 from fedhpg.server.validation import UpdateCheck
@@ -112,8 +112,15 @@ def make_in_process_pool(run: RunConfig, variants: list[EnvVariant]) -> InProces
     )
 
 
-def run_in_process(run: RunConfig, *, on_round: list[RoundCallback] | None = None) -> torch.Tensor:
-    """Run the whole federation here and return the final θ̃_T."""
+def run_in_process(
+    run: RunConfig,
+    *,
+    on_round: list[RoundCallback] | None = None,
+    theta: torch.Tensor | None = None,
+    progress: RunProgress | None = None,
+) -> torch.Tensor:
+    """Run the whole federation here and return the final θ̃_T. ``theta`` and ``progress``
+    continue a run (a checkpoint's θ̃ and rounds done; the caller keeps ``progress``)."""
     validate_run(run)
     validate_strategy(run)
     variants = run_variants(run)
@@ -123,7 +130,8 @@ def run_in_process(run: RunConfig, *, on_round: list[RoundCallback] | None = Non
             run=run,
             pool=pool,
             strategy=make_strategy(run.strategy),
-            theta=initial_theta(variants[0], run),
+            theta=initial_theta(variants[0], run) if theta is None else theta,
+            progress=progress,
             on_round=on_round,
         )
         return coordinator.run_rounds()
