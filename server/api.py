@@ -12,8 +12,7 @@ from __future__ import annotations
 import dataclasses
 import json
 import tempfile
-from collections.abc import Iterator, Sequence
-from contextlib import contextmanager
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -40,7 +39,7 @@ from fedhpg.server.metrics import (
 )
 from fedhpg.server.pools import FederationError
 from fedhpg.server.pools.inprocess import run_in_process
-from fedhpg.server.run_dir import RunDirectory, RunDirectoryError
+from fedhpg.server.run_dir import RunDirectory, RunDirectoryError, claimed
 from fedhpg.server.strategies import make_strategy, validate_strategy
 
 __all__ = [
@@ -172,7 +171,7 @@ def _run_in_process(
             out_dir=None,
             last_evaluation=collect.last_eval,
         )
-    with _claimed(directory, resume=bool(run_config.resume)) as run_dir:
+    with claimed(directory, resume=bool(run_config.resume), key="out_dir") as run_dir:
         theta = _in_process_with_directory(run_config, run_dir, collect, callbacks)
     return RunResult(
         config=run_config,
@@ -181,17 +180,6 @@ def _run_in_process(
         out_dir=directory,
         last_evaluation=collect.last_eval,
     )
-
-
-@contextmanager
-def _claimed(directory: Path, *, resume: bool) -> Iterator[RunDirectory]:
-    run_dir = RunDirectory.claim(directory, resume=resume, key="out_dir")
-    try:
-        yield run_dir
-    except OSError as error:
-        raise RunDirectoryError(f"cannot write {directory}: {error.strerror or error}") from None
-    finally:
-        run_dir.release()
 
 
 def _in_process_with_directory(

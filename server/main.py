@@ -44,7 +44,7 @@ from fedhpg.server.metrics import MetricsWriter, tensorboard_sink
 from fedhpg.server.pools import FederationError
 from fedhpg.server.pools.zmq_pool import ZmqAgentPool
 from fedhpg.server.report import evaluation_table
-from fedhpg.server.run_dir import RunDirectory, RunDirectoryError
+from fedhpg.server.run_dir import RunDirectory, RunDirectoryError, claimed
 from fedhpg.server.strategies import Strategy, make_strategy, validate_strategy
 from fedhpg.server.validation import UpdateCheck
 
@@ -177,8 +177,7 @@ def serve(
     theta, progress = initial_theta(variants[0], run), RunProgress()
     counters: dict[str, int] = {}
     cap = message_cap(run, int(theta.numel()))
-    run_dir = RunDirectory.claim(out_dir, resume=bool(run.resume))
-    try:
+    with claimed(out_dir, resume=bool(run.resume)) as run_dir:
         if run.resume:
             theta, progress, counters = resume_point(run, run_dir, strategy)
         write_atomic(out_dir / "config.json", json.dumps(to_dict(run), indent=2).encode())
@@ -194,10 +193,6 @@ def serve(
             on_bound=on_bound,
             show_progress=show_progress,
         )
-    except OSError as error:
-        raise RunDirectoryError(f"cannot write {out_dir}: {error.strerror or error}") from None
-    finally:
-        run_dir.release()
 
 
 def _serve_claimed(

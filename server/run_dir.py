@@ -13,6 +13,7 @@ import contextlib
 import fcntl
 import json
 import os
+from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -122,3 +123,16 @@ class RunDirectory:
                     f"{rounds}: restore the file, or start a new run",
                 )
         return lines[:rounds]
+
+
+@contextlib.contextmanager
+def claimed(path: Path, *, resume: bool, key: str = "server.out_dir") -> Iterator[RunDirectory]:
+    """:meth:`RunDirectory.claim` for a block: released at its end, and a disk or descriptor
+    failure inside it becomes one RunDirectoryError line."""
+    run_dir = RunDirectory.claim(path, resume=resume, key=key)
+    try:
+        yield run_dir
+    except OSError as error:
+        raise RunDirectoryError(f"cannot write {path}: {error.strerror or error}") from None
+    finally:
+        run_dir.release()
