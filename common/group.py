@@ -1,0 +1,137 @@
+"""Many logical agents' learning side in one process: what an agent host and the in-process
+pool drive, and what the one-agent process drives with a group of one.
+
+Every placement of an agent (one per process, many per host, all in-process) trains it through
+:func:`make_agent_group`, so its θ̃ never depends on where it runs. A group computes only the
+learning results; device emulation (clocks, sleeping, message costs) stays with its caller,
+fed per agent and per local iteration through ``on_iteration``.
+
+Two implementations: :class:`WorkerLoopGroup` (one :class:`LocalWorker` per agent, trained
+one after another: every algorithm, policy and environment) and the batched engine of
+:mod:`fedhpg.common.batched` (all the group's agents stepped, evaluated and differentiated as
+one batch, where the run's algorithm, policy and family allow it).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Sequence
+from typing import Protocol
+
+import torch
+
+from fedhpg.common.components import agent_profile
+from fedhpg.common.config import RunConfig
+from fedhpg.common.types import EvaluationStats, LocalResult
+from fedhpg.common.variants import run_variants
+from fedhpg.common.worker import IterationWork, LocalWorker
+from fedhpg.envs.base import EnvVariant
+
+GroupHook = Callable[[int, IterationWork], None]
+"""(agent index, that agent's iteration) -> None, after each local iteration of each agent.
+It may raise to cancel the round (the agent process's cancellation does)."""
+
+
+class AgentGroup(Protocol):
+    """The learning side of the logical agents ``indices`` of one run."""
+
+    @property
+    def indices(self) -> Sequence[int]: ...
+
+    @property
+    def num_params(self) -> int: ...
+
+    def train(
+        self,
+        round_index: int,
+        theta: torch.Tensor,
+        agents: Sequence[int],
+        *,
+        on_iteration: GroupHook | None = None,
+    ) -> dict[int, LocalResult]:
+        """The round's local updates of ``agents`` (a subset of ``indices``) from θ̃."""
+        ...
+
+    def evaluate(
+        self, round_index: int, theta: torch.Tensor, episodes: int, agents: Sequence[int]
+    ) -> dict[int, EvaluationStats]:
+        """The unified policy's return and success in each agent's environment."""
+        ...
+
+    def close(self) -> None: ...
+
+
+class WorkerLoopGroup:
+    """One :class:`LocalWorker` per agent, built on first use and kept, trained in index
+    order: exactly what a lone agent process computes for each of them."""
+
+    def __init__(self, run: RunConfig, variants: dict[int, EnvVariant]) -> None:
+        self.run = run
+        self.variants = variants
+        self._workers: dict[int, LocalWorker] = {}
+
+    @property
+    def indices(self) -> Sequence[int]:
+        return sorted(self.variants)
+
+    def worker(self, index: int) -> LocalWorker:
+        if index not in self._workers:
+            self._workers[index] = LocalWorker(
+                index=index,
+                variant=self.variants[index],
+                run=self.run,
+                profile=agent_profile(self.run, index),
+            )
+        return self._workers[index]
+
+    @property
+    def num_params(self) -> int:
+        return self.worker(self.indices[0]).num_params
+
+    def train(
+        self,
+        round_index: int,
+        theta: torch.Tensor,
+        agents: Sequence[int],
+        *,
+        on_iteration: GroupHook | None = None,
+    ) -> dict[int, LocalResult]:
+        results: dict[int, LocalResult] = {}
+        for k in sorted(agents):
+            hook = None
+            if on_iteration is not None:
+
+                def hook(work: IterationWork, k: int = k) -> None:
+                    on_iteration(k, work)
+
+            results[k] = self.worker(k).train(round_index, theta.clone(), on_iteration=hook)
+        return results
+
+    def evaluate(
+        self, round_index: int, theta: torch.Tensor, episodes: int, agents: Sequence[int]
+    ) -> dict[int, EvaluationStats]:
+        return {k: self.worker(k).evaluate(round_index, theta, episodes) for k in sorted(agents)}
+
+    def close(self) -> None:
+        for worker in self._workers.values():
+            worker.close()
+        self._workers.clear()
+
+
+def group_variants(run: RunConfig, indices: Sequence[int]) -> dict[int, EnvVariant]:
+    """The environment variants of ``indices`` (each exactly the one the server expects)."""
+    variants = run_variants(run)
+    return {k: variants[k] for k in indices}
+
+
+def make_agent_group(
+    run: RunConfig, indices: Sequence[int], variants: dict[int, EnvVariant] | None = None
+) -> AgentGroup:
+    """The group implementation for the run: the batched engine where it supports the run's
+    algorithm, policy and environment family, else a loop over :class:`LocalWorker` s."""
+    if not indices:
+        raise ValueError("an agent group needs at least one agent")
+    variants = group_variants(run, indices) if variants is None else variants
+    from fedhpg.common.batched import batched_group_or_none
+
+    batched = batched_group_or_none(run, variants)
+    return batched if batched is not None else WorkerLoopGroup(run, variants)
