@@ -196,6 +196,11 @@ class AgentsConfig:
     """Counted clock: link bandwidth in Mbit/s (0 = unlimited); message bytes are charged."""
     population: PopulationConfig = field(default_factory=PopulationConfig)
     """Budgets and device profiles per agent index from a distribution or a trace file."""
+    batched: bool = True
+    """Train the agents of a process (an agent host's, the in-process pool's, a lone agent's)
+    with the batched engine where it supports the run (FedHPG, MLP categorical policy, no
+    attack): all of them in lockstep, stacked. False: one LocalWorker after another. Either
+    way an agent's θ does not depend on where it runs."""
 
 
 @dataclass(kw_only=True)

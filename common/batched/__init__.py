@@ -8,6 +8,7 @@ from __future__ import annotations
 
 from typing import TYPE_CHECKING
 
+from fedhpg.common.batched.mlp import MLPShape
 from fedhpg.common.config import RunConfig
 from fedhpg.envs.base import EnvVariant
 
@@ -15,6 +16,36 @@ if TYPE_CHECKING:
     from fedhpg.common.group import AgentGroup
 
 
-def batched_group_or_none(run: RunConfig, variants: dict[int, EnvVariant]) -> AgentGroup | None:
-    """The batched engine for these agents, or None where it does not apply (yet)."""
+def unsupported(run: RunConfig, variants: dict[int, EnvVariant]) -> str | None:
+    """Why the batched engine cannot train this run (None: it can)."""
+    from fedhpg.common.policies import MLPCategoricalPolicy
+    from fedhpg.common.worker import build_policy
+
+    if run.algo.name != "fedhpg":
+        return f"algorithm {run.algo.name!r} (the engine runs fedhpg)"
+    if run.attack.kind != "none":
+        return f"attack {run.attack.kind!r}"
+    if run.algo.optimizer not in ("sgd", "adam"):
+        return f"optimizer {run.algo.optimizer!r}"
+    policy = build_policy(next(iter(variants.values())), run)
+    if type(policy) is not MLPCategoricalPolicy:
+        return f"policy {type(policy).__name__} (the engine runs MLPCategoricalPolicy)"
     return None
+
+
+def mlp_shape(run: RunConfig, variants: dict[int, EnvVariant]) -> MLPShape:
+    from fedhpg.common.worker import build_policy
+
+    policy = build_policy(next(iter(variants.values())), run)
+    sizes = [m.in_features for m in policy.net if hasattr(m, "in_features")]
+    sizes.append(policy.net[-1].out_features)
+    return MLPShape(tuple(int(s) for s in sizes))
+
+
+def batched_group_or_none(run: RunConfig, variants: dict[int, EnvVariant]) -> AgentGroup | None:
+    """The batched engine for these agents, or None where it does not apply."""
+    if not run.agents.batched or unsupported(run, variants) is not None:
+        return None
+    from fedhpg.common.batched.engine import BatchedFedHPG
+
+    return BatchedFedHPG(run, variants, mlp_shape(run, variants))

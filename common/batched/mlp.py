@@ -1,0 +1,178 @@
+"""The tanh MLP categorical policy of many agents at once, each with its own θ.
+
+Forward (sampling) and the score-function gradient (1/B) Σ coef · ∇ log π(a|s) in numpy,
+written so that an agent's numbers never depend on which other agents share the batch:
+
+- Every matrix product is one stacked ``np.matmul`` in which each agent (or each chunk of an
+  agent's rows) is its own matrix, so BLAS sees the same shapes whatever the batch holds; a
+  row of a product does not depend on the other rows (checked in tests/test_batched_engine.py).
+- Elementwise operations (tanh, exp, the softmax) are exact per lane.
+- The one reduction across an agent's rows — the weight gradient Σ_rows hᵀ·δ — is done per
+  chunk of ``CHUNK_ROWS`` rows (one fixed-size product each), then the chunks are added in
+  order with plain additions. Zero-padding a chunk adds exact zeros.
+
+The flat θ layout is torch's: for each ``nn.Linear`` its weight [out, in] row-major, then
+its bias [out], layer after layer (common/policies.py's MLPCategoricalPolicy).
+"""
+
+from __future__ import annotations
+
+import itertools
+from dataclasses import dataclass
+
+import numpy as np
+
+CHUNK_ROWS = 64
+"""Rows per chunk of the gradient's reduction."""
+
+
+@dataclass(frozen=True)
+class MLPShape:
+    """Layer sizes [obs_dim, *hidden, num_actions] of the flat parameter vector."""
+
+    sizes: tuple[int, ...]
+
+    @property
+    def layers(self) -> list[tuple[int, int, int]]:
+        """(offset, in, out) of each layer's weight; its bias follows the weight."""
+        out, offset = [], 0
+        for n_in, n_out in itertools.pairwise(self.sizes):
+            out.append((offset, n_in, n_out))
+            offset += n_in * n_out + n_out
+        return out
+
+    @property
+    def num_params(self) -> int:
+        return sum(n_in * n_out + n_out for _, n_in, n_out in self.layers)
+
+
+Layers = list[tuple[np.ndarray, np.ndarray]]
+"""Per layer: weights [A, in, out] and biases [A, 1, out], float32, C-contiguous."""
+
+
+def unflatten(shape: MLPShape, theta: np.ndarray) -> Layers:
+    """Per-agent layers from θ [A, d] (copies: the caller may change θ afterwards)."""
+    layers = []
+    for offset, n_in, n_out in shape.layers:
+        weight = theta[:, offset : offset + n_in * n_out].reshape(-1, n_out, n_in)
+        bias = theta[:, offset + n_in * n_out : offset + n_in * n_out + n_out]
+        layers.append((np.ascontiguousarray(weight.transpose(0, 2, 1)), bias[:, None, :].copy()))
+    return layers
+
+
+def select(layers: Layers, rows: np.ndarray | slice) -> Layers:
+    return [(w[rows], b[rows]) for w, b in layers]
+
+
+def forward(layers: Layers, x: np.ndarray) -> list[np.ndarray]:
+    """Activations [h_0 = x, h_1, …, logits] for inputs x [A, n, in] (float32)."""
+    activations = [x]
+    for i, (weight, bias) in enumerate(layers):
+        h = np.matmul(activations[-1], weight)
+        h += bias
+        if i < len(layers) - 1:
+            np.tanh(h, out=h)
+        activations.append(h)
+    return activations
+
+
+def logits(layers: Layers, x: np.ndarray) -> np.ndarray:
+    return forward(layers, x)[-1]
+
+
+def softmax(logit: np.ndarray) -> np.ndarray:
+    weights = np.exp(logit - logit.max(axis=-1, keepdims=True))
+    weights /= weights.sum(axis=-1, keepdims=True)
+    return weights
+
+
+def draw_actions(logit: np.ndarray, uniforms: np.ndarray) -> np.ndarray:
+    """Categorical draws by inverting each row's CDF with one uniform (the last action is
+    never exceeded, whatever the rounding)."""
+    weights = np.exp(logit - logit.max(axis=-1, keepdims=True))
+    cumulative = np.cumsum(weights, axis=-1)
+    thresholds = uniforms * cumulative[..., -1]
+    return (thresholds[..., None] > cumulative[..., :-1]).sum(axis=-1)
+
+
+@dataclass(frozen=True)
+class Chunks:
+    """The alive rows of several agents packed into [C, CHUNK_ROWS] chunks, agent by agent.
+
+    ``owner[c]`` is chunk c's agent (position in the batch); agent a's chunks are
+    ``first[a] … first[a] + count[a] − 1``, its rows in their sampled (time-major) order.
+    Padding rows have coefficient 0.
+    """
+
+    obs: np.ndarray  # [C, R, in] float32
+    actions: np.ndarray  # [C, R] int64
+    coef: np.ndarray  # [C, R] float32
+    owner: np.ndarray  # [C]
+    first: np.ndarray  # [A]
+    count: np.ndarray  # [A]
+
+
+def pack_rows(
+    agent_of_row: np.ndarray,
+    obs: np.ndarray,
+    actions: np.ndarray,
+    coef: np.ndarray,
+    num_agents: int,
+) -> Chunks:
+    """Pack rows (already in agent-then-time order; ``agent_of_row`` non-decreasing)."""
+    rows = np.bincount(agent_of_row, minlength=num_agents)
+    count = np.maximum(-(-rows // CHUNK_ROWS), 1)
+    first = np.concatenate([[0], np.cumsum(count)[:-1]])
+    row_start = np.concatenate([[0], np.cumsum(rows)[:-1]])
+    position = np.arange(len(agent_of_row)) - row_start[agent_of_row]
+    chunk = first[agent_of_row] + position // CHUNK_ROWS
+    slot = position % CHUNK_ROWS
+    total = int(count.sum())
+    packed_obs = np.zeros((total, CHUNK_ROWS, obs.shape[-1]), dtype=np.float32)
+    packed_actions = np.zeros((total, CHUNK_ROWS), dtype=np.int64)
+    packed_coef = np.zeros((total, CHUNK_ROWS), dtype=np.float32)
+    packed_obs[chunk, slot] = obs
+    packed_actions[chunk, slot] = actions
+    packed_coef[chunk, slot] = coef
+    owner = np.repeat(np.arange(num_agents), count)
+    return Chunks(packed_obs, packed_actions, packed_coef, owner, first, count)
+
+
+def _sum_chunks(parts: np.ndarray, chunks: Chunks) -> np.ndarray:
+    """Per agent, its chunks' parts added in chunk order: [C, ...] -> [A, ...]."""
+    total = parts[chunks.first].copy()
+    for j in range(1, int(chunks.count.max())):
+        agents = np.nonzero(chunks.count > j)[0]
+        total[agents] += parts[chunks.first[agents] + j]
+    return total
+
+
+def score_gradient(shape: MLPShape, layers: Layers, chunks: Chunks) -> np.ndarray:
+    """Σ_rows coef · ∇_θ log π(a|s) per agent, [A, d] float32 in the flat θ layout."""
+    per_chunk = select(layers, chunks.owner)
+    activations = forward(per_chunk, chunks.obs)
+    delta = -softmax(activations[-1])  # ∂ log π(a|s) / ∂ logits = onehot(a) − π
+    np.put_along_axis(
+        delta,
+        chunks.actions[..., None],
+        np.take_along_axis(delta, chunks.actions[..., None], axis=-1) + 1.0,
+        axis=-1,
+    )
+    delta *= chunks.coef[..., None]
+    ones = np.ones((len(chunks.owner), 1, CHUNK_ROWS), dtype=np.float32)
+    gradient = np.empty((len(chunks.first), shape.num_params), dtype=np.float32)
+    for i in reversed(range(len(layers))):
+        offset, n_in, n_out = shape.layers[i]
+        below = activations[i]
+        weight_parts = np.matmul(below.transpose(0, 2, 1), delta)  # [C, in, out]
+        bias_parts = np.matmul(ones, delta)[:, 0, :]  # [C, out]
+        gradient[:, offset : offset + n_in * n_out] = (
+            _sum_chunks(weight_parts, chunks).transpose(0, 2, 1).reshape(-1, n_in * n_out)
+        )
+        gradient[:, offset + n_in * n_out : offset + n_in * n_out + n_out] = _sum_chunks(
+            bias_parts, chunks
+        )
+        if i > 0:
+            delta = np.matmul(delta, per_chunk[i][0].transpose(0, 2, 1))
+            delta *= 1.0 - below * below  # tanh' at the layer below
+    return gradient

@@ -1,0 +1,179 @@
+"""Lockstep rollouts of many agents: one env step and one stacked policy forward per time
+step for every agent's copies.
+
+Agent a runs ``counts[a]`` copies of its variant for one episode each (at most its horizon),
+exactly as the one-agent sampler (common/rollout.py) does, with all randomness from its own
+generator: first its env seed, then its action uniforms, drawn ``UNIFORM_CHUNK`` steps at a
+time while it still runs. What an agent draws and does therefore depends on it alone.
+Agents are laid out grouped by their copy count (each group one stacked forward).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+
+from fedhpg.common.batched import mlp
+from fedhpg.envs.multi import MultiBatchEnv
+
+UNIFORM_CHUNK = 32
+"""Time steps of action uniforms an agent draws at once."""
+
+
+@dataclass(frozen=True)
+class Rollouts:
+    """Every agent's batch, time-major over the longest agent (T steps), copies as blocks.
+
+    Agent a's block is columns ``offsets[a]:offsets[a+1]``; ``lengths[a]`` is its own T_a
+    (its batch ends when all its copies ended); ``alive`` is False past each copy's end.
+    """
+
+    obs: np.ndarray  # [T, N, obs_dim] float32
+    actions: np.ndarray  # [T, N] int64
+    rewards: np.ndarray  # [T, N] float64
+    alive: np.ndarray  # [T, N] bool
+    success: np.ndarray  # [N] bool
+    offsets: np.ndarray  # [A + 1]
+    lengths: np.ndarray  # [A]
+
+    @property
+    def owner(self) -> np.ndarray:
+        """The agent (batch position) of every copy, [N]."""
+        return np.repeat(np.arange(len(self.lengths)), np.diff(self.offsets))
+
+    def subset(self, agents: np.ndarray) -> Rollouts:
+        """The batches of agents ``agents`` (increasing positions), cut to their longest."""
+        counts = np.diff(self.offsets)[agents]
+        columns = np.concatenate([np.arange(self.offsets[a], self.offsets[a + 1]) for a in agents])
+        steps = int(self.lengths[agents].max())
+        return Rollouts(
+            obs=self.obs[:steps, columns],
+            actions=self.actions[:steps, columns],
+            rewards=self.rewards[:steps, columns],
+            alive=self.alive[:steps, columns],
+            success=self.success[columns],
+            offsets=np.concatenate([[0], np.cumsum(counts)]),
+            lengths=self.lengths[agents],
+        )
+
+    def env_steps(self) -> np.ndarray:
+        """Alive steps per agent, [A]."""
+        per_copy = self.alive.sum(axis=0)
+        return np.add.reduceat(per_copy, self.offsets[:-1]) if per_copy.size else per_copy
+
+
+def rollout(
+    env: MultiBatchEnv,
+    layers: mlp.Layers,
+    rngs: Sequence[np.random.Generator],
+    horizons: Sequence[int],
+    *,
+    greedy: bool = False,
+) -> Rollouts:
+    """One episode in every copy of every agent (agents in ``env``'s block order).
+
+    Agents whose copies have all ended drop out of the stepping and the forward: the set of
+    stepped agents is narrowed whenever it has shrunk by a quarter (episode lengths vary a
+    lot, and a batch lasts as long as its longest episode).
+    """
+    counts = np.asarray(env.counts)
+    offsets = np.concatenate([[0], np.cumsum(counts)])
+    num_agents, num_envs = len(counts), int(offsets[-1])
+    seeds = [int(rng.integers(2**63 - 1)) for rng in rngs]
+    obs = env.reset(seeds)
+    horizon = int(max(horizons))
+    stop_at = np.repeat(np.asarray(horizons), counts)
+    obs_buf = np.zeros((horizon, *obs.shape), dtype=np.float32)
+    act_buf = np.zeros((horizon, num_envs), dtype=np.int64)
+    rewards = np.zeros((horizon, num_envs), dtype=np.float64)
+    alive = np.zeros((horizon, num_envs), dtype=bool)
+    success = np.zeros(num_envs, dtype=bool)
+    running = np.ones(num_envs, dtype=bool)
+    agent_running = np.ones(num_agents, dtype=bool)
+    lengths = np.zeros(num_agents, dtype=np.int64)
+    uniforms = np.zeros((UNIFORM_CHUNK, num_envs))
+    plan = _Plan(np.arange(num_agents), counts, offsets, layers)
+    steps = 0
+    while steps < horizon and agent_running.any():
+        if 4 * int(agent_running.sum()) <= 3 * len(plan.agents):
+            plan = _Plan(np.nonzero(agent_running)[0], counts, offsets, layers)
+        if not greedy and steps % UNIFORM_CHUNK == 0:
+            for a in np.nonzero(agent_running)[0]:
+                block = slice(offsets[a], offsets[a + 1])
+                uniforms[:, block] = rngs[a].random((UNIFORM_CHUNK, int(counts[a])))
+        copies = plan.copies
+        live_obs = obs if plan.everyone else obs[copies]
+        actions = np.empty(len(copies), dtype=np.int64)
+        row = 0
+        for group_layers, num, size in plan.groups:
+            rows = slice(row, row + num * size)
+            logit = mlp.logits(group_layers, live_obs[rows].reshape(num, size, -1))
+            logit = logit.reshape(num * size, -1)
+            if greedy:
+                actions[rows] = logit.argmax(axis=-1)
+            else:
+                draws = uniforms[steps % UNIFORM_CHUNK, copies[rows]]
+                actions[rows] = mlp.draw_actions(logit, draws)
+            row += num * size
+        obs_buf[steps, copies] = live_obs
+        act_buf[steps, copies] = actions
+        alive[steps] = running
+        lengths += agent_running
+        step = env.step(actions, None if plan.everyone else plan.agents)
+        live_running = running[copies]
+        rewards[steps, copies] = step.reward * live_running
+        success[copies] |= live_running & step.success
+        running[copies] = live_running & ~(step.terminated | step.truncated)
+        steps += 1
+        running &= stop_at > steps
+        agent_running = np.logical_or.reduceat(running, offsets[:-1])
+        if plan.everyone:
+            obs = step.obs
+        else:
+            obs[copies] = step.obs
+    return Rollouts(
+        obs=obs_buf[:steps],
+        actions=act_buf[:steps],
+        rewards=rewards[:steps],
+        alive=alive[:steps],
+        success=success,
+        offsets=offsets,
+        lengths=lengths,
+    )
+
+
+class _Plan:
+    """The agents a rollout still steps: their copies, and one stacked forward per run of
+    agents with equal copy counts (with those agents' layers)."""
+
+    def __init__(
+        self, agents: np.ndarray, counts: np.ndarray, offsets: np.ndarray, layers: mlp.Layers
+    ) -> None:
+        self.agents = agents
+        self.everyone = len(agents) == len(counts)
+        self.copies = (
+            np.arange(int(offsets[-1]))
+            if self.everyone
+            else np.concatenate([np.arange(offsets[a], offsets[a + 1]) for a in agents])
+        )
+        self.groups: list[tuple[mlp.Layers, int, int]] = []
+        for start, end, size in _groups(counts[agents]):
+            chosen = agents[start:end]
+            self.groups.append((mlp.select(layers, chosen), end - start, size))
+
+
+def _groups(counts: np.ndarray) -> list[tuple[int, int, int]]:
+    """(first agent, end agent, copies) of each run of equal copy counts."""
+    groups, start = [], 0
+    for a in range(1, len(counts) + 1):
+        if a == len(counts) or counts[a] != counts[start]:
+            groups.append((start, a, int(counts[start])))
+            start = a
+    return groups
+
+
+def block_order(indices: Sequence[int], counts: dict[int, int]) -> list[int]:
+    """The agents in the order a rollout lays them out: by copy count, then index."""
+    return sorted(indices, key=lambda k: (counts[k], k))
