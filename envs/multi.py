@@ -37,13 +37,19 @@ class MultiBatchEnv(Protocol):
     @property
     def single_action_space(self) -> gym.Space: ...
 
-    def reset(self, seeds: Sequence[int]) -> np.ndarray:
-        """Start one episode in every copy; block a's randomness comes from ``seeds[a]``."""
+    def reset(self, seeds: Sequence[int], blocks: Sequence[int] | None = None) -> np.ndarray:
+        """Start one episode in every copy of ``blocks`` (None: all), block ``blocks[i]``'s
+        randomness from ``seeds[i]``; their first observations, in order."""
         ...
 
     def step(self, actions: np.ndarray, blocks: np.ndarray | None = None) -> BatchStep:
         """One action per copy of ``blocks`` (increasing block numbers; None: all), in
         order; the other blocks are left as they are."""
+        ...
+
+    def subset(self, blocks: np.ndarray) -> MultiBatchEnv:
+        """The blocks ``blocks`` (increasing) as a batch of their own, in their current state
+        (sharing this batch's envs: close only the original)."""
         ...
 
     def close(self) -> None: ...
@@ -52,6 +58,13 @@ class MultiBatchEnv(Protocol):
 def block_offsets(counts: Sequence[int]) -> np.ndarray:
     """[A + 1] start offsets of the blocks (the last is the number of copies)."""
     return np.concatenate([[0], np.cumsum(np.asarray(counts, dtype=np.int64))])
+
+
+def block_columns(offsets: np.ndarray, blocks: np.ndarray) -> np.ndarray:
+    """The copies of ``blocks``, in block order."""
+    sizes = offsets[blocks + 1] - offsets[blocks]
+    starts = np.repeat(offsets[blocks] - np.concatenate([[0], np.cumsum(sizes)[:-1]]), sizes)
+    return starts + np.arange(int(sizes.sum()))
 
 
 class GroupedBatchEnv:
@@ -67,9 +80,10 @@ class GroupedBatchEnv:
         self.single_observation_space = self.envs[0].single_observation_space
         self.single_action_space = self.envs[0].single_action_space
 
-    def reset(self, seeds: Sequence[int]) -> np.ndarray:
+    def reset(self, seeds: Sequence[int], blocks: Sequence[int] | None = None) -> np.ndarray:
+        chosen = range(len(self.envs)) if blocks is None else blocks
         return np.concatenate(
-            [env.reset(seed=int(s)) for env, s in zip(self.envs, seeds, strict=True)]
+            [self.envs[a].reset(seed=int(s)) for a, s in zip(chosen, seeds, strict=True)]
         )
 
     def step(self, actions: np.ndarray, blocks: np.ndarray | None = None) -> BatchStep:
@@ -80,6 +94,16 @@ class GroupedBatchEnv:
             steps.append(self.envs[a].step(actions[row : row + size]))
             row += size
         return BatchStep(*(np.concatenate(parts) for parts in zip(*steps, strict=True)))
+
+    def subset(self, blocks: np.ndarray) -> GroupedBatchEnv:
+        part = object.__new__(GroupedBatchEnv)
+        part.counts = [self.counts[int(a)] for a in blocks]
+        part.offsets = block_offsets(part.counts)
+        part.num_envs = int(part.offsets[-1])
+        part.envs = [self.envs[int(a)] for a in blocks]
+        part.single_observation_space = self.single_observation_space
+        part.single_action_space = self.single_action_space
+        return part
 
     def close(self) -> None:
         for env in self.envs:
@@ -133,23 +157,26 @@ class CartPoleMulti:
         self.state = np.zeros((4, self.num_envs))
         self.steps = np.zeros(self.num_envs, dtype=np.int32)
         self._success = np.zeros(self.num_envs, dtype=bool)
+        self._copies_of: tuple[np.ndarray, np.ndarray] | None = None
 
-    def reset(self, seeds: Sequence[int]) -> np.ndarray:
-        for a, seed in enumerate(seeds):
+    def reset(self, seeds: Sequence[int], blocks: Sequence[int] | None = None) -> np.ndarray:
+        chosen = range(len(self.counts)) if blocks is None else blocks
+        parts = []
+        for a, seed in zip(chosen, seeds, strict=True):
             start, end = self.offsets[a], self.offsets[a + 1]
             # gymnasium's reset: np_random from the seed, then uniform(±0.05, size (4, n))
             rng = np.random.default_rng(int(seed))
             self.state[:, start:end] = rng.uniform(-0.05, 0.05, size=(4, end - start))
-        self.steps[:] = 0
-        return self.state.T.astype(np.float32)
+            self.steps[start:end] = 0
+            parts.append(self.state[:, start:end].T.astype(np.float32))
+        return np.concatenate(parts)
 
     def step(self, actions: np.ndarray, blocks: np.ndarray | None = None) -> BatchStep:
-        if blocks is None:
-            copies: slice | np.ndarray = slice(None)
-        else:
-            copies = np.concatenate(
-                [np.arange(self.offsets[a], self.offsets[a + 1]) for a in blocks]
-            )
+        copies: slice | np.ndarray = slice(None)
+        if blocks is not None:
+            if self._copies_of is None or self._copies_of[0] is not blocks:
+                self._copies_of = (blocks, block_columns(self.offsets, blocks))
+            copies = self._copies_of[1]
         p = {name: values[copies] for name, values in self.params.items()}
         x, x_dot, theta, theta_dot = self.state[:, copies]
         force = np.sign(actions - 0.5) * p["force_mag"]
@@ -181,6 +208,22 @@ class CartPoleMulti:
             truncated=truncated,
             success=self._success[copies],
         )
+
+    def subset(self, blocks: np.ndarray) -> CartPoleMulti:
+        columns = block_columns(self.offsets, blocks)
+        part = object.__new__(CartPoleMulti)
+        part.counts = [self.counts[int(a)] for a in blocks]
+        part.offsets = block_offsets(part.counts)
+        part.num_envs = int(part.offsets[-1])
+        part.max_episode_steps = self.max_episode_steps
+        part.single_observation_space = self.single_observation_space
+        part.single_action_space = self.single_action_space
+        part.params = {name: values[columns] for name, values in self.params.items()}
+        part.state = self.state[:, columns]
+        part.steps = self.steps[columns]
+        part._success = self._success[columns]
+        part._copies_of = None
+        return part
 
     def close(self) -> None:
         pass

@@ -10,15 +10,16 @@ the same θ bit for bit (see :mod:`fedhpg.common.batched.mlp` for how).
 
 from __future__ import annotations
 
-import time
 from collections.abc import Sequence
 
 import numpy as np
 import torch
 
+from fedhpg.common.algorithms.fedhpg import FedHPGBudget
 from fedhpg.common.batched import coefficients as coef
 from fedhpg.common.batched import mlp
 from fedhpg.common.batched.sampler import Rollouts, block_order, rollout
+from fedhpg.common.batched.scheduler import run_round
 from fedhpg.common.components import agent_profile
 from fedhpg.common.config import RunConfig
 from fedhpg.common.group import GroupHook
@@ -38,28 +39,28 @@ def ascend(
     step_size: float,
     theta: np.ndarray,
     gradient: np.ndarray,
-    moments: tuple[np.ndarray, np.ndarray] | None,
-    iteration: int,
+    moments: tuple[np.ndarray, np.ndarray],
+    done: np.ndarray,
 ) -> None:
     """θ += the ascent direction, in place on rows of agents: plain steps (the paper) or Adam
-    (``moments`` = its first and second moments, updated in place; fresh every round)."""
+    (``moments`` = its first and second moments, updated in place, fresh every round;
+    ``done`` = each row's steps taken before this one)."""
     if optimizer == "sgd":
         theta += np.float32(step_size) * gradient
         return
-    assert moments is not None
     first, second = moments
     beta1, beta2 = ADAM_BETAS
     first *= np.float32(beta1)
     first += np.float32(1 - beta1) * gradient
     second *= np.float32(beta2)
     second += np.float32(1 - beta2) * (gradient * gradient)
-    steps = iteration + 1
-    first_hat = first / np.float32(1 - beta1**steps)
-    second_hat = second / np.float32(1 - beta2**steps)
+    steps = (done + 1)[:, None]
+    first_hat = first / (1 - beta1**steps).astype(np.float32)
+    second_hat = second / (1 - beta2**steps).astype(np.float32)
     theta += np.float32(step_size) * first_hat / (np.sqrt(second_hat) + np.float32(ADAM_EPS))
 
 
-LENGTH_RATIO = 1.25
+LENGTH_RATIO = 2.0
 """Agents whose batch lengths are within this ratio share one padded block for the gradient."""
 
 
@@ -86,6 +87,11 @@ class BatchedFedHPG:
         self.gammas = {k: discount(run, v) for k, v in variants.items()}
         self.horizons = {k: training_horizon(run, v) for k, v in variants.items()}
 
+    def budget(self, k: int) -> FedHPGBudget:
+        budget = self.profiles[k].budget
+        assert isinstance(budget, FedHPGBudget), "the engine runs FedHPG"
+        return budget
+
     @property
     def indices(self) -> Sequence[int]:
         return sorted(self.variants)
@@ -105,62 +111,56 @@ class BatchedFedHPG:
         on_iteration: GroupHook | None = None,
     ) -> dict[int, LocalResult]:
         algo = self.run.algo
-        budgets = {k: self.profiles[k].budget for k in agents}
-        batch = {k: int(budgets[k].batch_size) for k in agents}  # type: ignore[attr-defined]
-        iters = {k: int(budgets[k].local_iters) for k in agents}  # type: ignore[attr-defined]
+        budgets = {k: self.budget(k) for k in agents}
+        batch = {k: budgets[k].batch_size for k in agents}
+        iters = {k: budgets[k].local_iters for k in agents}
         order = block_order(agents, batch)
-        rngs = {k: random_stream(self.run.seed, k, round_index, Stream.TRAIN) for k in order}
+        rngs = [random_stream(self.run.seed, k, round_index, Stream.TRAIN) for k in order]
         params = np.repeat(theta.detach().numpy().astype(np.float32)[None, :], len(order), 0)
-        tally = {k: [0, 0, 0.0, 0.0, 0] for k in order}  # trajectories, steps, return, cpu, clips
-        adam = algo.optimizer == "adam"
-        first, second = np.zeros_like(params), np.zeros_like(params)
-        for iteration in range(max(iters.values())):
-            started = time.thread_time()
-            rows = np.array([i for i, k in enumerate(order) if iters[k] > iteration])
-            active = [order[i] for i in rows]
+        moments = (np.zeros_like(params), np.zeros_like(params))
+        done = np.zeros(len(order), dtype=np.int64)
+        clipped = np.zeros(len(order), dtype=np.int64)
+
+        def gradient_step(batches: Rollouts, rows: np.ndarray) -> None:
             layers = mlp.unflatten(self.shape, params[rows])
-            env = make_multi_batch_env(
-                [self.variants[k] for k in active], [batch[k] for k in active]
-            )
-            try:
-                rollouts = rollout(
-                    env, layers, [rngs[k] for k in active], [self.horizons[k] for k in active]
-                )
-            finally:
-                env.close()
-            gradient = self._gradient(rollouts, layers, active)
-            clipped = self._clip(gradient)
+            gradient = self._gradient(batches, layers, [order[i] for i in rows])
+            clipped[rows] += self._clip(gradient)
             stepped = params[rows]
-            moments = (first[rows], second[rows]) if adam else None
-            ascend(algo.optimizer, algo.step_size, stepped, gradient, moments, iteration)
-            params[rows] = stepped
-            if moments is not None:
-                first[rows], second[rows] = moments
-            compute_s = time.thread_time() - started
-            steps = rollouts.env_steps()
-            returns = np.add.reduceat(coef.returns(rollouts), rollouts.offsets[:-1])
-            total_steps = max(int(steps.sum()), 1)
-            for a, k in enumerate(active):
-                share = compute_s * int(steps[a]) / total_steps
-                t = tally[k]
-                t[0] += batch[k]
-                t[1] += int(steps[a])
-                t[2] += float(returns[a])
-                t[3] += share
-                t[4] += int(clipped[a])
-                if on_iteration is not None:
-                    on_iteration(k, IterationWork(iteration, share, int(steps[a]), int(steps[a])))
+            first, second = moments[0][rows], moments[1][rows]
+            ascend(algo.optimizer, algo.step_size, stepped, gradient, (first, second), done[rows])
+            params[rows], moments[0][rows], moments[1][rows] = stepped, first, second
+            done[rows] += 1
+
+        def on_batch(row: int, iteration: int, env_steps: int, compute_s: float) -> None:
+            if on_iteration is not None:
+                work = IterationWork(iteration, compute_s, env_steps, env_steps)
+                on_iteration(order[row], work)
+
+        env = make_multi_batch_env([self.variants[k] for k in order], [batch[k] for k in order])
+        try:
+            tallies = run_round(
+                env,
+                self.shape,
+                params,
+                rngs,
+                [self.horizons[k] for k in order],
+                [iters[k] for k in order],
+                gradient_step,
+                on_batch,
+            )
+        finally:
+            env.close()
         results = {}
         for i, k in enumerate(order):
-            trajectories, env_steps, return_sum, compute_s, clips = tally[k]
+            tally = tallies[i]
             results[k] = LocalResult(
                 theta=torch.from_numpy(params[i].copy()),
                 stats=UpdateStats(
-                    trajectories=int(trajectories),
-                    env_steps=int(env_steps),
-                    train_return=float(return_sum) / max(int(trajectories), 1),
-                    compute_s=float(compute_s),
-                    grad_clipped=int(clips),
+                    trajectories=tally.trajectories,
+                    env_steps=tally.env_steps,
+                    train_return=tally.return_sum / max(tally.trajectories, 1),
+                    compute_s=tally.compute_s,
+                    grad_clipped=int(clipped[i]),
                 ),
             )
         return results

@@ -87,22 +87,29 @@ def softmax(logit: np.ndarray) -> np.ndarray:
 
 
 def draw_actions(logit: np.ndarray, uniforms: np.ndarray) -> np.ndarray:
-    """Categorical draws by inverting each row's CDF with one uniform (the last action is
-    never exceeded, whatever the rounding)."""
-    weights = np.exp(logit - logit.max(axis=-1, keepdims=True))
-    cumulative = np.cumsum(weights, axis=-1)
-    thresholds = uniforms * cumulative[..., -1]
-    return (thresholds[..., None] > cumulative[..., :-1]).sum(axis=-1)
+    """Categorical draws [N] by inverting each row's CDF with one uniform (the last action is
+    never exceeded, whatever the rounding). Column by column: a handful of actions, many rows."""
+    columns = logit.shape[-1]
+    top = logit[:, 0].copy()
+    for j in range(1, columns):
+        np.maximum(top, logit[:, j], out=top)
+    cumulative = np.empty((columns, len(logit)), dtype=logit.dtype)
+    np.exp(logit[:, 0] - top, out=cumulative[0])
+    for j in range(1, columns):
+        np.exp(logit[:, j] - top, out=cumulative[j])
+        cumulative[j] += cumulative[j - 1]
+    thresholds = uniforms * cumulative[-1]
+    actions = np.zeros(len(logit), dtype=np.int64)
+    for j in range(columns - 1):
+        actions += thresholds > cumulative[j]
+    return actions
 
 
 @dataclass(frozen=True)
 class Chunks:
-    """The alive rows of several agents packed into [C, CHUNK_ROWS] chunks, agent by agent.
-
-    ``owner[c]`` is chunk c's agent (position in the batch); agent a's chunks are
-    ``first[a] … first[a] + count[a] − 1``, its rows in their sampled (time-major) order.
-    Padding rows have coefficient 0.
-    """
+    """The alive rows of A agents packed into chunks of ``CHUNK_ROWS`` rows, agent by agent:
+    agent a's chunks are ``first[a] … first[a] + count[a] − 1``, its rows in their sampled
+    order. Padding rows (the end of an agent's last chunk) have coefficient 0."""
 
     obs: np.ndarray  # [C, R, in] float32
     actions: np.ndarray  # [C, R] int64
@@ -138,41 +145,50 @@ def pack_rows(
     return Chunks(packed_obs, packed_actions, packed_coef, owner, first, count)
 
 
-def _sum_chunks(parts: np.ndarray, chunks: Chunks) -> np.ndarray:
-    """Per agent, its chunks' parts added in chunk order: [C, ...] -> [A, ...]."""
-    total = parts[chunks.first].copy()
-    for j in range(1, int(chunks.count.max())):
-        agents = np.nonzero(chunks.count > j)[0]
-        total[agents] += parts[chunks.first[agents] + j]
-    return total
+def _log_softmax_grad(logit: np.ndarray, actions: np.ndarray) -> np.ndarray:
+    """∂ log π(a|s) / ∂ logits = onehot(a) − π, column by column (few actions, many rows)."""
+    columns = logit.shape[-1]
+    top = logit[..., 0].copy()
+    for j in range(1, columns):
+        np.maximum(top, logit[..., j], out=top)
+    weights = np.empty(logit.shape, dtype=logit.dtype)
+    total = np.zeros(top.shape, dtype=logit.dtype)
+    for j in range(columns):
+        np.exp(logit[..., j] - top, out=weights[..., j])
+        total += weights[..., j]
+    weights /= -total[..., None]
+    for j in range(columns):
+        weights[..., j] += actions == j
+    return weights
 
 
 def score_gradient(shape: MLPShape, layers: Layers, chunks: Chunks) -> np.ndarray:
     """Σ_rows coef · ∇_θ log π(a|s) per agent, [A, d] float32 in the flat θ layout."""
+    num_chunks = len(chunks.owner)
     per_chunk = select(layers, chunks.owner)
     activations = forward(per_chunk, chunks.obs)
-    delta = -softmax(activations[-1])  # ∂ log π(a|s) / ∂ logits = onehot(a) − π
-    np.put_along_axis(
-        delta,
-        chunks.actions[..., None],
-        np.take_along_axis(delta, chunks.actions[..., None], axis=-1) + 1.0,
-        axis=-1,
-    )
+    delta = _log_softmax_grad(activations[-1], chunks.actions)
     delta *= chunks.coef[..., None]
-    ones = np.ones((len(chunks.owner), 1, CHUNK_ROWS), dtype=np.float32)
-    gradient = np.empty((len(chunks.first), shape.num_params), dtype=np.float32)
+    ones = np.ones((num_chunks, 1, CHUNK_ROWS), dtype=np.float32)
+    parts = np.empty((num_chunks, shape.num_params), dtype=np.float32)
     for i in reversed(range(len(layers))):
         offset, n_in, n_out = shape.layers[i]
         below = activations[i]
-        weight_parts = np.matmul(below.transpose(0, 2, 1), delta)  # [C, in, out]
-        bias_parts = np.matmul(ones, delta)[:, 0, :]  # [C, out]
-        gradient[:, offset : offset + n_in * n_out] = (
-            _sum_chunks(weight_parts, chunks).transpose(0, 2, 1).reshape(-1, n_in * n_out)
+        weights = np.matmul(below.transpose(0, 2, 1), delta)  # [C, in, out]
+        parts[:, offset : offset + n_in * n_out] = weights.transpose(0, 2, 1).reshape(
+            num_chunks, -1
         )
-        gradient[:, offset + n_in * n_out : offset + n_in * n_out + n_out] = _sum_chunks(
-            bias_parts, chunks
-        )
+        parts[:, offset + n_in * n_out : offset + n_in * n_out + n_out] = np.matmul(
+            ones, delta
+        )[:, 0, :]
         if i > 0:
             delta = np.matmul(delta, per_chunk[i][0].transpose(0, 2, 1))
-            delta *= 1.0 - below * below  # tanh' at the layer below
+            below *= below
+            np.subtract(1.0, below, out=below)
+            delta *= below  # tanh' = 1 − h² at the layer below
+    # each agent's chunks added in order (plain additions: the same sums in any company)
+    gradient = parts[chunks.first].copy()
+    for j in range(1, int(chunks.count.max())):
+        agents = np.nonzero(chunks.count > j)[0]
+        gradient[agents] += parts[chunks.first[agents] + j]
     return gradient

@@ -16,7 +16,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from fedhpg.common.batched import mlp
-from fedhpg.envs.multi import MultiBatchEnv
+from fedhpg.envs.multi import MultiBatchEnv, block_columns
 
 UNIFORM_CHUNK = 32
 """Time steps of action uniforms an agent draws at once."""
@@ -46,7 +46,7 @@ class Rollouts:
     def subset(self, agents: np.ndarray) -> Rollouts:
         """The batches of agents ``agents`` (increasing positions), cut to their longest."""
         counts = np.diff(self.offsets)[agents]
-        columns = np.concatenate([np.arange(self.offsets[a], self.offsets[a + 1]) for a in agents])
+        columns = block_columns(self.offsets, agents)
         steps = int(self.lengths[agents].max())
         return Rollouts(
             obs=self.obs[:steps, columns],
