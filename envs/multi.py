@@ -21,6 +21,9 @@ import numpy as np
 
 from fedhpg.envs.base import BatchEnv, BatchStep, EnvVariant
 
+Blocks = Sequence[int] | np.ndarray
+"""Block numbers (increasing)."""
+
 
 class MultiBatchEnv(Protocol):
     """Blocks of copies of several variants stepped together (see the module docstring)."""
@@ -37,7 +40,7 @@ class MultiBatchEnv(Protocol):
     @property
     def single_action_space(self) -> gym.Space: ...
 
-    def reset(self, seeds: Sequence[int], blocks: Sequence[int] | None = None) -> np.ndarray:
+    def reset(self, seeds: Sequence[int], blocks: Blocks | None = None) -> np.ndarray:
         """Start one episode in every copy of ``blocks`` (None: all), block ``blocks[i]``'s
         randomness from ``seeds[i]``; their first observations, in order."""
         ...
@@ -80,7 +83,7 @@ class GroupedBatchEnv:
         self.single_observation_space = self.envs[0].single_observation_space
         self.single_action_space = self.envs[0].single_action_space
 
-    def reset(self, seeds: Sequence[int], blocks: Sequence[int] | None = None) -> np.ndarray:
+    def reset(self, seeds: Sequence[int], blocks: Blocks | None = None) -> np.ndarray:
         chosen = range(len(self.envs)) if blocks is None else blocks
         return np.concatenate(
             [self.envs[a].reset(seed=int(s)) for a, s in zip(chosen, seeds, strict=True)]
@@ -159,7 +162,7 @@ class CartPoleMulti:
         self._success = np.zeros(self.num_envs, dtype=bool)
         self._copies_of: tuple[np.ndarray, np.ndarray] | None = None
 
-    def reset(self, seeds: Sequence[int], blocks: Sequence[int] | None = None) -> np.ndarray:
+    def reset(self, seeds: Sequence[int], blocks: Blocks | None = None) -> np.ndarray:
         chosen = range(len(self.counts)) if blocks is None else blocks
         parts = []
         for a, seed in zip(chosen, seeds, strict=True):

@@ -34,12 +34,15 @@ def unsupported(run: RunConfig, variants: dict[int, EnvVariant]) -> str | None:
 
 
 def mlp_shape(run: RunConfig, variants: dict[int, EnvVariant]) -> MLPShape:
+    from torch import nn
+
+    from fedhpg.common.policies import MLPCategoricalPolicy
     from fedhpg.common.worker import build_policy
 
     policy = build_policy(next(iter(variants.values())), run)
-    sizes = [m.in_features for m in policy.net if hasattr(m, "in_features")]
-    sizes.append(policy.net[-1].out_features)
-    return MLPShape(tuple(int(s) for s in sizes))
+    assert isinstance(policy, MLPCategoricalPolicy)
+    linear = [m for m in policy.net if isinstance(m, nn.Linear)]
+    return MLPShape((linear[0].in_features, *(m.out_features for m in linear)))
 
 
 def batched_group_or_none(run: RunConfig, variants: dict[int, EnvVariant]) -> AgentGroup | None:

@@ -178,9 +178,9 @@ def score_gradient(shape: MLPShape, layers: Layers, chunks: Chunks) -> np.ndarra
         parts[:, offset : offset + n_in * n_out] = weights.transpose(0, 2, 1).reshape(
             num_chunks, -1
         )
-        parts[:, offset + n_in * n_out : offset + n_in * n_out + n_out] = np.matmul(
-            ones, delta
-        )[:, 0, :]
+        parts[:, offset + n_in * n_out : offset + n_in * n_out + n_out] = np.matmul(ones, delta)[
+            :, 0, :
+        ]
         if i > 0:
             delta = np.matmul(delta, per_chunk[i][0].transpose(0, 2, 1))
             below *= below

@@ -102,7 +102,7 @@ def rollout(
         if not greedy and steps % UNIFORM_CHUNK == 0:
             for a in np.nonzero(agent_running)[0]:
                 block = slice(offsets[a], offsets[a + 1])
-                uniforms[:, block] = rngs[a].random((UNIFORM_CHUNK, int(counts[a])))
+                uniforms[:, block] = rngs[int(a)].random((UNIFORM_CHUNK, int(counts[a])))
         copies = plan.copies
         live_obs = obs if plan.everyone else obs[copies]
         actions = np.empty(len(copies), dtype=np.int64)

@@ -1,0 +1,172 @@
+"""The batched engine (common/batched/): its env, its gradient, and that an agent's numbers
+never depend on the company it is computed in."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from fedhpg.common.batched import batched_group_or_none, mlp, unsupported
+from fedhpg.common.batched.engine import BatchedFedHPG
+from fedhpg.common.batched.sampler import rollout
+from fedhpg.common.group import WorkerLoopGroup, group_variants, make_agent_group
+from fedhpg.common.local import batch_gradient
+from fedhpg.common.rollout import TrajectoryBatch
+from fedhpg.common.worker import build_policy, get_flat_params, initial_theta
+from fedhpg.envs.multi import CartPoleMulti, GroupedBatchEnv, make_multi_batch_env
+from fedhpg.envs.registry import make_variants
+from fedhpg.server.api import resolve_config
+
+POPULATION = ["agents=population", "policy.hidden=[16,16]"]
+
+
+def _run(*overrides: str, family: str = "cartpole", agents: int = 9):
+    return resolve_config(
+        overrides=[f"env={family}", f"agents.num_agents={agents}", *POPULATION, *overrides]
+    )
+
+
+def _group(run, indices) -> BatchedFedHPG:
+    group = batched_group_or_none(run, group_variants(run, indices))
+    assert isinstance(group, BatchedFedHPG), unsupported(run, group_variants(run, indices))
+    return group
+
+
+def test_cartpole_blocks_step_exactly_like_gymnasiums_vector_env_per_variant() -> None:
+    variants = make_variants("cartpole", seed=3, num_agents=5, level=1.0)
+    counts = [4, 8, 3, 8, 1]
+    seeds = [11, 12, 13, 14, 15]
+    multi = make_multi_batch_env(variants, counts)
+    assert isinstance(multi, CartPoleMulti)
+    singles = [v.make_batch_env(n) for v, n in zip(variants, counts, strict=True)]
+    obs = multi.reset(seeds)
+    assert np.array_equal(
+        obs, np.concatenate([s.reset(seed=x) for s, x in zip(singles, seeds, strict=True)])
+    )
+    rng = np.random.default_rng(0)
+    running = np.ones(multi.num_envs, dtype=bool)
+    compared = 0
+    for _ in range(200):
+        actions = rng.integers(0, 2, multi.num_envs)
+        step = multi.step(actions)
+        refs = [
+            s.step(actions[multi.offsets[i] : multi.offsets[i + 1]]) for i, s in enumerate(singles)
+        ]
+        ref_obs = np.concatenate([r.obs for r in refs])
+        ref_end = np.concatenate([r.terminated | r.truncated for r in refs])
+        # copies past their episode's end are the sampler's to ignore (gymnasium auto-resets)
+        assert np.array_equal(step.obs[running], ref_obs[running])
+        assert np.array_equal((step.terminated | step.truncated)[running], ref_end[running])
+        compared += int(running.sum())
+        running &= ~(step.terminated | step.truncated)
+    assert compared > 200 and not running.any()
+
+
+def test_a_family_without_a_native_batch_steps_block_by_block() -> None:
+    variants = make_variants("acrobot", seed=0, num_agents=2, level=1.0)
+    multi = make_multi_batch_env(variants, [2, 3])
+    assert isinstance(multi, GroupedBatchEnv)
+    assert multi.reset([1, 2]).shape == (5, 6)
+    assert multi.step(np.zeros(5, dtype=np.int64)).obs.shape == (5, 6)
+
+
+@pytest.mark.parametrize("estimator", ["gpomdp", "reinforce"])
+@pytest.mark.parametrize("baseline", ["mean", "none"])
+def test_the_stacked_gradient_is_autograds_to_float32_rounding(estimator, baseline) -> None:
+    run = _run(f"algo.estimator={estimator}", f"algo.baseline={baseline}", agents=3)
+    variants = group_variants(run, range(3))
+    engine = _group(run, range(3))
+    policy = build_policy(variants[0], run)
+    with torch.no_grad():  # away from the near-uniform start, so every layer matters
+        for p in policy.parameters():
+            p.add_(0.3 * torch.randn(p.shape, generator=torch.Generator().manual_seed(p.numel())))
+    theta = get_flat_params(policy).numpy()
+    counts = [5, 7, 6]
+    layers = mlp.unflatten(engine.shape, np.repeat(theta[None], 3, 0))
+    env = make_multi_batch_env([variants[k] for k in range(3)], counts)
+    batches = rollout(env, layers, [np.random.default_rng(i) for i in range(3)], [500] * 3)
+    gradient = engine._gradient(batches, layers, [0, 1, 2])
+    for a in range(3):
+        block = slice(batches.offsets[a], batches.offsets[a + 1])
+        steps = batches.lengths[a]
+        batch = TrajectoryBatch(
+            obs=batches.obs[:steps, block],
+            actions=batches.actions[:steps, block],
+            log_probs=np.zeros((steps, counts[a])),
+            rewards=batches.rewards[:steps, block],
+            alive=batches.alive[:steps, block],
+            success=batches.success[block],
+        )
+        reference = batch_gradient(policy, batch, algo=run.algo, gamma=engine.gammas[a]).numpy()
+        scale = np.abs(reference).max()
+        assert scale > 0
+        np.testing.assert_allclose(gradient[a], reference, rtol=0, atol=2e-5 * scale)
+
+
+SETTINGS = [
+    (),
+    ("algo.optimizer=adam", "algo.step_size=0.01"),
+    ("algo.grad_clip=0.5", "algo.estimator=reinforce"),
+]
+
+
+@pytest.mark.parametrize("settings", SETTINGS, ids=["sgd", "adam", "clipped-reinforce"])
+def test_an_agents_round_is_the_same_in_any_company(settings) -> None:
+    """Alone, in small groups, in another order, or all nine together: bit-identical θ_k and
+    the same counts (the property that makes θ̃ independent of placement)."""
+    run = _run(*settings)
+    theta = initial_theta(group_variants(run, [0])[0], run)
+    everyone = _group(run, range(9)).train(3, theta, list(range(9)))
+    if settings and "grad_clip" in settings[0]:
+        assert sum(r.stats.grad_clipped for r in everyone.values()) > 0, "clipping exercised"
+    for company in ([4], [8, 0], [7, 2, 5], [6, 1, 3, 0, 8, 2, 4]):
+        results = _group(run, company).train(3, theta, company)
+        for k in company:
+            assert torch.equal(results[k].theta, everyone[k].theta), (company, k)
+            assert results[k].stats.env_steps == everyone[k].stats.env_steps
+            assert results[k].stats.trajectories == everyone[k].stats.trajectories
+            assert results[k].stats.train_return == everyone[k].stats.train_return
+
+
+def test_a_group_trains_a_subset_of_its_agents_as_their_own_groups_would() -> None:
+    run = _run()
+    theta = initial_theta(group_variants(run, [0])[0], run)
+    group = _group(run, range(9))
+    chosen = group.train(1, theta, [1, 5, 6])
+    alone = _group(run, [5]).train(1, theta, [5])
+    assert set(chosen) == {1, 5, 6}
+    assert torch.equal(chosen[5].theta, alone[5].theta)
+
+
+def test_agents_move_the_policy_and_count_their_work() -> None:
+    run = _run()
+    theta = initial_theta(group_variants(run, [0])[0], run)
+    group = _group(run, range(9))
+    results = group.train(1, theta, list(range(9)))
+    for k, result in results.items():
+        budget = group.budget(k)
+        assert result.stats.trajectories == budget.batch_size * budget.local_iters
+        # CartPole pays 1 per step: the mean return is the mean episode length
+        assert result.stats.train_return == result.stats.env_steps / result.stats.trajectories
+        assert not torch.equal(result.theta, theta)
+    assert len({tuple(r.theta[:8].tolist()) for r in results.values()}) == 9
+
+
+def test_evaluation_is_the_same_in_any_company_and_counts_episodes() -> None:
+    run = _run()
+    theta = initial_theta(group_variants(run, [0])[0], run)
+    everyone = _group(run, range(9)).evaluate(2, theta, 6, list(range(9)))
+    alone = _group(run, [3]).evaluate(2, theta, 6, [3])
+    assert alone[3] == everyone[3]
+    for stats in everyone.values():
+        assert stats.episodes == 6 and stats.return_mean == stats.length_mean >= 8
+
+
+def test_runs_the_engine_does_not_cover_fall_back_to_the_loop() -> None:
+    for overrides in (["algo=fedhpgvr"], ["agents.batched=false"]):
+        run = _run(*overrides)
+        assert isinstance(make_agent_group(run, [0, 1]), WorkerLoopGroup)
+    gridworld = resolve_config(overrides=["env=gridworld", *POPULATION, "agents.num_agents=2"])
+    assert isinstance(make_agent_group(gridworld, [0, 1]), WorkerLoopGroup)
+    assert unsupported(gridworld, group_variants(gridworld, [0])) is not None
