@@ -19,7 +19,7 @@ from fedhpg.common.algorithms.fedhpg import FedHPGBudget
 from fedhpg.common.batched import coefficients as coef
 from fedhpg.common.batched import mlp
 from fedhpg.common.batched.sampler import Rollouts, block_order, rollout
-from fedhpg.common.batched.scheduler import run_round
+from fedhpg.common.batched.scheduler import RoundTiming, run_round
 from fedhpg.common.components import agent_profile
 from fedhpg.common.config import RunConfig
 from fedhpg.common.group import GroupHook
@@ -137,6 +137,7 @@ class BatchedFedHPG:
                 on_iteration(order[row], work)
 
         env = make_multi_batch_env([self.variants[k] for k in order], [batch[k] for k in order])
+        timing = RoundTiming()
         try:
             tallies = run_round(
                 env,
@@ -147,12 +148,15 @@ class BatchedFedHPG:
                 [iters[k] for k in order],
                 gradient_step,
                 on_batch,
+                timing,
             )
         finally:
             env.close()
+        total_steps = max(sum(t.env_steps for t in tallies), 1)
         results = {}
         for i, k in enumerate(order):
             tally = tallies[i]
+            share = tally.env_steps / total_steps
             results[k] = LocalResult(
                 theta=torch.from_numpy(params[i].copy()),
                 stats=UpdateStats(
@@ -161,6 +165,11 @@ class BatchedFedHPG:
                     train_return=tally.return_sum / max(tally.trajectories, 1),
                     compute_s=tally.compute_s,
                     grad_clipped=int(clipped[i]),
+                    # the engine's split of the group's time, this agent's share (by steps)
+                    algorithm={
+                        "engine_sample_s": timing.sample_s * share,
+                        "engine_gradient_s": timing.gradient_s * share,
+                    },
                 ),
             )
         return results

@@ -17,7 +17,7 @@ from __future__ import annotations
 
 import time
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -39,8 +39,15 @@ class AgentTally:
     env_steps: int = 0
     return_sum: float = 0.0
     compute_s: float = 0.0
-    clipped: int = 0
-    per_iteration_steps: list[int] = field(default_factory=list)
+
+
+@dataclass
+class RoundTiming:
+    """Where a round's thread CPU time went: sampling (env steps, forwards, draws, narrowing)
+    and gradients (extracting finished batches, gradients, steps, restarts)."""
+
+    sample_s: float = 0.0
+    gradient_s: float = 0.0
 
 
 MAX_WAIT = 8
@@ -115,10 +122,12 @@ def run_round(
     iterations: Sequence[int],
     gradient_step: GradientStep,
     on_batch: Callable[[int, int, int, float], None] | None = None,
+    timing: RoundTiming | None = None,
 ) -> list[AgentTally]:
     """Every agent (env block a, θ row ``params[a]``) runs ``iterations[a]`` local iterations.
 
-    ``on_batch(position, iteration, env_steps, compute_s)`` follows each agent's step.
+    ``on_batch(position, iteration, env_steps, compute_s)`` follows each agent's step;
+    ``timing`` receives the round's split of CPU time.
     """
     counts = np.asarray(env.counts)
     num_agents = len(counts)
@@ -132,6 +141,7 @@ def run_round(
     sampling = working.copy()
     cpu_started = time.thread_time()
     steps_so_far = 0
+    gradient_s = 0.0
     obs_shape = tuple(env.single_observation_space.shape or ())
     everyone = np.nonzero(working)[0]
     frame = _Frame(everyone, counts, env if len(everyone) == num_agents else env.subset(everyone),
@@ -150,7 +160,8 @@ def run_round(
 
     def finish(local: np.ndarray, now: int) -> None:
         """Gradients and steps of the agents whose batches ended; restart those not done."""
-        nonlocal steps_so_far
+        nonlocal steps_so_far, gradient_s
+        entered = time.thread_time()
         agents = frame.agents[local]
         batches = frame.ring.extract(local, local_step[agents], started_at[agents],
                                      frame.offsets, frame.counts, frame.success)  # fmt: skip
@@ -176,6 +187,7 @@ def run_round(
                 working[a] = False
         if again:
             start(np.asarray(again), now)
+        gradient_s += time.thread_time() - entered
 
     frame.load(params, shape)
     start(np.arange(len(frame.agents)), 0)
@@ -228,6 +240,9 @@ def run_round(
             or not sampling[agents].any()
         ):
             finish(waiting, now)
+    if timing is not None:
+        timing.gradient_s = gradient_s
+        timing.sample_s = time.thread_time() - cpu_started - gradient_s
     return tallies
 
 
