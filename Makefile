@@ -6,7 +6,7 @@ STAMP := $(VENV)/.installed
 export OMP_NUM_THREADS ?= 1
 export MKL_NUM_THREADS ?= 1
 
-.PHONY: setup demo test lint typecheck contracts bench bench-learning bench-learning-long bench-robustness bench-presets figures clean
+.PHONY: setup demo test lint typecheck contracts bench bench-learning bench-learning-long bench-robustness bench-presets bench-scale figures clean
 
 setup: $(STAMP)
 
@@ -57,6 +57,13 @@ bench-presets: $(STAMP)
 	nice -n 10 $(BIN)/python -m benchmarks.presets
 
 # CartPole K=10 with 3 sign-flipping agents: mean, median, trimmed mean (~10 min).
+# Thousands of agents on agent hosts (issue 17): CartPole K = 1,000 and 10,000, one process per
+# agent for comparison, the coordination cost at 10^4 parameters, GridWorld K = 1,000. Minutes on
+# 2 cores; results in benchmarks/results/scale*.json, figures in docs/scale*.png.
+bench-scale: $(STAMP)
+	OMP_NUM_THREADS=1 $(BIN)/python -m benchmarks.scale
+	OMP_NUM_THREADS=1 $(BIN)/python -m benchmarks.scale_gridworld
+
 bench-robustness: $(STAMP)
 	$(BIN)/python -m benchmarks.robustness
 

@@ -1,0 +1,214 @@
+"""``make bench-scale``: thousands of heterogeneous CartPole agents on agent hosts.
+
+Real ``fedhpg-run`` federations on loopback (server + agent hosts, or one process per agent),
+CartPole variants, 16-16 MLP, B_k and τ_k from the shipped population, counted clock. Per case:
+start-up to the end of round 1, peak PSS of the whole federation (server, hosts, launcher),
+env steps per second while the hosts sample (from the engine's own split of its CPU time,
+reported per agent in metrics.jsonl), per second of round wall time, and the server's
+coordination time per participating agent. The two references run in this same process on
+the same number of env copies as one host steps: (a) a bare ``gym.make_vec`` CartPole loop,
+(b) the same plus one stacked forward and draw of every agent's own MLP per step.
+
+    python -m benchmarks.scale            # all cases, table on stdout, JSON + figure
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import statistics
+import tempfile
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from benchmarks.runtime import _federation
+from benchmarks.scale_refs import bare_loop, forward_loop
+from fedhpg.common.components import agent_profile
+from fedhpg.common.runtime.cli import compose
+
+RESULTS = Path(__file__).parent / "results" / "scale.json"
+FIGURE = Path(__file__).parents[1] / "docs" / "scale.png"
+CORES = os.cpu_count() or 1
+
+
+@dataclass(frozen=True)
+class Case:
+    name: str
+    agents: int
+    per_host: int
+    per_round: int | None = None
+    rounds: int = 4
+    hidden: int = 16
+    extra: tuple[str, ...] = ()
+
+    def overrides(self) -> list[str]:
+        out = [
+            "env=cartpole",
+            "agents=population",
+            f"agents.num_agents={self.agents}",
+            f"agents.per_host={self.per_host}",
+            "agents.clock=counted",
+            f"policy.hidden=[{self.hidden},{self.hidden}]",
+            f"rounds={self.rounds}",
+            f"eval.every={self.rounds + 1}",
+            "eval.episodes=1",
+            "server.register_timeout_s=600",
+            *self.extra,
+        ]
+        if self.per_round is not None:
+            out += ["strategy.participation.mode=uniform",
+                    f"strategy.participation.per_round={self.per_round}"]  # fmt: skip
+        return out
+
+
+@dataclass
+class CaseResult:
+    case: Case
+    start_to_round_1_s: float
+    peak_pss_mib: float
+    participants: int
+    env_steps_per_round: float
+    sampling_steps_per_cpu_s: float
+    """Env steps per CPU second of the hosts' sampling (engine_sample_s)."""
+    round_steps_per_s: float
+    """Env steps per second of round wall time (all hosts together)."""
+    round_time_s: float
+    coordination_us_per_agent: float
+    """Median over rounds of (round time − the slowest host's wall time) / participants."""
+    copies_per_host: int
+    refs: dict[str, float] = field(default_factory=dict)
+
+
+def _sampled_copies(case: Case) -> list[int]:
+    """B_k of the agents one host trains in a round (for reference (b): the same MLPs)."""
+    run = compose(case.overrides())
+    rng = np.random.default_rng(0)
+    per_host = min(case.per_host, case.agents)
+    count = per_host if case.per_round is None else max(case.per_round * per_host // case.agents, 1)
+    chosen = rng.choice(per_host, size=count, replace=False)
+    return [agent_profile(run, int(k)).budget.batch_size for k in chosen]  # type: ignore[attr-defined]
+
+
+def measure(case: Case) -> CaseResult:
+    with tempfile.TemporaryDirectory() as tmp:
+        records, first_round_s, peak = _federation(
+            case.overrides(), Path(tmp), sample_memory=True, poll_s=0.05
+        )
+    rounds = [r for r in records if r["agents"]]
+    steps = [sum(a["env_steps"] for a in r["agents"]) for r in rounds]
+    sample_s = [
+        sum(a.get("algorithm", {}).get("engine_sample_s", float("nan")) for a in r["agents"])
+        for r in rounds
+    ]
+    overhead = [
+        (r["round_time_s"] - max(a["local_wall_s"] for a in r["agents"])) / len(r["agents"])
+        for r in rounds
+    ]
+    copies = _sampled_copies(case)
+    refs = {
+        "a_bare_gym": bare_loop(sum(copies), 300),
+        "b_gym_plus_forward": forward_loop(copies, (case.hidden, case.hidden), 300),
+    }
+    return CaseResult(
+        case=case,
+        start_to_round_1_s=first_round_s,
+        peak_pss_mib=peak / 2**20,
+        participants=statistics.median(len(r["agents"]) for r in rounds),
+        env_steps_per_round=statistics.mean(steps),
+        sampling_steps_per_cpu_s=sum(steps) / sum(sample_s),
+        round_steps_per_s=sum(steps) / sum(r["round_time_s"] for r in rounds),
+        round_time_s=statistics.median(r["round_time_s"] for r in rounds),
+        coordination_us_per_agent=1e6 * statistics.median(overhead),
+        copies_per_host=sum(copies),
+        refs=refs,
+    )
+
+
+CASES = {
+    "k1000": Case("K = 1,000, all train", agents=1000, per_host=500),
+    "k10000": Case("K = 10,000, 1,000 per round", agents=10_000, per_host=5000, per_round=1000),
+    "processes": Case("one process per agent, K = 48", agents=48, per_host=1, rounds=3),
+    "overhead": Case(
+        "K = 1,000, d ≈ 10⁴ (96-96 MLP)", agents=1000, per_host=500, hidden=96, rounds=4
+    ),
+}
+
+
+def table(results: list[CaseResult]) -> str:
+    lines = [
+        "| case | start → end of round 1 (s) | peak PSS (MiB) | agents per round | env steps "
+        "per round | sampling: steps per CPU-s | vs (b) | round: steps/s (all hosts) | per "
+        "core vs (b) | (a) bare gym (M/s) | (b) + forward (M/s) | coordination per agent (µs) |",
+        "|---|---|---|---|---|---|---|---|---|---|---|---|",
+    ]
+    for r in results:
+        b = r.refs["b_gym_plus_forward"]
+        hosts = -(-r.case.agents // r.case.per_host)
+        cores = min(hosts, CORES)
+        lines.append(
+            f"| {r.case.name} | {r.start_to_round_1_s:.1f} | {r.peak_pss_mib:,.0f} | "
+            f"{r.participants:,.0f} | {r.env_steps_per_round:,.0f} | "
+            f"{r.sampling_steps_per_cpu_s / 1e6:.2f} M | {r.sampling_steps_per_cpu_s / b:.2f} | "
+            f"{r.round_steps_per_s / 1e6:.2f} M | {r.round_steps_per_s / cores / b:.2f} | "
+            f"{r.refs['a_bare_gym'] / 1e6:.1f} | {b / 1e6:.2f} | "
+            f"{r.coordination_us_per_agent:.0f} |"
+        )
+    return "\n".join(lines)
+
+
+def figure(results: list[CaseResult]) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, (left, right) = plt.subplots(1, 2, figsize=(11, 4))
+    names = [r.case.name for r in results]
+    y = np.arange(len(results))
+    for offset, (label, values) in enumerate(
+        [
+            ("(a) bare gym", [r.refs["a_bare_gym"] for r in results]),
+            ("(b) gym + forward", [r.refs["b_gym_plus_forward"] for r in results]),
+            ("federation: sampling per CPU-s", [r.sampling_steps_per_cpu_s for r in results]),
+            ("federation: round, per core", [
+                r.round_steps_per_s / min(-(-r.case.agents // r.case.per_host), CORES)
+                for r in results]),
+        ]
+    ):  # fmt: skip
+        left.barh(y + 0.2 * (offset - 1.5), np.asarray(values) / 1e6, height=0.2, label=label)
+    left.set_yticks(y, names)
+    left.set_xlabel("env steps per second (millions)")
+    left.set_xscale("log")
+    left.legend(fontsize=7)
+    right.barh(y, [r.peak_pss_mib for r in results])
+    right.axvline(2048, color="k", linestyle="--", label="2 GB target")
+    right.set_yticks(y, [""] * len(y))
+    right.set_xlabel("peak PSS of the federation (MiB)")
+    right.legend(fontsize=7)
+    fig.suptitle("fedhpg at scale on 2 cores (make bench-scale)")
+    fig.tight_layout()
+    FIGURE.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(FIGURE, dpi=120)
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser.add_argument("cases", nargs="*", default=list(CASES), choices=list(CASES))
+    args = parser.parse_args()
+    results = []
+    for name in args.cases:
+        results.append(measure(CASES[name]))
+        print(table(results[-1:]).splitlines()[-1], flush=True)
+    print(table(results))
+    RESULTS.parent.mkdir(parents=True, exist_ok=True)
+    RESULTS.write_text(
+        json.dumps([{**asdict(r), "case": asdict(r.case)} for r in results], indent=1) + "\n"
+    )
+    figure(results)
+
+
+if __name__ == "__main__":
+    main()
