@@ -10,7 +10,8 @@ the same θ bit for bit (see :mod:`fedhpg.common.batched.mlp` for how).
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Callable, Mapping, Sequence
+from typing import Any
 
 import numpy as np
 import torch
@@ -76,16 +77,29 @@ def _length_groups(lengths: np.ndarray) -> list[np.ndarray]:
     return groups
 
 
+class _Lazy(dict[int, Any]):
+    """A dict that computes a missing key's value once."""
+
+    def __init__(self, make: Callable[[int], Any]) -> None:
+        super().__init__()
+        self.make = make
+
+    def __missing__(self, key: int) -> Any:
+        value = self[key] = self.make(key)
+        return value
+
+
 class BatchedFedHPG:
     """The agents ``variants`` of a FedHPG run with the MLP categorical policy."""
 
-    def __init__(self, run: RunConfig, variants: dict[int, EnvVariant], shape: mlp.MLPShape):
+    def __init__(self, run: RunConfig, variants: Mapping[int, EnvVariant], shape: mlp.MLPShape):
         self.run = run
         self.variants = variants
         self.shape = shape
-        self.profiles = {k: agent_profile(run, k) for k in variants}
-        self.gammas = {k: discount(run, v) for k, v in variants.items()}
-        self.horizons = {k: training_horizon(run, v) for k, v in variants.items()}
+        # per agent on first use: a host of 5,000 agents may see 500 of them in a round
+        self.profiles = _Lazy(lambda k: agent_profile(run, k))
+        self.gammas = _Lazy(lambda k: discount(run, variants[k]))
+        self.horizons = _Lazy(lambda k: training_horizon(run, variants[k]))
 
     def budget(self, k: int) -> FedHPGBudget:
         budget = self.profiles[k].budget
