@@ -9,7 +9,7 @@ import torch
 
 from fedhpg.common.batched import batched_group_or_none, mlp, unsupported
 from fedhpg.common.batched.engine import BatchedFedHPG
-from fedhpg.common.batched.sampler import rollout
+from fedhpg.common.batched.sampler import Batches, rollout
 from fedhpg.common.group import WorkerLoopGroup, group_variants, make_agent_group
 from fedhpg.common.local import batch_gradient
 from fedhpg.common.rollout import TrajectoryBatch
@@ -86,7 +86,7 @@ def test_the_stacked_gradient_is_autograds_to_float32_rounding(estimator, baseli
     layers = mlp.unflatten(engine.shape, np.repeat(theta[None], 3, 0))
     env = make_multi_batch_env([variants[k] for k in range(3)], counts)
     batches = rollout(env, layers, [np.random.default_rng(i) for i in range(3)], [500] * 3)
-    gradient = engine._gradient(batches, layers, [0, 1, 2])
+    gradient = engine._gradient(Batches.of(batches), layers, [0, 1, 2])
     for a in range(3):
         block = slice(batches.offsets[a], batches.offsets[a + 1])
         steps = batches.lengths[a]

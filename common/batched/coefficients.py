@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from fedhpg.common.batched.sampler import Rollouts
+from fedhpg.common.batched.sampler import Batches, Rollouts
 
 
 def _block_sums(values: np.ndarray, offsets: np.ndarray) -> np.ndarray:
@@ -20,7 +20,7 @@ def _block_sums(values: np.ndarray, offsets: np.ndarray) -> np.ndarray:
     return np.add.reduceat(values, offsets[:-1], axis=1)
 
 
-def _leave_one_out(values: np.ndarray, rollouts: Rollouts) -> np.ndarray:
+def _leave_one_out(values: np.ndarray, rollouts: Rollouts | Batches) -> np.ndarray:
     """Each copy's mean over the *other* copies of its agent (0 for an agent of one copy)."""
     counts = np.diff(rollouts.offsets)
     sums = np.repeat(_block_sums(values, rollouts.offsets), counts, axis=1)
@@ -29,7 +29,7 @@ def _leave_one_out(values: np.ndarray, rollouts: Rollouts) -> np.ndarray:
 
 
 def coefficients(
-    rollouts: Rollouts, gammas: np.ndarray, *, estimator: str, baseline: str
+    rollouts: Rollouts | Batches, gammas: np.ndarray, *, estimator: str, baseline: str
 ) -> np.ndarray:
     """coef[t, copy] per the estimator (float64, 0 on dead steps); ``gammas`` per agent."""
     steps = rollouts.rewards.shape[0]

@@ -19,7 +19,7 @@ import torch
 from fedhpg.common.algorithms.fedhpg import FedHPGBudget
 from fedhpg.common.batched import coefficients as coef
 from fedhpg.common.batched import mlp
-from fedhpg.common.batched.sampler import Rollouts, block_order, rollout
+from fedhpg.common.batched.sampler import Batches, block_order, rollout
 from fedhpg.common.batched.scheduler import RoundTiming, run_round
 from fedhpg.common.components import agent_profile
 from fedhpg.common.config import RunConfig
@@ -59,22 +59,6 @@ def ascend(
     first_hat = first / (1 - beta1**steps).astype(np.float32)
     second_hat = second / (1 - beta2**steps).astype(np.float32)
     theta += np.float32(step_size) * first_hat / (np.sqrt(second_hat) + np.float32(ADAM_EPS))
-
-
-LENGTH_RATIO = 2.0
-"""Agents whose batch lengths are within this ratio share one padded block for the gradient."""
-
-
-def _length_groups(lengths: np.ndarray) -> list[np.ndarray]:
-    """Agent positions grouped by batch length (each group's longest ≤ LENGTH_RATIO × its
-    shortest); the grouping changes only the padding, never a result."""
-    order = np.argsort(lengths, kind="stable")
-    groups, start = [], 0
-    for i in range(1, len(order) + 1):
-        if i == len(order) or lengths[order[i]] > LENGTH_RATIO * lengths[order[start]]:
-            groups.append(np.sort(order[start:i]))
-            start = i
-    return groups
 
 
 class _Lazy(dict[int, Any]):
@@ -135,7 +119,7 @@ class BatchedFedHPG:
         done = np.zeros(len(order), dtype=np.int64)
         clipped = np.zeros(len(order), dtype=np.int64)
 
-        def gradient_step(batches: Rollouts, rows: np.ndarray) -> None:
+        def gradient_step(batches: Batches, rows: np.ndarray) -> None:
             layers = mlp.unflatten(self.shape, params[rows])
             gradient = self._gradient(batches, layers, [order[i] for i in rows])
             clipped[rows] += self._clip(gradient)
@@ -188,33 +172,21 @@ class BatchedFedHPG:
             )
         return results
 
-    def _gradient(self, rollouts: Rollouts, layers: mlp.Layers, active: list[int]) -> np.ndarray:
-        """(1/B_k) Σ_b g(τ_b) of every active agent, [A, d].
-
-        Computed per group of agents of similar batch length T_k (each group padded to its
-        longest, not to the longest of all: lengths differ by 10x and more)."""
-        gradient = np.empty((len(active), self.shape.num_params), dtype=np.float32)
+    def _gradient(self, batches: Batches, layers: mlp.Layers, active: list[int]) -> np.ndarray:
+        """(1/B_k) Σ_b g(τ_b) of every active agent, [A, d]."""
         gammas = np.array([self.gammas[k] for k in active])
-        for agents in _length_groups(rollouts.lengths):
-            sub = rollouts.subset(agents)
-            c = coef.coefficients(
-                sub, gammas[agents], estimator=self.run.algo.estimator,
-                baseline=self.run.algo.baseline,
-            )  # fmt: skip
-            copies = np.diff(sub.offsets)
-            c = c / copies[sub.owner][None, :]
-            # the alive steps, agent by agent, each agent's in time-major order
-            owner = np.broadcast_to(sub.owner, sub.alive.shape)[sub.alive]
-            order = np.argsort(owner, kind="stable")
-            chunks = mlp.pack_rows(
-                owner[order],
-                sub.obs[sub.alive][order],
-                sub.actions[sub.alive][order],
-                c[sub.alive][order].astype(np.float32),
-                len(agents),
-            )
-            gradient[agents] = mlp.score_gradient(self.shape, mlp.select(layers, agents), chunks)
-        return gradient
+        c = coef.coefficients(
+            batches, gammas, estimator=self.run.algo.estimator, baseline=self.run.algo.baseline
+        )
+        c /= np.diff(batches.offsets)[batches.owner][None, :]
+        chunks = mlp.pack_rows(
+            batches.row_agent,
+            batches.obs,
+            batches.actions,
+            c.reshape(-1)[batches.row_cell].astype(np.float32),
+            len(active),
+        )
+        return mlp.score_gradient(self.shape, layers, chunks)
 
     def _clip(self, gradient: np.ndarray) -> np.ndarray:
         """Scale rows down to norm ``algo.grad_clip`` (Assumption 3); which rows were."""

@@ -162,22 +162,52 @@ def _log_softmax_grad(logit: np.ndarray, actions: np.ndarray) -> np.ndarray:
     return weights
 
 
+CACHE_CHUNKS = 128
+"""Chunks whose activations are worked on together (~0.5 MB each: they stay in cache)."""
+
+
 def score_gradient(shape: MLPShape, layers: Layers, chunks: Chunks) -> np.ndarray:
     """Σ_rows coef · ∇_θ log π(a|s) per agent, [A, d] float32 in the flat θ layout."""
     num_chunks = len(chunks.owner)
-    per_chunk = select(layers, chunks.owner)
-    activations = forward(per_chunk, chunks.obs)
-    delta = _log_softmax_grad(activations[-1], chunks.actions)
-    delta *= chunks.coef[..., None]
-    ones = np.ones((num_chunks, 1, CHUNK_ROWS), dtype=np.float32)
     parts = np.empty((num_chunks, shape.num_params), dtype=np.float32)
-    for i in reversed(range(len(layers))):
+    for start in range(0, num_chunks, CACHE_CHUNKS):
+        block = slice(start, min(start + CACHE_CHUNKS, num_chunks))
+        _chunk_gradients(
+            shape,
+            select(layers, chunks.owner[block]),
+            chunks.obs[block],
+            chunks.actions[block],
+            chunks.coef[block],
+            parts[block],
+        )
+    # each agent's chunks added in order (plain additions: the same sums in any company)
+    gradient = parts[chunks.first].copy()
+    for j in range(1, int(chunks.count.max())):
+        agents = np.nonzero(chunks.count > j)[0]
+        gradient[agents] += parts[chunks.first[agents] + j]
+    return gradient
+
+
+def _chunk_gradients(
+    shape: MLPShape,
+    per_chunk: Layers,
+    obs: np.ndarray,
+    actions: np.ndarray,
+    coef: np.ndarray,
+    parts: np.ndarray,
+) -> None:
+    """Each chunk's Σ_rows coef · ∇_θ log π(a|s), written into ``parts`` [C, d]."""
+    num_chunks = len(obs)
+    activations = forward(per_chunk, obs)
+    delta = _log_softmax_grad(activations[-1], actions)
+    delta *= coef[..., None]
+    ones = np.ones((num_chunks, 1, CHUNK_ROWS), dtype=np.float32)
+    for i in reversed(range(len(per_chunk))):
         offset, n_in, n_out = shape.layers[i]
         below = activations[i]
-        weights = np.matmul(below.transpose(0, 2, 1), delta)  # [C, in, out]
-        parts[:, offset : offset + n_in * n_out] = weights.transpose(0, 2, 1).reshape(
-            num_chunks, -1
-        )
+        # δᵀ·h: [C, out, in], torch's weight layout, so no transpose is copied
+        weights = np.matmul(delta.transpose(0, 2, 1), below)
+        parts[:, offset : offset + n_in * n_out] = weights.reshape(num_chunks, -1)
         parts[:, offset + n_in * n_out : offset + n_in * n_out + n_out] = np.matmul(ones, delta)[
             :, 0, :
         ]
@@ -186,9 +216,3 @@ def score_gradient(shape: MLPShape, layers: Layers, chunks: Chunks) -> np.ndarra
             below *= below
             np.subtract(1.0, below, out=below)
             delta *= below  # tanh' = 1 − h² at the layer below
-    # each agent's chunks added in order (plain additions: the same sums in any company)
-    gradient = parts[chunks.first].copy()
-    for j in range(1, int(chunks.count.max())):
-        agents = np.nonzero(chunks.count > j)[0]
-        gradient[agents] += parts[chunks.first[agents] + j]
-    return gradient

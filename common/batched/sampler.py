@@ -16,7 +16,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from fedhpg.common.batched import mlp
-from fedhpg.envs.multi import MultiBatchEnv, block_columns
+from fedhpg.envs.multi import MultiBatchEnv
 
 UNIFORM_CHUNK = 32
 """Time steps of action uniforms an agent draws at once."""
@@ -43,25 +43,52 @@ class Rollouts:
         """The agent (batch position) of every copy, [N]."""
         return np.repeat(np.arange(len(self.lengths)), np.diff(self.offsets))
 
-    def subset(self, agents: np.ndarray) -> Rollouts:
-        """The batches of agents ``agents`` (increasing positions), cut to their longest."""
-        counts = np.diff(self.offsets)[agents]
-        columns = block_columns(self.offsets, agents)
-        steps = int(self.lengths[agents].max())
-        return Rollouts(
-            obs=self.obs[:steps, columns],
-            actions=self.actions[:steps, columns],
-            rewards=self.rewards[:steps, columns],
-            alive=self.alive[:steps, columns],
-            success=self.success[columns],
-            offsets=np.concatenate([[0], np.cumsum(counts)]),
-            lengths=self.lengths[agents],
-        )
-
     def env_steps(self) -> np.ndarray:
         """Alive steps per agent, [A]."""
         per_copy = self.alive.sum(axis=0)
         return np.add.reduceat(per_copy, self.offsets[:-1]) if per_copy.size else per_copy
+
+
+@dataclass(frozen=True)
+class Batches:
+    """Several agents' just-ended batches, as the gradient needs them: rewards and alive flags
+    padded to [T, W] (agent blocks of copies; for the coefficients), and the alive steps'
+    observations and actions agent by agent, each agent's in time-major order."""
+
+    rewards: np.ndarray  # [T, W] float64
+    alive: np.ndarray  # [T, W] bool
+    offsets: np.ndarray  # [A + 1]
+    lengths: np.ndarray  # [A]
+    row_agent: np.ndarray  # [R] non-decreasing
+    row_cell: np.ndarray  # [R] flat index into [T, W]
+    obs: np.ndarray  # [R, obs_dim] float32
+    actions: np.ndarray  # [R] int64
+
+    @property
+    def owner(self) -> np.ndarray:
+        return np.repeat(np.arange(len(self.lengths)), np.diff(self.offsets))
+
+    def env_steps(self) -> np.ndarray:
+        """Alive steps per agent, [A]."""
+        return np.bincount(self.row_agent, minlength=len(self.lengths))
+
+    @classmethod
+    def of(cls, rollouts: Rollouts) -> Batches:
+        """The batches of a lockstep rollout."""
+        steps, cols = np.nonzero(rollouts.alive)  # time-major
+        agent = rollouts.owner[cols]
+        order = np.argsort(agent, kind="stable")
+        width = rollouts.alive.shape[1]
+        return cls(
+            rewards=rollouts.rewards,
+            alive=rollouts.alive,
+            offsets=rollouts.offsets,
+            lengths=rollouts.lengths,
+            row_agent=agent[order],
+            row_cell=(steps * width + cols)[order],
+            obs=rollouts.obs[steps, cols][order],
+            actions=rollouts.actions[steps, cols][order],
+        )
 
 
 def rollout(

@@ -22,10 +22,10 @@ from dataclasses import dataclass
 import numpy as np
 
 from fedhpg.common.batched import mlp
-from fedhpg.common.batched.sampler import UNIFORM_CHUNK, Rollouts, _groups
+from fedhpg.common.batched.sampler import UNIFORM_CHUNK, Batches, _groups
 from fedhpg.envs.multi import MultiBatchEnv, block_columns
 
-GradientStep = Callable[[Rollouts, np.ndarray], None]
+GradientStep = Callable[[Batches, np.ndarray], None]
 """(the finished batches, their agents' positions) -> None: takes their gradients and steps;
 afterwards ``params`` holds their new θ rows."""
 
@@ -163,8 +163,8 @@ def run_round(
         nonlocal steps_so_far, gradient_s
         entered = time.thread_time()
         agents = frame.agents[local]
-        batches = frame.ring.extract(local, local_step[agents], started_at[agents],
-                                     frame.offsets, frame.counts, frame.success)  # fmt: skip
+        batches = frame.ring.ended(local, local_step[agents], started_at[agents],
+                                   frame.offsets, frame.counts)  # fmt: skip
         gradient_step(batches, agents)
         frame.refresh(params, shape, local)
         steps = batches.env_steps()
@@ -296,49 +296,50 @@ class _Rings:
             mine[slots] = theirs[slots][:, columns]
         return part
 
-    def extract(
+    def ended(
         self,
         agents: np.ndarray,
         lengths: np.ndarray,
         started_at: np.ndarray,
         offsets: np.ndarray,
         counts: np.ndarray,
-        success: np.ndarray,
-    ) -> Rollouts:
-        """The ended batches of the frame's ``agents`` as one :class:`Rollouts`, padded to
-        the longest."""
+    ) -> Batches:
+        """The ended batches of the frame's ``agents``: every step (agent, t, copy) read once
+        from the ring by flat index; observations and actions of the alive steps only."""
         sizes = counts[agents]
         sub_offsets = np.concatenate([[0], np.cumsum(sizes)])
+        width = int(sub_offsets[-1])
         cells = lengths * sizes
         agent = np.repeat(np.arange(len(agents)), cells)
         within = np.arange(int(cells.sum())) - np.repeat(np.cumsum(cells) - cells, cells)
-        t, b = within // sizes[agent], within % sizes[agent]
-        slot = (started_at[agent] + t) % self.size
-        width = int(sub_offsets[-1])
-        # flat indices: one gather and one scatter per array (2-D fancy indexing costs 2x)
-        source = slot * self.obs.shape[1] + offsets[agents][agent] + b
+        size = sizes[agent]
+        t, b = within // size, within % size
+        source = (
+            ((started_at[agent] + t) % self.size) * self.obs.shape[1] + offsets[agents][agent] + b
+        )
         target = t * width + sub_offsets[agent] + b
         shape = (int(lengths.max()), width)
-        obs = np.zeros((*shape, *self.obs.shape[2:]), dtype=np.float32)
-        actions = np.zeros(shape, dtype=np.int64)
         rewards = np.zeros(shape, dtype=np.float64)
         alive = np.zeros(shape, dtype=bool)
+        rewards.reshape(-1)[target] = self.rewards.reshape(-1)[source]
+        alive_cells = self.alive.reshape(-1)[source]
+        alive.reshape(-1)[target] = alive_cells
+        kept = np.nonzero(alive_cells)[0]
         features = self.obs.shape[2:]
-        obs.reshape(-1, *features)[target] = self.obs.reshape(-1, *features)[source]
-        for out, ring in ((actions, self.actions), (rewards, self.rewards), (alive, self.alive)):
-            out.reshape(-1)[target] = ring.reshape(-1)[source]
-        return Rollouts(
-            obs=obs,
-            actions=actions,
+        return Batches(
             rewards=rewards,
             alive=alive,
-            success=success[block_columns(offsets, agents)],
             offsets=sub_offsets,
             lengths=lengths.copy(),
+            row_agent=agent[kept],
+            row_cell=target[kept],
+            obs=self.obs.reshape(-1, *features)[source[kept]],
+            actions=self.actions.reshape(-1)[source[kept]],
         )
 
 
-def _returns(batches: Rollouts) -> np.ndarray:
+def _returns(batches: Batches) -> np.ndarray:
+    """Per copy Σ_t r_t (time-sequential: zero padding adds nothing)."""
     if batches.rewards.shape[0] == 0:
         return np.zeros(batches.rewards.shape[1])
     return np.cumsum(batches.rewards, axis=0)[-1]
