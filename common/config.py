@@ -345,8 +345,8 @@ class ClusterConfig:
     """``fedhpg-cluster``: the jobs of a federation on a cluster engine (submitit)."""
 
     kind: str = "auto"
-    """'slurm', 'local' (processes on this machine, submitit's LocalExecutor) or 'auto' (SLURM
-    where sbatch is found, else local)."""
+    """'slurm', 'local' or 'auto' (SLURM where sbatch is found, else local). 'local' runs the
+    same jobs as processes on this machine (submitit's LocalExecutor)."""
     partition: str | None = None
     """SLURM partition of every job; None = the cluster's default."""
     time_min: int = 60

@@ -25,6 +25,7 @@ from fedhpg.common.config import ConfigError, RunConfig
 from fedhpg.common.runtime.cli import EXIT_RUN_ABORTED, EXIT_USAGE
 from fedhpg.server.cluster_units import (
     ENDPOINT_NAME,
+    STOP_NAME,
     agent_commands,
     describe,
     run_unit,
@@ -36,6 +37,8 @@ logger = logging.getLogger(__name__)
 POLL_S = 0.2
 FINISH_GRACE_S = 10.0
 """After the server job ends, how long agent jobs may take to exit by themselves."""
+STOP_WAIT_S = 5.0
+"""How long jobs may take to end their commands once the stop file is there."""
 CANCEL_WAIT_S = 5.0
 """How long a cancelled local job may take to be gone (submitit kills it after 1 s)."""
 EXIT_INTERRUPTED = 130
@@ -58,6 +61,7 @@ class Placement:
 
     executor: Any
     endpoint: Path
+    stop: Path
     server: Any
     agents: list[AgentJob] = field(default_factory=list)
 
@@ -111,19 +115,21 @@ def submit(run: RunConfig, overrides: Sequence[str], run_dir: Path) -> Placement
     executor = make_executor(run, run_dir)
     bind_all = executor.cluster != "local"  # agents on other nodes; loopback when all are here
     endpoint = run_dir / ENDPOINT_NAME
-    endpoint.unlink(missing_ok=True)  # agents must read this run's endpoint, not an old one
+    stop = run_dir / run.cluster.folder / STOP_NAME
+    for old in (endpoint, stop):  # this run's jobs must not read an earlier run's files
+        old.unlink(missing_ok=True)
     executor.update_parameters(name="fedhpg-server")
     command = server_command(run, overrides, run_dir, bind_all=bind_all)
-    server = executor.submit(run_unit, command, None, 0.0)
+    server = executor.submit(run_unit, command, None, 0.0, str(stop))
     logger.info("submitted the server as job %s (%s)", server.job_id, executor.cluster)
-    placement = Placement(executor=executor, endpoint=endpoint, server=server)
+    placement = Placement(executor=executor, endpoint=endpoint, stop=stop, server=server)
     commands = agent_commands(run, overrides)
     executor.update_parameters(
         name="fedhpg-agent", slurm_array_parallelism=run.cluster.array_parallelism or len(commands)
     )
     with executor.batch():
         pending = [
-            executor.submit(run_unit, c, str(endpoint), run.cluster.endpoint_timeout_s)
+            executor.submit(run_unit, c, str(endpoint), run.cluster.endpoint_timeout_s, str(stop))
             for c in commands
         ]
     placement.agents = [AgentJob(c, job) for c, job in zip(commands, pending, strict=True)]
@@ -165,7 +171,11 @@ def _watch_agents(run: RunConfig, placement: Placement) -> bool:
         agent.restarts += 1
         placement.executor.update_parameters(name="fedhpg-agent")
         agent.job = placement.executor.submit(
-            run_unit, agent.command, str(placement.endpoint), run.cluster.endpoint_timeout_s
+            run_unit,
+            agent.command,
+            str(placement.endpoint),
+            run.cluster.endpoint_timeout_s,
+            str(placement.stop),
         )
         logger.warning(
             "agent job of %s %s; resubmitted as job %s (%d of %d restarts, agent.max_restarts)",
@@ -181,19 +191,24 @@ def supervise(run: RunConfig, placement: Placement) -> int:
             return 1
         time.sleep(POLL_S)
     status, why = _status(placement.server)
+    server = f"the server job {placement.server.job_id}"
     if status is None:
-        sys.stderr.write(
-            f"error: the server job {placement.server.job_id} failed: {why} "
-            f"(log: {_log_of(placement.server)})\n"
-        )
+        sys.stderr.write(f"error: {server} failed: {why} (log: {_log_of(placement.server)})\n")
         return 1
+    if status != 0:  # its agents are stopped at once: nothing is left for them to do
+        sys.stderr.write(
+            f"error: {server} exited with status {status} (log: {_log_of(placement.server)})\n"
+        )
+        return status if 0 < status < 128 else 1  # killed by a signal: negative
     deadline = time.monotonic() + FINISH_GRACE_S
     while time.monotonic() < deadline and not all(a.job.done() for a in placement.agents):
         time.sleep(POLL_S)
     failed = 0
     for agent in placement.agents:
         if not agent.job.done():
-            continue  # still running: cancelled below, as the server is gone
+            logger.error("agent job %s did not end after the run; cancelling it", agent.job.job_id)
+            failed += 1
+            continue
         code, reason = _status(agent.job)
         if code not in (0, EXIT_RUN_ABORTED):
             failed += 1
@@ -202,29 +217,34 @@ def supervise(run: RunConfig, placement: Placement) -> int:
                 "agent job %s (%s) %s (log: %s)",
                 agent.job.job_id, describe(agent.command), what, _log_of(agent.job),
             )  # fmt: skip
-    if status != 0:
-        logger.error(
-            "the server job %s exited with status %s (log: %s)",
-            placement.server.job_id, status, _log_of(placement.server),
-        )  # fmt: skip
-        return status
     return 1 if failed else 0
 
 
 def cancel_all(placement: Placement) -> None:
-    """Cancel every job still running and, for local jobs, wait until they are gone."""
+    """Stop every job still running: first through the stop file (each job ends its command,
+    the job completes), then by cancelling what is left; local jobs are waited for."""
     running = [job for job in placement.jobs() if not job.done()]
-    for job in running:
+    if not running:
+        return
+    placement.stop.touch()
+    deadline = time.monotonic() + STOP_WAIT_S
+    while time.monotonic() < deadline and not all(job.done() for job in running):
+        time.sleep(0.05)
+    left = [job for job in running if not job.done()]
+    for job in left:
         try:
             job.cancel(check=False)
         except Exception as error:  # scancel missing or failing: say so, go on with the rest
             logger.error("cannot cancel job %s: %s", job.job_id, error)
     if placement.executor.cluster == "local":
         deadline = time.monotonic() + CANCEL_WAIT_S
-        while time.monotonic() < deadline and not all(job.done() for job in running):
+        while time.monotonic() < deadline and not all(job.done() for job in left):
             time.sleep(0.05)
-    if running:
-        logger.info("cancelled jobs %s", ", ".join(job.job_id for job in running))
+    logger.info(
+        "stopped jobs %s%s",
+        ", ".join(job.job_id for job in running),
+        f" (cancelled {', '.join(job.job_id for job in left)})" if left else "",
+    )
 
 
 def place(run: RunConfig, overrides: Sequence[str], run_dir: Path) -> int:

@@ -30,6 +30,9 @@ logger = logging.getLogger(__name__)
 
 ENDPOINT_NAME = "endpoint.json"
 """The server job's endpoint file, in the run directory."""
+STOP_NAME = "stop"
+"""Written by fedhpg-cluster into its submitit folder: every job of the run stops its command."""
+POLL_S = 0.1
 PLACED_KEYS = ("server.out_dir", "server.port", "server.host", "server.bind_all")
 """Keys the placement sets on each command line itself (the user's values are read from the
 composed run instead)."""
@@ -88,17 +91,18 @@ def describe(command: Sequence[str]) -> str:
 # --- inside the job ---------------------------------------------------------------------------
 
 
-def read_endpoint(path: Path, timeout_s: float) -> dict[str, object] | None:
-    """The server's endpoint record once the file exists (polled), None after ``timeout_s``."""
+def read_endpoint(path: Path, timeout_s: float, stop: Path) -> dict[str, object] | None:
+    """The server's endpoint record once the file exists (polled); None after ``timeout_s``
+    or once ``stop`` exists."""
     deadline = time.monotonic() + timeout_s
     while True:
         with contextlib.suppress(FileNotFoundError, json.JSONDecodeError):
             record = json.loads(path.read_text(encoding="utf-8"))
             if isinstance(record, dict):
                 return record
-        if time.monotonic() >= deadline:
+        if time.monotonic() >= deadline or stop.exists():
             return None
-        time.sleep(0.1)
+        time.sleep(POLL_S)
 
 
 def _executable(program: str) -> str:
@@ -114,29 +118,37 @@ def _die_with_job() -> None:
         ctypes.CDLL(None, use_errno=True).prctl(PR_SET_PDEATHSIG, signal.SIGTERM)
 
 
-def run_unit(command: list[str], endpoint_file: str | None, timeout_s: float) -> int:
+def run_unit(
+    command: list[str], endpoint_file: str | None, timeout_s: float, stop_file: str
+) -> int:
     """Run one unit in this job and return its exit status (the job's result).
 
     ``endpoint_file``: wait for the server's endpoint (at most ``timeout_s``) and connect there.
-    Arguments are plain strings so that what submitit stores for the job is only that."""
+    ``stop_file``: when it appears, stop the command (SIGTERM): how ``fedhpg-cluster`` ends
+    its jobs on any engine before it falls back to cancelling them. Arguments are plain
+    strings, so that what submitit stores for the job is only that."""
     setup_logging()
+    stop = Path(stop_file)
     argv = list(command)
     if endpoint_file is not None:
-        record = read_endpoint(Path(endpoint_file), timeout_s)
+        record = read_endpoint(Path(endpoint_file), timeout_s, stop)
         if record is None:
-            logger.error("no server endpoint in %s after %.0f s", endpoint_file, timeout_s)
+            logger.error("no server endpoint in %s (waited up to %.0f s)", endpoint_file, timeout_s)
             return EXIT_NO_SERVER
         if record.get("transport") == "tcp":
             argv += [f"server.host={record['host']}", f"server.port={record['port']}"]
     logger.info("running %s", " ".join(argv))
     process = subprocess.Popen([_executable(argv[0]), *argv[1:]], preexec_fn=_die_with_job)
     try:
-        return process.wait()
-    finally:  # cancelled (SIGINT from submitit's local executor, SIGTERM from SLURM's)
+        while process.poll() is None and not stop.exists():
+            time.sleep(POLL_S)
+        if process.poll() is None:
+            logger.info("stop requested (%s): stopping %s", stop, argv[0])
+    finally:  # stopped, or cancelled (SIGINT from submitit's local executor)
         if process.poll() is None:
             process.terminate()
             try:
                 process.wait(STOP_GRACE_S)
             except subprocess.TimeoutExpired:
                 process.kill()
-                process.wait()
+    return process.wait()

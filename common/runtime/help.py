@@ -44,6 +44,8 @@ EXAMPLES = {
         "server.out_dir=/shared/runs/a",
     ],
 }
+OWN_SECTIONS = {"cluster": "fedhpg-cluster"}
+"""Config sections that only one program reads: listed in its help alone."""
 LINE_WIDTH = 110
 KEY_COLUMN = 40
 
@@ -129,11 +131,15 @@ def help_text(program: str) -> str:
         "config groups (group=option):",
     ]
     for name, options in sorted(groups.items()):
+        if OWN_SECTIONS.get(name, program) != program:
+            continue
         marked = [f"{o} (default)" if o == chosen.get(name) else o for o in options]
         lines.append(f"  {name + '=':<12} {', '.join(marked)}")
     lines += ["", "keys (key=value; default, then what it is):"]
     section = ""
     for key, doc in _key_docs().items():
+        if OWN_SECTIONS.get(key.split(".")[0], program) != program:
+            continue
         if "." in key and key.split(".")[0] != section:
             section = key.split(".")[0]
             lines.append(f" {section}.*")

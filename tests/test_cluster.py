@@ -1,0 +1,199 @@
+"""Past one machine: Hydra sweeps through the joblib and submitit launchers, and a federation
+placed through submitit (``fedhpg-cluster cluster=local``: submitit's LocalExecutor, the same
+jobs, files and logs as on SLURM, which cannot run here).
+
+Real processes throughout: every command runs under ``reaper.py``, a child subreaper that
+names (and kills) any process still alive after the command exits, so a job, a forked server
+or an agent left behind fails the test. Every run is checked against the same seed run in this
+process by ``api.run``: the θ̃ of the distributed run must be equal bit for bit."""
+
+from __future__ import annotations
+
+import functools
+import json
+import os
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+import torch
+from procs import BIN, wait_until
+
+from fedhpg.server import api
+from fedhpg.server.checkpoint import latest_valid_checkpoint
+
+REAPER = Path(__file__).parent / "reaper.py"
+TIMEOUT_S = 120
+TINY = [
+    "rounds=2", "agents.num_agents=2", "agents.budget.batch_size=[4]",
+    "agents.budget.local_iters=[1]", "agents.speeds=[1]", "agents.step_delays_s=[0]",
+    "eval.every=2", "eval.episodes=2", "server.tensorboard=false",
+]  # fmt: skip
+
+
+def _run(args: list[str], cwd: Path, *, env: dict[str, str] | None = None) -> subprocess.Popen:
+    return subprocess.Popen(
+        [sys.executable, str(REAPER), *args],
+        cwd=cwd,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        env={**os.environ, "FEDHPG_LOG_LEVEL": "INFO", **(env or {})},
+    )
+
+
+def _finish(process: subprocess.Popen) -> tuple[int, str, str]:
+    try:
+        out, err = process.communicate(timeout=TIMEOUT_S)
+    except subprocess.TimeoutExpired:
+        process.kill()  # the reaper dies; its command's processes then die with their parents
+        out, err = process.communicate()
+        pytest.fail(f"timed out: {err[-3000:]}")
+    assert "left behind" not in err, err[-3000:]
+    return process.returncode, out, err
+
+
+def _theta(run_dir: Path) -> torch.Tensor:
+    checkpoint = latest_valid_checkpoint(run_dir / "checkpoints")
+    assert checkpoint is not None and checkpoint.round == 2, run_dir
+    return checkpoint.theta
+
+
+@functools.cache  # the sweeps check seeds 1 and 2 each
+def _in_process(seed: int) -> torch.Tensor:
+    return api.run(overrides=[*TINY, f"seed={seed}"]).theta
+
+
+def _check_sweep(sweep: Path) -> None:
+    """Two complete runs, one per seed, each the θ̃ of its seed; the seeds' θ̃ differ."""
+    thetas = []
+    for job, seed in ((0, 1), (1, 2)):
+        run_dir = sweep / str(job)
+        assert json.loads((run_dir / "config.json").read_text())["seed"] == seed
+        assert len((run_dir / "metrics.jsonl").read_text().splitlines()) == 2
+        assert json.loads((run_dir / "summary.json").read_text())["final_eval_round"] == 2
+        thetas.append(_theta(run_dir))
+        assert torch.equal(thetas[-1], _in_process(seed)), f"seed {seed}"
+    assert not torch.equal(thetas[0], thetas[1])
+
+
+def _ports(stderr: str) -> set[str]:
+    return {line.rsplit(":", 1)[1].split(",")[0] for line in stderr.splitlines()
+            if "server listening on tcp://" in line}  # fmt: skip
+
+
+def test_reaper_sees_a_process_left_behind(tmp_path: Path) -> None:
+    process = _run(["sh", "-c", "sleep 30 & exit 0"], tmp_path)
+    _, err = process.communicate(timeout=30)
+    assert process.returncode == 99 and "left behind" in err and "sleep 30" in err
+
+
+@pytest.mark.parametrize("launcher", ["joblib", "submitit_local"])
+def test_a_two_seed_sweep_runs_both_seeds_side_by_side(tmp_path: Path, launcher: str) -> None:
+    sweep = tmp_path / "sweep"
+    started = time.monotonic()
+    process = _run(
+        [
+            str(BIN / "fedhpg-run"), "-m", "seed=1,2", f"hydra/launcher={launcher}",
+            f"hydra.sweep.dir={sweep}", *TINY,
+            *(["hydra.launcher.n_jobs=2"] if launcher == "joblib" else []),
+        ],
+        tmp_path,
+    )  # fmt: skip
+    status, out, err = _finish(process)
+    assert status == 0, err[-3000:]
+    elapsed = time.monotonic() - started
+    _check_sweep(sweep)
+    if launcher == "joblib":  # the jobs' logs come here: two federations on two free ports
+        assert len(_ports(err)) == 2, err[-3000:]
+        assert out.count("run directory:") == 2
+    else:  # each job's log is in submitit's folder; its own free port there
+        logs = "".join(p.read_text() for p in (sweep / ".submitit").glob("*/*_log.err"))
+        assert len(_ports(logs)) == 2 and logs.count("Job completed successfully") == 2, logs
+    print(f"{launcher} sweep: {elapsed:.1f} s")
+
+
+def test_a_federation_placed_through_submitit_equals_the_same_run_here(tmp_path: Path) -> None:
+    run_dir = tmp_path / "run"
+    started = time.monotonic()
+    process = _run(
+        [str(BIN / "fedhpg-cluster"), "cluster=local", f"server.out_dir={run_dir}", *TINY],
+        tmp_path,
+    )
+    status, out, err = _finish(process)
+    assert status == 0, err[-3000:]
+    print(f"fedhpg-cluster cluster=local: {time.monotonic() - started:.1f} s")
+    assert f"run directory: {run_dir}" in out
+    assert torch.equal(_theta(run_dir), _in_process(0))
+    endpoint = json.loads((run_dir / "endpoint.json").read_text())
+    assert endpoint["host"] == "127.0.0.1" and endpoint["port"] > 0
+    # one server job and an array of two agent jobs, each through its own submitit job
+    logs = sorted((run_dir / "submitit").glob("*/*_0_log.err"))
+    assert len(logs) == 3, logs
+    texts = [p.read_text() for p in logs]
+    assert sum("running fedhpg-server" in t for t in texts) == 1
+    for k in (0, 1):
+        line = f"agent.index={k} server.host=127.0.0.1 server.port={endpoint['port']}"
+        assert sum(line in t for t in texts) == 1, texts
+    assert all("Job completed successfully" in t for t in texts)
+
+
+def test_a_dead_server_job_ends_the_placement_in_one_line(tmp_path: Path) -> None:
+    """The server process is killed mid-run: one line naming the job, exit 1, and the agent
+    jobs (which would wait for a server that will not come back) are stopped."""
+    run_dir = tmp_path / "run"
+    process = _run(
+        [
+            str(BIN / "fedhpg-cluster"), "cluster=local", f"server.out_dir={run_dir}",
+            *TINY, "rounds=10000",
+        ],
+        tmp_path,
+        env={"FEDHPG_LOG_LEVEL": "WARNING"},
+    )  # fmt: skip
+    try:
+        assert wait_until(
+            lambda: (
+                (run_dir / "metrics.jsonl").exists()
+                and bool((run_dir / "metrics.jsonl").read_text())
+            ),
+            TIMEOUT_S,
+        ), "no round completed"
+        os.kill(int((run_dir / ".lock").read_text()), 9)  # the server's pid
+    finally:
+        status, _, err = _finish(process)
+    assert status == 1, err
+    lines = err.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith("error: the server job "), err
+    assert "exited with status -9" in lines[0] and "log: " in lines[0]
+
+
+@pytest.mark.parametrize(
+    ("args", "env", "expected"),
+    [
+        (["cluster.kind=pbs"], {}, "error: cluster.kind: got 'pbs', allowed: auto, slurm, local"),
+        (["cluster=pbs"], {}, "error: cluster: no such option 'pbs'; allowed: local, slurm"),
+        (
+            ["cluster.array_parallelism=1"],
+            {},
+            "error: cluster.array_parallelism: got 1, below the 2 agent jobs",
+        ),
+        ([], {"PYTHONPATH": "NO_SUBMITIT"}, "error: fedhpg-cluster needs submitit: pip install"),
+    ],
+)
+def test_mistakes_are_one_line_and_submit_nothing(
+    tmp_path: Path, args: list[str], env: dict[str, str], expected: str
+) -> None:
+    if env:  # a submitit that cannot be imported, as when it is not installed
+        blocker = tmp_path / "blocker" / "submitit"
+        blocker.mkdir(parents=True)
+        (blocker / "__init__.py").write_text("raise ImportError('no submitit here')\n")
+        env = {"PYTHONPATH": str(blocker.parent)}
+    work = tmp_path / "work"
+    work.mkdir()
+    process = _run([str(BIN / "fedhpg-cluster"), *TINY, *args], work, env=env)
+    status, _, err = _finish(process)
+    assert status == 2, err
+    assert err.strip().splitlines() == [err.strip()] and err.startswith(expected), err
+    assert list(work.iterdir()) == [], "nothing created"
