@@ -11,8 +11,10 @@ and cancels whatever is still running when the server job ends or it is interrup
 
 from __future__ import annotations
 
+import json
 import logging
 import os
+import shutil
 import signal
 import sys
 import time
@@ -25,6 +27,7 @@ from fedhpg.common.config import ConfigError, RunConfig
 from fedhpg.common.runtime.cli import EXIT_RUN_ABORTED, EXIT_USAGE
 from fedhpg.server.cluster_units import (
     ENDPOINT_NAME,
+    STATUS_DIR,
     STOP_NAME,
     agent_commands,
     describe,
@@ -118,6 +121,7 @@ def submit(run: RunConfig, overrides: Sequence[str], run_dir: Path) -> Placement
     stop = run_dir / run.cluster.folder / STOP_NAME
     for old in (endpoint, stop):  # this run's jobs must not read an earlier run's files
         old.unlink(missing_ok=True)
+    shutil.rmtree(stop.parent / STATUS_DIR, ignore_errors=True)
     executor.update_parameters(name="fedhpg-server")
     command = server_command(run, overrides, run_dir, bind_all=bind_all)
     server = executor.submit(run_unit, command, None, 0.0, str(stop))
@@ -137,13 +141,14 @@ def submit(run: RunConfig, overrides: Sequence[str], run_dir: Path) -> Placement
     return placement
 
 
-def _status(job: Any) -> tuple[int | None, str]:
-    """A finished job's exit status (None if the job itself failed) and why."""
+def _status(placement: Placement, job: Any) -> tuple[int | None, str]:
+    """A finished job's exit status, from the JSON its job wrote (never submitit's result
+    pickle); None, and why, if the job ended before its command did (killed, timed out)."""
+    path = placement.stop.parent / STATUS_DIR / f"{job.job_id}.json"
     try:
-        return int(job.result()), ""
-    except Exception as error:  # submitit's FailedJobError / UncompletedJobError: one line
-        lines = [line.strip() for line in str(error).splitlines() if line.strip()]
-        return None, lines[-1] if lines else type(error).__name__
+        return int(json.loads(path.read_text(encoding="utf-8"))["status"]), ""
+    except (OSError, ValueError, KeyError, TypeError):
+        return None, f"it ended before its command did (job state {job.state})"
 
 
 def _log_of(job: Any) -> str:
@@ -156,7 +161,7 @@ def _watch_agents(run: RunConfig, placement: Placement) -> bool:
     for agent in placement.agents:
         if agent.finished or not agent.job.done():
             continue
-        status, why = _status(agent.job)
+        status, why = _status(placement, agent.job)
         if status in (0, EXIT_RUN_ABORTED):  # done, or the server ended the run: it tells how
             agent.finished = True
             continue
@@ -190,7 +195,7 @@ def supervise(run: RunConfig, placement: Placement) -> int:
         if not _watch_agents(run, placement):
             return 1
         time.sleep(POLL_S)
-    status, why = _status(placement.server)
+    status, why = _status(placement, placement.server)
     server = f"the server job {placement.server.job_id}"
     if status is None:
         sys.stderr.write(f"error: {server} failed: {why} (log: {_log_of(placement.server)})\n")
@@ -209,7 +214,7 @@ def supervise(run: RunConfig, placement: Placement) -> int:
             logger.error("agent job %s did not end after the run; cancelling it", agent.job.job_id)
             failed += 1
             continue
-        code, reason = _status(agent.job)
+        code, reason = _status(placement, agent.job)
         if code not in (0, EXIT_RUN_ABORTED):
             failed += 1
             what = f"exited with status {code}" if code is not None else f"failed: {reason}"

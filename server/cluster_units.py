@@ -6,7 +6,8 @@ job that runs a unit (:func:`run_unit`) waits, for an agent, until the server jo
 its endpoint file, adds the server's host and port to the command line, and runs the command
 as a child that dies with the job. The wire stays ZeroMQ: jobs only start processes.
 
-This module imports no torch and no submitit: a job pays for the imports of its command alone.
+This module imports no torch (and submitit only inside a job): a job pays for the imports of
+its command alone.
 """
 
 from __future__ import annotations
@@ -32,6 +33,8 @@ ENDPOINT_NAME = "endpoint.json"
 """The server job's endpoint file, in the run directory."""
 STOP_NAME = "stop"
 """Written by fedhpg-cluster into its submitit folder: every job of the run stops its command."""
+STATUS_DIR = "status"
+"""Beside the stop file: one ``<job id>.json`` per job, its command's exit status."""
 POLL_S = 0.1
 PLACED_KEYS = ("server.out_dir", "server.port", "server.host", "server.bind_all")
 """Keys the placement sets on each command line itself (the user's values are read from the
@@ -134,7 +137,7 @@ def run_unit(
         record = read_endpoint(Path(endpoint_file), timeout_s, stop)
         if record is None:
             logger.error("no server endpoint in %s (waited up to %.0f s)", endpoint_file, timeout_s)
-            return EXIT_NO_SERVER
+            return _record_status(stop.parent, EXIT_NO_SERVER)
         if record.get("transport") == "tcp":
             argv += [f"server.host={record['host']}", f"server.port={record['port']}"]
     logger.info("running %s", " ".join(argv))
@@ -151,4 +154,16 @@ def run_unit(
                 process.wait(STOP_GRACE_S)
             except subprocess.TimeoutExpired:
                 process.kill()
-    return process.wait()
+    return _record_status(stop.parent, process.wait())
+
+
+def _record_status(folder: Path, status: int) -> int:
+    """The command's exit status as JSON beside the job's files: fedhpg-cluster reads this,
+    never submitit's result pickle."""
+    import submitit
+
+    job_id = submitit.JobEnvironment().job_id
+    (folder / STATUS_DIR).mkdir(exist_ok=True)
+    path = folder / STATUS_DIR / f"{job_id}.json"
+    path.write_text(json.dumps({"status": status}), encoding="utf-8")
+    return status

@@ -9,9 +9,11 @@ process by ``api.run``: the θ̃ of the distributed run must be equal bit for bi
 
 from __future__ import annotations
 
+import contextlib
 import functools
 import json
 import os
+import signal
 import subprocess
 import sys
 import time
@@ -34,6 +36,8 @@ TINY = [
 
 
 def _run(args: list[str], cwd: Path, *, env: dict[str, str] | None = None) -> subprocess.Popen:
+    """The command under the reaper, in a process group of its own (submitit's local jobs stay
+    in it), so that a failing test can end all of it."""
     return subprocess.Popen(
         [sys.executable, str(REAPER), *args],
         cwd=cwd,
@@ -41,14 +45,24 @@ def _run(args: list[str], cwd: Path, *, env: dict[str, str] | None = None) -> su
         stderr=subprocess.PIPE,
         text=True,
         env={**os.environ, "FEDHPG_LOG_LEVEL": "INFO", **(env or {})},
+        start_new_session=True,
     )
+
+
+def _end_group(process: subprocess.Popen) -> None:
+    """SIGTERM to the whole group (fedhpg-cluster then stops its jobs), SIGKILL if it lingers."""
+    for sig, grace_s in ((signal.SIGTERM, 15.0), (signal.SIGKILL, 5.0)):
+        with contextlib.suppress(ProcessLookupError):
+            os.killpg(process.pid, sig)
+        if wait_until(lambda: process.poll() is not None, grace_s):
+            return
 
 
 def _finish(process: subprocess.Popen) -> tuple[int, str, str]:
     try:
         out, err = process.communicate(timeout=TIMEOUT_S)
     except subprocess.TimeoutExpired:
-        process.kill()  # the reaper dies; its command's processes then die with their parents
+        _end_group(process)
         out, err = process.communicate()
         pytest.fail(f"timed out: {err[-3000:]}")
     assert "left behind" not in err, err[-3000:]
@@ -140,33 +154,59 @@ def test_a_federation_placed_through_submitit_equals_the_same_run_here(tmp_path:
     assert all("Job completed successfully" in t for t in texts)
 
 
-def test_a_dead_server_job_ends_the_placement_in_one_line(tmp_path: Path) -> None:
-    """The server process is killed mid-run: one line naming the job, exit 1, and the agent
-    jobs (which would wait for a server that will not come back) are stopped."""
+def _agent_pid(index: int, port: int) -> int | None:
+    """The pid of the fedhpg-agent command of agent ``index`` connected to ``port``."""
+    wanted = ("fedhpg-agent", f"agent.index={index}", f"server.port={port}")
+    for entry in Path("/proc").iterdir():
+        try:
+            words = (entry / "cmdline").read_bytes().decode(errors="replace").split("\0")
+        except (OSError, ValueError):
+            continue
+        program = any(w.endswith(f"/{wanted[0]}") for w in words[:2])  # python, the script
+        if program and all(w in words for w in wanted[1:]):
+            return int(entry.name)
+    return None
+
+
+def _rounds(run_dir: Path) -> int:
+    metrics = run_dir / "metrics.jsonl"
+    return len(metrics.read_text().splitlines()) if metrics.exists() else 0
+
+
+def test_a_crashed_agent_job_is_resubmitted_and_a_dead_server_ends_all(tmp_path: Path) -> None:
+    """Agent 1's process is killed mid-run: its job is resubmitted and the run goes on. Then
+    the server process is killed: one line naming its job, exit 1, and the agent jobs (which
+    would wait for a server that will not come back) are stopped."""
     run_dir = tmp_path / "run"
     process = _run(
         [
             str(BIN / "fedhpg-cluster"), "cluster=local", f"server.out_dir={run_dir}",
-            *TINY, "rounds=10000",
+            *TINY, "rounds=1000000", "eval.every=1000000",
         ],
         tmp_path,
         env={"FEDHPG_LOG_LEVEL": "WARNING"},
     )  # fmt: skip
     try:
-        assert wait_until(
-            lambda: (
-                (run_dir / "metrics.jsonl").exists()
-                and bool((run_dir / "metrics.jsonl").read_text())
-            ),
-            TIMEOUT_S,
-        ), "no round completed"
+        assert wait_until(lambda: _rounds(run_dir) > 0, TIMEOUT_S), "no round completed"
+        port = json.loads((run_dir / "endpoint.json").read_text())["port"]
+        agent = _agent_pid(1, port)
+        assert agent is not None
+        os.kill(agent, 9)
+        killed_at = _rounds(run_dir)
+        assert wait_until(lambda: _agent_pid(1, port) not in (None, agent), TIMEOUT_S)
+        assert wait_until(lambda: _rounds(run_dir) > killed_at + 10, TIMEOUT_S), "no rejoin"
         os.kill(int((run_dir / ".lock").read_text()), 9)  # the server's pid
-    finally:
-        status, _, err = _finish(process)
+    except BaseException:
+        _end_group(process)
+        raise
+    status, _, err = _finish(process)
     assert status == 1, err
     lines = err.strip().splitlines()
-    assert len(lines) == 1 and lines[0].startswith("error: the server job "), err
-    assert "exited with status -9" in lines[0] and "log: " in lines[0]
+    assert len(lines) == 2, err
+    assert "agent job of fedhpg-agent agent.index=1 exited with status -9; resubmitted" in lines[0]
+    assert lines[1].startswith("error: the server job ") and "exited with status -9" in lines[1]
+    assert "log: " in lines[1]
+    assert len([d for d in (run_dir / "submitit").iterdir() if d.name.isdigit()]) == 4
 
 
 @pytest.mark.parametrize(
