@@ -23,8 +23,11 @@ import pytest
 import torch
 from procs import BIN, wait_until
 
+from fedhpg.common.config import ConfigError
+from fedhpg.common.runtime.cli import compose
 from fedhpg.server import api
 from fedhpg.server.checkpoint import latest_valid_checkpoint
+from fedhpg.server.cluster import check_placement
 
 REAPER = Path(__file__).parent / "reaper.py"
 TIMEOUT_S = 120
@@ -214,11 +217,6 @@ def test_a_crashed_agent_job_is_resubmitted_and_a_dead_server_ends_all(tmp_path:
     [
         (["cluster.kind=pbs"], {}, "error: cluster.kind: got 'pbs', allowed: auto, slurm, local"),
         (["cluster=pbs"], {}, "error: cluster: no such option 'pbs'; allowed: local, slurm"),
-        (
-            ["cluster.array_parallelism=1"],
-            {},
-            "error: cluster.array_parallelism: got 1, below the 2 agent jobs",
-        ),
         ([], {"PYTHONPATH": "NO_SUBMITIT"}, "error: fedhpg-cluster needs submitit: pip install"),
     ],
 )
@@ -237,3 +235,13 @@ def test_mistakes_are_one_line_and_submit_nothing(
     assert status == 2, err
     assert err.strip().splitlines() == [err.strip()] and err.startswith(expected), err
     assert list(work.iterdir()) == [], "nothing created"
+
+
+def test_an_array_that_cannot_hold_every_agent_at_once_is_refused(tmp_path: Path) -> None:
+    """In this process (the entry point's one-line path is the one above): the check itself."""
+    run = compose([*TINY, "cluster.array_parallelism=1"])
+    with pytest.raises(ConfigError, match="got 1, below the 2 agent jobs: the server waits"):
+        check_placement(run, [])
+    run = compose([*TINY, "cluster.array_parallelism=2", f"server.out_dir={tmp_path / 'r'}"])
+    assert check_placement(run, []) == (tmp_path / "r").resolve()
+    assert not (tmp_path / "r").exists()
