@@ -79,7 +79,11 @@ def check_placement(run: RunConfig, overrides: Sequence[str]) -> Path:
     from fedhpg.server.strategies import validate_strategy
 
     if run.resume:
-        raise ConfigError("resume", "fedhpg-cluster starts new runs; resume with fedhpg-server")
+        raise ConfigError(
+            "resume",
+            "fedhpg-cluster starts new runs; resume one with fedhpg-server resume=true "
+            "server.out_dir=DIR and its agents (README: When the server dies)",
+        )
     validate_strategy(run)
     check_launch_keys(run)
     units = len(agent_commands(run, overrides))
@@ -113,9 +117,17 @@ def make_executor(run: RunConfig, run_dir: Path) -> Any:
     return executor
 
 
-def submit(run: RunConfig, overrides: Sequence[str], run_dir: Path) -> Placement:
+class SubmitError(Exception):
+    """The engine refused a job (sbatch failed, say): one line, exit 1."""
+
+
+def _one_line(error: BaseException) -> str:
+    lines = [line.strip() for line in str(error).splitlines() if line.strip()]
+    return lines[-1] if lines else type(error).__name__
+
+
+def submit(run: RunConfig, overrides: Sequence[str], run_dir: Path, executor: Any) -> Placement:
     """The server job, then the agent array (one ``batch()``: one sbatch --array on SLURM)."""
-    executor = make_executor(run, run_dir)
     bind_all = executor.cluster != "local"  # agents on other nodes; loopback when all are here
     endpoint = run_dir / ENDPOINT_NAME
     stop = run_dir / run.cluster.folder / STOP_NAME
@@ -124,18 +136,29 @@ def submit(run: RunConfig, overrides: Sequence[str], run_dir: Path) -> Placement
     shutil.rmtree(stop.parent / STATUS_DIR, ignore_errors=True)
     executor.update_parameters(name="fedhpg-server")
     command = server_command(run, overrides, run_dir, bind_all=bind_all)
-    server = executor.submit(run_unit, command, None, 0.0, str(stop))
+    try:
+        server = executor.submit(run_unit, command, None, 0.0, str(stop))
+    except Exception as error:  # the engine's own error (sbatch's message), whatever its type
+        raise SubmitError(f"cannot submit the server job: {_one_line(error)}") from None
     logger.info("submitted the server as job %s (%s)", server.job_id, executor.cluster)
     placement = Placement(executor=executor, endpoint=endpoint, stop=stop, server=server)
     commands = agent_commands(run, overrides)
     executor.update_parameters(
         name="fedhpg-agent", slurm_array_parallelism=run.cluster.array_parallelism or len(commands)
     )
-    with executor.batch():
-        pending = [
-            executor.submit(run_unit, c, str(endpoint), run.cluster.endpoint_timeout_s, str(stop))
-            for c in commands
-        ]
+    try:
+        with executor.batch():
+            pending = [
+                executor.submit(
+                    run_unit, c, str(endpoint), run.cluster.endpoint_timeout_s, str(stop)
+                )
+                for c in commands
+            ]
+    except Exception as error:
+        cancel_all(placement, graceful=False)  # likely still queued: nothing to stop yet
+        raise SubmitError(
+            f"cannot submit the agent jobs: {_one_line(error)} (the server job is cancelled)"
+        ) from None
     placement.agents = [AgentJob(c, job) for c, job in zip(commands, pending, strict=True)]
     logger.info("submitted %d agent jobs: %s", len(pending), ", ".join(j.job_id for j in pending))
     return placement
@@ -225,14 +248,15 @@ def supervise(run: RunConfig, placement: Placement) -> int:
     return 1 if failed else 0
 
 
-def cancel_all(placement: Placement) -> None:
+def cancel_all(placement: Placement, *, graceful: bool = True) -> None:
     """Stop every job still running: first through the stop file (each job ends its command,
-    the job completes), then by cancelling what is left; local jobs are waited for."""
+    the job completes) if ``graceful``, then by cancelling what is left; local jobs are
+    waited for."""
     running = [job for job in placement.jobs() if not job.done()]
     if not running:
         return
     placement.stop.touch()
-    deadline = time.monotonic() + STOP_WAIT_S
+    deadline = time.monotonic() + (STOP_WAIT_S if graceful else 0.0)
     while time.monotonic() < deadline and not all(job.done() for job in running):
         time.sleep(0.05)
     left = [job for job in running if not job.done()]
@@ -252,8 +276,9 @@ def cancel_all(placement: Placement) -> None:
     )
 
 
-def place(run: RunConfig, overrides: Sequence[str], run_dir: Path) -> int:
+def place(run: RunConfig, overrides: Sequence[str], run_dir: Path, executor: Any) -> int:
     """Submit the federation, watch it, cancel what is left; the exit status."""
+    new = not run_dir.exists()
     run_dir.mkdir(parents=True, exist_ok=True)
     placement: Placement | None = None
     previous = signal.getsignal(signal.SIGTERM)
@@ -263,11 +288,16 @@ def place(run: RunConfig, overrides: Sequence[str], run_dir: Path) -> int:
 
     signal.signal(signal.SIGTERM, interrupt)
     try:
-        placement = submit(run, overrides, run_dir)
+        placement = submit(run, overrides, run_dir, executor)
         status = supervise(run, placement)
         if status == 0:
             sys.stdout.write(f"run directory: {run_dir}\n")
         return status
+    except SubmitError as error:
+        sys.stderr.write(f"error: {error}\n")
+        if new:  # nothing ran in it: leave nothing behind
+            shutil.rmtree(run_dir, ignore_errors=True)
+        return 1
     except KeyboardInterrupt:
         logger.warning("interrupted: cancelling the federation's jobs")
         return EXIT_INTERRUPTED
@@ -319,5 +349,9 @@ def main(argv: Sequence[str] | None = None) -> None:
     except ImportError:
         sys.stderr.write(f"error: fedhpg-cluster needs submitit: {INSTALL_HINT}\n")
         sys.exit(EXIT_USAGE)
+    try:
+        executor = make_executor(run, run_dir)
+    except (RuntimeError, ValueError) as error:  # e.g. kind=slurm where SLURM is not
+        sys.exit(fail(ConfigError("cluster.kind", f"{run.cluster.kind}: {_one_line(error)}")))
     os.environ.setdefault("OMP_NUM_THREADS", "1")  # jobs inherit it (local; SLURM exports)
-    sys.exit(place(run, overrides, run_dir))
+    sys.exit(place(run, overrides, run_dir, executor))

@@ -245,3 +245,59 @@ def test_an_array_that_cannot_hold_every_agent_at_once_is_refused(tmp_path: Path
     run = compose([*TINY, "cluster.array_parallelism=2", f"server.out_dir={tmp_path / 'r'}"])
     assert check_placement(run, []) == (tmp_path / "r").resolve()
     assert not (tmp_path / "r").exists()
+
+
+FAKE_SBATCH = """#!/bin/sh
+# The first submission is accepted as job 42, the next refused, as sbatch refuses a bad one.
+dir=$(dirname "$0")
+n=$(ls "$dir"/sbatch-*.sh 2>/dev/null | wc -l)
+cp "$1" "$dir/sbatch-$n.sh"
+if [ "$n" = 0 ]; then echo "Submitted batch job 42"; exit 0; fi
+echo "sbatch: error: Batch job submission failed: Invalid partition name specified" >&2
+exit 1
+"""
+
+
+def test_slurm_jobs_go_through_sbatch_and_a_refusal_cancels_the_server_job(
+    tmp_path: Path,
+) -> None:
+    """SLURM cannot run here: stand-in sbatch, scancel, srun and sacct on PATH (the only
+    stand-ins in this file) take what submitit's real SLURM executor sends them. The server
+    job's script asks for what cluster.* says; the agents are one array of two; when sbatch
+    refuses the array, the accepted server job is cancelled, one line says why, exit 1, and
+    the run directory that nothing ran in is gone."""
+    bin_dir = tmp_path / "slurm-bin"
+    bin_dir.mkdir()
+    scripts = {
+        "sbatch": FAKE_SBATCH,
+        "scancel": '#!/bin/sh\necho "$@" >> "$(dirname "$0")/scancel.log"\n',
+        "srun": "#!/bin/sh\nexit 0\n",
+        "sacct": "#!/bin/sh\nexit 0\n",
+    }
+    for name, text in scripts.items():
+        (bin_dir / name).write_text(text)
+        (bin_dir / name).chmod(0o755)
+    run_dir = tmp_path / "run"
+    process = _run(
+        [
+            str(BIN / "fedhpg-cluster"), "cluster=slurm", "cluster.partition=cpu",
+            "cluster.time_min=7", "cluster.mem_gb=3", "cluster.cpus_per_task=2",
+            f"server.out_dir={run_dir}", *TINY,
+        ],
+        tmp_path,
+        env={"PATH": f"{bin_dir}:{os.environ['PATH']}", "FEDHPG_LOG_LEVEL": "WARNING"},
+    )  # fmt: skip
+    status, _, err = _finish(process)
+    assert status == 1, err
+    assert err.strip().splitlines()[-1] == (
+        "error: cannot submit the agent jobs: sbatch: error: Batch job submission failed: "
+        "Invalid partition name specified (the server job is cancelled)"
+    )
+    server, agents = ((bin_dir / f"sbatch-{n}.sh").read_text() for n in (0, 1))
+    for line in ("--partition=cpu", "--time=7", "--mem=3GB", "--cpus-per-task=2"):
+        assert f"#SBATCH {line}\n" in server and f"#SBATCH {line}\n" in agents
+    assert "#SBATCH --job-name=fedhpg-server\n" in server
+    assert "#SBATCH --job-name=fedhpg-agent\n" in agents and "#SBATCH --array=0-1%2\n" in agents
+    assert "-m submitit.core._submit" in server
+    assert (bin_dir / "scancel.log").read_text().split() == ["42"]
+    assert not run_dir.exists()
