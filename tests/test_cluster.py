@@ -301,3 +301,16 @@ def test_slurm_jobs_go_through_sbatch_and_a_refusal_cancels_the_server_job(
     assert "-m submitit.core._submit" in server
     assert (bin_dir / "scancel.log").read_text().split() == ["42"]
     assert not run_dir.exists()
+
+
+def test_only_fedhpg_cluster_lists_the_cluster_keys() -> None:
+    from fedhpg.common.runtime.help import help_text
+
+    own = help_text("fedhpg-cluster")
+    assert own.startswith("usage: fedhpg-cluster [cluster=local|slurm]")
+    assert "cluster.kind=auto" in own and "cluster.array_parallelism=null" in own
+    assert "cluster=     local, slurm" in own
+    for other in ("fedhpg-run", "fedhpg-server", "fedhpg-agent"):
+        text = help_text(other)
+        assert "cluster." not in text and "cluster=" not in text, other
+        assert "server.endpoint_file=null" in text
