@@ -29,6 +29,7 @@ CLOCKS = ("measured", "counted")
 TRANSPORTS = ("tcp", "ipc")
 ROUND_POLICIES = ("wait_all", "deadline")
 PARTICIPATION_MODES = ("all", "uniform", "trace")
+CLUSTER_KINDS = ("auto", "slurm", "local")
 LOG_STDS = ("state_independent", "state_dependent")
 
 # Liveness, part of the protocol: a peer silent for HEARTBEAT_LIVENESS intervals is presumed
@@ -304,6 +305,9 @@ class ServerConfig:
     tensorboard: bool = True
     """Also write TensorBoard event files to ``<out_dir>/tensorboard/`` (needs the optional
     ``tensorboard`` package; without it a warning, and metrics.jsonl alone)."""
+    endpoint_file: str | None = None
+    """Once listening, write where agents reach the server to this JSON file (host, port):
+    how ``fedhpg-cluster``'s agent jobs find a server on a port it chose (shared filesystem)."""
 
 
 @dataclass(kw_only=True)
@@ -342,6 +346,33 @@ class SecurityConfig:
 
 
 @dataclass(kw_only=True)
+class ClusterConfig:
+    """``fedhpg-cluster``: the jobs of a federation on a cluster engine (submitit)."""
+
+    kind: str = "auto"
+    """'slurm', 'local' or 'auto' (SLURM where sbatch is found, else local). 'local' runs the
+    same jobs as processes on this machine (submitit's LocalExecutor)."""
+    partition: str | None = None
+    """SLURM partition of every job; None = the cluster's default."""
+    time_min: int = 60
+    """Wall-clock limit of every job, in minutes (submitit's timeout_min)."""
+    mem_gb: float = 4.0
+    """Memory of every job, in GB (SLURM)."""
+    cpus_per_task: int = 1
+    """CPU cores of every job (SLURM)."""
+    array_parallelism: int | None = None
+    """Agent-side jobs of the array running at once; None = all. Never fewer than the jobs:
+    the server waits for every agent before round 1."""
+    folder: str = "submitit"
+    """Where submitit keeps its job files and logs, relative to the run directory."""
+    endpoint_timeout_s: float = 600.0
+    """How long an agent job waits for the server job's endpoint file (queueing included)."""
+    advertise_host: str | None = None
+    """The address agents connect to; None = the server node's hostname on SLURM (which then
+    binds every interface), loopback for 'local'."""
+
+
+@dataclass(kw_only=True)
 class RunConfig:
     """One federated run."""
 
@@ -361,6 +392,7 @@ class RunConfig:
     server: ServerConfig = field(default_factory=ServerConfig)
     agent: AgentConfig = field(default_factory=AgentConfig)
     security: SecurityConfig = field(default_factory=SecurityConfig)
+    cluster: ClusterConfig = field(default_factory=ClusterConfig)
     resume: str | None = None
     """Continue a killed run: 'true' resumes ``server.out_dir``; a path resumes that run
     directory (``fedhpg-run resume=DIR``)."""
@@ -393,6 +425,7 @@ GROUPS: dict[str, GroupRole] = {
     "server": GroupRole(dictated=False, fixed=False, compared=False),
     "agent": GroupRole(dictated=False, fixed=False, compared=False),
     "security": GroupRole(dictated=False, fixed=False, compared=False),  # paths stay on host
+    "cluster": GroupRole(dictated=False, fixed=False, compared=False),  # fedhpg-cluster's jobs
     "resume": GroupRole(dictated=False, fixed=False, compared=False),
 }
 REPLICATE_KEYS = ("seed", "env.seed")
@@ -597,7 +630,23 @@ def validate(config: RunConfig) -> RunConfig:
         "security.curve",
         f"got {config.security.curve!r}, must be true or false",
     )
+    _validate_cluster(config.cluster)
     return config
+
+
+def _validate_cluster(cluster: ClusterConfig) -> None:
+    _check_choice(cluster.kind, "cluster.kind", CLUSTER_KINDS)
+    _check_int(cluster.time_min, "cluster.time_min", low=1)
+    _check_number(cluster.mem_gb, "cluster.mem_gb", low=0.0, low_open=True)
+    _check_int(cluster.cpus_per_task, "cluster.cpus_per_task", low=1)
+    if cluster.array_parallelism is not None:
+        _check_int(cluster.array_parallelism, "cluster.array_parallelism", low=1)
+    _require(
+        bool(cluster.folder.strip()) and not cluster.folder.startswith("/"),
+        "cluster.folder",
+        f"got {cluster.folder!r}, must be a path relative to the run directory",
+    )
+    _check_number(cluster.endpoint_timeout_s, "cluster.endpoint_timeout_s", low=0.0, low_open=True)
 
 
 def agent_id_of(index: int, explicit: str | None = None) -> str:

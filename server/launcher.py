@@ -269,8 +269,9 @@ def run_federation(run: RunConfig, *, port: bool = False) -> int:
 def _hydra_task(cfg: object) -> None:
     from hydra.core.hydra_config import HydraConfig
 
-    from fedhpg.common.runtime.cli import limit_threads, to_run_config
+    from fedhpg.common.runtime.cli import limit_threads, setup_logging, to_run_config
 
+    setup_logging()  # a sweep job may run in a fresh process (joblib's, submitit's launchers)
     try:  # checked before Hydra started; again here for what only the job sees
         run = to_run_config(cfg)
         check_launch(run)

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import logging
+import socket as socket_module
 import sys
 import time
 import uuid
@@ -329,8 +330,11 @@ def _main(run: RunConfig) -> int:
     out_dir = Path(run.server.out_dir) if run.server.out_dir else default_out_dir()
     if run.resume and run.resume.lower() != "true":
         out_dir = Path(run.resume)
+    on_bound = None
+    if run.server.endpoint_file:
+        on_bound = endpoint_writer(run, Path(run.server.endpoint_file))
     try:
-        serve(run, out_dir=out_dir)
+        serve(run, out_dir=out_dir, on_bound=on_bound)
     except (FederationError, RunDirectoryError) as error:
         logger.error("%s", error)
         return 1
@@ -338,6 +342,29 @@ def _main(run: RunConfig) -> int:
         sys.stderr.write(f"error: {bind_error(run, error)}\n")
         return 1
     return 0
+
+
+def endpoint_writer(run: RunConfig, path: Path) -> Callable[[str], None]:
+    """``server.endpoint_file``: once bound, where agents reach this server, as JSON
+    (``host``, ``port``, ``transport``), written atomically so a reader never sees half of it.
+    Bound to every interface, the advertised host is ``cluster.advertise_host`` or this node's
+    name; otherwise the host it bound."""
+
+    def write(bound: str) -> None:
+        record: dict[str, Any] = {"transport": run.server.transport, "endpoint": bound}
+        if run.server.transport == "tcp":
+            host = run.server.host
+            if run.server.bind_all:
+                host = run.cluster.advertise_host or socket_module.gethostname()
+            record |= {"host": host, "port": int(bound.rsplit(":", 1)[1])}
+        try:
+            write_atomic(path, json.dumps(record).encode())
+        except OSError as error:
+            raise RunDirectoryError(
+                f"server.endpoint_file: cannot write {path}: {error.strerror or error}"
+            ) from None
+
+    return write
 
 
 def bind_error(run: RunConfig, error: zmq.ZMQError) -> str:

@@ -17,11 +17,14 @@ USAGE = {
     "fedhpg-run": "[-m] [group=option ...] [key=value ...]",
     "fedhpg-server": "[key=value ...]",
     "fedhpg-agent": "agent.index=K [key=value ...]",
+    "fedhpg-cluster": "[cluster=local|slurm] [cluster.key=value ...] [key=value ...]",
 }
 WHAT = {
     "fedhpg-run": "Run a whole federation on this machine: one server and K agent processes.",
     "fedhpg-server": "Run the server of a federation: bind, wait for K agents, run the rounds.",
     "fedhpg-agent": "Run one agent of a federation: connect to the server, train when asked.",
+    "fedhpg-cluster": "Place a federation on a cluster engine (submitit): the server one job, "
+    "the agents a job array.",
 }
 EXAMPLES = {
     "fedhpg-run": [
@@ -35,7 +38,14 @@ EXAMPLES = {
         "fedhpg-server resume=true server.out_dir=runs/manual rounds=80",
     ],
     "fedhpg-agent": ["fedhpg-agent agent.index=0 server.host=127.0.0.1 server.port=5555"],
+    "fedhpg-cluster": [
+        "fedhpg-cluster cluster=local rounds=20  # the same jobs as processes on this machine",
+        "fedhpg-cluster cluster=slurm cluster.partition=cpu cluster.time_min=120 "
+        "server.out_dir=/shared/runs/a",
+    ],
 }
+OWN_SECTIONS = {"cluster": "fedhpg-cluster"}
+"""Config sections that only one program reads: listed in its help alone."""
 LINE_WIDTH = 110
 KEY_COLUMN = 40
 
@@ -121,11 +131,15 @@ def help_text(program: str) -> str:
         "config groups (group=option):",
     ]
     for name, options in sorted(groups.items()):
+        if OWN_SECTIONS.get(name, program) != program:
+            continue
         marked = [f"{o} (default)" if o == chosen.get(name) else o for o in options]
         lines.append(f"  {name + '=':<12} {', '.join(marked)}")
     lines += ["", "keys (key=value; default, then what it is):"]
     section = ""
     for key, doc in _key_docs().items():
+        if OWN_SECTIONS.get(key.split(".")[0], program) != program:
+            continue
         if "." in key and key.split(".")[0] != section:
             section = key.split(".")[0]
             lines.append(f" {section}.*")
