@@ -92,5 +92,3 @@ def variant_digest(run: RunConfig, variant: EnvVariant) -> str:
     The server refuses an agent whose digest differs from the one it computed for its index."""
     text = f"{variant.digest()}|H={training_horizon(run, variant)}|γ={discount(run, variant)!r}"
     return hashlib.sha256(text.encode()).hexdigest()[:32]
-
-

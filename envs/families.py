@@ -104,9 +104,7 @@ def _cartpole_at(
                 family="cartpole",
                 index=int(k),
                 gamma=_gamma(gamma, level, row[5]),
-                params={
-                    key: round(v, 4) for key, v in physics.items() if key in CARTPOLE_REPORTED
-                },
+                params={key: round(v, 4) for key, v in physics.items() if key in CARTPOLE_REPORTED},
                 env_id="CartPole-v1",
                 attributes=physics,
             )

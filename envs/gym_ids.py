@@ -48,9 +48,7 @@ def make_variant_env(
     """Agent ``index``'s variant of ``family``, as one gymnasium env."""
     if not 0 <= index < num_agents:
         raise ValueError(f"index must be in [0, num_agents={num_agents}), got {index!r}")
-    variant = make_variant(
-        family, index, seed=seed, num_agents=num_agents, level=level, **options
-    )
+    variant = make_variant(family, index, seed=seed, num_agents=num_agents, level=level, **options)
     return variant.make_env(render_mode=render_mode)
 
 

@@ -44,7 +44,7 @@ class UnknownEnvFamilyError(ValueError):
 
 
 def _gridworld_at(
-    indices: Sequence[int], *, seed: int, num_agents: int, level: float, **options: Any
+    indices: Sequence[int], /, *, seed: int, num_agents: int, level: float, **options: Any
 ) -> list[EnvVariant]:
     from fedhpg.envs.gridworld import gridworld_variants_at
 
