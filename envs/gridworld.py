@@ -465,12 +465,13 @@ def gridworld_variants_at(
     shared_goal = (size - 1, size - 1)
     shared_path, order = _shared_draws(seed, size)
     border = _goal_cells(size)
+    shared_candidates = _obstacle_candidates(shared_path, size)
     variants = []
     for index in map(int, indices):
         goal = border[order[index % len(border)]] if vary_goal else shared_goal
         agent_rng = np.random.default_rng([seed, _GENERATOR_STREAM, index])
         path = _monotone_path(agent_rng, goal) if vary_goal else list(shared_path)
-        candidates = _obstacle_candidates(path, size)
+        candidates = _obstacle_candidates(path, size) if vary_goal else shared_candidates
         count = _obstacle_count(level, len(candidates))
         chosen: list[int] = (
             agent_rng.choice(len(candidates), size=count, replace=False).tolist() if count else []

@@ -297,11 +297,6 @@ def _serve_claimed(
         agent: {"gamma": variant.gamma, **variant.params}
         for agent, variant in zip(pool.agent_ids, run_variants(run), strict=True)
     }
-    algorithm, _ = resolve_algorithm(run)
-    compute = {}
-    for k, agent in enumerate(pool.agent_ids):
-        profile = agent_profile(run, k)
-        compute[agent] = f"{algorithm.describe_budget(profile.budget)} speed={profile.speed:g}"
     summary = {
         "rounds": run.rounds,
         "final_eval_round": last_eval.get("round"),
@@ -312,6 +307,12 @@ def _serve_claimed(
     }
     write_atomic(out_dir / "summary.json", json.dumps(summary, indent=2).encode())
     if last_eval:
+        # each agent's budget only for the table (~1 ms an agent where a population draws it)
+        algorithm, _ = resolve_algorithm(run)
+        compute = {}
+        for k, agent in enumerate(pool.agent_ids):
+            profile = agent_profile(run, k)
+            compute[agent] = f"{algorithm.describe_budget(profile.budget)} speed={profile.speed:g}"
         sys.stdout.write(
             f"\nUnified policy after round {last_eval['round']} "
             f"({run.eval.episodes} {'greedy' if run.eval.greedy else 'sampled'} episodes "
