@@ -148,7 +148,9 @@ def _all_variants(
 ) -> list[EnvVariant]:
     """The K-list of a family without ``variants_at``, built once per (family, seed, K, level,
     options) and kept among the last :data:`EAGER_CACHE_SIZE` ones."""
-    key = (family, seed, num_agents, level, json.dumps(options, sort_keys=True, default=repr))
+    # The factory itself in the key: a name registered anew (tests, reloads) is a new family.
+    options_key = json.dumps(options, sort_keys=True, default=repr)
+    key = (factory, family, seed, num_agents, level, options_key)
     if key in _EAGER:
         _EAGER.move_to_end(key)
         return _EAGER[key]
