@@ -103,14 +103,15 @@ def _check_population_budgets(run: RunConfig, algorithm: Algorithm[Any, Any]) ->
 
 
 def validate_env_family(run: RunConfig) -> None:
-    """``env.family`` and ``env.options``, checked by generating the K variants through the
-    family registry (whatever a family is: built in, a plugin's, a dotted path). Cheap: a
-    variant holds parameters, its environment is built later (~2 ms for K=10 GridWorlds)."""
-    from fedhpg.common.variants import run_variants
+    """``env.family`` and ``env.options``, checked by generating agent 0's variant through
+    the family registry (whatever a family is: built in, a plugin's, a dotted path). Cheap: a
+    variant holds parameters, its environment is built later; a family without per-index
+    variants makes (and caches) all K here."""
+    from fedhpg.common.variants import variant_of
     from fedhpg.envs.registry import UnknownEnvFamilyError
 
     try:
-        run_variants(run)
+        variant_of(run, 0)
     except UnknownEnvFamilyError as error:
         raise ConfigError("env.family", str(error)) from None
     except (TypeError, ValueError) as error:

@@ -1,24 +1,80 @@
-"""A run's K environment variants, and the settings each agent derives from its own."""
+"""A run's K environment variants, and the settings each agent derives from its own.
+
+Variants are made per agent index (:func:`variant_of`, :func:`variants_of`): at K = 10 000 an
+agent host builds its own agents' variants and the server the few it needs, never the K-long
+list. :func:`run_variants` is the K variants as a lazy sequence, each built when it is read.
+"""
 
 from __future__ import annotations
 
 import hashlib
+from collections.abc import Iterable, Iterator, Sequence
+from typing import overload
 
 from fedhpg.common.config import RunConfig
 from fedhpg.envs.base import EnvVariant
-from fedhpg.envs.registry import make_variants
+from fedhpg.envs.registry import make_variants_at
+
+ITERATION_CHUNK = 1024
+"""Variants made together while iterating :class:`RunVariants` (one draw of their rows)."""
 
 
-def run_variants(run: RunConfig) -> list[EnvVariant]:
-    """The K environment variants of a run (deterministic in env.* and the seed)."""
+def variants_of(run: RunConfig, indices: Iterable[int]) -> dict[int, EnvVariant]:
+    """The variants of agents ``indices``, by index (deterministic in env.* and the seed)."""
+    wanted = list(dict.fromkeys(int(k) for k in indices))
     env = run.env
-    return make_variants(
+    made = make_variants_at(
         env.family,
+        wanted,
         seed=run.seed if env.seed is None else env.seed,
         num_agents=run.agents.num_agents,
         level=env.level,
         **env.options,
     )
+    return dict(zip(wanted, made, strict=True))
+
+
+def variant_of(run: RunConfig, index: int) -> EnvVariant:
+    """Agent ``index``'s variant; IndexError outside [0, K)."""
+    return variants_of(run, [index])[index]
+
+
+class RunVariants(Sequence[EnvVariant]):
+    """The K variants of a run, each made when read (never all held): ``variants[k]`` is
+    :func:`variant_of`, iteration makes them :data:`ITERATION_CHUNK` at a time."""
+
+    def __init__(self, run: RunConfig) -> None:
+        self.run = run
+
+    def __len__(self) -> int:
+        return self.run.agents.num_agents
+
+    @overload
+    def __getitem__(self, index: int) -> EnvVariant: ...
+
+    @overload
+    def __getitem__(self, index: slice) -> list[EnvVariant]: ...
+
+    def __getitem__(self, index: int | slice) -> EnvVariant | list[EnvVariant]:
+        if isinstance(index, slice):
+            indices = range(len(self))[index]
+            return list(variants_of(self.run, indices).values())
+        k = index + len(self) if index < 0 else index
+        if not 0 <= k < len(self):
+            raise IndexError(f"agent index {index} is not in [0, {len(self)})")
+        return variant_of(self.run, k)
+
+    def __iter__(self) -> Iterator[EnvVariant]:
+        for first in range(0, len(self), ITERATION_CHUNK):
+            yield from self[first : first + ITERATION_CHUNK]
+
+    def __repr__(self) -> str:
+        return f"RunVariants({self.run.env.family!r}, K={len(self)})"
+
+
+def run_variants(run: RunConfig) -> RunVariants:
+    """The K environment variants of a run (deterministic in env.* and the seed), made lazily."""
+    return RunVariants(run)
 
 
 def training_horizon(run: RunConfig, variant: EnvVariant) -> int:

@@ -15,29 +15,54 @@ spread below. Observation and action spaces never change.
 | halfcheetah | gravity ±30%, friction ±50%, body masses ±30%; action cost 0.1 × (1 ± 0.5·level·u) |
 
 Each variant also gets its own discount γ_k = gamma − 0.01·level·|u| unless the run fixes one.
+
+The u of all K agents form one K×count matrix drawn row-major from one stream, so agent k's
+row does not depend on K; :func:`_rows` draws the rows asked for alone, and each family is a
+:class:`~fedhpg.envs.lazy.LazyFamily` (agent 9 999 of 10 000 costs what agent 0 does).
 """
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Sequence
 from typing import Any
 
 import numpy as np
 
 from fedhpg.envs.base import EnvVariant
 from fedhpg.envs.gym_variant import GymVariant
+from fedhpg.envs.lazy import LazyFamily
 from fedhpg.envs.mujoco_assets import without_settotalmass
 
-FamilyFactory = Callable[..., list[EnvVariant]]
+FamilyFactory = LazyFamily
+
+SPAN_GAP = 4096
+"""Rows asked for that lie closer than this are drawn in one span with the rows between them
+(cheaper than a new generator: ~14 µs); farther apart, the next span skips ahead."""
 
 
-def _draws(seed: int, tag: int, num_agents: int, count: int) -> np.ndarray:
-    """u in [−1, 1], shape [K, count], reproducible from (seed, family)."""
-    return np.random.default_rng([seed, tag]).uniform(-1.0, 1.0, size=(num_agents, count))
+def _rows(seed: int, tag: int, indices: Sequence[int], count: int) -> np.ndarray:
+    """Rows ``indices`` of u = ``default_rng([seed, tag]).uniform(−1, 1, size=(K, count))``,
+    u in [−1, 1] reproducible from (seed, family), without drawing the rows before them: a
+    uniform double takes one 64-bit output of PCG64, filled row-major, so row k starts at
+    output k·count and the bit generator's ``advance`` jumps there in O(log k)."""
+    wanted = np.asarray(indices, dtype=np.int64).reshape(-1)
+    out = np.empty((wanted.size, count))
+    if wanted.size == 0:
+        return out
+    order = np.argsort(wanted, kind="stable")
+    ascending = wanted[order]
+    spans = np.split(order, np.flatnonzero(np.diff(ascending) > SPAN_GAP) + 1)
+    for span in spans:
+        first, last = int(wanted[span].min()), int(wanted[span].max())
+        bits = np.random.PCG64([seed, tag])
+        bits.advance(first * count)
+        drawn = np.random.Generator(bits).uniform(-1.0, 1.0, size=(last - first + 1, count))
+        out[span] = drawn[wanted[span] - first]
+    return out
 
 
-def _gammas(gamma: float, level: float, u: np.ndarray) -> list[float]:
-    return [round(gamma - 0.01 * level * abs(float(x)), 6) for x in u]
+def _gamma(gamma: float, level: float, u: float) -> float:
+    return round(gamma - 0.01 * level * abs(float(u)), 6)
 
 
 def _reject_options(family: str, options: dict[str, Any]) -> None:
@@ -48,35 +73,38 @@ def _reject_options(family: str, options: dict[str, Any]) -> None:
 CARTPOLE_REPORTED = ("length", "masspole", "masscart", "force_mag", "gravity")
 
 
-def cartpole(
-    *, seed: int, num_agents: int, level: float, gamma: float = 0.99, **options: Any
+def _cartpole_at(
+    indices: Sequence[int],
+    /,
+    *,
+    seed: int,
+    num_agents: int,
+    level: float,
+    gamma: float = 0.99,
+    **options: Any,
 ) -> list[EnvVariant]:
     _reject_options("cartpole", options)
-    u = _draws(seed, 0xCA27, num_agents, 6)
+    u = _rows(seed, 0xCA27, indices, 6)
     variants: list[EnvVariant] = []
-    for k in range(num_agents):
-        length = 0.5 + 0.4 * level * u[k, 0]
-        masspole = 0.1 * (1 + 0.5 * level * u[k, 1])
-        masscart = 1.0 * (1 + 0.5 * level * u[k, 2])
+    for k, row in zip(indices, u, strict=True):
+        length = 0.5 + 0.4 * level * row[0]
+        masspole = 0.1 * (1 + 0.5 * level * row[1])
+        masscart = 1.0 * (1 + 0.5 * level * row[2])
         physics = {
             "length": float(length),
             "masspole": float(masspole),
             "masscart": float(masscart),
             "total_mass": float(masspole + masscart),
             "polemass_length": float(masspole * length),
-            "force_mag": float(10.0 * (1 + 0.3 * level * u[k, 3])),
-            "gravity": float(9.8 * (1 + 0.2 * level * u[k, 4])),
+            "force_mag": float(10.0 * (1 + 0.3 * level * row[3])),
+            "gravity": float(9.8 * (1 + 0.2 * level * row[4])),
         }
         variants.append(
             GymVariant(
                 family="cartpole",
-                index=k,
-                gamma=_gammas(gamma, level, u[:, 5])[k],
-                params={
-                    key: round(v, 4)
-                    for key, v in physics.items()
-                    if key in ("length", "masspole", "masscart", "force_mag", "gravity")
-                },
+                index=int(k),
+                gamma=_gamma(gamma, level, row[5]),
+                params={key: round(v, 4) for key, v in physics.items() if key in CARTPOLE_REPORTED},
                 env_id="CartPole-v1",
                 attributes=physics,
             )
@@ -84,23 +112,30 @@ def cartpole(
     return variants
 
 
-def acrobot(
-    *, seed: int, num_agents: int, level: float, gamma: float = 0.99, **options: Any
+def _acrobot_at(
+    indices: Sequence[int],
+    /,
+    *,
+    seed: int,
+    num_agents: int,
+    level: float,
+    gamma: float = 0.99,
+    **options: Any,
 ) -> list[EnvVariant]:
     _reject_options("acrobot", options)
-    u = _draws(seed, 0xAC20, num_agents, 5)
+    u = _rows(seed, 0xAC20, indices, 5)
     names = ("LINK_LENGTH_1", "LINK_LENGTH_2", "LINK_MASS_1", "LINK_MASS_2")
     variants: list[EnvVariant] = []
-    for k in range(num_agents):
-        physics = {name: float(1.0 * (1 + 0.4 * level * u[k, i])) for i, name in enumerate(names)}
+    for k, row in zip(indices, u, strict=True):
+        physics = {name: float(1.0 * (1 + 0.4 * level * row[i])) for i, name in enumerate(names)}
         # The centre of mass sits mid-link; keep it there when the length changes.
         physics["LINK_COM_POS_1"] = physics["LINK_LENGTH_1"] / 2
         physics["LINK_COM_POS_2"] = physics["LINK_LENGTH_2"] / 2
         variants.append(
             GymVariant(
                 family="acrobot",
-                index=k,
-                gamma=_gammas(gamma, level, u[:, 4])[k],
+                index=int(k),
+                gamma=_gamma(gamma, level, row[4]),
                 params={n.lower(): round(physics[n], 4) for n in names},
                 env_id="Acrobot-v1",
                 attributes=physics,
@@ -109,24 +144,31 @@ def acrobot(
     return variants
 
 
-def pendulum(
-    *, seed: int, num_agents: int, level: float, gamma: float = 0.99, **options: Any
+def _pendulum_at(
+    indices: Sequence[int],
+    /,
+    *,
+    seed: int,
+    num_agents: int,
+    level: float,
+    gamma: float = 0.99,
+    **options: Any,
 ) -> list[EnvVariant]:
     _reject_options("pendulum", options)
-    u = _draws(seed, 0x9E4D, num_agents, 5)
+    u = _rows(seed, 0x9E4D, indices, 5)
     variants: list[EnvVariant] = []
-    for k in range(num_agents):
+    for k, row in zip(indices, u, strict=True):
         physics = {
-            "g": float(10.0 * (1 + 0.3 * level * u[k, 0])),
-            "m": float(1.0 * (1 + 0.4 * level * u[k, 1])),
-            "l": float(1.0 * (1 + 0.4 * level * u[k, 2])),
+            "g": float(10.0 * (1 + 0.3 * level * row[0])),
+            "m": float(1.0 * (1 + 0.4 * level * row[1])),
+            "l": float(1.0 * (1 + 0.4 * level * row[2])),
         }
-        cost = 0.01 * level * (1 + u[k, 3]) / 2
+        cost = 0.01 * level * (1 + row[3]) / 2
         variants.append(
             GymVariant(
                 family="pendulum",
-                index=k,
-                gamma=_gammas(gamma, level, u[:, 4])[k],
+                index=int(k),
+                gamma=_gamma(gamma, level, row[4]),
                 params={
                     **{key: round(v, 4) for key, v in physics.items()},
                     "action_cost": round(cost, 5),
@@ -139,8 +181,9 @@ def pendulum(
     return variants
 
 
-def _lunarlander(
+def _lunarlander_at(
     continuous: bool,
+    indices: Sequence[int],
     *,
     seed: int,
     num_agents: int,
@@ -150,26 +193,26 @@ def _lunarlander(
 ) -> list[EnvVariant]:
     family = "lunarlander-continuous" if continuous else "lunarlander"
     _reject_options(family, options)
-    u = _draws(seed, 0x1A4D, num_agents, 5)
+    u = _rows(seed, 0x1A4D, indices, 5)
     variants: list[EnvVariant] = []
-    for k in range(num_agents):
-        wind = 15.0 * level * (1 + u[k, 1]) / 2
+    for k, row in zip(indices, u, strict=True):
+        wind = 15.0 * level * (1 + row[1]) / 2
         kwargs = {
             "continuous": continuous,
-            "gravity": float(np.clip(-10.0 + 1.5 * level * u[k, 0], -11.99, -0.01)),
+            "gravity": float(np.clip(-10.0 + 1.5 * level * row[0], -11.99, -0.01)),
             "enable_wind": bool(wind > 0.0),
             "wind_power": float(wind),
-            "turbulence_power": float(1.5 * level * (1 + u[k, 2]) / 2),
+            "turbulence_power": float(1.5 * level * (1 + row[2]) / 2),
         }
-        cost = 0.1 * level * (1 + u[k, 3]) / 2 if continuous else 0.0
+        cost = 0.1 * level * (1 + row[3]) / 2 if continuous else 0.0
         params = {key: round(v, 4) for key, v in kwargs.items() if isinstance(v, float)}
         if continuous:
             params["action_cost"] = round(float(cost), 5)
         variants.append(
             GymVariant(
                 family=family,
-                index=k,
-                gamma=_gammas(gamma, level, u[:, 4])[k],
+                index=int(k),
+                gamma=_gamma(gamma, level, row[4]),
                 params=params,
                 env_id="LunarLander-v3",
                 env_kwargs=kwargs,
@@ -179,33 +222,40 @@ def _lunarlander(
     return variants
 
 
-def lunarlander(**kwargs: Any) -> list[EnvVariant]:
-    return _lunarlander(False, **kwargs)
+def _discrete_lander_at(indices: Sequence[int], /, **kwargs: Any) -> list[EnvVariant]:
+    return _lunarlander_at(False, indices, **kwargs)
 
 
-def lunarlander_continuous(**kwargs: Any) -> list[EnvVariant]:
-    return _lunarlander(True, **kwargs)
+def _continuous_lander_at(indices: Sequence[int], /, **kwargs: Any) -> list[EnvVariant]:
+    return _lunarlander_at(True, indices, **kwargs)
 
 
-def halfcheetah(
-    *, seed: int, num_agents: int, level: float, gamma: float = 0.99, **options: Any
+def _halfcheetah_at(
+    indices: Sequence[int],
+    /,
+    *,
+    seed: int,
+    num_agents: int,
+    level: float,
+    gamma: float = 0.99,
+    **options: Any,
 ) -> list[EnvVariant]:
     _reject_options("halfcheetah", options)
     xml_file, total_mass = without_settotalmass("half_cheetah.xml")
-    u = _draws(seed, 0x4C, num_agents, 5)
+    u = _rows(seed, 0x4C, indices, 5)
     variants: list[EnvVariant] = []
-    for k in range(num_agents):
+    for k, row in zip(indices, u, strict=True):
         scales = {
-            "gravity": float(1 + 0.3 * level * u[k, 0]),
-            "friction": float(1 + 0.5 * level * u[k, 1]),
-            "mass": float(1 + 0.3 * level * u[k, 2]),
+            "gravity": float(1 + 0.3 * level * row[0]),
+            "friction": float(1 + 0.5 * level * row[1]),
+            "mass": float(1 + 0.3 * level * row[2]),
         }
-        cost = 0.1 * (1 + 0.5 * level * u[k, 3])
+        cost = 0.1 * (1 + 0.5 * level * row[3])
         variants.append(
             GymVariant(
                 family="halfcheetah",
-                index=k,
-                gamma=_gammas(gamma, level, u[:, 4])[k],
+                index=int(k),
+                gamma=_gamma(gamma, level, row[4]),
                 params={
                     **{f"{n}_scale": round(v, 4) for n, v in scales.items()},
                     "ctrl_cost_weight": round(cost, 4),
@@ -218,6 +268,13 @@ def halfcheetah(
         )
     return variants
 
+
+cartpole = LazyFamily(_cartpole_at)
+acrobot = LazyFamily(_acrobot_at)
+pendulum = LazyFamily(_pendulum_at)
+lunarlander = LazyFamily(_discrete_lander_at)
+lunarlander_continuous = LazyFamily(_continuous_lander_at)
+halfcheetah = LazyFamily(_halfcheetah_at)
 
 GYM_FAMILIES: dict[str, FamilyFactory] = {
     "cartpole": cartpole,

@@ -9,6 +9,7 @@ The demo set of the default run (``conf/config.yaml``) is :func:`demo_variants`,
 
 from __future__ import annotations
 
+import functools
 import itertools
 import logging
 from collections.abc import Sequence
@@ -418,7 +419,42 @@ def make_gridworld_variants(
     With ``vary_goal`` every agent gets its own goal on the bottom row or right column
     (distinct while there are enough such cells) and its own safe path: rewards that conflict,
     so no common policy need solve all variants. The goals differ even at level 0.
+
+    Agent k's variant depends on (seed, k) alone, not on K: :func:`gridworld_variants_at`
+    makes the variants of some agents only.
     """
+    return gridworld_variants_at(
+        range(num_agents),
+        seed=seed,
+        num_agents=num_agents,
+        level=level,
+        size=size,
+        max_steps=max_steps,
+        vary_goal=vary_goal,
+    )
+
+
+@functools.lru_cache(maxsize=8)
+def _shared_draws(seed: int, size: int) -> tuple[tuple[Cell, ...], tuple[int, ...]]:
+    """What every agent of a seed shares: the safe path to the common goal, and the order in
+    which ``vary_goal`` hands out the border goals (both from the seed's stream, in this order)."""
+    rng = np.random.default_rng([seed, _GENERATOR_STREAM])
+    shared_path = _monotone_path(rng, (size - 1, size - 1))
+    order = rng.permutation(len(_goal_cells(size)))
+    return tuple(shared_path), tuple(int(i) for i in order)
+
+
+def gridworld_variants_at(
+    indices: Sequence[int],
+    *,
+    seed: int,
+    num_agents: int,
+    level: float,
+    size: int = 5,
+    max_steps: int = 50,
+    vary_goal: bool = False,
+) -> list[GridWorldVariant]:
+    """The variants of agents ``indices`` of :func:`make_gridworld_variants`, each built alone."""
     if not 0.0 <= level <= 1.0:
         raise ValueError(f"heterogeneity level must be in [0, 1], got {level}")
     if size < 3:
@@ -426,20 +462,16 @@ def make_gridworld_variants(
     if num_agents < 1:
         raise ValueError(f"num_agents must be >= 1, got {num_agents}")
     _check_max_steps(max_steps)
-    rng = np.random.default_rng([seed, _GENERATOR_STREAM])
     shared_goal = (size - 1, size - 1)
-    shared_path = _monotone_path(rng, shared_goal)
-    if vary_goal:
-        border = _goal_cells(size)
-        order = rng.permutation(len(border))
-        goals = [border[int(order[k % len(border)])] for k in range(num_agents)]
-    else:
-        goals = [shared_goal] * num_agents
+    shared_path, order = _shared_draws(seed, size)
+    border = _goal_cells(size)
+    shared_candidates = _obstacle_candidates(shared_path, size)
     variants = []
-    for index, goal in enumerate(goals):
+    for index in map(int, indices):
+        goal = border[order[index % len(border)]] if vary_goal else shared_goal
         agent_rng = np.random.default_rng([seed, _GENERATOR_STREAM, index])
-        path = _monotone_path(agent_rng, goal) if vary_goal else shared_path
-        candidates = _obstacle_candidates(path, size)
+        path = _monotone_path(agent_rng, goal) if vary_goal else list(shared_path)
+        candidates = _obstacle_candidates(path, size) if vary_goal else shared_candidates
         count = _obstacle_count(level, len(candidates))
         chosen: list[int] = (
             agent_rng.choice(len(candidates), size=count, replace=False).tolist() if count else []

@@ -18,7 +18,7 @@ from typing import Any
 
 import gymnasium as gym
 
-from fedhpg.envs.registry import make_variants
+from fedhpg.envs.registry import make_variant
 
 GYM_IDS: dict[str, str] = {
     "gridworld": "fedhpg/GridWorldVariant-v0",
@@ -48,8 +48,8 @@ def make_variant_env(
     """Agent ``index``'s variant of ``family``, as one gymnasium env."""
     if not 0 <= index < num_agents:
         raise ValueError(f"index must be in [0, num_agents={num_agents}), got {index!r}")
-    variants = make_variants(family, seed=seed, num_agents=num_agents, level=level, **options)
-    return variants[index].make_env(render_mode=render_mode)
+    variant = make_variant(family, index, seed=seed, num_agents=num_agents, level=level, **options)
+    return variant.make_env(render_mode=render_mode)
 
 
 def register_gym_ids() -> None:

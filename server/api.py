@@ -26,7 +26,7 @@ from fedhpg.common.policies import Policy, get_flat_params, register_policy, set
 from fedhpg.common.registry import import_plugins
 from fedhpg.common.runtime.cli import compose, validate_config
 from fedhpg.common.types import EvaluationStats
-from fedhpg.common.variants import run_variants
+from fedhpg.common.variants import run_variants, variant_of
 from fedhpg.common.worker import LocalWorker, build_policy, initial_theta
 from fedhpg.envs.registry import register_family
 from fedhpg.server.checkpoint import latest_valid_checkpoint, write_atomic
@@ -199,7 +199,7 @@ def _in_process_with_directory(
         theta, progress, _ = resume_point(run_config, run_dir, make_strategy(run_config.strategy))
     write_atomic(directory / "config.json", json.dumps(to_dict(run_config), indent=2).encode())
     metrics = MetricsWriter(run_dir.metrics)
-    start = theta if theta is not None else initial_theta(run_variants(run_config)[0], run_config)
+    start = theta if theta is not None else initial_theta(variant_of(run_config, 0), run_config)
     board = tensorboard_sink(
         run_config.server.tensorboard, directory, first_round=progress.next_round, theta=start
     )
@@ -239,7 +239,7 @@ def _run_distributed(run_config: RunConfig, directory: Path | None) -> RunResult
 
     check_launch_keys(run_config)
     # What the server would refuse in its own process (exit 2): found here, as an exception.
-    initial_theta(run_variants(run_config)[0], run_config)
+    initial_theta(variant_of(run_config, 0), run_config)
     with tempfile.TemporaryDirectory(prefix="fedhpg-run-") as scratch:
         where = directory if directory is not None else Path(scratch) / "run"
         if run_config.resume and run_config.resume.lower() != "true":
@@ -296,7 +296,7 @@ def load_policy(run_dir: str | Path) -> Policy:
     checkpoint = latest_valid_checkpoint(Path(run_dir) / "checkpoints")
     if checkpoint is None:
         raise RunDirectoryError(f"no valid checkpoint in {Path(run_dir) / 'checkpoints'}")
-    policy = build_policy(run_variants(config)[0], config)
+    policy = build_policy(variant_of(config, 0), config)
     set_flat_params(policy, checkpoint.theta)
     return policy
 
@@ -330,7 +330,7 @@ def evaluate(
     config = load_run_config(run_dir)
     if not 0 <= agent < config.agents.num_agents:
         raise ValueError(f"agent must be in [0, {config.agents.num_agents}), got {agent!r}")
-    variant = run_variants(config)[agent]
+    variant = variant_of(config, agent)
     worker = LocalWorker(
         index=agent, variant=variant, run=config, profile=agent_profile(config, agent)
     )

@@ -27,7 +27,7 @@ from fedhpg.common.config import (
 from fedhpg.common.runtime.cli import run_entry
 from fedhpg.common.runtime.progress import Progress
 from fedhpg.common.types import EvaluationStats
-from fedhpg.common.variants import run_variants, variant_digest
+from fedhpg.common.variants import run_variants, variant_digest, variant_of
 from fedhpg.common.wire.codec import MAX_HEADER_BYTES
 from fedhpg.common.wire.security import handshake_failure_logger, secure_server_socket
 from fedhpg.common.wire.transport import bind_endpoint, configure_socket, max_message_bytes
@@ -164,6 +164,12 @@ def message_cap(run: RunConfig, num_params: int) -> int:
     return needed
 
 
+def run_digests(run: RunConfig) -> list[str]:
+    """Every agent's :func:`variant_digest`, what the server checks each hello against. The
+    variants are made a chunk at a time and dropped: K short strings stay (~1 MB at K=10 000)."""
+    return [variant_digest(run, variant) for variant in run_variants(run)]
+
+
 def serve(
     run: RunConfig,
     *,
@@ -174,8 +180,8 @@ def serve(
     """Run one federation as its server; returns the final θ̃_T."""
     validate_strategy(run)
     strategy = make_strategy(run.strategy)
-    variants = run_variants(run)
-    theta, progress = initial_theta(variants[0], run), RunProgress()
+    first = variant_of(run, 0)
+    theta, progress = initial_theta(first, run), RunProgress()
     counters: dict[str, int] = {}
     cap = message_cap(run, int(theta.numel()))
     with claimed(out_dir, resume=bool(run.resume)) as run_dir:
@@ -186,7 +192,7 @@ def serve(
             run,
             run_dir=run_dir,
             strategy=strategy,
-            variants=variants,
+            first=first,
             theta=theta,
             progress=progress,
             counters=counters,
@@ -201,7 +207,7 @@ def _serve_claimed(
     *,
     run_dir: RunDirectory,
     strategy: Strategy[Any],
-    variants: list[EnvVariant],
+    first: EnvVariant,
     theta: torch.Tensor,
     progress: RunProgress,
     counters: dict[str, int],
@@ -229,8 +235,8 @@ def _serve_claimed(
         check=UpdateCheck(
             num_params=int(theta.numel()), max_update_norm=run.server.max_update_norm
         ),
-        env_signature=variants[0].signature(),
-        variant_digests=[variant_digest(run, v) for v in variants],
+        env_signature=first.signature(),  # builds an env: once, not per agent
+        variant_digests=run_digests(run),
         run_settings=dictated_settings(run),  # security: only dictated keys leave the server
         run_id=uuid.uuid4().hex[:12],
         max_bytes=cap,
@@ -264,7 +270,7 @@ def _serve_claimed(
         pool.wait_for_agents(run.server.register_timeout_s)
         if show_progress:  # timed from the first round on, not the wait for agents
             bar = Progress(run.rounds, "rounds", done=progress.next_round - 1)
-            callbacks.append(_progress_callback(bar, has_goal=variants[0].has_goal))
+            callbacks.append(_progress_callback(bar, has_goal=first.has_goal))
         coordinator = Coordinator(
             run=run,
             pool=pool,
@@ -289,14 +295,9 @@ def _serve_claimed(
         socket.close(linger=200)
         context.term()
     params = {
-        agent: {"gamma": variants[k].gamma, **variants[k].params}
-        for k, agent in enumerate(pool.agent_ids)
+        agent: {"gamma": variant.gamma, **variant.params}
+        for agent, variant in zip(pool.agent_ids, run_variants(run), strict=True)
     }
-    algorithm, _ = resolve_algorithm(run)
-    compute = {}
-    for k, agent in enumerate(pool.agent_ids):
-        profile = agent_profile(run, k)
-        compute[agent] = f"{algorithm.describe_budget(profile.budget)} speed={profile.speed:g}"
     summary = {
         "rounds": run.rounds,
         "final_eval_round": last_eval.get("round"),
@@ -307,11 +308,17 @@ def _serve_claimed(
     }
     write_atomic(out_dir / "summary.json", json.dumps(summary, indent=2).encode())
     if last_eval:
+        # each agent's budget only for the table (~1 ms an agent where a population draws it)
+        algorithm, _ = resolve_algorithm(run)
+        compute = {}
+        for k, agent in enumerate(pool.agent_ids):
+            profile = agent_profile(run, k)
+            compute[agent] = f"{algorithm.describe_budget(profile.budget)} speed={profile.speed:g}"
         sys.stdout.write(
             f"\nUnified policy after round {last_eval['round']} "
             f"({run.eval.episodes} {'greedy' if run.eval.greedy else 'sampled'} episodes "
             "per environment):\n"
-            + evaluation_table(last_eval["eval"], params, compute, has_goal=variants[0].has_goal)
+            + evaluation_table(last_eval["eval"], params, compute, has_goal=first.has_goal)
             + "\n"
         )
     sys.stdout.write(f"run directory: {out_dir.resolve()}\n")

@@ -1,7 +1,9 @@
-"""FedHPG in one process: K :class:`LocalWorker` s driven by the same coordinator.
+"""FedHPG in one process: the coordinator drives one :class:`AgentGroup` of all K agents.
 
 No sockets; the distributed runtime must reproduce this runner's θ bit for bit. Emulated
-device time is accounted on a virtual clock (no sleeping).
+device time is accounted on a virtual clock (no sleeping). Agents cost memory only once asked:
+the group builds an agent's worker on first use, and its device is made then too, so a run of
+K = 10 000 agents with 1 000 per round starts with none of them built.
 """
 
 from __future__ import annotations
@@ -9,17 +11,17 @@ from __future__ import annotations
 import dataclasses
 import logging
 from collections.abc import Sequence
-from dataclasses import dataclass
 
 import torch
 
-from fedhpg.common.components import agent_profile, validate_run
+from fedhpg.common.components import validate_run
 from fedhpg.common.config import RunConfig, agent_id_of
 from fedhpg.common.device import DeviceModel, device_for, message_bytes
+from fedhpg.common.group import AgentGroup, make_agent_group
 from fedhpg.common.runtime.memory import pin_malloc_mmap_threshold
-from fedhpg.common.types import AgentUpdate, EvaluationStats
-from fedhpg.common.variants import run_variants
-from fedhpg.common.worker import IterationWork, LocalWorker, initial_theta
+from fedhpg.common.types import AgentUpdate, EvaluationStats, LocalResult
+from fedhpg.common.variants import variant_of, variants_of
+from fedhpg.common.worker import IterationWork, initial_theta
 from fedhpg.envs.base import EnvVariant
 from fedhpg.server.coordinator import Coordinator, RoundCallback, RunProgress
 from fedhpg.server.pools import RoundAnswers
@@ -29,50 +31,52 @@ from fedhpg.server.validation import UpdateCheck
 logger = logging.getLogger(__name__)
 
 
-@dataclass
 class InProcessPool:
-    """Agents as plain objects; each update is computed on this thread, in agent order."""
+    """All K agents as one group on this thread; updates come back in agent order."""
 
-    workers: list[LocalWorker]
-    devices: list[DeviceModel]
-    """Emulated devices on a virtual clock: time is accounted, never slept."""
-    check: UpdateCheck
+    def __init__(self, run: RunConfig, group: AgentGroup, *, num_params: int) -> None:
+        self.run = run
+        self.group = group
+        self.num_params = num_params
+        self.check = UpdateCheck(num_params=num_params, max_update_norm=run.server.max_update_norm)
+        self._devices: dict[int, DeviceModel] = {}
 
     @property
     def agent_ids(self) -> list[str]:
-        return [agent_id_of(w.index) for w in self.workers]
+        return [agent_id_of(k) for k in self.group.indices]
 
-    def _train_one(self, k: int, round_index: int, theta: torch.Tensor) -> AgentUpdate:
-        worker, device = self.workers[k], self.devices[k]
-        device.take_emulated()
+    def device(self, k: int) -> DeviceModel:
+        """Agent k's emulated device on a virtual clock (time accounted, never slept), made
+        when first asked and kept: its clock carries over between rounds."""
+        if k not in self._devices:
+            self._devices[k] = dataclasses.replace(device_for(self.run, k), virtual_clock=True)
+        return self._devices[k]
+
+    def train(self, round_index: int, theta: torch.Tensor, agents: Sequence[int]) -> RoundAnswers:
+        broadcast = theta.detach().numpy()
+        selected = sorted(agents)
         # The counted clock charges the two messages an agent process would exchange (θ̃
         # down, θ up), so both runtimes agree; the measured clock charges none here, as before.
-        message = message_bytes(worker.num_params)
-        if device.counted:
-            device.transmit(message)
+        message = message_bytes(self.num_params)
+        for k in selected:
+            device = self.device(k)
+            device.take_emulated()
+            if device.counted:
+                device.transmit(message)
 
-        def on_iteration(work: IterationWork) -> None:
-            device.spend(
+        def on_iteration(k: int, work: IterationWork) -> None:
+            self.device(k).spend(
                 work.compute_s,
                 work.env_steps,
                 round_index,
                 grad_steps=work.grad_steps,
-                num_params=worker.num_params,
+                num_params=self.num_params,
             )
 
-        result = worker.train(round_index, theta.clone(), on_iteration=on_iteration)
-        if device.counted:
-            device.transmit(message)
-        stats = dataclasses.replace(
-            result.stats, emulated_s=device.take_emulated(), speed=device.speed_at(round_index)
-        )
-        return AgentUpdate(agent_index=k, agent_id=agent_id_of(k), theta=result.theta, stats=stats)
-
-    def train(self, round_index: int, theta: torch.Tensor, agents: Sequence[int]) -> RoundAnswers:
-        broadcast = theta.detach().numpy()
+        results = self.group.train(round_index, theta, selected, on_iteration=on_iteration)
         updates, failures = [], {}
-        for k in sorted(agents):
-            update = self._train_one(k, round_index, theta)
+        for k in selected:
+            update = self._update(k, round_index, results[k], message)
             problem = self.check.problem(update.theta.numpy(), update.stats, broadcast)
             if problem is None:
                 updates.append(update)
@@ -81,35 +85,34 @@ class InProcessPool:
                 failures[update.agent_id] = problem
         return RoundAnswers(updates=updates, failures=failures)
 
+    def _update(self, k: int, round_index: int, result: LocalResult, message: int) -> AgentUpdate:
+        device = self.device(k)
+        if device.counted:
+            device.transmit(message)
+        stats = dataclasses.replace(
+            result.stats, emulated_s=device.take_emulated(), speed=device.speed_at(round_index)
+        )
+        return AgentUpdate(agent_index=k, agent_id=agent_id_of(k), theta=result.theta, stats=stats)
+
     def evaluate(
         self, round_index: int, theta: torch.Tensor, episodes: int
     ) -> dict[str, EvaluationStats]:
-        return {
-            agent_id_of(w.index): w.evaluate(round_index, theta, episodes) for w in self.workers
-        }
+        evaluations = self.group.evaluate(round_index, theta, episodes, self.group.indices)
+        return {agent_id_of(k): stats for k, stats in evaluations.items()}
 
     def close(self) -> None:
-        for worker in self.workers:
-            worker.close()
+        self.group.close()
 
 
-def make_in_process_pool(run: RunConfig, variants: list[EnvVariant]) -> InProcessPool:
+def make_in_process_pool(
+    run: RunConfig, variants: Sequence[EnvVariant] | None = None
+) -> InProcessPool:
+    """The pool of the run's K agents (``variants``: the K variants if already at hand)."""
     pin_malloc_mmap_threshold()
-    profiles = [agent_profile(run, k) for k in range(len(variants))]
-    workers = [
-        LocalWorker(index=k, variant=variant, run=run, profile=profiles[k])
-        for k, variant in enumerate(variants)
-    ]
-    return InProcessPool(
-        workers=workers,
-        devices=[
-            dataclasses.replace(device_for(run, k), virtual_clock=True)
-            for k in range(len(variants))
-        ],
-        check=UpdateCheck(
-            num_params=workers[0].num_params, max_update_norm=run.server.max_update_norm
-        ),
-    )
+    indices = range(run.agents.num_agents)
+    by_index = dict(enumerate(variants)) if variants is not None else variants_of(run, indices)
+    group = make_agent_group(run, list(indices), by_index)
+    return InProcessPool(run, group, num_params=int(initial_theta(by_index[0], run).numel()))
 
 
 def run_in_process(
@@ -123,14 +126,13 @@ def run_in_process(
     continue a run (a checkpoint's θ̃ and rounds done; the caller keeps ``progress``)."""
     validate_run(run)
     validate_strategy(run)
-    variants = run_variants(run)
-    pool = make_in_process_pool(run, variants)
+    pool = make_in_process_pool(run)
     try:
         coordinator = Coordinator(
             run=run,
             pool=pool,
             strategy=make_strategy(run.strategy),
-            theta=initial_theta(variants[0], run) if theta is None else theta,
+            theta=initial_theta(variant_of(run, 0), run) if theta is None else theta,
             progress=progress,
             on_round=on_round,
         )
