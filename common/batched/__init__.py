@@ -6,6 +6,7 @@ algorithm, policy and environment family, else None (the caller loops over Local
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from typing import TYPE_CHECKING
 
 from fedhpg.common.batched.mlp import MLPShape
@@ -14,12 +15,11 @@ from fedhpg.envs.base import EnvVariant
 
 if TYPE_CHECKING:
     from fedhpg.common.group import AgentGroup
+    from fedhpg.common.policies import Policy
 
 
-def unsupported(run: RunConfig, variants: dict[int, EnvVariant]) -> str | None:
-    """Why the batched engine cannot train this run (None: it can)."""
+def _unsupported(run: RunConfig, policy: Policy) -> str | None:
     from fedhpg.common.policies import MLPCategoricalPolicy
-    from fedhpg.common.worker import build_policy
 
     if run.algo.name != "fedhpg":
         return f"algorithm {run.algo.name!r} (the engine runs fedhpg)"
@@ -27,28 +27,39 @@ def unsupported(run: RunConfig, variants: dict[int, EnvVariant]) -> str | None:
         return f"attack {run.attack.kind!r}"
     if run.algo.optimizer not in ("sgd", "adam"):
         return f"optimizer {run.algo.optimizer!r}"
-    policy = build_policy(next(iter(variants.values())), run)
     if type(policy) is not MLPCategoricalPolicy:
         return f"policy {type(policy).__name__} (the engine runs MLPCategoricalPolicy)"
     return None
 
 
-def mlp_shape(run: RunConfig, variants: dict[int, EnvVariant]) -> MLPShape:
-    from torch import nn
-
-    from fedhpg.common.policies import MLPCategoricalPolicy
+def _policy(run: RunConfig, variants: Mapping[int, EnvVariant]) -> Policy:
     from fedhpg.common.worker import build_policy
 
-    policy = build_policy(next(iter(variants.values())), run)
-    assert isinstance(policy, MLPCategoricalPolicy)
-    linear = [m for m in policy.net if isinstance(m, nn.Linear)]
+    return build_policy(variants[min(variants)], run)
+
+
+def unsupported(run: RunConfig, variants: Mapping[int, EnvVariant]) -> str | None:
+    """Why the batched engine cannot train this run (None: it can)."""
+    return _unsupported(run, _policy(run, variants))
+
+
+def mlp_shape(policy: Policy) -> MLPShape:
+    from torch import nn
+
+    assert isinstance(policy, nn.Module)
+    linear = [m for m in policy.modules() if isinstance(m, nn.Linear)]
     return MLPShape((linear[0].in_features, *(m.out_features for m in linear)))
 
 
-def batched_group_or_none(run: RunConfig, variants: dict[int, EnvVariant]) -> AgentGroup | None:
+def batched_group_or_none(
+    run: RunConfig, variants: Mapping[int, EnvVariant]
+) -> AgentGroup | None:
     """The batched engine for these agents, or None where it does not apply."""
-    if not run.agents.batched or unsupported(run, variants) is not None:
+    if not run.agents.batched:
+        return None
+    policy = _policy(run, variants)  # one env, for the spaces
+    if _unsupported(run, policy) is not None:
         return None
     from fedhpg.common.batched.engine import BatchedFedHPG
 
-    return BatchedFedHPG(run, variants, mlp_shape(run, variants))
+    return BatchedFedHPG(run, variants, mlp_shape(policy))

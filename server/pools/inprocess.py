@@ -112,7 +112,7 @@ def make_in_process_pool(
     indices = range(run.agents.num_agents)
     by_index = dict(enumerate(variants)) if variants is not None else variants_of(run, indices)
     group = make_agent_group(run, list(indices), by_index)
-    return InProcessPool(run, group, num_params=int(initial_theta(by_index[0], run).numel()))
+    return InProcessPool(run, group, num_params=group.num_params)
 
 
 def run_in_process(
