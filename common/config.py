@@ -23,6 +23,7 @@ from typing import Any
 ESTIMATORS: tuple[str, ...] = ("reinforce", "gpomdp")
 BASELINES: tuple[str, ...] = ("none", "mean")
 OPTIMIZERS = ("sgd", "adam")
+ENGINES = ("auto", "loop")
 ATTACKS = ("none", "zero_gradient", "random_noise", "sign_flip", "reward_flip", "random_action")
 SCHEDULES = ("constant", "periodic", "random_walk")
 CLOCKS = ("measured", "counted")
@@ -82,6 +83,12 @@ class AlgoConfig:
     """Clip each local gradient estimate to this norm (Assumption 3); None = off."""
     params: dict[str, Any] = field(default_factory=dict)
     """The algorithm's own options (its ``Params`` dataclass), e.g. FedHPGVR's ``iw_mode``."""
+    engine: str = "auto"
+    """How a process computes its agents' local updates: 'auto' = the batched engine where it
+    covers the run (FedHPG, MLP categorical policy, no attack: all of the process's agents
+    sampled and differentiated together), else one LocalWorker after another; 'loop' = always
+    the latter. The two round floats differently, so the server dictates it; either way an
+    agent's θ does not depend on where it runs."""
 
 
 # --- participation: who trains each round (server/participation.py applies it) ---------------
@@ -197,11 +204,6 @@ class AgentsConfig:
     """Counted clock: link bandwidth in Mbit/s (0 = unlimited); message bytes are charged."""
     population: PopulationConfig = field(default_factory=PopulationConfig)
     """Budgets and device profiles per agent index from a distribution or a trace file."""
-    batched: bool = True
-    """Train the agents of a process (an agent host's, the in-process pool's, a lone agent's)
-    with the batched engine where it supports the run (FedHPG, MLP categorical policy, no
-    attack): all of them in lockstep, stacked. False: one LocalWorker after another. Either
-    way an agent's θ does not depend on where it runs."""
 
 
 @dataclass(kw_only=True)
@@ -504,6 +506,7 @@ def _validate_algo(algo: AlgoConfig) -> None:
     _check_choice(algo.estimator, "algo.estimator", ESTIMATORS)
     _check_choice(algo.baseline, "algo.baseline", BASELINES)
     _check_choice(algo.optimizer, "algo.optimizer", OPTIMIZERS)
+    _check_choice(algo.engine, "algo.engine", ENGINES)
     _check_number(algo.step_size, "algo.step_size", low=0.0, low_open=True)
     if algo.grad_clip is not None:
         _check_number(algo.grad_clip, "algo.grad_clip", low=0.0, low_open=True)

@@ -164,7 +164,7 @@ def test_evaluation_is_the_same_in_any_company_and_counts_episodes() -> None:
 
 
 def test_runs_the_engine_does_not_cover_fall_back_to_the_loop() -> None:
-    for overrides in (["algo=fedhpgvr"], ["agents.batched=false"]):
+    for overrides in (["algo=fedhpgvr"], ["algo.engine=loop"]):
         run = _run(*overrides)
         assert isinstance(make_agent_group(run, [0, 1]), WorkerLoopGroup)
     gridworld = resolve_config(overrides=["env=gridworld", *POPULATION, "agents.num_agents=2"])

@@ -55,7 +55,7 @@ def batched_group_or_none(
     run: RunConfig, variants: Mapping[int, EnvVariant]
 ) -> AgentGroup | None:
     """The batched engine for these agents, or None where it does not apply."""
-    if not run.agents.batched:
+    if run.algo.engine == "loop":
         return None
     policy = _policy(run, variants)  # one env, for the spaces
     if _unsupported(run, policy) is not None:
