@@ -32,6 +32,7 @@ import numpy as np
 from fedhpg.common.limits import bounds_of
 from fedhpg.common.wire.protocol import (
     HEADER_LIMITS,
+    HEADER_PER_AGENT,
     MSG_TYPE_OF,
     PAYLOAD_TYPES,
     PROTOCOL_VERSION,
@@ -351,7 +352,23 @@ def encode(message: Message) -> list[bytes | memoryview]:
     limit = HEADER_LIMITS.get(cls, MAX_HEADER_BYTES)
     if len(header) > limit:
         raise ProtocolError("too_large", f"{kind}: header of {len(header)} bytes exceeds {limit}")
+    _check_scaled_header(cls, kind, len(header), fields)
     return [header, *buffers]
+
+
+def _check_scaled_header(cls: type, kind: str, size: int, fields: dict[str, Any]) -> None:
+    """A batched answer's header may grow with the agents it lists, no further
+    (``HEADER_PER_AGENT``): a batch of one costs what one agent's own message may."""
+    per_agent = HEADER_PER_AGENT.get(cls)
+    if per_agent is None:
+        return
+    name, base, each = per_agent
+    agents = len(fields[name])
+    if size > base + each * agents:
+        raise ProtocolError(
+            "too_large",
+            f"{kind}: header of {size} bytes exceeds {base + each * agents} for {agents} agents",
+        )
 
 
 # --- decode -----------------------------------------------------------------------------------
@@ -531,6 +548,7 @@ def _decode(frames: Any, max_bytes: int) -> Message:
         )
     specs = _specs(cls)
     values = _decode_fields(kind, [s for s in specs if not s.is_array], header["fields"])
+    _check_scaled_header(cls, kind, views[0].nbytes, values)
     values |= _decode_arrays(kind, [s for s in specs if s.is_array], header["arrays"], views[1:])
     try:
         return cls(**values)
