@@ -179,45 +179,82 @@ def _check_plain(value: Any, where: str, depth: int) -> None:
         raise _bad(where, f"{_type_name(value)} is not a plain msgpack value")
 
 
+_PLANS: dict[int, tuple[Any, tuple[str, Any, tuple[Any, ...]]]] = {}
+
+
+def _plan(hint: Any) -> tuple[str, Any, tuple[Any, ...]]:
+    """(kind, base, extras) of an annotation, worked out once per annotation: the typing
+    introspection costs more than the check itself, which runs for every field of every
+    message (a host's batch carries hundreds of stats records). Keyed by identity, since
+    hashing an ``Annotated`` hint walks it; the entry keeps the hint alive, so its id stays
+    its own (annotations are few and live as long as their classes)."""
+    entry = _PLANS.get(id(hint))
+    if entry is not None and entry[0] is hint:
+        return entry[1]
+    plan = _make_plan(hint)
+    _PLANS[id(hint)] = (hint, plan)
+    return plan
+
+
+def _make_plan(hint: Any) -> tuple[str, Any, tuple[Any, ...]]:
+    origin = typing.get_origin(hint)
+    if origin is typing.Annotated:
+        base, bounds = bounds_of(hint)
+        return "annotated", base, bounds
+    if hint is Any:
+        return "any", hint, ()
+    if hint is None or hint is type(None):
+        return "none", hint, ()
+    if origin in (types.UnionType, typing.Union):
+        return "union", hint, typing.get_args(hint)
+    if hint is dict or origin is dict:
+        return "dict", hint, typing.get_args(hint)
+    if hint is list or origin is list:
+        return "list", hint, typing.get_args(hint)
+    if _is_record(hint):
+        return "record", hint, ()
+    if hint is float:
+        return "float", hint, ()
+    if hint in (int, str, bytes):
+        return "scalar", hint, ()
+    if hint is bool:
+        return "bool", hint, ()
+    raise TypeError(f"unsupported annotation {hint!r}")  # _specs admits only the above
+
+
 def _check(value: Any, hint: Any, where: str, depth: int = 0) -> Any:
     """``value`` if it fits ``hint`` (bool is no int; an int is a float), with nested records
     built as their dataclasses; else ProtocolError."""
-    if typing.get_origin(hint) is typing.Annotated:
-        base, bounds = bounds_of(hint)
+    kind, base, extras = _plan(hint)
+    if kind == "annotated":
         checked = _check(value, base, where, depth)
-        for bound in bounds:
+        for bound in extras:
             if (problem := bound.problem(checked)) is not None:
                 raise _bad(where, problem)
         return checked
-    if hint is Any:
+    if kind == "any":
         _check_plain(value, where, depth)
-        return value
-    if hint is None or hint is type(None):
+    elif kind == "none":
         if value is not None:
             raise _bad(where, f"must be None, got {_type_name(value)}")
-        return value
-    origin = typing.get_origin(hint)
-    if origin in (types.UnionType, typing.Union):
-        return _check_union(value, typing.get_args(hint), where, depth)
-    if hint is dict or origin is dict:
-        return _check_dict(value, typing.get_args(hint), where, depth)
-    if hint is list or origin is list:
-        return _check_list(value, typing.get_args(hint), where, depth)
-    if _is_record(hint):
-        return _check_record(value, hint, where, depth)
-    if hint is float:
+    elif kind == "union":
+        return _check_union(value, extras, where, depth)
+    elif kind == "dict":
+        return _check_dict(value, extras, where, depth)
+    elif kind == "list":
+        return _check_list(value, extras, where, depth)
+    elif kind == "record":
+        return _check_record(value, base, where, depth)
+    elif kind == "float":
         if not isinstance(value, int | float) or isinstance(value, bool):
             raise _bad(where, f"must be float, got {_type_name(value)}")
         _check_plain(value, where, depth)
-    elif hint in (int, str, bytes):
-        if not isinstance(value, hint) or isinstance(value, bool):
-            raise _bad(where, f"must be {hint.__name__}, got {_type_name(value)}")
+    elif kind == "scalar":
+        if not isinstance(value, base) or isinstance(value, bool):
+            raise _bad(where, f"must be {base.__name__}, got {_type_name(value)}")
         _check_plain(value, where, depth)
-    elif hint is bool:
-        if not isinstance(value, bool):
-            raise _bad(where, f"must be bool, got {_type_name(value)}")
-    else:  # _specs only admits annotations handled above
-        raise TypeError(f"unsupported annotation {hint!r}")
+    elif not isinstance(value, bool):
+        raise _bad(where, f"must be bool, got {_type_name(value)}")
     return value
 
 
