@@ -131,6 +131,7 @@ class AgentHost(AgentProcess):
                 )
                 for chunk in _chunks(agents, MAX_BATCH_ANSWERS)
             ]
+        started = time.perf_counter()
         num_params = self.group.num_params
         message = message_bytes(num_params)
         for k in agents:  # the request's one-way latency (and transfer), per logical agent
@@ -149,6 +150,8 @@ class AgentHost(AgentProcess):
             )
 
         results = self.group.train(request.round, theta, agents, on_iteration=on_iteration)
+        # Each answer leaves with the batch: the host's wall time on the round is each one's.
+        wall_s = time.perf_counter() - started
         stats: dict[int, UpdateStats] = {}
         for k in agents:
             device = self.devices[k]
@@ -156,6 +159,7 @@ class AgentHost(AgentProcess):
             stats[k] = dataclasses.replace(
                 results[k].stats,
                 emulated_s=device.take_emulated(),
+                local_wall_s=wall_s,
                 speed=device.speed_at(request.round),
             )
         per_message = answers_per_message(batch_message_cap(self.max_bytes, num_params), num_params)
