@@ -28,7 +28,7 @@ import numpy as np
 import torch
 
 from fedhpg.agent.process import AgentFailure, AgentProcess, Cancelled, Job, Request
-from fedhpg.common.config import RunConfig
+from fedhpg.common.config import RunConfig, host_id_of
 from fedhpg.common.device import DeviceModel, device_for, message_bytes
 from fedhpg.common.group import AgentGroup, make_agent_group
 from fedhpg.common.runtime.memory import pin_malloc_mmap_threshold
@@ -48,10 +48,6 @@ from fedhpg.common.wire.transport import answers_per_message, batch_message_cap
 from fedhpg.common.worker import IterationWork
 
 logger = logging.getLogger(__name__)
-
-
-def host_id_of(first: int, count: int, explicit: str | None = None) -> str:
-    return explicit if explicit else f"host-{first}-{first + count - 1}"
 
 
 class AgentHost(AgentProcess):

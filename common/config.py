@@ -625,6 +625,17 @@ def agent_id_of(index: int, explicit: str | None = None) -> str:
     return explicit if explicit else f"agent-{index}"
 
 
+def host_id_of(first: int, count: int, explicit: str | None = None) -> str:
+    """An agent host's id (its routing identity's prefix, its CURVE key's name)."""
+    return explicit if explicit else f"host-{first}-{first + count - 1}"
+
+
+def host_ranges(num_agents: int, per_host: int) -> list[tuple[int, int]]:
+    """(first, count) of each agent host ``fedhpg-run`` starts with ``agents.per_host``: N
+    consecutive indices each, the last one the rest."""
+    return [(first, min(per_host, num_agents - first)) for first in range(0, num_agents, per_host)]
+
+
 def to_dict(config: RunConfig) -> dict[str, Any]:
     """Plain dict of the config (msgpack- and JSON-friendly)."""
     return dataclasses.asdict(config)

@@ -101,7 +101,8 @@ def _record_bounds(cls: type) -> tuple[tuple[str, tuple[Bound, ...], tuple[Bound
 def record_problems(record: object) -> list[str]:
     """Every bound a dataclass instance breaks (top-level fields and the items of its maps)."""
     found = []
-    for name, bounds, item_bounds in _record_bounds(type(record)):
+    record_type: Any = type(record)  # a class is hashable; mypy's type[object] is not
+    for name, bounds, item_bounds in _record_bounds(record_type):
         value = getattr(record, name)
         for bound in bounds:
             if (problem := bound.problem(value)) is not None:

@@ -21,7 +21,7 @@ from dataclasses import replace
 from multiprocessing.connection import Connection
 from pathlib import Path
 
-from fedhpg.common.config import ConfigError, RunConfig
+from fedhpg.common.config import ConfigError, RunConfig, host_id_of, host_ranges
 from fedhpg.common.runtime.cli import EXIT_RUN_ABORTED
 
 logger = logging.getLogger(__name__)
@@ -221,10 +221,9 @@ def agent_processes(run: RunConfig) -> list[tuple[str, RunConfig]]:
             for i in range(k)
         ]
     hosts = []
-    for first in range(0, k, per_host):
-        count = min(per_host, k - first)
+    for first, count in host_ranges(k, per_host):
         agent = replace(run.agent, index=first, id=None, first=first, count=count)
-        hosts.append((f"host-{first}-{first + count - 1}", replace(run, agent=agent)))
+        hosts.append((host_id_of(first, count), replace(run, agent=agent)))
     return hosts
 
 
