@@ -119,6 +119,30 @@ def test_a_killed_host_is_restarted_and_its_agents_rejoin(tmp_path: Path) -> Non
     assert torch.equal(checkpoint.theta, run_in_process(compose(keys)))  # lost work redone
 
 
+def test_a_host_and_a_lone_agent_mix_in_one_federation(tmp_path: Path) -> None:
+    """``fedhpg-agent agent.first=0 agent.count=3`` serves agents 0..2 and a plain
+    ``fedhpg-agent agent.index=3`` the last one: the run is the in-process run."""
+    keys = [k for k in RUN if not k.startswith("agents.num_agents")] + ["agents.num_agents=4"]
+    out_dir = tmp_path / "run"
+    wire = [f"server.port={free_port()}", f"server.out_dir={out_dir}"]
+    with processes() as started:
+        server = start(started, "fedhpg-server", [*keys, *wire], cwd=tmp_path)
+        host = start(
+            started, "fedhpg-agent", [*keys, *wire, "agent.first=0", "agent.count=3"], cwd=tmp_path
+        )
+        lone = start(started, "fedhpg-agent", [*keys, *wire, "agent.index=3"], cwd=tmp_path)
+        _, stderr = server.communicate(timeout=TIMEOUT_S)
+        for agent in (host, lone):
+            agent.wait(timeout=30)
+    assert server.returncode == 0, stderr[-3000:]
+    assert host.returncode == 0 and lone.returncode == 0
+    checkpoint = latest_valid_checkpoint(out_dir / "checkpoints")
+    assert checkpoint is not None and checkpoint.round == 3
+    assert torch.equal(checkpoint.theta, run_in_process(compose(keys)))
+    summary = json.loads((out_dir / "summary.json").read_text())
+    assert sorted(summary["eval"]) == ["agent-0", "agent-1", "agent-2", "agent-3"]
+
+
 HOSTILE_RUN = [
     "rounds=2", "seed=1", "agents.num_agents=2", "agents.budget.batch_size=[4]",
     "agents.budget.local_iters=[1]", "agents.speeds=[1]", "agents.step_delays_s=[0]",
