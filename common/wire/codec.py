@@ -179,86 +179,114 @@ def _check_plain(value: Any, where: str, depth: int) -> None:
         raise _bad(where, f"{_type_name(value)} is not a plain msgpack value")
 
 
-_PLANS: dict[int, tuple[Any, tuple[str, Any, tuple[Any, ...]]]] = {}
+Checker = typing.Callable[[Any, str, int], Any]
+"""(value, where, depth) -> the checked value, or ProtocolError: one annotation's check."""
+_CHECKERS: dict[int, tuple[Any, Checker]] = {}
 
 
-def _plan(hint: Any) -> tuple[str, Any, tuple[Any, ...]]:
-    """(kind, base, extras) of an annotation, worked out once per annotation: the typing
-    introspection costs more than the check itself, which runs for every field of every
-    message (a host's batch carries hundreds of stats records). Keyed by identity, since
-    hashing an ``Annotated`` hint walks it; the entry keeps the hint alive, so its id stays
-    its own (annotations are few and live as long as their classes)."""
-    entry = _PLANS.get(id(hint))
+def _checker(hint: Any) -> Checker:
+    """The check of an annotation, compiled once: the typing introspection costs more than
+    the check itself, which runs for every field of every message (a host's batch carries
+    hundreds of stats records). Keyed by identity, since hashing an ``Annotated`` hint walks
+    it; the entry keeps the hint alive, so its id stays its own (annotations are few and live
+    as long as their classes)."""
+    entry = _CHECKERS.get(id(hint))
     if entry is not None and entry[0] is hint:
         return entry[1]
-    plan = _make_plan(hint)
-    _PLANS[id(hint)] = (hint, plan)
-    return plan
-
-
-def _make_plan(hint: Any) -> tuple[str, Any, tuple[Any, ...]]:
-    origin = typing.get_origin(hint)
-    if origin is typing.Annotated:
-        base, bounds = bounds_of(hint)
-        return "annotated", base, bounds
-    if hint is Any:
-        return "any", hint, ()
-    if hint is None or hint is type(None):
-        return "none", hint, ()
-    if origin in (types.UnionType, typing.Union):
-        return "union", hint, typing.get_args(hint)
-    if hint is dict or origin is dict:
-        return "dict", hint, typing.get_args(hint)
-    if hint is list or origin is list:
-        return "list", hint, typing.get_args(hint)
-    if _is_record(hint):
-        return "record", hint, ()
-    if hint is float:
-        return "float", hint, ()
-    if hint in (int, str, bytes):
-        return "scalar", hint, ()
-    if hint is bool:
-        return "bool", hint, ()
-    raise TypeError(f"unsupported annotation {hint!r}")  # _specs admits only the above
+    checker = _compile(hint)
+    _CHECKERS[id(hint)] = (hint, checker)
+    return checker
 
 
 def _check(value: Any, hint: Any, where: str, depth: int = 0) -> Any:
     """``value`` if it fits ``hint`` (bool is no int; an int is a float), with nested records
     built as their dataclasses; else ProtocolError."""
-    kind, base, extras = _plan(hint)
-    if kind == "annotated":
-        checked = _check(value, base, where, depth)
-        for bound in extras:
+    return _checker(hint)(value, where, depth)
+
+
+def _compile(hint: Any) -> Checker:
+    origin = typing.get_origin(hint)
+    if origin is typing.Annotated:
+        return _compile_bounded(*bounds_of(hint))
+    if hint is Any:
+        return _check_any
+    if hint is None or hint is type(None):
+        return _check_none
+    if origin in (types.UnionType, typing.Union):
+        return functools.partial(_check_union, typing.get_args(hint))
+    if hint is dict or origin is dict:
+        args = typing.get_args(hint)
+        return functools.partial(_check_dict, args[1] if args else Any)
+    if hint is list or origin is list:
+        args = typing.get_args(hint)
+        return functools.partial(_check_list, args[0] if args else Any)
+    if _is_record(hint):
+        return _compile_record(hint)
+    if hint is float:
+        return _check_float
+    if hint is int:
+        return _check_int
+    if hint in (str, bytes):
+        return functools.partial(_check_instance, hint)
+    if hint is bool:
+        return _check_bool
+    raise TypeError(f"unsupported annotation {hint!r}")  # _specs admits only the above
+
+
+def _compile_bounded(base: Any, bounds: tuple[Any, ...]) -> Checker:
+    inner = _checker(base)
+
+    def check(value: Any, where: str, depth: int) -> Any:
+        checked = inner(value, where, depth)
+        for bound in bounds:
             if (problem := bound.problem(checked)) is not None:
                 raise _bad(where, problem)
         return checked
-    if kind == "any":
-        _check_plain(value, where, depth)
-    elif kind == "none":
-        if value is not None:
-            raise _bad(where, f"must be None, got {_type_name(value)}")
-    elif kind == "union":
-        return _check_union(value, extras, where, depth)
-    elif kind == "dict":
-        return _check_dict(value, extras, where, depth)
-    elif kind == "list":
-        return _check_list(value, extras, where, depth)
-    elif kind == "record":
-        return _check_record(value, base, where, depth)
-    elif kind == "float":
-        if not isinstance(value, int | float) or isinstance(value, bool):
-            raise _bad(where, f"must be float, got {_type_name(value)}")
-        _check_plain(value, where, depth)
-    elif kind == "scalar":
-        if not isinstance(value, base) or isinstance(value, bool):
-            raise _bad(where, f"must be {base.__name__}, got {_type_name(value)}")
-        _check_plain(value, where, depth)
-    elif not isinstance(value, bool):
+
+    return check
+
+
+def _check_any(value: Any, where: str, depth: int) -> Any:
+    _check_plain(value, where, depth)
+    return value
+
+
+def _check_none(value: Any, where: str, depth: int) -> Any:
+    if value is not None:
+        raise _bad(where, f"must be None, got {_type_name(value)}")
+    return value
+
+
+def _check_float(value: Any, where: str, depth: int) -> Any:
+    if isinstance(value, float):
+        return value
+    if not isinstance(value, int) or isinstance(value, bool):
+        raise _bad(where, f"must be float, got {_type_name(value)}")
+    _check_plain(value, where, depth)
+    return value
+
+
+def _check_int(value: Any, where: str, depth: int) -> Any:
+    if not isinstance(value, int) or isinstance(value, bool):
+        raise _bad(where, f"must be int, got {_type_name(value)}")
+    if not _INT_MIN <= value < _INT_END:
+        raise _bad(where, "integer out of the 64-bit range")
+    return value
+
+
+def _check_instance(kind: type, value: Any, where: str, depth: int) -> Any:
+    if not isinstance(value, kind):
+        raise _bad(where, f"must be {kind.__name__}, got {_type_name(value)}")
+    return value
+
+
+def _check_bool(value: Any, where: str, depth: int) -> Any:
+    if not isinstance(value, bool):
         raise _bad(where, f"must be bool, got {_type_name(value)}")
     return value
 
 
-def _check_union(value: Any, options: tuple[Any, ...], where: str, depth: int) -> Any:
+def _check_union(options: tuple[Any, ...], value: Any, where: str, depth: int) -> Any:
     for option in options:
         try:
             return _check(value, option, where, depth)
@@ -268,65 +296,81 @@ def _check_union(value: Any, options: tuple[Any, ...], where: str, depth: int) -
     raise _bad(where, f"must be {names}, got {_type_name(value)}")
 
 
-def _check_dict(value: Any, args: tuple[Any, ...], where: str, depth: int) -> dict[str, Any]:
+def _check_dict(item_hint: Any, value: Any, where: str, depth: int) -> dict[str, Any]:
     if not isinstance(value, dict):
         raise _bad(where, f"must be a map, got {_type_name(value)}")
     if depth >= MAX_NESTING:
         raise _bad(where, f"nested deeper than {MAX_NESTING} levels")
-    item_hint = args[1] if args else Any
+    check = _checker(item_hint)
     checked = {}
     for key, item in value.items():
         if not isinstance(key, str):
             raise _bad(where, f"map key {_short.repr(key)} is not a string")
-        checked[key] = _check(item, item_hint, f"{where}[{key!r}]", depth + 1)
+        checked[key] = check(item, f"{where}[{key!r}]", depth + 1)
     return checked
 
 
-def _check_list(value: Any, args: tuple[Any, ...], where: str, depth: int) -> list[Any]:
+def _check_list(item_hint: Any, value: Any, where: str, depth: int) -> list[Any]:
     if not isinstance(value, list):
         raise _bad(where, f"must be a list, got {_type_name(value)}")
     if depth >= MAX_NESTING:
         raise _bad(where, f"nested deeper than {MAX_NESTING} levels")
-    item_hint = args[0] if args else Any
-    return [_check(item, item_hint, f"{where}[{i}]", depth + 1) for i, item in enumerate(value)]
+    check = _checker(item_hint)
+    return [check(item, f"{where}[{i}]", depth + 1) for i, item in enumerate(value)]
 
 
-def _check_record(value: Any, cls: type, where: str, depth: int) -> Any:
+def _compile_record(cls: type) -> Checker:
     """A map holding exactly the record's fields, each of its type, built into ``cls``."""
-    if not isinstance(value, dict):
-        raise _bad(where, f"must be a map of {cls.__name__} fields, got {_type_name(value)}")
-    if depth >= MAX_NESTING:
-        raise _bad(where, f"nested deeper than {MAX_NESTING} levels")
-    specs = _specs(cls)
-    expected = {spec.name for spec in specs}
-    if set(value) != expected:
-        missing = sorted(expected - set(value))
-        unknown = sorted(_short.repr(k) for k in set(value) - expected)
-        raise _bad(where, f"missing fields {missing}, unknown fields {unknown}")
-    built = {
-        spec.name: _check(value[spec.name], spec.hint, f"{where}.{spec.name}", depth + 1)
-        for spec in specs
-    }
-    try:
-        return cls(**built)
-    except (TypeError, ValueError) as error:  # a record that validates in __post_init__
-        raise _bad(where, str(error)) from None
+    fields = [(spec.name, _checker(spec.hint)) for spec in _specs(cls)]
+    expected = {name for name, _ in fields}
+
+    def check(value: Any, where: str, depth: int) -> Any:
+        if not isinstance(value, dict):
+            raise _bad(where, f"must be a map of {cls.__name__} fields, got {_type_name(value)}")
+        if depth >= MAX_NESTING:
+            raise _bad(where, f"nested deeper than {MAX_NESTING} levels")
+        if value.keys() != expected:
+            missing = sorted(expected - set(value))
+            unknown = sorted(_short.repr(k) for k in set(value) - expected)
+            raise _bad(where, f"missing fields {missing}, unknown fields {unknown}")
+        built = {name: field(value[name], f"{where}.{name}", depth + 1) for name, field in fields}
+        try:
+            return cls(**built)
+        except (TypeError, ValueError) as error:  # a record that validates in __post_init__
+            raise _bad(where, str(error)) from None
+
+    return check
+
+
+_PLAIN_SCALARS = frozenset({int, float, str, bytes, bool, type(None)})
+
+
+@functools.cache
+def _field_names(cls: type) -> tuple[str, ...]:
+    return tuple(f.name for f in dataclasses.fields(cls))
 
 
 def _to_wire(value: Any, where: str, depth: int = 0) -> Any:
     """Outgoing header values as decode will see them: numpy scalars become Python scalars and
     tuples lists, so statistics computed with numpy can be sent as they are."""
+    if type(value) in _PLAIN_SCALARS:  # the common case, first: nothing to convert
+        return value
     if depth > MAX_NESTING:
         raise _bad(where, f"nested deeper than {MAX_NESTING} levels")
     if isinstance(value, np.generic):
         return value.item()
     if dataclasses.is_dataclass(value) and not isinstance(value, type):
         return {
-            f.name: _to_wire(getattr(value, f.name), f"{where}.{f.name}", depth + 1)
-            for f in dataclasses.fields(value)
+            name: item
+            if type(item := getattr(value, name)) in _PLAIN_SCALARS
+            else _to_wire(item, f"{where}.{name}", depth + 1)
+            for name in _field_names(type(value))
         }
     if isinstance(value, list | tuple):
-        return [_to_wire(item, f"{where}[{i}]", depth + 1) for i, item in enumerate(value)]
+        return [
+            item if type(item) in _PLAIN_SCALARS else _to_wire(item, f"{where}[{i}]", depth + 1)
+            for i, item in enumerate(value)
+        ]
     if isinstance(value, dict):
         return {key: _to_wire(item, f"{where}[{key!r}]", depth + 1) for key, item in value.items()}
     return value
