@@ -33,9 +33,10 @@ class Bound:
 
     def problem(self, value: Any) -> str | None:
         """Why ``value`` (already of the field's type) is out of bounds, or None."""
-        if isinstance(value, bool):
+        kind = type(value)
+        if kind is bool:
             return None
-        if isinstance(value, int | float):  # numbers have no length: done here (hot path)
+        if kind is float or kind is int or isinstance(value, int | float):  # the hot path
             if self.finite and not math.isfinite(value):
                 return f"{value!r} is not finite"
             if self.low is not None and not value >= self.low:

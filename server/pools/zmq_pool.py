@@ -596,7 +596,8 @@ class ZmqAgentPool:
         collection = self._collection
         open_round = collection is not None and collection.round == update.round
         broadcast = collection.request.theta if open_round and collection else None
-        return self.check.problem(update.theta, update.stats, broadcast)
+        # decoded stats are within their bounds: the codec enforced them field by field
+        return self.check.problem(update.theta, update.stats, broadcast, stats_bounded=True)
 
     def _open_for(self, peer: Peer | None, answer: Update | Evaluation, kind: type) -> bool:
         """Whether ``answer`` belongs to the request still open for this peer; logs if not."""
