@@ -37,9 +37,7 @@ def measure(agents: int, per_host: int, rounds: int, family: str, extra: list[st
         records, first_round_s, peak = _federation(
             overrides, Path(tmp), sample_memory=True, poll_s=0.05
         )
-    overhead = [
-        r["round_time_s"] - max(a["local_wall_s"] for a in r["agents"]) for r in records
-    ]
+    overhead = [r["round_time_s"] - max(a["local_wall_s"] for a in r["agents"]) for r in records]
     return {
         "agents": agents,
         "per_host": per_host,
