@@ -16,7 +16,6 @@ import time
 from pathlib import Path
 
 import numpy as np
-import pytest
 import torch
 import zmq
 from peers import raw_frames
@@ -66,22 +65,11 @@ def _fedhpg_run(tmp_path: Path, keys: list[str], name: str) -> tuple[torch.Tenso
     return checkpoint.theta, json.loads((out_dir / "summary.json").read_text())
 
 
-@pytest.mark.parametrize(
-    "extra",
-    [[], ["algo=fedhpgvr", "agents.budget={batch_size:[4],inner_steps:[2],mini_batch_size:[2]}"]],
-    ids=["fedhpg", "fedhpgvr"],
-)
-def test_theta_does_not_depend_on_the_placement_of_the_agents(
-    tmp_path: Path, extra: list[str]
-) -> None:
-    keys = [*RUN, *extra]
-    expected = run_in_process(compose(keys))
-    placements = ["agents.per_host=1", "agents.per_host=3", "agents.per_host=7"]
-    if extra:  # one distributed placement is enough for the second algorithm
-        placements = ["agents.per_host=3"]
-    for placement in placements:
-        theta, summary = _fedhpg_run(tmp_path, [*keys, placement], placement.split("=")[1])
-        assert torch.equal(theta, expected), placement
+def test_theta_does_not_depend_on_the_placement_of_the_agents(tmp_path: Path) -> None:
+    expected = run_in_process(compose(RUN))
+    for per_host in (1, 3, 7):  # 7 processes; hosts of 3 + 3 + 1; one host of 7
+        theta, summary = _fedhpg_run(tmp_path, [*RUN, f"agents.per_host={per_host}"], str(per_host))
+        assert torch.equal(theta, expected), per_host
         assert summary["agent_deaths"] == 0 and summary["rejected_messages"] == 0
         assert sorted(summary["eval"]) == sorted(f"agent-{k}" for k in range(7))
 
@@ -119,28 +107,35 @@ def test_a_killed_host_is_restarted_and_its_agents_rejoin(tmp_path: Path) -> Non
     assert torch.equal(checkpoint.theta, run_in_process(compose(keys)))  # lost work redone
 
 
-def test_a_host_and_a_lone_agent_mix_in_one_federation(tmp_path: Path) -> None:
-    """``fedhpg-agent agent.first=0 agent.count=3`` serves agents 0..2 and a plain
-    ``fedhpg-agent agent.index=3`` the last one: the run is the in-process run."""
-    keys = [k for k in RUN if not k.startswith("agents.num_agents")] + ["agents.num_agents=4"]
+VR = ["algo=fedhpgvr", "agents.budget={batch_size:[4],inner_steps:[2],mini_batch_size:[2]}"]
+
+
+def test_fedhpgvr_on_hosts_mixed_with_a_lone_agent_is_the_in_process_run(tmp_path: Path) -> None:
+    """By hand: ``fedhpg-agent agent.first=0 agent.count=3`` and ``agent.first=3`` serve
+    agents 0..5, a plain ``fedhpg-agent agent.index=6`` the last one (a mixed federation)."""
+    keys = [*RUN, *VR]
     out_dir = tmp_path / "run"
     wire = [f"server.port={free_port()}", f"server.out_dir={out_dir}"]
     with processes() as started:
         server = start(started, "fedhpg-server", [*keys, *wire], cwd=tmp_path)
-        host = start(
-            started, "fedhpg-agent", [*keys, *wire, "agent.first=0", "agent.count=3"], cwd=tmp_path
-        )
-        lone = start(started, "fedhpg-agent", [*keys, *wire, "agent.index=3"], cwd=tmp_path)
+        agents = [
+            start(started, "fedhpg-agent", [*keys, *wire, *placement], cwd=tmp_path)
+            for placement in (
+                ["agent.first=0", "agent.count=3"],
+                ["agent.first=3", "agent.count=3"],
+                ["agent.index=6"],
+            )
+        ]
         _, stderr = server.communicate(timeout=TIMEOUT_S)
-        for agent in (host, lone):
+        for agent in agents:
             agent.wait(timeout=30)
     assert server.returncode == 0, stderr[-3000:]
-    assert host.returncode == 0 and lone.returncode == 0
+    assert [agent.returncode for agent in agents] == [0, 0, 0]
     checkpoint = latest_valid_checkpoint(out_dir / "checkpoints")
     assert checkpoint is not None and checkpoint.round == 3
     assert torch.equal(checkpoint.theta, run_in_process(compose(keys)))
     summary = json.loads((out_dir / "summary.json").read_text())
-    assert sorted(summary["eval"]) == ["agent-0", "agent-1", "agent-2", "agent-3"]
+    assert sorted(summary["eval"]) == sorted(f"agent-{k}" for k in range(7))
 
 
 HOSTILE_RUN = [
