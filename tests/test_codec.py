@@ -822,3 +822,32 @@ def test_over_real_sockets(router_dealer: tuple[zmq.Socket, zmq.Socket]) -> None
 def test_zmq_frames_are_accepted_directly() -> None:
     frames = [zmq.Frame(bytes(f)) for f in encode(SAMPLES[2])]
     assert _equal(decode(frames), SAMPLES[2])
+
+
+_ANY_SCALAR = st.one_of(
+    st.none(),
+    st.booleans(),
+    st.integers(-(2**70), 2**70),
+    st.floats(allow_nan=True, allow_infinity=True),
+    st.text(max_size=3),
+)
+
+
+@settings(max_examples=300, deadline=None, derandomize=True)
+@given(st.sampled_from([UpdateStats, EvaluationStats]), st.data())
+def test_the_records_fast_path_accepts_exactly_what_the_generic_checks_do(
+    record: type, data: st.DataObject
+) -> None:
+    """A stats record's bounded numbers are tested inline (``codec._fits``); for every field
+    and any scalar, that test agrees with the field's generic check."""
+    for spec in codec._specs(record):
+        rule = codec._number_rule(spec.hint)
+        if rule is None:
+            continue
+        value = data.draw(_ANY_SCALAR)
+        try:
+            codec._checker(spec.hint)(value, spec.name, 1)
+            accepted = True
+        except ProtocolError:
+            accepted = False
+        assert codec._fits(value, rule) == accepted, (spec.name, value)
