@@ -3,37 +3,22 @@
 from __future__ import annotations
 
 import hashlib
-import json
-from collections.abc import Sequence
 
 from fedhpg.common.config import RunConfig
 from fedhpg.envs.base import EnvVariant
-from fedhpg.envs.registry import make_variants, resolve_family
-
-VARIANT_CACHE = 4
-"""Variant lists kept per process, by their inputs: validation, the server and every agent
-host each need the run's K variants, ~0.1 ms apiece for GridWorld (1 s at K = 10,000), and
-``fedhpg-run``'s children inherit the launcher's by fork."""
-_variants: dict[str, tuple[object, list[EnvVariant]]] = {}
+from fedhpg.envs.registry import make_variants
 
 
 def run_variants(run: RunConfig) -> list[EnvVariant]:
-    """The K environment variants of a run (deterministic in env.* and the seed, for the
-    family's factory: a family registered anew is asked anew)."""
+    """The K environment variants of a run (deterministic in env.* and the seed)."""
     env = run.env
-    seed = run.seed if env.seed is None else env.seed
-    factory = resolve_family(env.family)
-    inputs = dict(family=env.family, seed=seed, num_agents=run.agents.num_agents, level=env.level)
-    key = json.dumps([inputs, env.options], sort_keys=True, default=repr)
-    cached = _variants.get(key)
-    if cached is None or cached[0] is not factory:
-        if len(_variants) >= VARIANT_CACHE:
-            _variants.clear()
-        variants = make_variants(
-            env.family, seed=seed, num_agents=run.agents.num_agents, level=env.level, **env.options
-        )
-        cached = _variants[key] = (factory, variants)
-    return list(cached[1])  # a list of its own: callers may reorder theirs
+    return make_variants(
+        env.family,
+        seed=run.seed if env.seed is None else env.seed,
+        num_agents=run.agents.num_agents,
+        level=env.level,
+        **env.options,
+    )
 
 
 def training_horizon(run: RunConfig, variant: EnvVariant) -> int:
@@ -53,7 +38,7 @@ def variant_digest(run: RunConfig, variant: EnvVariant) -> str:
     return hashlib.sha256(text.encode()).hexdigest()[:32]
 
 
-def range_digest(digests: Sequence[str]) -> str:
+def range_digest(digests: list[str]) -> str:
     """One digest for the variant digests of an agent host's index range (in index order):
     the host sends it once, the server recomputes it from the digests it expects."""
     return hashlib.sha256("|".join(digests).encode()).hexdigest()[:32]

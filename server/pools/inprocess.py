@@ -1,10 +1,7 @@
-"""FedHPG in one process: the K agents as one :class:`~fedhpg.common.group.AgentGroup`
-driven by the same coordinator.
+"""FedHPG in one process: K :class:`LocalWorker` s driven by the same coordinator.
 
-No sockets; the distributed runtime (one process per agent, or agent hosts) must reproduce
-this runner's θ bit for bit, and does: every placement trains through
-:func:`~fedhpg.common.group.make_agent_group`. Emulated device time is accounted on a virtual
-clock (no sleeping).
+No sockets; the distributed runtime must reproduce this runner's θ bit for bit. Emulated
+device time is accounted on a virtual clock (no sleeping).
 """
 
 from __future__ import annotations
@@ -16,14 +13,13 @@ from dataclasses import dataclass
 
 import torch
 
-from fedhpg.common.components import validate_run
+from fedhpg.common.components import agent_profile, validate_run
 from fedhpg.common.config import RunConfig, agent_id_of
 from fedhpg.common.device import DeviceModel, device_for, message_bytes
-from fedhpg.common.group import AgentGroup, make_agent_group
 from fedhpg.common.runtime.memory import pin_malloc_mmap_threshold
 from fedhpg.common.types import AgentUpdate, EvaluationStats
 from fedhpg.common.variants import run_variants
-from fedhpg.common.worker import IterationWork, initial_theta
+from fedhpg.common.worker import IterationWork, LocalWorker, initial_theta
 from fedhpg.envs.base import EnvVariant
 from fedhpg.server.coordinator import Coordinator, RoundCallback, RunProgress
 from fedhpg.server.pools import RoundAnswers
@@ -35,61 +31,48 @@ logger = logging.getLogger(__name__)
 
 @dataclass
 class InProcessPool:
-    """Agents as one group on this thread; each round trains the selected agents."""
+    """Agents as plain objects; each update is computed on this thread, in agent order."""
 
-    group: AgentGroup
+    workers: list[LocalWorker]
     devices: list[DeviceModel]
     """Emulated devices on a virtual clock: time is accounted, never slept."""
     check: UpdateCheck
 
     @property
     def agent_ids(self) -> list[str]:
-        return [agent_id_of(k) for k in range(len(self.devices))]
+        return [agent_id_of(w.index) for w in self.workers]
 
-    def _updates(
-        self, round_index: int, theta: torch.Tensor, agents: Sequence[int]
-    ) -> list[AgentUpdate]:
-        num_params = self.group.num_params
+    def _train_one(self, k: int, round_index: int, theta: torch.Tensor) -> AgentUpdate:
+        worker, device = self.workers[k], self.devices[k]
+        device.take_emulated()
         # The counted clock charges the two messages an agent process would exchange (θ̃
         # down, θ up), so both runtimes agree; the measured clock charges none here, as before.
-        message = message_bytes(num_params)
-        for k in agents:
-            device = self.devices[k]
-            device.take_emulated()
-            if device.counted:
-                device.transmit(message)
+        message = message_bytes(worker.num_params)
+        if device.counted:
+            device.transmit(message)
 
-        def on_iteration(k: int, work: IterationWork) -> None:
-            self.devices[k].spend(
+        def on_iteration(work: IterationWork) -> None:
+            device.spend(
                 work.compute_s,
                 work.env_steps,
                 round_index,
                 grad_steps=work.grad_steps,
-                num_params=num_params,
+                num_params=worker.num_params,
             )
 
-        results = self.group.train(round_index, theta, agents, on_iteration=on_iteration)
-        updates = []
-        for k in agents:
-            device = self.devices[k]
-            if device.counted:
-                device.transmit(message)
-            stats = dataclasses.replace(
-                results[k].stats,
-                emulated_s=device.take_emulated(),
-                speed=device.speed_at(round_index),
-            )
-            updates.append(
-                AgentUpdate(
-                    agent_index=k, agent_id=agent_id_of(k), theta=results[k].theta, stats=stats
-                )
-            )
-        return updates
+        result = worker.train(round_index, theta.clone(), on_iteration=on_iteration)
+        if device.counted:
+            device.transmit(message)
+        stats = dataclasses.replace(
+            result.stats, emulated_s=device.take_emulated(), speed=device.speed_at(round_index)
+        )
+        return AgentUpdate(agent_index=k, agent_id=agent_id_of(k), theta=result.theta, stats=stats)
 
     def train(self, round_index: int, theta: torch.Tensor, agents: Sequence[int]) -> RoundAnswers:
         broadcast = theta.detach().numpy()
         updates, failures = [], {}
-        for update in self._updates(round_index, theta, sorted(agents)):
+        for k in sorted(agents):
+            update = self._train_one(k, round_index, theta)
             problem = self.check.problem(update.theta.numpy(), update.stats, broadcast)
             if problem is None:
                 updates.append(update)
@@ -101,22 +84,31 @@ class InProcessPool:
     def evaluate(
         self, round_index: int, theta: torch.Tensor, episodes: int
     ) -> dict[str, EvaluationStats]:
-        agents = range(len(self.devices))
-        evaluations = self.group.evaluate(round_index, theta, episodes, agents)
-        return {agent_id_of(k): evaluations[k] for k in agents}
+        return {
+            agent_id_of(w.index): w.evaluate(round_index, theta, episodes) for w in self.workers
+        }
 
     def close(self) -> None:
-        self.group.close()
+        for worker in self.workers:
+            worker.close()
 
 
 def make_in_process_pool(run: RunConfig, variants: list[EnvVariant]) -> InProcessPool:
     pin_malloc_mmap_threshold()
-    indices = list(range(len(variants)))
-    group = make_agent_group(run, indices, variants=dict(enumerate(variants)))
+    profiles = [agent_profile(run, k) for k in range(len(variants))]
+    workers = [
+        LocalWorker(index=k, variant=variant, run=run, profile=profiles[k])
+        for k, variant in enumerate(variants)
+    ]
     return InProcessPool(
-        group=group,
-        devices=[dataclasses.replace(device_for(run, k), virtual_clock=True) for k in indices],
-        check=UpdateCheck(num_params=group.num_params, max_update_norm=run.server.max_update_norm),
+        workers=workers,
+        devices=[
+            dataclasses.replace(device_for(run, k), virtual_clock=True)
+            for k in range(len(variants))
+        ],
+        check=UpdateCheck(
+            num_params=workers[0].num_params, max_update_norm=run.server.max_update_norm
+        ),
     )
 
 
