@@ -12,6 +12,10 @@ exponential backoff, giving up after ``agent.connect_timeout_s``.
 The routing identity is ``<agent id>#<nonce>``, a fresh nonce per socket: the server can tell
 a second process (or a restarted one) claiming an id from the one it knows, which libzmq
 would otherwise drop silently.
+
+The agent trains through :func:`fedhpg.common.group.make_agent_group` (a group of one), as an
+agent host (:mod:`fedhpg.agent.host`, built on this class) and the in-process pool do: θ̃ does
+not depend on where an agent runs.
 """
 
 from __future__ import annotations
@@ -31,18 +35,22 @@ import zmq
 from fedhpg.common.components import agent_profile, validate_run
 from fedhpg.common.config import ConfigError, RunConfig, adopt_settings, agent_id_of
 from fedhpg.common.device import DeviceModel, device_for, message_bytes
+from fedhpg.common.group import AgentGroup, make_agent_group
 from fedhpg.common.runtime.memory import pin_malloc_mmap_threshold
-from fedhpg.common.variants import run_variants, variant_digest
+from fedhpg.common.variants import variant_digest, variant_of
 from fedhpg.common.wire.codec import MAX_HEADER_BYTES, ProtocolError
 from fedhpg.common.wire.protocol import (
     Error,
     Evaluate,
+    EvaluateBatch,
     Evaluation,
     Heartbeat,
     Hello,
+    HostWelcome,
     Message,
     Shutdown,
     Train,
+    TrainBatch,
     Update,
     Welcome,
 )
@@ -54,7 +62,7 @@ from fedhpg.common.wire.transport import (
     send_message,
     try_decode,
 )
-from fedhpg.common.worker import IterationWork, LocalWorker
+from fedhpg.common.worker import IterationWork
 from fedhpg.envs.base import EnvVariant
 
 logger = logging.getLogger(__name__)
@@ -66,8 +74,7 @@ DUPLICATE_GRACE_LIVENESS = 1.5
 """A refused duplicate keeps trying for this many server liveness windows: if the holder of
 its id is a dead predecessor, the server will have noticed by then."""
 
-Request = Train | Evaluate
-Answer = Update | Evaluation
+Request = Train | Evaluate | TrainBatch | EvaluateBatch
 
 
 class AgentFailure(RuntimeError):
@@ -89,7 +96,8 @@ class Job:
     request: Request
     cancel: threading.Event = field(default_factory=threading.Event)
     done: threading.Event = field(default_factory=threading.Event)
-    answer: Answer | None = None
+    answers: list[Message] | None = None
+    """What to send back (one message, or an agent host's batches)."""
     error: BaseException | None = None
 
     def same_request(self, request: Request) -> bool:
@@ -97,6 +105,13 @@ class Job:
 
 
 def same_request(a: Request, b: Request) -> bool:
+    """Whether ``b`` asks for nothing that ``a`` does not (for a host: the same round and θ̃,
+    for a subset of a's agents, as when it is asked again after rejoining)."""
+    batches = isinstance(a, TrainBatch | EvaluateBatch) and isinstance(
+        b, TrainBatch | EvaluateBatch
+    )
+    if batches and not set(b.agents) <= set(a.agents):  # type: ignore[union-attr]
+        return False
     return (
         type(a) is type(b)
         and a.round == b.round
@@ -118,18 +133,22 @@ class AgentProcess:
                 f"got {self.index}, must be < agents.num_agents={run.agents.num_agents}",
             )
         pin_malloc_mmap_threshold()
-        self.variant: EnvVariant = run_variants(run)[self.index]
+        self.variant: EnvVariant = variant_of(run, self.index)
         self.digest = variant_digest(run, self.variant)
         self.device: DeviceModel = self._device(run)
+        self._init_io(run)
+
+    def _init_io(self, run: RunConfig) -> None:
+        """The socket, the job thread and the state they share (agent and host alike)."""
         self.interval_s = run.server.heartbeat_interval_s
         self.liveness_s = run.server.heartbeat_interval_s * run.server.heartbeat_liveness
         self.endpoint = connect_endpoint(run.server)
         self.max_bytes = max_message_bytes(run.server)
-        self.worker: LocalWorker | None = None
+        self.group: AgentGroup | None = None
         self.settings: dict | None = None
         self.job: Job | None = None
         self.pending: Request | None = None
-        self.last_answer: tuple[Request, Answer] | None = None
+        self.last_answer: tuple[Request, list[Message]] | None = None
         self.last_heard = self.last_sent = time.monotonic()
         self.context = zmq.Context()
         self.socket = self._new_socket()
@@ -169,8 +188,8 @@ class AgentProcess:
             self.job.done.wait(timeout=10)
         self._jobs.put(None)
         self._job_thread.join(timeout=10)
-        if self.worker is not None:
-            self.worker.close()
+        if self.group is not None:
+            self.group.close()
         self._close_socket()
         self.context.term()
         os.close(self._wake_read)
@@ -207,7 +226,7 @@ class AgentProcess:
 
     # -- registration -----------------------------------------------------------------------
 
-    def _hello(self) -> Hello:
+    def _hello(self) -> Message:
         return Hello(
             agent_id=self.agent_id,
             agent_index=self.index,
@@ -221,7 +240,10 @@ class AgentProcess:
             },
         )
 
-    def register(self) -> Welcome:
+    def _is_welcome(self, message: Message | None) -> bool:
+        return isinstance(message, Welcome)
+
+    def register(self) -> Welcome | HostWelcome:
         """Say hello until the server answers, backing off up to BACKOFF_MAX_S between tries."""
         hello = self._hello()
         deadline = time.monotonic() + self.own.agent.connect_timeout_s
@@ -238,7 +260,8 @@ class AgentProcess:
                 if not self.socket.poll(int(remaining * 1000) + 1):
                     break
                 reply = self._receive()
-                if isinstance(reply, Welcome):
+                if self._is_welcome(reply):
+                    assert isinstance(reply, Welcome | HostWelcome)
                     return reply
                 if (refused := self.handshake.failure()) is not None:
                     raise AgentFailure(refused)
@@ -264,22 +287,20 @@ class AgentProcess:
             f"{self.own.agent.connect_timeout_s:g} s (agent.connect_timeout_s)"
         )
 
-    def adopt(self, welcome: Welcome) -> None:
+    def adopt(self, welcome: Welcome | HostWelcome) -> None:
         """Take the run's shared settings from the server; keep our environment and budget."""
         self.last_heard = time.monotonic()
-        if welcome.run == self.settings and self.worker is not None:
-            return  # a server we knew, restarted: same run, keep the worker
+        if welcome.run == self.settings and self.group is not None:
+            return  # a server we knew, restarted: same run, keep the group
         try:
             run = validate_run(adopt_settings(self.own, welcome.run))
-            profile = agent_profile(run, self.index)
         except ConfigError as error:
             raise AgentFailure(f"cannot take the server's settings: {error}") from None
         self._retire_job()
-        if self.worker is not None:
-            self.worker.close()
-        self.device = self._device(run)
-        self.worker = LocalWorker(index=self.index, variant=self.variant, run=run, profile=profile)
-        needed = MAX_HEADER_BYTES + 4 * self.worker.num_params
+        if self.group is not None:
+            self.group.close()
+        self.group = self._make_group(run)
+        needed = MAX_HEADER_BYTES + 4 * self.group.num_params
         if self.max_bytes < needed:
             raise AgentFailure(
                 f"server.max_message_mb={self.own.server.max_message_mb:g} is below the "
@@ -287,12 +308,20 @@ class AgentProcess:
             )
         self.settings = welcome.run
         self.last_answer = None
+        self._log_registered(run, welcome.run_id)
+
+    def _make_group(self, run: RunConfig) -> AgentGroup:
+        self.device = self._device(run)
+        return make_agent_group(run, [self.index], variants={self.index: self.variant})
+
+    def _log_registered(self, run: RunConfig, run_id: str) -> None:
+        profile = agent_profile(run, self.index)
         logger.debug(
-            "%s registered in run %s (env %s, %s, speed=%g)",
+            "%s registered in run %s (env %s, budget %s, speed=%g)",
             self.agent_id,
-            welcome.run_id,
+            run_id,
             self.variant.params,
-            self.worker.algorithm.describe_budget(profile.budget),
+            dataclasses.asdict(profile.budget),
             profile.speed,
         )
 
@@ -320,29 +349,30 @@ class AgentProcess:
         thread rather than one per job keeps torch's and the allocator's per-thread state.)"""
         while (job := self._jobs.get()) is not None:
             try:
-                job.answer = self._work(job)
+                job.answers = self._work(job)
             except BaseException as error:  # handed to the main thread, which decides
                 job.error = error
             finally:
                 job.done.set()
                 os.write(self._wake_write, b"\0")
 
-    def _work(self, job: Job) -> Answer:
-        assert self.worker is not None
+    def _work(self, job: Job) -> list[Message]:
+        assert self.group is not None
         request = job.request
+        assert isinstance(request, Train | Evaluate)
         theta = torch.from_numpy(np.array(request.theta))
         if isinstance(request, Evaluate):
-            evaluation = self.worker.evaluate(request.round, theta, request.episodes)
-            return Evaluation(round=request.round, stats=evaluation)
+            evaluation = self.group.evaluate(request.round, theta, request.episodes, [self.index])
+            return [Evaluation(round=request.round, stats=evaluation[self.index])]
         started = time.perf_counter()
-        num_params = self.worker.num_params
+        num_params = self.group.num_params
         # The counted clock charges θ's float32 bytes plus a fixed header for the request and
         # for the answer (not the encoded lengths), exactly what the in-process pool charges.
         message = message_bytes(num_params)
         self.device.take_emulated()
         self.device.transmit(message)  # the request's one-way latency (and transfer)
 
-        def on_iteration(work: IterationWork) -> None:
+        def on_iteration(_: int, work: IterationWork) -> None:
             if job.cancel.is_set():
                 raise Cancelled
             self.device.spend(
@@ -353,7 +383,9 @@ class AgentProcess:
                 num_params=num_params,
             )
 
-        result = self.worker.train(request.round, theta, on_iteration=on_iteration)
+        result = self.group.train(request.round, theta, [self.index], on_iteration=on_iteration)[
+            self.index
+        ]
         self.device.transmit(message)  # the answer's
         stats = replace(
             result.stats,
@@ -361,7 +393,7 @@ class AgentProcess:
             local_wall_s=time.perf_counter() - started,
             speed=self.device.speed_at(request.round),
         )
-        return Update(round=request.round, theta=result.theta.numpy(), stats=stats)
+        return [Update(round=request.round, theta=result.theta.numpy(), stats=stats)]
 
     def _start(self, request: Request) -> None:
         self.job = Job(request=request)
@@ -383,7 +415,8 @@ class AgentProcess:
         if self.job is not None and not self.job.cancel.is_set() and self.job.same_request(request):
             return  # asked again (e.g. after we rejoined) for what we are already doing
         if self.last_answer is not None and same_request(self.last_answer[0], request):
-            self._send(self.last_answer[1])  # our answer was lost: send it again
+            for answer in self._resend(self.last_answer[1], request):
+                self._send(answer)  # our answer was lost: send it again
             return
         if self.job is not None:
             logger.info(
@@ -398,6 +431,10 @@ class AgentProcess:
             return
         self._start(request)
 
+    def _resend(self, answers: list[Message], request: Request) -> list[Message]:
+        """What of the last answers to send again for ``request`` (all of them, for one agent)."""
+        return answers
+
     def _on_job_done(self) -> None:
         os.read(self._wake_read, 64)
         job = self.job
@@ -410,9 +447,10 @@ class AgentProcess:
             raise AgentFailure(
                 f"round {job.request.round} failed: {type(job.error).__name__}: {job.error}"
             ) from job.error
-        elif job.answer is not None and not job.cancel.is_set():
-            self.last_answer = (job.request, job.answer)
-            self._send(job.answer)
+        elif job.answers is not None and not job.cancel.is_set():
+            self.last_answer = (job.request, job.answers)
+            for answer in job.answers:
+                self._send(answer)
         if self.pending is not None:
             request, self.pending = self.pending, None
             self._start(request)
@@ -421,7 +459,8 @@ class AgentProcess:
 
     def _dispatch(self, message: Message) -> bool:
         """Act on one message from the server; False when the run is over."""
-        if isinstance(message, Train | Evaluate):
+        if isinstance(message, self._request_types()):
+            assert isinstance(message, Train | Evaluate | TrainBatch | EvaluateBatch)
             self._on_request(message)
         elif isinstance(message, Shutdown):
             logger.debug("%s: shutdown (%s)", self.agent_id, message.reason)
@@ -432,7 +471,8 @@ class AgentProcess:
             # A restarted server, or one that gave up on us: register again and carry on.
             logger.info("%s: the server does not know us; registering again", self.agent_id)
             self._send(self._hello())
-        elif isinstance(message, Welcome):
+        elif self._is_welcome(message):
+            assert isinstance(message, Welcome | HostWelcome)
             self.adopt(message)
         elif isinstance(message, Error):
             logger.warning(
@@ -441,6 +481,9 @@ class AgentProcess:
         elif not isinstance(message, Heartbeat):
             logger.warning("%s: ignoring unexpected %s", self.agent_id, type(message).__name__)
         return True
+
+    def _request_types(self) -> tuple[type, ...]:
+        return (Train, Evaluate)
 
     def serve(self) -> None:
         """Answer the server until it says shutdown."""

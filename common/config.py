@@ -204,6 +204,9 @@ class AgentsConfig:
     """Counted clock: link bandwidth in Mbit/s (0 = unlimited); message bytes are charged."""
     population: PopulationConfig = field(default_factory=PopulationConfig)
     """Budgets and device profiles per agent index from a distribution or a trace file."""
+    per_host: int = 1
+    """``fedhpg-run``: logical agents per agent process. 1 = one process per agent; N > 1 =
+    ceil(K/N) agent hosts, each serving N consecutive indices over one connection."""
 
 
 @dataclass(kw_only=True)
@@ -299,7 +302,8 @@ class ServerConfig:
     if this is lower than that."""
     max_connections: int | None = None
     """Most connections the server keeps open (the oldest unregistered ones are closed past
-    it); None = 2 × agents.num_agents + 64, lowered to what the descriptor limit allows."""
+    it); None = 2 × agents.num_agents + 64, lowered to what the descriptor limit allows. With
+    agent hosts only the hosts' connections count (set it as low as twice their number)."""
     hello_timeout_s: float = 10.0
     """A connection that has not registered within this time is closed."""
     out_dir: str | None = None
@@ -319,7 +323,13 @@ class AgentConfig:
     index: int = 0
     """Agent index k: selects the environment variant and the compute profile."""
     id: str | None = None
-    """Agent id on the wire; None = 'agent-<index>'."""
+    """Agent id on the wire; None = 'agent-<index>'. For an agent host: the host's id
+    (None = 'host-<first>-<last>'); its logical agents are always 'agent-<k>'."""
+    first: int | None = None
+    """Set: this process is an agent host serving the logical agents first .. first+count-1
+    over one connection (``agent.index`` is then unused); None: one agent, ``agent.index``."""
+    count: int = 1
+    """Agent host: how many consecutive logical agents it serves, from ``agent.first``."""
     connect_timeout_s: float = 60.0
     """Give up if the server has not answered within this time (at start, or after it fell
     silent)."""
@@ -585,7 +595,21 @@ def _validate_server(server: ServerConfig, num_agents: int) -> None:
     if server.max_update_norm is not None:
         _check_number(server.max_update_norm, "server.max_update_norm", low=0.0, low_open=True)
     if server.max_connections is not None:
-        _check_int(server.max_connections, "server.max_connections", low=num_agents)
+        # low=1, not K: agent hosts serve many agents over one connection each
+        _check_int(server.max_connections, "server.max_connections", low=1)
+
+
+def _validate_host_range(agent: AgentConfig, num_agents: int) -> None:
+    if agent.first is None:
+        return
+    _check_int(agent.first, "agent.first", low=0)
+    _check_int(agent.count, "agent.count", low=1)
+    _require(
+        agent.first + agent.count <= num_agents,
+        "agent.first",
+        f"the range {agent.first}..{agent.first + agent.count - 1} (agent.first, agent.count) "
+        f"goes beyond the last agent index {num_agents - 1} (agents.num_agents={num_agents})",
+    )
 
 
 def validate(config: RunConfig) -> RunConfig:
@@ -626,6 +650,8 @@ def validate(config: RunConfig) -> RunConfig:
 
     _validate_server(config.server, config.agents.num_agents)
     _check_int(config.agent.index, "agent.index", low=0)
+    _validate_host_range(config.agent, config.agents.num_agents)
+    _check_int(config.agents.per_host, "agents.per_host", low=1)
     _check_number(config.agent.connect_timeout_s, "agent.connect_timeout_s", low=0.0, low_open=True)
     _check_int(config.agent.max_restarts, "agent.max_restarts", low=0)
     _require(
@@ -654,6 +680,17 @@ def _validate_cluster(cluster: ClusterConfig) -> None:
 
 def agent_id_of(index: int, explicit: str | None = None) -> str:
     return explicit if explicit else f"agent-{index}"
+
+
+def host_id_of(first: int, count: int, explicit: str | None = None) -> str:
+    """An agent host's id (its routing identity's prefix, its CURVE key's name)."""
+    return explicit if explicit else f"host-{first}-{first + count - 1}"
+
+
+def host_ranges(num_agents: int, per_host: int) -> list[tuple[int, int]]:
+    """(first, count) of each agent host ``fedhpg-run`` starts with ``agents.per_host``: N
+    consecutive indices each, the last one the rest."""
+    return [(first, min(per_host, num_agents - first)) for first in range(0, num_agents, per_host)]
 
 
 def to_dict(config: RunConfig) -> dict[str, Any]:

@@ -92,3 +92,9 @@ def variant_digest(run: RunConfig, variant: EnvVariant) -> str:
     The server refuses an agent whose digest differs from the one it computed for its index."""
     text = f"{variant.digest()}|H={training_horizon(run, variant)}|γ={discount(run, variant)!r}"
     return hashlib.sha256(text.encode()).hexdigest()[:32]
+
+
+def range_digest(digests: list[str]) -> str:
+    """One digest for the variant digests of an agent host's index range (in index order):
+    the host sends it once, the server recomputes it from the digests it expects."""
+    return hashlib.sha256("|".join(digests).encode()).hexdigest()[:32]

@@ -1,4 +1,5 @@
-"""``fedhpg-run``: one server and K agent processes on this machine, supervised.
+"""``fedhpg-run``: one server and K agent processes (or ceil(K/N) agent hosts of N agents,
+``agents.per_host``) on this machine, supervised.
 
 torch and the package are imported once here; the server and agents are *forked* from this
 process, so K agents start in milliseconds instead of paying ~1.5 s of imports each. Children
@@ -20,7 +21,7 @@ from dataclasses import replace
 from multiprocessing.connection import Connection
 from pathlib import Path
 
-from fedhpg.common.config import ConfigError, RunConfig
+from fedhpg.common.config import ConfigError, RunConfig, host_id_of, host_ranges
 from fedhpg.common.runtime.cli import EXIT_RUN_ABORTED
 
 logger = logging.getLogger(__name__)
@@ -110,7 +111,7 @@ class Supervisor:
                 child.join()
 
     def _restart(self, child: multiprocessing.process.BaseProcess) -> bool:
-        """Start a crashed agent again if it has restarts left."""
+        """Start a crashed agent (or agent host) again if it has restarts left."""
         used = self._restarts.get(child.name, 0)
         if child.name == "server" or used >= self.max_restarts:
             return False
@@ -197,9 +198,8 @@ def launch(run: RunConfig, out_dir: Path) -> int:
                 return 1
         if run.server.transport == "tcp":
             run = replace(run, server=replace(run.server, port=_port_of(endpoint)))
-        for k in range(run.agents.num_agents):
-            agent_run = replace(run, agent=replace(run.agent, index=k, id=None))
-            supervisor.start(_agent_child, (agent_run,), f"agent-{k}")
+        for name, agent_run in agent_processes(run):
+            supervisor.start(_agent_child, (agent_run,), name)
         return supervisor.wait(server)
     except KeyboardInterrupt:
         logger.warning("interrupted: stopping the federation")
@@ -209,6 +209,22 @@ def launch(run: RunConfig, out_dir: Path) -> int:
         supervisor.stop_all()
         for sig, handler in previous.items():
             signal.signal(sig, handler)
+
+
+def agent_processes(run: RunConfig) -> list[tuple[str, RunConfig]]:
+    """(name, config) of each agent process: one per agent, or with ``agents.per_host`` = N
+    above 1, ceil(K/N) agent hosts of N consecutive indices (the last one takes the rest)."""
+    k, per_host = run.agents.num_agents, run.agents.per_host
+    if per_host == 1:
+        return [
+            (f"agent-{i}", replace(run, agent=replace(run.agent, index=i, id=None, first=None)))
+            for i in range(k)
+        ]
+    hosts = []
+    for first, count in host_ranges(k, per_host):
+        agent = replace(run.agent, index=first, id=None, first=first, count=count)
+        hosts.append((host_id_of(first, count), replace(run, agent=agent)))
+    return hosts
 
 
 def _resolve_out_dir(run: RunConfig) -> Path:

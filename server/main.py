@@ -28,9 +28,14 @@ from fedhpg.common.runtime.cli import run_entry
 from fedhpg.common.runtime.progress import Progress
 from fedhpg.common.types import EvaluationStats
 from fedhpg.common.variants import run_variants, variant_digest, variant_of
-from fedhpg.common.wire.codec import MAX_HEADER_BYTES
 from fedhpg.common.wire.security import handshake_failure_logger, secure_server_socket
-from fedhpg.common.wire.transport import bind_endpoint, configure_socket, max_message_bytes
+from fedhpg.common.wire.transport import (
+    batch_message_cap,
+    bind_endpoint,
+    configure_socket,
+    max_message_bytes,
+    single_message_bytes,
+)
 from fedhpg.common.worker import initial_theta
 from fedhpg.envs.base import EnvVariant
 from fedhpg.server.checkpoint import (
@@ -151,9 +156,10 @@ def resume_point(
 
 
 def message_cap(run: RunConfig, num_params: int) -> int:
-    """The largest message this run's agents may send: a header and θ_k (ZMQ_MAXMSGSIZE and
-    the codec's cap). ``server.max_message_mb`` may lower it only as far as that."""
-    needed = MAX_HEADER_BYTES + 4 * num_params + 4096
+    """The largest message this run's agents may send: a header and θ_k, or an agent host's
+    batch of θs (ZMQ_MAXMSGSIZE and the codec's cap). ``server.max_message_mb`` may lower it
+    only as far as one θ."""
+    needed = single_message_bytes(num_params)
     configured = max_message_bytes(run.server)
     if configured < needed:
         raise ConfigError(
@@ -161,7 +167,7 @@ def message_cap(run: RunConfig, num_params: int) -> int:
             f"got {run.server.max_message_mb:g}, below the {needed / 2**20:.3g} MiB this run's "
             f"updates need (θ of {num_params} float32 and a header of up to 1 MiB)",
         )
-    return needed
+    return batch_message_cap(configured, num_params)
 
 
 def run_digests(run: RunConfig) -> list[str]:

@@ -131,6 +131,18 @@ CASES: dict[str, tuple[str, list[str], str]] = {
     ),
     "agent-typo": ("fedhpg-agent", ["+rouds=3"], "rouds: not a fedhpg key; did you mean rounds?"),
     "agent-flag": ("fedhpg-agent", ["-x"], "-x: not an option"),
+    "host-range-beyond-k": (
+        "fedhpg-agent",
+        ["agent.first=2", "agent.count=3"],
+        "agent.first: the range 2..4 (agent.first, agent.count) goes beyond the last agent index 3",
+    ),
+    "host-count-zero": (
+        "fedhpg-agent",
+        ["agent.first=0", "agent.count=0"],
+        "agent.count: got 0, must be an integer >= 1",
+    ),
+    "host-negative-first": ("fedhpg-agent", ["agent.first=-1"], "agent.first: got -1"),
+    "per-host-zero": ("fedhpg-run", ["agents.per_host=0"], "agents.per_host: got 0"),
 }
 
 

@@ -19,20 +19,28 @@ from hypothesis.extra import numpy as hnp
 
 from fedhpg.common import limits
 from fedhpg.common.types import EvaluationStats, UpdateStats
-from fedhpg.common.wire import codec
+from fedhpg.common.wire import codec, protocol
 from fedhpg.common.wire.codec import ProtocolError, decode, encode
 from fedhpg.common.wire.protocol import (
+    MAX_BATCH_ANSWERS,
+    MAX_HOST_AGENTS,
     MSG_TYPE_OF,
     PAYLOAD_TYPES,
     PROTOCOL_VERSION,
     Error,
     Evaluate,
+    EvaluateBatch,
     Evaluation,
+    EvaluationBatch,
     Heartbeat,
     Hello,
+    HostHello,
+    HostWelcome,
     Shutdown,
     Train,
+    TrainBatch,
     Update,
+    UpdateBatch,
     Welcome,
 )
 
@@ -72,6 +80,24 @@ SAMPLES = [
     Update(round=7, theta=THETA, stats=STATS),
     Evaluate(round=9, theta=THETA.astype(np.float64), episodes=20),
     Evaluation(round=9, stats=EVALUATION),
+    HostHello(
+        host_id="host-0-499",
+        first=0,
+        count=500,
+        env_signature={"observation": "Discrete(25)", "action": "Discrete(4)"},
+        variant_digest="0123456789abcdef",
+        profile={"pid": 4242, "agents": 500},
+    ),
+    HostWelcome(run_id="abc", first=500, count=500, run={"seed": 1}),
+    TrainBatch(round=7, theta=THETA, agents=[500, 503, 999]),
+    UpdateBatch(
+        round=7,
+        agents=[500, 503, 999],
+        thetas=np.stack([THETA, -THETA, 2 * THETA]),
+        stats=[STATS, dataclasses.replace(STATS, trajectories=3), STATS],
+    ),
+    EvaluateBatch(round=9, theta=THETA, episodes=20, agents=list(range(500, 1000))),
+    EvaluationBatch(round=9, agents=[1, 2], stats=[EVALUATION, EVALUATION]),
     Heartbeat(),
     Shutdown(reason="run complete"),
     Error(code="bad_update", reason="parameters contain NaN or Inf"),
@@ -83,6 +109,10 @@ def _same_value(a: Any, b: Any) -> bool:
     """Bit-exact equality: msgpack encodes NaN payloads, -0.0 and int-vs-float distinctly."""
     if dataclasses.is_dataclass(a):
         return _equal(a, b)
+    if isinstance(a, list) and any(dataclasses.is_dataclass(item) for item in a):
+        return (
+            isinstance(b, list) and len(a) == len(b) and all(map(_equal, a, b))
+        )  # batched answers' stats
     if isinstance(a, np.ndarray):
         return (
             isinstance(b, np.ndarray)
@@ -234,6 +264,53 @@ def test_encode_normalises_numpy_scalars_and_tuples() -> None:
             "bad_fields",
         ),
         (Train(round=-1, theta=THETA), "bad_fields"),
+        # agent hosts: ranges and batches are bounded
+        (
+            HostHello(host_id="h", first=0, count=0, env_signature={}, variant_digest="d"),
+            "bad_fields",
+        ),
+        (
+            HostHello(
+                host_id="h",
+                first=0,
+                count=MAX_HOST_AGENTS + 1,
+                env_signature={},
+                variant_digest="d",
+            ),
+            "bad_fields",
+        ),
+        (
+            HostHello(host_id="h", first=-1, count=1, env_signature={}, variant_digest="d"),
+            "bad_fields",
+        ),
+        (TrainBatch(round=1, theta=THETA, agents=[0] * (MAX_HOST_AGENTS + 1)), "bad_fields"),
+        (TrainBatch(round=1, theta=THETA, agents=[-1]), "bad_fields"),
+        (
+            UpdateBatch(
+                round=1,
+                agents=[0] * (MAX_BATCH_ANSWERS + 1),
+                thetas=np.zeros((MAX_BATCH_ANSWERS + 1, 2), np.float32),
+                stats=[STATS] * (MAX_BATCH_ANSWERS + 1),
+            ),
+            "bad_fields",
+        ),
+        (
+            EvaluationBatch(
+                round=1,
+                agents=[0] * (MAX_BATCH_ANSWERS + 1),
+                stats=[EVALUATION] * (MAX_BATCH_ANSWERS + 1),
+            ),
+            "bad_fields",
+        ),
+        (
+            UpdateBatch(
+                round=1,
+                agents=[0],
+                thetas=np.zeros((1, 2), np.float32),
+                stats=[dataclasses.replace(STATS, compute_s=-1.0)],
+            ),
+            "bad_fields",
+        ),
         (
             Update(
                 round=1,
@@ -341,6 +418,20 @@ _MESSAGES = st.one_of(
     st.builds(Welcome, run_id=st.text(max_size=128), agent_index=_ROUNDS, run=_STATS),
     st.builds(Error, code=st.text(max_size=128), reason=st.text(max_size=4096)),
     st.builds(Shutdown, reason=st.text(max_size=200), complete=st.booleans()),
+    st.builds(TrainBatch, round=_ROUNDS, theta=_ARRAYS, agents=st.lists(_ROUNDS, max_size=20)),
+    st.builds(
+        UpdateBatch,
+        round=_ROUNDS,
+        agents=st.lists(_ROUNDS, max_size=4),
+        thetas=_ARRAYS,
+        stats=st.lists(_UPDATE_STATS, max_size=4),
+    ),
+    st.builds(
+        EvaluationBatch,
+        round=_ROUNDS,
+        agents=st.lists(_ROUNDS, max_size=4),
+        stats=st.lists(_EVALUATION_STATS, max_size=4),
+    ),
 )
 
 
@@ -402,7 +493,8 @@ REJECTIONS: list[tuple[str, list[Any], str]] = [
     ("too deep", [b"\x91" * 5000 + b"\xc0"], "malformed"),
     # envelope
     ("no version", [_header(v=_DROP), GOOD_ARRAY], "malformed"),
-    ("version 4", [_header(v=4), GOOD_ARRAY], "version"),
+    ("version 5", [_header(v=5), GOOD_ARRAY], "version"),
+    ("version 3", [_header(v=3), GOOD_ARRAY], "version"),
     ("version 2", [_header(v=2), GOOD_ARRAY], "version"),
     ("version 1", [_header(v=1), GOOD_ARRAY], "version"),
     ("version 0", [_header(v=0), GOOD_ARRAY], "version"),
@@ -469,8 +561,27 @@ def test_rejections_carry_a_code(frames: list[Any], code: str) -> None:
 
 
 def test_version_error_names_both_versions() -> None:
-    with pytest.raises(ProtocolError, match=r"received protocol version 4, expected 3"):
-        decode([_header(v=4), GOOD_ARRAY])
+    with pytest.raises(ProtocolError, match=r"received protocol version 3, expected 4"):
+        decode([_header(v=3), GOOD_ARRAY])
+
+
+def test_a_batched_answers_header_is_capped_by_the_agents_it_lists(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """Each row may cost what its agent's own message could (``HEADER_PER_AGENT``), no
+    more: a batch cannot buy a big header with few agents. (With the real allowance no
+    bounded stats reach it; a small one shows the cap is applied both ways.)"""
+    lean = [dataclasses.replace(STATS, algorithm={})] * 2
+    heavy = [dataclasses.replace(STATS, algorithm={f"{i:064d}": 1.0 for i in range(32)})] * 2
+    thetas = np.zeros((2, 3), np.float32)
+    heavy_frames = _wire(UpdateBatch(round=1, agents=[0, 1], thetas=thetas, stats=heavy))
+    monkeypatch.setitem(protocol.HEADER_PER_AGENT, UpdateBatch, ("agents", 256, 512))
+    decode(_wire(UpdateBatch(round=1, agents=[0, 1], thetas=thetas, stats=lean)))
+    with pytest.raises(ProtocolError) as info:
+        decode(heavy_frames)
+    assert info.value.code == "too_large" and "for 2 agents" in str(info.value)
+    with pytest.raises(ProtocolError, match="for 2 agents"):
+        encode(UpdateBatch(round=1, agents=[0, 1], thetas=thetas, stats=heavy))
 
 
 def test_size_cap() -> None:
@@ -711,3 +822,32 @@ def test_over_real_sockets(router_dealer: tuple[zmq.Socket, zmq.Socket]) -> None
 def test_zmq_frames_are_accepted_directly() -> None:
     frames = [zmq.Frame(bytes(f)) for f in encode(SAMPLES[2])]
     assert _equal(decode(frames), SAMPLES[2])
+
+
+_ANY_SCALAR = st.one_of(
+    st.none(),
+    st.booleans(),
+    st.integers(-(2**70), 2**70),
+    st.floats(allow_nan=True, allow_infinity=True),
+    st.text(max_size=3),
+)
+
+
+@settings(max_examples=300, deadline=None, derandomize=True)
+@given(st.sampled_from([UpdateStats, EvaluationStats]), st.data())
+def test_the_records_fast_path_accepts_exactly_what_the_generic_checks_do(
+    record: type, data: st.DataObject
+) -> None:
+    """A stats record's bounded numbers are tested inline (``codec._fits``); for every field
+    and any scalar, that test agrees with the field's generic check."""
+    for spec in codec._specs(record):
+        rule = codec._number_rule(spec.hint)
+        if rule is None:
+            continue
+        value = data.draw(_ANY_SCALAR)
+        try:
+            codec._checker(spec.hint)(value, spec.name, 1)
+            accepted = True
+        except ProtocolError:
+            accepted = False
+        assert codec._fits(value, rule) == accepted, (spec.name, value)

@@ -32,6 +32,7 @@ import numpy as np
 from fedhpg.common.limits import bounds_of
 from fedhpg.common.wire.protocol import (
     HEADER_LIMITS,
+    HEADER_PER_AGENT,
     MSG_TYPE_OF,
     PAYLOAD_TYPES,
     PROTOCOL_VERSION,
@@ -178,49 +179,114 @@ def _check_plain(value: Any, where: str, depth: int) -> None:
         raise _bad(where, f"{_type_name(value)} is not a plain msgpack value")
 
 
+Checker = typing.Callable[[Any, str, int], Any]
+"""(value, where, depth) -> the checked value, or ProtocolError: one annotation's check."""
+_CHECKERS: dict[int, tuple[Any, Checker]] = {}
+
+
+def _checker(hint: Any) -> Checker:
+    """The check of an annotation, compiled once: the typing introspection costs more than
+    the check itself, which runs for every field of every message (a host's batch carries
+    hundreds of stats records). Keyed by identity, since hashing an ``Annotated`` hint walks
+    it; the entry keeps the hint alive, so its id stays its own (annotations are few and live
+    as long as their classes)."""
+    entry = _CHECKERS.get(id(hint))
+    if entry is not None and entry[0] is hint:
+        return entry[1]
+    checker = _compile(hint)
+    _CHECKERS[id(hint)] = (hint, checker)
+    return checker
+
+
 def _check(value: Any, hint: Any, where: str, depth: int = 0) -> Any:
     """``value`` if it fits ``hint`` (bool is no int; an int is a float), with nested records
     built as their dataclasses; else ProtocolError."""
-    if typing.get_origin(hint) is typing.Annotated:
-        base, bounds = bounds_of(hint)
-        checked = _check(value, base, where, depth)
+    return _checker(hint)(value, where, depth)
+
+
+def _compile(hint: Any) -> Checker:
+    origin = typing.get_origin(hint)
+    if origin is typing.Annotated:
+        return _compile_bounded(*bounds_of(hint))
+    if hint is Any:
+        return _check_any
+    if hint is None or hint is type(None):
+        return _check_none
+    if origin in (types.UnionType, typing.Union):
+        return functools.partial(_check_union, typing.get_args(hint))
+    if hint is dict or origin is dict:
+        args = typing.get_args(hint)
+        return functools.partial(_check_dict, args[1] if args else Any)
+    if hint is list or origin is list:
+        args = typing.get_args(hint)
+        return functools.partial(_check_list, args[0] if args else Any)
+    if _is_record(hint):
+        return _compile_record(hint)
+    if hint is float:
+        return _check_float
+    if hint is int:
+        return _check_int
+    if hint in (str, bytes):
+        return functools.partial(_check_instance, hint)
+    if hint is bool:
+        return _check_bool
+    raise TypeError(f"unsupported annotation {hint!r}")  # _specs admits only the above
+
+
+def _compile_bounded(base: Any, bounds: tuple[Any, ...]) -> Checker:
+    inner = _checker(base)
+
+    def check(value: Any, where: str, depth: int) -> Any:
+        checked = inner(value, where, depth)
         for bound in bounds:
             if (problem := bound.problem(checked)) is not None:
                 raise _bad(where, problem)
         return checked
-    if hint is Any:
-        _check_plain(value, where, depth)
-        return value
-    if hint is None or hint is type(None):
-        if value is not None:
-            raise _bad(where, f"must be None, got {_type_name(value)}")
-        return value
-    origin = typing.get_origin(hint)
-    if origin in (types.UnionType, typing.Union):
-        return _check_union(value, typing.get_args(hint), where, depth)
-    if hint is dict or origin is dict:
-        return _check_dict(value, typing.get_args(hint), where, depth)
-    if hint is list or origin is list:
-        return _check_list(value, typing.get_args(hint), where, depth)
-    if _is_record(hint):
-        return _check_record(value, hint, where, depth)
-    if hint is float:
-        if not isinstance(value, int | float) or isinstance(value, bool):
-            raise _bad(where, f"must be float, got {_type_name(value)}")
-        _check_plain(value, where, depth)
-    elif hint in (int, str, bytes):
-        if not isinstance(value, hint) or isinstance(value, bool):
-            raise _bad(where, f"must be {hint.__name__}, got {_type_name(value)}")
-        _check_plain(value, where, depth)
-    elif hint is bool:
-        if not isinstance(value, bool):
-            raise _bad(where, f"must be bool, got {_type_name(value)}")
-    else:  # _specs only admits annotations handled above
-        raise TypeError(f"unsupported annotation {hint!r}")
+
+    return check
+
+
+def _check_any(value: Any, where: str, depth: int) -> Any:
+    _check_plain(value, where, depth)
     return value
 
 
-def _check_union(value: Any, options: tuple[Any, ...], where: str, depth: int) -> Any:
+def _check_none(value: Any, where: str, depth: int) -> Any:
+    if value is not None:
+        raise _bad(where, f"must be None, got {_type_name(value)}")
+    return value
+
+
+def _check_float(value: Any, where: str, depth: int) -> Any:
+    if isinstance(value, float):
+        return value
+    if not isinstance(value, int) or isinstance(value, bool):
+        raise _bad(where, f"must be float, got {_type_name(value)}")
+    _check_plain(value, where, depth)
+    return value
+
+
+def _check_int(value: Any, where: str, depth: int) -> Any:
+    if not isinstance(value, int) or isinstance(value, bool):
+        raise _bad(where, f"must be int, got {_type_name(value)}")
+    if not _INT_MIN <= value < _INT_END:
+        raise _bad(where, "integer out of the 64-bit range")
+    return value
+
+
+def _check_instance(kind: type, value: Any, where: str, depth: int) -> Any:
+    if not isinstance(value, kind):
+        raise _bad(where, f"must be {kind.__name__}, got {_type_name(value)}")
+    return value
+
+
+def _check_bool(value: Any, where: str, depth: int) -> Any:
+    if not isinstance(value, bool):
+        raise _bad(where, f"must be bool, got {_type_name(value)}")
+    return value
+
+
+def _check_union(options: tuple[Any, ...], value: Any, where: str, depth: int) -> Any:
     for option in options:
         try:
             return _check(value, option, where, depth)
@@ -230,65 +296,136 @@ def _check_union(value: Any, options: tuple[Any, ...], where: str, depth: int) -
     raise _bad(where, f"must be {names}, got {_type_name(value)}")
 
 
-def _check_dict(value: Any, args: tuple[Any, ...], where: str, depth: int) -> dict[str, Any]:
+def _check_dict(item_hint: Any, value: Any, where: str, depth: int) -> dict[str, Any]:
     if not isinstance(value, dict):
         raise _bad(where, f"must be a map, got {_type_name(value)}")
     if depth >= MAX_NESTING:
         raise _bad(where, f"nested deeper than {MAX_NESTING} levels")
-    item_hint = args[1] if args else Any
+    check = _checker(item_hint)
     checked = {}
     for key, item in value.items():
         if not isinstance(key, str):
             raise _bad(where, f"map key {_short.repr(key)} is not a string")
-        checked[key] = _check(item, item_hint, f"{where}[{key!r}]", depth + 1)
+        checked[key] = check(item, f"{where}[{key!r}]", depth + 1)
     return checked
 
 
-def _check_list(value: Any, args: tuple[Any, ...], where: str, depth: int) -> list[Any]:
+def _check_list(item_hint: Any, value: Any, where: str, depth: int) -> list[Any]:
     if not isinstance(value, list):
         raise _bad(where, f"must be a list, got {_type_name(value)}")
     if depth >= MAX_NESTING:
         raise _bad(where, f"nested deeper than {MAX_NESTING} levels")
-    item_hint = args[0] if args else Any
-    return [_check(item, item_hint, f"{where}[{i}]", depth + 1) for i, item in enumerate(value)]
+    check = _checker(item_hint)
+    return [check(item, f"{where}[{i}]", depth + 1) for i, item in enumerate(value)]
 
 
-def _check_record(value: Any, cls: type, where: str, depth: int) -> Any:
-    """A map holding exactly the record's fields, each of its type, built into ``cls``."""
-    if not isinstance(value, dict):
-        raise _bad(where, f"must be a map of {cls.__name__} fields, got {_type_name(value)}")
-    if depth >= MAX_NESTING:
-        raise _bad(where, f"nested deeper than {MAX_NESTING} levels")
-    specs = _specs(cls)
-    expected = {spec.name for spec in specs}
-    if set(value) != expected:
-        missing = sorted(expected - set(value))
-        unknown = sorted(_short.repr(k) for k in set(value) - expected)
-        raise _bad(where, f"missing fields {missing}, unknown fields {unknown}")
-    built = {
-        spec.name: _check(value[spec.name], spec.hint, f"{where}.{spec.name}", depth + 1)
-        for spec in specs
-    }
-    try:
-        return cls(**built)
-    except (TypeError, ValueError) as error:  # a record that validates in __post_init__
-        raise _bad(where, str(error)) from None
+_NumberRule = tuple[bool, bool, float | None, float | None, bool]
+"""(is float, may be None, low, high, finite) of a bounded number field."""
+
+
+def _number_rule(hint: Any) -> _NumberRule | None:
+    """The rule of a field annotated as a bounded int or float (or such a number or None),
+    for the records' fast path; None for anything else."""
+    optional = False
+    if typing.get_origin(hint) in (types.UnionType, typing.Union):
+        args = typing.get_args(hint)
+        others = [a for a in args if a is not type(None)]
+        if len(args) != 2 or len(others) != 1:
+            return None
+        optional, hint = True, others[0]
+    base, bounds = bounds_of(hint)
+    if base not in (int, float) or any(
+        b.max_len is not None or b.key_len is not None for b in bounds
+    ):
+        return None
+    lows = [b.low for b in bounds if b.low is not None]
+    highs = [b.high for b in bounds if b.high is not None]
+    return (
+        base is float,
+        optional,
+        max(lows) if lows else None,
+        min(highs) if highs else None,
+        any(b.finite for b in bounds),
+    )
+
+
+def _fits(value: Any, rule: _NumberRule) -> bool:
+    """Whether ``value`` passes the field's checks (the fast path's test: exactly what the
+    generic checks accept)."""
+    is_float, optional, low, high, finite = rule
+    kind = type(value)
+    if kind is float:
+        if not is_float or (finite and not math.isfinite(value)):
+            return False
+    elif kind is int:
+        if not _INT_MIN <= value < _INT_END:
+            return False
+    else:
+        return value is None and optional
+    return (low is None or value >= low) and (high is None or value <= high)
+
+
+def _compile_record(cls: type) -> Checker:
+    """A map holding exactly the record's fields, each of its type, built into ``cls``.
+
+    Bounded numbers, most of a stats record, are tested inline (one call per record, not
+    two per field: a host's batch holds hundreds of records); a value that fails the test
+    goes through the generic checks, which say why."""
+    fields = [(spec.name, _checker(spec.hint), _number_rule(spec.hint)) for spec in _specs(cls)]
+    expected = {name for name, _, _ in fields}
+
+    def check(value: Any, where: str, depth: int) -> Any:
+        if not isinstance(value, dict):
+            raise _bad(where, f"must be a map of {cls.__name__} fields, got {_type_name(value)}")
+        if depth >= MAX_NESTING:
+            raise _bad(where, f"nested deeper than {MAX_NESTING} levels")
+        if value.keys() != expected:
+            missing = sorted(expected - set(value))
+            unknown = sorted(_short.repr(k) for k in set(value) - expected)
+            raise _bad(where, f"missing fields {missing}, unknown fields {unknown}")
+        built = {}
+        for name, field, rule in fields:
+            item = value[name]
+            if rule is None or not _fits(item, rule):
+                item = field(item, f"{where}.{name}", depth + 1)
+            built[name] = item
+        try:
+            return cls(**built)
+        except (TypeError, ValueError) as error:  # a record that validates in __post_init__
+            raise _bad(where, str(error)) from None
+
+    return check
+
+
+_PLAIN_SCALARS = frozenset({int, float, str, bytes, bool, type(None)})
+
+
+@functools.cache
+def _field_names(cls: type) -> tuple[str, ...]:
+    return tuple(f.name for f in dataclasses.fields(cls))
 
 
 def _to_wire(value: Any, where: str, depth: int = 0) -> Any:
     """Outgoing header values as decode will see them: numpy scalars become Python scalars and
     tuples lists, so statistics computed with numpy can be sent as they are."""
+    if type(value) in _PLAIN_SCALARS:  # the common case, first: nothing to convert
+        return value
     if depth > MAX_NESTING:
         raise _bad(where, f"nested deeper than {MAX_NESTING} levels")
     if isinstance(value, np.generic):
         return value.item()
     if dataclasses.is_dataclass(value) and not isinstance(value, type):
         return {
-            f.name: _to_wire(getattr(value, f.name), f"{where}.{f.name}", depth + 1)
-            for f in dataclasses.fields(value)
+            name: item
+            if type(item := getattr(value, name)) in _PLAIN_SCALARS
+            else _to_wire(item, f"{where}.{name}", depth + 1)
+            for name in _field_names(type(value))
         }
     if isinstance(value, list | tuple):
-        return [_to_wire(item, f"{where}[{i}]", depth + 1) for i, item in enumerate(value)]
+        return [
+            item if type(item) in _PLAIN_SCALARS else _to_wire(item, f"{where}[{i}]", depth + 1)
+            for i, item in enumerate(value)
+        ]
     if isinstance(value, dict):
         return {key: _to_wire(item, f"{where}[{key!r}]", depth + 1) for key, item in value.items()}
     return value
@@ -351,7 +488,23 @@ def encode(message: Message) -> list[bytes | memoryview]:
     limit = HEADER_LIMITS.get(cls, MAX_HEADER_BYTES)
     if len(header) > limit:
         raise ProtocolError("too_large", f"{kind}: header of {len(header)} bytes exceeds {limit}")
+    _check_scaled_header(cls, kind, len(header), fields)
     return [header, *buffers]
+
+
+def _check_scaled_header(cls: type, kind: str, size: int, fields: dict[str, Any]) -> None:
+    """A batched answer's header may grow with the agents it lists, no further
+    (``HEADER_PER_AGENT``): a batch of one costs what one agent's own message may."""
+    per_agent = HEADER_PER_AGENT.get(cls)
+    if per_agent is None:
+        return
+    name, base, each = per_agent
+    agents = len(fields[name])
+    if size > base + each * agents:
+        raise ProtocolError(
+            "too_large",
+            f"{kind}: header of {size} bytes exceeds {base + each * agents} for {agents} agents",
+        )
 
 
 # --- decode -----------------------------------------------------------------------------------
@@ -531,6 +684,7 @@ def _decode(frames: Any, max_bytes: int) -> Message:
         )
     specs = _specs(cls)
     values = _decode_fields(kind, [s for s in specs if not s.is_array], header["fields"])
+    _check_scaled_header(cls, kind, views[0].nbytes, values)
     values |= _decode_arrays(kind, [s for s in specs if s.is_array], header["arrays"], views[1:])
     try:
         return cls(**values)

@@ -18,11 +18,23 @@ import numpy as np
 from fedhpg.common.limits import AgentIndex, Bound, Name, Round, Text
 from fedhpg.common.types import EvaluationStats, UpdateStats
 
-PROTOCOL_VERSION = 3
+PROTOCOL_VERSION = 4
 """2: typed ``Update.stats`` / ``Evaluation.stats``; ``Hello.variant_digest``.
-3: every field bounded (:mod:`fedhpg.common.limits`); ``Shutdown.complete``."""
+3: every field bounded (:mod:`fedhpg.common.limits`); ``Shutdown.complete``.
+4: agent hosts (``HostHello`` .. ``EvaluationBatch``): many logical agents, one connection."""
 
 KIB = 1024
+MAX_HOST_AGENTS = 1 << 16
+"""Most logical agents one host serves (and one server request names)."""
+MAX_BATCH_ANSWERS = 256
+"""Most agents' answers in one ``UpdateBatch`` / ``EvaluationBatch``: a host sends a round's
+answers in ceil(A / this) messages (fewer agents per message where θ is large)."""
+BATCH_THETA_BYTES = 16 << 20
+"""θ bytes one ``UpdateBatch`` may carry beyond a single θ (the server's message cap grows by
+at most this much, so a batch of small policies still goes in one message)."""
+
+AgentList = Annotated[list[AgentIndex], Bound(max_len=MAX_HOST_AGENTS)]
+AnswerList = Annotated[list[AgentIndex], Bound(max_len=MAX_BATCH_ANSWERS)]
 
 
 class MsgType(StrEnum):
@@ -32,6 +44,12 @@ class MsgType(StrEnum):
     UPDATE = "update"
     EVALUATE = "evaluate"
     EVALUATION = "evaluation"
+    HOST_HELLO = "host_hello"
+    HOST_WELCOME = "host_welcome"
+    TRAIN_BATCH = "train_batch"
+    UPDATE_BATCH = "update_batch"
+    EVALUATE_BATCH = "evaluate_batch"
+    EVALUATION_BATCH = "evaluation_batch"
     HEARTBEAT = "heartbeat"
     SHUTDOWN = "shutdown"
     ERROR = "error"
@@ -97,6 +115,71 @@ class Evaluation:
 
 
 @dataclass(frozen=True, kw_only=True)
+class HostHello:
+    """Host → server: registration of the logical agents ``first`` .. ``first + count - 1``
+    (ids ``agent-<k>``) in one message. The environment spaces are the run's, computed once;
+    ``variant_digest`` is :func:`fedhpg.common.variants.range_digest` of the agents' digests,
+    which the server recomputes for the range."""
+
+    host_id: Name
+    first: AgentIndex
+    count: Annotated[int, Bound(low=1, high=MAX_HOST_AGENTS)]
+    env_signature: Annotated[dict[str, Text], Bound(max_len=8, key_len=64)]
+    variant_digest: Name
+    profile: Annotated[dict[str, Any], Bound(max_len=16, key_len=64)] = field(default_factory=dict)
+
+
+@dataclass(frozen=True, kw_only=True)
+class HostWelcome:
+    """Server → host: every agent of the range is registered; ``run`` as in ``Welcome``."""
+
+    run_id: Name
+    first: AgentIndex
+    count: Annotated[int, Bound(low=1, high=MAX_HOST_AGENTS)]
+    run: dict[str, Any]
+
+
+@dataclass(frozen=True, kw_only=True, eq=False)
+class TrainBatch:
+    """Server → host: one round's local update from ``theta`` (sent once) for each of
+    ``agents`` (the host's selected agents, ascending)."""
+
+    round: Round
+    theta: np.ndarray
+    agents: AgentList
+
+
+@dataclass(frozen=True, kw_only=True, eq=False)
+class UpdateBatch:
+    """Host → server: the results of ``agents`` for ``round``: row i of ``thetas`` (an
+    [A, d] float32 array) and ``stats[i]`` are agent ``agents[i]``'s."""
+
+    round: Round
+    agents: AnswerList
+    thetas: np.ndarray
+    stats: Annotated[list[UpdateStats], Bound(max_len=MAX_BATCH_ANSWERS)]
+
+
+@dataclass(frozen=True, kw_only=True, eq=False)
+class EvaluateBatch:
+    """Server → host: evaluate ``theta`` in the environment of each of ``agents``."""
+
+    round: Round
+    theta: np.ndarray
+    episodes: Annotated[int, Bound(low=1, high=2**20)]
+    agents: AgentList
+
+
+@dataclass(frozen=True, kw_only=True)
+class EvaluationBatch:
+    """Host → server: ``stats[i]`` is agent ``agents[i]``'s evaluation of ``round``."""
+
+    round: Round
+    agents: AnswerList
+    stats: Annotated[list[EvaluationStats], Bound(max_len=MAX_BATCH_ANSWERS)]
+
+
+@dataclass(frozen=True, kw_only=True)
 class Heartbeat:
     """Either direction: I am alive."""
 
@@ -118,7 +201,23 @@ class Error:
     reason: Text
 
 
-Message = Hello | Welcome | Train | Update | Evaluate | Evaluation | Heartbeat | Shutdown | Error
+Message = (
+    Hello
+    | Welcome
+    | Train
+    | Update
+    | Evaluate
+    | Evaluation
+    | HostHello
+    | HostWelcome
+    | TrainBatch
+    | UpdateBatch
+    | EvaluateBatch
+    | EvaluationBatch
+    | Heartbeat
+    | Shutdown
+    | Error
+)
 
 PAYLOAD_TYPES: dict[str, type] = {  # keyed by MsgType, a str: decode looks up plain str
     MsgType.HELLO: Hello,
@@ -127,6 +226,12 @@ PAYLOAD_TYPES: dict[str, type] = {  # keyed by MsgType, a str: decode looks up p
     MsgType.UPDATE: Update,
     MsgType.EVALUATE: Evaluate,
     MsgType.EVALUATION: Evaluation,
+    MsgType.HOST_HELLO: HostHello,
+    MsgType.HOST_WELCOME: HostWelcome,
+    MsgType.TRAIN_BATCH: TrainBatch,
+    MsgType.UPDATE_BATCH: UpdateBatch,
+    MsgType.EVALUATE_BATCH: EvaluateBatch,
+    MsgType.EVALUATION_BATCH: EvaluationBatch,
     MsgType.HEARTBEAT: Heartbeat,
     MsgType.SHUTDOWN: Shutdown,
     MsgType.ERROR: Error,
@@ -135,10 +240,20 @@ HEADER_LIMITS: dict[type, int] = {
     Hello: 64 * KIB,
     Update: 64 * KIB,
     Evaluation: 16 * KIB,
+    HostHello: 64 * KIB,
+    UpdateBatch: 4 * KIB + MAX_BATCH_ANSWERS * 3 * KIB,
+    EvaluationBatch: 1 * KIB + MAX_BATCH_ANSWERS * 1 * KIB,
     Heartbeat: 1 * KIB,
     Shutdown: 16 * KIB,
     Error: 16 * KIB,
 }
 """Largest header of a message type (the codec's MAX_HEADER_BYTES for the rest, which only the
 server sends): a peer cannot make a small message big."""
+HEADER_PER_AGENT: dict[type, tuple[str, int, int]] = {
+    UpdateBatch: ("agents", 4 * KIB, 3 * KIB),
+    EvaluationBatch: ("agents", 1 * KIB, 1 * KIB),
+}
+"""Batched answers: (list field, base, bytes per agent). After decoding, a header may be at
+most base + per agent × the agents it lists, as if each agent had sent its own message (an
+``UpdateStats`` with all 32 algorithm statistics takes ~2.6 KiB)."""
 MSG_TYPE_OF: dict[type, str] = {cls: kind for kind, cls in PAYLOAD_TYPES.items()}

@@ -35,7 +35,14 @@ from zmq.auth.thread import ThreadAuthenticator
 from zmq.utils import z85
 from zmq.utils.monitor import recv_monitor_message
 
-from fedhpg.common.config import ConfigError, RunConfig, SecurityConfig, agent_id_of
+from fedhpg.common.config import (
+    ConfigError,
+    RunConfig,
+    SecurityConfig,
+    agent_id_of,
+    host_id_of,
+    host_ranges,
+)
 
 logger = logging.getLogger(__name__)
 
@@ -218,8 +225,11 @@ def check_launch_keys(run: RunConfig) -> None:
             "fedhpg-run starts every agent, each with its own key: use security.keys_dir",
         )
     server = server_keys(security)
-    for index in range(run.agents.num_agents):
-        agent_id = agent_id_of(index)
+    if run.agents.per_host > 1:  # each host has one connection, one key, named by its id
+        ids = [host_id_of(f, c) for f, c in host_ranges(run.agents.num_agents, run.agents.per_host)]
+    else:
+        ids = [agent_id_of(index) for index in range(run.agents.num_agents)]
+    for agent_id in ids:
         keys = agent_keys(security, agent_id)
         if keys.server_public != server.own.public:
             _fail("security.server_public_key", "is not the public half of the server's key")

@@ -7,8 +7,8 @@ import logging
 import zmq
 
 from fedhpg.common.config import ServerConfig
-from fedhpg.common.wire.codec import ProtocolError, decode, encode
-from fedhpg.common.wire.protocol import Message
+from fedhpg.common.wire.codec import MAX_HEADER_BYTES, ProtocolError, decode, encode
+from fedhpg.common.wire.protocol import BATCH_THETA_BYTES, MAX_BATCH_ANSWERS, Message
 
 logger = logging.getLogger(__name__)
 
@@ -33,6 +33,26 @@ def connect_endpoint(server: ServerConfig) -> str:
 
 def max_message_bytes(server: ServerConfig) -> int:
     return int(server.max_message_mb * 1024 * 1024)
+
+
+def single_message_bytes(num_params: int) -> int:
+    """The largest message one agent sends: a header of up to 1 MiB and θ_k as float32."""
+    return MAX_HEADER_BYTES + 4 * num_params + 4096
+
+
+def batch_message_cap(configured: int, num_params: int) -> int:
+    """The largest message of a run of ``num_params`` parameters, host batches included: one
+    θ at least; at most ``MAX_BATCH_ANSWERS`` θs, within ``BATCH_THETA_BYTES`` more and the
+    configured ``server.max_message_mb``. Server and hosts compute it alike."""
+    single = single_message_bytes(num_params)
+    extra = min(BATCH_THETA_BYTES, 4 * num_params * (MAX_BATCH_ANSWERS - 1))
+    return max(single, min(configured, single + extra))
+
+
+def answers_per_message(cap: int, num_params: int) -> int:
+    """Agents per ``UpdateBatch`` that keep it under ``cap`` (at least one)."""
+    room = (cap - MAX_HEADER_BYTES - 4096) // (4 * max(num_params, 1))
+    return max(1, min(MAX_BATCH_ANSWERS, room))
 
 
 def configure_socket(socket: zmq.Socket, server: ServerConfig) -> None:

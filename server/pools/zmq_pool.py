@@ -15,6 +15,12 @@ Paranoid Pirate: handle messages, purge dead peers, send heartbeats.
   healed link) and is then sent the request still open for it, with the current θ̃.
 - Round policies (:mod:`fedhpg.server.rounds`) decide when a request's answers are complete;
   late answers for a closed round are discarded with a log line.
+- Agent hosts: one connection (a :class:`Link`) may serve a range of logical agents. Each
+  agent is still a :class:`Peer` (selected, answered, dead or rejoined by index), but
+  registration, liveness, heartbeats and requests go per link: a host registers its range in
+  one ``HostHello``, gets one ``TrainBatch`` per round and answers in ``UpdateBatch`` es whose
+  rows pass the :class:`UpdateCheck` one by one (a bad row rejects that agent only); a dead
+  host's agents all die at once, in one log line, and rejoin together when it registers again.
 """
 
 from __future__ import annotations
@@ -29,19 +35,26 @@ import numpy as np
 import torch
 import zmq
 
-from fedhpg.common.config import ServerConfig
+from fedhpg.common.config import ServerConfig, agent_id_of
 from fedhpg.common.types import AgentUpdate, EvaluationStats
+from fedhpg.common.variants import range_digest
 from fedhpg.common.wire.codec import ProtocolError
 from fedhpg.common.wire.protocol import (
     Error,
     Evaluate,
+    EvaluateBatch,
     Evaluation,
+    EvaluationBatch,
     Heartbeat,
     Hello,
+    HostHello,
+    HostWelcome,
     Message,
     Shutdown,
     Train,
+    TrainBatch,
     Update,
+    UpdateBatch,
     Welcome,
 )
 from fedhpg.common.wire.security import KEY_MISMATCH, key_mismatch
@@ -73,17 +86,37 @@ flood of junk must not turn into a flood of log lines)."""
 NOISY_LOG_WINDOW_S = 10.0
 
 
-@dataclass
-class Peer:
-    """A registered agent."""
+@dataclass(eq=False)
+class Link:
+    """A registered connection: one agent process, or an agent host serving ``indices``."""
 
-    agent_id: str
-    index: int
     identity: bytes
-    profile: dict[str, Any]
+    label: str
+    """The agent id, or the host id."""
+    indices: range
+    host: bool
     fd: int = -1
     """The connection's descriptor (``ZMQ_SRCFD``), for the connection guard."""
     last_seen: float = field(default_factory=time.monotonic)
+
+    def describe(self) -> str:
+        if not self.host:
+            return self.label
+        return f"host {self.label} (agents {self.indices.start}..{self.indices.stop - 1})"
+
+
+@dataclass(eq=False)
+class Peer:
+    """A registered logical agent, reached through its link."""
+
+    agent_id: str
+    index: int
+    link: Link
+    profile: dict[str, Any]
+
+    @property
+    def identity(self) -> bytes:
+        return self.link.identity
 
 
 @dataclass
@@ -182,7 +215,7 @@ class ZmqAgentPool:
         """Messages of flooding peers dropped unread."""
         self.liveness_s = settings.heartbeat_interval_s * settings.heartbeat_liveness
         self.peers: dict[int, Peer] = {}
-        self._by_identity: dict[bytes, Peer] = {}
+        self._links: dict[bytes, Link] = {}
         self._names: dict[int, str] = {}
         """Agent id per index, kept after an agent dies (metrics still name it)."""
         self._absent_since: dict[int, float] = {}
@@ -219,15 +252,15 @@ class ZmqAgentPool:
                 logger.warning("could not send to %s: %s", _identity_label(identity), error)
         return False
 
-    def _send_to_peer(self, peer: Peer, message: Message) -> None:
-        if not self._send(peer.identity, message) and not self._routable(peer):
-            self._on_dead(peer, "its connection is gone")
+    def _send_to_link(self, link: Link, message: Message) -> None:
+        if not self._send(link.identity, message) and not self._routable(link):
+            self._on_dead(link, "its connection is gone")
 
-    def _routable(self, peer: Peer) -> bool:
-        """Whether libzmq still has a connection for the peer's identity (probed by sending a
+    def _routable(self, link: Link) -> bool:
+        """Whether libzmq still has a connection for the link's identity (probed by sending a
         heartbeat: with ROUTER_MANDATORY an unknown identity fails at once)."""
         try:
-            send_message(self.socket, Heartbeat(), identity=peer.identity, block=False)
+            send_message(self.socket, Heartbeat(), identity=link.identity, block=False)
         except zmq.Again:
             return True  # connected, only slow
         except zmq.ZMQError:
@@ -239,7 +272,7 @@ class ZmqAgentPool:
         self._noisy.warning(
             "rejected message from %s: %s: %s", _identity_label(identity), code, reason
         )
-        if identity not in self._by_identity and not self._may_reply(identity):
+        if identity not in self._links and not self._may_reply(identity):
             return
         self._send(identity, Error(code=code, reason=reason[:1000]))
 
@@ -280,42 +313,49 @@ class ZmqAgentPool:
     def _keep_alive(self) -> None:
         now = time.monotonic()
         self._noisy.flush(now)
-        for peer in list(self.peers.values()):
-            silent = now - peer.last_seen
+        for link in list(self._links.values()):  # per connection, not per logical agent
+            silent = now - link.last_seen
             if silent > self.liveness_s:
                 self._on_dead(
-                    peer,
+                    link,
                     f"silent for {silent:.1f} s (server.heartbeat_liveness × "
                     f"heartbeat_interval_s = {self.liveness_s:g} s)",
                 )
         if now - self._last_heartbeat >= self.settings.heartbeat_interval_s:
             self._last_heartbeat = now
-            for peer in list(self.peers.values()):
-                self._send_to_peer(peer, Heartbeat())
+            for link in list(self._links.values()):
+                self._send_to_link(link, Heartbeat())
 
-    def _on_dead(self, peer: Peer, why: str) -> None:
-        if self.peers.get(peer.index) is not peer:
+    def _on_dead(self, link: Link, why: str) -> None:
+        """The link's agents are all presumed dead (one log line for a whole host)."""
+        if self._links.get(link.identity) is not link:
             return
-        del self.peers[peer.index]
-        self._by_identity.pop(peer.identity, None)
+        del self._links[link.identity]
         if self.guard is not None:
-            self.guard.registered(peer.fd, False)
-        self._absent_since[peer.index] = time.monotonic()
-        self.deaths += 1
+            self.guard.registered(link.fd, False)
+        now = time.monotonic()
         collection = self._collection
-        pending = (
-            collection is not None
-            and peer.index in collection.expected
-            and not collection.answered(peer.index)
-        )
-        logger.warning(
-            "%s presumed dead: %s%s",
-            peer.agent_id,
-            why,
-            f"; its answer for round {collection.round} is missing"
-            if pending and collection
-            else "",
-        )
+        missing = 0
+        for index in link.indices:
+            peer = self.peers.get(index)
+            if peer is None or peer.link is not link:
+                continue
+            del self.peers[index]
+            self._absent_since[index] = now
+            self.deaths += 1
+            if (
+                collection is not None
+                and index in collection.expected
+                and not collection.answered(index)
+            ):
+                missing += 1
+        if collection is None or not missing:
+            suffix = ""
+        elif link.host:
+            suffix = f"; {missing} of its answers for round {collection.round} are missing"
+        else:
+            suffix = f"; its answer for round {collection.round} is missing"
+        logger.warning("%s presumed dead: %s%s", link.describe(), why, suffix)
 
     def _handle(self, frames: list[zmq.Frame]) -> None:
         if len(frames) < 2:
@@ -329,24 +369,38 @@ class ZmqAgentPool:
         if isinstance(decoded, ProtocolError):
             self._reject(identity, decoded.code, str(decoded))
             return
-        peer = self._by_identity.get(identity)
-        # security: with CURVE, a key speaks only for the agent its allow-list file names
+        link = self._links.get(identity)
+        # security: with CURVE, a key speaks only for the agent (or host) its allow-list
+        # file names
         claimed = (
-            decoded.agent_id if isinstance(decoded, Hello) else peer.agent_id if peer else None
+            decoded.agent_id
+            if isinstance(decoded, Hello)
+            else decoded.host_id
+            if isinstance(decoded, HostHello)
+            else link.label
+            if link
+            else None
         )
         if (mismatch := key_mismatch(frames[1], claimed)) is not None:
             self._reject(identity, KEY_MISMATCH, mismatch)
             return
-        if peer is not None:
-            peer.last_seen = time.monotonic()
+        if link is not None:
+            link.last_seen = time.monotonic()
+        peer = self.peers.get(link.indices.start) if link is not None and not link.host else None
         if isinstance(decoded, Hello):
             self._on_hello(identity, decoded, fd)
+        elif isinstance(decoded, HostHello):
+            self._on_host_hello(identity, decoded, fd)
+        elif isinstance(decoded, Update | Evaluation) and link is not None and link.host:
+            self._reject(identity, "unexpected_type", "a host answers in batches")
         elif isinstance(decoded, Update):
             self._on_update(identity, peer, decoded)
         elif isinstance(decoded, Evaluation):
             self._on_evaluation(identity, peer, decoded)
+        elif isinstance(decoded, UpdateBatch | EvaluationBatch):
+            self._on_batch(identity, link, decoded)
         elif isinstance(decoded, Heartbeat):
-            if peer is None:
+            if link is None:
                 self._reject(identity, "not_registered", "heartbeat from an unregistered peer")
         elif isinstance(decoded, Error):
             self._noisy.warning(
@@ -360,9 +414,10 @@ class ZmqAgentPool:
     # -- registration ------------------------------------------------------------------------
 
     def _on_hello(self, identity: bytes, hello: Hello, fd: int) -> None:
-        known = self._by_identity.get(identity)
+        known = self._links.get(identity)
         if known is not None:  # a resent hello: answer again, idempotently
-            self._send(identity, self._welcome(known))
+            if not known.host:
+                self._send(identity, self._welcome(known.indices.start))
             return
         if not 0 <= hello.agent_index < self.num_agents:
             self._reject(
@@ -393,7 +448,7 @@ class ZmqAgentPool:
             (p for p in self.peers.values() if p.agent_id == hello.agent_id), None
         )
         if holder is not None:
-            if self._routable(holder) and time.monotonic() - holder.last_seen <= self.liveness_s:
+            if self._alive(holder.link):
                 self._reject(
                     identity,
                     "duplicate_agent",
@@ -401,47 +456,139 @@ class ZmqAgentPool:
                     f"registered as {holder.agent_id!r}, which is alive",
                 )
                 return
-            self._on_dead(holder, "a new connection claims its place")
-        self._register(identity, hello, fd)
-
-    def _register(self, identity: bytes, hello: Hello, fd: int) -> None:
-        peer = Peer(
-            agent_id=hello.agent_id,
-            index=hello.agent_index,
+            self._on_dead(holder.link, "a new connection claims its place")
+        link = Link(
             identity=identity,
-            profile=hello.profile,
+            label=hello.agent_id,
+            indices=range(hello.agent_index, hello.agent_index + 1),
+            host=False,
             fd=fd,
         )
-        if self.guard is not None:
-            self.guard.registered(fd, True)
-        self.peers[peer.index] = peer
-        self._by_identity[identity] = peer
-        self._names[peer.index] = peer.agent_id
-        away = self._absent_since.pop(peer.index, None)
-        self._send(identity, self._welcome(peer))
-        collection = self._collection
-        resend = (
-            collection is not None
-            and peer.index in collection.expected
-            and not collection.answered(peer.index)
-        )
-        if away is None:
-            logger.info("registered %s (index %d, %s)", peer.agent_id, peer.index, peer.profile)
-        else:
-            self.rejoins += 1
-            logger.warning(
-                "%s rejoined after %.1f s away%s",
-                peer.agent_id,
-                time.monotonic() - away,
-                f"; sent it the open round {collection.round} request"
-                if resend and collection
-                else "",
-            )
-        if resend and collection is not None:
-            self._send_to_peer(peer, collection.request)
+        self._register(link, [hello.agent_id], hello.profile)
 
-    def _welcome(self, peer: Peer) -> Welcome:
-        return Welcome(run_id=self.run_id, agent_index=peer.index, run=self.run_settings)
+    def _alive(self, link: Link) -> bool:
+        return self._routable(link) and time.monotonic() - link.last_seen <= self.liveness_s
+
+    def _on_host_hello(self, identity: bytes, hello: HostHello, fd: int) -> None:
+        known = self._links.get(identity)
+        if known is not None:  # a resent hello: answer again, idempotently
+            if known.host:
+                self._send(identity, self._host_welcome(known))
+            return
+        first, count = hello.first, hello.count
+        if first + count > self.num_agents:
+            self._reject(
+                identity,
+                "bad_index",
+                f"agents {first}..{first + count - 1} go beyond 0..{self.num_agents - 1}",
+            )
+            return
+        if hello.env_signature != self.env_signature:
+            self._reject(
+                identity,
+                "env_signature",
+                f"environment spaces differ from the run's: host has {hello.env_signature}, "
+                f"run has {self.env_signature}",
+            )
+            return
+        expected = range_digest(self.variant_digests[first : first + count])
+        if hello.variant_digest != expected:
+            self._reject(
+                identity,
+                "variant_mismatch",
+                f"the environment variants of host {hello.host_id!r} (agents {first}.."
+                f"{first + count - 1}) are not the run's: their digest is "
+                f"{hello.variant_digest[:12] or 'missing'}, the run's is {expected[:12]}; "
+                "start it with the server's seed and env.* settings",
+            )
+            return
+        indices = range(first, first + count)
+        holders = {p.link.identity: p.link for k in indices if (p := self.peers.get(k))}
+        for holder in holders.values():
+            if self._alive(holder):
+                self._reject(
+                    identity,
+                    "duplicate_agent",
+                    f"host {hello.host_id!r} claims agents {first}..{first + count - 1}, but "
+                    f"{holder.describe()} holds some of them and is alive",
+                )
+                return
+        for holder in holders.values():
+            self._on_dead(holder, "a new connection claims its place")
+        link = Link(identity=identity, label=hello.host_id, indices=indices, host=True, fd=fd)
+        self._register(link, [agent_id_of(k) for k in indices], hello.profile)
+
+    def _register(self, link: Link, agent_ids: list[str], profile: dict[str, Any]) -> None:
+        if self.guard is not None:
+            self.guard.registered(link.fd, True)
+        self._links[link.identity] = link
+        now = time.monotonic()
+        rejoined, away_s = 0, 0.0
+        for index, agent_id in zip(link.indices, agent_ids, strict=True):
+            self.peers[index] = Peer(agent_id=agent_id, index=index, link=link, profile=profile)
+            self._names[index] = agent_id
+            away = self._absent_since.pop(index, None)
+            if away is not None:
+                rejoined += 1
+                away_s = max(away_s, now - away)
+        self.rejoins += rejoined
+        self._send(
+            link.identity,
+            self._host_welcome(link) if link.host else self._welcome(link.indices.start),
+        )
+        collection = self._collection
+        request = self._request_for(link, collection) if collection is not None else None
+        resent = (
+            f"; sent it the open round {collection.round} request"
+            if request is not None and collection is not None
+            else ""
+        )
+        if not rejoined:
+            if link.host:
+                logger.info("registered %s (%s)", link.describe(), profile)
+            else:
+                logger.info("registered %s (index %d, %s)", link.label, link.indices.start, profile)
+        elif link.host:
+            logger.warning(
+                "%s rejoined (%d agents back after up to %.1f s away)%s",
+                link.describe(),
+                rejoined,
+                away_s,
+                resent,
+            )
+        else:
+            logger.warning("%s rejoined after %.1f s away%s", link.label, away_s, resent)
+        if request is not None:
+            self._send_to_link(link, request)
+
+    def _welcome(self, index: int) -> Welcome:
+        return Welcome(run_id=self.run_id, agent_index=index, run=self.run_settings)
+
+    def _host_welcome(self, link: Link) -> HostWelcome:
+        return HostWelcome(
+            run_id=self.run_id,
+            first=link.indices.start,
+            count=len(link.indices),
+            run=self.run_settings,
+        )
+
+    def _request_for(
+        self, link: Link, collection: Collection, agents: Sequence[int] | None = None
+    ) -> Message | None:
+        """The collection's request as ``link`` gets it (for a host: a batch naming those of
+        ``agents``, by default its agents, still unanswered); None if it owes nothing."""
+        candidates = link.indices if agents is None else agents
+        owed = [k for k in candidates if k in collection.expected and not collection.answered(k)]
+        if not owed:
+            return None
+        request = collection.request
+        if not link.host:
+            return request
+        if isinstance(request, Train):
+            return TrainBatch(round=request.round, theta=request.theta, agents=owed)
+        return EvaluateBatch(
+            round=request.round, theta=request.theta, episodes=request.episodes, agents=owed
+        )
 
     # -- answers -----------------------------------------------------------------------------
 
@@ -449,7 +596,8 @@ class ZmqAgentPool:
         collection = self._collection
         open_round = collection is not None and collection.round == update.round
         broadcast = collection.request.theta if open_round and collection else None
-        return self.check.problem(update.theta, update.stats, broadcast)
+        # decoded stats are within their bounds: the codec enforced them field by field
+        return self.check.problem(update.theta, update.stats, broadcast, stats_bounded=True)
 
     def _open_for(self, peer: Peer | None, answer: Update | Evaluation, kind: type) -> bool:
         """Whether ``answer`` belongs to the request still open for this peer; logs if not."""
@@ -476,7 +624,10 @@ class ZmqAgentPool:
     def _on_update(self, identity: bytes, peer: Peer | None, update: Update) -> None:
         problem = self._check_update(update)
         if problem is not None:
-            self._reject(identity, "bad_update", problem)
+            named = peer is not None and peer.link.host  # which of the host's agents
+            self._reject(
+                identity, "bad_update", f"{peer.agent_id}: {problem}" if named and peer else problem
+            )
             if peer is not None and self._open_for(peer, update, Train):
                 assert self._collection is not None
                 self._collection.failures[peer.index] = problem
@@ -501,16 +652,70 @@ class ZmqAgentPool:
             assert self._collection is not None
             self._collection.answers[peer.index] = evaluation
 
+    def _on_batch(
+        self, identity: bytes, link: Link | None, batch: UpdateBatch | EvaluationBatch
+    ) -> None:
+        """A host's answers: each row checked and filed for its own agent, as if it had come
+        alone; rows the message cannot vouch for (agents outside the host's range, a shape
+        that does not match) are refused without touching the others."""
+        if link is None:
+            self._reject(identity, "not_registered", "answers from an unregistered peer")
+            return
+        if not link.host:
+            self._reject(identity, "unexpected_type", "a lone agent does not answer in batches")
+            return
+        rows = len(batch.agents)
+        if len(batch.stats) != rows or (
+            isinstance(batch, UpdateBatch)
+            and (batch.thetas.ndim != 2 or batch.thetas.shape[0] != rows)
+        ):
+            self._reject(
+                identity,
+                "bad_update",
+                f"{type(batch).__name__}: {rows} agents, {len(batch.stats)} stats"
+                + (
+                    f", thetas of shape {batch.thetas.shape}"
+                    if isinstance(batch, UpdateBatch)
+                    else ""
+                ),
+            )
+            return
+        outside = [k for k in batch.agents if k not in link.indices]
+        if outside or len(set(batch.agents)) != rows:
+            self._reject(
+                identity,
+                "bad_index",
+                f"{link.describe()} answered for agents outside its range or twice: "
+                f"{outside[:8] or 'a repeated index'}",
+            )
+            return
+        for i, index in enumerate(batch.agents):
+            peer = self.peers.get(index)
+            if peer is None or peer.link is not link:
+                continue  # an agent this link lost to another (it was presumed dead)
+            if isinstance(batch, UpdateBatch):
+                update = Update(round=batch.round, theta=batch.thetas[i], stats=batch.stats[i])
+                self._on_update(identity, peer, update)
+            else:
+                evaluation = Evaluation(round=batch.round, stats=batch.stats[i])
+                self._on_evaluation(identity, peer, evaluation)
+
     # -- collecting a request's answers --------------------------------------------------------
 
     def _collect(self, request: Train | Evaluate, what: str, agents: Sequence[int]) -> Collection:
-        """Send ``request`` to the selected agents and gather answers as the round policy says."""
+        """Send ``request`` to the selected agents and gather answers as the round policy says:
+        one message per link (a host's names its selected agents)."""
         collection = Collection(request=request, expected=frozenset(agents))
         self._collection = collection
+        by_link: dict[bytes, tuple[Link, list[int]]] = {}
         for index in sorted(collection.expected):
             peer = self.peers.get(index)
             if peer is not None:
-                self._send_to_peer(peer, request)
+                by_link.setdefault(peer.identity, (peer.link, []))[1].append(index)
+        for link, selected in by_link.values():
+            message = self._request_for(link, collection, selected)
+            if message is not None:
+                self._send_to_link(link, message)
         try:
             while not self._complete(collection, what):
                 self._pump(POLL_INTERVAL_S)
@@ -607,5 +812,5 @@ class ZmqAgentPool:
     def shutdown(self, reason: str, *, complete: bool = True) -> None:
         """Tell every agent the run is over (``complete``) or was aborted."""
         message = Shutdown(reason=reason[:1000], complete=complete)
-        for peer in self.peers.values():
-            self._send(peer.identity, message)
+        for link in self._links.values():
+            self._send(link.identity, message)

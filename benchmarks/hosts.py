@@ -1,0 +1,147 @@
+"""Agent hosts at scale: K logical agents on a few host processes (``agents.per_host``).
+
+:func:`measure`: start-up to the end of round 1, peak PSS of the whole federation, and the
+coordination time per round per participating agent (round time − the slowest host's wall
+time on the round, over the agents that took part: the wire both ways, the server's checks
+and the strategy's aggregation), from a real ``fedhpg-run`` federation on loopback.
+
+:func:`server_side_us`: the server's own time per agent of a round — decoding the hosts'
+batches, checking every row, collecting — with a real ROUTER, two DEALER "hosts" of 500
+agents each in this process, and the answers already queued (no training, no aggregation).
+
+    python -m benchmarks.hosts --agents 1000 --per-host 500 --rounds 3
+    python -m benchmarks.hosts --server-side 10000
+"""
+
+from __future__ import annotations
+
+import argparse
+import statistics
+import tempfile
+import time
+from pathlib import Path
+
+from benchmarks.runtime import _federation
+
+
+def measure(agents: int, per_host: int, rounds: int, family: str, extra: list[str]) -> dict:
+    overrides = [
+        f"rounds={rounds}",
+        f"env.family={family}",
+        f"agents.num_agents={agents}",
+        f"agents.per_host={per_host}",
+        "agents.budget.batch_size=[2]",
+        "agents.budget.local_iters=[1]",
+        "agents.speeds=[1]",
+        "agents.step_delays_s=[0]",
+        "agents.virtual_clock=true",
+        f"eval.every={rounds + 1}",
+        "eval.episodes=1",
+        "server.register_timeout_s=300",
+        *extra,
+    ]
+    with tempfile.TemporaryDirectory() as tmp:
+        records, first_round_s, peak = _federation(
+            overrides, Path(tmp), sample_memory=True, poll_s=0.05
+        )
+    overhead = [
+        (r["round_time_s"] - max(a["local_wall_s"] for a in r["agents"])) / len(r["agents"])
+        for r in records
+    ]
+    return {
+        "agents": agents,
+        "per_host": per_host,
+        "start_to_round_1_s": first_round_s,
+        "peak_pss_mib": peak / 2**20,
+        "round_time_s": [r["round_time_s"] for r in records],
+        "server_us_per_agent_round": 1e6 * statistics.median(overhead),
+    }
+
+
+def server_side_us(num_params: int, rounds: int = 5) -> list[float]:
+    """Microseconds per agent of ``ZmqAgentPool.train`` for 2 hosts × 500 agents whose
+    ``UpdateBatch`` es (256 rows at most each) are queued before the round starts."""
+    import numpy as np
+    import torch
+    import zmq
+
+    from fedhpg.common.config import ServerConfig
+    from fedhpg.common.types import UpdateStats
+    from fedhpg.common.variants import range_digest
+    from fedhpg.common.wire.codec import encode
+    from fedhpg.common.wire.protocol import MAX_BATCH_ANSWERS, HostHello, UpdateBatch
+    from fedhpg.server.pools.zmq_pool import ZmqAgentPool
+    from fedhpg.server.validation import UpdateCheck
+
+    k, per_host = 1000, 500
+    context = zmq.Context()
+    router = context.socket(zmq.ROUTER)
+    router.setsockopt(zmq.ROUTER_MANDATORY, 1)
+    port = router.bind_to_random_port("tcp://127.0.0.1")
+    digests = [f"digest-{i}" for i in range(k)]
+    pool = ZmqAgentPool(
+        socket=router, num_agents=k, check=UpdateCheck(num_params=num_params),
+        env_signature={"spaces": "x"}, variant_digests=digests, run_settings={}, run_id="bench",
+        max_bytes=1 << 30, settings=ServerConfig(),
+    )  # fmt: skip
+    hosts = []
+    for first in range(0, k, per_host):
+        host = context.socket(zmq.DEALER)
+        host.setsockopt(zmq.IDENTITY, f"host-{first}#0".encode())
+        host.connect(f"tcp://127.0.0.1:{port}")
+        host.send_multipart(
+            encode(
+                HostHello(
+                    host_id=f"host-{first}", first=first, count=per_host,
+                    env_signature={"spaces": "x"},
+                    variant_digest=range_digest(digests[first : first + per_host]),
+                )
+            )
+        )  # fmt: skip
+        hosts.append((first, host))
+    pool.wait_for_agents(10)
+    stats = UpdateStats(
+        trajectories=2, env_steps=40, compute_s=0.01, train_return=1.0, local_wall_s=0.5
+    )
+    rng = np.random.default_rng(0)
+    times = []
+    for _ in range(rounds):
+        for first, host in hosts:
+            while host.poll(0):
+                host.recv_multipart()
+            for start in range(first, first + per_host, MAX_BATCH_ANSWERS):
+                agents = list(range(start, min(start + MAX_BATCH_ANSWERS, first + per_host)))
+                thetas = (rng.standard_normal((len(agents), num_params)) * 0.01).astype(np.float32)
+                host.send_multipart(
+                    encode(
+                        UpdateBatch(
+                            round=1, agents=agents, thetas=thetas, stats=[stats] * len(agents)
+                        )
+                    )
+                )
+        time.sleep(0.5)  # every batch queued at the server
+        started = time.perf_counter()
+        answers = pool.train(1, torch.zeros(num_params), range(k))
+        times.append(1e6 * (time.perf_counter() - started) / k)
+        assert len(answers.updates) == k, answers.failures
+    for _, host in hosts:
+        host.close()
+    router.close()
+    context.term()
+    return times
+
+
+if __name__ == "__main__":
+    parser = argparse.ArgumentParser()
+    parser.add_argument("--agents", type=int, default=1000)
+    parser.add_argument("--per-host", type=int, default=500)
+    parser.add_argument("--rounds", type=int, default=3)
+    parser.add_argument("--family", default="gridworld")
+    parser.add_argument("--server-side", type=int, metavar="D", help="num_params: pool only")
+    parser.add_argument("extra", nargs="*")
+    args = parser.parse_args()
+    if args.server_side:
+        times = server_side_us(args.server_side)
+        print(f"server µs per agent per round (d={args.server_side}): {times}")
+    else:
+        print(measure(args.agents, args.per_host, args.rounds, args.family, args.extra))
