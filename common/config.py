@@ -85,8 +85,8 @@ class AlgoConfig:
     """The algorithm's own options (its ``Params`` dataclass), e.g. FedHPGVR's ``iw_mode``."""
     engine: str = "auto"
     """How a process computes its agents' local updates: 'auto' = the batched engine where it
-    covers the run (FedHPG, MLP categorical policy, no attack: all of the process's agents
-    sampled and differentiated together), else one LocalWorker after another; 'loop' = always
+    covers the run (FedHPG, MLP categorical policy, honest agents: all of the process's
+    agents sampled and differentiated together), else one LocalWorker after another; 'loop' = always
     the latter. The two round floats differently, so the server dictates it; either way an
     agent's θ does not depend on where it runs."""
 

@@ -14,11 +14,12 @@ one batch, where the run's algorithm, policy and family allow it).
 
 from __future__ import annotations
 
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from typing import Protocol
 
 import torch
 
+from fedhpg.common.attacks import attack_of
 from fedhpg.common.components import agent_profile
 from fedhpg.common.config import RunConfig
 from fedhpg.common.types import EvaluationStats, LocalResult
@@ -64,7 +65,7 @@ class WorkerLoopGroup:
     """One :class:`LocalWorker` per agent, built on first use and kept, trained in index
     order: exactly what a lone agent process computes for each of them."""
 
-    def __init__(self, run: RunConfig, variants: dict[int, EnvVariant]) -> None:
+    def __init__(self, run: RunConfig, variants: Mapping[int, EnvVariant]) -> None:
         self.run = run
         self.variants = variants
         self._workers: dict[int, LocalWorker] = {}
@@ -123,15 +124,69 @@ def group_variants(run: RunConfig, indices: Sequence[int]) -> dict[int, EnvVaria
     return {k: variants[k] for k in indices}
 
 
+class SplitGroup:
+    """Two groups side by side (the engine's honest agents, the loop's attackers): each agent
+    is trained by the one that holds it, exactly as it would be alone."""
+
+    def __init__(self, *parts: AgentGroup) -> None:
+        self.parts = parts
+
+    @property
+    def indices(self) -> Sequence[int]:
+        return sorted(k for part in self.parts for k in part.indices)
+
+    @property
+    def num_params(self) -> int:
+        return self.parts[0].num_params
+
+    def _split(self, agents: Sequence[int]) -> list[tuple[AgentGroup, list[int]]]:
+        mine = [(part, set(part.indices)) for part in self.parts]
+        return [(part, [k for k in agents if k in held]) for part, held in mine]
+
+    def train(
+        self,
+        round_index: int,
+        theta: torch.Tensor,
+        agents: Sequence[int],
+        *,
+        on_iteration: GroupHook | None = None,
+    ) -> dict[int, LocalResult]:
+        results: dict[int, LocalResult] = {}
+        for part, chosen in self._split(agents):
+            if chosen:
+                results.update(part.train(round_index, theta, chosen, on_iteration=on_iteration))
+        return dict(sorted(results.items()))
+
+    def evaluate(
+        self, round_index: int, theta: torch.Tensor, episodes: int, agents: Sequence[int]
+    ) -> dict[int, EvaluationStats]:
+        stats: dict[int, EvaluationStats] = {}
+        for part, chosen in self._split(agents):
+            if chosen:
+                stats.update(part.evaluate(round_index, theta, episodes, chosen))
+        return dict(sorted(stats.items()))
+
+    def close(self) -> None:
+        for part in self.parts:
+            part.close()
+
+
 def make_agent_group(
-    run: RunConfig, indices: Sequence[int], variants: dict[int, EnvVariant] | None = None
+    run: RunConfig, indices: Sequence[int], variants: Mapping[int, EnvVariant] | None = None
 ) -> AgentGroup:
-    """The group implementation for the run: the batched engine where it supports the run's
-    algorithm, policy and environment family, else a loop over :class:`LocalWorker` s."""
+    """The group implementation for the run: the batched engine for the agents it covers
+    (FedHPG, MLP categorical policy; an attacking agent is not covered), a loop over
+    :class:`LocalWorker` s for the others."""
     if not indices:
         raise ValueError("an agent group needs at least one agent")
     variants = group_variants(run, indices) if variants is None else variants
     from fedhpg.common.batched import batched_group_or_none
 
-    batched = batched_group_or_none(run, variants)
-    return batched if batched is not None else WorkerLoopGroup(run, variants)
+    attackers = [k for k in indices if attack_of(run.attack, k) != "none"]
+    honest = [k for k in indices if attack_of(run.attack, k) == "none"]
+    batched = batched_group_or_none(run, {k: variants[k] for k in honest}) if honest else None
+    if batched is None:
+        return WorkerLoopGroup(run, {k: variants[k] for k in indices})
+    if not attackers:
+        return batched
+    return SplitGroup(batched, WorkerLoopGroup(run, {k: variants[k] for k in attackers}))

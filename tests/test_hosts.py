@@ -23,7 +23,7 @@ from procs import child_pids, free_port, processes, start, wait_until
 
 from fedhpg.common.group import make_agent_group
 from fedhpg.common.runtime.cli import compose
-from fedhpg.common.variants import range_digest, run_variants, variant_digest
+from fedhpg.common.variants import range_digest, run_variants, variant_digest, variant_of
 from fedhpg.common.wire.codec import decode, encode
 from fedhpg.common.wire.protocol import (
     MAX_BATCH_ANSWERS,
@@ -37,6 +37,7 @@ from fedhpg.common.wire.protocol import (
     TrainBatch,
     UpdateBatch,
 )
+from fedhpg.common.worker import initial_theta
 from fedhpg.server.checkpoint import latest_valid_checkpoint
 from fedhpg.server.pools.inprocess import run_in_process
 
@@ -65,10 +66,23 @@ def _fedhpg_run(tmp_path: Path, keys: list[str], name: str) -> tuple[torch.Tenso
     return checkpoint.theta, json.loads((out_dir / "summary.json").read_text())
 
 
+# CartPole variants, B_k and τ_k from the population: the batched engine trains every honest
+# agent (hosts of 3 or 7 stack them, a lone agent is a group of one); agent 2 attacks, so the
+# loop trains it beside the engine (common/group.py's SplitGroup).
+ENGINE_RUN = [
+    "env=cartpole", "agents=population", "rounds=3", "seed=5", "agents.num_agents=7",
+    "agents.clock=counted", "eval.every=3", "eval.episodes=2", "attack.kind=sign_flip",
+    "attack.agents=[2]",
+]  # fmt: skip
+
+
 def test_theta_does_not_depend_on_the_placement_of_the_agents(tmp_path: Path) -> None:
-    expected = run_in_process(compose(RUN))
+    run = compose(ENGINE_RUN)
+    expected = run_in_process(run)
+    assert not torch.equal(expected, initial_theta(variant_of(run, 0), run))
     for per_host in (1, 3, 7):  # 7 processes; hosts of 3 + 3 + 1; one host of 7
-        theta, summary = _fedhpg_run(tmp_path, [*RUN, f"agents.per_host={per_host}"], str(per_host))
+        keys = [*ENGINE_RUN, f"agents.per_host={per_host}"]
+        theta, summary = _fedhpg_run(tmp_path, keys, str(per_host))
         assert torch.equal(theta, expected), per_host
         assert summary["agent_deaths"] == 0 and summary["rejected_messages"] == 0
         assert sorted(summary["eval"]) == sorted(f"agent-{k}" for k in range(7))

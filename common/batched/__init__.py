@@ -23,8 +23,6 @@ def _unsupported(run: RunConfig, policy: Policy) -> str | None:
 
     if run.algo.name != "fedhpg":
         return f"algorithm {run.algo.name!r} (the engine runs fedhpg)"
-    if run.attack.kind != "none":
-        return f"attack {run.attack.kind!r}"
     if run.algo.optimizer not in ("sgd", "adam"):
         return f"optimizer {run.algo.optimizer!r}"
     if type(policy) is not MLPCategoricalPolicy:
