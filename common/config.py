@@ -442,6 +442,9 @@ GROUPS: dict[str, GroupRole] = {
 }
 REPLICATE_KEYS = ("seed", "env.seed")
 """Keys whose values are replicates of one experiment (plots average over them)."""
+PLACEMENT_KEYS = ("agents.per_host",)
+"""Where agents run, not what they compute (θ̃ does not depend on it): a resume may change
+it, and runs that differ only in it are one experiment."""
 
 
 def groups(flag: str) -> tuple[str, ...]:
@@ -801,7 +804,7 @@ def fixed_difference(run: dict[str, Any], invocation: dict[str, Any]) -> ConfigE
     for group in groups("fixed"):
         before = flatten(run.get(group), f"{group}.")
         after = flatten(invocation.get(group), f"{group}.")
-        for key in sorted(set(before) | set(after)):
+        for key in sorted((set(before) | set(after)) - set(PLACEMENT_KEYS)):
             old, new = before.get(key, _UNSET), after.get(key, _UNSET)
             if old != new:
                 return ConfigError(

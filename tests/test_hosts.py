@@ -293,3 +293,13 @@ def test_a_host_claiming_foreign_agents_or_a_huge_batch_is_refused_and_the_run_g
     checkpoint = latest_valid_checkpoint(out_dir / "checkpoints")
     assert checkpoint is not None and checkpoint.round == 2
     assert torch.equal(checkpoint.theta, run_in_process(compose(HOSTILE_RUN)))
+
+
+def test_placement_is_neither_fixed_on_resume_nor_an_experiment_difference() -> None:
+    from fedhpg.common.config import fixed_difference, to_dict
+    from fedhpg.server.plot import _compared
+
+    run = to_dict(compose(["agents.per_host=1"]))
+    assert fixed_difference(run, to_dict(compose(["agents.per_host=500"]))) is None
+    assert fixed_difference(run, to_dict(compose(["agents.speeds=[2]"]))) is not None
+    assert not _compared("agents.per_host") and _compared("agents.num_agents")

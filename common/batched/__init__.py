@@ -49,9 +49,7 @@ def mlp_shape(policy: Policy) -> MLPShape:
     return MLPShape((linear[0].in_features, *(m.out_features for m in linear)))
 
 
-def batched_group_or_none(
-    run: RunConfig, variants: Mapping[int, EnvVariant]
-) -> AgentGroup | None:
+def batched_group_or_none(run: RunConfig, variants: Mapping[int, EnvVariant]) -> AgentGroup | None:
     """The batched engine for these agents, or None where it does not apply."""
     if run.algo.engine == "loop":
         return None

@@ -11,6 +11,7 @@ the same θ bit for bit (see :mod:`fedhpg.common.batched.mlp` for how).
 from __future__ import annotations
 
 from collections.abc import Callable, Mapping, Sequence
+from contextlib import closing
 from typing import Any
 
 import numpy as np
@@ -136,7 +137,9 @@ class BatchedFedHPG:
 
         env = make_multi_batch_env([self.variants[k] for k in order], [batch[k] for k in order])
         timing = RoundTiming()
-        try:
+        # An agent whose steps diverge samples from NaN logits until its round ends; the server
+        # rejects its update and says why, so numpy's warnings would only repeat it.
+        with closing(env), np.errstate(invalid="ignore", over="ignore", divide="ignore"):
             tallies = run_round(
                 env,
                 self.shape,
@@ -148,8 +151,6 @@ class BatchedFedHPG:
                 on_batch,
                 timing,
             )
-        finally:
-            env.close()
         total_steps = max(sum(t.env_steps for t in tallies), 1)
         results = {}
         for i, k in enumerate(order):
@@ -212,10 +213,8 @@ class BatchedFedHPG:
         env = make_multi_batch_env([self.variants[k] for k in order], [episodes] * len(order))
         rngs = [random_stream(self.run.seed, k, round_index, Stream.EVALUATE) for k in order]
         horizons = [self.run.eval.horizon or self.horizons[k] for k in order]
-        try:
+        with closing(env), np.errstate(invalid="ignore", over="ignore", divide="ignore"):
             rollouts = rollout(env, layers, rngs, horizons, greedy=self.run.eval.greedy)
-        finally:
-            env.close()
         gammas = np.array([self.gammas[k] for k in order])
         undiscounted = coef.returns(rollouts)
         discounted = coef.returns(rollouts, gammas)
