@@ -31,7 +31,7 @@ from fedhpg.agent.process import AgentFailure, AgentProcess, Cancelled, Job, Req
 from fedhpg.common.config import RunConfig, host_id_of
 from fedhpg.common.device import DeviceModel, device_for, message_bytes
 from fedhpg.common.group import AgentGroup, make_agent_group
-from fedhpg.common.runtime.memory import pin_malloc_mmap_threshold
+from fedhpg.common.runtime.memory import pin_malloc_mmap_threshold, tune_malloc_for
 from fedhpg.common.types import UpdateStats
 from fedhpg.common.variants import range_digest, variant_digest, variants_of
 from fedhpg.common.wire.protocol import (
@@ -95,7 +95,9 @@ class AgentHost(AgentProcess):
 
     def _make_group(self, run: RunConfig) -> AgentGroup:
         self.devices = self._devices(run)
-        return make_agent_group(run, self.indices, variants=self.variants)
+        group = make_agent_group(run, self.indices, variants=self.variants)
+        tune_malloc_for(group)
+        return group
 
     def _log_registered(self, run: RunConfig, run_id: str) -> None:
         logger.debug(

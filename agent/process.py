@@ -36,7 +36,7 @@ from fedhpg.common.components import agent_profile, validate_run
 from fedhpg.common.config import ConfigError, RunConfig, adopt_settings, agent_id_of
 from fedhpg.common.device import DeviceModel, device_for, message_bytes
 from fedhpg.common.group import AgentGroup, make_agent_group
-from fedhpg.common.runtime.memory import pin_malloc_mmap_threshold
+from fedhpg.common.runtime.memory import pin_malloc_mmap_threshold, tune_malloc_for
 from fedhpg.common.variants import variant_digest, variant_of
 from fedhpg.common.wire.codec import MAX_HEADER_BYTES, ProtocolError
 from fedhpg.common.wire.protocol import (
@@ -312,7 +312,9 @@ class AgentProcess:
 
     def _make_group(self, run: RunConfig) -> AgentGroup:
         self.device = self._device(run)
-        return make_agent_group(run, [self.index], variants={self.index: self.variant})
+        group = make_agent_group(run, [self.index], variants={self.index: self.variant})
+        tune_malloc_for(group)
+        return group
 
     def _log_registered(self, run: RunConfig, run_id: str) -> None:
         profile = agent_profile(run, self.index)

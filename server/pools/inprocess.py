@@ -18,7 +18,7 @@ from fedhpg.common.components import validate_run
 from fedhpg.common.config import RunConfig, agent_id_of
 from fedhpg.common.device import DeviceModel, device_for, message_bytes
 from fedhpg.common.group import AgentGroup, make_agent_group
-from fedhpg.common.runtime.memory import pin_malloc_mmap_threshold
+from fedhpg.common.runtime.memory import pin_malloc_mmap_threshold, tune_malloc_for
 from fedhpg.common.types import AgentUpdate, EvaluationStats, LocalResult
 from fedhpg.common.variants import variant_of, variants_of
 from fedhpg.common.worker import IterationWork, initial_theta
@@ -112,6 +112,7 @@ def make_in_process_pool(
     indices = range(run.agents.num_agents)
     by_index = dict(enumerate(variants)) if variants is not None else variants_of(run, indices)
     group = make_agent_group(run, list(indices), by_index)
+    tune_malloc_for(group)
     return InProcessPool(run, group, num_params=group.num_params)
 
 
