@@ -208,8 +208,9 @@ def figure(results: list[CaseResult]) -> None:
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    parser.add_argument("cases", nargs="*", default=list(CASES), choices=list(CASES))
+    parser.add_argument("cases", nargs="*", choices=[[], *CASES], help="default: all")
     args = parser.parse_args()
+    args.cases = args.cases or list(CASES)
     results = []
     for name in args.cases:
         measured = measure(CASES[name])

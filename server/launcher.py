@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import ctypes
 import logging
+import gc
 import multiprocessing
 import os
 import signal
@@ -94,6 +95,10 @@ class Supervisor:
         self, target: Callable[..., None], args: tuple, name: str
     ) -> multiprocessing.process.BaseProcess:
         process = self.context.Process(target=target, args=args, name=name, daemon=False)
+        # Everything the launcher holds (torch, the config, the variants' draws) is shared
+        # with the forked children; without this their first garbage collection writes to
+        # the refcount header of every inherited object and copies its page.
+        gc.freeze()
         process.start()
         self.children.append(process)
         self._how[name] = (target, args)
