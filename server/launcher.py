@@ -10,8 +10,8 @@ launcher exits non-zero.
 from __future__ import annotations
 
 import ctypes
-import logging
 import gc
+import logging
 import multiprocessing
 import os
 import signal
