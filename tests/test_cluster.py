@@ -157,6 +157,23 @@ def test_a_federation_placed_through_submitit_equals_the_same_run_here(tmp_path:
     assert all("Job completed successfully" in t for t in texts)
 
 
+def test_agent_hosts_placed_through_submitit_equal_the_same_run_here(tmp_path: Path) -> None:
+    """With agents.per_host the job array holds the hosts: agents 0..1 and agent 2."""
+    run_dir = tmp_path / "run"
+    keys = [*TINY, "agents.num_agents=3", "agents.per_host=2"]
+    process = _run(
+        [str(BIN / "fedhpg-cluster"), "cluster=local", f"server.out_dir={run_dir}", *keys],
+        tmp_path,
+    )
+    status, _, err = _finish(process)
+    assert status == 0, err[-3000:]
+    assert torch.equal(_theta(run_dir), api.run(overrides=[*keys, "seed=0"]).theta)
+    texts = [p.read_text() for p in sorted((run_dir / "submitit").glob("*/*_0_log.err"))]
+    assert len(texts) == 3, "one server job, two host jobs"
+    for unit in ("agent.first=0 agent.count=2", "agent.first=2 agent.count=1"):
+        assert sum(unit in t for t in texts) == 1, texts
+
+
 def _agent_pid(index: int, port: int) -> int | None:
     """The pid of the fedhpg-agent command of agent ``index`` connected to ``port``."""
     wanted = ("fedhpg-agent", f"agent.index={index}", f"server.port={port}")
