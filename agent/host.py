@@ -23,6 +23,7 @@ import os
 import time
 from collections.abc import Sequence
 from dataclasses import replace
+from typing import Any
 
 import numpy as np
 import torch
@@ -177,27 +178,18 @@ class AgentHost(AgentProcess):
         wanted = set(request.agents) if isinstance(request, TrainBatch | EvaluateBatch) else set()
         again: list[Message] = []
         for answer in answers:
+            if not isinstance(answer, UpdateBatch | EvaluationBatch):
+                continue
+            rows = [i for i, k in enumerate(answer.agents) if k in wanted]
+            if not rows:
+                continue
+            picked: dict[str, Any] = {
+                "agents": [answer.agents[i] for i in rows],
+                "stats": [answer.stats[i] for i in rows],
+            }
             if isinstance(answer, UpdateBatch):
-                rows = [i for i, k in enumerate(answer.agents) if k in wanted]
-                if rows:
-                    again.append(
-                        UpdateBatch(
-                            round=answer.round,
-                            agents=[answer.agents[i] for i in rows],
-                            thetas=answer.thetas[rows],
-                            stats=[answer.stats[i] for i in rows],
-                        )
-                    )
-            elif isinstance(answer, EvaluationBatch):
-                rows = [i for i, k in enumerate(answer.agents) if k in wanted]
-                if rows:
-                    again.append(
-                        EvaluationBatch(
-                            round=answer.round,
-                            agents=[answer.agents[i] for i in rows],
-                            stats=[answer.stats[i] for i in rows],
-                        )
-                    )
+                picked["thetas"] = answer.thetas[rows]
+            again.append(replace(answer, **picked))
         return again
 
     def run(self) -> None:

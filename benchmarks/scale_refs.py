@@ -39,8 +39,8 @@ def forward_loop(copies: list[int], hidden: tuple[int, ...], steps: int, seed: i
     start = 0
     for size in np.unique(counts):
         num = int((counts == size).sum())
-        groups.append((start * 0 + int(counts[:start].sum()), num, int(size),
-                       mlp.unflatten(shape, params[start : start + num])))  # fmt: skip
+        row = int(counts[:start].sum())
+        groups.append((row, num, int(size), mlp.unflatten(shape, params[start : start + num])))
         start += num
     obs, _ = env.reset(seed=seed)
     started = time.perf_counter()

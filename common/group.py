@@ -23,7 +23,7 @@ from fedhpg.common.attacks import attack_of
 from fedhpg.common.components import agent_profile
 from fedhpg.common.config import RunConfig
 from fedhpg.common.types import EvaluationStats, LocalResult
-from fedhpg.common.variants import run_variants
+from fedhpg.common.variants import variants_of
 from fedhpg.common.worker import IterationWork, LocalWorker
 from fedhpg.envs.base import EnvVariant
 
@@ -118,12 +118,6 @@ class WorkerLoopGroup:
         self._workers.clear()
 
 
-def group_variants(run: RunConfig, indices: Sequence[int]) -> dict[int, EnvVariant]:
-    """The environment variants of ``indices`` (each exactly the one the server expects)."""
-    variants = run_variants(run)
-    return {k: variants[k] for k in indices}
-
-
 class SplitGroup:
     """Two groups side by side (the engine's honest agents, the loop's attackers): each agent
     is trained by the one that holds it, exactly as it would be alone."""
@@ -179,7 +173,7 @@ def make_agent_group(
     :class:`LocalWorker` s for the others."""
     if not indices:
         raise ValueError("an agent group needs at least one agent")
-    variants = group_variants(run, indices) if variants is None else variants
+    variants = variants_of(run, indices) if variants is None else variants
     from fedhpg.common.batched import batched_group_or_none
 
     attackers = [k for k in indices if attack_of(run.attack, k) != "none"]

@@ -106,9 +106,27 @@ class LocalTally:
     """The algorithm's own statistics of the round (:attr:`UpdateStats.algorithm`)."""
 
     def add(self, batch: TrajectoryBatch, *, compute_s: float, clipped: bool = False) -> None:
-        self.trajectories += batch.num_trajectories
-        self.env_steps += batch.num_steps
-        self.return_sum += float(np.sum(batch.returns()))
+        self.add_counts(
+            batch.num_trajectories,
+            batch.num_steps,
+            float(np.sum(batch.returns())),
+            compute_s=compute_s,
+            clipped=clipped,
+        )
+
+    def add_counts(
+        self,
+        trajectories: int,
+        env_steps: int,
+        return_sum: float,
+        *,
+        compute_s: float,
+        clipped: bool = False,
+    ) -> None:
+        """One iteration's totals, where no TrajectoryBatch exists (the batched engine)."""
+        self.trajectories += trajectories
+        self.env_steps += env_steps
+        self.return_sum += return_sum
         self.compute_s += compute_s
         self.clipped += int(clipped)
 

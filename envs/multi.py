@@ -12,6 +12,7 @@ it sits in an array) with the per-copy physics held in arrays.
 
 from __future__ import annotations
 
+import copy
 import math
 from collections.abc import Sequence
 from typing import Protocol
@@ -63,6 +64,13 @@ def block_offsets(counts: Sequence[int]) -> np.ndarray:
     return np.concatenate([[0], np.cumsum(np.asarray(counts, dtype=np.int64))])
 
 
+def kept_blocks(counts: Sequence[int], blocks: np.ndarray) -> tuple[list[int], np.ndarray, int]:
+    """(counts, offsets, copies) of the blocks ``blocks`` alone: a subset's layout."""
+    kept = [counts[int(a)] for a in blocks]
+    offsets = block_offsets(kept)
+    return kept, offsets, int(offsets[-1])
+
+
 def block_columns(offsets: np.ndarray, blocks: np.ndarray) -> np.ndarray:
     """The copies of ``blocks``, in block order."""
     sizes = offsets[blocks + 1] - offsets[blocks]
@@ -99,13 +107,9 @@ class GroupedBatchEnv:
         return BatchStep(*(np.concatenate(parts) for parts in zip(*steps, strict=True)))
 
     def subset(self, blocks: np.ndarray) -> GroupedBatchEnv:
-        part = object.__new__(GroupedBatchEnv)
-        part.counts = [self.counts[int(a)] for a in blocks]
-        part.offsets = block_offsets(part.counts)
-        part.num_envs = int(part.offsets[-1])
+        part = copy.copy(self)
+        part.counts, part.offsets, part.num_envs = kept_blocks(self.counts, blocks)
         part.envs = [self.envs[int(a)] for a in blocks]
-        part.single_observation_space = self.single_observation_space
-        part.single_action_space = self.single_action_space
         return part
 
     def close(self) -> None:
@@ -214,13 +218,8 @@ class CartPoleMulti:
 
     def subset(self, blocks: np.ndarray) -> CartPoleMulti:
         columns = block_columns(self.offsets, blocks)
-        part = object.__new__(CartPoleMulti)
-        part.counts = [self.counts[int(a)] for a in blocks]
-        part.offsets = block_offsets(part.counts)
-        part.num_envs = int(part.offsets[-1])
-        part.max_episode_steps = self.max_episode_steps
-        part.single_observation_space = self.single_observation_space
-        part.single_action_space = self.single_action_space
+        part = copy.copy(self)
+        part.counts, part.offsets, part.num_envs = kept_blocks(self.counts, blocks)
         part.params = {name: values[columns] for name, values in self.params.items()}
         part.state = self.state[:, columns]
         part.steps = self.steps[columns]

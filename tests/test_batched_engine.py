@@ -10,9 +10,10 @@ import torch
 from fedhpg.common.batched import batched_group_or_none, mlp, unsupported
 from fedhpg.common.batched.engine import BatchedFedHPG
 from fedhpg.common.batched.sampler import Batches, rollout
-from fedhpg.common.group import WorkerLoopGroup, group_variants, make_agent_group
+from fedhpg.common.group import WorkerLoopGroup, make_agent_group
 from fedhpg.common.local import batch_gradient
 from fedhpg.common.rollout import TrajectoryBatch
+from fedhpg.common.variants import variants_of
 from fedhpg.common.worker import build_policy, get_flat_params, initial_theta
 from fedhpg.envs.multi import CartPoleMulti, GroupedBatchEnv, make_multi_batch_env
 from fedhpg.envs.registry import make_variants
@@ -28,8 +29,8 @@ def _run(*overrides: str, family: str = "cartpole", agents: int = 9):
 
 
 def _group(run, indices) -> BatchedFedHPG:
-    group = batched_group_or_none(run, group_variants(run, indices))
-    assert isinstance(group, BatchedFedHPG), unsupported(run, group_variants(run, indices))
+    group = batched_group_or_none(run, variants_of(run, indices))
+    assert isinstance(group, BatchedFedHPG), unsupported(run, variants_of(run, indices))
     return group
 
 
@@ -75,7 +76,7 @@ def test_a_family_without_a_native_batch_steps_block_by_block() -> None:
 @pytest.mark.parametrize("baseline", ["mean", "none"])
 def test_the_stacked_gradient_is_autograds_to_float32_rounding(estimator, baseline) -> None:
     run = _run(f"algo.estimator={estimator}", f"algo.baseline={baseline}", agents=3)
-    variants = group_variants(run, range(3))
+    variants = variants_of(run, range(3))
     engine = _group(run, range(3))
     policy = build_policy(variants[0], run)
     with torch.no_grad():  # away from the near-uniform start, so every layer matters
@@ -116,7 +117,7 @@ def test_an_agents_round_is_the_same_in_any_company(settings) -> None:
     """Alone, in small groups, in another order, or all nine together: bit-identical θ_k and
     the same counts (the property that makes θ̃ independent of placement)."""
     run = _run(*settings)
-    theta = initial_theta(group_variants(run, [0])[0], run)
+    theta = initial_theta(variants_of(run, [0])[0], run)
     everyone = _group(run, range(9)).train(3, theta, list(range(9)))
     if settings and "grad_clip" in settings[0]:
         assert sum(r.stats.grad_clipped for r in everyone.values()) > 0, "clipping exercised"
@@ -131,7 +132,7 @@ def test_an_agents_round_is_the_same_in_any_company(settings) -> None:
 
 def test_a_group_trains_a_subset_of_its_agents_as_their_own_groups_would() -> None:
     run = _run()
-    theta = initial_theta(group_variants(run, [0])[0], run)
+    theta = initial_theta(variants_of(run, [0])[0], run)
     group = _group(run, range(9))
     chosen = group.train(1, theta, [1, 5, 6])
     alone = _group(run, [5]).train(1, theta, [5])
@@ -141,7 +142,7 @@ def test_a_group_trains_a_subset_of_its_agents_as_their_own_groups_would() -> No
 
 def test_agents_move_the_policy_and_count_their_work() -> None:
     run = _run()
-    theta = initial_theta(group_variants(run, [0])[0], run)
+    theta = initial_theta(variants_of(run, [0])[0], run)
     group = _group(run, range(9))
     results = group.train(1, theta, list(range(9)))
     for k, result in results.items():
@@ -155,7 +156,7 @@ def test_agents_move_the_policy_and_count_their_work() -> None:
 
 def test_evaluation_is_the_same_in_any_company_and_counts_episodes() -> None:
     run = _run()
-    theta = initial_theta(group_variants(run, [0])[0], run)
+    theta = initial_theta(variants_of(run, [0])[0], run)
     everyone = _group(run, range(9)).evaluate(2, theta, 6, list(range(9)))
     alone = _group(run, [3]).evaluate(2, theta, 6, [3])
     assert alone[3] == everyone[3]
@@ -169,4 +170,4 @@ def test_runs_the_engine_does_not_cover_fall_back_to_the_loop() -> None:
         assert isinstance(make_agent_group(run, [0, 1]), WorkerLoopGroup)
     gridworld = resolve_config(overrides=["env=gridworld", *POPULATION, "agents.num_agents=2"])
     assert isinstance(make_agent_group(gridworld, [0, 1]), WorkerLoopGroup)
-    assert unsupported(gridworld, group_variants(gridworld, [0])) is not None
+    assert unsupported(gridworld, variants_of(gridworld, [0])) is not None

@@ -49,7 +49,7 @@ def coefficients(
     raise ValueError(f"estimator must be 'reinforce' or 'gpomdp', got {estimator!r}")
 
 
-def returns(rollouts: Rollouts, gammas: np.ndarray | None = None) -> np.ndarray:
+def returns(rollouts: Rollouts | Batches, gammas: np.ndarray | None = None) -> np.ndarray:
     """Per copy Σ_t γ^t r_t (undiscounted without ``gammas``), [N]."""
     rewards = rollouts.rewards
     if gammas is not None:

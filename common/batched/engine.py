@@ -25,7 +25,7 @@ from fedhpg.common.batched.scheduler import RoundTiming, run_round
 from fedhpg.common.components import agent_profile
 from fedhpg.common.config import RunConfig
 from fedhpg.common.group import GroupHook
-from fedhpg.common.types import EvaluationStats, LocalResult, UpdateStats
+from fedhpg.common.types import EvaluationStats, LocalResult
 from fedhpg.common.variants import discount, training_horizon
 from fedhpg.common.worker import IterationWork, Stream, random_stream
 from fedhpg.envs.base import EnvVariant
@@ -117,18 +117,16 @@ class BatchedFedHPG:
         rngs = [random_stream(self.run.seed, k, round_index, Stream.TRAIN) for k in order]
         params = np.repeat(theta.detach().numpy().astype(np.float32)[None, :], len(order), 0)
         moments = (np.zeros_like(params), np.zeros_like(params))
-        done = np.zeros(len(order), dtype=np.int64)
-        clipped = np.zeros(len(order), dtype=np.int64)
 
-        def gradient_step(batches: Batches, rows: np.ndarray) -> None:
+        def gradient_step(batches: Batches, rows: np.ndarray, done: np.ndarray) -> np.ndarray:
             layers = mlp.unflatten(self.shape, params[rows])
             gradient = self._gradient(batches, layers, [order[i] for i in rows])
-            clipped[rows] += self._clip(gradient)
+            clipped = self._clip(gradient)
             stepped = params[rows]
             first, second = moments[0][rows], moments[1][rows]
-            ascend(algo.optimizer, algo.step_size, stepped, gradient, (first, second), done[rows])
+            ascend(algo.optimizer, algo.step_size, stepped, gradient, (first, second), done)
             params[rows], moments[0][rows], moments[1][rows] = stepped, first, second
-            done[rows] += 1
+            return clipped
 
         def on_batch(row: int, iteration: int, env_steps: int, compute_s: float) -> None:
             if on_iteration is not None:
@@ -154,23 +152,13 @@ class BatchedFedHPG:
         total_steps = max(sum(t.env_steps for t in tallies), 1)
         results = {}
         for i, k in enumerate(order):
-            tally = tallies[i]
-            share = tally.env_steps / total_steps
-            results[k] = LocalResult(
-                theta=torch.from_numpy(params[i].copy()),
-                stats=UpdateStats(
-                    trajectories=tally.trajectories,
-                    env_steps=tally.env_steps,
-                    train_return=tally.return_sum / max(tally.trajectories, 1),
-                    compute_s=tally.compute_s,
-                    grad_clipped=int(clipped[i]),
-                    # the engine's split of the group's time, this agent's share (by steps)
-                    algorithm={
-                        "engine_sample_s": timing.sample_s * share,
-                        "engine_gradient_s": timing.gradient_s * share,
-                    },
-                ),
-            )
+            share = tallies[i].env_steps / total_steps
+            # the engine's split of the group's time, this agent's share (by steps)
+            tallies[i].algorithm = {
+                "engine_sample_s": timing.sample_s * share,
+                "engine_gradient_s": timing.gradient_s * share,
+            }
+            results[k] = tallies[i].result(torch.from_numpy(params[i].copy()))
         return results
 
     def _gradient(self, batches: Batches, layers: mlp.Layers, active: list[int]) -> np.ndarray:

@@ -80,12 +80,6 @@ def logits(layers: Layers, x: np.ndarray) -> np.ndarray:
     return forward(layers, x)[-1]
 
 
-def softmax(logit: np.ndarray) -> np.ndarray:
-    weights = np.exp(logit - logit.max(axis=-1, keepdims=True))
-    weights /= weights.sum(axis=-1, keepdims=True)
-    return weights
-
-
 def draw_actions(logit: np.ndarray, uniforms: np.ndarray) -> np.ndarray:
     """Categorical draws [N] by inverting each row's CDF with one uniform (the last action is
     never exceeded, whatever the rounding). Column by column: a handful of actions, many rows."""

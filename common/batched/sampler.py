@@ -43,11 +43,6 @@ class Rollouts:
         """The agent (batch position) of every copy, [N]."""
         return np.repeat(np.arange(len(self.lengths)), np.diff(self.offsets))
 
-    def env_steps(self) -> np.ndarray:
-        """Alive steps per agent, [A]."""
-        per_copy = self.alive.sum(axis=0)
-        return np.add.reduceat(per_copy, self.offsets[:-1]) if per_copy.size else per_copy
-
 
 @dataclass(frozen=True)
 class Batches:

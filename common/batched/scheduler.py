@@ -22,23 +22,14 @@ from dataclasses import dataclass
 import numpy as np
 
 from fedhpg.common.batched import mlp
+from fedhpg.common.batched.coefficients import returns as copy_returns
 from fedhpg.common.batched.sampler import UNIFORM_CHUNK, Batches, _groups
+from fedhpg.common.local import LocalTally
 from fedhpg.envs.multi import MultiBatchEnv, block_columns
 
-GradientStep = Callable[[Batches, np.ndarray], None]
-"""(the finished batches, their agents' positions) -> None: takes their gradients and steps;
-afterwards ``params`` holds their new θ rows."""
-
-
-@dataclass
-class AgentTally:
-    """One agent's totals over the round."""
-
-    iterations: int = 0
-    trajectories: int = 0
-    env_steps: int = 0
-    return_sum: float = 0.0
-    compute_s: float = 0.0
+GradientStep = Callable[[Batches, np.ndarray, np.ndarray], np.ndarray]
+"""(the finished batches, their agents' positions, the steps each has taken this round) ->
+which of them had their gradient clipped; afterwards ``params`` holds their new θ rows."""
 
 
 @dataclass
@@ -123,7 +114,7 @@ def run_round(
     gradient_step: GradientStep,
     on_batch: Callable[[int, int, int, float], None] | None = None,
     timing: RoundTiming | None = None,
-) -> list[AgentTally]:
+) -> list[LocalTally]:
     """Every agent (env block a, θ row ``params[a]``) runs ``iterations[a]`` local iterations.
 
     ``on_batch(position, iteration, env_steps, compute_s)`` follows each agent's step;
@@ -133,7 +124,8 @@ def run_round(
     num_agents = len(counts)
     horizon_of = np.asarray(horizons, dtype=np.int64)
     ring = int(horizon_of.max()) + MAX_WAIT + 1
-    tallies = [AgentTally() for _ in range(num_agents)]
+    tallies = [LocalTally() for _ in range(num_agents)]
+    done = np.zeros(num_agents, dtype=np.int64)  # local iterations taken this round
     local_step = np.zeros(num_agents, dtype=np.int64)
     started_at = np.zeros(num_agents, dtype=np.int64)
     waiting_since = np.zeros(num_agents, dtype=np.int64)
@@ -165,28 +157,23 @@ def run_round(
         agents = frame.agents[local]
         batches = frame.ring.ended(local, local_step[agents], started_at[agents],
                                    frame.offsets, frame.counts)  # fmt: skip
-        gradient_step(batches, agents)
+        clipped = gradient_step(batches, agents, done[agents])
         frame.refresh(params, shape, local)
         steps = batches.env_steps()
-        returns = np.add.reduceat(_returns(batches), batches.offsets[:-1])
+        returns = np.add.reduceat(copy_returns(batches), batches.offsets[:-1])
         steps_so_far += int(steps.sum())
         cpu_per_step = (time.thread_time() - cpu_started) / max(steps_so_far, 1)
-        again = []
         for i, a in enumerate(agents):
-            tally = tallies[a]
-            tally.trajectories += int(counts[a])
-            tally.env_steps += int(steps[i])
-            tally.return_sum += float(returns[i])
-            tally.compute_s += cpu_per_step * int(steps[i])
+            compute_s = cpu_per_step * int(steps[i])
+            tallies[a].add_counts(int(counts[a]), int(steps[i]), float(returns[i]),
+                                  compute_s=compute_s, clipped=bool(clipped[i]))  # fmt: skip
             if on_batch is not None:
-                on_batch(int(a), tally.iterations, int(steps[i]), cpu_per_step * int(steps[i]))
-            tally.iterations += 1
-            if tally.iterations < iterations[a]:
-                again.append(local[i])
-            else:
-                working[a] = False
-        if again:
-            start(np.asarray(again), now)
+                on_batch(int(a), int(done[a]), int(steps[i]), compute_s)
+        done[agents] += 1
+        working[agents] = done[agents] < np.asarray(iterations)[agents]
+        again = local[working[agents]]
+        if len(again):
+            start(again, now)
         gradient_s += time.thread_time() - entered
 
     frame.load(params, shape)
@@ -336,10 +323,3 @@ class _Rings:
             obs=self.obs.reshape(-1, *features)[source[kept]],
             actions=self.actions.reshape(-1)[source[kept]],
         )
-
-
-def _returns(batches: Batches) -> np.ndarray:
-    """Per copy Σ_t r_t (time-sequential: zero padding adds nothing)."""
-    if batches.rewards.shape[0] == 0:
-        return np.zeros(batches.rewards.shape[1])
-    return np.cumsum(batches.rewards, axis=0)[-1]
