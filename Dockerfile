@@ -1,21 +1,47 @@
 # fedhpg: one image for the server and the agents (CPU only).
-# Build: docker build -t fedhpg .      Run: see docker-compose.yml and README "Deploy".
+# Where Docker Hub and PyPI are reachable (the defaults: the official slim Python base, CPU torch
+# from PyTorch's CPU index):
+#   docker build -t fedhpg .
+# Offline, from a base and wheels made on this machine (README "Deploy"; make image does both):
+#   docker/make-base.sh && docker/make-wheelhouse.sh
+#   docker build --network none --build-arg BASE_IMAGE=fedhpg-base:bookworm \
+#       --build-arg PIP_SOURCE=wheelhouse -t fedhpg .
+# The same file either way: the build arguments choose, nothing is edited.
 
-FROM python:3.11-slim AS build
+ARG BASE_IMAGE=python:3.11-slim
+
+FROM ${BASE_IMAGE} AS build
+# index: PyPI plus TORCH_INDEX; wheelhouse: only docker/wheelhouse/, no network.
+ARG PIP_SOURCE=index
+ARG TORCH_INDEX=https://download.pytorch.org/whl/cpu
 WORKDIR /src
-COPY pyproject.toml README.md constraints.txt ./
+COPY docker/wheelhouse /wheelhouse
+COPY pyproject.toml constraints.txt ./
+# The dependencies first, from pyproject.toml alone: this layer survives edits of the code.
+RUN set -eu; \
+    case "$PIP_SOURCE" in \
+      index) echo "--extra-index-url $TORCH_INDEX" > pip-source.txt ;; \
+      wheelhouse) printf -- '--no-index\n--find-links /wheelhouse\n' > pip-source.txt ;; \
+      *) echo "PIP_SOURCE must be index or wheelhouse, not $PIP_SOURCE" >&2; exit 2 ;; \
+    esac; \
+    python3 -c "import tomllib; p = tomllib.load(open('pyproject.toml', 'rb'))['project']; \
+print(*p['dependencies'], *p['optional-dependencies']['envs'], sep='\n')" > requirements.txt; \
+    python3 -m venv /opt/fedhpg; \
+    /opt/fedhpg/bin/pip install --no-cache-dir --disable-pip-version-check \
+        -r pip-source.txt -r requirements.txt -c constraints.txt
+COPY README.md ./
 COPY common ./common
 COPY envs ./envs
 COPY server ./server
 COPY agent ./agent
 COPY conf ./conf
-# CPU wheels of torch come from PyTorch's CPU index; everything else from PyPI, pinned.
-RUN python -m venv /opt/fedhpg \
- && /opt/fedhpg/bin/pip install --no-cache-dir --upgrade pip \
- && /opt/fedhpg/bin/pip install --no-cache-dir --extra-index-url https://download.pytorch.org/whl/cpu \
-        -c constraints.txt ".[envs]"
+RUN /opt/fedhpg/bin/pip install --no-cache-dir --disable-pip-version-check --no-deps \
+        -r pip-source.txt . \
+ && /opt/fedhpg/bin/python -c "import fedhpg.server.main, fedhpg.agent.main, torch; \
+assert torch.version.cuda is None, 'a CUDA build of torch: the image is CPU only'"
 
-FROM python:3.11-slim
+FROM ${BASE_IMAGE}
+# Only the virtual environment comes over: no wheelhouse, no sources, no build tools.
 RUN useradd --create-home --uid 1000 fedhpg && mkdir /runs && chown fedhpg /runs
 COPY --from=build /opt/fedhpg /opt/fedhpg
 ENV PATH=/opt/fedhpg/bin:$PATH \
@@ -24,7 +50,8 @@ ENV PATH=/opt/fedhpg/bin:$PATH \
     PYTHONUNBUFFERED=1
 USER fedhpg
 WORKDIR /home/fedhpg
-VOLUME ["/runs"]
 EXPOSE 5555
-# Hydra overrides follow the entrypoint, e.g. `docker run fedhpg fedhpg-agent agent.index=0 ...`.
+# /runs is where results go: mount a volume there (compose does; no VOLUME line, which would
+# give every agent container an anonymous volume of its own). Hydra overrides follow the
+# entrypoint, e.g. `docker run fedhpg fedhpg-agent agent.index=0 ...`.
 CMD ["fedhpg-server", "server.bind_all=true", "server.out_dir=/runs/latest"]

@@ -6,7 +6,7 @@ STAMP := $(VENV)/.installed
 export OMP_NUM_THREADS ?= 1
 export MKL_NUM_THREADS ?= 1
 
-.PHONY: setup demo test lint typecheck contracts bench bench-learning bench-learning-long bench-robustness bench-presets bench-scale figures clean
+.PHONY: setup demo test test-containers bench-containers clean-containers lint typecheck contracts bench bench-learning bench-learning-long bench-robustness bench-presets bench-scale figures clean
 
 setup: $(STAMP)
 
@@ -22,6 +22,24 @@ demo: $(STAMP)
 test: $(STAMP) typecheck contracts
 	$(BIN)/ruff check .
 	$(BIN)/python -m pytest -q
+
+# The image and docker-compose.yml under a real Docker engine (tests/test_containers.py):
+# docker/engine.sh installs and starts one where none runs and the machine allows it, else the
+# tests are skipped with the reason; everything they start is removed by id when they end.
+test-containers: $(STAMP)
+	FEDHPG_CONTAINER_TESTS=1 $(BIN)/python -m pytest -q -rs tests/test_containers.py
+
+# Timings from nothing (no base, image or build cache), the demo's 60 rounds in containers and
+# on loopback: benchmarks/results/containers.json (BENCHMARKS.md "Containers").
+bench-containers: $(STAMP)
+	FEDHPG_CONTAINER_TESTS=1 FEDHPG_CONTAINER_COLD=1 FEDHPG_CONTAINER_ROUNDS=60 \
+	FEDHPG_CONTAINER_TIMINGS=benchmarks/results/containers.json \
+	$(BIN)/python -m pytest -q -rs tests/test_containers.py -k "equals_loopback"
+
+# The engine's image store (/var/lib/fedhpg-docker) and the wheelhouse: what the tests cache.
+clean-containers:
+	bash docker/engine.sh stop
+	rm -rf /var/lib/fedhpg-docker docker/wheelhouse/*.whl
 
 # mypy sees the package as fedhpg.* through links (the folders are mapped by package-dir).
 TYPECHECK := build/typecheck/fedhpg

@@ -407,7 +407,8 @@ class RunConfig:
     cluster: ClusterConfig = field(default_factory=ClusterConfig)
     resume: str | None = None
     """Continue a killed run: 'true' resumes ``server.out_dir``; a path resumes that run
-    directory (``fedhpg-run resume=DIR``)."""
+    directory (``fedhpg-run resume=DIR``); 'auto' resumes ``server.out_dir`` if it holds a run
+    and starts one otherwise (a server its supervisor restarts with the same command)."""
 
 
 # --- what each top-level key is for: the one declaration --------------------------------------

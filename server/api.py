@@ -39,7 +39,7 @@ from fedhpg.server.metrics import (
 )
 from fedhpg.server.pools import FederationError
 from fedhpg.server.pools.inprocess import run_in_process
-from fedhpg.server.run_dir import RunDirectory, RunDirectoryError, claimed
+from fedhpg.server.run_dir import RunDirectory, RunDirectoryError, claimed, holds_run
 from fedhpg.server.strategies import make_strategy, validate_strategy
 
 __all__ = [
@@ -131,6 +131,10 @@ def run(
     if out_dir is None and run_config.server.out_dir:
         out_dir = run_config.server.out_dir
     directory = Path(out_dir) if out_dir is not None else None
+    if (run_config.resume or "").lower() == "auto":
+        # As on the command line: resume the directory if it holds a run, else start.
+        resumes = directory is not None and holds_run(directory)
+        run_config = dataclasses.replace(run_config, resume="true" if resumes else None)
     if distributed:
         if callbacks:
             raise ValueError(

@@ -18,12 +18,9 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from fedhpg.common.config import ConfigError
+from fedhpg.common.runtime.run_files import METRICS_NAME, holds_run
 
 LOCK_NAME = ".lock"
-METRICS_NAME = "metrics.jsonl"
-RUN_FILES = (METRICS_NAME, "summary.json", "checkpoints")
-"""What makes a directory hold a run: rounds or results. (A ``config.json`` alone, left by a
-server that could not bind, does not; nor do Hydra's ``.hydra/`` and logs.)"""
 
 
 class RunDirectoryError(RuntimeError):
@@ -74,7 +71,7 @@ class RunDirectory:
         file, a run already there): for entry points that check before they start."""
         if path.exists() and not path.is_dir():
             raise ConfigError(key, f"{path} is a file, not a directory")
-        if not resume and any((path / name).exists() for name in RUN_FILES):
+        if not resume and holds_run(path):
             raise ConfigError(
                 key,
                 f"{path} holds a run already: continue it with resume=true, or choose an "
@@ -82,7 +79,7 @@ class RunDirectory:
             )
 
     def holds_run(self) -> bool:
-        return any((self.path / name).exists() for name in RUN_FILES)
+        return holds_run(self.path)
 
     def release(self) -> None:
         if self._lock_fd >= 0:

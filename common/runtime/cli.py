@@ -172,9 +172,11 @@ def own_overrides(args: Sequence[str]) -> list[str]:
 def compose(overrides: Sequence[str], *, resumable: bool = False) -> RunConfig:
     """Compose ``conf/config.yaml`` with command-line overrides, without Hydra's run dirs.
     With ``resumable`` and a ``resume=`` override, start from the run's ``config.json``."""
-    from fedhpg.common.runtime.resume import compose_resume, resume_value
+    from fedhpg.common.runtime.resume import compose_resume, resume_value, settle_auto
 
     overrides = own_overrides(overrides)
+    if resumable:
+        overrides = settle_auto(overrides)
     with hydra_context():
         if resumable and resume_value(overrides) is not None:
             return compose_resume(overrides)

@@ -10,6 +10,20 @@ from typing import Any
 
 from fedhpg.common.config import ConfigError, RunConfig, fixed_difference, to_dict
 from fedhpg.common.runtime.cli import compose_cfg, hydra_errors, to_run_config
+from fedhpg.common.runtime.run_files import holds_run
+
+
+def settle_auto(overrides: Sequence[str]) -> list[str]:
+    """``resume=auto``, for a server that a supervisor restarts with the same command (compose's
+    ``restart: on-failure``): ``resume=true`` when ``server.out_dir`` holds a run, otherwise a
+    fresh start. Every other override is kept as it is."""
+    if (resume_value(overrides) or "").lower() != "auto":
+        return list(overrides)
+    out_dirs = [o.split("=", 1)[1] for o in overrides if o.split("=", 1)[0] == "server.out_dir"]
+    if not out_dirs:
+        raise ConfigError("resume", "resume=auto needs server.out_dir=DIR")
+    settled = "resume=true" if holds_run(Path(out_dirs[-1])) else "resume=null"
+    return [o for o in overrides if o.split("=", 1)[0].lstrip("+") != "resume"] + [settled]
 
 
 def resume_value(overrides: Sequence[str]) -> str | None:
