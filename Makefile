@@ -6,7 +6,7 @@ STAMP := $(VENV)/.installed
 export OMP_NUM_THREADS ?= 1
 export MKL_NUM_THREADS ?= 1
 
-.PHONY: setup demo test test-containers bench-containers clean-containers lint typecheck contracts bench bench-learning bench-learning-long bench-robustness bench-presets bench-scale figures clean
+.PHONY: setup demo test image test-containers bench-containers clean-containers lint typecheck contracts bench bench-learning bench-learning-long bench-robustness bench-presets bench-scale figures clean
 
 setup: $(STAMP)
 
@@ -22,6 +22,14 @@ demo: $(STAMP)
 test: $(STAMP) typecheck contracts
 	$(BIN)/ruff check .
 	$(BIN)/python -m pytest -q
+
+# The image without Docker Hub or an index: a debootstrap base, this machine's wheels, an offline
+# build (the running engine: DOCKER_HOST, or `docker/engine.sh start` prints one).
+image: $(STAMP)
+	bash docker/make-base.sh fedhpg-base:bookworm
+	bash docker/make-wheelhouse.sh $(BIN)/python
+	docker build --network none --build-arg BASE_IMAGE=fedhpg-base:bookworm \
+		--build-arg PIP_SOURCE=wheelhouse -t fedhpg:latest .
 
 # The image and docker-compose.yml under a real Docker engine (tests/test_containers.py):
 # docker/engine.sh installs and starts one where none runs and the machine allows it, else the

@@ -97,3 +97,29 @@ def test_killed_launcher_resumes_with_fedhpg_run_resume_dir(tmp_path: Path) -> N
     checkpoint = latest_valid_checkpoint(out_dir / "checkpoints")
     assert checkpoint is not None and checkpoint.round == ROUNDS
     assert torch.equal(checkpoint.theta, run_in_process(compose(run_keys)))
+
+
+def test_resume_auto_starts_a_fresh_directory_and_resumes_one_that_holds_a_run(
+    tmp_path: Path,
+) -> None:
+    """resume=auto (what a supervisor's restart needs: one command for both cases): a fresh
+    start where server.out_dir holds no run, resume=true where it does, with the same checks
+    (a changed fixed key is refused); continuing in Python gives the uninterrupted θ̃."""
+    from fedhpg.common.config import ConfigError
+    from fedhpg.server import api
+
+    keys = ["seed=4", "agents=homogeneous4", "agents.budget.batch_size=[4]", "eval.every=10"]
+    out_dir = tmp_path / "run"
+    auto = ["resume=auto", f"server.out_dir={out_dir}"]
+    assert compose([*keys, *auto, "rounds=2"], resumable=True).resume is None
+    api.run(overrides=[*keys, "rounds=2"], out_dir=out_dir)
+    resumed = compose([*keys, *auto, "rounds=4"], resumable=True)
+    assert (resumed.resume or "").lower() == "true" and resumed.rounds == 4
+    with pytest.raises(ConfigError, match="seed"):
+        compose([*keys, *auto, "rounds=4", "seed=5"], resumable=True)
+    with pytest.raises(ConfigError, match="server.out_dir"):
+        compose([*keys, "resume=auto"], resumable=True)
+    continued = api.run(overrides=[*keys, "rounds=4", "resume=auto"], out_dir=out_dir)
+    assert [r["round"] for r in continued.records] == [1, 2, 3, 4]
+    uninterrupted = api.run(overrides=[*keys, "rounds=4"])
+    assert torch.equal(continued.theta, uninterrupted.theta)
