@@ -35,15 +35,22 @@ COPY envs ./envs
 COPY server ./server
 COPY agent ./agent
 COPY conf ./conf
-RUN /opt/fedhpg/bin/pip install --no-cache-dir --disable-pip-version-check --no-deps \
-        -r pip-source.txt . \
- && /opt/fedhpg/bin/python -c "import fedhpg.server.main, fedhpg.agent.main, torch; \
-assert torch.version.cuda is None, 'a CUDA build of torch: the image is CPU only'"
+# The project as a wheel beside the environment, not in it: the final stage copies the
+# environment (cached while the dependencies stay) and installs the wheel on top.
+RUN /opt/fedhpg/bin/pip wheel --no-cache-dir --disable-pip-version-check --no-deps \
+        -r pip-source.txt --wheel-dir /dist .
 
 FROM ${BASE_IMAGE}
-# Only the virtual environment comes over: no wheelhouse, no sources, no build tools.
+# Only the virtual environment and the project's wheel come over: no wheelhouse, no sources,
+# no build tools.
 RUN useradd --create-home --uid 1000 fedhpg && mkdir /runs && chown fedhpg /runs
 COPY --from=build /opt/fedhpg /opt/fedhpg
+COPY --from=build /dist /dist
+RUN /opt/fedhpg/bin/pip install --no-cache-dir --disable-pip-version-check --no-deps \
+        --no-index /dist/*.whl \
+ && rm -rf /dist \
+ && /opt/fedhpg/bin/python -c "import fedhpg.server.main, fedhpg.agent.main, torch; \
+assert torch.version.cuda is None, 'a CUDA build of torch: the image is CPU only'"
 ENV PATH=/opt/fedhpg/bin:$PATH \
     OMP_NUM_THREADS=1 \
     MKL_NUM_THREADS=1 \
