@@ -117,7 +117,7 @@ def test_resume_auto_starts_a_fresh_directory_and_resumes_one_that_holds_a_run(
     assert (resumed.resume or "").lower() == "true" and resumed.rounds == 4
     with pytest.raises(ConfigError, match="seed"):
         compose([*keys, *auto, "rounds=4", "seed=5"], resumable=True)
-    with pytest.raises(ConfigError, match="server.out_dir"):
+    with pytest.raises(ConfigError, match=r"server\.out_dir"):
         compose([*keys, "resume=auto"], resumable=True)
     continued = api.run(overrides=[*keys, "rounds=4", "resume=auto"], out_dir=out_dir)
     assert [r["round"] for r in continued.records] == [1, 2, 3, 4]
