@@ -123,3 +123,11 @@ def test_resume_auto_starts_a_fresh_directory_and_resumes_one_that_holds_a_run(
     assert [r["round"] for r in continued.records] == [1, 2, 3, 4]
     uninterrupted = api.run(overrides=[*keys, "rounds=4"])
     assert torch.equal(continued.theta, uninterrupted.theta)
+
+
+@pytest.mark.parametrize("value", ["false", "False", "null", "none"])
+def test_resume_false_means_no_resume(value: str) -> None:
+    """Hydra reads resume=false as a boolean, which the str field made "False": a server then
+    claimed and tried to resume a directory named False in its working directory."""
+    assert compose([f"resume={value}"], resumable=True).resume is None
+    assert compose([f"resume={value}"]).resume is None

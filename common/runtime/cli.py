@@ -8,6 +8,7 @@ is one line on stderr and exit status 2.
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import logging
 import os
 import sys
@@ -27,6 +28,8 @@ EXIT_RUN_ABORTED = 3
 LOG_FORMAT = "%(asctime)s %(levelname)s %(name)s: %(message)s"
 LOG_DATE_FORMAT = "%H:%M:%S"
 HELP_FLAGS = ("-h", "--help")
+NO_RESUME = ("", "null", "none", "false")
+"""``resume=`` values that mean no resume, in any case."""
 
 
 def register_schema() -> None:
@@ -70,6 +73,10 @@ def validate_config(config: RunConfig) -> RunConfig:
 
     validate_run(config)
     validate_security(config.security)
+    if isinstance(config.resume, str) and config.resume.strip().lower() in NO_RESUME:
+        # Hydra reads resume=false as the boolean, which the str field turns into "False":
+        # without this it named a run directory "False" and resumed it.
+        config = dataclasses.replace(config, resume=None)
     return config
 
 

@@ -9,7 +9,7 @@ from pathlib import Path
 from typing import Any
 
 from fedhpg.common.config import ConfigError, RunConfig, fixed_difference, to_dict
-from fedhpg.common.runtime.cli import compose_cfg, hydra_errors, to_run_config
+from fedhpg.common.runtime.cli import NO_RESUME, compose_cfg, hydra_errors, to_run_config
 from fedhpg.common.runtime.run_files import holds_run
 
 
@@ -28,7 +28,7 @@ def settle_auto(overrides: Sequence[str]) -> list[str]:
 
 def resume_value(overrides: Sequence[str]) -> str | None:
     values = [o.split("=", 1)[1] for o in overrides if o.split("=", 1)[0].lstrip("+") == "resume"]
-    return values[-1] if values and values[-1] not in ("", "null", "false") else None
+    return values[-1] if values and values[-1].strip().lower() not in NO_RESUME else None
 
 
 def resume_directory(overrides: Sequence[str]) -> Path:
