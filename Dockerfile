@@ -6,7 +6,8 @@
 #   docker/make-base.sh && docker/make-wheelhouse.sh
 #   docker build --network none --build-arg BASE_IMAGE=fedhpg-base:bookworm \
 #       --build-arg PIP_SOURCE=wheelhouse -t fedhpg .
-# The same file either way: the build arguments choose, nothing is edited.
+# The same file either way: the build arguments choose, nothing is edited. EXTRAS= (empty)
+# leaves out Box2D and MuJoCo (LunarLander, HalfCheetah): 1.20 GB instead of 1.33 GB.
 
 ARG BASE_IMAGE=python:3.11-slim
 
@@ -14,6 +15,8 @@ FROM ${BASE_IMAGE} AS build
 # index: PyPI plus TORCH_INDEX; wheelhouse: only docker/wheelhouse/, no network.
 ARG PIP_SOURCE=index
 ARG TORCH_INDEX=https://download.pytorch.org/whl/cpu
+# envs: also Box2D and MuJoCo (LunarLander, HalfCheetah); empty: GridWorld and classic control.
+ARG EXTRAS=envs
 WORKDIR /src
 COPY docker/wheelhouse /wheelhouse
 COPY pyproject.toml constraints.txt ./
@@ -25,7 +28,8 @@ RUN set -eu; \
       *) echo "PIP_SOURCE must be index or wheelhouse, not $PIP_SOURCE" >&2; exit 2 ;; \
     esac; \
     python3 -c "import tomllib; p = tomllib.load(open('pyproject.toml', 'rb'))['project']; \
-print(*p['dependencies'], *p['optional-dependencies']['envs'], sep='\n')" > requirements.txt; \
+extras = [d for e in '$EXTRAS'.split(',') if e for d in p['optional-dependencies'][e]]; \
+print(*p['dependencies'], *extras, sep='\n')" > requirements.txt; \
     python3 -m venv /opt/fedhpg; \
     /opt/fedhpg/bin/pip install --no-cache-dir --disable-pip-version-check \
         -r pip-source.txt -r requirements.txt -c constraints.txt

@@ -104,16 +104,26 @@ def _check_population_budgets(run: RunConfig, algorithm: Algorithm[Any, Any]) ->
 
 def validate_env_family(run: RunConfig) -> None:
     """``env.family`` and ``env.options``, checked by generating agent 0's variant through
-    the family registry (whatever a family is: built in, a plugin's, a dotted path). Cheap: a
-    variant holds parameters, its environment is built later; a family without per-index
-    variants makes (and caches) all K here."""
+    the family registry (whatever a family is: built in, a plugin's, a dotted path), and its
+    environment built once. A family without per-index variants makes (and caches) all K
+    here."""
+    from gymnasium.error import DependencyNotInstalled
+
     from fedhpg.common.variants import variant_of
     from fedhpg.envs.registry import UnknownEnvFamilyError
 
     try:
-        variant_of(run, 0)
+        # One environment built too: a family whose library is missing (MuJoCo, Box2D without
+        # the envs extra) fails here in one line, not in a traceback once the run has started.
+        variant_of(run, 0).make_env().close()
     except UnknownEnvFamilyError as error:
         raise ConfigError("env.family", str(error)) from None
+    except (DependencyNotInstalled, ImportError) as error:
+        raise ConfigError(
+            "env.family",
+            f"{run.env.family} cannot be built here: {str(error).splitlines()[0]} (the "
+            "optional environments come with pip install 'fedhpg[envs]')",
+        ) from None
     except (TypeError, ValueError) as error:
         key = "env.options" if run.env.options else "env"
         raise ConfigError(key, str(error).splitlines()[0] if str(error) else repr(error)) from None

@@ -17,8 +17,6 @@ import re
 import tempfile
 from pathlib import Path
 
-import gymnasium.envs.mujoco as gym_mujoco
-
 _TOTAL_MASS = re.compile(r'\s+settotalmass="([^"]+)"')
 
 
@@ -30,6 +28,9 @@ def without_settotalmass(name: str) -> tuple[str, float]:
     so every process of a run finds the same file and an upgraded gymnasium gets a new one.
     A model that has no such attribute is returned as it is, with total mass 0 (= leave it).
     """
+    # Imported here: without the MuJoCo extra the rest of the project must still import.
+    import gymnasium.envs.mujoco as gym_mujoco
+
     stock = Path(gym_mujoco.__file__).parent / "assets" / name
     text = stock.read_text()
     found = _TOTAL_MASS.findall(text)

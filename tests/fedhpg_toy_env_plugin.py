@@ -50,6 +50,25 @@ def short_cartpoles(
     return variants
 
 
+class _MissingLibraryVariant(GymVariant):
+    """A variant whose simulator is not installed, as MuJoCo or Box2D are without the extra."""
+
+    def make_env(self, *, render_mode: str | None = None) -> gym.Env:
+        raise gym.error.DependencyNotInstalled("FooSim is not installed, run `pip install foosim`")
+
+
+def needs_a_missing_library(
+    *, seed: int, num_agents: int, level: float, **options: Any
+) -> list[EnvVariant]:
+    """``env.family=fedhpg_toy_env_plugin:needs_a_missing_library``: must fail in one line."""
+    return [
+        _MissingLibraryVariant(
+            family="needs_a_missing_library", index=k, gamma=0.99, params={}, env_id="CartPole-v1"
+        )
+        for k in range(num_agents)
+    ]
+
+
 @register_policy("linear_softmax")
 class LinearSoftmaxPolicy(Policy):
     """Discrete actions from a 1-D Box observation through one linear layer."""

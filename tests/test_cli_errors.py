@@ -143,6 +143,13 @@ CASES: dict[str, tuple[str, list[str], str]] = {
     ),
     "host-negative-first": ("fedhpg-agent", ["agent.first=-1"], "agent.first: got -1"),
     "per-host-zero": ("fedhpg-run", ["agents.per_host=0"], "agents.per_host: got 0"),
+    # e.g. env=halfcheetah where fedhpg was installed without the envs extra (MuJoCo)
+    "missing-simulator": (
+        "fedhpg-run",
+        ["env.family=fedhpg_toy_env_plugin:needs_a_missing_library"],
+        "env.family: fedhpg_toy_env_plugin:needs_a_missing_library cannot be built here: "
+        "FooSim is not installed",
+    ),
 }
 
 

@@ -117,7 +117,16 @@ def image(engine: Engine) -> str:
         int(engine.docker("image", "inspect", "-f", "{{.Size}}", IMAGE)) / 1e6
     )
     user = engine.docker(
-        "run", "--rm", "--network", "none", IMAGE, "sh", "-c", "id -u; command -v gcc cc || true"
+        "run",
+        "--pull",
+        "never",
+        "--rm",
+        "--network",
+        "none",
+        IMAGE,
+        "sh",
+        "-c",
+        "id -u; command -v gcc cc || true",
     )
     assert user.splitlines() == ["1000"], (
         f"the image must run as uid 1000 and hold no compiler: {user}"
@@ -283,7 +292,18 @@ def test_traffic_stays_on_the_internal_network(federation: Federation) -> None:
         "import socket; s = socket.create_server(('0.0.0.0', 9000)); [s.accept() for _ in range(9)]"
     )
     listener = docker(
-        "run", "-d", "--label", label, "--network", outside, IMAGE, "python", "-c", listen
+        "run",
+        "--pull",
+        "never",
+        "-d",
+        "--label",
+        label,
+        "--network",
+        outside,
+        IMAGE,
+        "python",
+        "-c",
+        listen,
     )
     address = docker(
         "inspect",
@@ -303,7 +323,18 @@ def test_traffic_stays_on_the_internal_network(federation: Federation) -> None:
 
     def from_network(network: str, name: str) -> list[str]:
         return docker(
-            "run", "--rm", "--network", network, IMAGE, "python", "-c", probe, name, address
+            "run",
+            "--pull",
+            "never",
+            "--rm",
+            "--network",
+            network,
+            IMAGE,
+            "python",
+            "-c",
+            probe,
+            name,
+            address,
         ).splitlines()
 
     inside = from_network(f"{federation.project}_federation", "server")
