@@ -456,7 +456,12 @@ def _to_wire(value: Any, where: str, depth: int = 0) -> Any:
             for i, item in enumerate(value)
         ]
     if isinstance(value, dict):
-        return {key: _to_wire(item, f"{where}[{key!r}]", depth + 1) for key, item in value.items()}
+        return {
+            key: item
+            if type(item) in _PLAIN_SCALARS
+            else _to_wire(item, f"{where}[{key!r}]", depth + 1)
+            for key, item in value.items()
+        }
     return value
 
 
