@@ -81,7 +81,9 @@ class UpdateCheck:
         result: list[str | None] = [None] * rows
         # A row's sum is finite only if every entry is (NaN and ±Inf propagate); a sum that
         # overflowed from finite entries is told apart by the exact test, row by row.
-        for i in np.flatnonzero(~np.isfinite(np.add.reduce(thetas, axis=1))):
+        with np.errstate(over="ignore", invalid="ignore"):  # inf + -inf, overflow: expected
+            sums = np.add.reduce(thetas, axis=1)
+        for i in np.flatnonzero(~np.isfinite(sums)):
             if not np.isfinite(thetas[i]).all():
                 result[i] = NON_FINITE
         if not stats_bounded:
