@@ -83,9 +83,9 @@ class UpdateCheck:
         # overflowed from finite entries is told apart by the exact test, row by row.
         with np.errstate(over="ignore", invalid="ignore"):  # inf + -inf, overflow: expected
             sums = np.add.reduce(thetas, axis=1)
-        for i in np.flatnonzero(~np.isfinite(sums)):
-            if not np.isfinite(thetas[i]).all():
-                result[i] = NON_FINITE
+        for row in np.flatnonzero(~np.isfinite(sums)).tolist():
+            if not np.isfinite(thetas[row]).all():
+                result[row] = NON_FINITE
         if not stats_bounded:
             for i, row_stats in enumerate(stats):
                 if result[i] is None and (found := row_stats.problems()):
