@@ -157,4 +157,7 @@ def test_a_matrix_is_used_again_only_once_nothing_refers_to_it() -> None:
     assert fourth_address not in (address, second.ctypes.data)
     del fourth
     wider = stock.take(3, 4000)  # another shape: a new matrix, while the free one is kept
-    assert wider.shape == (3, 4000) and stock.take(3, 2000).ctypes.data == fourth_address
+    again = stock.take(3, 2000)
+    assert wider.shape == (3, 4000) and again.ctypes.data == fourth_address
+    wider[:], again[:] = -1.0, -1.0
+    assert (row == 7.0).all()  # the first's memory was handed to no one while a view held it
