@@ -4,13 +4,10 @@ At d = 10⁴ and K = 1,000 the round's updates are 40 MB: copied once, from the 
 into their agent's row, and handed on as views of that matrix, so that
 :func:`fedhpg.server.strategies.stacked` has nothing left to stack. Rows are in agent-index
 order, as ``stacked`` orders them; the matrix is 64-byte aligned, as torch allocates its own.
-A matrix nothing refers to any more is used again (:class:`MatrixStock`): faulting in 40 MB
-of fresh pages costs about twice the copy into them.
 """
 
 from __future__ import annotations
 
-import sys
 from collections.abc import Iterable, Sequence
 
 import numpy as np
@@ -44,43 +41,12 @@ def _runs(pairs: Sequence[tuple[int, int]]) -> Iterable[tuple[int, int, int]]:
             start = i
 
 
-class MatrixStock:
-    """The last ``keep`` matrices handed out, each given out again once nothing else refers
-    to it: not an update's θ_k, a torch tensor over it, nor a view of either (a round's
-    records may outlive the round; the matrix of a round whose updates are still held stays
-    theirs). Two, so that round t + 1 finds round t − 1's while round t's is still in use."""
-
-    def __init__(self, keep: int = 2) -> None:
-        self.keep = keep
-        self._kept: list[np.ndarray] = []
-
-    def take(self, rows: int, columns: int) -> np.ndarray:
-        for matrix in self._kept:
-            if matrix.shape == (rows, columns) and _unshared(matrix):
-                return matrix
-        matrix = aligned_empty(rows, columns)
-        self._kept = [matrix, *self._kept][: self.keep]
-        return matrix
-
-
-def _unshared(matrix: np.ndarray) -> bool:
-    """Whether only the stock refers to ``matrix`` (its list, the caller's loop variable and
-    this argument) and to its memory (numpy views' ``base`` is the owner, ``matrix.base``;
-    torch tensors over it hold ``matrix`` itself)."""
-    return sys.getrefcount(matrix) == 4 and sys.getrefcount(matrix.base) == 2
-
-
 class RoundRows:
     """One row per agent asked to train this round, in agent-index order."""
 
-    def __init__(
-        self, agents: Iterable[int], num_params: int, stock: MatrixStock | None = None
-    ) -> None:
+    def __init__(self, agents: Iterable[int], num_params: int) -> None:
         self.place = {index: row for row, index in enumerate(sorted(agents))}
-        rows = len(self.place)
-        self.matrix = (
-            aligned_empty(rows, num_params) if stock is None else stock.take(rows, num_params)
-        )
+        self.matrix = aligned_empty(len(self.place), num_params)
 
     def put(
         self, indices: Sequence[int], thetas: np.ndarray, rows: Sequence[int]

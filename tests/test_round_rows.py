@@ -17,7 +17,7 @@ from fedhpg.common.variants import range_digest
 from fedhpg.common.wire.codec import decode, encode
 from fedhpg.common.wire.protocol import Error, HostHello, HostWelcome, TrainBatch, UpdateBatch
 from fedhpg.server.pools.zmq_pool import ZmqAgentPool
-from fedhpg.server.round_rows import ALIGNMENT, MatrixStock, RoundRows
+from fedhpg.server.round_rows import ALIGNMENT, RoundRows
 from fedhpg.server.strategies import stacked
 from fedhpg.server.validation import NON_FINITE, UpdateCheck
 
@@ -136,28 +136,3 @@ def test_bad_rows_of_a_batch_reject_their_agents_only() -> None:
     block = stacked(answers.updates)
     assert block.data_ptr() == answers.updates[0].theta.data_ptr()  # no copy
     assert torch.equal(block, torch.from_numpy(thetas[[0, 2, 3]]))
-
-
-def test_a_matrix_is_used_again_only_once_nothing_refers_to_it() -> None:
-    stock = MatrixStock()
-    first = stock.take(3, 2000)
-    address = first.ctypes.data
-    theta = torch.from_numpy(first).unbind(0)[1]  # an update's θ_k, as the pool hands it out
-    del first
-    second = stock.take(3, 2000)
-    assert second.ctypes.data != address
-    del theta
-    third = stock.take(3, 2000)
-    assert third.ctypes.data == address  # the first, nothing holds it any more
-    row = third[0]  # a numpy view of it (an Update's θ_k before train() returns)
-    row[:] = 7.0
-    del third
-    fourth = stock.take(3, 2000)
-    fourth_address = fourth.ctypes.data
-    assert fourth_address not in (address, second.ctypes.data)
-    del fourth
-    wider = stock.take(3, 4000)  # another shape: a new matrix, while the free one is kept
-    again = stock.take(3, 2000)
-    assert wider.shape == (3, 4000) and again.ctypes.data == fourth_address
-    wider[:], again[:] = -1.0, -1.0
-    assert (row == 7.0).all()  # the first's memory was handed to no one while a view held it

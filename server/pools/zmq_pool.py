@@ -65,7 +65,7 @@ from fedhpg.common.wire.security import KEY_MISMATCH, key_mismatch
 from fedhpg.common.wire.transport import send_message, try_decode
 from fedhpg.server.connections import ConnectionGuard
 from fedhpg.server.pools import FederationError, RoundAnswers
-from fedhpg.server.round_rows import MatrixStock, RoundRows
+from fedhpg.server.round_rows import RoundRows
 from fedhpg.server.rounds import request_complete
 from fedhpg.server.validation import UpdateCheck
 
@@ -227,8 +227,6 @@ class ZmqAgentPool:
         """Agent id per index, kept after an agent dies (metrics still name it)."""
         self._absent_since: dict[int, float] = {}
         self._collection: Collection | None = None
-        self._matrices = MatrixStock()
-        """The rounds' [K, d] matrices, used again once their round's updates are let go."""
         self._last_heartbeat = 0.0
         self._noisy = RateLimitedLog(NOISY_LOG_BURST, NOISY_LOG_WINDOW_S)
         self.rejected = 0
@@ -755,11 +753,7 @@ class ZmqAgentPool:
         """Send ``request`` to the selected agents and gather answers as the round policy says:
         one message per link (a host's names its selected agents)."""
         expected = frozenset(agents)
-        rows = (
-            RoundRows(expected, self.check.num_params, self._matrices)
-            if isinstance(request, Train)
-            else None
-        )
+        rows = RoundRows(expected, self.check.num_params) if isinstance(request, Train) else None
         collection = Collection(request=request, expected=expected, rows=rows)
         self._collection = collection
         by_link: dict[bytes, tuple[Link, list[int]]] = {}
