@@ -2,11 +2,15 @@
 
 from __future__ import annotations
 
+import math
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
 
 from fedhpg.common.types import UpdateStats
+
+NON_FINITE = "parameters contain NaN or Inf"
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -17,13 +21,23 @@ class UpdateCheck:
     num_params: int
     max_update_norm: float | None = None
 
+    def _layout_problem(self, dtype: np.dtype, shape: tuple[int, ...]) -> str | None:
+        if dtype != np.float32:
+            return f"parameters must be float32, got {dtype}"
+        if shape != (self.num_params,):
+            return f"parameters must have shape ({self.num_params},), got {shape}"
+        return None
+
     def theta_problem(self, theta: np.ndarray) -> str | None:
-        if theta.dtype != np.float32:
-            return f"parameters must be float32, got {theta.dtype}"
-        if theta.shape != (self.num_params,):
-            return f"parameters must have shape ({self.num_params},), got {theta.shape}"
-        if not np.isfinite(theta).all():
-            return "parameters contain NaN or Inf"
+        problem = self._layout_problem(theta.dtype, theta.shape)
+        if problem is None and not np.isfinite(theta).all():
+            return NON_FINITE
+        return problem
+
+    def _step_problem(self, step: float) -> str | None:
+        bound = self.max_update_norm
+        if bound is not None and step > bound:
+            return f"update moves θ by {step:.4g} > server.max_update_norm={bound:g}"
         return None
 
     def problem(
@@ -44,9 +58,44 @@ class UpdateCheck:
         problems = [] if stats_bounded else stats.problems()
         if problems:
             return "update stats: " + "; ".join(problems)
-        bound = self.max_update_norm
-        if bound is not None and broadcast is not None:
-            step = float(np.linalg.norm(theta.astype(np.float64) - broadcast))
-            if step > bound:
-                return f"update moves θ by {step:.4g} > server.max_update_norm={bound:g}"
+        if self.max_update_norm is not None and broadcast is not None:
+            return self._step_problem(float(np.linalg.norm(theta.astype(np.float64) - broadcast)))
         return None
+
+    def problems(
+        self,
+        thetas: np.ndarray,
+        stats: Sequence[UpdateStats],
+        broadcast: np.ndarray | None,
+        *,
+        stats_bounded: bool = False,
+    ) -> list[str | None]:
+        """:meth:`problem` of each row of the [A, d] matrix ``thetas`` (with ``stats[i]``),
+        the same answer row by row, but each pass over the matrix made once for all rows: at
+        d = 10⁴ a host's batch of 256 rows is 10 MB, and per-row numpy calls cost more than
+        the arithmetic."""
+        rows = len(thetas)
+        layout = self._layout_problem(thetas.dtype, thetas.shape[1:])
+        if layout is not None:
+            return [layout] * rows
+        result: list[str | None] = [None] * rows
+        # A row's sum is finite only if every entry is (NaN and ±Inf propagate); a sum that
+        # overflowed from finite entries is told apart by the exact test, row by row.
+        with np.errstate(over="ignore", invalid="ignore"):  # inf + -inf, overflow: expected
+            sums = np.add.reduce(thetas, axis=1)
+        for row in np.flatnonzero(~np.isfinite(sums)).tolist():
+            if not np.isfinite(thetas[row]).all():
+                result[row] = NON_FINITE
+        if not stats_bounded:
+            for i, row_stats in enumerate(stats):
+                if result[i] is None and (found := row_stats.problems()):
+                    result[i] = "update stats: " + "; ".join(found)
+        if self.max_update_norm is not None and broadcast is not None:
+            checked = [i for i in range(rows) if result[i] is None]
+            kept = thetas if len(checked) == rows else thetas[checked]
+            # one float64 pass for the rows; each norm as np.linalg.norm computes a vector's
+            # (the square root of its dot product with itself), so a bound decides alike
+            steps = kept.astype(np.float64) - broadcast
+            for i, step in zip(checked, steps, strict=True):
+                result[i] = self._step_problem(math.sqrt(float(step.dot(step))))
+        return result

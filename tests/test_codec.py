@@ -851,3 +851,32 @@ def test_the_records_fast_path_accepts_exactly_what_the_generic_checks_do(
         except ProtocolError:
             accepted = False
         assert codec._fits(value, rule) == accepted, (spec.name, value)
+
+
+def _outcome(check: Any, value: Any) -> tuple[bool, str]:
+    try:
+        check(value, "x", 1)
+    except ProtocolError as error:
+        return False, str(error)
+    return True, ""
+
+
+@settings(max_examples=300, deadline=None, derandomize=True)
+@given(
+    st.lists(_ANY_SCALAR, max_size=6),
+    st.dictionaries(st.one_of(st.text(max_size=3), st.integers(0, 3)), _ANY_SCALAR, max_size=4),
+)
+def test_lists_and_maps_of_bounded_numbers_fast_path_agrees_with_the_generic_checks(
+    items: list[Any], entries: dict[Any, Any]
+) -> None:
+    """A batch's agent indices and an update's algorithm stats are tested inline
+    (``codec._check_number_list`` / ``_check_number_dict``): the same values pass, and a
+    value that does not gets the generic checks' reason."""
+    agents = list[limits.AgentIndex]
+    algorithm = dict[str, limits.Finite]
+    assert _outcome(codec._checker(agents), items) == _outcome(
+        lambda v, w, d: codec._check_list(limits.AgentIndex, v, w, d), items
+    )
+    assert _outcome(codec._checker(algorithm), entries) == _outcome(
+        lambda v, w, d: codec._check_dict(limits.Finite, v, w, d), entries
+    )

@@ -216,10 +216,16 @@ def _compile(hint: Any) -> Checker:
         return functools.partial(_check_union, typing.get_args(hint))
     if hint is dict or origin is dict:
         args = typing.get_args(hint)
-        return functools.partial(_check_dict, args[1] if args else Any)
+        item = args[1] if args else Any
+        if (rule := _number_rule(item)) is not None:
+            return functools.partial(_check_number_dict, item, rule)
+        return functools.partial(_check_dict, item)
     if hint is list or origin is list:
         args = typing.get_args(hint)
-        return functools.partial(_check_list, args[0] if args else Any)
+        item = args[0] if args else Any
+        if (rule := _number_rule(item)) is not None:
+            return functools.partial(_check_number_list, item, rule)
+        return functools.partial(_check_list, item)
     if _is_record(hint):
         return _compile_record(hint)
     if hint is float:
@@ -317,6 +323,29 @@ def _check_list(item_hint: Any, value: Any, where: str, depth: int) -> list[Any]
         raise _bad(where, f"nested deeper than {MAX_NESTING} levels")
     check = _checker(item_hint)
     return [check(item, f"{where}[{i}]", depth + 1) for i, item in enumerate(value)]
+
+
+def _check_number_list(
+    item_hint: Any, rule: _NumberRule, value: Any, where: str, depth: int
+) -> list[Any]:
+    """A list of bounded numbers (a batch's agent indices: hundreds per message), tested
+    inline; a list that fails the test goes through the generic checks, which say why."""
+    if type(value) is list and depth < MAX_NESTING and all(_fits(item, rule) for item in value):
+        return value
+    return _check_list(item_hint, value, where, depth)
+
+
+def _check_number_dict(
+    item_hint: Any, rule: _NumberRule, value: Any, where: str, depth: int
+) -> dict[str, Any]:
+    """A map of bounded numbers (an update's algorithm statistics), as the list above."""
+    if (
+        type(value) is dict
+        and depth < MAX_NESTING
+        and all(type(key) is str and _fits(item, rule) for key, item in value.items())
+    ):
+        return value
+    return _check_dict(item_hint, value, where, depth)
 
 
 _NumberRule = tuple[bool, bool, float | None, float | None, bool]
@@ -427,7 +456,12 @@ def _to_wire(value: Any, where: str, depth: int = 0) -> Any:
             for i, item in enumerate(value)
         ]
     if isinstance(value, dict):
-        return {key: _to_wire(item, f"{where}[{key!r}]", depth + 1) for key, item in value.items()}
+        return {
+            key: item
+            if type(item) in _PLAIN_SCALARS
+            else _to_wire(item, f"{where}[{key!r}]", depth + 1)
+            for key, item in value.items()
+        }
     return value
 
 

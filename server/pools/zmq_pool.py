@@ -19,8 +19,12 @@ Paranoid Pirate: handle messages, purge dead peers, send heartbeats.
   agent is still a :class:`Peer` (selected, answered, dead or rejoined by index), but
   registration, liveness, heartbeats and requests go per link: a host registers its range in
   one ``HostHello``, gets one ``TrainBatch`` per round and answers in ``UpdateBatch`` es whose
-  rows pass the :class:`UpdateCheck` one by one (a bad row rejects that agent only); a dead
-  host's agents all die at once, in one log line, and rejoin together when it registers again.
+  rows pass the :class:`UpdateCheck` (each pass over a batch's [A, d] matrix made once for
+  all its rows; a bad row rejects that agent only); a dead host's agents all die at once, in
+  one log line, and rejoin together when it registers again.
+- Accepted θ_k are copied once, on arrival, into the round's
+  :class:`~fedhpg.server.round_rows.RoundRows` (the frames are then let go); the updates the
+  round returns are views of that matrix, which the strategies use without restacking.
 """
 
 from __future__ import annotations
@@ -36,7 +40,7 @@ import torch
 import zmq
 
 from fedhpg.common.config import ServerConfig, agent_id_of
-from fedhpg.common.types import AgentUpdate, EvaluationStats
+from fedhpg.common.types import AgentUpdate, EvaluationStats, UpdateStats
 from fedhpg.common.variants import range_digest
 from fedhpg.common.wire.codec import ProtocolError
 from fedhpg.common.wire.protocol import (
@@ -61,6 +65,7 @@ from fedhpg.common.wire.security import KEY_MISMATCH, key_mismatch
 from fedhpg.common.wire.transport import send_message, try_decode
 from fedhpg.server.connections import ConnectionGuard
 from fedhpg.server.pools import FederationError, RoundAnswers
+from fedhpg.server.round_rows import RoundRows
 from fedhpg.server.rounds import request_complete
 from fedhpg.server.validation import UpdateCheck
 
@@ -130,6 +135,8 @@ class Collection:
     answers: dict[int, Update | Evaluation] = field(default_factory=dict)
     failures: dict[int, str] = field(default_factory=dict)
     """Agents whose answer was rejected (it counts as their answer: they are not waited for)."""
+    rows: RoundRows | None = None
+    """A round's accepted θ_k (None for an evaluation): ``answers`` hold views of its rows."""
 
     @property
     def round(self) -> int:
@@ -599,15 +606,16 @@ class ZmqAgentPool:
         # decoded stats are within their bounds: the codec enforced them field by field
         return self.check.problem(update.theta, update.stats, broadcast, stats_bounded=True)
 
-    def _open_for(self, peer: Peer | None, answer: Update | Evaluation, kind: type) -> bool:
-        """Whether ``answer`` belongs to the request still open for this peer; logs if not."""
+    def _open_for(self, peer: Peer | None, round_index: int, kind: type[Train | Evaluate]) -> bool:
+        """Whether an answer for ``round_index`` to a ``kind`` request belongs to the request
+        still open for this peer; logs if not."""
         collection = self._collection
         if peer is None:
             return False
         if (
             collection is not None
             and isinstance(collection.request, kind)
-            and collection.round == answer.round
+            and collection.round == round_index
             and peer.index in collection.expected
             and not collection.answered(peer.index)
         ):
@@ -615,40 +623,81 @@ class ZmqAgentPool:
         self.late_answers += 1
         self._noisy.warning(
             "discarded a late %s from %s for round %d (no longer open)",
-            type(answer).__name__.lower(),
+            "update" if kind is Train else "evaluation",
             peer.agent_id,
-            answer.round,
+            round_index,
         )
         return False
 
+    def _file_updates(
+        self,
+        round_index: int,
+        indices: list[int],
+        thetas: np.ndarray,
+        rows: list[int],
+        stats: list[UpdateStats],
+    ) -> None:
+        """Accept row ``rows[j]`` of ``thetas`` as agent ``indices[j]``'s update (each one open
+        for its agent, :meth:`_open_for`): copied into the round's matrix."""
+        collection = self._collection
+        assert collection is not None and collection.rows is not None
+        views = collection.rows.put(indices, thetas, rows)
+        for index, theta, agent_stats in zip(indices, views, stats, strict=True):
+            collection.answers[index] = Update(round=round_index, theta=theta, stats=agent_stats)
+
     def _on_update(self, identity: bytes, peer: Peer | None, update: Update) -> None:
+        """A lone agent's answer."""
         problem = self._check_update(update)
         if problem is not None:
-            named = peer is not None and peer.link.host  # which of the host's agents
-            self._reject(
-                identity, "bad_update", f"{peer.agent_id}: {problem}" if named and peer else problem
-            )
-            if peer is not None and self._open_for(peer, update, Train):
+            self._reject(identity, "bad_update", problem)
+            if peer is not None and self._open_for(peer, update.round, Train):
                 assert self._collection is not None
                 self._collection.failures[peer.index] = problem
             return
         if peer is None:
             self._reject(identity, "not_registered", "update from an unregistered peer")
-        elif self._open_for(peer, update, Train):
-            assert self._collection is not None
-            self._collection.answers[peer.index] = update
+        elif self._open_for(peer, update.round, Train):
+            self._file_updates(update.round, [peer.index], update.theta[None], [0], [update.stats])
+
+    def _on_update_batch(self, identity: bytes, link: Link, batch: UpdateBatch) -> None:
+        """A host's updates, row by row as if each had come alone, but checked and copied a
+        batch at a time."""
+        collection = self._collection
+        open_round = collection is not None and collection.round == batch.round
+        broadcast = collection.request.theta if open_round and collection else None
+        # decoded stats are within their bounds: the codec enforced them field by field
+        problems = self.check.problems(batch.thetas, batch.stats, broadcast, stats_bounded=True)
+        indices: list[int] = []
+        rows: list[int] = []
+        stats: list[UpdateStats] = []
+        for i, index in enumerate(batch.agents):
+            peer = self.peers.get(index)
+            if peer is None or peer.link is not link:
+                continue  # an agent this link lost to another (it was presumed dead)
+            problem = problems[i]
+            if problem is not None:
+                self._reject(identity, "bad_update", f"{peer.agent_id}: {problem}")
+                if self._open_for(peer, batch.round, Train):
+                    assert self._collection is not None
+                    self._collection.failures[index] = problem
+            elif self._open_for(peer, batch.round, Train):
+                indices.append(index)
+                rows.append(i)
+                stats.append(batch.stats[i])
+        if indices:
+            self._file_updates(batch.round, indices, batch.thetas, rows, stats)
 
     def _on_evaluation(self, identity: bytes, peer: Peer | None, evaluation: Evaluation) -> None:
         problems = evaluation.stats.problems()
         if problems:
             problem = "evaluation stats: " + "; ".join(problems)
             self._reject(identity, "bad_evaluation", problem)
-            if self._open_for(peer, evaluation, Evaluate):
+            if self._open_for(peer, evaluation.round, Evaluate):
                 assert self._collection is not None and peer is not None
                 self._collection.failures[peer.index] = problem
         elif peer is None:
             self._reject(identity, "not_registered", "evaluation from an unregistered peer")
-        elif self._open_for(peer, evaluation, Evaluate):
+        elif self._open_for(peer, evaluation.round, Evaluate):
             assert self._collection is not None
             self._collection.answers[peer.index] = evaluation
 
@@ -689,23 +738,23 @@ class ZmqAgentPool:
                 f"{outside[:8] or 'a repeated index'}",
             )
             return
+        if isinstance(batch, UpdateBatch):
+            self._on_update_batch(identity, link, batch)
+            return
         for i, index in enumerate(batch.agents):
             peer = self.peers.get(index)
             if peer is None or peer.link is not link:
                 continue  # an agent this link lost to another (it was presumed dead)
-            if isinstance(batch, UpdateBatch):
-                update = Update(round=batch.round, theta=batch.thetas[i], stats=batch.stats[i])
-                self._on_update(identity, peer, update)
-            else:
-                evaluation = Evaluation(round=batch.round, stats=batch.stats[i])
-                self._on_evaluation(identity, peer, evaluation)
+            self._on_evaluation(identity, peer, Evaluation(round=batch.round, stats=batch.stats[i]))
 
     # -- collecting a request's answers --------------------------------------------------------
 
     def _collect(self, request: Train | Evaluate, what: str, agents: Sequence[int]) -> Collection:
         """Send ``request`` to the selected agents and gather answers as the round policy says:
         one message per link (a host's names its selected agents)."""
-        collection = Collection(request=request, expected=frozenset(agents))
+        expected = frozenset(agents)
+        rows = RoundRows(expected, self.check.num_params) if isinstance(request, Train) else None
+        collection = Collection(request=request, expected=expected, rows=rows)
         self._collection = collection
         by_link: dict[bytes, tuple[Link, list[int]]] = {}
         for index in sorted(collection.expected):
@@ -766,16 +815,21 @@ class ZmqAgentPool:
                 len(collection.expected),
                 ", ".join(stragglers),
             )
+        accepted = [
+            (index, update)
+            for index, update in sorted(collection.answers.items())
+            if isinstance(update, Update)
+        ]
+        assert collection.rows is not None
+        block = collection.rows.block([index for index, _ in accepted])
+        # views of one [K, d] matrix: strategies.stacked hands it on as it is
+        thetas = torch.from_numpy(block).unbind(0)
         return RoundAnswers(
             updates=[
                 AgentUpdate(
-                    agent_index=index,
-                    agent_id=self._name(index),
-                    theta=torch.from_numpy(np.array(update.theta)),
-                    stats=update.stats,
+                    agent_index=index, agent_id=self._name(index), theta=theta, stats=update.stats
                 )
-                for index, update in sorted(collection.answers.items())
-                if isinstance(update, Update)
+                for (index, update), theta in zip(accepted, thetas, strict=True)
             ],
             failures={self._name(k): r for k, r in sorted(collection.failures.items())},
             stragglers=stragglers,

@@ -1,0 +1,138 @@
+"""A round's θ_k gathered into one [K, d] matrix as they arrive (server/round_rows.py).
+
+Rows land at their agent's place whatever order a batch lists them in; ``stacked`` hands the
+matrix on instead of copying it, equal to ``torch.stack``; and over real sockets a host's batch
+with bad rows rejects those agents only, the others' θ_k arriving bit for bit.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import torch
+import zmq
+
+from fedhpg.common.config import ServerConfig
+from fedhpg.common.types import AgentUpdate, UpdateStats
+from fedhpg.common.variants import range_digest
+from fedhpg.common.wire.codec import decode, encode
+from fedhpg.common.wire.protocol import Error, HostHello, HostWelcome, TrainBatch, UpdateBatch
+from fedhpg.server.pools.zmq_pool import ZmqAgentPool
+from fedhpg.server.round_rows import ALIGNMENT, RoundRows
+from fedhpg.server.strategies import stacked
+from fedhpg.server.validation import NON_FINITE, UpdateCheck
+
+STATS = UpdateStats(trajectories=4, env_steps=80, compute_s=0.1, train_return=20.0)
+
+
+def _thetas(rows: int, d: int, seed: int = 0) -> np.ndarray:
+    return np.random.default_rng(seed).standard_normal((rows, d)).astype(np.float32)
+
+
+def test_rows_land_at_their_agents_place_in_any_order() -> None:
+    thetas = _thetas(6, 1500)
+    rows = RoundRows([10, 11, 12, 13, 20, 21], 1500)
+    assert rows.matrix.ctypes.data % ALIGNMENT == 0
+    # a batch listing its agents out of order, with a row left out (a rejected agent)
+    views = rows.put([21, 10, 11, 13], thetas, [5, 0, 1, 3])
+    rows.put([12, 20], thetas[[2, 4]], [0, 1])
+    assert all(np.array_equal(v, thetas[i]) for v, i in zip(views, [5, 0, 1, 3], strict=True))
+    assert rows.block([10, 11, 12, 13, 20, 21]) is rows.matrix
+    assert np.array_equal(rows.matrix, thetas)
+    compact = rows.block([10, 13, 21])
+    assert compact.ctypes.data % ALIGNMENT == 0
+    assert np.array_equal(compact, thetas[[0, 3, 5]])
+
+
+def _updates(thetas: list[torch.Tensor], order: list[int]) -> list[AgentUpdate]:
+    return [
+        AgentUpdate(agent_index=k, agent_id=f"agent-{k}", theta=thetas[k], stats=STATS)
+        for k in order
+    ]
+
+
+def test_stacked_hands_on_the_matrix_the_rows_already_form() -> None:
+    matrix = torch.from_numpy(_thetas(5, 2000))
+    views = list(matrix.unbind(0))
+    block = stacked(_updates(views, [3, 0, 4, 1, 2]))  # results in any order
+    assert block.data_ptr() == matrix.data_ptr() and block.shape == matrix.shape
+    assert torch.equal(block, torch.stack(views))
+    for rows in (
+        [views[0], views[2], views[1]],  # not in storage order
+        [views[0], views[1], views[3]],  # a gap
+        [t.clone() for t in views],  # separate tensors
+        [views[0], matrix[1, ::2].repeat(2)],  # equal shape, other storage
+    ):
+        block = stacked(_updates(rows, list(range(len(rows)))))
+        assert block.data_ptr() != matrix.data_ptr()
+        assert torch.equal(block, torch.stack(rows))
+    short = torch.from_numpy(_thetas(3, 16)).unbind(0)  # small rows: stacked as before
+    assert torch.equal(stacked(_updates(list(short), [0, 1, 2])), torch.stack(short))
+
+
+def test_bad_rows_of_a_batch_reject_their_agents_only() -> None:
+    d, count = 3000, 5
+    context = zmq.Context()
+    router = context.socket(zmq.ROUTER)
+    router.setsockopt(zmq.ROUTER_MANDATORY, 1)
+    host = context.socket(zmq.DEALER)
+    try:
+        port = router.bind_to_random_port("tcp://127.0.0.1")
+        digests = [f"digest-{k}" for k in range(count)]
+        pool = ZmqAgentPool(
+            socket=router,
+            num_agents=count,
+            check=UpdateCheck(num_params=d),
+            env_signature={"spaces": "x"},
+            variant_digests=digests,
+            run_settings={},
+            run_id="test",
+            max_bytes=1 << 26,
+            settings=ServerConfig(),
+        )
+        host.setsockopt(zmq.LINGER, 0)
+        host.setsockopt(zmq.IDENTITY, b"host-0-5#0")
+        host.connect(f"tcp://127.0.0.1:{port}")
+        hello = HostHello(
+            host_id="host-0-5",
+            first=0,
+            count=count,
+            env_signature={"spaces": "x"},
+            variant_digest=range_digest(digests),
+        )
+        host.send_multipart(encode(hello))
+        pool.wait_for_agents(10)
+        assert host.poll(5000) and isinstance(decode(host.recv_multipart()), HostWelcome)
+        thetas = _thetas(count, d, seed=1)
+        thetas[1, 7] = np.nan
+        thetas[4, -1] = -np.inf
+        thetas[3] = np.float32(3e38)  # finite: its row sum overflows, the row is still fine
+        # two batches, agents listed out of order: queued before the round collects them
+        host.send_multipart(
+            encode(
+                UpdateBatch(round=1, agents=[4, 0, 3], thetas=thetas[[4, 0, 3]], stats=[STATS] * 3)
+            )
+        )
+        host.send_multipart(
+            encode(UpdateBatch(round=1, agents=[2, 1], thetas=thetas[[2, 1]], stats=[STATS] * 2))
+        )
+        answers = pool.train(1, torch.zeros(d), range(count))
+        replies = []
+        while host.poll(200):
+            replies.append(decode(host.recv_multipart()))
+    finally:
+        host.close(linger=0)
+        router.close(linger=0)
+        context.term()
+    assert [u.agent_index for u in answers.updates] == [0, 2, 3]
+    for update in answers.updates:
+        assert np.array_equal(update.theta.numpy(), thetas[update.agent_index])
+    assert answers.failures == {"agent-1": NON_FINITE, "agent-4": NON_FINITE}
+    assert any(isinstance(reply, TrainBatch) for reply in replies)
+    refusals = [(r.code, r.reason) for r in replies if isinstance(r, Error)]
+    assert refusals == [
+        ("bad_update", f"agent-4: {NON_FINITE}"),
+        ("bad_update", f"agent-1: {NON_FINITE}"),
+    ]
+    block = stacked(answers.updates)
+    assert block.data_ptr() == answers.updates[0].theta.data_ptr()  # no copy
+    assert torch.equal(block, torch.from_numpy(thetas[[0, 2, 3]]))
