@@ -89,6 +89,11 @@ class AlgoConfig:
     agents sampled and differentiated together), else one LocalWorker after another; 'loop' = always
     the latter. The two round floats differently, so the server dictates it; either way an
     agent's θ does not depend on where it runs."""
+    bound_estimates: bool = False
+    """Estimate Theorem 1's constants every round (``common/bounds.py``): each agent's σ̂², M̂
+    and ‖∇J_k‖² at θ̃ from the per-trajectory gradients of its first local batch, written as
+    ``bound_variance``, ``bound_second_moment`` and ``bound_grad_norm_sq`` in its ``algorithm``
+    statistics. About one more gradient per round; θ̃ is the same either way. FedHPG only."""
 
 
 # --- participation: who trains each round (server/participation.py applies it) ---------------
@@ -446,6 +451,8 @@ REPLICATE_KEYS = ("seed", "env.seed")
 PLACEMENT_KEYS = ("agents.per_host",)
 """Where agents run, not what they compute (θ̃ does not depend on it): a resume may change
 it, and runs that differ only in it are one experiment."""
+DIAGNOSTIC_KEYS = ("algo.bound_estimates",)
+"""What a run measures besides θ̃ (which does not depend on it): as free as placement."""
 
 
 def groups(flag: str) -> tuple[str, ...]:
@@ -805,7 +812,7 @@ def fixed_difference(run: dict[str, Any], invocation: dict[str, Any]) -> ConfigE
     for group in groups("fixed"):
         before = flatten(run.get(group), f"{group}.")
         after = flatten(invocation.get(group), f"{group}.")
-        for key in sorted((set(before) | set(after)) - set(PLACEMENT_KEYS)):
+        for key in sorted((set(before) | set(after)) - {*PLACEMENT_KEYS, *DIAGNOSTIC_KEYS}):
             old, new = before.get(key, _UNSET), after.get(key, _UNSET)
             if old != new:
                 return ConfigError(

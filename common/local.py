@@ -10,8 +10,13 @@ from dataclasses import dataclass, field
 import numpy as np
 import torch
 
+from fedhpg.common.bounds import GradientMoments, gradient_moments
 from fedhpg.common.config import AlgoConfig
-from fedhpg.common.estimators import estimate_gradient, estimator_coefficients
+from fedhpg.common.estimators import (
+    estimate_gradient,
+    estimator_coefficients,
+    per_trajectory_gradients,
+)
 from fedhpg.common.optim import Optimizer
 from fedhpg.common.policies import Policy
 from fedhpg.common.rollout import TrajectoryBatch
@@ -82,6 +87,34 @@ def batch_gradient(
     if count is not None:
         count.steps += batch.num_steps
     return estimate_gradient(policy, obs, actions, coefficients)
+
+
+def bound_statistics(
+    policy: Policy, batch: TrajectoryBatch, *, algo: AlgoConfig, gamma: float
+) -> dict[str, float]:
+    """Theorem 1's constants from one batch's per-trajectory gradients at the policy's θ
+    (``algo.bound_estimates``; :mod:`fedhpg.common.bounds`). Empty for a batch of one."""
+    if batch.num_trajectories < 2:
+        return {}
+    coefficients = estimator_coefficients(
+        algo.estimator,  # type: ignore[arg-type]
+        torch.from_numpy(batch.rewards),
+        torch.from_numpy(batch.alive),
+        gamma=gamma,
+        baseline=algo.baseline,  # type: ignore[arg-type]
+    )
+    obs, actions = batch_tensors(batch)
+    moments = gradient_moments(per_trajectory_gradients(policy, obs, actions, coefficients))
+    return bound_stats(moments)
+
+
+def bound_stats(moments: GradientMoments) -> dict[str, float]:
+    """The names under which an agent reports :class:`GradientMoments` (``algorithm`` stats)."""
+    return {
+        "bound_variance": moments.variance,
+        "bound_second_moment": moments.second_moment,
+        "bound_grad_norm_sq": moments.grad_norm_sq,
+    }
 
 
 def apply_ascent(policy: Policy, optimizer: Optimizer, gradient: torch.Tensor) -> None:

@@ -21,7 +21,7 @@ from typing import TYPE_CHECKING, Any, NoReturn
 
 import numpy as np
 
-from fedhpg.common.config import GROUPS, PLACEMENT_KEYS, REPLICATE_KEYS
+from fedhpg.common.config import DIAGNOSTIC_KEYS, GROUPS, PLACEMENT_KEYS, REPLICATE_KEYS
 from fedhpg.server.plot_stats import STATS, Band, band_over_seeds, caption
 
 if TYPE_CHECKING:
@@ -148,7 +148,7 @@ def find_runs(paths: list[Path]) -> list[Run]:
 def _compared(key: str) -> bool:
     """Whether runs that differ in ``key`` are different experiments (config.GROUPS); seeds
     are replicates, and operational keys (server, security, ...) never matter."""
-    if key in REPLICATE_KEYS or key in PLACEMENT_KEYS:
+    if key in REPLICATE_KEYS or key in PLACEMENT_KEYS or key in DIAGNOSTIC_KEYS:
         return False
     role = GROUPS.get(key.split(".", 1)[0])
     return role is None or role.compared

@@ -171,3 +171,66 @@ def test_runs_the_engine_does_not_cover_fall_back_to_the_loop() -> None:
     gridworld = resolve_config(overrides=["env=gridworld", *POPULATION, "agents.num_agents=2"])
     assert isinstance(make_agent_group(gridworld, [0, 1]), WorkerLoopGroup)
     assert unsupported(gridworld, variants_of(gridworld, [0])) is not None
+
+
+@pytest.mark.parametrize("baseline", ["mean", "none"])
+def test_bound_estimates_are_autograds_per_trajectory_ones(baseline) -> None:
+    """algo.bound_estimates: the engine's σ̂², M̂ and ‖∇J‖² (per-trajectory gradients through
+    its own kernel, a few agents per block) equal common.local.bound_statistics (torch vmap)
+    on the same batches, to float32 rounding."""
+    from fedhpg.common import batched
+    from fedhpg.common.local import bound_statistics
+
+    run = _run(f"algo.baseline={baseline}", "algo.bound_estimates=true", agents=3)
+    variants = variants_of(run, range(3))
+    engine = _group(run, range(3))
+    policy = build_policy(variants[0], run)
+    with torch.no_grad():
+        for p in policy.parameters():
+            p.add_(0.3 * torch.randn(p.shape, generator=torch.Generator().manual_seed(p.numel())))
+    theta = get_flat_params(policy).numpy()
+    counts = [5, 7, 6]
+    layers = mlp.unflatten(engine.shape, np.repeat(theta[None], 3, 0))
+    env = make_multi_batch_env([variants[k] for k in range(3)], counts)
+    batches = rollout(env, layers, [np.random.default_rng(i) for i in range(3)], [500] * 3)
+    floats = batched.engine.PER_TRAJECTORY_FLOATS
+    try:  # blocks of one agent, then all three in one block: the same figures
+        batched.engine.PER_TRAJECTORY_FLOATS = engine.shape.num_params * 7
+        one_by_one = engine._bound_statistics(Batches.of(batches), layers, [0, 1, 2])
+    finally:
+        batched.engine.PER_TRAJECTORY_FLOATS = floats
+    together = engine._bound_statistics(Batches.of(batches), layers, [0, 1, 2])
+    assert one_by_one == together
+    for a in range(3):
+        block = slice(batches.offsets[a], batches.offsets[a + 1])
+        steps = batches.lengths[a]
+        batch = TrajectoryBatch(
+            obs=batches.obs[:steps, block],
+            actions=batches.actions[:steps, block],
+            log_probs=np.zeros((steps, counts[a])),
+            rewards=batches.rewards[:steps, block],
+            alive=batches.alive[:steps, block],
+            success=batches.success[block],
+        )
+        reference = bound_statistics(policy, batch, algo=run.algo, gamma=engine.gammas[a])
+        assert set(reference) == set(together[a]) and reference["bound_variance"] > 0
+        for name, value in reference.items():
+            assert together[a][name] == pytest.approx(value, rel=1e-4, abs=1e-6), name
+
+
+def test_bound_estimates_change_no_theta_and_no_company_changes_them() -> None:
+    plain = _run()
+    measured = _run("algo.bound_estimates=true")
+    theta = initial_theta(variants_of(plain, [0])[0], plain)
+    before = _group(plain, range(9)).train(2, theta, list(range(9)))
+    everyone = _group(measured, range(9)).train(2, theta, list(range(9)))
+    names = ("bound_variance", "bound_second_moment", "bound_grad_norm_sq")
+    for k in range(9):
+        assert torch.equal(before[k].theta, everyone[k].theta)
+        assert not set(names) & set(before[k].stats.algorithm)
+        assert set(names) <= set(everyone[k].stats.algorithm)
+    for company in ([4], [7, 2, 5]):
+        results = _group(measured, company).train(2, theta, company)
+        for k in company:
+            for name in names:
+                assert results[k].stats.algorithm[name] == everyone[k].stats.algorithm[name]

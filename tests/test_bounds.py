@@ -151,3 +151,20 @@ def test_theorem1_terms() -> None:
     assert not theorem1_terms(
         **{**common, "step_size": 0.3}, variances=[1.0], local_iters=[1], batch_sizes=[1]
     ).step_size_ok
+
+
+def test_a_run_reports_the_estimates_per_agent_and_theta_is_unchanged() -> None:
+    """algo.bound_estimates through a whole run: in process (GridWorld's tabular policy, the
+    loop path) and over the wire (real agent processes): every agent's three figures in its
+    round record, and θ̃ bit for bit that of the same run without them."""
+    from fedhpg.server import api
+
+    keys = ["rounds=2", "eval.every=10", "agents=homogeneous4", "agents.budget.batch_size=[4]"]
+    plain = api.run(overrides=keys)
+    for distributed in (False, True):
+        measured = api.run(overrides=[*keys, "algo.bound_estimates=true"], distributed=distributed)
+        assert torch.equal(measured.theta, plain.theta)
+        for record in measured.records:
+            for agent in record["agents"]:
+                assert agent["bound_variance"] >= 0 and agent["bound_second_moment"] > 0
+                assert agent["bound_second_moment"] >= agent["bound_grad_norm_sq"]

@@ -29,6 +29,7 @@ from fedhpg.common.local import (
     TrajectorySource,
     apply_ascent,
     batch_gradient,
+    bound_statistics,
 )
 from fedhpg.common.optim import make_optimizer
 from fedhpg.common.policies import Policy, get_flat_params, set_flat_params
@@ -67,10 +68,15 @@ def fedhpg_local_update(
     for iteration in range(local_iters):
         started = time.thread_time()
         batch = sample(batch_size)
+        measuring = 0.0
+        if iteration == 0 and algo.bound_estimates:  # at θ̃, before the first step
+            begin = time.thread_time()
+            tally.algorithm.update(bound_statistics(policy, batch, algo=algo, gamma=gamma))
+            measuring = time.thread_time() - begin  # a diagnostic, not the device's work
         gradient = batch_gradient(policy, batch, algo=algo, gamma=gamma)
         gradient, clipped = clip_by_norm(gradient, algo.grad_clip)
         apply_ascent(policy, optimizer, gradient)
-        compute_s = time.thread_time() - started
+        compute_s = time.thread_time() - started - measuring
         tally.add(batch, compute_s=compute_s, clipped=clipped)
         if on_iteration is not None:
             on_iteration(iteration, compute_s, batch.num_steps)

@@ -22,9 +22,11 @@ from fedhpg.common.batched import coefficients as coef
 from fedhpg.common.batched import mlp
 from fedhpg.common.batched.sampler import Batches, block_order, rollout
 from fedhpg.common.batched.scheduler import RoundTiming, run_round
+from fedhpg.common.bounds import gradient_moments
 from fedhpg.common.components import agent_profile
 from fedhpg.common.config import RunConfig
 from fedhpg.common.group import GroupHook
+from fedhpg.common.local import bound_stats
 from fedhpg.common.types import EvaluationStats, LocalResult
 from fedhpg.common.variants import discount, training_horizon
 from fedhpg.common.worker import IterationWork, Stream, random_stream
@@ -34,6 +36,8 @@ from fedhpg.envs.multi import make_multi_batch_env
 ADAM_BETAS = (0.9, 0.999)
 ADAM_EPS = 1e-8
 """common/optim.py's AdamAscent defaults."""
+PER_TRAJECTORY_FLOATS = 1 << 22
+"""``algo.bound_estimates``: per-trajectory gradients held at once (16 MB of float32)."""
 
 
 def ascend(
@@ -117,9 +121,19 @@ class BatchedFedHPG:
         rngs = [random_stream(self.run.seed, k, round_index, Stream.TRAIN) for k in order]
         params = np.repeat(theta.detach().numpy().astype(np.float32)[None, :], len(order), 0)
         moments = (np.zeros_like(params), np.zeros_like(params))
+        # algo.bound_estimates: each agent's first batch (at θ̃) measured before its first step
+        unmeasured = set(range(len(order))) if algo.bound_estimates else set()
+        bounds: dict[int, dict[str, float]] = {}
 
         def gradient_step(batches: Batches, rows: np.ndarray, done: np.ndarray) -> np.ndarray:
             layers = mlp.unflatten(self.shape, params[rows])
+            first = [j for j, i in enumerate(rows.tolist()) if i in unmeasured]
+            if first:
+                measured = self._bound_statistics(batches, layers, [order[i] for i in rows])
+                for j in first:
+                    unmeasured.discard(int(rows[j]))
+                    if measured[j]:
+                        bounds[int(rows[j])] = measured[j]
             gradient = self._gradient(batches, layers, [order[i] for i in rows])
             clipped = self._clip(gradient)
             stepped = params[rows]
@@ -157,6 +171,7 @@ class BatchedFedHPG:
             tallies[i].algorithm = {
                 "engine_sample_s": timing.sample_s * share,
                 "engine_gradient_s": timing.gradient_s * share,
+                **bounds.get(i, {}),
             }
             results[k] = tallies[i].result(torch.from_numpy(params[i].copy()))
         return results
@@ -176,6 +191,53 @@ class BatchedFedHPG:
             len(active),
         )
         return mlp.score_gradient(self.shape, layers, chunks)
+
+    def _bound_statistics(
+        self, batches: Batches, layers: mlp.Layers, active: list[int]
+    ) -> list[dict[str, float]]:
+        """Theorem 1's constants of every active agent's batch (``common/bounds.py``), from
+        per-trajectory gradients: the same kernel with one owner per trajectory instead of per
+        agent, so an agent's figures depend on its own rows alone, like its θ. In blocks of
+        agents, so the [trajectories, d] matrix stays small."""
+        gammas = np.array([self.gammas[k] for k in active])
+        c = coef.coefficients(
+            batches, gammas, estimator=self.run.algo.estimator, baseline=self.run.algo.baseline
+        )
+        width = c.shape[1]
+        column = batches.row_cell % width  # the row's trajectory (its copy's column)
+        order = np.argsort(column, kind="stable")  # by trajectory, time order kept
+        column, cells = column[order], batches.row_cell[order]
+        coefficient = c.reshape(-1)[cells].astype(np.float32)
+        columns_per_block = max(PER_TRAJECTORY_FLOATS // self.shape.num_params, 1)
+        measured: list[dict[str, float]] = []
+        agent = 0
+        while agent < len(active):
+            last = agent + 1  # whole agents, as many as the block holds
+            while (
+                last < len(active)
+                and batches.offsets[last + 1] - batches.offsets[agent] <= columns_per_block
+            ):
+                last += 1
+            low, high = int(batches.offsets[agent]), int(batches.offsets[last])
+            r0, r1 = np.searchsorted(column, [low, high])
+            chunks = mlp.pack_rows(
+                column[r0:r1] - low,
+                batches.obs[order[r0:r1]],
+                batches.actions[order[r0:r1]],
+                coefficient[r0:r1],
+                high - low,
+            )
+            owners = mlp.select(layers, batches.owner[low:high])
+            rows = mlp.score_gradient(self.shape, owners, chunks)
+            for i in range(agent, last):
+                start, stop = int(batches.offsets[i]) - low, int(batches.offsets[i + 1]) - low
+                if stop - start < 2:
+                    measured.append({})
+                    continue
+                moments = gradient_moments(torch.from_numpy(rows[start:stop]))
+                measured.append(bound_stats(moments))
+            agent = last
+        return measured
 
     def _clip(self, gradient: np.ndarray) -> np.ndarray:
         """Scale rows down to norm ``algo.grad_clip`` (Assumption 3); which rows were."""
