@@ -137,6 +137,11 @@ def validate_run(run: RunConfig) -> RunConfig:
     import_plugins(run.plugins)
     validate_env_family(run)
     algorithm, _ = resolve_algorithm(run)
+    if run.algo.bound_estimates and algorithm.name != "fedhpg":
+        raise ConfigError(
+            "algo.bound_estimates",
+            f"Theorem 1's constants are estimated for fedhpg only, not {algorithm.name!r}",
+        )
     _check_budget_keys(run, algorithm)
     _check_population_budgets(run, algorithm)
     # Lists of one entry are every agent's: only the longest list's indices can differ.

@@ -93,7 +93,9 @@ class AlgoConfig:
     """Estimate Theorem 1's constants every round (``common/bounds.py``): each agent's σ̂², M̂
     and ‖∇J_k‖² at θ̃ from the per-trajectory gradients of its first local batch, written as
     ``bound_variance``, ``bound_second_moment`` and ``bound_grad_norm_sq`` in its ``algorithm``
-    statistics. About one more gradient per round; θ̃ is the same either way. FedHPG only."""
+    statistics, and with τ_k ≥ 2 ``bound_smoothness`` (L̂, the secant between its first two
+    iterations' gradients). About two more gradients per round; θ̃ is the same either way.
+    FedHPG only."""
 
 
 # --- participation: who trains each round (server/participation.py applies it) ---------------

@@ -168,3 +168,4 @@ def test_a_run_reports_the_estimates_per_agent_and_theta_is_unchanged() -> None:
             for agent in record["agents"]:
                 assert agent["bound_variance"] >= 0 and agent["bound_second_moment"] > 0
                 assert agent["bound_second_moment"] >= agent["bound_grad_norm_sq"]
+                assert agent["bound_smoothness"] >= 0  # τ = 2 (the default): a secant for L

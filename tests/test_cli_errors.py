@@ -143,6 +143,11 @@ CASES: dict[str, tuple[str, list[str], str]] = {
     ),
     "host-negative-first": ("fedhpg-agent", ["agent.first=-1"], "agent.first: got -1"),
     "per-host-zero": ("fedhpg-run", ["agents.per_host=0"], "agents.per_host: got 0"),
+    "bounds-for-vr": (
+        "fedhpg-run",
+        ["algo=fedhpgvr", "algo.bound_estimates=true"],
+        "algo.bound_estimates: Theorem 1's constants are estimated for fedhpg only",
+    ),
     # e.g. env=halfcheetah where fedhpg was installed without the envs extra (MuJoCo)
     "missing-simulator": (
         "fedhpg-run",

@@ -26,6 +26,7 @@ from fedhpg.common.estimators import clip_by_norm
 from fedhpg.common.local import (
     IterationHook,
     LocalTally,
+    SmoothnessProbe,
     TrajectorySource,
     apply_ascent,
     batch_gradient,
@@ -65,15 +66,22 @@ def fedhpg_local_update(
     set_flat_params(policy, theta)
     optimizer = make_optimizer(algo)
     tally = LocalTally()
+    probe = SmoothnessProbe()
     for iteration in range(local_iters):
         started = time.thread_time()
         batch = sample(batch_size)
         measuring = 0.0
-        if iteration == 0 and algo.bound_estimates:  # at θ̃, before the first step
+        measure = algo.bound_estimates and iteration < 2
+        if measure:  # at θ̃ (the constants) and one step on (the secant for L)
             begin = time.thread_time()
-            tally.algorithm.update(bound_statistics(policy, batch, algo=algo, gamma=gamma))
+            found = bound_statistics(policy, batch, algo=algo, gamma=gamma)
+            if iteration == 0:
+                tally.algorithm.update(found)
             measuring = time.thread_time() - begin  # a diagnostic, not the device's work
         gradient = batch_gradient(policy, batch, algo=algo, gamma=gamma)
+        if measure and found:
+            probe.add(get_flat_params(policy), gradient, found["bound_variance"] / batch_size)
+            tally.algorithm.update(probe.stats())
         gradient, clipped = clip_by_norm(gradient, algo.grad_clip)
         apply_ascent(policy, optimizer, gradient)
         compute_s = time.thread_time() - started - measuring

@@ -26,7 +26,7 @@ from fedhpg.common.bounds import gradient_moments
 from fedhpg.common.components import agent_profile
 from fedhpg.common.config import RunConfig
 from fedhpg.common.group import GroupHook
-from fedhpg.common.local import bound_stats
+from fedhpg.common.local import SmoothnessProbe, bound_stats
 from fedhpg.common.types import EvaluationStats, LocalResult
 from fedhpg.common.variants import discount, training_horizon
 from fedhpg.common.worker import IterationWork, Stream, random_stream
@@ -121,20 +121,30 @@ class BatchedFedHPG:
         rngs = [random_stream(self.run.seed, k, round_index, Stream.TRAIN) for k in order]
         params = np.repeat(theta.detach().numpy().astype(np.float32)[None, :], len(order), 0)
         moments = (np.zeros_like(params), np.zeros_like(params))
-        # algo.bound_estimates: each agent's first batch (at θ̃) measured before its first step
-        unmeasured = set(range(len(order))) if algo.bound_estimates else set()
+        # algo.bound_estimates: each agent's first batch (at θ̃) and second (the secant for L)
+        # measured before its step; the counts say which of an agent's batches this is
+        measured_batches = np.zeros(len(order), dtype=np.int64)
         bounds: dict[int, dict[str, float]] = {}
+        probes: dict[int, SmoothnessProbe] = {}
 
         def gradient_step(batches: Batches, rows: np.ndarray, done: np.ndarray) -> np.ndarray:
             layers = mlp.unflatten(self.shape, params[rows])
-            first = [j for j, i in enumerate(rows.tolist()) if i in unmeasured]
-            if first:
-                measured = self._bound_statistics(batches, layers, [order[i] for i in rows])
-                for j in first:
-                    unmeasured.discard(int(rows[j]))
-                    if measured[j]:
-                        bounds[int(rows[j])] = measured[j]
-            gradient = self._gradient(batches, layers, [order[i] for i in rows])
+            active = [order[i] for i in rows]
+            wanted = measured_batches[rows] < 2
+            found: list[dict[str, float]] = []
+            if algo.bound_estimates and wanted.any():
+                found = self._bound_statistics(batches, layers, active, wanted)
+            gradient = self._gradient(batches, layers, active)
+            for j in np.flatnonzero(wanted) if found else ():
+                i = int(rows[j])
+                if measured_batches[i] == 0:
+                    bounds[i] = dict(found[j])
+                if found[j]:
+                    probe = probes.setdefault(i, SmoothnessProbe())
+                    noise = found[j]["bound_variance"] / batch[order[i]]
+                    probe.add(torch.from_numpy(params[i]), torch.from_numpy(gradient[j]), noise)
+                    bounds[i].update(probe.stats())
+                measured_batches[i] += 1
             clipped = self._clip(gradient)
             stepped = params[rows]
             first, second = moments[0][rows], moments[1][rows]
@@ -193,7 +203,7 @@ class BatchedFedHPG:
         return mlp.score_gradient(self.shape, layers, chunks)
 
     def _bound_statistics(
-        self, batches: Batches, layers: mlp.Layers, active: list[int]
+        self, batches: Batches, layers: mlp.Layers, active: list[int], wanted: np.ndarray
     ) -> list[dict[str, float]]:
         """Theorem 1's constants of every active agent's batch (``common/bounds.py``), from
         per-trajectory gradients: the same kernel with one owner per trajectory instead of per
@@ -212,9 +222,14 @@ class BatchedFedHPG:
         measured: list[dict[str, float]] = []
         agent = 0
         while agent < len(active):
-            last = agent + 1  # whole agents, as many as the block holds
+            if not wanted[agent]:
+                measured.append({})
+                agent += 1
+                continue
+            last = agent + 1  # whole agents wanted, as many as the block holds
             while (
                 last < len(active)
+                and wanted[last]
                 and batches.offsets[last + 1] - batches.offsets[agent] <= columns_per_block
             ):
                 last += 1
