@@ -18,6 +18,7 @@ import torch
 
 from fedhpg.common.config import RunConfig
 from fedhpg.common.types import AgentUpdate, EvaluationStats, SavedState
+from fedhpg.server.bound_report import round_bound
 from fedhpg.server.participation import make_participation
 from fedhpg.server.pools import AgentPool, FederationError
 from fedhpg.server.strategies import Strategy
@@ -41,6 +42,8 @@ class RoundRecord:
     stragglers: list[str] = field(default_factory=list)
     selected: list[int] = field(default_factory=list)
     """The agent indices asked to train (participation, then the strategy's select)."""
+    bound: dict[str, Any] | None = None
+    """Theorem 1's terms from the agents' estimates (``algo.bound_estimates``)."""
 
     def to_json(self) -> dict[str, Any]:
         record: dict[str, Any] = {
@@ -58,6 +61,8 @@ class RoundRecord:
             record["failures"] = dict(self.failures)
         if self.stragglers:
             record["stragglers"] = list(self.stragglers)
+        if self.bound is not None:
+            record["bound"] = dict(self.bound)
         return record
 
 
@@ -174,6 +179,9 @@ class Coordinator:
                 failures=answers.failures,
                 stragglers=answers.stragglers,
                 selected=sorted(selected),
+                bound=round_bound(self.run, answers.updates)
+                if self.run.algo.bound_estimates
+                else None,
             )
             for callback in self.on_round:
                 callback(record, self.theta)

@@ -161,6 +161,7 @@ def test_a_run_reports_the_estimates_per_agent_and_theta_is_unchanged() -> None:
 
     keys = ["rounds=2", "eval.every=10", "agents=homogeneous4", "agents.budget.batch_size=[4]"]
     plain = api.run(overrides=keys)
+    assert all("bound" not in record for record in plain.records)
     for distributed in (False, True):
         measured = api.run(overrides=[*keys, "algo.bound_estimates=true"], distributed=distributed)
         assert torch.equal(measured.theta, plain.theta)
@@ -169,3 +170,21 @@ def test_a_run_reports_the_estimates_per_agent_and_theta_is_unchanged() -> None:
                 assert agent["bound_variance"] >= 0 and agent["bound_second_moment"] > 0
                 assert agent["bound_second_moment"] >= agent["bound_grad_norm_sq"]
                 assert agent["bound_smoothness"] >= 0  # τ = 2 (the default): a secant for L
+            # the round's eq. 7, from exactly these agents' figures (B = 4, τ = 2, T = 2)
+            agents, bound = record["agents"], record["bound"]
+            expected = theorem1_terms(
+                gap=1.0,
+                step_size=measured.config.algo.step_size,
+                smoothness=max(a["bound_smoothness"] for a in agents),
+                second_moment=max(a["bound_second_moment"] for a in agents),
+                variances=[a["bound_variance"] for a in agents],
+                local_iters=[2] * 4,
+                batch_sizes=[4] * 4,
+                rounds=2,
+            )
+            assert bound["agents"] == 4
+            assert bound["optimisation_per_unit_gap"] == pytest.approx(expected.optimisation)
+            assert bound["local_drift"] == pytest.approx(expected.local_drift)
+            assert bound["variance"] == pytest.approx(expected.variance)
+            assert bound["heterogeneity"] == pytest.approx(expected.heterogeneity)
+            assert bound["step_size_ok"] == expected.step_size_ok

@@ -1,0 +1,65 @@
+"""The round's Theorem 1 bound (eq. 7) in ``metrics.jsonl`` when ``algo.bound_estimates`` is on:
+its four terms from the constants the round's agents estimated (``common/bounds.py``).
+
+Readings (the paper leaves these open; stated once here and in docs/metrics.md):
+- the K of eq. 7 is the round's participants, their σ̂_k², B_k and τ_k;
+- M is the largest M̂_k, L the largest L̂_k (agents with τ_k ≥ 2 estimate one; a round with
+  none has no L, and the three terms that need it are left out);
+- γ is ``algo.step_size`` and T is ``rounds``; the first term needs J(θ*) − J(θ_0), which no
+  run knows, so it is reported per unit of that gap (``optimisation_per_unit_gap``);
+- V = 1.
+The theorem assumes plain local SGD; with ``algo.optimizer=adam`` the figures are reported
+all the same, for what they say about the variance and drift.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from typing import Any
+
+from fedhpg.common.bounds import theorem1_terms
+from fedhpg.common.components import agent_profile
+from fedhpg.common.config import RunConfig
+from fedhpg.common.types import AgentUpdate
+
+
+def round_bound(run: RunConfig, updates: Sequence[AgentUpdate]) -> dict[str, Any] | None:
+    """The ``bound`` field of a round record, or None when the agents measured nothing."""
+    measured = [u for u in updates if "bound_variance" in u.stats.algorithm]
+    if not measured:
+        return None
+    variances = [float(u.stats.algorithm["bound_variance"]) for u in measured]
+    budgets = [agent_profile(run, u.agent_index).budget for u in measured]
+    second_moment = max(float(u.stats.algorithm["bound_second_moment"]) for u in measured)
+    secants = [
+        float(u.stats.algorithm["bound_smoothness"])
+        for u in measured
+        if "bound_smoothness" in u.stats.algorithm
+    ]
+    record: dict[str, Any] = {
+        "agents": len(measured),
+        "variance_mean": sum(variances) / len(variances),
+        "second_moment": second_moment,
+        "grad_norm_sq_mean": sum(float(u.stats.algorithm["bound_grad_norm_sq"]) for u in measured)
+        / len(measured),
+        "smoothness": max(secants) if secants else None,
+    }
+    terms = theorem1_terms(
+        gap=1.0,
+        step_size=run.algo.step_size,
+        smoothness=max(secants) if secants else 0.0,
+        second_moment=second_moment,
+        variances=variances,
+        local_iters=[b.local_iters for b in budgets],
+        batch_sizes=[b.batch_size for b in budgets],
+        rounds=run.rounds,
+    )
+    record["optimisation_per_unit_gap"] = terms.optimisation
+    if secants:
+        record.update(
+            local_drift=terms.local_drift,
+            variance=terms.variance,
+            heterogeneity=terms.heterogeneity,
+            step_size_ok=terms.step_size_ok,
+        )
+    return record
