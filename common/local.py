@@ -65,6 +65,24 @@ def batch_tensors(batch: TrajectoryBatch) -> tuple[torch.Tensor, torch.Tensor]:
     return torch.from_numpy(batch.obs), torch.from_numpy(batch.actions)
 
 
+def _coefficients(
+    batch: TrajectoryBatch,
+    *,
+    algo: AlgoConfig,
+    gamma: float,
+    weights: torch.Tensor | None = None,
+) -> torch.Tensor:
+    """The configured estimator's per-step coefficients of a batch, [T, B]."""
+    return estimator_coefficients(
+        algo.estimator,  # type: ignore[arg-type]
+        torch.from_numpy(batch.rewards),
+        torch.from_numpy(batch.alive),
+        gamma=gamma,
+        baseline=algo.baseline,  # type: ignore[arg-type]
+        weights=weights,
+    )
+
+
 def batch_gradient(
     policy: Policy,
     batch: TrajectoryBatch,
@@ -74,14 +92,7 @@ def batch_gradient(
     weights: torch.Tensor | None = None,
 ) -> torch.Tensor:
     """(1/B) Σ_b g(τ_b | θ) with the configured estimator and baseline."""
-    coefficients = estimator_coefficients(
-        algo.estimator,  # type: ignore[arg-type]
-        torch.from_numpy(batch.rewards),
-        torch.from_numpy(batch.alive),
-        gamma=gamma,
-        baseline=algo.baseline,  # type: ignore[arg-type]
-        weights=weights,
-    )
+    coefficients = _coefficients(batch, algo=algo, gamma=gamma, weights=weights)
     obs, actions = batch_tensors(batch)
     count: GradientCount | None = getattr(_active, "count", None)
     if count is not None:
@@ -96,13 +107,7 @@ def bound_statistics(
     (``algo.bound_estimates``; :mod:`fedhpg.common.bounds`). Empty for a batch of one."""
     if batch.num_trajectories < 2:
         return {}
-    coefficients = estimator_coefficients(
-        algo.estimator,  # type: ignore[arg-type]
-        torch.from_numpy(batch.rewards),
-        torch.from_numpy(batch.alive),
-        gamma=gamma,
-        baseline=algo.baseline,  # type: ignore[arg-type]
-    )
+    coefficients = _coefficients(batch, algo=algo, gamma=gamma)
     obs, actions = batch_tensors(batch)
     moments = gradient_moments(per_trajectory_gradients(policy, obs, actions, coefficients))
     return bound_stats(moments)

@@ -36,18 +36,19 @@ def round_bound(run: RunConfig, updates: Sequence[AgentUpdate]) -> dict[str, Any
         for u in measured
         if "bound_smoothness" in u.stats.algorithm
     ]
+    smoothness = max(secants) if secants else None
     record: dict[str, Any] = {
         "agents": len(measured),
         "variance_mean": sum(variances) / len(variances),
         "second_moment": second_moment,
         "grad_norm_sq_mean": sum(float(u.stats.algorithm["bound_grad_norm_sq"]) for u in measured)
         / len(measured),
-        "smoothness": max(secants) if secants else None,
+        "smoothness": smoothness,
     }
     terms = theorem1_terms(
         gap=1.0,
         step_size=run.algo.step_size,
-        smoothness=max(secants) if secants else 0.0,
+        smoothness=smoothness or 0.0,
         second_moment=second_moment,
         variances=variances,
         local_iters=[b.local_iters for b in budgets],
@@ -55,7 +56,7 @@ def round_bound(run: RunConfig, updates: Sequence[AgentUpdate]) -> dict[str, Any
         rounds=run.rounds,
     )
     record["optimisation_per_unit_gap"] = terms.optimisation
-    if secants:
+    if smoothness is not None:
         record.update(
             local_drift=terms.local_drift,
             variance=terms.variance,

@@ -72,33 +72,47 @@ def test_a_family_without_a_native_batch_steps_block_by_block() -> None:
     assert multi.step(np.zeros(5, dtype=np.int64)).obs.shape == (5, 6)
 
 
+COUNTS = [5, 7, 6]
+
+
+def _three_agents_away_from_the_start(run):
+    """The engine of agents 0-2, a policy moved off the near-uniform start (so every layer
+    matters), its stacked layers and one rollout of 5, 7 and 6 copies."""
+    variants = variants_of(run, range(3))
+    engine = _group(run, range(3))
+    policy = build_policy(variants[0], run)
+    with torch.no_grad():
+        for p in policy.parameters():
+            p.add_(0.3 * torch.randn(p.shape, generator=torch.Generator().manual_seed(p.numel())))
+    theta = get_flat_params(policy).numpy()
+    layers = mlp.unflatten(engine.shape, np.repeat(theta[None], 3, 0))
+    env = make_multi_batch_env([variants[k] for k in range(3)], COUNTS)
+    batches = rollout(env, layers, [np.random.default_rng(i) for i in range(3)], [500] * 3)
+    return engine, policy, layers, batches
+
+
+def _agent_batch(batches, a: int) -> TrajectoryBatch:
+    """Agent a's copies of a rollout, as the loop's sampler would hand them over."""
+    block = slice(batches.offsets[a], batches.offsets[a + 1])
+    steps = batches.lengths[a]
+    return TrajectoryBatch(
+        obs=batches.obs[:steps, block],
+        actions=batches.actions[:steps, block],
+        log_probs=np.zeros((steps, COUNTS[a])),
+        rewards=batches.rewards[:steps, block],
+        alive=batches.alive[:steps, block],
+        success=batches.success[block],
+    )
+
+
 @pytest.mark.parametrize("estimator", ["gpomdp", "reinforce"])
 @pytest.mark.parametrize("baseline", ["mean", "none"])
 def test_the_stacked_gradient_is_autograds_to_float32_rounding(estimator, baseline) -> None:
     run = _run(f"algo.estimator={estimator}", f"algo.baseline={baseline}", agents=3)
-    variants = variants_of(run, range(3))
-    engine = _group(run, range(3))
-    policy = build_policy(variants[0], run)
-    with torch.no_grad():  # away from the near-uniform start, so every layer matters
-        for p in policy.parameters():
-            p.add_(0.3 * torch.randn(p.shape, generator=torch.Generator().manual_seed(p.numel())))
-    theta = get_flat_params(policy).numpy()
-    counts = [5, 7, 6]
-    layers = mlp.unflatten(engine.shape, np.repeat(theta[None], 3, 0))
-    env = make_multi_batch_env([variants[k] for k in range(3)], counts)
-    batches = rollout(env, layers, [np.random.default_rng(i) for i in range(3)], [500] * 3)
+    engine, policy, layers, batches = _three_agents_away_from_the_start(run)
     gradient = engine._gradient(Batches.of(batches), layers, [0, 1, 2])
     for a in range(3):
-        block = slice(batches.offsets[a], batches.offsets[a + 1])
-        steps = batches.lengths[a]
-        batch = TrajectoryBatch(
-            obs=batches.obs[:steps, block],
-            actions=batches.actions[:steps, block],
-            log_probs=np.zeros((steps, counts[a])),
-            rewards=batches.rewards[:steps, block],
-            alive=batches.alive[:steps, block],
-            success=batches.success[block],
-        )
+        batch = _agent_batch(batches, a)
         reference = batch_gradient(policy, batch, algo=run.algo, gamma=engine.gammas[a]).numpy()
         scale = np.abs(reference).max()
         assert scale > 0
@@ -182,17 +196,7 @@ def test_bound_estimates_are_autograds_per_trajectory_ones(baseline) -> None:
     from fedhpg.common.local import bound_statistics
 
     run = _run(f"algo.baseline={baseline}", "algo.bound_estimates=true", agents=3)
-    variants = variants_of(run, range(3))
-    engine = _group(run, range(3))
-    policy = build_policy(variants[0], run)
-    with torch.no_grad():
-        for p in policy.parameters():
-            p.add_(0.3 * torch.randn(p.shape, generator=torch.Generator().manual_seed(p.numel())))
-    theta = get_flat_params(policy).numpy()
-    counts = [5, 7, 6]
-    layers = mlp.unflatten(engine.shape, np.repeat(theta[None], 3, 0))
-    env = make_multi_batch_env([variants[k] for k in range(3)], counts)
-    batches = rollout(env, layers, [np.random.default_rng(i) for i in range(3)], [500] * 3)
+    engine, policy, layers, batches = _three_agents_away_from_the_start(run)
     all3 = np.ones(3, dtype=bool)
     floats = batched.engine.PER_TRAJECTORY_FLOATS
     try:  # blocks of one agent, then all three in one block: the same figures
@@ -207,16 +211,7 @@ def test_bound_estimates_are_autograds_per_trajectory_ones(baseline) -> None:
     assert skipping == [together[0], {}, together[2]]
     assert one_by_one == together
     for a in range(3):
-        block = slice(batches.offsets[a], batches.offsets[a + 1])
-        steps = batches.lengths[a]
-        batch = TrajectoryBatch(
-            obs=batches.obs[:steps, block],
-            actions=batches.actions[:steps, block],
-            log_probs=np.zeros((steps, counts[a])),
-            rewards=batches.rewards[:steps, block],
-            alive=batches.alive[:steps, block],
-            success=batches.success[block],
-        )
+        batch = _agent_batch(batches, a)
         reference = bound_statistics(policy, batch, algo=run.algo, gamma=engine.gammas[a])
         assert set(reference) == set(together[a]) and reference["bound_variance"] > 0
         for name, value in reference.items():

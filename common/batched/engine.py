@@ -130,10 +130,11 @@ class BatchedFedHPG:
         def gradient_step(batches: Batches, rows: np.ndarray, done: np.ndarray) -> np.ndarray:
             layers = mlp.unflatten(self.shape, params[rows])
             active = [order[i] for i in rows]
-            wanted = measured_batches[rows] < 2
             found: list[dict[str, float]] = []
-            if algo.bound_estimates and wanted.any():
-                found = self._bound_statistics(batches, layers, active, wanted)
+            if algo.bound_estimates:  # off: nothing added to the gradient step
+                wanted = measured_batches[rows] < 2
+                if wanted.any():
+                    found = self._bound_statistics(batches, layers, active, wanted)
             gradient = self._gradient(batches, layers, active)
             for j in np.flatnonzero(wanted) if found else ():
                 i = int(rows[j])
