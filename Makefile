@@ -6,7 +6,7 @@ STAMP := $(VENV)/.installed
 export OMP_NUM_THREADS ?= 1
 export MKL_NUM_THREADS ?= 1
 
-.PHONY: setup demo test image test-containers bench-containers clean-containers lint typecheck contracts bench bench-learning bench-learning-long bench-robustness bench-presets bench-scale figures clean
+.PHONY: setup demo test test-long image test-containers bench-containers clean-containers lint typecheck contracts bench bench-learning bench-learning-long bench-robustness bench-presets bench-scale figures clean
 
 setup: $(STAMP)
 
@@ -21,7 +21,12 @@ demo: $(STAMP)
 
 test: $(STAMP) typecheck contracts
 	$(BIN)/ruff check .
-	$(BIN)/python -m pytest -q
+	$(BIN)/python -m pytest -q -m "not slow"
+
+# The long tier (marked slow): every shipped env preset learns, the resource attacks and the
+# 10,000-frame fuzz of a live server (~4 min on 2 cores). .ci/run runs it after make test.
+test-long: $(STAMP)
+	$(BIN)/python -m pytest -q -m slow
 
 # The image without Docker Hub or an index: a debootstrap base, this machine's wheels, an offline
 # build (the running engine: DOCKER_HOST, or `docker/engine.sh start` prints one).

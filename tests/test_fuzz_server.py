@@ -10,6 +10,7 @@ from pathlib import Path
 
 import msgpack
 import numpy as np
+import pytest
 import torch
 import zmq
 from hypothesis import HealthCheck, Phase, given, settings
@@ -182,6 +183,7 @@ def _fuzz(port: int, signature: dict[str, str]) -> int:
     return sent[0]
 
 
+@pytest.mark.slow
 def test_live_server_survives_ten_thousand_fuzzed_frames(tmp_path: Path) -> None:
     run_keys = [
         "rounds=40", "seed=11", "agents.num_agents=2", "agents.budget.batch_size=[6]",

@@ -22,6 +22,7 @@ import threading
 import time
 from pathlib import Path
 
+import pytest
 import torch
 import zmq
 from peers import HonestAgent
@@ -101,6 +102,7 @@ def _rounds(metrics: Path) -> int:
     return len(metrics.read_text().splitlines()) if metrics.exists() else 0
 
 
+@pytest.mark.slow
 def test_resource_attacks_leave_the_run_intact(tmp_path: Path) -> None:
     port = free_port()
     out_dir = tmp_path / "run"
