@@ -25,8 +25,7 @@ Measured (seed 0, the one tested; control → final, gain / margin): gridworld �
 −331.7 → −151.8, 180 / 73; halfcheetah −0.03 → 464.8, 465 / 1.3 (its greedy return dips
 to −70 at rounds 6–8 before it climbs: fewer rounds do not pass; with torch's default two
 threads instead of the tests' one the floats, and so the curve, differ). Pendulum needs the
-most rounds (60): its greedy return is flat for ~40 rounds while σ shrinks (gain 58, 27, 114,
-125, 166 at rounds 10–50).
+most rounds (60): its greedy return is flat for ~40 rounds while σ shrinks.
 Runtimes on the shared 2-core machine: pendulum ~37 s, halfcheetah ~24 s, acrobot ~11 s, the
 others < 10 s each, ~90 s for the file. Marked ``slow``: ``make test-long`` runs them.
 """
