@@ -67,7 +67,9 @@ class Limits:
 
     def __post_init__(self) -> None:
         if not 1 <= self.batch_min <= self.batch_max:
-            raise ValueError(f"need 1 ≤ batch_min ≤ batch_max, got {self.batch_min}, {self.batch_max}")
+            raise ValueError(
+                f"need 1 ≤ batch_min ≤ batch_max, got {self.batch_min}, {self.batch_max}"
+            )
         if self.local_iters_max < 1:
             raise ValueError(f"local_iters_max must be ≥ 1, got {self.local_iters_max}")
         if self.max_round_times < 2:
@@ -218,9 +220,13 @@ def plan_budgets(
             if best is None or plan.bound < best.bound:
                 best = plan
         if best is None:
+            slowest = max(
+                limits.batch_min * c + o
+                for c, o in zip(seconds_per_trajectory, overhead_s, strict=True)
+            )
             raise ValueError(
                 f"no round of batch_size ≥ {limits.batch_min} fits in {total_s:g} emulated s "
-                f"(the slowest agent needs {max(limits.batch_min * c + o for c, o in zip(seconds_per_trajectory, overhead_s, strict=True)):g} s)"
+                f"(the slowest agent needs {slowest:g} s)"
             )
         second_condition = _second_condition_holds(constants, best.local_iters)
         if second_condition or tau_max == 1:

@@ -24,11 +24,9 @@ import statistics
 import sys
 from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import NoReturn
+from typing import TYPE_CHECKING, NoReturn
 
 from fedhpg.common.config import ConfigError, RunConfig
-from fedhpg.common.device import device_for, message_bytes
-from fedhpg.common.planning import Constants, Limits, Plan, plan_budgets, score_budgets
 from fedhpg.common.runtime.cli import (
     EXIT_USAGE,
     compose,
@@ -36,8 +34,9 @@ from fedhpg.common.runtime.cli import (
     limit_threads,
     setup_logging,
 )
-from fedhpg.common.variants import training_horizon, variant_of
-from fedhpg.common.worker import initial_theta
+
+if TYPE_CHECKING:
+    from fedhpg.common.planning import Plan
 
 logger = logging.getLogger(__name__)
 
@@ -109,6 +108,10 @@ def round_overhead_s(run: RunConfig, round_index: int = 1) -> list[float]:
     """Each agent's fixed cost per round: θ̃ down and θ up (the counted clock charges both;
     the measured clock charges the latency only in agent processes, the in-process pool none)."""
     del round_index  # messages do not depend on the speed schedule
+    from fedhpg.common.device import device_for, message_bytes
+    from fedhpg.common.variants import variant_of
+    from fedhpg.common.worker import initial_theta
+
     size = message_bytes(initial_theta(variant_of(run, 0), run).numel())
     devices = [device_for(run, k) for k in range(run.agents.num_agents)]
     return [2 * d.transfer_s(size) if d.counted else 0.0 for d in devices]
@@ -117,6 +120,10 @@ def round_overhead_s(run: RunConfig, round_index: int = 1) -> list[float]:
 def horizon_seconds_per_trajectory(run: RunConfig, round_index: int = 1) -> list[float]:
     """The counted clock's price of a full-horizon trajectory on each agent's device at the
     speed its schedule gives in ``round_index``: an upper bound on any trajectory's."""
+    from fedhpg.common.device import device_for
+    from fedhpg.common.variants import training_horizon, variant_of
+    from fedhpg.common.worker import initial_theta
+
     params = initial_theta(variant_of(run, 0), run).numel()
     seconds = []
     for k in range(run.agents.num_agents):
@@ -131,9 +138,7 @@ def configured_budgets(run: RunConfig) -> tuple[list[int], list[int]]:
     from fedhpg.common.components import agent_profile
 
     budgets = [agent_profile(run, k).budget for k in range(run.agents.num_agents)]
-    return [int(getattr(b, "batch_size")) for b in budgets], [
-        int(getattr(b, "local_iters")) for b in budgets
-    ]
+    return [int(b.batch_size) for b in budgets], [int(b.local_iters) for b in budgets]
 
 
 def overrides_line(plan: Plan) -> str:
@@ -212,6 +217,10 @@ def main(argv: Sequence[str] | None = None) -> int:
     if stray is not None:
         return fail(ConfigError(stray, "not an option; see fedhpg-plan --help"))
     setup_logging()
+    # Imported past the argument check: a mistyped flag answers without torch's start-up.
+    from fedhpg.common.planning import Constants, Limits, plan_budgets, score_budgets
+    from fedhpg.common.variants import training_horizon, variant_of
+
     try:
         run = compose(overrides)
         limits = Limits(
@@ -227,15 +236,29 @@ def main(argv: Sequence[str] | None = None) -> int:
             )
     except ValueError as error:  # ConfigError is one
         return fail(error if isinstance(error, ConfigError) else ConfigError("plan", str(error)))
-    limit_threads()
-    pilot = run_pilot(run, args.pilot_rounds)
     cost = args.cost or ("horizon" if run.agents.clock == "counted" else "pilot")
     if cost == "horizon" and run.agents.clock != "counted":
-        return fail(ConfigError("--cost", "'horizon' prices the counted clock: agents.clock=counted"))
-    seconds = (
-        horizon_seconds_per_trajectory(run) if cost == "horizon" else pilot.seconds_per_trajectory
-    )
+        return fail(
+            ConfigError("--cost", "'horizon' prices the counted clock: agents.clock=counted")
+        )
+    limit_threads()
     overhead = round_overhead_s(run)
+    seconds: Sequence[float] = []
+    if cost == "horizon":
+        # Known before the pilot: a budget no round fits is a mistake found before any work.
+        seconds = horizon_seconds_per_trajectory(run)
+        smallest = max(limits.batch_min * c + o for c, o in zip(seconds, overhead, strict=True))
+        if args.budget_s is not None and smallest > args.budget_s:
+            return fail(
+                ConfigError(
+                    "--budget-s",
+                    f"no round of batch_size ≥ {limits.batch_min} fits in {args.budget_s:g} "
+                    f"emulated s (the slowest agent needs {smallest:g} s)",
+                )
+            )
+    pilot = run_pilot(run, args.pilot_rounds)
+    if cost == "pilot":
+        seconds = pilot.seconds_per_trajectory
     smoothness = args.smoothness if args.smoothness is not None else pilot.smoothness
     if smoothness <= 0:
         return fail(
@@ -299,5 +322,3 @@ def main(argv: Sequence[str] | None = None) -> int:
 
 def entry() -> None:
     raise SystemExit(main())
-
-
