@@ -117,6 +117,28 @@ def round_overhead_s(run: RunConfig, round_index: int = 1) -> list[float]:
     return [2 * d.transfer_s(size) if d.counted else 0.0 for d in devices]
 
 
+def observed_seconds_per_trajectory(
+    run: RunConfig, records: Sequence[dict[str, object]], *, per: str = "trajectories"
+) -> list[float]:
+    """Each agent's emulated seconds per trajectory (``per="env_steps"``: per env step) over
+    the given round records (``metrics.jsonl`` lines), less its messages: the speed a planner
+    re-planning every few rounds observes. An agent absent from every record is an error."""
+    overhead = round_overhead_s(run)
+    spent = [0.0] * run.agents.num_agents
+    work = [0] * run.agents.num_agents
+    for record in records:
+        agents = record["agents"]
+        assert isinstance(agents, list)
+        for agent in agents:
+            index = int(agent["index"])
+            spent[index] += float(agent["emulated_s"]) - overhead[index]
+            work[index] += int(agent[per])
+    missing = [k for k, n in enumerate(work) if n == 0]
+    if missing:
+        raise ValueError(f"no {per} observed for agents {missing}")
+    return [s / n for s, n in zip(spent, work, strict=True)]
+
+
 def horizon_seconds_per_trajectory(run: RunConfig, round_index: int = 1) -> list[float]:
     """The counted clock's price of a full-horizon trajectory on each agent's device at the
     speed its schedule gives in ``round_index``: an upper bound on any trajectory's."""

@@ -19,6 +19,7 @@ import sys
 import pytest
 
 from fedhpg.common.config import ConfigError
+from fedhpg.common.device import device_for
 from fedhpg.common.planning import (
     Constants,
     Limits,
@@ -28,7 +29,12 @@ from fedhpg.common.planning import (
 )
 from fedhpg.common.runtime.cli import compose
 from fedhpg.server import api
-from fedhpg.server.plan import horizon_seconds_per_trajectory, main, round_overhead_s
+from fedhpg.server.plan import (
+    horizon_seconds_per_trajectory,
+    main,
+    observed_seconds_per_trajectory,
+    round_overhead_s,
+)
 
 COUNTED = ["agents.clock=counted", "agents.virtual_clock=true"]
 
@@ -195,6 +201,41 @@ def test_a_device_whose_speed_changes_changes_the_plan():
     # Round 3: every device at 1.5× its speed; per round, the same time buys more trajectories.
     assert plans[3].batch_sizes != plans[1].batch_sizes
     assert plans[3].bound < plans[1].bound
+
+
+def test_observed_speeds_follow_the_schedule_and_re_make_the_plan():
+    """What a planner re-planning every round would see: the seconds per env step observed in
+    round 3 are round 1's times speed_1 / speed_3 for every agent (the counted clock prices
+    compute over the scheduled speed), and the plan made from them differs."""
+    schedule = ["agents.schedule=periodic", "agents.schedule_period_rounds=8"]
+    overrides = [*COUNTED, *schedule, "agents.step_delays_s=[0.0]", "eval.every=100"]
+    overrides += [
+        "eval.episodes=1",
+        "agents.budget.batch_size=[4]",
+        "agents.budget.local_iters=[1]",
+    ]
+    result = api.run(overrides=[*overrides, "rounds=3"])
+    run = result.config
+    by_round = {r["round"]: r for r in result.records}
+    step_1 = observed_seconds_per_trajectory(run, [by_round[1]], per="env_steps")
+    step_3 = observed_seconds_per_trajectory(run, [by_round[3]], per="env_steps")
+    for k in range(run.agents.num_agents):
+        device = device_for(run, k)
+        assert step_3[k] / step_1[k] == pytest.approx(device.speed_at(1) / device.speed_at(3))
+    constants = Constants(
+        gap=1.0, step_size=0.5, smoothness=1.0, second_moment=2.0, variances=(1.0,) * 4
+    )
+    overhead = round_overhead_s(run)
+    plans = [
+        plan_budgets(
+            constants=constants,
+            seconds_per_trajectory=observed_seconds_per_trajectory(run, [by_round[r]]),
+            overhead_s=overhead,
+            total_s=5.0,
+        )
+        for r in (1, 3)
+    ]
+    assert plans[0].batch_sizes != plans[1].batch_sizes
 
 
 def test_theorem2_shape_against_the_formula():
