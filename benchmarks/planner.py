@@ -259,7 +259,11 @@ def plans_for(setting: Setting, seed: int) -> dict[str, tuple[list[int], list[in
     return plans
 
 
-def measure(setting_key: str, seeds: list[int]) -> list[Outcome]:
+def measure(
+    setting_key: str, seeds: list[int], save: Callable[[Outcome], None] = lambda _: None
+) -> list[Outcome]:
+    """Every alternative on every seed; ``save`` is called after each run (long settings
+    keep what they measured if stopped)."""
     setting = SETTINGS[setting_key]
     outcomes = []
     for seed in seeds:
@@ -280,6 +284,7 @@ def measure(setting_key: str, seeds: list[int]) -> list[Outcome]:
                 outcome.wall_s,
             )
             outcomes.append(outcome)
+            save(outcome)
     return outcomes
 
 
@@ -348,17 +353,28 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--settings", default="gridworld-demo,gridworld-spread")
     parser.add_argument("--seeds", type=int, default=5)
+    parser.add_argument(
+        "--table-only", action="store_true", help="table and figure from the saved results"
+    )
     args = parser.parse_args()
     logging.basicConfig(level=logging.WARNING, format="%(message)s")
     torch.set_num_threads(1)
     previous = json.loads(RESULTS.read_text()) if RESULTS.exists() else []
     keys = args.settings.split(",")
     names = {SETTINGS[k].name for k in keys}
-    outcomes = [Outcome(**o) for o in previous if o["setting"] not in names]
-    for key in keys:
-        outcomes.extend(measure(key, list(range(args.seeds))))
+    outcomes = [Outcome(**o) for o in previous if args.table_only or o["setting"] not in names]
+    if args.table_only:
+        figure(outcomes, FIGURE)
+        print(table(outcomes))
+        return
     RESULTS.parent.mkdir(parents=True, exist_ok=True)
-    RESULTS.write_text(json.dumps([asdict(o) for o in outcomes], indent=1))
+
+    def save(outcome: Outcome) -> None:
+        outcomes.append(outcome)
+        RESULTS.write_text(json.dumps([asdict(o) for o in outcomes], indent=1))
+
+    for key in keys:
+        measure(key, list(range(args.seeds)), save)
     figure(outcomes, FIGURE)
     print(table(outcomes))
     print(f"\n{RESULTS}, {FIGURE}")
