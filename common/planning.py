@@ -153,6 +153,7 @@ def _best_within(
 
     choice = [mine[0] for mine in options]  # τ = 1 everywhere: a feasible start
     value = ratio(choice)
+
     def best_option(mine: list[tuple[int, int, float]], lam: float) -> tuple[int, int, float]:
         # Dinkelbach's step: h_k − λ τ_k / K, each agent alone.
         return min(mine, key=lambda c: c[2] - lam * c[0] / k)

@@ -248,6 +248,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         limits = Limits(
             batch_min=args.batch_min, batch_max=args.batch_max, local_iters_max=args.tau_max
         )
+        if args.budget_s is not None and not args.budget_s > 0:
+            raise ConfigError("--budget-s", f"must be > 0 emulated seconds, got {args.budget_s:g}")
         if args.pilot_rounds < 1:
             raise ConfigError("--pilot-rounds", f"must be ≥ 1, got {args.pilot_rounds}")
         if run.algo.name != "fedhpg":
@@ -305,7 +307,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         configured_round_s = max(
             t * b * c + o for t, b, c, o in zip(iters, batches, seconds, overhead, strict=True)
         )
-        total_s = args.budget_s or configured_round_s * run.rounds
+        total_s = args.budget_s if args.budget_s is not None else configured_round_s * run.rounds
         configured = score_budgets(
             constants=constants,
             seconds_per_trajectory=seconds,

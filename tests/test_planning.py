@@ -283,6 +283,7 @@ def test_fedhpg_plan_prints_a_plan_that_fedhpg_run_accepts(capsys):
     [
         (["--tau-max", "0"], "local_iters_max must be ≥ 1"),
         (["--bogus"], "--bogus: not an option"),
+        (["--budget-s", "0"], "--budget-s: must be > 0"),
         (["--budget-s", "abc"], "invalid float value"),
         (["algo=fedhpgvr"], "algo.name: the planner needs Theorem 1"),
         (["rouds=3"], "rouds: not a fedhpg key"),
