@@ -215,7 +215,8 @@ def _run_to_threshold(
     started = time.perf_counter()
     with contextlib.suppress(_Reached):  # the watch ends the run at the threshold
         run_in_process(run, on_round=[watch])
-    reached = bool(state.get("reached"))
+    # A threshold first met in a round that ends past the budget was not met within it.
+    reached = bool(state.get("reached")) and spent[0] <= setting.budget_s
     return Outcome(
         setting=setting.name,
         alternative=name,
@@ -296,6 +297,13 @@ def _mean_ci(values: list[float]) -> tuple[float, float, float]:
     return float(data.mean()), float(low), float(high)
 
 
+def _budgets(values: list[int]) -> str:
+    """A budget list as the table shows it: whole up to 10 agents, else its range."""
+    if len(values) <= 10:
+        return str(values)
+    return f"{min(values)}–{max(values)} over {len(values)}"
+
+
 def table(outcomes: list[Outcome]) -> str:
     lines = [
         "| setting | budgets | B_k (seed 0) | τ_k (seed 0) | reached | emulated s to threshold, "
@@ -311,7 +319,8 @@ def table(outcomes: list[Outcome]) -> str:
             t = _mean_ci([o.trajectories_per_agent for o in rows])
             first = rows[0]
             lines.append(
-                f"| {setting} | {name} | {first.batch_sizes} | {first.local_iters} | "
+                f"| {setting} | {name} | {_budgets(first.batch_sizes)} | "
+                f"{_budgets(first.local_iters)} | "
                 f"{sum(o.reached for o in rows)}/{len(rows)} | {e[0]:.2f} [{e[1]:.2f}, {e[2]:.2f}]"
                 f" | {t[0]:.0f} [{t[1]:.0f}, {t[2]:.0f}] |"
             )
