@@ -13,7 +13,9 @@ Each agent's seconds per trajectory: with ``--cost horizon`` (the default on the
 the counted clock's price of a full-horizon trajectory, H × ((step_cost + grad_cost × d/10⁴) /
 speed + step_delay), an upper bound, so the planned round times are never exceeded; with
 ``--cost pilot`` the pilot's observed emulated seconds per trajectory (the measured clock's
-only option). The per-round overhead is the counted clock's two messages (``common/device.py``).
+only option; the pilot also computes the bound estimates' extra gradients, so this is a little
+above a plain round's cost, and at θ̃_0's episode lengths). The per-round overhead is the
+counted clock's two messages (``common/device.py``).
 """
 
 from __future__ import annotations
