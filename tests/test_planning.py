@@ -18,7 +18,6 @@ import sys
 
 import pytest
 
-from fedhpg.common.config import ConfigError
 from fedhpg.common.device import device_for
 from fedhpg.common.planning import (
     Constants,
@@ -316,8 +315,3 @@ def test_a_mistake_through_the_console_script(tmp_path):
     assert wrong.returncode == 2
     assert wrong.stderr.strip().count("\n") == 0 and "invalid int value" in wrong.stderr
     assert list(tmp_path.iterdir()) == []
-
-
-def test_config_error_is_a_value_error():
-    # main() relies on it to turn both into one line
-    assert issubclass(ConfigError, ValueError)
