@@ -182,6 +182,15 @@ class Replanner:
             second_moment=s.last_second_moment,
             variances=tuple(variances),
         )
+        if remaining <= 0.0:
+            logger.warning(
+                "round %d: no plan made: agents.plan_budget_s=%g is spent (%g s emulated so "
+                "far); the budgets in force are kept",
+                round_number,
+                s.budget_s,
+                s.spent_s,
+            )
+            return None
         try:
             plan = plan_budgets(
                 constants=constants,
