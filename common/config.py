@@ -219,14 +219,14 @@ class AgentsConfig:
     plan: str = "none"
     """'none': every agent trains with its configured budget; 'theorem1': the first
     ``plan_every`` rounds use the configured budgets, then every ``plan_every`` rounds the
-    server re-chooses each agent's B_k, τ_k minimising eq. 7 within what is left of
-    ``plan_budget_s``, from the speeds and bound estimates observed since the last plan
+    server re-chooses each agent's B_k, τ_k minimising eq. 7 over the rounds left, each round
+    within ``plan_round_s``, from the speeds and bound estimates observed since the last plan
     (fedhpg only; needs algo.bound_estimates=true)."""
     plan_every: int = 10
     """'theorem1': P, the rounds between plans (each plan uses the last P rounds' records)."""
-    plan_budget_s: float = 0.0
-    """'theorem1': emulated seconds the whole run may take (the slowest agent's round times
-    summed); 0 = ``rounds`` × the slowest round of the first ``plan_every`` rounds."""
+    plan_round_s: float = 0.0
+    """'theorem1': emulated seconds a round may take (as long as its slowest agent); 0 = the
+    slowest round of the first ``plan_every`` rounds (the configured budgets' pace)."""
     plan_max_return: float | None = None
     """'theorem1': J(θ*) assumed for the gap J(θ*) − J(θ̃_0) (null = the training horizon,
     the most a reward-1-per-step task returns); J(θ̃_0) is round 1's mean training return."""
@@ -582,7 +582,7 @@ def _validate_agents(agents: AgentsConfig) -> None:
     )
     _check_choice(agents.plan, "agents.plan", PLANS)
     _check_int(agents.plan_every, "agents.plan_every", low=1)
-    _check_number(agents.plan_budget_s, "agents.plan_budget_s", low=0.0)
+    _check_number(agents.plan_round_s, "agents.plan_round_s", low=0.0)
     if agents.plan_max_return is not None:
         _check_number(agents.plan_max_return, "agents.plan_max_return", low=-math.inf)
     _check_int(agents.plan_batch_max, "agents.plan_batch_max", low=2)

@@ -239,6 +239,63 @@ def plan_budgets(
         tau_max -= 1
 
 
+def plan_for_rounds(
+    *,
+    constants: Constants,
+    seconds_per_trajectory: Sequence[float],
+    overhead_s: Sequence[float],
+    total_s: float,
+    rounds: int,
+    limits: Limits | None = None,
+) -> Plan:
+    """The plan minimising eq. 7 when T is fixed: ``rounds`` rounds within ``total_s``.
+
+    A run whose length is set (``agents.plan=theorem1`` re-planning the rounds left) gives
+    every round total_s / rounds. With T fixed the first term is too, and a longer round only
+    lets each agent take a larger batch, so the longest round that fits is the best: one round
+    time is searched (exactly, as in :func:`plan_budgets`, with its step-size rule).
+
+    Raises ValueError when not even the smallest budgets fit in total_s / rounds."""
+    limits = limits or Limits()
+    if rounds < 1:
+        raise ValueError(f"rounds must be ≥ 1, got {rounds}")
+    if total_s <= 0 or constants.step_size <= 0 or constants.gap < 0:
+        raise ValueError("the time budget and step size must be > 0, the gap ≥ 0")
+    round_s = total_s / rounds
+    tau_max = limits.local_iters_max
+    while True:
+        found = _best_within(
+            round_s, rounds, constants, seconds_per_trajectory, overhead_s, limits, tau_max
+        )
+        if found is None:
+            slowest = max(
+                limits.batch_min * c + o
+                for c, o in zip(seconds_per_trajectory, overhead_s, strict=True)
+            )
+            raise ValueError(
+                f"no round of batch_size ≥ {limits.batch_min} fits in {round_s:g} emulated s "
+                f"(the slowest agent needs {slowest:g} s)"
+            )
+        local_iters, batch_sizes = found
+        slowest_round = max(
+            t * b * c + o
+            for t, b, c, o in zip(
+                local_iters, batch_sizes, seconds_per_trajectory, overhead_s, strict=True
+            )
+        )
+        plan = _plan_of(
+            constants,
+            seconds_per_trajectory,
+            overhead_s,
+            slowest_round * rounds,
+            local_iters,
+            batch_sizes,
+        )
+        if _second_condition_holds(constants, plan.local_iters) or tau_max == 1:
+            return plan
+        tau_max -= 1
+
+
 def _second_condition_holds(constants: Constants, local_iters: Sequence[int]) -> bool:
     k = len(local_iters)
     alpha_b = sum(t * (t - 1) for t in local_iters) / k

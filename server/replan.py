@@ -10,16 +10,21 @@ showed. Then after every P rounds (P, 2P, ...) the plan is re-made from the last
 - σ_k² the mean of agent k's σ̂_k², M the largest M̂_k, L the largest secant L̂_k (below);
 - the gap J(θ*) − J(θ̃_0): ``agents.plan_max_return`` (default the horizon) less round 1's
   mean training return;
-- the time left: ``agents.plan_budget_s`` less the emulated time the rounds so far took
-  (each round as long as its slowest agent).
+- the round time: ``agents.plan_round_s`` emulated seconds (a round lasts as long as its
+  slowest agent), by default the slowest round of the first P rounds: the configured
+  budgets' pace.
 
-:func:`fedhpg.common.planning.plan_budgets` then minimises eq. 7 within the time left. The
-run still ends after ``rounds`` rounds; the plan's own T (the rounds the time left fits) is
-recorded beside it. An agent not seen in the window (partial participation) keeps the
+:func:`fedhpg.common.planning.plan_for_rounds` then minimises eq. 7 for the rounds left
+(T is the run's: it still ends after ``rounds`` rounds), every agent's round within the round
+time: a device that slows down gets less work, one that speeds up more. The round time, not
+a total, is what is held: a plan is priced at the last P rounds' speeds, so when the speeds
+drift a round may run over it, and a total would be overspent without remedy.
+
+An agent not seen in the window (partial participation) keeps the
 speed and variance last seen, or, never seen, the window's slowest speed and mean variance.
 L and M are the window's when it measured them, else the last plan's (a plan of τ_k = 1
-measures no secant). No L̂ > 0 yet, or too little time left for one round of the smallest
-budgets: the plan in force is kept (logged).
+measures no secant). No L̂ > 0 yet, or a round time too short for the smallest budgets: the
+plan in force is kept (logged).
 
 Everything the next plan needs is in :meth:`Replanner.state` (plain numbers): checkpoints
 keep it, so a resumed run re-plans exactly as the uninterrupted one.
@@ -34,7 +39,7 @@ from dataclasses import asdict, dataclass, field
 from typing import Any
 
 from fedhpg.common.config import RunConfig
-from fedhpg.common.planning import Constants, Limits, plan_budgets
+from fedhpg.common.planning import Constants, Limits, plan_for_rounds
 from fedhpg.common.types import AgentUpdate
 
 logger = logging.getLogger(__name__)
@@ -47,12 +52,10 @@ class PlanState:
     batch_sizes: list[int] = field(default_factory=list)
     """B_k in force (empty: the configured budgets)."""
     local_iters: list[int] = field(default_factory=list)
-    budget_s: float = 0.0
-    """The run's emulated-time budget (``plan_budget_s``, or the default once resolved)."""
-    spent_s: float = 0.0
-    """Emulated time of the rounds so far (each round: its slowest agent)."""
+    round_s: float = 0.0
+    """The round time planned for (``plan_round_s``, or the default once resolved)."""
     window_s: float = 0.0
-    """The slowest round of the window (to resolve the default budget)."""
+    """The slowest round of the window (to resolve the default round time)."""
     initial_return: float | None = None
     seconds: list[float] = field(default_factory=list)
     """Per agent: emulated seconds of trajectories in the window, less messages."""
@@ -82,12 +85,12 @@ class Replanner:
         self.limits = Limits(
             batch_max=run.agents.plan_batch_max, local_iters_max=run.agents.plan_local_iters_max
         )
-        self.state = PlanState(**dict(state)) if state else PlanState(budget_s=0.0)
+        self.state = PlanState(**dict(state)) if state else PlanState()
         if not self.state.seconds:
             self._clear_window()
             self.state.last_speed = [0.0] * self.num_agents
             self.state.last_variance = [0.0] * self.num_agents
-            self.state.budget_s = run.agents.plan_budget_s
+            self.state.round_s = run.agents.plan_round_s
 
     def _clear_window(self) -> None:
         k = self.num_agents
@@ -114,9 +117,7 @@ class Replanner:
         s = self.state
         if s.initial_return is None and updates:
             s.initial_return = statistics.fmean(u.stats.train_return for u in updates)
-        round_s = max((u.stats.emulated_s for u in updates), default=0.0)
-        s.spent_s += round_s
-        s.window_s = max(s.window_s, round_s)
+        s.window_s = max(s.window_s, max((u.stats.emulated_s for u in updates), default=0.0))
         for update in updates:
             k, stats = update.agent_index, update.stats
             s.seconds[k] += max(stats.emulated_s - self.overhead[k], 0.0)
@@ -130,8 +131,8 @@ class Replanner:
         every = self.run.agents.plan_every
         if round_number % every != 0 or round_number >= self.run.rounds:
             return None
-        if s.budget_s <= 0.0:  # the default: the configured budgets' pace for the whole run
-            s.budget_s = self.run.rounds * s.window_s
+        if s.round_s <= 0.0:  # the default: the configured budgets' pace
+            s.round_s = s.window_s
         record = self._replan(round_number)
         self._clear_window()
         s.window_s = 0.0
@@ -158,7 +159,6 @@ class Replanner:
     def _replan(self, round_number: int) -> dict[str, Any] | None:
         s = self.state
         speeds, variances = self._window_estimates()
-        remaining = s.budget_s - s.spent_s
         if s.smoothness > 0.0:
             s.last_smoothness = s.smoothness
         if s.second_moment > 0.0:
@@ -182,21 +182,13 @@ class Replanner:
             second_moment=s.last_second_moment,
             variances=tuple(variances),
         )
-        if remaining <= 0.0:
-            logger.warning(
-                "round %d: no plan made: agents.plan_budget_s=%g is spent (%g s emulated so "
-                "far); the budgets in force are kept",
-                round_number,
-                s.budget_s,
-                s.spent_s,
-            )
-            return None
         try:
-            plan = plan_budgets(
+            plan = plan_for_rounds(
                 constants=constants,
                 seconds_per_trajectory=speeds,
                 overhead_s=self.overhead,
-                total_s=remaining,
+                total_s=s.round_s * (self.run.rounds - round_number),
+                rounds=self.run.rounds - round_number,
                 limits=self.limits,
             )
         except ValueError as error:
@@ -206,15 +198,15 @@ class Replanner:
             return None
         s.batch_sizes, s.local_iters = list(plan.batch_sizes), list(plan.local_iters)
         logger.info(
-            "round %d: re-planned budgets B=%s tau=%s (bound %.4g, %d rounds of %.4g s fit the "
-            "%.4g s left)",
+            "round %d: re-planned budgets B=%s tau=%s (bound %.4g over the %d rounds left, "
+            "the slowest %.4g s of the %.4g s a round may take)",
             round_number,
             s.batch_sizes,
             s.local_iters,
             plan.bound,
             plan.rounds,
             plan.round_s,
-            remaining,
+            s.round_s,
         )
         return {
             "round": round_number,
@@ -223,7 +215,7 @@ class Replanner:
             "bound": plan.bound,
             "rounds": plan.rounds,
             "round_s": plan.round_s,
-            "remaining_s": remaining,
+            "round_limit_s": s.round_s,
             "seconds_per_trajectory": list(speeds),
             "step_size_ok": plan.step_size_ok,
         }

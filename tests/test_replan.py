@@ -11,10 +11,15 @@
 
 from __future__ import annotations
 
+import itertools
+import math
 from pathlib import Path
 
+import pytest
 import torch
 
+from fedhpg.common.bounds import theorem1_terms
+from fedhpg.common.planning import Constants, Limits, plan_for_rounds
 from fedhpg.server import api
 from fedhpg.server.plan import configured_budgets, observed_seconds_per_trajectory
 
@@ -32,9 +37,9 @@ def _work(plan: dict) -> list[int]:
 
 def test_a_device_slowing_down_gets_a_smaller_budget_at_the_next_plan() -> None:
     """Periodic speeds of period 8, P = 2: the window of rounds 3-4 runs at 1.5× and 1.35×
-    the base speed, that of rounds 5-6 at 1× and 0.65×. The plan made after round 6 prices
-    each agent's trajectories dearer than the plan after round 4 did (by the speeds' ratio)
-    and gives it less work per round (the slowest agent stays at the smallest budget, 2)."""
+    the base speed, that of rounds 5-6 at 1× and 0.65×. The round time held is the first two
+    rounds' (the default), so the plan made after round 6 gives every agent less work per
+    round than the plan after round 4 (unless already at the smallest budget, 2·1)."""
     overrides = [
         *COUNTED,
         *PLAN,
@@ -42,6 +47,8 @@ def test_a_device_slowing_down_gets_a_smaller_budget_at_the_next_plan() -> None:
         "agents.schedule=periodic",
         "agents.schedule_period_rounds=8",
         "agents.step_delays_s=[0.0]",
+        "agents.budget.batch_size=[4]",
+        "agents.budget.local_iters=[2]",
         "eval.every=100",
         "eval.episodes=1",
         "rounds=7",
@@ -92,22 +99,77 @@ def test_a_plan_gives_the_same_theta_in_process_and_over_the_wire() -> None:
         assert _plans(wire.records) == plans, per_host
 
 
+class _Crash(RuntimeError):
+    pass
+
+
+def _crash_after(round_number: int):
+    def callback(record, _theta) -> None:
+        if record.round == round_number:
+            raise _Crash  # after the round's checkpoint: the callbacks given come last
+
+    return callback
+
+
 def test_a_resumed_run_re_plans_as_the_uninterrupted_one(tmp_path: Path) -> None:
     """Stopped after round 5, in the middle of a plan's window (P = 2): the window's first
     round comes back from the checkpoint, so the plan after round 6 and θ̃ are the same."""
     keys = [*COUNTED, *PLAN, "agents.plan_every=2", "seed=3", "eval.every=100", "eval.episodes=1"]
-    # an explicit budget: the default (rounds × the first window's slowest round) follows
-    # ``rounds``, which this resume raises
-    keys += [
-        "agents.schedule=periodic",
-        "agents.schedule_period_rounds=6",
-        "agents.plan_budget_s=2.0",
-    ]
+    keys += ["agents.schedule=periodic", "agents.schedule_period_rounds=6", "rounds=8"]
     out_dir = tmp_path / "run"
-    api.run(overrides=[*keys, "rounds=5"], out_dir=out_dir)
-    resumed = api.run(overrides=[*keys, "rounds=8", "resume=true"], out_dir=out_dir)
-    whole = api.run(overrides=[*keys, "rounds=8"])
+    with pytest.raises(_Crash):
+        api.run(overrides=keys, out_dir=out_dir, callbacks=[_crash_after(5)])
+    resumed = api.run(overrides=[*keys, "resume=true"], out_dir=out_dir)
+    whole = api.run(overrides=keys)
     assert [r["round"] for r in resumed.records] == list(range(1, 9))
     assert sorted(_plans(whole.records)) == [2, 4, 6]
     assert _plans(resumed.records) == _plans(whole.records)
     assert torch.equal(resumed.theta, whole.theta)
+
+
+@pytest.mark.parametrize(
+    ("gap", "smoothness", "second_moment", "rounds"),
+    [
+        (1.0, 0.5, 2.0, 30),  # τ > 1 costs heterogeneity: τ = 1 wins
+        (50.0, 0.05, 0.01, 10),  # a large gap, little drift: more local steps pay
+        (5.0, 0.2, 0.1, 3),
+    ],
+)
+def test_a_plan_for_fixed_rounds_is_the_brute_force_minimum(gap, smoothness, second_moment, rounds):
+    """What the re-planner solves: T fixed (the rounds left), every agent's round within the
+    round time; eq. 7 over every budget in the box (K = 3) agrees with the search."""
+    constants = Constants(
+        gap=gap, step_size=0.5, smoothness=smoothness, second_moment=second_moment,
+        variances=(1.0, 3.0, 0.5),
+    )  # fmt: skip
+    seconds, overhead = [0.01, 0.02, 0.04], [0.002, 0.002, 0.005]
+    limits = Limits(batch_min=2, batch_max=7, local_iters_max=3)
+    round_s = 0.3
+    plan = plan_for_rounds(
+        constants=constants,
+        seconds_per_trajectory=seconds,
+        overhead_s=overhead,
+        total_s=round_s * rounds,
+        rounds=rounds,
+        limits=limits,
+    )
+    best = math.inf
+    box = list(itertools.product(range(2, 8), range(1, 4)))
+    for choice in itertools.product(box, repeat=3):
+        times = [t * b * c + o for (b, t), c, o in zip(choice, seconds, overhead, strict=True)]
+        if max(times) > round_s:
+            continue
+        terms = theorem1_terms(
+            gap=gap,
+            step_size=0.5,
+            smoothness=smoothness,
+            second_moment=second_moment,
+            variances=constants.variances,
+            local_iters=[t for _, t in choice],
+            batch_sizes=[b for b, _ in choice],
+            rounds=rounds,
+        )
+        if terms.step_size_ok:
+            best = min(best, terms.total)
+    assert plan.rounds == rounds and plan.round_s <= round_s
+    assert plan.step_size_ok and plan.bound == pytest.approx(best, rel=1e-12)
