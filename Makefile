@@ -6,7 +6,7 @@ STAMP := $(VENV)/.installed
 export OMP_NUM_THREADS ?= 1
 export MKL_NUM_THREADS ?= 1
 
-.PHONY: setup demo test test-long image test-containers bench-containers clean-containers lint typecheck contracts bench bench-learning bench-learning-long bench-robustness bench-presets bench-scale figures clean
+.PHONY: setup demo test test-long image test-containers bench-containers clean-containers lint typecheck contracts bench bench-learning bench-learning-long bench-robustness bench-presets bench-scale bench-plan bench-async figures clean
 
 setup: $(STAMP)
 
@@ -94,6 +94,13 @@ bench-presets: $(STAMP)
 bench-scale: $(STAMP)
 	OMP_NUM_THREADS=1 $(BIN)/python -m benchmarks.scale
 	OMP_NUM_THREADS=1 $(BIN)/python -m benchmarks.scale_gridworld
+
+# The Theorem 1 planner against uniform, speed-proportional and the paper's budgets at one
+# emulated-time budget (issue 18): GridWorld K=4 (two speed spreads), CartPole K=10 and K=100,
+# 5 seeds, counted virtual clock (deterministic, so load does not change the figures).
+# benchmarks/results/planner.json, docs/figures/planner.png, the table on stdout.
+bench-plan: $(STAMP)
+	nice -n 10 $(BIN)/python -m benchmarks.planner --settings gridworld-demo,gridworld-spread,cartpole-10,cartpole-100
 
 bench-robustness: $(STAMP)
 	$(BIN)/python -m benchmarks.robustness

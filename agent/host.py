@@ -148,7 +148,10 @@ class AgentHost(AgentProcess):
                 num_params=num_params,
             )
 
-        results = self.group.train(request.round, theta, agents, on_iteration=on_iteration)
+        planned = dict(zip(request.agents, request.budgets, strict=True)) if request.budgets else {}
+        results = self.group.train(
+            request.round, theta, agents, on_iteration=on_iteration, budgets=planned
+        )
         # Each answer leaves with the batch: the host's wall time on the round is each one's.
         wall_s = time.perf_counter() - started
         stats: dict[int, UpdateStats] = {}

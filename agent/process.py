@@ -385,9 +385,13 @@ class AgentProcess:
                 num_params=num_params,
             )
 
-        result = self.group.train(request.round, theta, [self.index], on_iteration=on_iteration)[
-            self.index
-        ]
+        result = self.group.train(
+            request.round,
+            theta,
+            [self.index],
+            on_iteration=on_iteration,
+            budgets={self.index: request.budget},
+        )[self.index]
         self.device.transmit(message)  # the answer's
         stats = replace(
             result.stats,

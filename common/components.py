@@ -4,7 +4,9 @@ beside the registry; the server's strategy is resolved in :mod:`fedhpg.server.st
 
 from __future__ import annotations
 
+import dataclasses
 import logging
+from collections.abc import Mapping
 from dataclasses import dataclass
 from typing import Any
 
@@ -58,6 +60,22 @@ def agent_budget(run: RunConfig, algorithm: Algorithm[Any, Any], index: int) -> 
     values = _listed_budget(run, algorithm, index)
     values.update(budget_overrides(run, index, tuple(algorithm.Budget.__dataclass_fields__)))
     return parse_options(algorithm.Budget, values, "agents.budget")
+
+
+def planned_budget(budget: Any, override: Mapping[str, int] | None) -> Any:
+    """``budget`` with the fields of the server's plan for this round (``agents.plan``) put
+    in; no override: ``budget`` itself. Raises ValueError for a field the budget lacks or a
+    value its checks refuse, so a bad request fails the round, not the agent."""
+    if not override:
+        return budget
+    known = {f.name for f in dataclasses.fields(budget)}
+    unknown = sorted(set(override) - known)
+    if unknown:
+        raise ValueError(f"the round's budget names {unknown}, not fields of {sorted(known)}")
+    try:
+        return dataclasses.replace(budget, **override)
+    except (TypeError, ValueError) as error:
+        raise ValueError(f"the round's budget {dict(override)} is refused: {error}") from None
 
 
 def agent_profile(run: RunConfig, index: int) -> AgentProfile:
@@ -129,6 +147,22 @@ def validate_env_family(run: RunConfig) -> None:
         raise ConfigError(key, str(error).splitlines()[0] if str(error) else repr(error)) from None
 
 
+def _check_plan(run: RunConfig, algorithm: Algorithm[Any, Any]) -> None:
+    """``agents.plan=theorem1`` plans FedHPG's B_k, τ_k from Theorem 1's estimated constants."""
+    if run.agents.plan == "none":
+        return
+    if algorithm.name != "fedhpg":
+        raise ConfigError(
+            "agents.plan",
+            f"theorem1 plans fedhpg's batch_size and local_iters, not {algorithm.name!r}'s",
+        )
+    if not run.algo.bound_estimates:
+        raise ConfigError(
+            "agents.plan",
+            "theorem1 plans from Theorem 1's estimated constants: set algo.bound_estimates=true",
+        )
+
+
 def validate_run(run: RunConfig) -> RunConfig:
     """Everything an agent-side process can check: the config's values, the plugins, the
     environment family and its options, the algorithm, its options and every agent's budget.
@@ -144,6 +178,7 @@ def validate_run(run: RunConfig) -> RunConfig:
         )
     _check_budget_keys(run, algorithm)
     _check_population_budgets(run, algorithm)
+    _check_plan(run, algorithm)
     # Lists of one entry are every agent's: only the longest list's indices can differ.
     longest = max((len(entries) for entries in run.agents.budget.values()), default=1)
     for index in range(min(run.agents.num_agents, longest)):

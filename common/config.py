@@ -26,6 +26,7 @@ OPTIMIZERS = ("sgd", "adam")
 ENGINES = ("auto", "loop")
 ATTACKS = ("none", "zero_gradient", "random_noise", "sign_flip", "reward_flip", "random_action")
 SCHEDULES = ("constant", "periodic", "random_walk")
+PLANS = ("none", "theorem1")
 CLOCKS = ("measured", "counted")
 TRANSPORTS = ("tcp", "ipc")
 ROUND_POLICIES = ("wait_all", "deadline")
@@ -214,6 +215,25 @@ class AgentsConfig:
     per_host: int = 1
     """``fedhpg-run``: logical agents per agent process. 1 = one process per agent; N > 1 =
     ceil(K/N) agent hosts, each serving N consecutive indices over one connection."""
+    # Re-planning budgets during a run from Theorem 1 (issue 18): the server sends them.
+    plan: str = "none"
+    """'none': every agent trains with its configured budget; 'theorem1': the first
+    ``plan_every`` rounds use the configured budgets, then every ``plan_every`` rounds the
+    server re-chooses each agent's B_k, τ_k minimising eq. 7 over the rounds left, each round
+    within ``plan_round_s``, from the speeds and bound estimates observed since the last plan
+    (fedhpg only; needs algo.bound_estimates=true)."""
+    plan_every: int = 10
+    """'theorem1': P, the rounds between plans (each plan uses the last P rounds' records)."""
+    plan_round_s: float = 0.0
+    """'theorem1': emulated seconds a round may take (as long as its slowest agent); 0 = the
+    slowest round of the first ``plan_every`` rounds (the configured budgets' pace)."""
+    plan_max_return: float | None = None
+    """'theorem1': J(θ*) assumed for the gap J(θ*) − J(θ̃_0) (null = the training horizon,
+    the most a reward-1-per-step task returns); J(θ̃_0) is round 1's mean training return."""
+    plan_batch_max: int = 64
+    """'theorem1': largest B_k a plan may give (the smallest is 2)."""
+    plan_local_iters_max: int = 8
+    """'theorem1': largest τ_k a plan may give."""
 
 
 @dataclass(kw_only=True)
@@ -560,6 +580,13 @@ def _validate_agents(agents: AgentsConfig) -> None:
         "agents.schedule_amplitude",
         f"got {agents.schedule_amplitude!r}, must be in [0, 1)",
     )
+    _check_choice(agents.plan, "agents.plan", PLANS)
+    _check_int(agents.plan_every, "agents.plan_every", low=1)
+    _check_number(agents.plan_round_s, "agents.plan_round_s", low=0.0)
+    if agents.plan_max_return is not None:
+        _check_number(agents.plan_max_return, "agents.plan_max_return", low=-math.inf)
+    _check_int(agents.plan_batch_max, "agents.plan_batch_max", low=2)
+    _check_int(agents.plan_local_iters_max, "agents.plan_local_iters_max", low=1)
     from fedhpg.common.population import validate_population  # it imports this module
 
     validate_population(agents.population)

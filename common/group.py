@@ -20,13 +20,15 @@ from typing import Protocol
 import torch
 
 from fedhpg.common.attacks import attack_of
-from fedhpg.common.components import agent_profile
+from fedhpg.common.components import agent_profile, planned_budget
 from fedhpg.common.config import RunConfig
 from fedhpg.common.types import EvaluationStats, LocalResult
 from fedhpg.common.variants import variants_of
 from fedhpg.common.worker import IterationWork, LocalWorker
 from fedhpg.envs.base import EnvVariant
 
+Budgets = Mapping[int, Mapping[str, int]]
+"""Agent index -> the fields of its budget the round's plan sets (``agents.plan``)."""
 GroupHook = Callable[[int, IterationWork], None]
 """(agent index, that agent's iteration) -> None, after each local iteration of each agent.
 It may raise to cancel the round (the agent process's cancellation does)."""
@@ -48,8 +50,10 @@ class AgentGroup(Protocol):
         agents: Sequence[int],
         *,
         on_iteration: GroupHook | None = None,
+        budgets: Budgets | None = None,
     ) -> dict[int, LocalResult]:
-        """The round's local updates of ``agents`` (a subset of ``indices``) from θ̃."""
+        """The round's local updates of ``agents`` (a subset of ``indices``) from θ̃;
+        ``budgets``: the server's plan for some of them (fields of their configured budget)."""
         ...
 
     def evaluate(
@@ -95,6 +99,7 @@ class WorkerLoopGroup:
         agents: Sequence[int],
         *,
         on_iteration: GroupHook | None = None,
+        budgets: Budgets | None = None,
     ) -> dict[int, LocalResult]:
         results: dict[int, LocalResult] = {}
         for k in sorted(agents):
@@ -104,7 +109,9 @@ class WorkerLoopGroup:
                 def hook(work: IterationWork, k: int = k) -> None:
                     on_iteration(k, work)
 
-            results[k] = self.worker(k).train(round_index, theta.clone(), on_iteration=hook)
+            worker = self.worker(k)
+            budget = planned_budget(worker.profile.budget, (budgets or {}).get(k))
+            results[k] = worker.train(round_index, theta.clone(), on_iteration=hook, budget=budget)
         return results
 
     def evaluate(
@@ -144,11 +151,16 @@ class SplitGroup:
         agents: Sequence[int],
         *,
         on_iteration: GroupHook | None = None,
+        budgets: Budgets | None = None,
     ) -> dict[int, LocalResult]:
         results: dict[int, LocalResult] = {}
         for part, chosen in self._split(agents):
             if chosen:
-                results.update(part.train(round_index, theta, chosen, on_iteration=on_iteration))
+                results.update(
+                    part.train(
+                        round_index, theta, chosen, on_iteration=on_iteration, budgets=budgets
+                    )
+                )
         return dict(sorted(results.items()))
 
     def evaluate(

@@ -10,6 +10,7 @@ import dataclasses
 from collections.abc import Callable
 from dataclasses import dataclass
 from enum import IntEnum
+from typing import Any
 
 import numpy as np
 import torch
@@ -121,9 +122,15 @@ class LocalWorker:
         return sample
 
     def train(
-        self, round_index: int, theta: torch.Tensor, *, on_iteration: WorkHook | None = None
+        self,
+        round_index: int,
+        theta: torch.Tensor,
+        *,
+        on_iteration: WorkHook | None = None,
+        budget: Any = None,
     ) -> LocalResult:
-        """One round's local update from the server's θ̃ (the run's algorithm)."""
+        """One round's local update from the server's θ̃ (the run's algorithm); ``budget``:
+        the round's planned budget instead of the configured one."""
         rng = random_stream(self.run.seed, self.index, round_index, Stream.TRAIN)
         with counting_gradients() as gradients:
 
@@ -139,7 +146,8 @@ class LocalWorker:
                 gamma=self.gamma,
                 on_iteration=hook,
             )
-            result = self.algorithm.local_update(theta, context, self.params, self.profile.budget)
+            budget = self.profile.budget if budget is None else budget
+            result = self.algorithm.local_update(theta, context, self.params, budget)
         if self.attack in UPDATE_ATTACKS:
             attack_rng = random_stream(self.run.seed, self.index, round_index, Stream.ATTACK)
             sent = corrupt_update(self.attack, theta, result.theta, self.run.attack, attack_rng)

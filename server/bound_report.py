@@ -14,22 +14,30 @@ all the same, for what they say about the variance and drift.
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from typing import Any
 
 from fedhpg.common.bounds import theorem1_terms
-from fedhpg.common.components import agent_profile
+from fedhpg.common.components import agent_profile, planned_budget
 from fedhpg.common.config import RunConfig
 from fedhpg.common.types import AgentUpdate
 
 
-def round_bound(run: RunConfig, updates: Sequence[AgentUpdate]) -> dict[str, Any] | None:
-    """The ``bound`` field of a round record, or None when the agents measured nothing."""
+def round_bound(
+    run: RunConfig,
+    updates: Sequence[AgentUpdate],
+    planned: Mapping[int, Mapping[str, int]] | None = None,
+) -> dict[str, Any] | None:
+    """The ``bound`` field of a round record, or None when the agents measured nothing;
+    ``planned``: the round's planned budgets (``agents.plan``), else the configured ones."""
     measured = [u for u in updates if "bound_variance" in u.stats.algorithm]
     if not measured:
         return None
     variances = [float(u.stats.algorithm["bound_variance"]) for u in measured]
-    budgets = [agent_profile(run, u.agent_index).budget for u in measured]
+    budgets = [
+        planned_budget(agent_profile(run, u.agent_index).budget, (planned or {}).get(u.agent_index))
+        for u in measured
+    ]
     second_moment = max(float(u.stats.algorithm["bound_second_moment"]) for u in measured)
     secants = [
         float(u.stats.algorithm["bound_smoothness"])

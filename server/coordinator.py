@@ -21,6 +21,7 @@ from fedhpg.common.types import AgentUpdate, EvaluationStats, SavedState
 from fedhpg.server.bound_report import round_bound
 from fedhpg.server.participation import make_participation
 from fedhpg.server.pools import AgentPool, FederationError
+from fedhpg.server.replan import make_replanner
 from fedhpg.server.strategies import Strategy
 
 logger = logging.getLogger(__name__)
@@ -44,6 +45,8 @@ class RoundRecord:
     """The agent indices asked to train (participation, then the strategy's select)."""
     bound: dict[str, Any] | None = None
     """Theorem 1's terms from the agents' estimates (``algo.bound_estimates``)."""
+    plan: dict[str, Any] | None = None
+    """The budgets re-planned after this round (``agents.plan``), in force from the next."""
 
     def to_json(self) -> dict[str, Any]:
         record: dict[str, Any] = {
@@ -63,6 +66,8 @@ class RoundRecord:
             record["stragglers"] = list(self.stragglers)
         if self.bound is not None:
             record["bound"] = dict(self.bound)
+        if self.plan is not None:
+            record["plan"] = dict(self.plan)
         return record
 
 
@@ -105,6 +110,8 @@ class RunProgress:
     elapsed_s: float = 0.0
     """Wall time of the rounds already done (before a restart, if any)."""
     strategy_state: SavedState = field(default_factory=SavedState)
+    plan_state: dict[str, Any] = field(default_factory=dict)
+    """``agents.plan``: the plan in force and the window it is re-made from."""
 
 
 class Coordinator:
@@ -127,6 +134,7 @@ class Coordinator:
         self.progress = progress or RunProgress()
         self.on_round = on_round or []
         self.participation = make_participation(run)
+        self.replanner = make_replanner(run, self.progress.plan_state)
         if self.progress.next_round > 1:
             strategy.restore(self.progress.strategy_state)
 
@@ -155,7 +163,8 @@ class Coordinator:
             # participation first: every strategy chooses among the agents that take part
             participating = self.participation.select(round_number)
             selected = self.strategy.select(round_number, participating)
-            answers = self.pool.train(round_number, self.theta, selected)
+            budgets = self.replanner.budgets() if self.replanner is not None else None
+            answers = self.pool.train(round_number, self.theta, selected, budgets=budgets)
             self._aggregate(round_number, answers.updates, answers.failures)
             round_time = time.perf_counter() - round_started
             evaluation = None
@@ -169,6 +178,10 @@ class Coordinator:
             )
             progress.elapsed_s = wall_time
             progress.strategy_state = self.strategy.state()
+            plan = None
+            if self.replanner is not None:
+                plan = self.replanner.observe(round_number, answers.updates)
+                progress.plan_state = self.replanner.saved()
             record = RoundRecord(
                 round=round_number,
                 wall_time_s=wall_time,
@@ -179,9 +192,10 @@ class Coordinator:
                 failures=answers.failures,
                 stragglers=answers.stragglers,
                 selected=sorted(selected),
-                bound=round_bound(self.run, answers.updates)
+                bound=round_bound(self.run, answers.updates, budgets)
                 if self.run.algo.bound_estimates
                 else None,
+                plan=plan,
             )
             for callback in self.on_round:
                 callback(record, self.theta)

@@ -103,6 +103,7 @@ def checkpoint_callback(
                 "trajectories_per_agent": progress.trajectories_per_agent,
                 "elapsed_s": progress.elapsed_s,
                 "counters": counters(),
+                **({"plan": progress.plan_state} if progress.plan_state else {}),
             },
             strategy=progress.strategy_state,
         )
@@ -150,6 +151,7 @@ def resume_point(
         trajectories_per_agent=float(checkpoint.state.get("trajectories_per_agent", 0.0)),
         elapsed_s=float(checkpoint.state.get("elapsed_s", 0.0)),
         strategy_state=checkpoint.strategy,
+        plan_state=dict(checkpoint.state.get("plan", {})),
     )
     counters = checkpoint.state.get("counters", {})
     return checkpoint.theta, progress, {k: int(v) for k, v in dict(counters).items()}

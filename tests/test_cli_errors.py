@@ -61,6 +61,23 @@ CASES: dict[str, tuple[str, list[str], str]] = {
         "agents.budget.batch_size[0]: got 0",
     ),
     "unknown-group-option": ("fedhpg-run", ["algo=nope"], "algo: no such option 'nope'"),
+    "plan-without-estimates": (
+        "fedhpg-run",
+        ["agents.plan=theorem1"],
+        "agents.plan: theorem1 plans from Theorem 1's estimated constants: set "
+        "algo.bound_estimates=true",
+    ),
+    "plan-of-fedhpgvr": (
+        "fedhpg-run",
+        ["algo=fedhpgvr", "agents.plan=theorem1"],
+        "agents.plan: theorem1 plans fedhpg's batch_size and local_iters, not 'fedhpgvr''s",
+    ),
+    "plan-every-zero": (
+        "fedhpg-run",
+        ["agents.plan_every=0"],
+        "agents.plan_every: got 0, must be an integer >= 1",
+    ),
+    "plan-unknown": ("fedhpg-run", ["agents.plan=best"], "agents.plan: got 'best', allowed:"),
     "bad-port": ("fedhpg-run", ["server.port=70000"], "server.port: got 70000, must be <= 65535"),
     "host-not-here": (
         "fedhpg-run",

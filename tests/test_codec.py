@@ -77,6 +77,7 @@ SAMPLES = [
         run={"seed": 1, "algo": {"name": "fedhpg", "lr": 0.01}, "tags": ["a", None, True]},
     ),
     Train(round=7, theta=THETA),
+    Train(round=7, theta=THETA, budget={"batch_size": 12, "local_iters": 3}),
     Update(round=7, theta=THETA, stats=STATS),
     Evaluate(round=9, theta=THETA.astype(np.float64), episodes=20),
     Evaluation(round=9, stats=EVALUATION),
@@ -90,6 +91,12 @@ SAMPLES = [
     ),
     HostWelcome(run_id="abc", first=500, count=500, run={"seed": 1}),
     TrainBatch(round=7, theta=THETA, agents=[500, 503, 999]),
+    TrainBatch(
+        round=7,
+        theta=THETA,
+        agents=[500, 503],
+        budgets=[{"batch_size": 2, "local_iters": 1}, {"batch_size": 64, "local_iters": 8}],
+    ),
     UpdateBatch(
         round=7,
         agents=[500, 503, 999],
@@ -448,7 +455,7 @@ def _header(**overrides: object) -> bytes:
     header: dict[str, object] = {
         "v": PROTOCOL_VERSION,
         "type": "train",
-        "fields": {"round": 1},
+        "fields": {"round": 1, "budget": {}},
         "arrays": [{"field": "theta", "dtype": "<f4", "shape": [2]}],
     }
     header.update(overrides)
@@ -493,7 +500,8 @@ REJECTIONS: list[tuple[str, list[Any], str]] = [
     ("too deep", [b"\x91" * 5000 + b"\xc0"], "malformed"),
     # envelope
     ("no version", [_header(v=_DROP), GOOD_ARRAY], "malformed"),
-    ("version 5", [_header(v=5), GOOD_ARRAY], "version"),
+    ("version 6", [_header(v=6), GOOD_ARRAY], "version"),
+    ("version 4", [_header(v=4), GOOD_ARRAY], "version"),
     ("version 3", [_header(v=3), GOOD_ARRAY], "version"),
     ("version 2", [_header(v=2), GOOD_ARRAY], "version"),
     ("version 1", [_header(v=1), GOOD_ARRAY], "version"),
@@ -561,7 +569,7 @@ def test_rejections_carry_a_code(frames: list[Any], code: str) -> None:
 
 
 def test_version_error_names_both_versions() -> None:
-    with pytest.raises(ProtocolError, match=r"received protocol version 3, expected 4"):
+    with pytest.raises(ProtocolError, match=r"received protocol version 3, expected 5"):
         decode([_header(v=3), GOOD_ARRAY])
 
 
@@ -880,3 +888,37 @@ def test_lists_and_maps_of_bounded_numbers_fast_path_agrees_with_the_generic_che
     assert _outcome(codec._checker(algorithm), entries) == _outcome(
         lambda v, w, d: codec._check_dict(limits.Finite, v, w, d), entries
     )
+
+
+# --- planned budgets (agents.plan) ------------------------------------------------------------
+
+
+def _with_fields(message: object, **changes: Any) -> list[bytes]:
+    """``message``'s frames with header fields replaced, as a faulty server would send them."""
+    frames = _wire(message)
+    header = msgpack.unpackb(frames[0])
+    header["fields"].update(changes)
+    return [msgpack.packb(header), *frames[1:]]
+
+
+@pytest.mark.parametrize(
+    ("message", "changes"),
+    [
+        (Train(round=1, theta=THETA), {"budget": {"batch_size": 0}}),
+        (Train(round=1, theta=THETA), {"budget": {"local_iters": protocol.MAX_BUDGET + 1}}),
+        (Train(round=1, theta=THETA), {"budget": {"batch_size": 2.5}}),
+        (Train(round=1, theta=THETA), {"budget": {"x" * 65: 2}}),
+        (Train(round=1, theta=THETA), {"budget": [4, 2]}),
+        (TrainBatch(round=1, theta=THETA, agents=[3, 4]), {"budgets": [{"batch_size": 4}]}),
+        (TrainBatch(round=1, theta=THETA, agents=[3]), {"budgets": [{"batch_size": -1}]}),
+    ],
+    ids=["zero", "huge", "float", "long-key", "not-a-map", "one-short", "negative-in-batch"],
+)
+def test_a_bad_planned_budget_is_refused(message: object, changes: dict[str, Any]) -> None:
+    """The round's budget is checked as every field is: counts in [1, MAX_BUDGET], a map of
+    short keys, and a batch's list one entry per agent it names."""
+    with pytest.raises(ProtocolError) as info:
+        decode(_with_fields(message, **changes))
+    assert info.value.code == "bad_fields", str(info.value)
+    with pytest.raises((ProtocolError, ValueError)):
+        encode(dataclasses.replace(message, **changes))  # type: ignore[type-var]

@@ -23,9 +23,9 @@ from fedhpg.common.batched import mlp
 from fedhpg.common.batched.sampler import Batches, block_order, rollout
 from fedhpg.common.batched.scheduler import RoundTiming, run_round
 from fedhpg.common.bounds import gradient_moments
-from fedhpg.common.components import agent_profile
+from fedhpg.common.components import agent_profile, planned_budget
 from fedhpg.common.config import RunConfig
-from fedhpg.common.group import GroupHook
+from fedhpg.common.group import Budgets, GroupHook
 from fedhpg.common.local import SmoothnessProbe, bound_stats
 from fedhpg.common.types import EvaluationStats, LocalResult
 from fedhpg.common.variants import discount, training_horizon
@@ -112,11 +112,13 @@ class BatchedFedHPG:
         agents: Sequence[int],
         *,
         on_iteration: GroupHook | None = None,
+        budgets: Budgets | None = None,
     ) -> dict[int, LocalResult]:
         algo = self.run.algo
-        budgets = {k: self.budget(k) for k in agents}
-        batch = {k: budgets[k].batch_size for k in agents}
-        iters = {k: budgets[k].local_iters for k in agents}
+        planned = budgets or {}
+        chosen = {k: planned_budget(self.budget(k), planned.get(k)) for k in agents}
+        batch = {k: chosen[k].batch_size for k in agents}
+        iters = {k: chosen[k].local_iters for k in agents}
         order = block_order(agents, batch)
         rngs = [random_stream(self.run.seed, k, round_index, Stream.TRAIN) for k in order]
         params = np.repeat(theta.detach().numpy().astype(np.float32)[None, :], len(order), 0)

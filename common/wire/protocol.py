@@ -18,10 +18,11 @@ import numpy as np
 from fedhpg.common.limits import AgentIndex, Bound, Name, Round, Text
 from fedhpg.common.types import EvaluationStats, UpdateStats
 
-PROTOCOL_VERSION = 4
+PROTOCOL_VERSION = 5
 """2: typed ``Update.stats`` / ``Evaluation.stats``; ``Hello.variant_digest``.
 3: every field bounded (:mod:`fedhpg.common.limits`); ``Shutdown.complete``.
-4: agent hosts (``HostHello`` .. ``EvaluationBatch``): many logical agents, one connection."""
+4: agent hosts (``HostHello`` .. ``EvaluationBatch``): many logical agents, one connection.
+5: ``Train.budget`` / ``TrainBatch.budgets``: the round's budget (``agents.plan``)."""
 
 KIB = 1024
 MAX_HOST_AGENTS = 1 << 16
@@ -35,6 +36,12 @@ at most this much, so a batch of small policies still goes in one message)."""
 
 AgentList = Annotated[list[AgentIndex], Bound(max_len=MAX_HOST_AGENTS)]
 AnswerList = Annotated[list[AgentIndex], Bound(max_len=MAX_BATCH_ANSWERS)]
+MAX_BUDGET = 1 << 20
+"""Largest budget count (trajectories per batch, local iterations) a request may set."""
+BudgetCount = Annotated[int, Bound(low=1, high=MAX_BUDGET)]
+BudgetOverride = Annotated[dict[str, BudgetCount], Bound(max_len=8, key_len=64)]
+"""Fields of the algorithm's ``Budget`` to use this round instead of the agent's configured
+ones (``{"batch_size": 12, "local_iters": 2}``); empty: the configured budget."""
 
 
 class MsgType(StrEnum):
@@ -86,6 +93,8 @@ class Train:
 
     round: Round
     theta: np.ndarray
+    budget: BudgetOverride = field(default_factory=dict)
+    """The server's plan for this agent's round (``agents.plan``); empty: its own budget."""
 
 
 @dataclass(frozen=True, kw_only=True, eq=False)
@@ -147,6 +156,16 @@ class TrainBatch:
     round: Round
     theta: np.ndarray
     agents: AgentList
+    budgets: Annotated[list[BudgetOverride], Bound(max_len=MAX_HOST_AGENTS)] = field(
+        default_factory=list
+    )
+    """Empty (every agent its own budget) or one override per entry of ``agents``."""
+
+    def __post_init__(self) -> None:
+        if self.budgets and len(self.budgets) != len(self.agents):
+            raise ValueError(
+                f"budgets has {len(self.budgets)} entries for {len(self.agents)} agents"
+            )
 
 
 @dataclass(frozen=True, kw_only=True, eq=False)

@@ -7,7 +7,7 @@ Two pools: :mod:`.inprocess` (K workers on this thread: tests and sweeps) and :m
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Protocol
 
@@ -38,8 +38,16 @@ class AgentPool(Protocol):
     @property
     def agent_ids(self) -> list[str]: ...
 
-    def train(self, round_index: int, theta: torch.Tensor, agents: Sequence[int]) -> RoundAnswers:
-        """The local updates of ``round_index`` from θ̃ of the selected agent indices."""
+    def train(
+        self,
+        round_index: int,
+        theta: torch.Tensor,
+        agents: Sequence[int],
+        *,
+        budgets: Mapping[int, Mapping[str, int]] | None = None,
+    ) -> RoundAnswers:
+        """The local updates of ``round_index`` from θ̃ of the selected agent indices;
+        ``budgets``: the round's planned budget fields per agent (``agents.plan``)."""
         ...
 
     def evaluate(

@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import dataclasses
 import logging
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 
 import torch
 
@@ -52,7 +52,14 @@ class InProcessPool:
             self._devices[k] = dataclasses.replace(device_for(self.run, k), virtual_clock=True)
         return self._devices[k]
 
-    def train(self, round_index: int, theta: torch.Tensor, agents: Sequence[int]) -> RoundAnswers:
+    def train(
+        self,
+        round_index: int,
+        theta: torch.Tensor,
+        agents: Sequence[int],
+        *,
+        budgets: Mapping[int, Mapping[str, int]] | None = None,
+    ) -> RoundAnswers:
         broadcast = theta.detach().numpy()
         selected = sorted(agents)
         # The counted clock charges the two messages an agent process would exchange (θ̃
@@ -73,7 +80,9 @@ class InProcessPool:
                 num_params=self.num_params,
             )
 
-        results = self.group.train(round_index, theta, selected, on_iteration=on_iteration)
+        results = self.group.train(
+            round_index, theta, selected, on_iteration=on_iteration, budgets=budgets
+        )
         updates, failures = [], {}
         for k in selected:
             update = self._update(k, round_index, results[k], message)

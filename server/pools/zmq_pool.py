@@ -29,9 +29,10 @@ Paranoid Pirate: handle messages, purge dead peers, send heartbeats.
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import time
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -137,6 +138,8 @@ class Collection:
     """Agents whose answer was rejected (it counts as their answer: they are not waited for)."""
     rows: RoundRows | None = None
     """A round's accepted θ_k (None for an evaluation): ``answers`` hold views of its rows."""
+    budgets: Mapping[int, Mapping[str, int]] = field(default_factory=dict)
+    """A round's planned budgets (``agents.plan``), by agent index; empty: their own."""
 
     @property
     def round(self) -> int:
@@ -589,10 +592,16 @@ class ZmqAgentPool:
         if not owed:
             return None
         request = collection.request
+        planned = collection.budgets
         if not link.host:
+            if isinstance(request, Train) and planned:
+                return dataclasses.replace(request, budget=dict(planned.get(owed[0], {})))
             return request
         if isinstance(request, Train):
-            return TrainBatch(round=request.round, theta=request.theta, agents=owed)
+            budgets = [dict(planned.get(k, {})) for k in owed] if planned else []
+            return TrainBatch(
+                round=request.round, theta=request.theta, agents=owed, budgets=budgets
+            )
         return EvaluateBatch(
             round=request.round, theta=request.theta, episodes=request.episodes, agents=owed
         )
@@ -749,12 +758,20 @@ class ZmqAgentPool:
 
     # -- collecting a request's answers --------------------------------------------------------
 
-    def _collect(self, request: Train | Evaluate, what: str, agents: Sequence[int]) -> Collection:
+    def _collect(
+        self,
+        request: Train | Evaluate,
+        what: str,
+        agents: Sequence[int],
+        budgets: Mapping[int, Mapping[str, int]] | None = None,
+    ) -> Collection:
         """Send ``request`` to the selected agents and gather answers as the round policy says:
         one message per link (a host's names its selected agents)."""
         expected = frozenset(agents)
         rows = RoundRows(expected, self.check.num_params) if isinstance(request, Train) else None
-        collection = Collection(request=request, expected=expected, rows=rows)
+        collection = Collection(
+            request=request, expected=expected, rows=rows, budgets=budgets or {}
+        )
         self._collection = collection
         by_link: dict[bytes, tuple[Link, list[int]]] = {}
         for index in sorted(collection.expected):
@@ -801,9 +818,16 @@ class ZmqAgentPool:
                 )
             self._pump(deadline - time.monotonic())
 
-    def train(self, round_index: int, theta: torch.Tensor, agents: Sequence[int]) -> RoundAnswers:
+    def train(
+        self,
+        round_index: int,
+        theta: torch.Tensor,
+        agents: Sequence[int],
+        *,
+        budgets: Mapping[int, Mapping[str, int]] | None = None,
+    ) -> RoundAnswers:
         request = Train(round=round_index, theta=theta.detach().numpy())
-        collection = self._collect(request, "round", agents)
+        collection = self._collect(request, "round", agents, budgets)
         stragglers = [
             self._name(k) for k in sorted(collection.expected) if not collection.answered(k)
         ]
