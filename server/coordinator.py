@@ -44,6 +44,12 @@ class RoundRecord:
     """The agent indices asked to train (participation, then the strategy's select)."""
     bound: dict[str, Any] | None = None
     """Theorem 1's terms from the agents' estimates (``algo.bound_estimates``)."""
+    emulated_clock_s: float | None = None
+    """Buffered rounds: the emulated time at which this θ̃ was aggregated."""
+    staleness: list[int] | None = None
+    """Buffered rounds: each aggregated update's staleness, in the order of ``agents``."""
+    stale: dict[str, int] = field(default_factory=dict)
+    """Buffered rounds: agent id → staleness of the updates dropped past the bound."""
 
     def to_json(self) -> dict[str, Any]:
         record: dict[str, Any] = {
@@ -63,6 +69,12 @@ class RoundRecord:
             record["stragglers"] = list(self.stragglers)
         if self.bound is not None:
             record["bound"] = dict(self.bound)
+        if self.emulated_clock_s is not None:
+            record["emulated_clock_s"] = self.emulated_clock_s
+        if self.staleness is not None:
+            record["staleness"] = list(self.staleness)
+        if self.stale:
+            record["stale"] = dict(self.stale)
         return record
 
 
@@ -105,6 +117,8 @@ class RunProgress:
     elapsed_s: float = 0.0
     """Wall time of the rounds already done (before a restart, if any)."""
     strategy_state: SavedState = field(default_factory=SavedState)
+    schedule_state: SavedState | None = None
+    """Buffered rounds: the in-flight updates and the emulated clock (server/buffered.py)."""
 
 
 class Coordinator:

@@ -50,6 +50,7 @@ from fedhpg.server.metrics import MetricsWriter, tensorboard_sink
 from fedhpg.server.pools import FederationError
 from fedhpg.server.pools.zmq_pool import ZmqAgentPool
 from fedhpg.server.report import evaluation_table
+from fedhpg.server.rounds import check_distributed_policy
 from fedhpg.server.run_dir import RunDirectory, RunDirectoryError, claimed
 from fedhpg.server.strategies import Strategy, make_strategy, validate_strategy
 from fedhpg.server.validation import UpdateCheck
@@ -105,6 +106,7 @@ def checkpoint_callback(
                 "counters": counters(),
             },
             strategy=progress.strategy_state,
+            schedule=progress.schedule_state,
         )
         try:
             save_checkpoint(directory, checkpoint)
@@ -150,6 +152,7 @@ def resume_point(
         trajectories_per_agent=float(checkpoint.state.get("trajectories_per_agent", 0.0)),
         elapsed_s=float(checkpoint.state.get("elapsed_s", 0.0)),
         strategy_state=checkpoint.strategy,
+        schedule_state=checkpoint.schedule,
     )
     counters = checkpoint.state.get("counters", {})
     return checkpoint.theta, progress, {k: int(v) for k, v in dict(counters).items()}
@@ -185,6 +188,7 @@ def serve(
 ) -> ServerResult:
     """Run one federation as its server; returns the final θ̃_T."""
     validate_strategy(run)
+    check_distributed_policy(run)
     strategy = make_strategy(run.strategy)
     first = variant_of(run, 0)
     theta, progress = initial_theta(first, run), RunProgress()

@@ -3,15 +3,27 @@
 ``wait_all`` (Algorithm 1 as written): every selected agent's answer; a dead agent is waited
 for until it rejoins, up to ``server.rejoin_timeout_s``. ``deadline``: what arrived by
 ``server.round_deadline_s`` once at least ``server.min_agents`` answered (or as soon as every
-live selected agent did). Either way ``server.round_timeout_s`` caps a request.
+live selected agent did). Either way ``server.round_timeout_s`` caps a request. ``buffered``
+(asynchronous rounds) is not a request policy: server/buffered.py runs it, in process only.
 """
 
 from __future__ import annotations
 
 from collections.abc import Callable, Collection, Mapping
 
-from fedhpg.common.config import ServerConfig
+from fedhpg.common.config import ConfigError, RunConfig, ServerConfig
 from fedhpg.server.pools import FederationError
+
+
+def check_distributed_policy(run: RunConfig) -> None:
+    """Refuse a policy the agent processes' pool does not run: 'buffered' (asynchronous
+    rounds, server/buffered.py) is in process only."""
+    if run.server.round_policy == "buffered":
+        raise ConfigError(
+            "server.round_policy",
+            "'buffered' runs in process only (fedhpg.api.run without distributed=True); agent "
+            "processes support 'wait_all' and 'deadline'",
+        )
 
 
 def request_complete(
