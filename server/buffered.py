@@ -100,6 +100,25 @@ class InFlight:
         return (self.arrival_s, self.agent)
 
 
+def buffer_rows(
+    server: ServerConfig, theta: torch.Tensor, buffer: Sequence[InFlight], current: int
+) -> list[AgentUpdate]:
+    """The rows the strategy aggregates into the next θ̃ from θ̃ = ``theta`` (version
+    ``current``): θ̃ + (w_k / mean w) Δ_k, or θ_k itself where that is the same number (a fresh
+    update among equal weights), in agent order."""
+    weights = [staleness_weight(server, current - item.version) for item in buffer]
+    equal = all(w == weights[0] for w in weights)
+    rows = []
+    for item, weight in zip(buffer, weights, strict=True):
+        if item.version == current and equal:
+            row = item.update.theta
+        else:
+            scale = 1.0 if equal else weight * len(weights) / sum(weights)
+            row = (theta + scale * item.delta).to(theta.dtype)
+        rows.append(dataclasses.replace(item.update, theta=row))
+    return sorted(rows, key=lambda u: u.agent_index)
+
+
 @dataclass(kw_only=True)
 class BufferedSchedule:
     """The in-flight updates (one per agent at most), the emulated clock, the dispatch counts."""
@@ -238,22 +257,6 @@ class BufferedCoordinator(Coordinator):
             buffer.append(item)
         return buffer, stale, failures
 
-    def _rows(self, buffer: list[InFlight], version: int) -> list[AgentUpdate]:
-        """The strategy's rows: θ̃ + (w_k / mean w) Δ_k, or θ_k itself where that is exact."""
-        settings = self.run.server
-        weights = [staleness_weight(settings, version - 1 - i.version) for i in buffer]
-        equal = all(w == weights[0] for w in weights)
-        rows = []
-        for item, weight in zip(buffer, weights, strict=True):
-            fresh = item.version == version - 1
-            if fresh and equal:
-                theta = item.update.theta
-            else:
-                scale = 1.0 if equal else weight * len(weights) / sum(weights)
-                theta = (self.theta + scale * item.delta).to(self.theta.dtype)
-            rows.append(dataclasses.replace(item.update, theta=theta))
-        return sorted(rows, key=lambda u: u.agent_index)
-
     def run_rounds(self) -> torch.Tensor:
         started = time.perf_counter() - self.progress.elapsed_s
         if self.schedule is None:
@@ -262,7 +265,7 @@ class BufferedCoordinator(Coordinator):
         for version in range(self.progress.next_round, self.run.rounds + 1):
             round_started = time.perf_counter()
             buffer, stale, failures = self._fill_buffer(version)
-            rows = self._rows(buffer, version)
+            rows = buffer_rows(self.run.server, self.theta, buffer, version - 1)
             self._aggregate(version, rows, failures)
             self._dispatch([i.agent for i in buffer], version, self.schedule.clock_s)
             round_time = time.perf_counter() - round_started

@@ -148,6 +148,21 @@ CASES: dict[str, tuple[str, list[str], str]] = {
         ["algo=fedhpgvr", "algo.bound_estimates=true"],
         "algo.bound_estimates: Theorem 1's constants are estimated for fedhpg only",
     ),
+    "buffered-distributed": (
+        "fedhpg-run",
+        ["server.round_policy=buffered"],
+        "server.round_policy: 'buffered' runs in process only",
+    ),
+    "buffer-over-k": (
+        "fedhpg-run",
+        ["server.buffer_size=5"],
+        "server.buffer_size: got 5, must be <= agents.num_agents=4",
+    ),
+    "negative-staleness": (
+        "fedhpg-server",
+        ["server.max_staleness=-1"],
+        "server.max_staleness: got -1, must be an integer >= 0",
+    ),
     # e.g. env=halfcheetah where fedhpg was installed without the envs extra (MuJoCo)
     "missing-simulator": (
         "fedhpg-run",
