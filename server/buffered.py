@@ -16,9 +16,11 @@ The aggregation: an update that started from θ̃_v arrives at version r − 1 w
 s = r − 1 − v. More than ``server.max_staleness`` and it is dropped (its agent restarts at
 once from the newest θ̃). Otherwise its change Δ_k = θ_k − θ̃_v enters the buffer with weight
 w(s) (``server.staleness_weight``). The configured strategy aggregates the rows
-θ̃_{r−1} + (w_k / mean w) Δ_k: for ``mean`` that is θ̃_{r−1} + Σ w_k Δ_k / Σ w_k, FedBuff's
-rule; robust rules and fedadam's server step apply to those rows as to synchronous θ_k. A
-fresh update (s = 0) of equal weight is passed as θ_k itself, so with M = K every buffer
+θ̃_{r−1} + w_k Δ_k: for ``mean`` that is θ̃_{r−1} + (1/M) Σ w_k Δ_k, FedBuff's rule (its
+server step is 1; fedadam's server step and the robust rules apply to those rows as to
+synchronous θ_k). FedBuff divides by M, not by Σ w_k: normalised by Σ w_k the weights would
+cancel whenever a buffer's updates share one staleness (always, with M = 1). A fresh update
+(s = 0, w = 1) is passed as θ_k itself, so with M = K every buffer
 holds K fresh updates from one θ̃ and a round is bit for bit a synchronous ``wait_all`` round.
 
 What continues a run exactly is :meth:`BufferedSchedule.state`: the emulated clock, each
@@ -104,17 +106,15 @@ def buffer_rows(
     server: ServerConfig, theta: torch.Tensor, buffer: Sequence[InFlight], current: int
 ) -> list[AgentUpdate]:
     """The rows the strategy aggregates into the next θ̃ from θ̃ = ``theta`` (version
-    ``current``): θ̃ + (w_k / mean w) Δ_k, or θ_k itself where that is the same number (a fresh
-    update among equal weights), in agent order."""
-    weights = [staleness_weight(server, current - item.version) for item in buffer]
-    equal = all(w == weights[0] for w in weights)
+    ``current``): θ̃ + w(s_k) Δ_k, or θ_k itself where that is the same number (a fresh update,
+    w = 1), in agent order."""
     rows = []
-    for item, weight in zip(buffer, weights, strict=True):
-        if item.version == current and equal:
+    for item in buffer:
+        weight = staleness_weight(server, current - item.version)
+        if item.version == current:  # w(0) = 1 under every weighting
             row = item.update.theta
         else:
-            scale = 1.0 if equal else weight * len(weights) / sum(weights)
-            row = (theta + scale * item.delta).to(theta.dtype)
+            row = (theta + weight * item.delta).to(theta.dtype)
         rows.append(dataclasses.replace(item.update, theta=row))
     return sorted(rows, key=lambda u: u.agent_index)
 

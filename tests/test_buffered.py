@@ -38,7 +38,14 @@ def _figures(records: list[dict[str, Any]]) -> list[dict[str, Any]]:
     ]
 
 
-def _item(agent: int, version: int, arrival_s: float, theta: torch.Tensor) -> InFlight:
+def _item(
+    agent: int,
+    version: int,
+    arrival_s: float,
+    theta: torch.Tensor,
+    base: torch.Tensor | None = None,
+) -> InFlight:
+    """An in-flight update θ_k = ``theta`` started from θ̃_version = ``base`` (default 0)."""
     stats = UpdateStats(trajectories=1, env_steps=1, compute_s=0.0, train_return=0.0)
     update = AgentUpdate(agent_index=agent, agent_id=f"agent-{agent}", theta=theta, stats=stats)
     return InFlight(
@@ -47,7 +54,7 @@ def _item(agent: int, version: int, arrival_s: float, theta: torch.Tensor) -> In
         dispatch=1,
         arrival_s=arrival_s,
         update=update,
-        delta=theta - torch.zeros_like(theta),
+        delta=theta - (torch.zeros_like(theta) if base is None else base),
     )
 
 
@@ -88,17 +95,19 @@ def test_arrivals_at_the_same_time_go_in_agent_order() -> None:
     assert schedule.clock_s == 0.7
 
 
-def test_staleness_weights_make_fedbuffs_weighted_mean_change() -> None:
-    """The rows the strategy averages: their mean is θ̃ + Σ w(s) Δ_k / Σ w(s), w = 1/√(1+s)."""
+def test_staleness_weights_make_fedbuffs_mean_change() -> None:
+    """The rows the strategy averages: their mean is θ̃ + (1/M) Σ w(s_k) Δ_k, w = 1/√(1+s);
+    a fresh update is θ_k itself."""
     theta = torch.tensor([1.0, -2.0, 0.5])
-    fresh, old = _item(0, 5, 1.0, torch.tensor([1.0, 0.0, 0.0])), _item(1, 2, 1.0, theta * 3)
-    rows = buffer_rows(ServerConfig(), theta, [fresh, old], current=5)
-    w0, w1 = 1.0, 1.0 / math.sqrt(1.0 + 3)
-    expected = theta + (w0 * fresh.delta + w1 * old.delta) / (w0 + w1)
+    fresh = _item(0, 5, 1.0, torch.tensor([1.0, 0.0, 0.0]), base=theta)
+    old = _item(1, 2, 1.0, theta * 3)
+    rows = buffer_rows(ServerConfig(), theta, [old, fresh], current=5)
+    assert [r.agent_index for r in rows] == [0, 1]
+    expected = theta + (fresh.delta + old.delta / math.sqrt(1.0 + 3)) / 2
     mean = torch.stack([r.theta for r in rows]).mean(dim=0)
     assert torch.allclose(mean, expected, rtol=1e-6, atol=1e-6)
+    assert torch.equal(rows[0].theta, fresh.update.theta)
     constant = buffer_rows(ServerConfig(staleness_weight="constant"), theta, [fresh, old], 5)
-    assert torch.equal(constant[0].theta, fresh.update.theta)  # fresh, equal weight: θ_k itself
     assert torch.equal(constant[1].theta, theta + old.delta)
 
 
