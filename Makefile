@@ -90,6 +90,13 @@ bench-scale: $(STAMP)
 	OMP_NUM_THREADS=1 $(BIN)/python -m benchmarks.scale
 	OMP_NUM_THREADS=1 $(BIN)/python -m benchmarks.scale_gridworld
 
+# Asynchronous (buffered) against synchronous rounds in process on the counted clock: every
+# figure is a function of the seed, so it runs at low priority. BENCHMARKS.md "Asynchronous
+# rounds"; benchmarks/results/async_rounds.json, docs/figures/async_rounds.png.
+.PHONY: bench-async
+bench-async: $(STAMP)
+	nice -n 10 $(BIN)/python -m benchmarks.async_rounds
+
 bench-robustness: $(STAMP)
 	$(BIN)/python -m benchmarks.robustness
 

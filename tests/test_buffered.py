@@ -18,6 +18,7 @@ from fedhpg.common.types import AgentUpdate, UpdateStats
 from fedhpg.server import api
 from fedhpg.server.buffered import BufferedSchedule, InFlight, buffer_rows
 from fedhpg.server.coordinator import RoundRecord
+from fedhpg.server.plot import Run, series
 
 COUNTED = ["agents.clock=counted", "agents.virtual_clock=true", "server.tensorboard=false"]
 BASE = [*COUNTED, "seed=3", "rounds=8", "eval.every=8", "eval.episodes=2"]
@@ -70,6 +71,9 @@ def test_buffered_run_is_bit_identical_twice() -> None:
     assert clocks == sorted(clocks) and clocks[0] > 0
     assert all(len(r["agents"]) == 2 == len(r["staleness"]) for r in first.records)
     assert max(s for r in first.records for s in r["staleness"]) > 0
+    # fedhpg-plot's emulated-time axis is that clock, not a sum of the buffers' slowest
+    x, _ = series(Run(Path("run"), {}, first.records), "emulated", "eval_return")
+    assert x.tolist() == [r["emulated_clock_s"] for r in first.records if "eval" in r]
 
 
 def test_buffer_of_all_agents_is_a_synchronous_round() -> None:
