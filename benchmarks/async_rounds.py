@@ -352,7 +352,15 @@ def main() -> None:
     parser.add_argument("--no-repeat", action="store_true")
     parser.add_argument("--results", type=Path, default=RESULTS)
     parser.add_argument("--figure", type=Path, default=FIGURE)
+    parser.add_argument(
+        "--from-results", action="store_true", help="table and figure of --results, no runs"
+    )
     args = parser.parse_args()
+    if args.from_results:
+        rows = json.loads(args.results.read_text())["summary"]
+        print(table(rows))
+        plot(rows, args.figure)
+        return
     logging.basicConfig(level=logging.INFO, format="%(message)s")
     logging.getLogger("fedhpg").setLevel(logging.ERROR)
     torch.set_num_threads(1)

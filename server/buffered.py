@@ -195,10 +195,11 @@ class BufferedCoordinator(Coordinator):
 
     pool: InProcessPool
 
-    def __init__(self, *, schedule: SavedState | None = None, **kwargs: Any) -> None:
+    def __init__(self, **kwargs: Any) -> None:
         super().__init__(**kwargs)
         self.size = buffer_size(self.run)
-        self.schedule = BufferedSchedule.restore(schedule) if schedule else None
+        saved = self.progress.schedule_state  # a resumed run's in-flight updates
+        self.schedule = BufferedSchedule.restore(saved) if saved is not None else None
 
     def _dispatch(self, agents: Sequence[int], version: int, at_s: float) -> None:
         """Start ``agents`` from θ̃ (version ``version``) at emulated time ``at_s``."""

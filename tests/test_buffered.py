@@ -181,3 +181,12 @@ def test_deadline_in_process_is_on_the_emulated_clock() -> None:
     for record in run.records:
         assert all(a["emulated_s"] <= 0.7 for a in record["agents"])
         assert record["stragglers"] == ["agent-3"]
+
+
+def test_buffered_resume_of_a_synchronous_checkpoint_is_refused(tmp_path: Path) -> None:
+    """A checkpoint of wait_all rounds holds no in-flight updates: resuming it as buffered
+    rounds could not continue any run exactly, so it is refused, naming the key."""
+    out_dir = tmp_path / "run"
+    api.run(overrides=[*BASE, "rounds=1"], out_dir=out_dir)
+    with pytest.raises(ConfigError, match=r"server\.round_policy: got 'buffered', but the"):
+        api.run(overrides=[*BASE, *BUFFERED, "resume=true"], out_dir=out_dir)

@@ -158,7 +158,16 @@ def run_in_process(
     validate_buffered(run)
     pool = make_in_process_pool(run)
     try:
-        settings = dict(
+        buffered = run.server.round_policy == "buffered"
+        resumed = progress is not None and progress.next_round > 1
+        if buffered and resumed and progress is not None and progress.schedule_state is None:
+            raise ConfigError(
+                "server.round_policy",
+                "got 'buffered', but the checkpoint was written by synchronous rounds (it "
+                "holds no in-flight updates); resume with the run's own round policy",
+            )
+        kind = BufferedCoordinator if buffered else Coordinator
+        coordinator = kind(
             run=run,
             pool=pool,
             strategy=make_strategy(run.strategy),
@@ -166,15 +175,6 @@ def run_in_process(
             progress=progress,
             on_round=on_round,
         )
-        if run.server.round_policy == "buffered":
-            schedule = progress.schedule_state if progress is not None else None
-            if schedule is None and progress is not None and progress.next_round > 1:
-                raise ConfigError(
-                    "server.round_policy",
-                    "got 'buffered', but the checkpoint was written by synchronous rounds "
-                    "(it holds no in-flight updates); resume with the run's own round policy",
-                )
-            return BufferedCoordinator(schedule=schedule, **settings).run_rounds()
-        return Coordinator(**settings).run_rounds()
+        return coordinator.run_rounds()
     finally:
         pool.close()
