@@ -96,6 +96,9 @@ bench-scale: $(STAMP)
 .PHONY: bench-async
 bench-async: $(STAMP)
 	nice -n 10 $(BIN)/python -m benchmarks.async_rounds
+	nice -n 10 $(BIN)/python -m benchmarks.async_rounds --setups cartpole-k100 --seeds 3 \
+		--results benchmarks/results/async_rounds_k100.json \
+		--figure docs/figures/async_rounds_k100.png
 
 bench-robustness: $(STAMP)
 	$(BIN)/python -m benchmarks.robustness
