@@ -44,6 +44,7 @@ import torch
 
 from fedhpg.common.config import ConfigError, RunConfig, ServerConfig, agent_id_of
 from fedhpg.common.types import AgentUpdate, SavedState, UpdateStats
+from fedhpg.server.bound_report import round_bound
 from fedhpg.server.coordinator import (
     NON_FINITE,
     Coordinator,
@@ -225,7 +226,7 @@ class BufferedCoordinator(Coordinator):
                     )
                 )
 
-    def _fill_buffer(self, version: int) -> tuple[list[InFlight], dict[str, int], dict]:
+    def _fill_buffer(self, version: int) -> tuple[list[InFlight], dict[str, int], dict[str, str]]:
         """Arrivals until M accepted ones; stale and rejected agents restart at once."""
         assert self.schedule is not None
         buffer: list[InFlight] = []
@@ -252,6 +253,7 @@ class BufferedCoordinator(Coordinator):
                 continue
             rejected_in_a_row = 0
             if limit is not None and staleness > limit:
+                logger.debug("dropped %s's update: staleness %d", item.update.agent_id, staleness)
                 stale[item.update.agent_id] = staleness
                 self._dispatch([item.agent], version - 1, item.arrival_s)
                 continue
@@ -292,6 +294,9 @@ class BufferedCoordinator(Coordinator):
                 emulated_clock_s=self.schedule.clock_s,
                 staleness=[version - 1 - i.version for i in ordered],
                 stale=stale,
+                bound=round_bound(self.run, [i.update for i in ordered])
+                if self.run.algo.bound_estimates
+                else None,
             )
             for callback in self.on_round:
                 callback(record, self.theta)
