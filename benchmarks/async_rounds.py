@@ -61,6 +61,9 @@ class Setup:
     buffers: tuple[int, int]
     budget_rounds: int
     """Synchronous rounds allowed; a buffered run gets the same number of updates."""
+    cohort: int | None = None
+    """Also ``wait_all`` with C = ``cohort`` agents drawn per round (participation uniform):
+    as many updates per server step as the smaller buffer, synchronously."""
 
 
 GEOMETRIC_10X = [round(10 ** (-k / 9), 4) for k in range(10)]  # 1 … 0.1, ten agents
@@ -108,6 +111,7 @@ SETUPS = {
             threshold=475.0,  # benchmarks/learning.py
             deadline_s=0.1,
             buffers=(3, 5),
+            cohort=3,
             budget_rounds=80,
         ),
         Setup(
@@ -135,6 +139,17 @@ def policies(setup: Setup) -> dict[str, list[str]]:
         "deadline": ["server.round_policy=deadline", f"server.round_deadline_s={setup.deadline_s}"],
         f"buffered M={small}": ["server.round_policy=buffered", f"server.buffer_size={small}"],
         f"buffered M={large}": ["server.round_policy=buffered", f"server.buffer_size={large}"],
+        **(
+            {}
+            if setup.cohort is None
+            else {
+                f"wait_all C={setup.cohort}": [
+                    "server.round_policy=wait_all",
+                    "strategy.participation.mode=uniform",
+                    f"strategy.participation.per_round={setup.cohort}",
+                ]
+            }
+        ),
     }
 
 
@@ -199,7 +214,9 @@ class _Reached(Exception):
 def one_run(setup: Setup, policy: str, seed: int) -> tuple[Outcome, list[Any], torch.Tensor]:
     chosen = policies(setup)[policy]
     buffered = "server.round_policy=buffered" in chosen
-    size = int(chosen[1].split("=")[1]) if buffered else setup.num_agents
+    size = setup.num_agents  # updates per server step
+    if buffered or "C=" in policy:
+        size = int(chosen[-1].split("=")[1])
     rounds = math.ceil(setup.budget_rounds * setup.num_agents / size)
     # Evaluations at the same number of updates (every K/M versions): the first evaluation at
     # or above a noisy threshold would otherwise come sooner the more often one looks.
@@ -319,8 +336,14 @@ def plot(rows: list[dict[str, Any]], path: Path) -> None:
     import matplotlib.pyplot as plt
 
     setups = list(dict.fromkeys(r["setup"] for r in rows))
-    names = ("wait_all", "deadline", "buffered, smaller M", "buffered, larger M")
-    colours = ("tab:grey", "tab:red", "tab:blue", "tab:green")
+    names = (
+        "wait_all",
+        "deadline",
+        "buffered, smaller M",
+        "buffered, larger M",
+        "wait_all, C = smaller M",
+    )
+    colours = ("tab:grey", "tab:red", "tab:blue", "tab:green", "tab:purple")
     ticks = []
     for setup in setups:
         sizes = [
@@ -332,20 +355,22 @@ def plot(rows: list[dict[str, Any]], path: Path) -> None:
         (axes[0], "emulated_s", "emulated seconds to threshold"),
         (axes[1], "trajectories_per_agent", "trajectories per agent to threshold"),
     ):
+        labelled: set[str] = set()
         for s, setup in enumerate(setups):
             group = [r for r in rows if r["setup"] == setup]
             for p, row in enumerate(group):
                 mean, low, high = row[key]
-                x = s + (p - 1.5) * 0.2
+                x = s + (p - (len(group) - 1) / 2) * 0.17
                 axis.bar(
                     x,
                     mean,
-                    0.2,
+                    0.17,
                     color=colours[p],
                     hatch="//" if row["reached"] < row["seeds"] else None,
                     edgecolor="black",
-                    label=names[p] if s == 0 else None,
+                    label=names[p] if names[p] not in labelled else None,
                 )
+                labelled.add(names[p])
                 axis.errorbar(x, mean, yerr=[[mean - low], [high - mean]], color="black", capsize=3)
         axis.set_xticks(range(len(setups)), ticks, fontsize=8)
         axis.set_yscale("log")
