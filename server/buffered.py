@@ -43,7 +43,7 @@ import numpy as np
 import torch
 
 from fedhpg.common.config import ConfigError, RunConfig, ServerConfig, agent_id_of
-from fedhpg.common.types import AgentUpdate, SavedState, UpdateStats
+from fedhpg.common.types import AgentUpdate, EvaluationStats, SavedState, UpdateStats
 from fedhpg.server.bound_report import round_bound
 from fedhpg.server.coordinator import (
     NON_FINITE,
@@ -235,7 +235,7 @@ class BufferedCoordinator(Coordinator):
         rejected_in_a_row = 0
         limit = self.run.server.max_staleness
         while len(buffer) < self.size:
-            item = self.schedule.pop()
+            item = self._next_arrival()
             self.progress.trajectories_per_agent += (
                 item.update.stats.trajectories / self.run.agents.num_agents
             )
@@ -260,21 +260,38 @@ class BufferedCoordinator(Coordinator):
             buffer.append(item)
         return buffer, stale, failures
 
+    def _next_arrival(self) -> InFlight:
+        assert self.schedule is not None
+        return self.schedule.pop()
+
+    def _agents(self) -> Sequence[int]:
+        return self.pool.group.indices
+
+    def _restart(self, version: int, buffer: Sequence[InFlight]) -> None:
+        """Restart the aggregated agents from the new θ̃ (version ``version``)."""
+        assert self.schedule is not None
+        self._dispatch([i.agent for i in buffer], version, self.schedule.clock_s)
+
+    def _evaluate(self, version: int) -> dict[str, EvaluationStats]:
+        return self.pool.evaluate(version, self.theta, self.run.eval.episodes)
+
     def run_rounds(self) -> torch.Tensor:
         started = time.perf_counter() - self.progress.elapsed_s
         if self.schedule is None:
             self.schedule = BufferedSchedule()
-            self._dispatch(self.pool.group.indices, self.progress.next_round - 1, 0.0)
+        # every agent not in flight (all of them at the start; on resuming a checkpoint of
+        # agent processes, whose in-flight work stayed with them) starts from θ̃
+        idle = [k for k in self._agents() if k not in self.schedule.in_flight]
+        if idle:
+            self._dispatch(idle, self.progress.next_round - 1, self.schedule.clock_s)
         for version in range(self.progress.next_round, self.run.rounds + 1):
             round_started = time.perf_counter()
             buffer, stale, failures = self._fill_buffer(version)
             rows = buffer_rows(self.run.server, self.theta, buffer, version - 1)
             self._aggregate(version, rows, failures)
-            self._dispatch([i.agent for i in buffer], version, self.schedule.clock_s)
+            self._restart(version, buffer)
             round_time = time.perf_counter() - round_started
-            evaluation = None
-            if should_evaluate(self.run, version):
-                evaluation = self.pool.evaluate(version, self.theta, self.run.eval.episodes)
+            evaluation = self._evaluate(version) if should_evaluate(self.run, version) else None
             wall_time = time.perf_counter() - started
             progress = self.progress
             progress.next_round = version + 1

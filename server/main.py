@@ -197,6 +197,12 @@ def serve(
     with claimed(out_dir, resume=bool(run.resume)) as run_dir:
         if run.resume:
             theta, progress, counters = resume_point(run, run_dir, strategy)
+            if run.server.round_policy == "buffered" and progress.schedule_state is None:
+                raise ConfigError(
+                    "server.round_policy",
+                    "got 'buffered', but the checkpoint was written by synchronous rounds "
+                    "(it holds no agent's round count); resume with the run's own round policy",
+                )
         write_atomic(out_dir / "config.json", json.dumps(to_dict(run), indent=2).encode())
         return _serve_claimed(
             run,
@@ -281,7 +287,10 @@ def _serve_claimed(
         if show_progress:  # timed from the first round on, not the wait for agents
             bar = Progress(run.rounds, "rounds", done=progress.next_round - 1)
             callbacks.append(_progress_callback(bar, has_goal=first.has_goal))
-        coordinator = Coordinator(
+        from fedhpg.server.buffered_zmq import ZmqBufferedCoordinator  # the in-process loop
+
+        kind = ZmqBufferedCoordinator if run.server.round_policy == "buffered" else Coordinator
+        coordinator = kind(
             run=run,
             pool=pool,
             strategy=strategy,

@@ -4,7 +4,9 @@
 for until it rejoins, up to ``server.rejoin_timeout_s``. ``deadline``: what arrived by
 ``server.round_deadline_s`` once at least ``server.min_agents`` answered (or as soon as every
 live selected agent did). Either way ``server.round_timeout_s`` caps a request. ``buffered``
-(asynchronous rounds) is not a request policy: server/buffered.py runs it, in process only.
+(asynchronous rounds) is not a request policy for training (server/buffered.py and, with agent
+processes, server/buffered_zmq.py run it); its evaluations close once every live agent
+answered (a dead agent is not waited for: the others are not held up by it either).
 """
 
 from __future__ import annotations
@@ -16,13 +18,18 @@ from fedhpg.server.pools import FederationError
 
 
 def check_distributed_policy(run: RunConfig) -> None:
-    """Refuse a policy the agent processes' pool does not run: 'buffered' (asynchronous
-    rounds, server/buffered.py) is in process only."""
-    if run.server.round_policy == "buffered":
+    """Refuse what agent processes do not run with a policy: 'buffered' takes lone agent
+    processes only (a host's one TrainBatch cannot carry requests of different rounds)."""
+    if run.server.round_policy != "buffered":
+        return
+    from fedhpg.server.buffered import validate_buffered
+
+    validate_buffered(run)
+    if run.agents.per_host > 1:
         raise ConfigError(
-            "server.round_policy",
-            "'buffered' runs in process only (fedhpg.api.run without distributed=True); agent "
-            "processes support 'wait_all' and 'deadline'",
+            "agents.per_host",
+            f"got {run.agents.per_host}; server.round_policy=buffered takes one agent per "
+            "process (agent hosts are not supported with it): use agents.per_host=1",
         )
 
 
@@ -53,6 +60,8 @@ def request_complete(
         live_done = all(k in answered for k in expected if k in live)
         if live_done or elapsed_s >= settings.round_deadline_s:
             return True
+    if settings.round_policy == "buffered" and all(k in answered for k in expected if k in live):
+        return True
     if settings.round_policy == "wait_all":
         for index in pending:
             since = absent_since.get(index)

@@ -168,9 +168,15 @@ def test_bad_buffered_options_are_named(overrides: list[str], message: str) -> N
     assert str(error.value).startswith(message)
 
 
-def test_distributed_buffered_is_refused_before_anything_starts(tmp_path: Path) -> None:
-    with pytest.raises(ConfigError, match="'buffered' runs in process only"):
-        api.run(overrides=[*BASE, *BUFFERED], distributed=True, out_dir=tmp_path / "run")
+def test_distributed_buffered_with_agent_hosts_is_refused_before_anything_starts(
+    tmp_path: Path,
+) -> None:
+    with pytest.raises(ConfigError, match="agents.per_host: got 2; server.round_policy=buffered"):
+        api.run(
+            overrides=[*BASE, *BUFFERED, "agents.per_host=2"],
+            distributed=True,
+            out_dir=tmp_path / "run",
+        )
     assert not (tmp_path / "run").exists()
 
 

@@ -148,10 +148,10 @@ CASES: dict[str, tuple[str, list[str], str]] = {
         ["algo=fedhpgvr", "algo.bound_estimates=true"],
         "algo.bound_estimates: Theorem 1's constants are estimated for fedhpg only",
     ),
-    "buffered-distributed": (
+    "buffered-hosts": (
         "fedhpg-run",
-        ["server.round_policy=buffered"],
-        "server.round_policy: 'buffered' runs in process only",
+        ["server.round_policy=buffered", "agents.per_host=2"],
+        "agents.per_host: got 2; server.round_policy=buffered takes one agent per process",
     ),
     "buffer-over-k": (
         "fedhpg-run",
