@@ -171,7 +171,8 @@ def test_bad_buffered_options_are_named(overrides: list[str], message: str) -> N
 def test_distributed_buffered_with_agent_hosts_is_refused_before_anything_starts(
     tmp_path: Path,
 ) -> None:
-    with pytest.raises(ConfigError, match="agents.per_host: got 2; server.round_policy=buffered"):
+    refusal = r"agents\.per_host: got 2; server\.round_policy=buffered takes one agent"
+    with pytest.raises(ConfigError, match=refusal):
         api.run(
             overrides=[*BASE, *BUFFERED, "agents.per_host=2"],
             distributed=True,

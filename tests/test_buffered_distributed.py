@@ -60,7 +60,8 @@ def test_buffered_processes_follow_arrival_order(tmp_path: Path) -> None:
     assert min(counts["agent-0"], counts["agent-1"]) > counts["agent-3"], counts
     # evaluation pauses dispatch: every agent evaluates, every eval.every versions
     assert [r["round"] for r in records if "eval" in r] == [4, 8, 12]
-    assert all(sorted(r["eval"]) == [f"agent-{k}" for k in range(4)] for r in records if "eval" in r)
+    everyone = [f"agent-{k}" for k in range(4)]
+    assert all(sorted(r["eval"]) == everyone for r in records if "eval" in r)
     checkpoint = latest_valid_checkpoint(out_dir / "checkpoints")
     assert checkpoint is not None and checkpoint.round == 12
 
