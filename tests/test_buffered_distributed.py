@@ -132,3 +132,27 @@ def test_a_killed_agent_rejoins_from_the_newest_theta_and_the_run_ends(tmp_path:
     assert later, f"agent-2 was not aggregated after its restart: {with_2}"
     # while it was away the others made versions on their own
     assert later[0] - max([v for v in with_2 if v <= killed_after + 1], default=0) > 2
+
+
+def test_a_resumed_run_restarts_every_agent_from_the_checkpoint(tmp_path: Path) -> None:
+    """Two versions, then a resume to four: the checkpoint holds each agent's count of rounds
+    done, so each agent's third update uses round 3's streams; with M = K that is the
+    uninterrupted in-process wait_all run exactly."""
+    keys = [
+        *QUIET,
+        "seed=5",
+        "agents.num_agents=2",
+        "agents.budget.batch_size=[6,8]",
+        "agents.budget.local_iters=[1,2]",
+        "agents.speeds=[1.0]",
+        "agents.step_delays_s=[0]",
+        "eval.every=10",
+        "eval.episodes=2",
+    ]
+    buffered = [*keys, "server.round_policy=buffered"]
+    out_dir, _ = _run(tmp_path, [*buffered, "rounds=2"])
+    _run(tmp_path, [*buffered, "rounds=4", "resume=true"])
+    checkpoint = latest_valid_checkpoint(out_dir / "checkpoints")
+    assert checkpoint is not None and checkpoint.round == 4
+    assert [r["round"] for r in _records(out_dir)] == [1, 2, 3, 4]
+    assert torch.equal(checkpoint.theta, run_in_process(compose([*keys, "rounds=4"])))
