@@ -292,7 +292,8 @@ class ServerConfig:
     until it rejoins (``rejoin_timeout_s``); 'deadline': aggregate the updates that arrived
     by ``round_deadline_s`` if at least ``min_agents`` did, the rest are stragglers;
     'buffered': asynchronous rounds (FedBuff-style), θ̃ is aggregated from every
-    ``buffer_size`` arrivals, each agent restarting at once from the newest θ̃ (in process only).
+    ``buffer_size`` arrivals, each agent restarting at once from the newest θ̃ (in process:
+    in emulated-time order; with agent processes: in arrival order, one agent per process).
     """
     round_deadline_s: float = 60.0
     """'deadline' policy: seconds after the broadcast at which the round is aggregated (in
