@@ -38,6 +38,10 @@ def _run(tmp_path: Path, overrides: list[str]) -> tuple[Path, str]:
     return out_dir, stdout + stderr
 
 
+def _lines(path: Path) -> list[str]:
+    return path.read_text().splitlines()
+
+
 def _records(out_dir: Path) -> list[dict[str, Any]]:
     return [json.loads(line) for line in (out_dir / "metrics.jsonl").read_text().splitlines()]
 
@@ -88,10 +92,10 @@ def test_buffered_with_m_equal_k_is_wait_all_bit_for_bit(tmp_path: Path) -> None
     assert all(r["staleness"] == [0, 0, 0] for r in _records(out_dir))
 
 
-def test_a_killed_agent_rejoins_from_the_newest_theta_and_the_run_ends(tmp_path: Path) -> None:
+def test_a_killed_agent_is_restarted_rejoins_and_the_run_ends(tmp_path: Path) -> None:
     """K = 3, M = 2, equal speeds: agent-2 is killed (SIGKILL) after the third version; the
-    other two go on aggregating without it, fedhpg-run restarts it, it registers again, is
-    sent the newest θ̃ and is aggregated again before the run ends."""
+    other two go on aggregating without it, fedhpg-run restarts it, it registers again (its
+    open request re-sent with the newest θ̃) and is aggregated again before the run ends."""
     keys = [
         *QUIET,
         "rounds=24",
@@ -117,21 +121,20 @@ def test_a_killed_agent_rejoins_from_the_newest_theta_and_the_run_ends(tmp_path:
             cwd=tmp_path,
         )
         metrics = out_dir / "metrics.jsonl"
-        assert wait_until(lambda: metrics.exists() and len(metrics.read_text().split()) >= 3, 60)
-        killed_after = len(metrics.read_text().splitlines())
+        assert wait_until(lambda: metrics.exists() and len(_lines(metrics)) >= 3, 60)
+        killed_after = len(_lines(metrics))
         os.kill(max(child_pids(launcher.pid)), signal.SIGKILL)  # the last agent forked
         stdout, stderr = launcher.communicate(timeout=TIMEOUT_S)
     logs = stdout + stderr
     assert launcher.returncode == 0, logs[-3000:]
-    assert "agent-2 rejoined" in logs
+    assert "agent-2 presumed dead" in logs and "agent-2 rejoined" in logs
     records = _records(out_dir)
     assert [r["round"] for r in records] == list(range(1, 25))
     assert all(r["updates"] == 2 for r in records)
+    assert killed_after < 20, "killed mid-run"
     with_2 = [r["round"] for r in records if "agent-2" in {a["id"] for a in r["agents"]}]
-    later = [v for v in with_2 if v > killed_after + 1]
-    assert later, f"agent-2 was not aggregated after its restart: {with_2}"
-    # while it was away the others made versions on their own
-    assert later[0] - max([v for v in with_2 if v <= killed_after + 1], default=0) > 2
+    # the version open at the kill may hold an update agent-2 sent just before it
+    assert [v for v in with_2 if v > killed_after + 1], f"agent-2 never came back: {with_2}"
 
 
 def test_a_resumed_run_restarts_every_agent_from_the_checkpoint(tmp_path: Path) -> None:
