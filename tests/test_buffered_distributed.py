@@ -14,7 +14,7 @@ from pathlib import Path
 from typing import Any
 
 import torch
-from procs import child_pids, processes, start, wait_until
+from procs import child_pids, free_port, processes, start, wait_until
 
 from fedhpg.common.runtime.cli import compose
 from fedhpg.server.checkpoint import latest_valid_checkpoint
@@ -159,3 +159,28 @@ def test_a_resumed_run_restarts_every_agent_from_the_checkpoint(tmp_path: Path) 
     assert checkpoint is not None and checkpoint.round == 4
     assert [r["round"] for r in _records(out_dir)] == [1, 2, 3, 4]
     assert torch.equal(checkpoint.theta, run_in_process(compose([*keys, "rounds=4"])))
+
+
+def test_an_agent_host_is_refused_by_a_buffered_server(tmp_path: Path) -> None:
+    """By hand (``fedhpg-server`` and ``fedhpg-agent agent.count=2``, which fedhpg-run would
+    have refused up front): the host is refused at registration and exits naming why."""
+    keys = [
+        *QUIET,
+        "rounds=2",
+        "agents.num_agents=2",
+        "agents.speeds=[1]",
+        "agents.step_delays_s=[0]",
+        "agents.budget.batch_size=[4]",
+        "agents.budget.local_iters=[1]",
+        "server.round_policy=buffered",
+        "server.register_timeout_s=30",
+    ]
+    wire = [f"server.port={free_port()}", f"server.out_dir={tmp_path / 'run'}"]
+    with processes() as started:
+        start(started, "fedhpg-server", [*keys, *wire], cwd=tmp_path)
+        host = start(
+            started, "fedhpg-agent", [*keys, *wire, "agent.first=0", "agent.count=2"], cwd=tmp_path
+        )
+        _, stderr = host.communicate(timeout=TIMEOUT_S)
+    assert host.returncode != 0
+    assert "server refused registration (unsupported): server.round_policy=buffered" in stderr
