@@ -102,6 +102,15 @@ bench-scale: $(STAMP)
 bench-plan: $(STAMP)
 	nice -n 10 $(BIN)/python -m benchmarks.planner --settings gridworld-demo,gridworld-spread,cartpole-10,cartpole-100
 
+# Asynchronous (buffered) against synchronous rounds in process on the counted clock: every
+# figure is a function of the seed, so it runs at low priority. BENCHMARKS.md "Asynchronous
+# rounds"; benchmarks/results/async_rounds.json, docs/figures/async_rounds.png.
+bench-async: $(STAMP)
+	nice -n 10 $(BIN)/python -m benchmarks.async_rounds
+	nice -n 10 $(BIN)/python -m benchmarks.async_rounds --setups cartpole-k100 --seeds 3 \
+		--results benchmarks/results/async_rounds_k100.json \
+		--figure docs/figures/async_rounds_k100.png
+
 bench-robustness: $(STAMP)
 	$(BIN)/python -m benchmarks.robustness
 

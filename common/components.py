@@ -161,6 +161,12 @@ def _check_plan(run: RunConfig, algorithm: Algorithm[Any, Any]) -> None:
             "agents.plan",
             "theorem1 plans from Theorem 1's estimated constants: set algo.bound_estimates=true",
         )
+    if run.server.round_policy == "buffered":
+        # the planner prices wait-all rounds (a round lasts as long as its slowest agent)
+        raise ConfigError(
+            "agents.plan",
+            "theorem1 plans synchronous rounds; server.round_policy=buffered has none to plan",
+        )
 
 
 def validate_run(run: RunConfig) -> RunConfig:

@@ -29,7 +29,8 @@ SCHEDULES = ("constant", "periodic", "random_walk")
 PLANS = ("none", "theorem1")
 CLOCKS = ("measured", "counted")
 TRANSPORTS = ("tcp", "ipc")
-ROUND_POLICIES = ("wait_all", "deadline")
+ROUND_POLICIES = ("wait_all", "deadline", "buffered")
+STALENESS_WEIGHTS = ("inverse_sqrt", "constant")
 PARTICIPATION_MODES = ("all", "uniform", "trace")
 CLUSTER_KINDS = ("auto", "slurm", "local")
 LOG_STDS = ("state_independent", "state_dependent")
@@ -309,9 +310,14 @@ class ServerConfig:
     round_policy: str = "wait_all"
     """'wait_all': Algorithm 1 as written, every agent's update, a dead agent is waited for
     until it rejoins (``rejoin_timeout_s``); 'deadline': aggregate the updates that arrived
-    by ``round_deadline_s`` if at least ``min_agents`` did, the rest are stragglers."""
+    by ``round_deadline_s`` if at least ``min_agents`` did, the rest are stragglers;
+    'buffered': asynchronous rounds (FedBuff-style), θ̃ is aggregated from every
+    ``buffer_size`` arrivals, each agent restarting at once from the newest θ̃ (in process:
+    in emulated-time order; with agent processes: in arrival order, one agent per process).
+    """
     round_deadline_s: float = 60.0
-    """'deadline' policy: seconds after the broadcast at which the round is aggregated."""
+    """'deadline' policy: seconds after the broadcast at which the round is aggregated (in
+    process: emulated seconds, an update whose emulated time exceeds it is a straggler)."""
     min_agents: int = 1
     """'deadline' policy: fewest updates a round may be aggregated from."""
     rejoin_timeout_s: float = 120.0
@@ -341,6 +347,16 @@ class ServerConfig:
     endpoint_file: str | None = None
     """Once listening, write where agents reach the server to this JSON file (host, port):
     how ``fedhpg-cluster``'s agent jobs find a server on a port it chose (shared filesystem)."""
+    buffer_size: int | None = None
+    """'buffered' policy: M, the arrivals aggregated into each new θ̃, in [1, agents.num_agents];
+    None = agents.num_agents (with every agent in the buffer: synchronous rounds)."""
+    max_staleness: int | None = None
+    """'buffered' policy: an update started from a θ̃ more than this many versions old is
+    dropped (recorded under ``stale``) and its agent restarts from the newest θ̃; None = no
+    bound."""
+    staleness_weight: str = "inverse_sqrt"
+    """'buffered' policy: the weight of an update of staleness s in its buffer's mean change,
+    'inverse_sqrt' (FedBuff's 1/sqrt(1 + s)) or 'constant' (1)."""
 
 
 @dataclass(kw_only=True)
@@ -631,12 +647,26 @@ def _validate_server(server: ServerConfig, num_agents: int) -> None:
         "server.min_agents",
         f"got {server.min_agents}, must be <= agents.num_agents={num_agents}",
     )
+    _validate_buffered(server, num_agents)
     _check_int(server.heartbeat_liveness, "server.heartbeat_liveness", low=2)
     if server.max_update_norm is not None:
         _check_number(server.max_update_norm, "server.max_update_norm", low=0.0, low_open=True)
     if server.max_connections is not None:
         # low=1, not K: agent hosts serve many agents over one connection each
         _check_int(server.max_connections, "server.max_connections", low=1)
+
+
+def _validate_buffered(server: ServerConfig, num_agents: int) -> None:
+    if server.buffer_size is not None:
+        _check_int(server.buffer_size, "server.buffer_size", low=1)
+        _require(
+            server.buffer_size <= num_agents,
+            "server.buffer_size",
+            f"got {server.buffer_size}, must be <= agents.num_agents={num_agents}",
+        )
+    if server.max_staleness is not None:
+        _check_int(server.max_staleness, "server.max_staleness", low=0)
+    _check_choice(server.staleness_weight, "server.staleness_weight", STALENESS_WEIGHTS)
 
 
 def _validate_host_range(agent: AgentConfig, num_agents: int) -> None:

@@ -39,6 +39,7 @@ from fedhpg.server.metrics import (
 )
 from fedhpg.server.pools import FederationError
 from fedhpg.server.pools.inprocess import run_in_process
+from fedhpg.server.rounds import check_distributed_policy
 from fedhpg.server.run_dir import RunDirectory, RunDirectoryError, claimed, holds_run
 from fedhpg.server.strategies import make_strategy, validate_strategy
 
@@ -242,6 +243,7 @@ def _run_distributed(run_config: RunConfig, directory: Path | None) -> RunResult
     from fedhpg.server.launcher import run_federation
 
     check_launch_keys(run_config)
+    check_distributed_policy(run_config)
     # What the server would refuse in its own process (exit 2): found here, as an exception.
     initial_theta(variant_of(run_config, 0), run_config)
     with tempfile.TemporaryDirectory(prefix="fedhpg-run-") as scratch:

@@ -52,6 +52,8 @@ class Checkpoint:
     """The server strategy's state."""
     version: int = CHECKPOINT_VERSION
     """The format version the file was written in."""
+    schedule: SavedState | None = None
+    """Buffered rounds: the in-flight updates and the emulated clock (server/buffered.py)."""
 
 
 def _pack_array(array: np.ndarray) -> dict[str, Any]:
@@ -69,9 +71,25 @@ def checkpoint_path(directory: Path, round_number: int) -> Path:
     return directory / f"round-{round_number:06d}.ckpt"
 
 
+def _pack_state(state: SavedState) -> dict[str, Any]:
+    return {
+        "scalars": state.scalars,
+        "arrays": {name: _pack_array(a) for name, a in state.arrays.items()},
+    }
+
+
+def _unpack_state(saved: dict[str, Any]) -> SavedState:
+    return SavedState(
+        scalars=dict(saved["scalars"]),
+        arrays={name: _unpack_array(a) for name, a in saved["arrays"].items()},
+    )
+
+
 def _payload(checkpoint: Checkpoint) -> bytes:
+    extra = {} if checkpoint.schedule is None else {"schedule": _pack_state(checkpoint.schedule)}
     return msgpack.packb(
         {
+            **extra,
             "format": CHECKPOINT_FORMAT,
             "version": CHECKPOINT_VERSION,
             "round": checkpoint.round,
@@ -79,10 +97,7 @@ def _payload(checkpoint: Checkpoint) -> bytes:
             "config": checkpoint.config,
             "metrics_lines": checkpoint.metrics_lines,
             "state": checkpoint.state,
-            "strategy": {
-                "scalars": checkpoint.strategy.scalars,
-                "arrays": {name: _pack_array(a) for name, a in checkpoint.strategy.arrays.items()},
-            },
+            "strategy": _pack_state(checkpoint.strategy),
         },
         use_bin_type=True,
     )
@@ -157,11 +172,7 @@ def load_checkpoint(path: Path) -> Checkpoint:
         version = int(values["version"])
         state = dict(values.get("state", {}))
         if version >= 3:
-            saved = values["strategy"]
-            strategy = SavedState(
-                scalars=dict(saved["scalars"]),
-                arrays={name: _unpack_array(a) for name, a in saved["arrays"].items()},
-            )
+            strategy = _unpack_state(values["strategy"])
         else:  # v2: the server optimizer (today's fedadam) kept its state beside the counters
             prefix = "server_optimizer."
             strategy = SavedState(
@@ -183,6 +194,7 @@ def load_checkpoint(path: Path) -> Checkpoint:
             state=state,
             strategy=strategy,
             version=version,
+            schedule=_unpack_state(values["schedule"]) if "schedule" in values else None,
         )
     except (KeyError, TypeError, ValueError, AttributeError, msgpack.UnpackException) as error:
         if isinstance(error, CheckpointError):

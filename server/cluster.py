@@ -75,6 +75,7 @@ class Placement:
 def check_placement(run: RunConfig, overrides: Sequence[str]) -> Path:
     """What ``fedhpg-cluster`` checks before it submits anything; returns the run directory."""
     from fedhpg.common.wire.security import check_launch_keys
+    from fedhpg.server.rounds import check_distributed_policy
     from fedhpg.server.run_dir import RunDirectory
     from fedhpg.server.strategies import validate_strategy
 
@@ -85,6 +86,7 @@ def check_placement(run: RunConfig, overrides: Sequence[str]) -> Path:
             "server.out_dir=DIR and its agents (README: When the server dies)",
         )
     validate_strategy(run)
+    check_distributed_policy(run)
     check_launch_keys(run)
     units = len(agent_commands(run, overrides))
     parallel = run.cluster.array_parallelism

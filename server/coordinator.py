@@ -47,6 +47,12 @@ class RoundRecord:
     """Theorem 1's terms from the agents' estimates (``algo.bound_estimates``)."""
     plan: dict[str, Any] | None = None
     """The budgets re-planned after this round (``agents.plan``), in force from the next."""
+    emulated_clock_s: float | None = None
+    """Buffered rounds: the emulated time at which this θ̃ was aggregated."""
+    staleness: list[int] | None = None
+    """Buffered rounds: each aggregated update's staleness, in the order of ``agents``."""
+    stale: dict[str, int] = field(default_factory=dict)
+    """Buffered rounds: agent id → staleness of the updates dropped past the bound."""
 
     def to_json(self) -> dict[str, Any]:
         record: dict[str, Any] = {
@@ -68,6 +74,12 @@ class RoundRecord:
             record["bound"] = dict(self.bound)
         if self.plan is not None:
             record["plan"] = dict(self.plan)
+        if self.emulated_clock_s is not None:
+            record["emulated_clock_s"] = self.emulated_clock_s
+        if self.staleness is not None:
+            record["staleness"] = list(self.staleness)
+        if self.stale:
+            record["stale"] = dict(self.stale)
         return record
 
 
@@ -112,6 +124,8 @@ class RunProgress:
     strategy_state: SavedState = field(default_factory=SavedState)
     plan_state: dict[str, Any] = field(default_factory=dict)
     """``agents.plan``: the plan in force and the window it is re-made from."""
+    schedule_state: SavedState | None = None
+    """Buffered rounds: the in-flight updates and the emulated clock (server/buffered.py)."""
 
 
 class Coordinator:

@@ -164,10 +164,12 @@ def check_launch(run: RunConfig) -> None:
     """What fedhpg-run checks of a composed run before starting anything: the strategy, every
     agent's key files, loopback."""
     from fedhpg.common.wire.security import check_launch_keys
+    from fedhpg.server.rounds import check_distributed_policy
     from fedhpg.server.run_dir import RunDirectory
     from fedhpg.server.strategies import validate_strategy
 
     validate_strategy(run)
+    check_distributed_policy(run)
     if run.server.transport == "tcp" and run.server.bind_all:
         raise ConfigError("server.bind_all", "fedhpg-run runs every process here: keep loopback")
     check_launch_keys(run)  # security: every agent's key, before anything is forked

@@ -50,6 +50,7 @@ from fedhpg.server.metrics import MetricsWriter, tensorboard_sink
 from fedhpg.server.pools import FederationError
 from fedhpg.server.pools.zmq_pool import ZmqAgentPool
 from fedhpg.server.report import evaluation_table
+from fedhpg.server.rounds import check_distributed_policy
 from fedhpg.server.run_dir import RunDirectory, RunDirectoryError, claimed
 from fedhpg.server.strategies import Strategy, make_strategy, validate_strategy
 from fedhpg.server.validation import UpdateCheck
@@ -106,6 +107,7 @@ def checkpoint_callback(
                 **({"plan": progress.plan_state} if progress.plan_state else {}),
             },
             strategy=progress.strategy_state,
+            schedule=progress.schedule_state,
         )
         try:
             save_checkpoint(directory, checkpoint)
@@ -152,6 +154,7 @@ def resume_point(
         elapsed_s=float(checkpoint.state.get("elapsed_s", 0.0)),
         strategy_state=checkpoint.strategy,
         plan_state=dict(checkpoint.state.get("plan", {})),
+        schedule_state=checkpoint.schedule,
     )
     counters = checkpoint.state.get("counters", {})
     return checkpoint.theta, progress, {k: int(v) for k, v in dict(counters).items()}
@@ -187,6 +190,7 @@ def serve(
 ) -> ServerResult:
     """Run one federation as its server; returns the final θ̃_T."""
     validate_strategy(run)
+    check_distributed_policy(run)
     strategy = make_strategy(run.strategy)
     first = variant_of(run, 0)
     theta, progress = initial_theta(first, run), RunProgress()
@@ -195,6 +199,12 @@ def serve(
     with claimed(out_dir, resume=bool(run.resume)) as run_dir:
         if run.resume:
             theta, progress, counters = resume_point(run, run_dir, strategy)
+            if run.server.round_policy == "buffered" and progress.schedule_state is None:
+                raise ConfigError(
+                    "server.round_policy",
+                    "got 'buffered', but the checkpoint was written by synchronous rounds "
+                    "(it holds no agent's round count); resume with the run's own round policy",
+                )
         write_atomic(out_dir / "config.json", json.dumps(to_dict(run), indent=2).encode())
         return _serve_claimed(
             run,
@@ -279,7 +289,10 @@ def _serve_claimed(
         if show_progress:  # timed from the first round on, not the wait for agents
             bar = Progress(run.rounds, "rounds", done=progress.next_round - 1)
             callbacks.append(_progress_callback(bar, has_goal=first.has_goal))
-        coordinator = Coordinator(
+        from fedhpg.server.buffered_zmq import ZmqBufferedCoordinator  # the in-process loop
+
+        kind = ZmqBufferedCoordinator if run.server.round_policy == "buffered" else Coordinator
+        coordinator = kind(
             run=run,
             pool=pool,
             strategy=strategy,

@@ -246,8 +246,10 @@ def series(
             "trajectories_per_agent",
             trajectories + sum(a["trajectories"] for a in agents) / max(len(agents), 1),
         )
-        # A round in which no update arrived (deadline policy) took no device time here.
-        emulated += max((a.get("emulated_s", 0.0) for a in agents), default=0.0)
+        if "emulated_clock_s" in record:  # buffered rounds: the clock at the aggregation
+            emulated = float(record["emulated_clock_s"])
+        else:  # a round in which no update arrived (deadline policy) took no device time here
+            emulated += max((a.get("emulated_s", 0.0) for a in agents), default=0.0)
         x = {"rounds": record["round"], "trajectories": trajectories, "emulated": emulated}[x_axis]
         if metric == "train_return":
             chosen = [a for a in agents if agent is None or a["id"] == agent]

@@ -3,15 +3,34 @@
 ``wait_all`` (Algorithm 1 as written): every selected agent's answer; a dead agent is waited
 for until it rejoins, up to ``server.rejoin_timeout_s``. ``deadline``: what arrived by
 ``server.round_deadline_s`` once at least ``server.min_agents`` answered (or as soon as every
-live selected agent did). Either way ``server.round_timeout_s`` caps a request.
+live selected agent did). Either way ``server.round_timeout_s`` caps a request. ``buffered``
+(asynchronous rounds) is not a request policy for training (server/buffered.py and, with agent
+processes, server/buffered_zmq.py run it); its evaluations close once every live agent
+answered (a dead agent is not waited for: the others are not held up by it either).
 """
 
 from __future__ import annotations
 
 from collections.abc import Callable, Collection, Mapping
 
-from fedhpg.common.config import ServerConfig
+from fedhpg.common.config import ConfigError, RunConfig, ServerConfig
 from fedhpg.server.pools import FederationError
+
+
+def check_distributed_policy(run: RunConfig) -> None:
+    """Refuse what agent processes do not run with a policy: 'buffered' takes lone agent
+    processes only (a host's one TrainBatch cannot carry requests of different rounds)."""
+    if run.server.round_policy != "buffered":
+        return
+    from fedhpg.server.buffered import validate_buffered
+
+    validate_buffered(run)
+    if run.agents.per_host > 1:
+        raise ConfigError(
+            "agents.per_host",
+            f"got {run.agents.per_host}; server.round_policy=buffered takes one agent per "
+            "process (agent hosts are not supported with it): use agents.per_host=1",
+        )
 
 
 def request_complete(
@@ -41,6 +60,8 @@ def request_complete(
         live_done = all(k in answered for k in expected if k in live)
         if live_done or elapsed_s >= settings.round_deadline_s:
             return True
+    if settings.round_policy == "buffered" and all(k in answered for k in expected if k in live):
+        return True
     if settings.round_policy == "wait_all":
         for index in pending:
             since = absent_since.get(index)

@@ -78,6 +78,11 @@ CASES: dict[str, tuple[str, list[str], str]] = {
         "agents.plan_every: got 0, must be an integer >= 1",
     ),
     "plan-unknown": ("fedhpg-run", ["agents.plan=best"], "agents.plan: got 'best', allowed:"),
+    "plan-buffered": (
+        "fedhpg-run",
+        ["agents.plan=theorem1", "algo.bound_estimates=true", "server.round_policy=buffered"],
+        "agents.plan: theorem1 plans synchronous rounds; server.round_policy=buffered has none",
+    ),
     "bad-port": ("fedhpg-run", ["server.port=70000"], "server.port: got 70000, must be <= 65535"),
     "host-not-here": (
         "fedhpg-run",
@@ -164,6 +169,21 @@ CASES: dict[str, tuple[str, list[str], str]] = {
         "fedhpg-run",
         ["algo=fedhpgvr", "algo.bound_estimates=true"],
         "algo.bound_estimates: Theorem 1's constants are estimated for fedhpg only",
+    ),
+    "buffered-hosts": (
+        "fedhpg-run",
+        ["server.round_policy=buffered", "agents.per_host=2"],
+        "agents.per_host: got 2; server.round_policy=buffered takes one agent per process",
+    ),
+    "buffer-over-k": (
+        "fedhpg-run",
+        ["server.buffer_size=5"],
+        "server.buffer_size: got 5, must be <= agents.num_agents=4",
+    ),
+    "negative-staleness": (
+        "fedhpg-server",
+        ["server.max_staleness=-1"],
+        "server.max_staleness: got -1, must be an integer >= 0",
     ),
     # e.g. env=halfcheetah where fedhpg was installed without the envs extra (MuJoCo)
     "missing-simulator": (

@@ -15,7 +15,7 @@ from collections.abc import Mapping, Sequence
 import torch
 
 from fedhpg.common.components import validate_run
-from fedhpg.common.config import RunConfig, agent_id_of
+from fedhpg.common.config import ConfigError, RunConfig, agent_id_of
 from fedhpg.common.device import DeviceModel, device_for, message_bytes
 from fedhpg.common.group import AgentGroup, make_agent_group
 from fedhpg.common.runtime.memory import pin_malloc_mmap_threshold, tune_malloc_for
@@ -60,6 +60,39 @@ class InProcessPool:
         *,
         budgets: Mapping[int, Mapping[str, int]] | None = None,
     ) -> RoundAnswers:
+        updates, failures = [], {}
+        for update, problem in self.checked_updates(round_index, theta, agents, budgets=budgets):
+            if problem is None:
+                updates.append(update)
+            else:
+                failures[update.agent_id] = problem
+        if self.run.server.round_policy == "deadline":
+            return self._at_deadline(updates, failures)
+        return RoundAnswers(updates=updates, failures=failures)
+
+    def _at_deadline(self, updates: list[AgentUpdate], failures: dict[str, str]) -> RoundAnswers:
+        """The deadline policy on the emulated clock (nothing here waits on the wall clock):
+        the round closes at ``round_deadline_s`` emulated seconds, or later when fewer than
+        ``min_agents`` updates had arrived by then, at the arrival that makes them enough;
+        updates arriving after it are stragglers, as with agent processes."""
+        settings = self.run.server
+        arrivals = sorted(u.stats.emulated_s for u in updates)
+        enough = arrivals[min(settings.min_agents, len(arrivals)) - 1] if arrivals else 0.0
+        closes = max(settings.round_deadline_s, enough)
+        kept = [u for u in updates if u.stats.emulated_s <= closes]
+        late = [u.agent_id for u in updates if u.stats.emulated_s > closes]
+        return RoundAnswers(updates=kept, failures=failures, stragglers=late)
+
+    def checked_updates(
+        self,
+        round_index: int,
+        theta: torch.Tensor,
+        agents: Sequence[int],
+        *,
+        budgets: Mapping[int, Mapping[str, int]] | None = None,
+    ) -> list[tuple[AgentUpdate, str | None]]:
+        """Every selected agent's update of ``round_index`` from θ̃, in agent order, with why
+        the update check rejects it (None: accepted)."""
         broadcast = theta.detach().numpy()
         selected = sorted(agents)
         # The counted clock charges the two messages an agent process would exchange (θ̃
@@ -83,16 +116,14 @@ class InProcessPool:
         results = self.group.train(
             round_index, theta, selected, on_iteration=on_iteration, budgets=budgets
         )
-        updates, failures = [], {}
+        checked: list[tuple[AgentUpdate, str | None]] = []
         for k in selected:
             update = self._update(k, round_index, results[k], message)
             problem = self.check.problem(update.theta.numpy(), update.stats, broadcast)
-            if problem is None:
-                updates.append(update)
-            else:
+            if problem is not None:
                 logger.warning("rejected the update of %s: %s", update.agent_id, problem)
-                failures[update.agent_id] = problem
-        return RoundAnswers(updates=updates, failures=failures)
+            checked.append((update, problem))
+        return checked
 
     def _update(self, k: int, round_index: int, result: LocalResult, message: int) -> AgentUpdate:
         device = self.device(k)
@@ -134,11 +165,23 @@ def run_in_process(
 ) -> torch.Tensor:
     """Run the whole federation here and return the final θ̃_T. ``theta`` and ``progress``
     continue a run (a checkpoint's θ̃ and rounds done; the caller keeps ``progress``)."""
+    from fedhpg.server.buffered import BufferedCoordinator, validate_buffered
+
     validate_run(run)
     validate_strategy(run)
+    validate_buffered(run)
     pool = make_in_process_pool(run)
     try:
-        coordinator = Coordinator(
+        buffered = run.server.round_policy == "buffered"
+        resumed = progress is not None and progress.next_round > 1
+        if buffered and resumed and progress is not None and progress.schedule_state is None:
+            raise ConfigError(
+                "server.round_policy",
+                "got 'buffered', but the checkpoint was written by synchronous rounds (it "
+                "holds no in-flight updates); resume with the run's own round policy",
+            )
+        kind = BufferedCoordinator if buffered else Coordinator
+        coordinator = kind(
             run=run,
             pool=pool,
             strategy=make_strategy(run.strategy),

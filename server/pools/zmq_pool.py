@@ -22,6 +22,13 @@ Paranoid Pirate: handle messages, purge dead peers, send heartbeats.
   rows pass the :class:`UpdateCheck` (each pass over a batch's [A, d] matrix made once for
   all its rows; a bad row rejects that agent only); a dead host's agents all die at once, in
   one log line, and rejoin together when it registers again.
+- Buffered rounds (``server.round_policy=buffered``, :mod:`fedhpg.server.buffered_zmq`):
+  instead of one round's request, each lone agent has its own open ``Train``
+  (:class:`OpenTrain`: its own round index, the θ̃ version it starts from); answers pass the
+  same update check against the θ̃ that agent was sent and queue up in arrival order
+  (:meth:`ZmqAgentPool.next_arrival`). A dead agent's request is dropped; when it rejoins it
+  is sent the newest θ̃ under the same round index. Hosts are refused (one TrainBatch per
+  host cannot carry requests of different rounds).
 - Accepted θ_k are copied once, on arrival, into the round's
   :class:`~fedhpg.server.round_rows.RoundRows` (the frames are then let go); the updates the
   round returns are views of that matrix, which the strategies use without restacking.
@@ -32,6 +39,7 @@ from __future__ import annotations
 import dataclasses
 import logging
 import time
+from collections import deque
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Any
@@ -149,6 +157,32 @@ class Collection:
         return index in self.answers or index in self.failures
 
 
+@dataclass
+class OpenTrain:
+    """Buffered rounds: one agent's own request, open until it answers."""
+
+    request: Train
+    version: int
+    """The θ̃ version ``request.theta`` is."""
+    sent: bool = False
+    """False while the agent is dead (or an evaluation is open): sent when it can be."""
+
+
+@dataclass
+class Arrival:
+    """Buffered rounds: one agent's answer to its :class:`OpenTrain`, in arrival order."""
+
+    index: int
+    round: int
+    """The agent's round index the update used (its n-th update: round n's streams)."""
+    version: int
+    base: np.ndarray
+    """The θ̃ it started from."""
+    update: AgentUpdate
+    problem: str | None
+    """Why the update check rejected it (None: accepted)."""
+
+
 class RateLimitedLog:
     """Logs the first few warnings of each window, then counts the rest and reports the count."""
 
@@ -230,6 +264,11 @@ class ZmqAgentPool:
         """Agent id per index, kept after an agent dies (metrics still name it)."""
         self._absent_since: dict[int, float] = {}
         self._collection: Collection | None = None
+        self._buffered = settings.round_policy == "buffered"
+        self._trains: dict[int, OpenTrain] = {}
+        self._arrivals: deque[Arrival] = deque()
+        self._newest: tuple[int, np.ndarray] | None = None
+        """Buffered rounds: the newest θ̃ and its version (what a rejoining agent is sent)."""
         self._last_heartbeat = 0.0
         self._noisy = RateLimitedLog(NOISY_LOG_BURST, NOISY_LOG_WINDOW_S)
         self.rejected = 0
@@ -353,13 +392,19 @@ class ZmqAgentPool:
             del self.peers[index]
             self._absent_since[index] = now
             self.deaths += 1
+            train = self._trains.get(index)
+            if train is not None and train.sent:  # dropped: it is sent anew on rejoining
+                train.sent = False
+                missing += 1
             if (
                 collection is not None
                 and index in collection.expected
                 and not collection.answered(index)
             ):
                 missing += 1
-        if collection is None or not missing:
+        if self._buffered and missing and collection is None:
+            suffix = "; its update in flight is dropped"
+        elif collection is None or not missing:
             suffix = ""
         elif link.host:
             suffix = f"; {missing} of its answers for round {collection.round} are missing"
@@ -486,6 +531,14 @@ class ZmqAgentPool:
                 self._send(identity, self._host_welcome(known))
             return
         first, count = hello.first, hello.count
+        if self._buffered:
+            self._reject(
+                identity,
+                "unsupported",
+                "server.round_policy=buffered takes lone agents only, not agent hosts "
+                "(agent.count > 1)",
+            )
+            return
         if first + count > self.num_agents:
             self._reject(
                 identity,
@@ -570,6 +623,7 @@ class ZmqAgentPool:
             logger.warning("%s rejoined after %.1f s away%s", link.label, away_s, resent)
         if request is not None:
             self._send_to_link(link, request)
+        self._send_trains()
 
     def _welcome(self, index: int) -> Welcome:
         return Welcome(run_id=self.run_id, agent_index=index, run=self.run_settings)
@@ -656,6 +710,9 @@ class ZmqAgentPool:
 
     def _on_update(self, identity: bytes, peer: Peer | None, update: Update) -> None:
         """A lone agent's answer."""
+        if self._buffered:
+            self._on_buffered_update(identity, peer, update)
+            return
         problem = self._check_update(update)
         if problem is not None:
             self._reject(identity, "bad_update", problem)
@@ -667,6 +724,60 @@ class ZmqAgentPool:
             self._reject(identity, "not_registered", "update from an unregistered peer")
         elif self._open_for(peer, update.round, Train):
             self._file_updates(update.round, [peer.index], update.theta[None], [0], [update.stats])
+
+    def _on_buffered_update(self, identity: bytes, peer: Peer | None, update: Update) -> None:
+        """Buffered rounds: an answer to the agent's own open request joins the arrivals,
+        checked against the θ̃ that agent was sent (the same check as synchronous rounds)."""
+        if peer is None:
+            self._reject(identity, "not_registered", "update from an unregistered peer")
+            return
+        train = self._trains.get(peer.index)
+        if train is None or not train.sent or train.request.round != update.round:
+            self.late_answers += 1
+            self._noisy.warning(
+                "discarded a late update from %s for round %d (no longer open)",
+                peer.agent_id,
+                update.round,
+            )
+            return
+        base = train.request.theta
+        problem = self.check.problem(update.theta, update.stats, base, stats_bounded=True)
+        if problem is not None:
+            self._reject(identity, "bad_update", problem)
+        del self._trains[peer.index]
+        # the frame is let go: the arrival keeps its own copy of θ_k
+        theta = torch.from_numpy(np.array(update.theta, dtype=base.dtype, copy=True))
+        self._arrivals.append(
+            Arrival(
+                index=peer.index,
+                round=update.round,
+                version=train.version,
+                base=base,
+                update=AgentUpdate(
+                    agent_index=peer.index,
+                    agent_id=peer.agent_id,
+                    theta=theta,
+                    stats=update.stats,
+                ),
+                problem=problem,
+            )
+        )
+
+    def _send_trains(self) -> None:
+        """Send every open buffered request not sent yet to its agent, if it is registered,
+        with the newest θ̃ (none while an evaluation is open: it would cancel that)."""
+        if not self._trains or self._collection is not None or self._newest is None:
+            return
+        version, theta = self._newest
+        for index, train in self._trains.items():
+            peer = self.peers.get(index)
+            if train.sent or peer is None:
+                continue
+            if train.version != version:  # it died or waited: it starts from the newest θ̃
+                train.request = Train(round=train.request.round, theta=theta)
+                train.version = version
+            train.sent = True
+            self._send_to_link(peer.link, train.request)
 
     def _on_update_batch(self, identity: bytes, link: Link, batch: UpdateBatch) -> None:
         """A host's updates, row by row as if each had come alone, but checked and copied a
@@ -859,11 +970,62 @@ class ZmqAgentPool:
             stragglers=stragglers,
         )
 
+    # -- buffered rounds (server/buffered_zmq.py) ---------------------------------------------
+
+    def start_trains(
+        self, requests: Sequence[tuple[int, int]], version: int, theta: torch.Tensor
+    ) -> None:
+        """Open a request for each (agent index, its round index) from θ̃ (``version``, the
+        newest) and send those whose agent is registered; the others get it on rejoining."""
+        broadcast = theta.detach().numpy()
+        self._newest = (version, broadcast)
+        for index, round_index in requests:
+            self._trains[index] = OpenTrain(
+                request=Train(round=round_index, theta=broadcast), version=version
+            )
+        self._send_trains()
+
+    def _stalled(self, since: float) -> None:
+        """Raise FederationError when no arrival can come any more."""
+        now = time.monotonic()
+        if now - since > self.settings.round_timeout_s:
+            open_for = [self._name(k) for k in sorted(self._trains)]
+            raise FederationError(
+                f"timed out after {self.settings.round_timeout_s:g} s "
+                f"(server.round_timeout_s) waiting for an update from {open_for}"
+            )
+        if any(k in self.peers for k in self._trains):
+            return
+        gone = [k for k in self._trains if k in self._absent_since]
+        if gone and all(now - self._absent_since[k] > self.settings.rejoin_timeout_s for k in gone):
+            raise FederationError(
+                f"every agent still owing an update ({[self._name(k) for k in sorted(gone)]}) "
+                f"died and did not rejoin within {self.settings.rejoin_timeout_s:g} s "
+                "(server.rejoin_timeout_s)"
+            )
+
+    def next_arrival(self) -> Arrival:
+        """The next answer in arrival order (waiting for one)."""
+        since = time.monotonic()
+        while not self._arrivals:
+            self._stalled(since)
+            self._pump(POLL_INTERVAL_S)
+        return self._arrivals.popleft()
+
+    def drain(self) -> None:
+        """Wait until no registered agent is training (their answers queue up as arrivals):
+        evaluation pauses dispatch rather than cancel work in flight."""
+        since = time.monotonic()
+        while any(k in self.peers and t.sent for k, t in self._trains.items()):
+            self._stalled(since)
+            self._pump(POLL_INTERVAL_S)
+
     def evaluate(
         self, round_index: int, theta: torch.Tensor, episodes: int
     ) -> dict[str, EvaluationStats]:
         request = Evaluate(round=round_index, theta=theta.detach().numpy(), episodes=episodes)
         collection = self._collect(request, "evaluation of round", range(self.num_agents))
+        self._send_trains()  # an agent that rejoined during the evaluation
         return {
             self._name(k): answer.stats
             for k, answer in sorted(collection.answers.items())

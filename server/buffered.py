@@ -1,0 +1,320 @@
+"""Buffered asynchronous rounds (``server.round_policy=buffered``, FedBuff-style), in process.
+
+No agent waits for another: each trains from the newest θ̃ it was given and, when done, its
+update joins a buffer; every ``server.buffer_size`` (M) accepted updates make the next θ̃,
+and those M agents restart from it. A "round" is one such aggregation, so ``metrics.jsonl``
+keeps one record per version of θ̃.
+
+The run is an event simulation ordered by emulated time: an agent dispatched at emulated time
+t computes its update at once and arrives at t + the update's ``emulated_s`` (its device's
+clock: with ``agents.clock=counted`` the same bit for bit on any machine); arrivals are taken
+in (arrival time, agent index) order, so ties go to the lower index and a run is
+deterministic. An agent's random streams and device schedule are those of its own dispatch
+count (its n-th local update uses round index n), so they do not depend on the others'.
+
+The aggregation: an update that started from θ̃_v arrives at version r − 1 with staleness
+s = r − 1 − v. More than ``server.max_staleness`` and it is dropped (its agent restarts at
+once from the newest θ̃). Otherwise its change Δ_k = θ_k − θ̃_v enters the buffer with weight
+w(s) (``server.staleness_weight``). The configured strategy aggregates the rows
+θ̃_{r−1} + w_k Δ_k: for ``mean`` that is θ̃_{r−1} + (1/M) Σ w_k Δ_k, FedBuff's rule (its
+server step is 1; fedadam's server step and the robust rules apply to those rows as to
+synchronous θ_k). FedBuff divides by M, not by Σ w_k: normalised by Σ w_k the weights would
+cancel whenever a buffer's updates share one staleness (always, with M = 1). A fresh update
+(s = 0, w = 1) is passed as θ_k itself, so with M = K every buffer
+holds K fresh updates from one θ̃ and a round is bit for bit a synchronous ``wait_all`` round.
+
+What continues a run exactly is :meth:`BufferedSchedule.state`: the emulated clock, each
+agent's dispatch count and its in-flight update (θ_k, Δ_k, stats, base version, arrival time),
+kept in the checkpoint beside θ̃.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import heapq
+import logging
+import math
+import time
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+import torch
+
+from fedhpg.common.config import ConfigError, RunConfig, ServerConfig, agent_id_of
+from fedhpg.common.types import AgentUpdate, EvaluationStats, SavedState, UpdateStats
+from fedhpg.server.bound_report import round_bound
+from fedhpg.server.coordinator import (
+    NON_FINITE,
+    Coordinator,
+    RoundRecord,
+    diverged_message,
+    should_evaluate,
+)
+from fedhpg.server.pools import FederationError
+from fedhpg.server.pools.inprocess import InProcessPool
+
+logger = logging.getLogger(__name__)
+
+
+def buffer_size(run: RunConfig) -> int:
+    """M: ``server.buffer_size``, or K when unset."""
+    size = run.server.buffer_size
+    return run.agents.num_agents if size is None else size
+
+
+def staleness_weight(server: ServerConfig, staleness: int) -> float:
+    """w(s) of an update ``staleness`` versions old."""
+    if server.staleness_weight == "constant":
+        return 1.0
+    return 1.0 / math.sqrt(1.0 + staleness)
+
+
+def validate_buffered(run: RunConfig) -> None:
+    """What the buffered policy cannot combine with (config.py checks the keys' own ranges)."""
+    if run.server.round_policy != "buffered":
+        return
+    if run.strategy.participation.mode != "all":
+        raise ConfigError(
+            "strategy.participation.mode",
+            f"got {run.strategy.participation.mode!r}; server.round_policy=buffered keeps every "
+            "agent busy (each restarts as soon as it is aggregated): use 'all'",
+        )
+
+
+@dataclass(kw_only=True)
+class InFlight:
+    """One agent's update on its way: computed at dispatch, delivered at ``arrival_s``."""
+
+    agent: int
+    version: int
+    """The θ̃ version it started from (0 = θ̃_0)."""
+    dispatch: int
+    """The agent's dispatch count: its n-th update (the round index of its random streams)."""
+    arrival_s: float
+    update: AgentUpdate
+    delta: torch.Tensor
+    """Δ_k = θ_k − θ̃_version."""
+    problem: str | None = None
+    """Why the update check rejected it (it arrives, but is not aggregated)."""
+
+    def key(self) -> tuple[float, int]:
+        return (self.arrival_s, self.agent)
+
+
+def buffer_rows(
+    server: ServerConfig, theta: torch.Tensor, buffer: Sequence[InFlight], current: int
+) -> list[AgentUpdate]:
+    """The rows the strategy aggregates into the next θ̃ from θ̃ = ``theta`` (version
+    ``current``): θ̃ + w(s_k) Δ_k, or θ_k itself where that is the same number (a fresh update,
+    w = 1), in agent order."""
+    rows = []
+    for item in buffer:
+        weight = staleness_weight(server, current - item.version)
+        if item.version == current:  # w(0) = 1 under every weighting
+            row = item.update.theta
+        else:
+            row = (theta + weight * item.delta).to(theta.dtype)
+        rows.append(dataclasses.replace(item.update, theta=row))
+    return sorted(rows, key=lambda u: u.agent_index)
+
+
+@dataclass(kw_only=True)
+class BufferedSchedule:
+    """The in-flight updates (one per agent at most), the emulated clock, the dispatch counts."""
+
+    clock_s: float = 0.0
+    dispatches: dict[int, int] = field(default_factory=dict)
+    in_flight: dict[int, InFlight] = field(default_factory=dict)
+    _queue: list[tuple[float, int]] = field(default_factory=list)
+    """A heap of (arrival time, agent index): the order arrivals are taken in."""
+
+    def push(self, item: InFlight) -> None:
+        self.in_flight[item.agent] = item
+        heapq.heappush(self._queue, (item.arrival_s, item.agent))
+
+    def pop(self) -> InFlight:
+        _, agent = heapq.heappop(self._queue)
+        item = self.in_flight.pop(agent)
+        self.clock_s = max(self.clock_s, item.arrival_s)
+        return item
+
+    def state(self) -> SavedState:
+        arrays: dict[str, np.ndarray] = {}
+        flights = []
+        for agent, item in sorted(self.in_flight.items()):
+            arrays[f"theta.{agent}"] = item.update.theta.numpy().copy()
+            arrays[f"delta.{agent}"] = item.delta.numpy().copy()
+            flights.append(
+                {
+                    "agent": agent,
+                    "version": item.version,
+                    "dispatch": item.dispatch,
+                    "arrival_s": item.arrival_s,
+                    "problem": item.problem,
+                    "stats": dataclasses.asdict(item.update.stats),
+                }
+            )
+        scalars = {
+            "clock_s": self.clock_s,
+            "dispatches": [[k, n] for k, n in sorted(self.dispatches.items())],
+            "in_flight": flights,
+        }
+        return SavedState(scalars=scalars, arrays=arrays)
+
+    @classmethod
+    def restore(cls, state: SavedState) -> BufferedSchedule:
+        schedule = cls(
+            clock_s=float(state.scalars["clock_s"]),
+            dispatches={int(k): int(n) for k, n in state.scalars["dispatches"]},
+        )
+        for flight in state.scalars["in_flight"]:
+            agent = int(flight["agent"])
+            update = AgentUpdate(
+                agent_index=agent,
+                agent_id=agent_id_of(agent),
+                theta=torch.from_numpy(state.arrays[f"theta.{agent}"].copy()),
+                stats=UpdateStats(**flight["stats"]),
+            )
+            schedule.push(
+                InFlight(
+                    agent=agent,
+                    version=int(flight["version"]),
+                    dispatch=int(flight["dispatch"]),
+                    arrival_s=float(flight["arrival_s"]),
+                    update=update,
+                    delta=torch.from_numpy(state.arrays[f"delta.{agent}"].copy()),
+                    problem=flight["problem"],
+                )
+            )
+        return schedule
+
+
+class BufferedCoordinator(Coordinator):
+    """The round loop of :mod:`fedhpg.server.buffered` over the in-process pool."""
+
+    pool: InProcessPool
+
+    def __init__(self, **kwargs: Any) -> None:
+        super().__init__(**kwargs)
+        self.size = buffer_size(self.run)
+        saved = self.progress.schedule_state  # a resumed run's in-flight updates
+        self.schedule = BufferedSchedule.restore(saved) if saved is not None else None
+
+    def _dispatch(self, agents: Sequence[int], version: int, at_s: float) -> None:
+        """Start ``agents`` from θ̃ (version ``version``) at emulated time ``at_s``."""
+        assert self.schedule is not None
+        by_count: dict[int, list[int]] = {}
+        for k in agents:
+            count = self.schedule.dispatches.get(k, 0) + 1
+            self.schedule.dispatches[k] = count
+            by_count.setdefault(count, []).append(k)
+        # Agents of one dispatch count train as one group call (the batched engine's batch);
+        # an agent's result never depends on whom it is batched with.
+        for count, chosen in sorted(by_count.items()):
+            for update, problem in self.pool.checked_updates(count, self.theta, chosen):
+                self.schedule.push(
+                    InFlight(
+                        agent=update.agent_index,
+                        version=version,
+                        dispatch=count,
+                        arrival_s=at_s + update.stats.emulated_s,
+                        update=update,
+                        delta=update.theta - self.theta,
+                        problem=problem,
+                    )
+                )
+
+    def _fill_buffer(self, version: int) -> tuple[list[InFlight], dict[str, int], dict[str, str]]:
+        """Arrivals until M accepted ones; stale and rejected agents restart at once."""
+        assert self.schedule is not None
+        buffer: list[InFlight] = []
+        stale: dict[str, int] = {}
+        failures: dict[str, str] = {}
+        rejected_in_a_row = 0
+        limit = self.run.server.max_staleness
+        while len(buffer) < self.size:
+            item = self._next_arrival()
+            self.progress.trajectories_per_agent += (
+                item.update.stats.trajectories / self.run.agents.num_agents
+            )
+            staleness = version - 1 - item.version
+            if item.problem is not None:
+                failures[item.update.agent_id] = item.problem
+                rejected_in_a_row += 1
+                if rejected_in_a_row >= self.run.agents.num_agents:
+                    if all(NON_FINITE in why for why in failures.values()):
+                        raise FederationError(diverged_message(self.run, version))
+                    raise FederationError(
+                        f"round {version}: every agent's update was rejected ({failures})"
+                    )
+                self._dispatch([item.agent], version - 1, item.arrival_s)
+                continue
+            rejected_in_a_row = 0
+            if limit is not None and staleness > limit:
+                logger.debug("dropped %s's update: staleness %d", item.update.agent_id, staleness)
+                stale[item.update.agent_id] = staleness
+                self._dispatch([item.agent], version - 1, item.arrival_s)
+                continue
+            buffer.append(item)
+        return buffer, stale, failures
+
+    def _next_arrival(self) -> InFlight:
+        assert self.schedule is not None
+        return self.schedule.pop()
+
+    def _agents(self) -> Sequence[int]:
+        return self.pool.group.indices
+
+    def _restart(self, version: int, buffer: Sequence[InFlight]) -> None:
+        """Restart the aggregated agents from the new θ̃ (version ``version``)."""
+        assert self.schedule is not None
+        self._dispatch([i.agent for i in buffer], version, self.schedule.clock_s)
+
+    def _evaluate(self, version: int) -> dict[str, EvaluationStats]:
+        return self.pool.evaluate(version, self.theta, self.run.eval.episodes)
+
+    def run_rounds(self) -> torch.Tensor:
+        started = time.perf_counter() - self.progress.elapsed_s
+        if self.schedule is None:
+            self.schedule = BufferedSchedule()
+        # every agent not in flight (all of them at the start; on resuming a checkpoint of
+        # agent processes, whose in-flight work stayed with them) starts from θ̃
+        idle = [k for k in self._agents() if k not in self.schedule.in_flight]
+        if idle:
+            self._dispatch(idle, self.progress.next_round - 1, self.schedule.clock_s)
+        for version in range(self.progress.next_round, self.run.rounds + 1):
+            round_started = time.perf_counter()
+            buffer, stale, failures = self._fill_buffer(version)
+            rows = buffer_rows(self.run.server, self.theta, buffer, version - 1)
+            self._aggregate(version, rows, failures)
+            self._restart(version, buffer)
+            round_time = time.perf_counter() - round_started
+            evaluation = self._evaluate(version) if should_evaluate(self.run, version) else None
+            wall_time = time.perf_counter() - started
+            progress = self.progress
+            progress.next_round = version + 1
+            progress.elapsed_s = wall_time
+            progress.strategy_state = self.strategy.state()
+            progress.schedule_state = self.schedule.state()
+            ordered = sorted(buffer, key=lambda i: i.agent)
+            record = RoundRecord(
+                round=version,
+                wall_time_s=wall_time,
+                round_time_s=round_time,
+                agents=[i.update for i in ordered],
+                trajectories_per_agent=progress.trajectories_per_agent,
+                eval=evaluation,
+                failures=failures,
+                selected=[i.agent for i in ordered],
+                emulated_clock_s=self.schedule.clock_s,
+                staleness=[version - 1 - i.version for i in ordered],
+                stale=stale,
+                bound=round_bound(self.run, [i.update for i in ordered])
+                if self.run.algo.bound_estimates
+                else None,
+            )
+            for callback in self.on_round:
+                callback(record, self.theta)
+        return self.theta
