@@ -18,7 +18,7 @@ from typing import Literal
 import torch
 
 from fedhpg.common.algorithms import Algorithm, LocalContext, at_least_one, register_algorithm
-from fedhpg.common.config import AlgoConfig
+from fedhpg.common.config import AlgoConfig, ConfigError
 from fedhpg.common.estimators import clip_by_norm
 from fedhpg.common.importance import (
     clip_weights,
@@ -211,6 +211,13 @@ class FedHPGVR(Algorithm[FedHPGVRParams, FedHPGVRBudget]):
         )
 
     def check(self, settings: AlgoConfig, params: FedHPGVRParams) -> None:
+        if settings.normalize != "none":
+            # Standardising would rescale the snapshot gradient and the importance-weighted
+            # correction by different batches' spreads, so the two no longer cancel.
+            raise ConfigError(
+                "algo.normalize",
+                f"FedHPGVR takes 'none' only, got {settings.normalize!r}",
+            )
         if params.iw_mode == "per_decision" and settings.estimator == "reinforce":
             raise OptionError(
                 "iw_mode",
