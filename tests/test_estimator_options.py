@@ -205,7 +205,7 @@ def test_bias_figures(estimates: Callable[..., torch.Tensor], exact: torch.Tenso
     errors of the mean; the ± is the norm of those standard errors over ‖∇J‖). Batch
     standardisation comes out mostly a shorter ∇J here (cos ≈ 0.999): its direction bias is
     too small to resolve with 5·10⁴ trajectories, so only the length is claimed."""
-    print(f"\n| option (baseline=mean, B={BATCH_SIZE}, γ={GAMMA}) | ‖E g − ∇J‖/‖∇J‖ | cos(E g, ∇J) |")
+    print(f"\n| option (mean baseline, B={BATCH_SIZE}) | ‖E g − ∇J‖/‖∇J‖ | cos(E g, ∇J) |")
     for label, options in BIASED.items():
         sampled = estimates(**options)
         relative, cosine = _bias_figures(sampled.mean(dim=0), exact)
@@ -257,3 +257,24 @@ def test_unsupported_combinations_name_their_key(overrides: list[str], key: str)
     with pytest.raises(ConfigError) as error:
         resolve_config(overrides=overrides)
     assert error.value.key == key
+
+
+# -- the CartPole presets are the benchmarked set-up -------------------------------------------
+
+
+@pytest.mark.parametrize(
+    ("experiment", "batch_size"), [("cartpole_k10", 16), ("cartpole_k10_tuned", 2)]
+)
+def test_cartpole_presets_are_fedpgbrs_set_up(experiment: str, batch_size: int) -> None:
+    """The keys benchmarks/estimator_options.py sets (BENCHMARKS.md's figures), composed."""
+    run = resolve_config(overrides=[f"experiment={experiment}"])
+    assert (run.env.family, run.env.level, run.env.gamma) == ("cartpole", 0.0, 0.999)
+    assert run.agents.num_agents == 10
+    assert run.agents.budget["batch_size"] == [batch_size]
+    assert run.agents.budget["local_iters"] == [1]
+    assert run.policy.hidden == [16, 16]
+    assert (run.algo.estimator, run.algo.baseline) == ("gpomdp", "mean")
+    assert (run.algo.reward_to_go, run.algo.normalize) == ("from_start", "none")
+    assert (run.algo.optimizer, run.algo.step_size) == ("sgd", 1.0)
+    assert run.strategy.name == "fedadam" and run.strategy.params["step_size"] == 0.01
+    assert (run.eval.every, run.eval.episodes) == (2, 10)

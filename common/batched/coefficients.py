@@ -15,6 +15,8 @@ block of copies (``"batch"``) or one copy (``"episode"``).
 
 from __future__ import annotations
 
+import itertools
+
 import numpy as np
 
 from fedhpg.common.batched.sampler import Batches, Rollouts
@@ -97,7 +99,7 @@ def _normalized(coef: np.ndarray, rollouts: Rollouts | Batches, normalize: str) 
     else:
         raise ValueError(f"normalize must be 'none', 'batch' or 'episode', got {normalize!r}")
     out = np.zeros_like(coef)
-    for low, high in zip(starts[:-1], starts[1:], strict=True):
+    for low, high in itertools.pairwise(starts):
         c, m = coef[:, low:high], mask[:, low:high]
         count = max(float(m.sum()), 1.0)
         mean = float((c * m).sum()) / count
