@@ -9,7 +9,8 @@ runtime does; the figures count trajectories, so they do not depend on the machi
 A run stops once it is sustained, or at ``--max-trajectories`` per agent.
 
 ``python -m benchmarks.estimator_options [--seeds 5] [--server-lr 0.001 0.01] [--sets ...]``
-prints a table and writes ``benchmarks/results/estimator_options.json``.
+prints a table and writes ``benchmarks/results/estimator_options.json`` (outcomes already
+there are kept, not rerun; ``--table-only`` prints them).
 """
 
 from __future__ import annotations
@@ -53,6 +54,8 @@ OPTION_SETS: dict[str, list[str]] = {
         "agents.budget.batch_size=[2]",
     ],
     "paper, B=1 (baseline 0)": ["agents.budget.batch_size=[1]"],
+    "normalize=batch, B=1": ["algo.normalize=batch", "agents.budget.batch_size=[1]"],
+    "from_step, B=1": ["algo.reward_to_go=from_step", "agents.budget.batch_size=[1]"],
     "normalize=episode": ["algo.normalize=episode"],
 }
 
@@ -171,7 +174,11 @@ def table(outcomes: list[Outcome], cap: int) -> str:
         "median (range) | per seed (first / sustained) |",
         "|---|---|---|---|---|---|",
     ]
-    keys = dict.fromkeys((o.options, o.server_lr) for o in outcomes)
+    order = list(OPTION_SETS)
+    keys = sorted(
+        dict.fromkeys((o.options, o.server_lr) for o in outcomes),
+        key=lambda k: (k[1], order.index(k[0]) if k[0] in order else len(order)),
+    )
     for label, lr in keys:
         group = [o for o in outcomes if (o.options, o.server_lr) == (label, lr)]
         per_seed = ", ".join(f"{_count(o.first)}/{_count(o.sustained)}" for o in group)
@@ -189,11 +196,12 @@ def main() -> None:
     parser.add_argument("--sets", nargs="+", default=list(OPTION_SETS), choices=list(OPTION_SETS))
     parser.add_argument("--max-trajectories", type=int, default=1600)
     parser.add_argument("--out", type=Path, default=RESULTS)
+    parser.add_argument("--table-only", action="store_true", help="print the stored outcomes")
     args = parser.parse_args()
     known = [Outcome(**o) for o in json.loads(args.out.read_text())] if args.out.exists() else []
     done = {(o.options, o.server_lr, o.seed) for o in known}
     outcomes = list(known)
-    for label in args.sets:
+    for label in [] if args.table_only else args.sets:
         for lr in args.server_lr:
             for seed in range(args.seeds):
                 if (label, lr, seed) in done:
