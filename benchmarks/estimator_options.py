@@ -157,8 +157,12 @@ def _summary(values: list[float | None], cap: int) -> str:
     reached = [v for v in values if v is not None]
     if not reached:
         return f"none by {cap}"
-    text = f"{statistics.median(v if v is not None else float('inf') for v in values):.0f}"
-    text += f" ({min(reached):.0f}–{max(reached):.0f})"
+    spread = f"{min(reached):.0f}–{max(reached):.0f}"
+    # Seeds that never reached count as later than any that did.
+    median = statistics.median(v if v is not None else float("inf") for v in values)
+    if median == float("inf"):
+        return f"none by {cap} ({len(reached)} of {len(values)} seeds: {spread})"
+    text = f"{median:.0f} ({spread})"
     if len(reached) < len(values):
         text += f", {len(values) - len(reached)} seed(s) none by {cap}"
     return text
