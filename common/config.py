@@ -101,7 +101,8 @@ class AlgoConfig:
     reward_to_go: str = "from_start"
     """GPOMDP's reward-to-go: 'from_start' (eq. 6, Σ_{h≥t} γ^h r_h; unbiased) or 'from_step'
     (Σ_{h≥t} γ^{h−t} r_h, common practice: a departure from eq. 6, biased for ∇J; README,
-    Estimator options). 'from_step' needs estimator 'gpomdp'."""
+    Estimator options). 'from_step' needs estimator 'gpomdp'; FedHPGVR takes 'from_start'
+    only."""
     normalize: str = "none"
     """Standardise the estimator's coefficients, (c − mean)/std over alive steps: 'none' (eq.
     5/6; unbiased), 'batch' (over the whole batch) or 'episode' (within each trajectory; GPOMDP
