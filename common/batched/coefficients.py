@@ -88,24 +88,29 @@ def _raw_coefficients(
 
 
 def _normalized(coef: np.ndarray, rollouts: Rollouts | Batches, normalize: str) -> np.ndarray:
-    """(c − mean)/(std + ε) over each agent's alive cells ('batch') or each copy's ('episode')."""
+    """(c − mean)/(std + ε) over each agent's alive cells ('batch') or each copy's ('episode').
+
+    Sums along time first, sequentially (the rows past an agent's end add exact zeros), then
+    over the agent's own columns: no sum's grouping depends on the other agents' lengths."""
     if normalize == "none":
         return coef
-    mask = rollouts.alive.astype(np.float64)
     if normalize == "episode":
         starts = np.arange(coef.shape[1] + 1)  # every copy its own block
     elif normalize == "batch":
         starts = np.asarray(rollouts.offsets)
     else:
         raise ValueError(f"normalize must be 'none', 'batch' or 'episode', got {normalize!r}")
-    out = np.zeros_like(coef)
-    for low, high in itertools.pairwise(starts):
-        c, m = coef[:, low:high], mask[:, low:high]
-        count = max(float(m.sum()), 1.0)
-        mean = float((c * m).sum()) / count
-        spread = float(((c - mean) ** 2 * m).sum()) / count
-        out[:, low:high] = m * (c - mean) / (np.sqrt(spread) + NORMALIZE_EPS)
-    return out
+    mask = rollouts.alive.astype(np.float64)
+
+    def block_totals(values: np.ndarray) -> np.ndarray:
+        per_copy = np.cumsum(values, axis=0)[-1] if values.shape[0] else np.zeros(values.shape[1])
+        return np.array([per_copy[low:high].sum() for low, high in itertools.pairwise(starts)])
+
+    counts = np.diff(starts)
+    count = np.maximum(block_totals(mask), 1.0)
+    mean = np.repeat(block_totals(coef * mask) / count, counts)
+    spread = np.repeat(block_totals((coef - mean) ** 2 * mask) / count, counts)
+    return mask * (coef - mean) / (np.sqrt(spread) + NORMALIZE_EPS)
 
 
 def returns(rollouts: Rollouts | Batches, gammas: np.ndarray | None = None) -> np.ndarray:
