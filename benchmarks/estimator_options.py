@@ -193,6 +193,12 @@ def table(outcomes: list[Outcome], cap: int) -> str:
     return "\n".join(lines)
 
 
+def write_outcomes(path: Path, outcomes: list[Outcome]) -> None:
+    """One outcome per line, so a rerun's diff shows which runs changed."""
+    lines = ",\n".join(json.dumps(asdict(o)) for o in outcomes)
+    path.write_text(f"[\n{lines}\n]\n")
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__)
     parser.add_argument("--seeds", type=int, default=5)
@@ -217,7 +223,7 @@ def main() -> None:
                 )
                 outcomes.append(outcome)
                 args.out.parent.mkdir(parents=True, exist_ok=True)
-                args.out.write_text(json.dumps([asdict(o) for o in outcomes], indent=1))
+                write_outcomes(args.out, outcomes)
     print(table(outcomes, args.max_trajectories))
 
 
