@@ -22,6 +22,8 @@ from typing import Any
 
 ESTIMATORS: tuple[str, ...] = ("reinforce", "gpomdp")
 BASELINES: tuple[str, ...] = ("none", "mean")
+REWARD_TO_GO: tuple[str, ...] = ("from_start", "from_step")
+NORMALIZE: tuple[str, ...] = ("none", "batch", "episode")
 OPTIMIZERS = ("sgd", "adam")
 ENGINES = ("auto", "loop")
 ATTACKS = ("none", "zero_gradient", "random_noise", "sign_flip", "reward_flip", "random_action")
@@ -98,6 +100,16 @@ class AlgoConfig:
     statistics, and with τ_k ≥ 2 ``bound_smoothness`` (L̂, the secant between its first two
     iterations' gradients). About two more gradients per round; θ̃ is the same either way.
     FedHPG only."""
+    reward_to_go: str = "from_start"
+    """GPOMDP's reward-to-go: 'from_start' (eq. 6, Σ_{h≥t} γ^h r_h; unbiased) or 'from_step'
+    (Σ_{h≥t} γ^{h−t} r_h, common practice: a departure from eq. 6, biased for ∇J; README,
+    Estimator options). 'from_step' needs estimator 'gpomdp'; FedHPGVR takes 'from_start'
+    only."""
+    normalize: str = "none"
+    """Standardise the estimator's coefficients, (c − mean)/std over alive steps: 'none' (eq.
+    5/6; unbiased), 'batch' (over the whole batch) or 'episode' (within each trajectory; GPOMDP
+    only). Both are departures from eq. 5/6, biased for ∇J (README, Estimator options);
+    FedHPGVR takes 'none' only."""
 
 
 # --- participation: who trains each round (server/participation.py applies it) ---------------
@@ -564,6 +576,20 @@ def _validate_env(env: EnvConfig) -> None:
 def _validate_algo(algo: AlgoConfig) -> None:
     _check_choice(algo.estimator, "algo.estimator", ESTIMATORS)
     _check_choice(algo.baseline, "algo.baseline", BASELINES)
+    _check_choice(algo.reward_to_go, "algo.reward_to_go", REWARD_TO_GO)
+    _check_choice(algo.normalize, "algo.normalize", NORMALIZE)
+    if algo.estimator != "gpomdp":
+        _require(
+            algo.reward_to_go == "from_start",
+            "algo.reward_to_go",
+            f"'from_step' needs algo.estimator=gpomdp (got {algo.estimator!r})",
+        )
+        _require(
+            algo.normalize != "episode",
+            "algo.normalize",
+            f"'episode' needs algo.estimator=gpomdp: {algo.estimator!r}'s coefficients are "
+            "constant along a trajectory, so they would all become 0",
+        )
     _check_choice(algo.optimizer, "algo.optimizer", OPTIMIZERS)
     _check_choice(algo.engine, "algo.engine", ENGINES)
     _check_number(algo.step_size, "algo.step_size", low=0.0, low_open=True)

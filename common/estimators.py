@@ -15,6 +15,13 @@ estimate by a factor (B−1)/B; leaving τ_b out keeps it unbiased. With B = 1 i
 
 Importance weights (FedHPGVR). REINFORCE takes one weight per trajectory [B]; GPOMDP takes the
 per-decision cumulative weights w_{0:h} [T, B] and weighs the reward at step h with w_{0:h}.
+
+Options used in practice (``algo.reward_to_go``, ``algo.normalize``), **departures from eq. 5/6
+and biased for ∇J** (README, Estimator options, gives their measured bias): GPOMDP's reward-to-go
+discounted from the scored step, Σ_{h≥t} γ^{h−t} r_h instead of Σ_{h≥t} γ^h r_h (it drops the
+γ^t that makes late steps count less in the discounted objective), and standardising the
+coefficients within the batch or within each episode (the mean and spread come from the very
+samples they rescale). The defaults, ``from_start`` and ``none``, are eq. 5/6 exactly.
 """
 
 from __future__ import annotations
@@ -29,6 +36,12 @@ from fedhpg.common.policies import Policy, flat_grad
 
 EstimatorName = Literal["reinforce", "gpomdp"]
 BaselineName = Literal["none", "mean"]
+RewardToGoName = Literal["from_start", "from_step"]
+NormalizeName = Literal["none", "batch", "episode"]
+
+# Added to a standard deviation before dividing by it: a batch or episode whose coefficients
+# are all equal (e.g. every CartPole step of a batch alive with the mean baseline) gives 0, not NaN.
+NORMALIZE_EPS = 1e-8
 
 
 def _leave_one_out_mean(values: torch.Tensor) -> torch.Tensor:
@@ -69,20 +82,57 @@ def gpomdp_coefficients(
     gamma: float,
     baseline: BaselineName = "mean",
     weights: torch.Tensor | None = None,
+    reward_to_go: RewardToGoName = "from_start",
 ) -> torch.Tensor:
     """Eq. (6): coef[t, b] = Σ_{h ≥ t} w_{0:h,b} · (γ^h r_{h,b} − C_{h,b}) on alive steps.
 
     The per-step baseline C_h is applied at every step h < T, dead steps included: masking it
     by "still alive at h" would correlate it with the earlier actions and bias the estimate.
     weights: optional [T, B] per-decision cumulative importance weights.
+
+    ``reward_to_go="from_step"`` (a departure, biased): Σ_{h ≥ t} w_{0:h,b} · γ^{h−t} (r_{h,b} −
+    C_{h,b}), i.e. eq. (6)'s coefficient divided by γ^t; computed by the backward recursion
+    R_t = x_t + γ R_{t+1}, so no γ^{−t} is ever formed (it would overflow on long horizons).
     """
+    if reward_to_go == "from_step":
+        step_values = rewards - _leave_one_out_mean(rewards) if baseline == "mean" else rewards
+        if weights is not None:
+            step_values = step_values * weights
+        return alive.to(rewards.dtype) * _discounted_tail_sums(step_values, gamma)
     step_rewards = _discounts(gamma, rewards.shape[0], rewards).unsqueeze(1) * rewards  # [T, B]
     if baseline == "mean":
         step_rewards = step_rewards - _leave_one_out_mean(step_rewards)
     if weights is not None:
         step_rewards = step_rewards * weights
-    reward_to_go = step_rewards.flip(0).cumsum(0).flip(0)
-    return alive.to(rewards.dtype) * reward_to_go
+    tail_sums = step_rewards.flip(0).cumsum(0).flip(0)
+    return alive.to(rewards.dtype) * tail_sums
+
+
+def _discounted_tail_sums(values: torch.Tensor, gamma: float) -> torch.Tensor:
+    """R[t] = Σ_{h ≥ t} γ^{h−t} values[h] along dim 0 (backward recursion)."""
+    out = torch.empty_like(values)
+    running = torch.zeros_like(values[0]) if values.shape[0] else values.new_zeros(())
+    for t in range(values.shape[0] - 1, -1, -1):
+        running = values[t] + gamma * running
+        out[t] = running
+    return out
+
+
+def normalize_coefficients(
+    coefficients: torch.Tensor, alive: torch.Tensor, mode: NormalizeName
+) -> torch.Tensor:
+    """Standardise coefficients over the alive cells: of the whole batch (``"batch"``) or of
+    each trajectory (``"episode"``): (c − mean) / (std + ε), 0 on dead steps. A departure from
+    eq. 5/6, biased for ∇J: the mean and std are taken from the samples they rescale, so
+    E[g] is neither ∇J nor a fixed multiple of it (README, Estimator options)."""
+    if mode == "none":
+        return coefficients
+    mask = alive.to(coefficients.dtype)
+    dims: tuple[int, ...] = (0, 1) if mode == "batch" else (0,)
+    count = mask.sum(dim=dims, keepdim=True).clamp_min(1.0)
+    mean = (coefficients * mask).sum(dim=dims, keepdim=True) / count
+    spread = ((coefficients - mean) ** 2 * mask).sum(dim=dims, keepdim=True) / count
+    return mask * (coefficients - mean) / (spread.sqrt() + NORMALIZE_EPS)
 
 
 def estimator_coefficients(
@@ -93,15 +143,30 @@ def estimator_coefficients(
     gamma: float,
     baseline: BaselineName = "mean",
     weights: torch.Tensor | None = None,
+    reward_to_go: RewardToGoName = "from_start",
+    normalize: NormalizeName = "none",
 ) -> torch.Tensor:
-    """Dispatch to :func:`reinforce_coefficients` or :func:`gpomdp_coefficients`."""
+    """Dispatch to :func:`reinforce_coefficients` or :func:`gpomdp_coefficients`, then
+    :func:`normalize_coefficients`. ``reward_to_go="from_step"`` is GPOMDP's alone (REINFORCE
+    has no reward-to-go); config validation rejects the other pairings first."""
     if estimator == "reinforce":
-        return reinforce_coefficients(
+        if reward_to_go != "from_start":
+            raise ValueError("reward_to_go='from_step' needs estimator 'gpomdp'")
+        coef = reinforce_coefficients(
             rewards, alive, gamma=gamma, baseline=baseline, weights=weights
         )
-    if estimator == "gpomdp":
-        return gpomdp_coefficients(rewards, alive, gamma=gamma, baseline=baseline, weights=weights)
-    raise ValueError(f"estimator must be one of {ESTIMATORS}, got {estimator!r}")
+    elif estimator == "gpomdp":
+        coef = gpomdp_coefficients(
+            rewards,
+            alive,
+            gamma=gamma,
+            baseline=baseline,
+            weights=weights,
+            reward_to_go=reward_to_go,
+        )
+    else:
+        raise ValueError(f"estimator must be one of {ESTIMATORS}, got {estimator!r}")
+    return normalize_coefficients(coef, alive, normalize)
 
 
 def estimate_gradient(

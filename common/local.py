@@ -80,6 +80,8 @@ def _coefficients(
         gamma=gamma,
         baseline=algo.baseline,  # type: ignore[arg-type]
         weights=weights,
+        reward_to_go=algo.reward_to_go,  # type: ignore[arg-type]
+        normalize=algo.normalize,  # type: ignore[arg-type]
     )
 
 

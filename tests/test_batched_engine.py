@@ -123,10 +123,16 @@ SETTINGS = [
     (),
     ("algo.optimizer=adam", "algo.step_size=0.01"),
     ("algo.grad_clip=0.5", "algo.estimator=reinforce"),
+    ("algo.reward_to_go=from_step", "algo.normalize=batch"),
+    ("algo.normalize=episode",),
 ]
 
 
-@pytest.mark.parametrize("settings", SETTINGS, ids=["sgd", "adam", "clipped-reinforce"])
+@pytest.mark.parametrize(
+    "settings",
+    SETTINGS,
+    ids=["sgd", "adam", "clipped-reinforce", "from_step-normalize-batch", "normalize-episode"],
+)
 def test_an_agents_round_is_the_same_in_any_company(settings) -> None:
     """Alone, in small groups, in another order, or all nine together: bit-identical θ_k and
     the same counts (the property that makes θ̃ independent of placement)."""

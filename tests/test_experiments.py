@@ -27,7 +27,8 @@ def test_the_paper_presets_exist() -> None:
 @pytest.mark.parametrize("preset", PRESETS)
 def test_every_preset_composes_and_validates(preset: str) -> None:
     run = compose([f"experiment={preset}"])
-    assert run.rounds == 100 and run.agents.num_agents == 4
+    if preset.startswith("fig"):  # the paper's Section VI: 4 GridWorld agents
+        assert run.rounds == 100 and run.agents.num_agents == 4
 
 
 @pytest.mark.parametrize(("group", "option"), [(g, o) for g, opts in GROUPS.items() for o in opts])

@@ -18,7 +18,7 @@ from typing import Literal
 import torch
 
 from fedhpg.common.algorithms import Algorithm, LocalContext, at_least_one, register_algorithm
-from fedhpg.common.config import AlgoConfig
+from fedhpg.common.config import AlgoConfig, ConfigError
 from fedhpg.common.estimators import clip_by_norm
 from fedhpg.common.importance import (
     clip_weights,
@@ -211,6 +211,19 @@ class FedHPGVR(Algorithm[FedHPGVRParams, FedHPGVRBudget]):
         )
 
     def check(self, settings: AlgoConfig, params: FedHPGVRParams) -> None:
+        # The practice options stay with FedHPG: standardising would rescale the snapshot
+        # gradient and the importance-weighted correction by different batches' spreads, so
+        # the two no longer cancel; from_step's weighted correction is not checked against an
+        # exact expectation (tests/test_fedhpgvr_exact.py covers eq. 5/6 only).
+        for key, value, paper in (
+            ("reward_to_go", settings.reward_to_go, "from_start"),
+            ("normalize", settings.normalize, "none"),
+        ):
+            if value != paper:
+                raise ConfigError(
+                    f"algo.{key}",
+                    f"FedHPGVR takes {paper!r} only (the paper's estimators), got {value!r}",
+                )
         if params.iw_mode == "per_decision" and settings.estimator == "reinforce":
             raise OptionError(
                 "iw_mode",

@@ -193,7 +193,12 @@ class BatchedFedHPG:
         """(1/B_k) Σ_b g(τ_b) of every active agent, [A, d]."""
         gammas = np.array([self.gammas[k] for k in active])
         c = coef.coefficients(
-            batches, gammas, estimator=self.run.algo.estimator, baseline=self.run.algo.baseline
+            batches,
+            gammas,
+            estimator=self.run.algo.estimator,
+            baseline=self.run.algo.baseline,
+            reward_to_go=self.run.algo.reward_to_go,
+            normalize=self.run.algo.normalize,
         )
         c /= np.diff(batches.offsets)[batches.owner][None, :]
         chunks = mlp.pack_rows(
@@ -214,7 +219,12 @@ class BatchedFedHPG:
         agents, so the [trajectories, d] matrix stays small."""
         gammas = np.array([self.gammas[k] for k in active])
         c = coef.coefficients(
-            batches, gammas, estimator=self.run.algo.estimator, baseline=self.run.algo.baseline
+            batches,
+            gammas,
+            estimator=self.run.algo.estimator,
+            baseline=self.run.algo.baseline,
+            reward_to_go=self.run.algo.reward_to_go,
+            normalize=self.run.algo.normalize,
         )
         width = c.shape[1]
         column = batches.row_cell % width  # the row's trajectory (its copy's column)
