@@ -138,6 +138,8 @@ class LocalWorker:
                 settings=self.run.algo,
                 gamma=self.gamma,
                 on_iteration=hook,
+                seed=self.run.seed,
+                round_index=round_index,
             )
             result = self.algorithm.local_update(theta, context, self.params, self.profile.budget)
         if self.attack in UPDATE_ATTACKS:

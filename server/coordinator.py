@@ -44,6 +44,8 @@ class RoundRecord:
     """The agent indices asked to train (participation, then the strategy's select)."""
     bound: dict[str, Any] | None = None
     """Theorem 1's terms from the agents' estimates (``algo.bound_estimates``)."""
+    strategy: dict[str, Any] = field(default_factory=dict)
+    """What the strategy reports of its aggregation (:meth:`Strategy.round_stats`)."""
 
     def to_json(self) -> dict[str, Any]:
         record: dict[str, Any] = {
@@ -63,6 +65,8 @@ class RoundRecord:
             record["stragglers"] = list(self.stragglers)
         if self.bound is not None:
             record["bound"] = dict(self.bound)
+        if self.strategy:
+            record["strategy"] = dict(self.strategy)
         return record
 
 
@@ -182,6 +186,7 @@ class Coordinator:
                 bound=round_bound(self.run, answers.updates)
                 if self.run.algo.bound_estimates
                 else None,
+                strategy=self.strategy.round_stats(),
             )
             for callback in self.on_round:
                 callback(record, self.theta)
