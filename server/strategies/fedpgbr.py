@@ -32,12 +32,12 @@ import torch
 from fedhpg.common.algorithms.fedhpgvr import FedHPGVRParams, semi_stochastic_gradient
 from fedhpg.common.algorithms.fedpgbr import SCHEDULE_KEY, FedPGBRParams, round_schedule
 from fedhpg.common.byzantine_filter import byzantine_filter
-from fedhpg.common.config import ConfigError, RunConfig
+from fedhpg.common.config import AlgoConfig, ConfigError, RunConfig
 from fedhpg.common.local import batch_gradient
 from fedhpg.common.optim import AdamAscent
 from fedhpg.common.policies import Policy, get_flat_params, set_flat_params
 from fedhpg.common.registry import OptionError, parse_options
-from fedhpg.common.rollout import sample_trajectories
+from fedhpg.common.rollout import TrajectoryBatch, sample_trajectories
 from fedhpg.common.types import AgentUpdate, SavedState
 from fedhpg.common.variants import discount, training_horizon, variant_of
 from fedhpg.common.worker import build_policy
@@ -61,9 +61,11 @@ class FedPGBRStrategyParams:
     eps: float = 1e-8
     sigma: float | None = None
     """σ, the bound on a single trajectory's gradient deviation (E‖g − ∇J‖² ≤ σ²) the filter's
-    thresholds scale with; null = estimated each round from the agents' gradients (a
-    departure from the paper, which assumes σ known; :func:`~fedhpg.common.byzantine_filter.
-    estimated_sigma`)."""
+    thresholds scale with; null = set each round from the agents' gradients so that rule 1's
+    threshold is ``margin`` × the distance between two honest ones (a departure from the
+    paper, which assumes σ known: common/byzantine_filter.py, estimated_sigma)."""
+    margin: float = 1.5
+    """With sigma null: rule 1's threshold over the median honest distance (> 1)."""
     delta: float = 0.6
     """δ: the filter's confidence, V = 2 log(2K/δ) (FedPG-BR's CartPole value)."""
     alpha: float = 0.4
@@ -84,6 +86,8 @@ class FedPGBRStrategyParams:
             raise OptionError("eps", f"got {self.eps!r}, must be > 0")
         if self.sigma is not None and self.sigma <= 0:
             raise OptionError("sigma", f"got {self.sigma!r}, must be > 0 (or null: estimated)")
+        if self.margin <= 1.0:
+            raise OptionError("margin", f"got {self.margin!r}, must be > 1")
         if not 0.0 < self.delta < 1.0:
             raise OptionError("delta", f"got {self.delta!r}, must be in (0, 1)")
         if not 0.0 <= self.alpha < 0.5:
@@ -102,6 +106,26 @@ class _ServerSide:
     env: BatchEnv
     horizon: int
     gamma: float
+
+
+def scsg_direction(
+    current: Policy,
+    snapshot: Policy,
+    batch: TrajectoryBatch,
+    mu: torch.Tensor | None,
+    *,
+    algo: AlgoConfig,
+    weights: FedHPGVRParams,
+    gamma: float,
+) -> torch.Tensor:
+    """v_n = (1/b) Σ_j [g(τ_j|θ_n) − ω_j g(τ_j|θ_0)] + μ_t on the b trajectories of ``batch``
+    (sampled at θ_n); the plain (1/b) Σ_j g(τ_j|θ_n) where no μ_t was kept."""
+    if mu is None:
+        return batch_gradient(current, batch, algo=algo, gamma=gamma)
+    direction, _, _ = semi_stochastic_gradient(
+        current, snapshot, batch, mu, algo=algo, params=weights, gamma=gamma
+    )
+    return direction
 
 
 @register_strategy
@@ -159,6 +183,7 @@ class FedPGBR(Strategy[FedPGBRStrategyParams]):
             sigma=self.params.sigma,
             delta=self.params.delta,
             alpha=self.params.alpha,
+            margin=self.params.margin,
         )
         order = sorted(u.agent_index for u in results)
         kept = [order[i] for i in found.kept]
@@ -193,18 +218,9 @@ class FedPGBR(Strategy[FedPGBRStrategyParams]):
         weights = FedHPGVRParams(iw_mode=self.params.iw_mode)
         for _ in range(steps):
             batch = sample_trajectories(side.env, policy, rng, horizon=side.horizon)
-            if mu is None:
-                direction = batch_gradient(policy, batch, algo=side.run.algo, gamma=side.gamma)
-            else:
-                direction, _, _ = semi_stochastic_gradient(
-                    policy,
-                    snapshot,
-                    batch,
-                    mu,
-                    algo=side.run.algo,
-                    params=weights,
-                    gamma=side.gamma,
-                )
+            direction = scsg_direction(
+                policy, snapshot, batch, mu, algo=side.run.algo, weights=weights, gamma=side.gamma
+            )
             set_flat_params(policy, get_flat_params(policy) + self.adam.direction(direction))
         return get_flat_params(policy).clone()
 
