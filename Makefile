@@ -92,6 +92,7 @@ bench-scale: $(STAMP)
 
 bench-robustness: $(STAMP)
 	$(BIN)/python -m benchmarks.robustness
+	$(BIN)/python -m benchmarks.fedpgbr
 
 bench: $(STAMP)
 	$(BIN)/python -m benchmarks.run_all | tee benchmarks/latest.md
