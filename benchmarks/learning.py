@@ -7,7 +7,8 @@ the server applies Adam to the average, as FedPG-BR's server does.
 ``docs/figures/cartpole_learning.png``, then prints :mod:`benchmarks.thresholds`' table
 (trajectories to the first and a sustained 475: FedHPG, FedHPGVR, FedPG-BR at server steps
 1e-3 and 1e-2, FedPG-BR's published figures beside them). ``--task lunarlander`` or
-``--task halfcheetah`` runs the long benchmarks of :mod:`benchmarks.learning_long` instead (the other arguments go there).
+``--task halfcheetah`` runs the long benchmarks of :mod:`benchmarks.learning_long` instead
+(the other arguments go there).
 """
 
 from __future__ import annotations
