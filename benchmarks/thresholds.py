@@ -182,8 +182,9 @@ def main(argv: Sequence[str] | None = None) -> None:
     parser.add_argument(
         "--resume", action="store_true", help=f"keep the curves already in {RESULTS}"
     )
+    parser.add_argument("--results", type=Path, default=RESULTS, help="where the curves are kept")
     args = parser.parse_args(argv)
-    curves = load() if args.resume or args.table_only else []
+    curves = load(args.results) if args.resume or args.table_only else []
     if not args.table_only:
         done = {(c.algo, c.server_lr, c.seed) for c in curves}
         for lr in args.server_lr:
@@ -198,7 +199,7 @@ def main(argv: Sequence[str] | None = None) -> None:
                         flush=True,
                     )
                     curves.append(curve)
-                    save(curves)
+                    save(curves, args.results)
     print(table(curves))
 
 
