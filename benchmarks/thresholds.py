@@ -131,7 +131,7 @@ def run_curve(
 def _spread(values: Sequence[float | None]) -> str:
     hits = [v for v in values if v is not None]
     if not hits:
-        return "never"
+        return "never"  # within the budget
     text = f"{statistics.median(hits):,.0f} ({min(hits):,.0f}–{max(hits):,.0f})"
     missed = len(values) - len(hits)
     return text + (f", {missed} never" if missed else "")
