@@ -113,6 +113,7 @@ bench-async: $(STAMP)
 
 bench-robustness: $(STAMP)
 	$(BIN)/python -m benchmarks.robustness
+	$(BIN)/python -m benchmarks.fedpgbr
 
 bench: $(STAMP)
 	$(BIN)/python -m benchmarks.run_all | tee benchmarks/latest.md

@@ -4,8 +4,11 @@ over 10 episodes per agent. Agents take plain steps of size 1 (θ_k − θ̃ = t
 the server applies Adam to the average, as FedPG-BR's server does.
 
 ``python -m benchmarks.learning [--seeds 5] [--server-lr 0.01]`` prints a table and writes
-``docs/figures/cartpole_learning.png``. ``--task lunarlander`` or ``--task halfcheetah`` runs
-the long benchmarks of :mod:`benchmarks.learning_long` instead (the other arguments go there).
+``docs/figures/cartpole_learning.png``, then prints :mod:`benchmarks.thresholds`' table
+(trajectories to the first and a sustained 475: FedHPG, FedHPGVR, FedPG-BR at server steps
+1e-3 and 1e-2, FedPG-BR's published figures beside them). ``--task lunarlander`` or
+``--task halfcheetah`` runs the long benchmarks of :mod:`benchmarks.learning_long` instead
+(the other arguments go there).
 """
 
 from __future__ import annotations
@@ -16,6 +19,7 @@ import tempfile
 from dataclasses import dataclass
 from pathlib import Path
 
+from benchmarks import thresholds
 from benchmarks.runtime import _federation
 
 TARGET = 475.0
@@ -118,7 +122,7 @@ def plot(curves: list[Curve], path: Path, title: str, ylabel: str) -> None:
 def _readable(label: str) -> str:
     """ "fedhpgvr K=10 level=1" → "FedHPGVR, K=10, level 1"."""
     algo, *rest = label.split(" ")
-    names = {"fedhpg": "FedHPG", "fedhpgvr": "FedHPGVR"}
+    names = {"fedhpg": "FedHPG", "fedhpgvr": "FedHPGVR", "fedpgbr": "FedPG-BR"}
     return ", ".join([names.get(algo, algo), *(r.replace("level=", "level ") for r in rest)])
 
 
@@ -181,6 +185,10 @@ def main() -> None:
         "greedy return in the worst agent's environment",
     )
     print(f"\nfigures: {FIGURE}, {HETEROGENEOUS_FIGURE}")
+    # FedHPG, FedHPGVR and FedPG-BR to the first and a sustained 475 at server steps 1e-3 and
+    # 1e-2, beside FedPG-BR's published figures (benchmarks/thresholds.py)
+    print()
+    thresholds.main(["--seeds", str(args.seeds)])
 
 
 if __name__ == "__main__":

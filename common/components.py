@@ -182,6 +182,12 @@ def validate_run(run: RunConfig) -> RunConfig:
             "algo.bound_estimates",
             f"Theorem 1's constants are estimated for fedhpg only, not {algorithm.name!r}",
         )
+    if algorithm.strategy is not None and run.strategy.name != algorithm.strategy:
+        raise ConfigError(
+            "strategy",
+            f"algo={algorithm.name} sends what only strategy={algorithm.strategy} aggregates, "
+            f"got strategy={run.strategy.name}: add strategy={algorithm.strategy}",
+        )
     _check_budget_keys(run, algorithm)
     _check_population_budgets(run, algorithm)
     _check_plan(run, algorithm)

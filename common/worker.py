@@ -145,6 +145,8 @@ class LocalWorker:
                 settings=self.run.algo,
                 gamma=self.gamma,
                 on_iteration=hook,
+                seed=self.run.seed,
+                round_index=round_index,
             )
             budget = self.profile.budget if budget is None else budget
             result = self.algorithm.local_update(theta, context, self.params, budget)

@@ -81,6 +81,13 @@ def validate_buffered(run: RunConfig) -> None:
             f"got {run.strategy.participation.mode!r}; server.round_policy=buffered keeps every "
             "agent busy (each restarts as soon as it is aggregated): use 'all'",
         )
+    if run.strategy.name == "fedpgbr":
+        # FedPG-BR's filter and SCSG loop need every agent's gradient at one θ̃ each round
+        raise ConfigError(
+            "server.round_policy",
+            "got 'buffered'; strategy=fedpgbr filters and steps from every agent's gradient at "
+            "one θ̃: use wait_all",
+        )
 
 
 @dataclass(kw_only=True)

@@ -53,6 +53,8 @@ class RoundRecord:
     """Buffered rounds: each aggregated update's staleness, in the order of ``agents``."""
     stale: dict[str, int] = field(default_factory=dict)
     """Buffered rounds: agent id → staleness of the updates dropped past the bound."""
+    strategy: dict[str, Any] = field(default_factory=dict)
+    """What the strategy reports of its aggregation (:meth:`Strategy.round_stats`)."""
 
     def to_json(self) -> dict[str, Any]:
         record: dict[str, Any] = {
@@ -80,6 +82,8 @@ class RoundRecord:
             record["staleness"] = list(self.staleness)
         if self.stale:
             record["stale"] = dict(self.stale)
+        if self.strategy:
+            record["strategy"] = dict(self.strategy)
         return record
 
 
@@ -210,6 +214,7 @@ class Coordinator:
                 if self.run.algo.bound_estimates
                 else None,
                 plan=plan,
+                strategy=self.strategy.round_stats(),
             )
             for callback in self.on_round:
                 callback(record, self.theta)

@@ -191,7 +191,7 @@ def serve(
     """Run one federation as its server; returns the final θ̃_T."""
     validate_strategy(run)
     check_distributed_policy(run)
-    strategy = make_strategy(run.strategy)
+    strategy = make_strategy(run.strategy, run=run)
     first = variant_of(run, 0)
     theta, progress = initial_theta(first, run), RunProgress()
     counters: dict[str, int] = {}

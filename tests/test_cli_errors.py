@@ -43,6 +43,16 @@ CASES: dict[str, tuple[str, list[str], str]] = {
         ["env=cartpole", "+env.options.size=7"],
         "env.options:",
     ),
+    "fedpgbr-other-strategy": (
+        "fedhpg-run",
+        ["algo=fedpgbr", "strategy=median"],
+        "strategy: algo=fedpgbr sends what only strategy=fedpgbr aggregates",
+    ),
+    "fedpgbr-strategy-other-algo": (
+        "fedhpg-run",
+        ["strategy=fedpgbr"],
+        "strategy: fedpgbr aggregates FedPG-BR's gradients: it runs with algo=fedpgbr",
+    ),
     "unknown-top-key": ("fedhpg-run", ["+foo=1"], "foo: not a fedhpg key"),
     "typo-added-with-plus": (
         "fedhpg-run",
@@ -78,6 +88,11 @@ CASES: dict[str, tuple[str, list[str], str]] = {
         "agents.plan_every: got 0, must be an integer >= 1",
     ),
     "plan-unknown": ("fedhpg-run", ["agents.plan=best"], "agents.plan: got 'best', allowed:"),
+    "fedpgbr-buffered": (
+        "fedhpg-run",
+        ["algo=fedpgbr", "server.round_policy=buffered"],
+        "server.round_policy: got 'buffered'; strategy=fedpgbr filters and steps",
+    ),
     "plan-buffered": (
         "fedhpg-run",
         ["agents.plan=theorem1", "algo.bound_estimates=true", "server.round_policy=buffered"],

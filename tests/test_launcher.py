@@ -48,8 +48,8 @@ def test_a_crashed_agent_without_restarts_left_stops_the_federation(tmp_path: Pa
     with processes() as started:
         launcher, children = _running_federation(started, tmp_path, "agent.max_restarts=0")
         os.kill(max(children), signal.SIGKILL)  # the last agent forked
-        launcher.wait(timeout=30)
-        stderr = launcher.stderr.read() + launcher.stdout.read()
+        out, err = launcher.communicate(timeout=30)
+        stderr = err + out
     assert launcher.returncode == 1
     assert "exited with status -9" in stderr
     assert wait_until(lambda: not any(alive(pid) for pid in children), 10)
@@ -59,9 +59,9 @@ def test_ctrl_c_leaves_no_process_behind(tmp_path: Path) -> None:
     with processes() as started:
         launcher, children = _running_federation(started, tmp_path)
         launcher.send_signal(signal.SIGINT)
-        # 60 s: a launcher with torch loaded, at nice 5 on a machine with a load of 12, once
-        # took over 30 s to stop its children and exit (on an idle machine ~4 s)
-        launcher.wait(timeout=60)
+        # communicate, not wait: the federation's processes share the launcher's pipes, and a
+        # pipe nobody drains blocks the process writing to it once it is full (64 KiB)
+        launcher.communicate(timeout=60)
     assert launcher.returncode == 130
     assert wait_until(lambda: not any(alive(pid) for pid in children), 10)
 
@@ -70,7 +70,7 @@ def test_children_die_with_a_killed_launcher(tmp_path: Path) -> None:
     with processes() as started:
         launcher, children = _running_federation(started, tmp_path)
         launcher.kill()
-        launcher.wait(timeout=30)
+        launcher.communicate(timeout=30)
     assert wait_until(lambda: not any(alive(pid) for pid in children), 10)
 
 

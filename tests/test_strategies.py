@@ -146,7 +146,7 @@ def test_fedadam_over_median_uses_the_inner_rule() -> None:
 @pytest.mark.parametrize(
     ("name", "params", "key", "hint"),
     [
-        ("nope", {}, "strategy.name", "no strategy .nope.; known: fedadam, mean, median"),
+        ("nope", {}, "strategy.name", "no strategy .nope.; known: fedadam, fedpgbr, mean, median"),
         ("trimmed_mean", {"trim_fraction": 0.5}, "strategy.params.trim_fraction", r"\[0, 0.5\)"),
         ("trimmed_mean", {"trim": 0.1}, "strategy.params.trim", "allowed: trim_fraction"),
         ("mean", {"x": 1}, "strategy.params.x", "allowed: none"),

@@ -51,6 +51,11 @@ class LocalContext:
     on_iteration: IterationHook | None = None
     """Called after every iteration with its compute time and env steps (device emulation,
     cancellation)."""
+    seed: int = 0
+    """The run's seed: with ``round_index``, what a schedule every agent and the server must
+    agree on is drawn from (FedPG-BR's B_t)."""
+    round_index: int = 0
+    """The round this update belongs to (rounds count from 1)."""
 
 
 class Algorithm(abc.ABC, Generic[P, B]):
@@ -61,6 +66,8 @@ class Algorithm(abc.ABC, Generic[P, B]):
     """Frozen dataclass of the algorithm's own options (``algo.params``)."""
     Budget: ClassVar[type[Any]]
     """Frozen dataclass of one agent's budget (``agents.budget.<field>[k]``)."""
+    strategy: ClassVar[str | None] = None
+    """The one server strategy the algorithm's updates mean anything to (None: any)."""
 
     @abc.abstractmethod
     def local_update(

@@ -184,7 +184,7 @@ def run_in_process(
         coordinator = kind(
             run=run,
             pool=pool,
-            strategy=make_strategy(run.strategy),
+            strategy=make_strategy(run.strategy, run=run),
             theta=initial_theta(variant_of(run, 0), run) if theta is None else theta,
             progress=progress,
             on_round=on_round,

@@ -63,6 +63,16 @@ class Strategy(abc.ABC, Generic[P]):
     ) -> torch.Tensor:
         """θ̃_{t+1} from θ̃_t and the accepted updates (never empty)."""
 
+    def bind(self, run: RunConfig) -> None:
+        """Called once with the run before the first round, for a strategy that needs more of
+        the run than its own options (fedpgbr's environment); ConfigError for a run it cannot
+        serve."""
+
+    def round_stats(self) -> dict[str, Any]:
+        """What the strategy reports of the last :meth:`aggregate` (``metrics.jsonl``'s
+        ``strategy``; nothing, for most rules)."""
+        return {}
+
     def state(self) -> SavedState:
         """What a checkpoint must keep to continue exactly (nothing, for stateless rules)."""
         return SavedState()
@@ -100,16 +110,22 @@ def register_strategy(cls: S) -> S:
     return cls
 
 
-def make_strategy(config: StrategyConfig, key: str = "strategy") -> Strategy[Any]:
-    """A fresh strategy from its config; ConfigError naming the key when it is wrong."""
+def make_strategy(
+    config: StrategyConfig, key: str = "strategy", run: RunConfig | None = None
+) -> Strategy[Any]:
+    """A fresh strategy from its config (bound to ``run`` where given); ConfigError naming the
+    key when it is wrong."""
     cls = STRATEGIES.get(config.name)
-    return cls(parse_options(cls.Params, config.params, f"{key}.params"))
+    strategy = cls(parse_options(cls.Params, config.params, f"{key}.params"))
+    if run is not None:
+        strategy.bind(run)
+    return strategy
 
 
 def validate_strategy(run: RunConfig) -> None:
     """The server-side checks of a run config (the agents never see ``strategy``)."""
     import_plugins(run.plugins)
-    make_strategy(run.strategy)
+    make_strategy(run.strategy, run=run)
     validate_participation(run)
 
 

@@ -1,0 +1,113 @@
+"""FedPG-BR's agent half (Fan et al., NeurIPS 2021, Algorithm 1 lines 3-5): one gradient.
+
+Each round t every agent samples B_t trajectories at the server's θ̃_0^t and sends its GPOMDP
+gradient μ_t^(k). fedhpg agents send parameter vectors, so the agent sends θ_k = θ̃ + μ_t^(k)
+and the server reads μ_t^(k) = θ_k − θ̃ (an attack on "the gradient", common/attacks.py, then
+acts on exactly FedPG-BR's μ). The Byzantine filter and the SCSG inner loop are the server's:
+:mod:`fedhpg.server.strategies.fedpgbr`.
+
+B_t is drawn uniformly from [batch_min, batch_max] (both included, as FedPG-BR's code draws it)
+and N_t ~ Geom(b / (B_t + b)) on {1, 2, …} (its code's draw: mean (B_t + b)/b), both from the
+(seed, round) stream :func:`round_schedule`, so agents and server agree without a message.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+
+from fedhpg.common.algorithms import Algorithm, LocalContext, register_algorithm
+from fedhpg.common.config import AlgoConfig, ConfigError
+from fedhpg.common.local import LocalTally, batch_gradient
+from fedhpg.common.policies import set_flat_params
+from fedhpg.common.registry import OptionError
+from fedhpg.common.types import LocalResult
+
+SCHEDULE_KEY = 0x46504252
+"""Third word of the (seed, round, key) seed of a round's B_t and N_t: no agent stream
+[seed, agent, round, purpose] has a round index this large, so the streams never meet."""
+
+
+@dataclass(frozen=True, kw_only=True)
+class FedPGBRParams:
+    """FedPG-BR's batch sizes (``algo.params``); its CartPole values are the defaults."""
+
+    batch_min: int = 14
+    """B_min: the smallest B_t, the trajectories each agent samples in a round."""
+    batch_max: int = 18
+    """B_max: the largest B_t (included)."""
+    mini_batch_size: int = 4
+    """b: trajectories per SCSG inner step, sampled by the server."""
+
+    def __post_init__(self) -> None:
+        for name in ("batch_min", "batch_max", "mini_batch_size"):
+            if getattr(self, name) < 1:
+                raise OptionError(name, f"got {getattr(self, name)!r}, must be an integer >= 1")
+        if self.batch_max < self.batch_min:
+            raise OptionError(
+                "batch_max", f"got {self.batch_max}, below batch_min = {self.batch_min}"
+            )
+
+
+@dataclass(frozen=True, kw_only=True)
+class FedPGBRBudget:
+    """FedPG-BR gives every agent the round's B_t (``algo.params``): no per-agent budget."""
+
+
+@dataclass(frozen=True)
+class RoundSchedule:
+    batch_size: int
+    """B_t."""
+    inner_steps: int
+    """N_t."""
+
+
+def round_schedule(seed: int, round_index: int, params: FedPGBRParams) -> RoundSchedule:
+    """B_t ~ U{B_min … B_max}, then N_t ~ Geom(b / (B_t + b)), from the (seed, round) stream."""
+    rng = np.random.default_rng([seed, round_index, SCHEDULE_KEY])
+    batch = int(rng.integers(params.batch_min, params.batch_max + 1))
+    steps = int(rng.geometric(params.mini_batch_size / (batch + params.mini_batch_size)))
+    return RoundSchedule(batch_size=batch, inner_steps=steps)
+
+
+@register_algorithm
+class FedPGBR(Algorithm[FedPGBRParams, FedPGBRBudget]):
+    """Send θ̃ + μ, μ the GPOMDP gradient of B_t trajectories at θ̃ (strategy=fedpgbr)."""
+
+    name = "fedpgbr"
+    Params = FedPGBRParams
+    Budget = FedPGBRBudget
+    strategy = "fedpgbr"
+
+    def local_update(
+        self,
+        theta: torch.Tensor,
+        context: LocalContext,
+        params: FedPGBRParams,
+        budget: FedPGBRBudget,
+    ) -> LocalResult:
+        set_flat_params(context.policy, theta)
+        tally = LocalTally()
+        started = time.thread_time()
+        size = round_schedule(context.seed, context.round_index, params).batch_size
+        batch = context.sample(size)
+        mu = batch_gradient(context.policy, batch, algo=context.settings, gamma=context.gamma)
+        compute_s = time.thread_time() - started
+        tally.add(batch, compute_s=compute_s)
+        if context.on_iteration is not None:
+            context.on_iteration(0, compute_s, batch.num_steps)
+        return tally.result(theta + mu)
+
+    def check(self, settings: AlgoConfig, params: FedPGBRParams) -> None:
+        if settings.estimator != "gpomdp":
+            raise ConfigError(
+                "algo.estimator",
+                f"FedPG-BR's gradients are GPOMDP's, got {settings.estimator!r}: set "
+                "algo.estimator=gpomdp",
+            )
+
+    def describe_budget(self, budget: FedPGBRBudget) -> str:
+        return "B_t from algo.params"
