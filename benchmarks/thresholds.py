@@ -57,9 +57,10 @@ PUBLISHED = {
     0.001: [(1068, 1196), (599, 1186)],
     0.01: [(221, 950), (225, 225)],
 }
-BEST_PRESET_ROW = (
-    "| best preset (issue-c: estimator options) | {lr} | — | — | — | not measured here |"
-)
+PRESET_RESULTS = Path("benchmarks/results/estimator_options.json")
+"""The tuning runs of ``python -m benchmarks.estimator_options`` (the same set-up and rules)."""
+BEST_PRESET = "paper, B=1 (baseline 0)"
+"""Those runs' label of ``experiment=k10_cartpole_tuned``: the fewest trajectories found."""
 
 
 @dataclass(frozen=True)
@@ -153,7 +154,13 @@ def table(curves: list[Curve]) -> str:
                     f"| {LABELS[algo]} | {lr:g} | {len(group)} | {first} | {held} "
                     "| this benchmark |"
                 )
-        lines.append(BEST_PRESET_ROW.format(lr=f"{lr:g}"))
+        preset = [c for c in preset_curves() if c.server_lr == lr]
+        if preset:
+            lines.append(
+                f"| best preset (`experiment=k10_cartpole_tuned`: eq. 6, B=1) | {lr:g} | "
+                f"{len(preset)} | {_spread([c.first() for c in preset])} | "
+                f"{_spread([c.sustained() for c in preset])} | {PRESET_RESULTS} |"
+            )
         if lr in PUBLISHED:
             firsts = [float(f) for f, _ in PUBLISHED[lr]]
             held = [float(s) for _, s in PUBLISHED[lr]]
@@ -162,6 +169,18 @@ def table(curves: list[Curve]) -> str:
                 "| published figures, seeds 0 and 1 |"
             )
     return "\n".join(lines)
+
+
+def preset_curves(path: Path = PRESET_RESULTS) -> list[Curve]:
+    """The tuned preset's curves from the estimator-options runs, counted by this module's
+    first and sustained rules."""
+    if not path.exists():
+        return []
+    return [
+        Curve("preset", run["server_lr"], run["seed"], run["trajectories"], run["returns"])
+        for run in json.loads(path.read_text())
+        if run["options"] == BEST_PRESET
+    ]
 
 
 def load(path: Path = RESULTS) -> list[Curve]:
