@@ -185,7 +185,10 @@ def launch(run: RunConfig, out_dir: Path) -> int:
     def interrupt(signum: int, _frame: object) -> None:
         raise KeyboardInterrupt
 
+    # SIGINT too, not only SIGTERM: a launcher started with SIGINT ignored (what a shell's
+    # background job or a parent that ignores it passes on) would otherwise not stop on it
     signal.signal(signal.SIGTERM, interrupt)
+    signal.signal(signal.SIGINT, interrupt)
     try:
         receive, send = multiprocessing.Pipe(duplex=False)
         server = supervisor.start(_server_child, (run, str(out_dir), send), "server")

@@ -57,7 +57,8 @@ def test_fedhpg_run_rejects_an_unknown_group_option_with_one_line(tmp_path: Path
         cwd=tmp_path,
     )  # fmt: skip
     assert result.returncode == 2
-    assert result.stderr.strip() == "error: algo: no such option 'nope'; allowed: fedhpg, fedhpgvr"
+    expected = "error: algo: no such option 'nope'; allowed: fedhpg, fedhpgvr, fedpgbr"
+    assert result.stderr.strip() == expected
 
 
 def test_tiny_multirun_then_plot(tmp_path: Path) -> None:

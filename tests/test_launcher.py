@@ -8,6 +8,7 @@ import os
 import signal
 from pathlib import Path
 
+import pytest
 import torch
 from procs import alive, child_pids, processes, start, wait_until
 
@@ -55,9 +56,18 @@ def test_a_crashed_agent_without_restarts_left_stops_the_federation(tmp_path: Pa
     assert wait_until(lambda: not any(alive(pid) for pid in children), 10)
 
 
-def test_ctrl_c_leaves_no_process_behind(tmp_path: Path) -> None:
+@pytest.mark.parametrize("inherited", ["default", "ignored"])
+def test_ctrl_c_leaves_no_process_behind(tmp_path: Path, inherited: str) -> None:
+    """'ignored': the launcher starts with SIGINT ignored, as a shell's background job does
+    (and as a test process may pass on), and must still stop on it."""
+    before = signal.getsignal(signal.SIGINT)
+    if inherited == "ignored":
+        signal.signal(signal.SIGINT, signal.SIG_IGN)  # inherited by the launcher at exec
     with processes() as started:
-        launcher, children = _running_federation(started, tmp_path)
+        try:
+            launcher, children = _running_federation(started, tmp_path)
+        finally:
+            signal.signal(signal.SIGINT, before)
         launcher.send_signal(signal.SIGINT)
         # communicate, not wait: the federation's processes share the launcher's pipes, and a
         # pipe nobody drains blocks the process writing to it once it is full (64 KiB)
