@@ -107,7 +107,7 @@ bench-plan: $(STAMP)
 # rounds"; benchmarks/results/async_rounds.json, docs/figures/async_rounds.png.
 bench-async: $(STAMP)
 	nice -n 10 $(BIN)/python -m benchmarks.async_rounds
-	nice -n 10 $(BIN)/python -m benchmarks.async_rounds --setups cartpole-k100 --seeds 3 \
+	nice -n 10 $(BIN)/python -m benchmarks.async_rounds --setups cartpole-k100 --seeds 5 \
 		--results benchmarks/results/async_rounds_k100.json \
 		--figure docs/figures/async_rounds_k100.png
 
