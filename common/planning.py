@@ -278,10 +278,7 @@ def plan_for_rounds(
             )
         local_iters, batch_sizes = found
         slowest_round = max(
-            t * b * c + o
-            for t, b, c, o in zip(
-                local_iters, batch_sizes, seconds_per_trajectory, overhead_s, strict=True
-            )
+            agent_round_seconds(local_iters, batch_sizes, seconds_per_trajectory, overhead_s)
         )
         plan = _plan_of(
             constants,
@@ -294,6 +291,21 @@ def plan_for_rounds(
         if _second_condition_holds(constants, plan.local_iters) or tau_max == 1:
             return plan
         tau_max -= 1
+
+
+def agent_round_seconds(
+    local_iters: Sequence[int],
+    batch_sizes: Sequence[int],
+    seconds_per_trajectory: Sequence[float],
+    overhead_s: Sequence[float],
+) -> tuple[float, ...]:
+    """Each agent's round, τ_k B_k c_k + o_k emulated seconds (the module's time model)."""
+    return tuple(
+        t * b * c + o
+        for t, b, c, o in zip(
+            local_iters, batch_sizes, seconds_per_trajectory, overhead_s, strict=True
+        )
+    )
 
 
 def _second_condition_holds(constants: Constants, local_iters: Sequence[int]) -> bool:
@@ -314,11 +326,8 @@ def _plan_of(
     batch_sizes: Sequence[int],
 ) -> Plan:
     """A plan for given budgets: its round times, rounds and bound (also to score others)."""
-    agent_round_s = tuple(
-        t * b * c + o
-        for t, b, c, o in zip(
-            local_iters, batch_sizes, seconds_per_trajectory, overhead_s, strict=True
-        )
+    agent_round_s = agent_round_seconds(
+        local_iters, batch_sizes, seconds_per_trajectory, overhead_s
     )
     round_s = max(agent_round_s)
     rounds = math.floor(total_s / round_s * (1 + 1e-12))

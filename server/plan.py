@@ -242,7 +242,13 @@ def main(argv: Sequence[str] | None = None) -> int:
         return fail(ConfigError(stray, "not an option; see fedhpg-plan --help"))
     setup_logging()
     # Imported past the argument check: a mistyped flag answers without torch's start-up.
-    from fedhpg.common.planning import Constants, Limits, plan_budgets, score_budgets
+    from fedhpg.common.planning import (
+        Constants,
+        Limits,
+        agent_round_seconds,
+        plan_budgets,
+        score_budgets,
+    )
     from fedhpg.common.variants import training_horizon, variant_of
 
     try:
@@ -306,9 +312,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     )
     batches, iters = configured_budgets(run)
     try:
-        configured_round_s = max(
-            t * b * c + o for t, b, c, o in zip(iters, batches, seconds, overhead, strict=True)
-        )
+        configured_round_s = max(agent_round_seconds(iters, batches, seconds, overhead))
         total_s = args.budget_s if args.budget_s is not None else configured_round_s * run.rounds
         configured = score_budgets(
             constants=constants,
