@@ -58,7 +58,11 @@ assert torch.version.cuda is None, 'a CUDA build of torch: the image is CPU only
 ENV PATH=/opt/fedhpg/bin:$PATH \
     OMP_NUM_THREADS=1 \
     MKL_NUM_THREADS=1 \
-    PYTHONUNBUFFERED=1
+    PYTHONUNBUFFERED=1 \
+    NUMBA_CACHE_DIR=/opt/fedhpg-numba
+# The compiled engine's kernels, compiled once here (numba caches per CPU type: a host of
+# another type compiles them again on first use, into the same directory).
+RUN python -m fedhpg.common.batched.compiled && chown -R fedhpg /opt/fedhpg-numba
 USER fedhpg
 WORKDIR /home/fedhpg
 EXPOSE 5555

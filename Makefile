@@ -14,6 +14,7 @@ $(STAMP): pyproject.toml constraints.txt
 	test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
 	$(BIN)/python -m pip install --quiet --upgrade pip
 	$(BIN)/python -m pip install --quiet -c constraints.txt -e ".[envs,dev]"
+	$(BIN)/python -m fedhpg.common.batched.compiled
 	touch $(STAMP)
 
 demo: $(STAMP)

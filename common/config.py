@@ -25,7 +25,7 @@ BASELINES: tuple[str, ...] = ("none", "mean")
 REWARD_TO_GO: tuple[str, ...] = ("from_start", "from_step")
 NORMALIZE: tuple[str, ...] = ("none", "batch", "episode")
 OPTIMIZERS = ("sgd", "adam")
-ENGINES = ("auto", "loop")
+ENGINES = ("auto", "numpy", "loop")
 ATTACKS = ("none", "zero_gradient", "random_noise", "sign_flip", "reward_flip", "random_action")
 SCHEDULES = ("constant", "periodic", "random_walk")
 PLANS = ("none", "theorem1")
@@ -88,11 +88,13 @@ class AlgoConfig:
     params: dict[str, Any] = field(default_factory=dict)
     """The algorithm's own options (its ``Params`` dataclass), e.g. FedHPGVR's ``iw_mode``."""
     engine: str = "auto"
-    """How a process computes its agents' local updates: 'auto' = the batched engine where it
-    covers the run (FedHPG, MLP categorical policy, honest agents: all of the process's
-    agents sampled and differentiated together), else one LocalWorker after another; 'loop' = always
-    the latter. The two round floats differently, so the server dictates it; either way an
-    agent's θ does not depend on where it runs."""
+    """How a process computes its agents' local updates: 'auto' = a batched engine where one
+    covers the run (FedHPG, MLP categorical policy, honest agents: all of the process's agents
+    sampled and differentiated together; compiled with numba on CartPole, numpy elsewhere),
+    else one LocalWorker after another; 'numpy' = the numpy batched engine wherever it covers
+    the run (the engine of runs made before the compiled one); 'loop' = always LocalWorkers.
+    They round floats differently, so the server dictates it; either way an agent's θ does not
+    depend on where it runs."""
     bound_estimates: bool = False
     """Estimate Theorem 1's constants every round (``common/bounds.py``): each agent's σ̂², M̂
     and ‖∇J_k‖² at θ̃ from the per-trajectory gradients of its first local batch, written as

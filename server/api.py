@@ -20,14 +20,14 @@ from typing import Any
 import numpy as np
 import torch
 
-from fedhpg.common.components import agent_profile
 from fedhpg.common.config import ConfigError, RunConfig, from_dict, to_dict
+from fedhpg.common.group import make_agent_group
 from fedhpg.common.policies import Policy, get_flat_params, register_policy, set_flat_params
 from fedhpg.common.registry import import_plugins
 from fedhpg.common.runtime.cli import compose, validate_config
 from fedhpg.common.types import EvaluationStats
 from fedhpg.common.variants import run_variants, variant_of
-from fedhpg.common.worker import LocalWorker, build_policy, initial_theta
+from fedhpg.common.worker import build_policy, initial_theta
 from fedhpg.envs.registry import register_family
 from fedhpg.server.checkpoint import latest_valid_checkpoint, write_atomic
 from fedhpg.server.coordinator import RoundCallback, RoundRecord, RunProgress
@@ -336,15 +336,15 @@ def evaluate(
     config = load_run_config(run_dir)
     if not 0 <= agent < config.agents.num_agents:
         raise ValueError(f"agent must be in [0, {config.agents.num_agents}), got {agent!r}")
-    variant = variant_of(config, agent)
-    worker = LocalWorker(
-        index=agent, variant=variant, run=config, profile=agent_profile(config, agent)
-    )
+    # through the group the run's agents evaluate with: the compiled, numpy and loop engines
+    # draw their episodes' random numbers differently
+    group = make_agent_group(config, [agent])
     try:
-        return worker.evaluate(
+        return group.evaluate(
             config.rounds if round is None else round,
             get_flat_params(policy),
             episodes or config.eval.episodes,
-        )
+            [agent],
+        )[agent]
     finally:
-        worker.close()
+        group.close()

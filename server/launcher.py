@@ -208,6 +208,7 @@ def launch(run: RunConfig, out_dir: Path) -> int:
                 return 1
         if run.server.transport == "tcp":
             run = replace(run, server=replace(run.server, port=_port_of(endpoint)))
+        _prepare_compiled_engine(run)
         for name, agent_run in agent_processes(run):
             supervisor.start(_agent_child, (agent_run,), name)
         return supervisor.wait(server)
@@ -219,6 +220,24 @@ def launch(run: RunConfig, out_dir: Path) -> int:
         supervisor.stop_all()
         for sig, handler in previous.items():
             signal.signal(sig, handler)
+
+
+def _prepare_compiled_engine(run: RunConfig) -> None:
+    """Compile the compiled engine's kernels here, or load them from numba's cache, when the
+    run's agents use it: forked after this, they inherit the machine code instead of each
+    compiling it (tens of seconds on a machine whose cache is cold)."""
+    from fedhpg.common.batched import uses_compiled_engine
+
+    if not uses_compiled_engine(run):
+        return
+    from fedhpg.common.batched.compiled import warm_up
+
+    seconds = warm_up()
+    logger.log(
+        logging.INFO if seconds > 5 else logging.DEBUG,
+        "compiled engine ready in %.1f s (numba)",
+        seconds,
+    )
 
 
 def agent_processes(run: RunConfig) -> list[tuple[str, RunConfig]]:

@@ -1,5 +1,5 @@
-"""The batched engine (common/batched/): its env, its gradient, and that an agent's numbers
-never depend on the company it is computed in."""
+"""The batched engines (common/batched/): the numpy engine's env and gradient, and for it and
+the compiled engine, that an agent's numbers never depend on the company it is computed in."""
 
 from __future__ import annotations
 
@@ -8,6 +8,7 @@ import pytest
 import torch
 
 from fedhpg.common.batched import batched_group_or_none, mlp, unsupported
+from fedhpg.common.batched.compiled import CompiledFedHPG
 from fedhpg.common.batched.engine import BatchedFedHPG
 from fedhpg.common.batched.sampler import Batches, rollout
 from fedhpg.common.group import WorkerLoopGroup, make_agent_group
@@ -22,15 +23,26 @@ from fedhpg.server.api import resolve_config
 POPULATION = ["agents=population", "policy.hidden=[16,16]"]
 
 
-def _run(*overrides: str, family: str = "cartpole", agents: int = 9):
+ENGINES = {"numpy": BatchedFedHPG, "auto": CompiledFedHPG}
+"""algo.engine → the engine it picks for CartPole."""
+
+
+def _run(*overrides: str, family: str = "cartpole", agents: int = 9, engine: str = "numpy"):
     return resolve_config(
-        overrides=[f"env={family}", f"agents.num_agents={agents}", *POPULATION, *overrides]
+        overrides=[
+            f"env={family}",
+            f"agents.num_agents={agents}",
+            *POPULATION,
+            f"algo.engine={engine}",
+            *overrides,
+        ]
     )
 
 
-def _group(run, indices) -> BatchedFedHPG:
+def _group(run, indices) -> BatchedFedHPG | CompiledFedHPG:
     group = batched_group_or_none(run, variants_of(run, indices))
-    assert isinstance(group, BatchedFedHPG), unsupported(run, variants_of(run, indices))
+    expected = ENGINES[run.algo.engine]
+    assert isinstance(group, expected), unsupported(run, variants_of(run, indices))
     return group
 
 
@@ -128,15 +140,16 @@ SETTINGS = [
 ]
 
 
+@pytest.mark.parametrize("engine", ENGINES)
 @pytest.mark.parametrize(
     "settings",
     SETTINGS,
     ids=["sgd", "adam", "clipped-reinforce", "from_step-normalize-batch", "normalize-episode"],
 )
-def test_an_agents_round_is_the_same_in_any_company(settings) -> None:
+def test_an_agents_round_is_the_same_in_any_company(settings, engine) -> None:
     """Alone, in small groups, in another order, or all nine together: bit-identical θ_k and
     the same counts (the property that makes θ̃ independent of placement)."""
-    run = _run(*settings)
+    run = _run(*settings, engine=engine)
     theta = initial_theta(variants_of(run, [0])[0], run)
     everyone = _group(run, range(9)).train(3, theta, list(range(9)))
     if settings and "grad_clip" in settings[0]:
@@ -150,8 +163,9 @@ def test_an_agents_round_is_the_same_in_any_company(settings) -> None:
             assert results[k].stats.train_return == everyone[k].stats.train_return
 
 
-def test_a_group_trains_a_subset_of_its_agents_as_their_own_groups_would() -> None:
-    run = _run()
+@pytest.mark.parametrize("engine", ENGINES)
+def test_a_group_trains_a_subset_of_its_agents_as_their_own_groups_would(engine) -> None:
+    run = _run(engine=engine)
     theta = initial_theta(variants_of(run, [0])[0], run)
     group = _group(run, range(9))
     chosen = group.train(1, theta, [1, 5, 6])
@@ -160,8 +174,9 @@ def test_a_group_trains_a_subset_of_its_agents_as_their_own_groups_would() -> No
     assert torch.equal(chosen[5].theta, alone[5].theta)
 
 
-def test_agents_move_the_policy_and_count_their_work() -> None:
-    run = _run()
+@pytest.mark.parametrize("engine", ENGINES)
+def test_agents_move_the_policy_and_count_their_work(engine) -> None:
+    run = _run(engine=engine)
     theta = initial_theta(variants_of(run, [0])[0], run)
     group = _group(run, range(9))
     results = group.train(1, theta, list(range(9)))
@@ -174,8 +189,9 @@ def test_agents_move_the_policy_and_count_their_work() -> None:
     assert len({tuple(r.theta[:8].tolist()) for r in results.values()}) == 9
 
 
-def test_evaluation_is_the_same_in_any_company_and_counts_episodes() -> None:
-    run = _run()
+@pytest.mark.parametrize("engine", ENGINES)
+def test_evaluation_is_the_same_in_any_company_and_counts_episodes(engine) -> None:
+    run = _run(engine=engine)
     theta = initial_theta(variants_of(run, [0])[0], run)
     everyone = _group(run, range(9)).evaluate(2, theta, 6, list(range(9)))
     alone = _group(run, [3]).evaluate(2, theta, 6, [3])
@@ -224,9 +240,10 @@ def test_bound_estimates_are_autograds_per_trajectory_ones(baseline) -> None:
             assert together[a][name] == pytest.approx(value, rel=1e-4, abs=1e-6), name
 
 
-def test_bound_estimates_change_no_theta_and_no_company_changes_them() -> None:
-    plain = _run()
-    measured = _run("algo.bound_estimates=true")
+@pytest.mark.parametrize("engine", ENGINES)
+def test_bound_estimates_change_no_theta_and_no_company_changes_them(engine) -> None:
+    plain = _run(engine=engine)
+    measured = _run("algo.bound_estimates=true", engine=engine)
     theta = initial_theta(variants_of(plain, [0])[0], plain)
     before = _group(plain, range(9)).train(2, theta, list(range(9)))
     everyone = _group(measured, range(9)).train(2, theta, list(range(9)))

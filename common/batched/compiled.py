@@ -1,0 +1,330 @@
+"""The compiled engine: FedHPG for a group of CartPole agents with the MLP categorical policy,
+each local iteration of all of them in two numba calls (sample, then learn).
+
+It computes what the numpy engine (:mod:`fedhpg.common.batched.engine`) computes — the same
+estimators, options, clipping and steps, every agent from its own random stream — an agent
+at a time inside :mod:`fedhpg.common.batched.kernels` instead of all agents in lockstep
+through numpy. The floats differ from the numpy engine's (another tanh, another summation
+order, the random numbers used in another order), so ``algo.engine`` is dictated by the
+server; between placements of one run they never differ, since every process that holds an
+agent runs the same kernel on the same inputs for it.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Mapping, Sequence
+
+import numpy as np
+import torch
+
+from fedhpg.common.algorithms.fedhpg import FedHPGBudget
+from fedhpg.common.batched import kernels
+from fedhpg.common.batched.engine import _Lazy
+from fedhpg.common.batched.mlp import MLPShape
+from fedhpg.common.batched.streams import agent_streams
+from fedhpg.common.bounds import gradient_moments
+from fedhpg.common.components import agent_profile, planned_budget
+from fedhpg.common.config import RunConfig
+from fedhpg.common.group import Budgets, GroupHook
+from fedhpg.common.local import LocalTally, SmoothnessProbe, bound_stats
+from fedhpg.common.types import EvaluationStats, LocalResult
+from fedhpg.common.variants import discount, training_horizon
+from fedhpg.common.worker import IterationWork, Stream
+from fedhpg.envs.base import EnvVariant
+from fedhpg.envs.compiled import CARTPOLE_STEP_LIMIT, cartpole_table
+
+
+def compiled_unsupported(run: RunConfig, variants: Mapping[int, EnvVariant]) -> str | None:
+    """Why the compiled engine cannot train these agents (None: it can). The caller has
+    checked what every batched engine needs (FedHPG, the MLP categorical policy)."""
+    first = variants[min(variants)]
+    if cartpole_table([first]) is None:
+        return f"{type(first).__name__} {getattr(first, 'env_id', '')} (compiled: CartPole only)"
+    return None
+
+
+class CompiledFedHPG:
+    """The agents ``variants`` of a FedHPG run on CartPole variants (see the module docstring)."""
+
+    def __init__(self, run: RunConfig, variants: Mapping[int, EnvVariant], shape: MLPShape):
+        self.run = run
+        self.variants = variants
+        self.shape = shape
+        self.sizes = np.asarray(shape.sizes, dtype=np.int64)
+        self.profiles = _Lazy(lambda k: agent_profile(run, k))
+        self.gammas = _Lazy(lambda k: discount(run, variants[k]))
+        self.horizons = _Lazy(lambda k: training_horizon(run, variants[k]))
+        self.physics = _Lazy(self._physics_of)
+        self._buffers: _RowBuffers | None = None
+        algo = run.algo
+        self.options = np.array(
+            [
+                kernels.ESTIMATORS[algo.estimator],
+                kernels.BASELINES[algo.baseline],
+                kernels.REWARD_TO_GO[algo.reward_to_go],
+                kernels.NORMALIZE[algo.normalize],
+                kernels.OPTIMIZERS[algo.optimizer],
+            ],
+            dtype=np.int64,
+        )
+
+    def _physics_of(self, k: int) -> np.ndarray:
+        table = cartpole_table([self.variants[k]])
+        if table is None:
+            raise ValueError(f"agent {k}'s variant is not a CartPole the compiled engine models")
+        return table[0]
+
+    def budget(self, k: int) -> FedHPGBudget:
+        budget = self.profiles[k].budget
+        assert isinstance(budget, FedHPGBudget), "the engine runs FedHPG"
+        return budget
+
+    @property
+    def indices(self) -> Sequence[int]:
+        return sorted(self.variants)
+
+    @property
+    def num_params(self) -> int:
+        return self.shape.num_params
+
+    def _per_agent(self, order: Sequence[int]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        horizons = np.array([self.horizons[k] for k in order], dtype=np.int64)
+        gammas = np.array([self.gammas[k] for k in order], dtype=np.float64)
+        physics = np.stack([self.physics[k] for k in order])
+        return horizons, gammas, physics
+
+    # -- training -------------------------------------------------------------------------
+
+    def _rows(self, capacity: int) -> _RowBuffers:
+        """The sampled rows' buffers, kept between rounds (a round of 500 agents with long
+        episodes holds ~2 M rows: allocated afresh, their pages would be faulted in again)."""
+        if self._buffers is None or self._buffers.capacity < capacity:
+            self._buffers = _RowBuffers(capacity, self.shape.sizes[0])
+        return self._buffers
+
+    def train(
+        self,
+        round_index: int,
+        theta: torch.Tensor,
+        agents: Sequence[int],
+        *,
+        on_iteration: GroupHook | None = None,
+        budgets: Budgets | None = None,
+    ) -> dict[int, LocalResult]:
+        algo = self.run.algo
+        order = sorted(agents)
+        planned = budgets or {}
+        chosen = [planned_budget(self.budget(k), planned.get(k)) for k in order]
+        batch = np.array([b.batch_size for b in chosen], dtype=np.int64)
+        iters = np.array([b.local_iters for b in chosen], dtype=np.int64)
+        horizons, gammas, physics = self._per_agent(order)
+        streams = agent_streams(self.run.seed, order, round_index, int(Stream.TRAIN))
+        flat = theta.detach().numpy().astype(np.float32)
+        thetas = np.repeat(flat[None, :], len(order), 0)
+        firsts, seconds = np.zeros_like(thetas), np.zeros_like(thetas)
+        rows = self._rows(int((batch * np.minimum(horizons, CARTPOLE_STEP_LIMIT)).sum()))
+        row_span = np.zeros((len(order), 2), dtype=np.int64)
+        copy_start = np.zeros(len(order), dtype=np.int64)
+        lengths = np.zeros(int(batch.sum()), dtype=np.int64)
+        returns = np.zeros(int(batch.sum()), dtype=np.float64)
+        clipped = np.zeros(len(order), dtype=np.bool_)
+        done = np.zeros(len(order), dtype=np.int64)
+        bounds = _BoundEstimates(order, batch, thetas.shape[1], algo.bound_estimates)
+        totals = {name: np.zeros(len(order)) for name in ("steps", "returns", "compute", "clip")}
+        sample_s = gradient_s = 0.0
+        clip = -1.0 if algo.grad_clip is None else float(algo.grad_clip)
+        # An agent whose steps diverge samples from NaN logits until its round ends; the server
+        # rejects its update and says why.
+        for iteration in range(int(iters.max(initial=0))):
+            active = np.flatnonzero(iters > iteration)
+            measure = bounds.wanted(iteration, active)
+            before = thetas[measure].copy() if measure.any() else None
+            started = time.thread_time()
+            kernels.sample_iteration(thetas, self.sizes, physics, batch, horizons, gammas,
+                                     streams, active, rows.obs, rows.action, rows.copy,
+                                     rows.time, row_span, copy_start, lengths,
+                                     returns)  # fmt: skip
+            sampled = time.thread_time()
+            kernels.learn_iteration(thetas, firsts, seconds, self.sizes, batch, gammas, done,
+                                    active, rows.obs, rows.action, rows.copy, rows.time,
+                                    rows.coef, row_span, copy_start, lengths, self.options,
+                                    float(algo.step_size), clip, clipped, measure,
+                                    bounds.per_trajectory, bounds.start,
+                                    bounds.unclipped)  # fmt: skip
+            learned = time.thread_time()
+            if before is not None:
+                bounds.record(iteration, measure, before)
+            sample_s += sampled - started
+            gradient_s += learned - sampled
+            copies = int(batch[active].sum())
+            starts = copy_start[active]
+            steps = np.add.reduceat(lengths[:copies], starts)
+            cpu_per_step = (learned - started) / max(int(steps.sum()), 1)
+            totals["steps"][active] += steps
+            totals["returns"][active] += np.add.reduceat(returns[:copies], starts)
+            totals["compute"][active] += cpu_per_step * steps
+            totals["clip"][active] += clipped[active]
+            done[active] += 1
+            if on_iteration is not None:
+                for position, env_steps in zip(active.tolist(), steps.tolist(), strict=True):
+                    work = IterationWork(iteration, cpu_per_step * env_steps, env_steps, env_steps)
+                    on_iteration(order[position], work)
+        all_steps = max(float(totals["steps"].sum()), 1.0)
+        results = {}
+        for i, k in enumerate(order):
+            share = totals["steps"][i] / all_steps
+            tally = LocalTally(
+                trajectories=int(batch[i] * iters[i]),
+                env_steps=int(totals["steps"][i]),
+                return_sum=float(totals["returns"][i]),
+                compute_s=float(totals["compute"][i]),
+                clipped=int(totals["clip"][i]),
+                algorithm={
+                    "engine_sample_s": sample_s * share,
+                    "engine_gradient_s": gradient_s * share,
+                    **bounds.of(i),
+                },
+            )
+            results[k] = tally.result(torch.from_numpy(thetas[i].copy()))
+        return results
+
+    # -- evaluation -----------------------------------------------------------------------
+
+    def evaluate(
+        self, round_index: int, theta: torch.Tensor, episodes: int, agents: Sequence[int]
+    ) -> dict[int, EvaluationStats]:
+        order = sorted(agents)
+        horizons, gammas, physics = self._per_agent(order)
+        if self.run.eval.horizon:
+            horizons[:] = self.run.eval.horizon
+        streams = agent_streams(self.run.seed, order, round_index, int(Stream.EVALUATE))
+        flat = theta.detach().numpy().astype(np.float32)
+        thetas = np.repeat(flat[None, :], len(order), 0)
+        lengths = np.zeros(len(order) * episodes, dtype=np.int64)
+        returns = np.zeros(len(order) * episodes, dtype=np.float64)
+        discounted = np.zeros(len(order) * episodes, dtype=np.float64)
+        kernels.evaluate_agents(thetas, self.sizes, physics, episodes, horizons, gammas, streams,
+                                self.run.eval.greedy, lengths, returns, discounted)  # fmt: skip
+        stats = {}
+        for a, k in enumerate(order):
+            block = slice(a * episodes, (a + 1) * episodes)
+            stats[k] = EvaluationStats(
+                return_mean=float(returns[block].mean()),
+                return_std=float(returns[block].std()),
+                discounted_return_mean=float(discounted[block].mean()),
+                success_rate=0.0,  # CartPole has no goal
+                length_mean=float(lengths[block].mean()),
+                episodes=episodes,
+            )
+        return stats
+
+    def close(self) -> None:
+        pass
+
+
+class _RowBuffers:
+    """Every sampled step of a local iteration: observation, action, copy, step and (once
+    the batch is in) its estimator coefficient / B."""
+
+    def __init__(self, capacity: int, obs_dim: int) -> None:
+        self.capacity = capacity
+        self.obs = np.empty((capacity, obs_dim), dtype=np.float32)
+        self.action = np.empty(capacity, dtype=np.int32)
+        self.copy = np.empty(capacity, dtype=np.int32)
+        self.time = np.empty(capacity, dtype=np.int32)
+        self.coef = np.empty(capacity, dtype=np.float32)
+
+
+class _BoundEstimates:
+    """``algo.bound_estimates`` in the compiled engine: each agent's first batch gives σ̂², M̂
+    and ‖∇J‖² from its per-trajectory gradients, its first two give the secant L̂ (the numpy
+    engine's figures, the same code from the per-trajectory gradients on; common/local.py)."""
+
+    MEASURED_ITERATIONS = 2
+
+    def __init__(self, order: Sequence[int], batch: np.ndarray, dim: int, on: bool) -> None:
+        self.on = on
+        self.batch = batch
+        self.start = np.concatenate([[0], np.cumsum(batch)[:-1]]).astype(np.int64)
+        rows = int(batch.sum()) if on else 0
+        self.per_trajectory = np.zeros((rows, dim), dtype=np.float32)
+        self.unclipped = np.zeros((len(order) if on else 0, dim), dtype=np.float32)
+        self.found: dict[int, dict[str, float]] = {}
+        self.probes: dict[int, SmoothnessProbe] = {}
+
+    def wanted(self, iteration: int, active: np.ndarray) -> np.ndarray:
+        measure = np.zeros(len(self.batch), dtype=np.bool_)
+        if self.on and iteration < self.MEASURED_ITERATIONS:
+            measure[active] = True
+        return measure
+
+    def record(self, iteration: int, measure: np.ndarray, before: np.ndarray) -> None:
+        for row, i in enumerate(np.flatnonzero(measure).tolist()):
+            first = int(self.start[i])
+            trajectories = self.per_trajectory[first : first + int(self.batch[i])]
+            if len(trajectories) < 2:
+                continue
+            stats = bound_stats(gradient_moments(torch.from_numpy(trajectories.copy())))
+            if iteration == 0:
+                self.found[i] = dict(stats)
+            noise = stats["bound_variance"] / int(self.batch[i])
+            probe = self.probes.setdefault(i, SmoothnessProbe())
+            probe.add(torch.from_numpy(before[row]), torch.from_numpy(self.unclipped[i]), noise)
+            self.found.setdefault(i, {}).update(probe.stats())
+
+    def of(self, i: int) -> dict[str, float]:
+        return self.found.get(i, {})
+
+
+def warm_up() -> float:
+    """Compile the kernels (or load them from numba's cache) on a toy batch of the types the
+    engine passes; returns the seconds it took. The first compilation on a machine takes tens
+    of seconds; ``make setup`` and the image build run this once so that runs load the cache,
+    and ``fedhpg-run`` runs it before it forks agents, so that they inherit the compiled code
+    instead of compiling it each."""
+    started = time.perf_counter()
+    sizes = np.array([4, 2, 2], dtype=np.int64)
+    agents = 2
+    thetas = np.zeros((agents, 16), dtype=np.float32)
+    physics = np.tile(cartpole_table_defaults(), (agents, 1))
+    batch = np.array([1, 2], dtype=np.int64)
+    horizons = np.array([3, 3], dtype=np.int64)
+    gammas = np.array([0.9, 0.9], dtype=np.float64)
+    rows = np.flatnonzero(batch > 0)
+    streams = agent_streams(0, [0, 1], 0, int(Stream.TRAIN))
+    capacity = int((batch * horizons).sum())
+    rows_obs = np.empty((capacity, 4), dtype=np.float32)
+    action, copy, step = (np.empty(capacity, dtype=np.int32) for _ in range(3))
+    row_span = np.zeros((agents, 2), dtype=np.int64)
+    copy_start = np.zeros(agents, dtype=np.int64)
+    lengths = np.zeros(int(batch.sum()), dtype=np.int64)
+    returns = np.zeros(int(batch.sum()), dtype=np.float64)
+    kernels.sample_iteration(thetas, sizes, physics, batch, horizons, gammas, streams, rows,
+                             rows_obs, action, copy, step, row_span, copy_start, lengths,
+                             returns)  # fmt: skip
+    coef = np.empty(capacity, dtype=np.float32)
+    measure = np.array([False, True])
+    kernels.learn_iteration(thetas, np.zeros_like(thetas), np.zeros_like(thetas), sizes, batch,
+                            gammas, np.zeros(agents, dtype=np.int64), rows, rows_obs, action, copy,
+                            step, coef,
+                            row_span, copy_start, lengths, np.zeros(5, dtype=np.int64), 1.0, -1.0,
+                            np.zeros(agents, dtype=np.bool_), measure,
+                            np.zeros((int(batch.sum()), 16), dtype=np.float32),
+                            np.array([0, 1], dtype=np.int64),
+                            np.zeros((agents, 16), dtype=np.float32))  # fmt: skip
+    episodes = np.zeros(agents, dtype=np.int64), np.zeros(agents), np.zeros(agents)
+    kernels.evaluate_agents(thetas, sizes, physics, 1, horizons, gammas, streams, True,
+                            *episodes)  # fmt: skip
+    return time.perf_counter() - started
+
+
+def cartpole_table_defaults() -> np.ndarray:
+    """One row of gymnasium CartPole-v1's own constants."""
+    from fedhpg.envs.compiled import CARTPOLE_DEFAULTS
+
+    return np.asarray(CARTPOLE_DEFAULTS, dtype=np.float64)
+
+
+if __name__ == "__main__":  # make setup: fill numba's cache once
+    print(f"compiled engine ready ({warm_up():.1f} s)")

@@ -1,0 +1,691 @@
+"""The compiled engine's kernels (numba): sampling, FedHPG's estimators, gradients and steps of
+many agents, an agent at a time, in one call per local iteration and phase.
+
+Why an agent at a time: the numpy engine steps a thousand agents in lockstep to spread each
+numpy call over many copies, and pays for it: copies whose episode ended wait for their
+agent's longest, and a few long episodes carry the per-step cost of ~40 numpy calls. Compiled,
+an agent's copies are stepped together (layer by layer over its copies still running, packed
+at the front) until its last episode ends, then the next agent's; its weights and activations
+stay in L1, and nothing an agent computes can depend on another agent: placement invariance
+by construction.
+
+Numerics, so that θ is the same bit for bit on any x86-64 host:
+- no ``fastmath``: LLVM may not reassociate or contract, so a vectorised loop computes what
+  the scalar one would; ``error_model="numpy"`` (IEEE division, no zero check: the check
+  stops LLVM from vectorising a loop with a division);
+- tanh by :func:`tanh32`, a rational function evaluated in float64 and rounded to float32:
+  a libm ``tanhf`` per unit cannot be vectorised and made the whole sampler 2.5× slower. Its
+  relative error is below 1.5·10⁻¹⁰ before rounding, so it is within one float32 ulp of tanh
+  (over every float32 in [2⁻³⁰, 10.5]: 0.07 % of them one ulp off the correctly rounded
+  value; numpy's float32 tanh is one ulp off for 11 %, torch's for 0.03 %);
+- the estimator's coefficients in float64, as the numpy engine; the gradient summed in
+  float32 over blocks of :data:`BLOCK` rows, the blocks in float64, rounded to float32 once;
+  the steps are the numpy engine's ``ascend``, one row.
+
+Layouts. θ is torch's flat layout (each ``nn.Linear``: weight [out, in] row-major, then
+bias). Inside a kernel the weights are padded 3-D arrays indexed by loop variables only (a
+computed flat index costs numba a negative-index check per access, which LLVM cannot vectorise
+away): ``forward_weights`` [L, w + 1, w] holds layer l's weight as [in, out] with its bias as
+row ``in`` (the forward loops over contiguous outputs), ``backward_weights`` [L, w, w] as
+[out, in] (the backward loops over contiguous inputs), w the widest layer.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+from typing import Any, TypeVar, cast
+
+import numpy as np
+from numba import njit
+
+from fedhpg.common.batched.streams import next_double
+from fedhpg.common.estimators import NORMALIZE_EPS
+from fedhpg.envs.compiled import CARTPOLE_STEP_LIMIT, cartpole_step
+
+# tanh(x)/x ≈ P(x²)/Q(x²) on |x| ≤ 10: least squares on the relative error, Chebyshev nodes
+_P0 = 0.9999999998560505
+_P1 = 0.1406119092512499
+_P2 = 0.004375400222555191
+_P3 = 4.098167354696576e-05
+_P4 = 1.0389412916501332e-07
+_P5 = 3.2342311593592774e-11
+_Q1 = 0.47394524112148506
+_Q2 = 0.029023816398434932
+_Q3 = 0.0004911404283108202
+_Q4 = 2.4847341405748074e-06
+_Q5 = 2.6850501254705975e-09
+TANH_CLAMP = 10.0
+"""|x| beyond which float32 tanh(x) is ±1 (it is from |x| ≈ 9.01 on)."""
+BLOCK = 64
+"""Rows whose gradient is summed in float32 before it joins the float64 total."""
+
+ESTIMATORS = {"reinforce": 0, "gpomdp": 1}
+BASELINES = {"none": 0, "mean": 1}
+REWARD_TO_GO = {"from_start": 0, "from_step": 1}
+NORMALIZE = {"none": 0, "batch": 1, "episode": 2}
+OPTIMIZERS = {"sgd": 0, "adam": 1}
+
+F = TypeVar("F", bound=Callable[..., Any])
+
+
+def kernel(*, inline: bool = False, fastmath: set[str] | None = None) -> Callable[[F], F]:
+    """numba's ``njit`` as every kernel here takes it: cached on disk, IEEE division
+    (``error_model="numpy"``), strict floats unless ``fastmath`` names the freedoms."""
+
+    def compile_lazily(function: F) -> F:
+        return cast(
+            F,
+            njit(
+                cache=True,
+                error_model="numpy",
+                inline="always" if inline else "never",
+                fastmath=fastmath or False,
+            )(function),
+        )
+
+    return compile_lazily
+
+
+GRADIENT_FASTMATH = {"reassoc", "contract", "nsz", "arcp"}
+"""LLVM may reorder and fuse the gradient's sums (vectorised reductions over a block's rows:
+2× the speed of strict order). The order it picks depends on the compiled code alone, so a
+host's results never depend on the company an agent keeps; hosts of different CPU types
+(AVX-512 against AVX2) may round differently. Sampling and dynamics stay strict."""
+
+
+@kernel(inline=True)
+def tanh32(value: np.float32) -> np.float32:
+    """tanh of a float32, through a float64 rational function (see the module docstring);
+    NaN stays NaN."""
+    x = float(value)
+    if x > TANH_CLAMP:
+        x = TANH_CLAMP
+    elif x < -TANH_CLAMP:
+        x = -TANH_CLAMP
+    s = x * x
+    p = _P0 + s * (_P1 + s * (_P2 + s * (_P3 + s * (_P4 + s * _P5))))
+    q = 1.0 + s * (_Q1 + s * (_Q2 + s * (_Q3 + s * (_Q4 + s * _Q5))))
+    return np.float32(x * p / q)
+
+
+@kernel()
+def padded_weights(theta: np.ndarray, sizes: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """θ (flat, torch's layout) as (forward_weights, backward_weights): module docstring."""
+    layers = len(sizes) - 1
+    width = 0
+    for size in sizes:
+        width = max(width, size)
+    forward_w = np.zeros((layers, width + 1, width), dtype=np.float32)
+    backward_w = np.zeros((layers, width, width), dtype=np.float32)
+    offset = 0
+    for layer in range(layers):
+        n_in, n_out = sizes[layer], sizes[layer + 1]
+        for o in range(n_out):
+            for i in range(n_in):
+                value = theta[offset + o * n_in + i]
+                forward_w[layer, i, o] = value
+                backward_w[layer, o, i] = value
+            forward_w[layer, n_in, o] = theta[offset + n_in * n_out + o]
+        offset += n_in * n_out + n_out
+    return forward_w, backward_w
+
+
+@kernel(inline=True)
+def dense(
+    weights: np.ndarray,
+    layer: int,
+    n_in: int,
+    n_out: int,
+    below: np.ndarray,
+    above: np.ndarray,
+    rows: int,
+    activate: bool,
+) -> None:
+    """above[r, :n_out] = tanh?(below[r, :n_in] · W + b) for the first ``rows`` rows."""
+    for r in range(rows):
+        for o in range(n_out):
+            above[r, o] = weights[layer, n_in, o]
+        for i in range(n_in):
+            value = below[r, i]
+            for o in range(n_out):
+                above[r, o] += value * weights[layer, i, o]
+    if activate:
+        for r in range(rows):
+            for o in range(n_out):
+                above[r, o] = tanh32(above[r, o])
+
+
+@kernel(inline=True)
+def forward(
+    weights: np.ndarray, sizes: np.ndarray, first: np.ndarray, even: np.ndarray,
+    odd: np.ndarray, rows: int,
+) -> bool:  # fmt: skip
+    """The MLP on the first ``rows`` rows of ``first`` (the inputs), tanh between layers,
+    ping-ponging between ``even`` and ``odd``; True if the logits ended in ``even``."""
+    layers = len(sizes) - 1
+    dense(weights, 0, sizes[0], sizes[1], first, even, rows, layers > 1)
+    in_even = True
+    for layer in range(1, layers):
+        if in_even:
+            dense(weights, layer, sizes[layer], sizes[layer + 1], even, odd, rows,
+                  layer < layers - 1)  # fmt: skip
+        else:
+            dense(weights, layer, sizes[layer], sizes[layer + 1], odd, even, rows,
+                  layer < layers - 1)  # fmt: skip
+        in_even = not in_even
+    return in_even
+
+
+@kernel(inline=True)
+def draw_action(logits: np.ndarray, row: int, n_actions: int, uniform: float,
+                scratch: np.ndarray) -> int:  # fmt: skip
+    """Inverse-CDF categorical draw, one row (the numpy engine's ``draw_actions``)."""
+    best = 0
+    for j in range(1, n_actions):
+        if logits[row, j] > logits[row, best]:
+            best = j
+    top = logits[row, best]
+    total = np.float32(0.0)
+    for j in range(n_actions):
+        # exp(0) is exactly 1: the largest logit's term needs no call
+        scratch[j] = np.float32(1.0) if j == best else np.float32(math.exp(logits[row, j] - top))
+        total += scratch[j]
+    threshold = uniform * total
+    cumulative = np.float32(0.0)
+    action = 0
+    for j in range(n_actions - 1):
+        cumulative += scratch[j]
+        if threshold > cumulative:
+            action += 1
+    return action
+
+
+@kernel(inline=True)
+def greedy_action(logits: np.ndarray, row: int, n_actions: int) -> int:
+    best = 0
+    for j in range(1, n_actions):
+        if logits[row, j] > logits[row, best]:
+            best = j
+    return best
+
+
+@kernel()
+def rollout_agent(
+    theta: np.ndarray,
+    sizes: np.ndarray,
+    physics: np.ndarray,
+    copies: int,
+    horizon: int,
+    stream: np.ndarray,
+    greedy: bool,
+    gamma: float,
+    rows_obs: np.ndarray,
+    rows_action: np.ndarray,
+    rows_copy: np.ndarray,
+    rows_time: np.ndarray,
+    first_row: int,
+    lengths: np.ndarray,
+    returns: np.ndarray,
+    discounted: np.ndarray,
+    first_copy: int,
+) -> int:
+    """One CartPole episode in each of ``copies`` copies of one agent's variant from θ.
+
+    Writes the rows (observation, action, copy, step) of every alive step from ``first_row``
+    on, time-major (none when ``rows_obs`` has no rows: evaluation), and per copy (from
+    ``first_copy``) its length, return and γ-discounted return. Returns the row after the
+    last written. Randomness, all from ``stream`` (the agent's own): the initial states as
+    gymnasium's CartPole vector env draws them (``uniform(±0.05, size=(4, copies))``,
+    row-major), then per step one uniform per running copy, in copy order (none if greedy)."""
+    obs_dim = sizes[0]
+    n_actions = sizes[len(sizes) - 1]
+    weights, _ = padded_weights(theta, sizes)
+    width = weights.shape[2]
+    obs = np.zeros((copies, obs_dim), dtype=np.float32)
+    even = np.zeros((copies, width), dtype=np.float32)
+    odd = np.zeros((copies, width), dtype=np.float32)
+    scratch = np.zeros(n_actions, dtype=np.float32)
+    state = np.empty((copies, 4), dtype=np.float64)
+    for i in range(4):
+        for c in range(copies):
+            state[c, i] = -0.05 + 0.1 * next_double(stream)
+    running = np.arange(copies)  # the copies still running, in copy order
+    alive = copies
+    limit = min(horizon, CARTPOLE_STEP_LIMIT)
+    discount = np.ones(copies, dtype=np.float64)
+    record = rows_obs.shape[0] > 0
+    row = first_row
+    for c in range(copies):
+        returns[first_copy + c] = 0.0
+        discounted[first_copy + c] = 0.0
+    for t in range(limit):
+        for slot in range(alive):
+            for i in range(obs_dim):
+                obs[slot, i] = np.float32(state[running[slot], i])
+        in_even = forward(weights, sizes, obs, even, odd, alive)
+        logits = even if in_even else odd
+        kept = 0
+        for slot in range(alive):
+            c = running[slot]
+            if greedy:
+                action = greedy_action(logits, slot, n_actions)
+            else:
+                action = draw_action(logits, slot, n_actions, next_double(stream), scratch)
+            if record:
+                for i in range(obs_dim):
+                    rows_obs[row, i] = obs[slot, i]
+                rows_action[row] = action
+                rows_copy[row] = c
+                rows_time[row] = t
+                row += 1
+            terminated = cartpole_step(state, c, physics, action)
+            returns[first_copy + c] += 1.0  # CartPole: reward 1 per step, the last one too
+            discounted[first_copy + c] += discount[c]
+            discount[c] *= gamma
+            if terminated or t + 1 >= limit:
+                lengths[first_copy + c] = t + 1
+            else:
+                running[kept] = c
+                kept += 1
+        alive = kept
+        if alive == 0:
+            break
+    return row
+
+
+@kernel()
+def sample_iteration(
+    thetas: np.ndarray,
+    sizes: np.ndarray,
+    physics: np.ndarray,
+    batch: np.ndarray,
+    horizons: np.ndarray,
+    gammas: np.ndarray,
+    streams: np.ndarray,
+    agents: np.ndarray,
+    rows_obs: np.ndarray,
+    rows_action: np.ndarray,
+    rows_copy: np.ndarray,
+    rows_time: np.ndarray,
+    row_span: np.ndarray,
+    copy_start: np.ndarray,
+    lengths: np.ndarray,
+    returns: np.ndarray,
+) -> None:
+    """One local iteration's sampling of the agents at positions ``agents``: B_a episodes each
+    from θ_a = ``thetas[a]``, rows packed agent after agent (agent a's are ``row_span[a, 0]``
+    … ``row_span[a, 1] − 1``), per copy its length and return (agent a's copies from
+    ``copy_start[a]`` on)."""
+    discounted = np.empty(returns.shape[0], dtype=np.float64)
+    row = 0
+    copy = 0
+    for a in agents:
+        row_span[a, 0] = row
+        copy_start[a] = copy
+        row = rollout_agent(thetas[a], sizes, physics[a], batch[a], horizons[a], streams[a],
+                            False, gammas[a], rows_obs, rows_action, rows_copy, rows_time, row,
+                            lengths, returns, discounted, copy)  # fmt: skip
+        copy += batch[a]
+        row_span[a, 1] = row
+
+
+@kernel()
+def coefficients(
+    rewards: np.ndarray,
+    alive: np.ndarray,
+    gamma: float,
+    estimator: int,
+    baseline: int,
+    reward_to_go: int,
+    normalize: int,
+    out: np.ndarray,
+) -> None:
+    """One agent's estimator coefficients coef[t, copy] (float64, 0 on dead steps) from its
+    [T, B] rewards (0 past a copy's end): common/batched/coefficients.py's maths, with sums
+    along time sequential and over copies in copy order."""
+    steps, copies = rewards.shape
+    values = np.zeros((steps, copies), dtype=np.float64)
+    if estimator == 1 and reward_to_go == 1:  # GPOMDP, Σ_{h ≥ t} γ^(h−t) r_h (biased)
+        for t in range(steps):
+            for c in range(copies):
+                values[t, c] = rewards[t, c]
+        if baseline == 1:
+            _subtract_leave_one_out(values)
+        for c in range(copies):
+            running = 0.0
+            for t in range(steps - 1, -1, -1):
+                running = values[t, c] + gamma * running
+                out[t, c] = running if alive[t, c] else 0.0
+    else:
+        for t in range(steps):
+            discount = gamma ** np.float64(t)
+            for c in range(copies):
+                values[t, c] = discount * rewards[t, c]
+        if estimator == 0:  # REINFORCE, eq. 5: the whole discounted return at every step
+            totals = np.zeros((1, copies), dtype=np.float64)
+            for c in range(copies):
+                total = 0.0
+                for t in range(steps):
+                    total += values[t, c]
+                totals[0, c] = total
+            if baseline == 1:
+                _subtract_leave_one_out(totals)
+            for t in range(steps):
+                for c in range(copies):
+                    out[t, c] = totals[0, c] if alive[t, c] else 0.0
+        else:  # GPOMDP, eq. 6: Σ_{h ≥ t} γ^h r_h, minus the per-step baseline
+            if baseline == 1:
+                _subtract_leave_one_out(values)
+            for c in range(copies):
+                tail = 0.0
+                for t in range(steps - 1, -1, -1):
+                    tail += values[t, c]
+                    out[t, c] = tail if alive[t, c] else 0.0
+    if normalize != 0:
+        _standardise(out, alive, normalize == 2)
+
+
+@kernel()
+def _subtract_leave_one_out(values: np.ndarray) -> None:
+    """values[t, c] −= the mean of values[t, c'] over the other copies c' (0 for one copy)."""
+    steps, copies = values.shape
+    if copies < 2:
+        return
+    for t in range(steps):
+        total = 0.0
+        for c in range(copies):
+            total += values[t, c]
+        for c in range(copies):
+            values[t, c] -= (total - values[t, c]) / (copies - 1)
+
+
+@kernel()
+def _standardise(coef: np.ndarray, alive: np.ndarray, per_copy: bool) -> None:
+    """(c − mean)/(std + ε) over the alive cells of the batch, or of each copy; sums along
+    time per copy first, then over the group's copies (the numpy engine's grouping)."""
+    steps, copies = coef.shape
+    for group in range(copies if per_copy else 1):
+        low, high = (group, group + 1) if per_copy else (0, copies)
+        count = 0.0
+        total = 0.0
+        for c in range(low, high):
+            alive_steps = 0.0
+            column = 0.0
+            for t in range(steps):
+                if alive[t, c]:
+                    alive_steps += 1.0
+                    column += coef[t, c]
+            count += alive_steps
+            total += column
+        count = max(count, 1.0)
+        mean = total / count
+        spread = 0.0
+        for c in range(low, high):
+            column = 0.0
+            for t in range(steps):
+                if alive[t, c]:
+                    column += (coef[t, c] - mean) ** 2
+            spread += column
+        scale = math.sqrt(spread / count) + NORMALIZE_EPS
+        for c in range(low, high):
+            for t in range(steps):
+                coef[t, c] = (coef[t, c] - mean) / scale if alive[t, c] else 0.0
+
+
+@kernel(fastmath=GRADIENT_FASTMATH)
+def score_gradient(
+    theta: np.ndarray,
+    sizes: np.ndarray,
+    rows_obs: np.ndarray,
+    rows_action: np.ndarray,
+    rows_coef: np.ndarray,
+    low: int,
+    high: int,
+    out: np.ndarray,
+) -> None:
+    """out (float32, flat θ layout) = Σ_{r ∈ [low, high)} coef_r · ∇_θ log π(a_r|s_r).
+
+    Blocks of :data:`BLOCK` rows, feature-major (a layer's activations are [unit, row], so
+    every loop runs along the block's rows: long and contiguous, where row-major loops along
+    16 units cost LLVM more in loop entries than in arithmetic); each block's sums over its
+    rows are added to float64 totals."""
+    layers = len(sizes) - 1
+    n_actions = sizes[layers]
+    forward_w, backward_w = padded_weights(theta, sizes)
+    width = forward_w.shape[2]
+    acts = np.zeros((layers + 1, width, BLOCK), dtype=np.float32)
+    delta = np.zeros((width, BLOCK), dtype=np.float32)
+    below = np.zeros((width, BLOCK), dtype=np.float32)
+    top = np.zeros(BLOCK, dtype=np.float32)
+    total = np.zeros(BLOCK, dtype=np.float32)
+    weight_total = np.zeros((layers, width, width), dtype=np.float64)
+    bias_total = np.zeros((layers, width), dtype=np.float64)
+    for start in range(low, high, BLOCK):
+        rows = min(BLOCK, high - start)
+        for i in range(sizes[0]):
+            for r in range(rows):
+                acts[0, i, r] = rows_obs[start + r, i]
+        for layer in range(layers):
+            n_in, n_out = sizes[layer], sizes[layer + 1]
+            for o in range(n_out):
+                bias = forward_w[layer, n_in, o]
+                for r in range(rows):
+                    acts[layer + 1, o, r] = bias
+                for i in range(n_in):
+                    weight = forward_w[layer, i, o]
+                    for r in range(rows):
+                        acts[layer + 1, o, r] += weight * acts[layer, i, r]
+                if layer < layers - 1:
+                    for r in range(rows):
+                        acts[layer + 1, o, r] = tanh32(acts[layer + 1, o, r])
+        # ∂ log π(a|s) / ∂ logits = onehot(a) − π, times the row's coefficient
+        for r in range(rows):
+            top[r] = acts[layers, 0, r]
+            total[r] = 0.0
+        for j in range(1, n_actions):
+            for r in range(rows):
+                top[r] = max(top[r], acts[layers, j, r])
+        for j in range(n_actions):
+            for r in range(rows):
+                delta[j, r] = np.float32(math.exp(acts[layers, j, r] - top[r]))
+                total[r] += delta[j, r]
+        for j in range(n_actions):
+            for r in range(rows):
+                hit = np.float32(1.0) if j == rows_action[start + r] else np.float32(0.0)
+                delta[j, r] = (hit - delta[j, r] / total[r]) * rows_coef[start + r]
+        for layer in range(layers - 1, -1, -1):
+            n_in, n_out = sizes[layer], sizes[layer + 1]
+            for o in range(n_out):
+                block_sum = np.float32(0.0)
+                for r in range(rows):
+                    block_sum += delta[o, r]
+                bias_total[layer, o] += block_sum
+                for i in range(n_in):
+                    block_sum = np.float32(0.0)
+                    for r in range(rows):
+                        block_sum += delta[o, r] * acts[layer, i, r]
+                    weight_total[layer, o, i] += block_sum
+            if layer > 0:  # δ below = (Wᵀ δ) ⊙ tanh', tanh' = 1 − h²
+                for i in range(n_in):
+                    for r in range(rows):
+                        below[i, r] = 0.0
+                    for o in range(n_out):
+                        weight = backward_w[layer, o, i]
+                        for r in range(rows):
+                            below[i, r] += weight * delta[o, r]
+                for i in range(n_in):
+                    for r in range(rows):
+                        h = acts[layer, i, r]
+                        delta[i, r] = below[i, r] * (np.float32(1.0) - h * h)
+    offset = 0
+    for layer in range(layers):
+        n_in, n_out = sizes[layer], sizes[layer + 1]
+        for o in range(n_out):
+            for i in range(n_in):
+                out[offset + o * n_in + i] = np.float32(weight_total[layer, o, i])
+            out[offset + n_in * n_out + o] = np.float32(bias_total[layer, o])
+        offset += n_in * n_out + n_out
+
+
+@kernel()
+def ascend(
+    theta: np.ndarray,
+    gradient: np.ndarray,
+    first: np.ndarray,
+    second: np.ndarray,
+    optimizer: int,
+    step_size: float,
+    steps_before: int,
+) -> None:
+    """θ += the ascent direction (float32): plain, or Adam with fresh moments each round
+    (common/batched/engine.py's ``ascend``, one row)."""
+    step = np.float32(step_size)
+    if optimizer == 0:
+        for i in range(len(theta)):
+            theta[i] += step * gradient[i]
+        return
+    beta1, beta2 = 0.9, 0.999
+    correction1 = np.float32(1.0 - beta1 ** np.float64(steps_before + 1))
+    correction2 = np.float32(1.0 - beta2 ** np.float64(steps_before + 1))
+    for i in range(len(theta)):
+        g = gradient[i]
+        first[i] = first[i] * np.float32(beta1) + np.float32(1.0 - beta1) * g
+        second[i] = second[i] * np.float32(beta2) + np.float32(1.0 - beta2) * (g * g)
+        first_hat = first[i] / correction1
+        second_hat = second[i] / correction2
+        theta[i] += step * first_hat / (np.float32(math.sqrt(second_hat)) + np.float32(1e-8))
+
+
+@kernel()
+def learn_iteration(
+    thetas: np.ndarray,
+    firsts: np.ndarray,
+    seconds: np.ndarray,
+    sizes: np.ndarray,
+    batch: np.ndarray,
+    gammas: np.ndarray,
+    done: np.ndarray,
+    agents: np.ndarray,
+    rows_obs: np.ndarray,
+    rows_action: np.ndarray,
+    rows_copy: np.ndarray,
+    rows_time: np.ndarray,
+    rows_coef: np.ndarray,
+    row_span: np.ndarray,
+    copy_start: np.ndarray,
+    lengths: np.ndarray,
+    options: np.ndarray,
+    step_size: float,
+    grad_clip: float,
+    clipped: np.ndarray,
+    measure: np.ndarray,
+    per_trajectory: np.ndarray,
+    trajectory_start: np.ndarray,
+    unclipped: np.ndarray,
+) -> None:
+    """Each agent at ``agents``: the coefficients of its sampled batch, its gradient
+    (1/B_a) Σ g, clipped to norm ``grad_clip`` (≤ 0: off), and one ascent step on
+    ``thetas[a]``. ``options`` = [estimator, baseline, reward_to_go, normalize, optimizer].
+
+    ``algo.bound_estimates``: for the agents with ``measure[a]``, also each trajectory's own
+    gradient g(τ_b) (rows ``trajectory_start[a]`` … + B_a − 1 of ``per_trajectory``) and the
+    unclipped batch gradient (``unclipped[a]``); nothing else changes."""
+    gradient = np.empty(thetas.shape[1], dtype=np.float32)
+    for a in agents:
+        count = batch[a]
+        low, high = row_span[a, 0], row_span[a, 1]
+        steps = 0
+        for c in range(count):
+            steps = max(steps, lengths[copy_start[a] + c])
+        rewards = np.zeros((steps, count), dtype=np.float64)
+        alive = np.zeros((steps, count), dtype=np.bool_)
+        for r in range(low, high):
+            rewards[rows_time[r], rows_copy[r]] = 1.0  # CartPole: 1 per step, the last too
+            alive[rows_time[r], rows_copy[r]] = True
+        coef = np.zeros((steps, count), dtype=np.float64)
+        coefficients(rewards, alive, gammas[a], options[0], options[1], options[2], options[3],
+                     coef)  # fmt: skip
+        for r in range(low, high):
+            rows_coef[r] = np.float32(coef[rows_time[r], rows_copy[r]] / count)
+        score_gradient(thetas[a], sizes, rows_obs, rows_action, rows_coef, low, high, gradient)
+        if measure[a]:
+            _per_trajectory_gradients(thetas[a], sizes, rows_obs, rows_action, rows_copy,
+                                      rows_time, coef, low, high, count,
+                                      per_trajectory, trajectory_start[a])  # fmt: skip
+            unclipped[a, :] = gradient
+        clipped[a] = False
+        if grad_clip > 0.0:
+            norm = 0.0
+            for g in gradient:
+                norm += np.float64(g) * np.float64(g)
+            norm = math.sqrt(norm)
+            if norm > grad_clip:
+                scale = np.float32(grad_clip / norm)
+                for i in range(len(gradient)):
+                    gradient[i] *= scale
+                clipped[a] = True
+        ascend(thetas[a], gradient, firsts[a], seconds[a], options[4], step_size, done[a])
+
+
+@kernel()
+def _per_trajectory_gradients(
+    theta: np.ndarray,
+    sizes: np.ndarray,
+    rows_obs: np.ndarray,
+    rows_action: np.ndarray,
+    rows_copy: np.ndarray,
+    rows_time: np.ndarray,
+    coef: np.ndarray,
+    low: int,
+    high: int,
+    count: int,
+    out: np.ndarray,
+    first: int,
+) -> None:
+    """out[first + b] = g(τ_b) = Σ_t coef[t, b] ∇ log π(a_t|s_t) (coef not divided by B), each
+    copy's rows gathered in time order."""
+    rows = high - low
+    per_copy = np.zeros(count + 1, dtype=np.int64)
+    for r in range(low, high):
+        per_copy[rows_copy[r] + 1] += 1
+    for c in range(count):
+        per_copy[c + 1] += per_copy[c]
+    filled = per_copy[:count].copy()
+    obs = np.empty((rows, rows_obs.shape[1]), dtype=np.float32)
+    actions = np.empty(rows, dtype=rows_action.dtype)
+    coefs = np.empty(rows, dtype=np.float32)
+    for r in range(low, high):  # rows are time-major: each copy's stay in time order
+        slot = filled[rows_copy[r]]
+        filled[rows_copy[r]] += 1
+        for i in range(rows_obs.shape[1]):
+            obs[slot, i] = rows_obs[r, i]
+        actions[slot] = rows_action[r]
+        coefs[slot] = np.float32(coef[rows_time[r], rows_copy[r]])
+    for c in range(count):
+        score_gradient(theta, sizes, obs, actions, coefs, per_copy[c], per_copy[c + 1],
+                       out[first + c])  # fmt: skip
+
+
+@kernel()
+def evaluate_agents(
+    thetas: np.ndarray,
+    sizes: np.ndarray,
+    physics: np.ndarray,
+    episodes: int,
+    horizons: np.ndarray,
+    gammas: np.ndarray,
+    streams: np.ndarray,
+    greedy: bool,
+    lengths: np.ndarray,
+    returns: np.ndarray,
+    discounted: np.ndarray,
+) -> None:
+    """``episodes`` episodes of every agent a from ``thetas[a]``, greedy or sampled; per
+    episode (agent-major, [A · episodes]) its length, return and discounted return."""
+    no_obs = np.empty((0, sizes[0]), dtype=np.float32)
+    no_ints = np.empty(0, dtype=np.int32)
+    for a in range(thetas.shape[0]):
+        rollout_agent(thetas[a], sizes, physics[a], episodes, horizons[a], streams[a], greedy,
+                      gammas[a], no_obs, no_ints, no_ints, no_ints, 0, lengths, returns,
+                      discounted, a * episodes)  # fmt: skip

@@ -1,0 +1,323 @@
+"""The compiled engine (common/batched/compiled.py, kernels.py, streams.py, envs/compiled.py)
+against independent references: numpy's random streams, gymnasium's CartPole constants and
+the numpy CartPole batch, float64 tanh, torch autograd for every estimator option, and the
+numpy engine's episode statistics. Company independence is in test_batched_engine.py (both
+engines), placement through real processes in test_hosts.py."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import gymnasium as gym
+import numpy as np
+import pytest
+import torch
+
+from fedhpg.common.batched import batched_group_or_none, kernels
+from fedhpg.common.batched.compiled import CompiledFedHPG, _RowBuffers
+from fedhpg.common.batched.streams import agent_streams, next_double
+from fedhpg.common.bounds import gradient_moments
+from fedhpg.common.local import batch_gradient, bound_statistics, bound_stats
+from fedhpg.common.policies import set_flat_params
+from fedhpg.common.rollout import TrajectoryBatch
+from fedhpg.common.variants import variants_of
+from fedhpg.common.worker import Stream, build_policy, initial_theta
+from fedhpg.envs.compiled import CARTPOLE_DEFAULTS, cartpole_step, cartpole_table
+from fedhpg.envs.multi import CARTPOLE_PHYSICS, CartPoleMulti, make_multi_batch_env
+from fedhpg.server.api import resolve_config
+
+POPULATION = ["env=cartpole", "agents=population", "policy.hidden=[16,16]"]
+
+
+def _run(*overrides: str, agents: int = 6):
+    return resolve_config(overrides=[*POPULATION, f"agents.num_agents={agents}", *overrides])
+
+
+def _engine(run, indices) -> CompiledFedHPG:
+    group = batched_group_or_none(run, variants_of(run, indices))
+    assert isinstance(group, CompiledFedHPG)
+    return group
+
+
+@pytest.mark.parametrize("seed", [0, 7, 123456789, 2**32 + 5, 2**40])
+def test_agent_streams_are_numpys_default_rng(seed: int) -> None:
+    """The kernels' PCG64 seeded through SeedSequence draws what default_rng([seed, k, round,
+    purpose]) draws, including entropy words past 32 bits and past the pool of four."""
+    agents = [0, 1, 499, 9999, 2**31, 2**33 + 1]
+    for round_index, purpose in [(0, 0), (17, 1), (100_000, 2)]:
+        streams = agent_streams(seed, agents, round_index, purpose)
+        for row, k in enumerate(agents):
+            ours = [next_double(streams[row]) for _ in range(64)]
+            theirs = np.random.default_rng([seed, k, round_index, purpose]).random(64)
+            assert np.array_equal(ours, theirs), (seed, k, round_index, purpose)
+
+
+def test_tanh32_is_within_one_ulp_of_tanh() -> None:
+    rng = np.random.default_rng(0)
+    magnitudes = np.concatenate(
+        [
+            rng.uniform(0, 1, 400_000),
+            rng.uniform(1, 12, 400_000),
+            np.exp(rng.uniform(-40, 0, 200_000)),
+            [0.0, 1e-45, 2.0**-30, 9.0, 9.0109, 9.02, 10.0, 10.5, 1e30, 3.4e38],
+        ]
+    ).astype(np.float32)
+    values = np.concatenate([magnitudes, -magnitudes])
+    ours = np.array([kernels.tanh32(v) for v in values[:2000]], dtype=np.float32)
+    ours = np.concatenate([ours, _tanh32_many(values[2000:])])
+    exact = np.tanh(values.astype(np.float64)).astype(np.float32)
+    ulps = np.abs(ours.view(np.int32).astype(np.int64) - exact.view(np.int32).astype(np.int64))
+    assert ulps.max() <= 1
+    assert (ulps > 0).mean() < 0.005
+    assert np.array_equal(np.sign(ours), np.sign(exact))
+    assert np.isnan(kernels.tanh32(np.float32("nan")))
+    assert kernels.tanh32(np.float32("inf")) == 1.0 and kernels.tanh32(np.float32("-inf")) == -1.0
+
+
+def _tanh32_many(values: np.ndarray) -> np.ndarray:
+    from numba import njit
+
+    @njit
+    def many(x: np.ndarray) -> np.ndarray:
+        out = np.empty_like(x)
+        for i in range(len(x)):
+            out[i] = kernels.tanh32(x[i])
+        return out
+
+    return many(values)  # type: ignore[no-any-return]
+
+
+def test_cartpole_constants_are_gymnasiums() -> None:
+    stock = gym.make("CartPole-v1").unwrapped
+    assert tuple(float(getattr(stock, n)) for n in CARTPOLE_PHYSICS) == CARTPOLE_DEFAULTS
+
+
+def test_cartpole_steps_exactly_like_the_numpy_batch() -> None:
+    """The compiled step and CartPoleMulti from the same states and actions: the same floats
+    and the same ends, for heterogeneous variants, until every copy has ended."""
+    run = _run("env.level=1.0", agents=4)
+    variants = [variants_of(run, [k])[k] for k in range(4)]
+    counts = [3, 1, 4, 2]
+    multi = make_multi_batch_env(variants, counts)
+    assert isinstance(multi, CartPoleMulti)
+    multi.reset(list(range(4)))
+    physics = np.repeat(cartpole_table(variants), counts, axis=0)
+    state = multi.state.T.copy()
+    running = np.ones(multi.num_envs, dtype=bool)
+    rng = np.random.default_rng(1)
+    compared = 0
+    while running.any():
+        actions = rng.integers(0, 2, multi.num_envs)
+        step = multi.step(actions)
+        for c in np.flatnonzero(running):
+            terminated = cartpole_step(state, c, physics[c], int(actions[c]))
+            assert np.array_equal(state[c].astype(np.float32), step.obs[c])
+            assert terminated == step.terminated[c]
+            compared += 1
+        running &= ~(step.terminated | step.truncated)
+    assert compared > 50
+
+
+@dataclass
+class Sampled:
+    """One local iteration's sampling through the kernel, laid out as train() lays it out."""
+
+    engine: CompiledFedHPG
+    order: list[int]
+    batch: np.ndarray
+    gammas: np.ndarray
+    physics: np.ndarray
+    thetas: np.ndarray
+    rows: _RowBuffers
+    span: np.ndarray
+    copy_start: np.ndarray
+    lengths: np.ndarray
+
+    def trajectories(self, a: int) -> TrajectoryBatch:
+        """Agent a's rows as the loop's sampler hands a batch over (time-major, padded)."""
+        count = int(self.batch[a])
+        first = int(self.copy_start[a])
+        steps = int(self.lengths[first : first + count].max())
+        obs = np.zeros((steps, count, 4), dtype=np.float32)
+        actions = np.zeros((steps, count), dtype=np.int64)
+        alive = np.zeros((steps, count), dtype=bool)
+        for r in range(self.span[a, 0], self.span[a, 1]):
+            t, c = self.rows.time[r], self.rows.copy[r]
+            obs[t, c], actions[t, c], alive[t, c] = self.rows.obs[r], self.rows.action[r], True
+        return TrajectoryBatch(
+            obs=obs,
+            actions=actions,
+            log_probs=np.zeros((steps, count)),
+            rewards=alive.astype(np.float64),
+            alive=alive,
+            success=np.zeros(count, dtype=bool),
+        )
+
+
+def _sample(run, indices, theta, round_index=0) -> Sampled:
+    engine = _engine(run, indices)
+    order = sorted(indices)
+    batch = np.array([engine.budget(k).batch_size for k in order], dtype=np.int64)
+    horizons, gammas, physics = engine._per_agent(order)
+    streams = agent_streams(run.seed, order, round_index, int(Stream.TRAIN))
+    thetas = np.repeat(theta.numpy()[None], len(order), 0)
+    rows = _RowBuffers(int((batch * np.minimum(horizons, 500)).sum()), 4)
+    span = np.zeros((len(order), 2), dtype=np.int64)
+    copy_start = np.zeros(len(order), dtype=np.int64)
+    lengths = np.zeros(int(batch.sum()), dtype=np.int64)
+    kernels.sample_iteration(thetas, engine.sizes, physics, batch, horizons, gammas, streams,
+                             np.arange(len(order)), rows.obs, rows.action, rows.copy, rows.time,
+                             span, copy_start, lengths, np.zeros(int(batch.sum())))  # fmt: skip
+    return Sampled(engine, order, batch, gammas, physics, thetas, rows, span, copy_start, lengths)
+
+
+def _away_from_the_start(run):
+    policy = build_policy(variants_of(run, [0])[0], run)
+    with torch.no_grad():
+        for p in policy.parameters():
+            p.add_(0.3 * torch.randn(p.shape, generator=torch.Generator().manual_seed(p.numel())))
+    return policy, torch.nn.utils.parameters_to_vector(policy.parameters()).detach()
+
+
+def test_sampling_draws_from_the_agents_stream_in_the_documented_order() -> None:
+    """Replayed in Python from numpy's Generator: the initial states (uniform(±0.05, (4, B)),
+    gymnasium's draw), one uniform per running copy per step in copy order, the kernel's own
+    forward and inverse-CDF draw, and the numpy CartPole batch's dynamics: every row, every
+    action and every episode length of the kernel's sample."""
+    run = _run(agents=3)
+    _, theta = _away_from_the_start(run)
+    sampled = _sample(run, [0, 1, 2], theta, round_index=4)
+    engine, rows, span = sampled.engine, sampled.rows, sampled.span
+    forward_w, _ = kernels.padded_weights(sampled.thetas[0], engine.sizes)
+    for a, k in enumerate(sampled.order):
+        count = int(sampled.batch[a])
+        rng = np.random.default_rng([run.seed, k, 4, int(Stream.TRAIN)])
+        state = rng.uniform(-0.05, 0.05, size=(4, count)).T.copy()
+        running = list(range(count))
+        row = int(span[a, 0])
+        t = 0
+        while running:
+            obs = state[running].astype(np.float32)
+            even = np.zeros((count, 16), dtype=np.float32)
+            odd = np.zeros((count, 16), dtype=np.float32)
+            in_even = kernels.forward(forward_w, engine.sizes, obs, even, odd, len(running))
+            logits = even if in_even else odd
+            still = []
+            for slot, c in enumerate(running):
+                action = kernels.draw_action(logits, slot, 2, rng.random(), np.zeros(2, np.float32))
+                assert (rows.time[row], rows.copy[row], rows.action[row]) == (t, c, action)
+                assert np.array_equal(rows.obs[row], obs[slot])
+                row += 1
+                if cartpole_step(state, c, sampled.physics[a], action) or t + 1 >= 500:
+                    assert sampled.lengths[sampled.copy_start[a] + c] == t + 1
+                else:
+                    still.append(c)
+            running = still
+            t += 1
+        assert row == span[a, 1]
+
+
+def test_the_kernels_forward_is_torchs_policy() -> None:
+    run = _run(agents=1)
+    policy, theta = _away_from_the_start(run)
+    engine = _engine(run, [0])
+    obs = np.random.default_rng(0).normal(0, 1, (50, 4)).astype(np.float32)
+    forward_w, _ = kernels.padded_weights(theta.numpy(), engine.sizes)
+    even, odd = np.zeros((50, 16), np.float32), np.zeros((50, 16), np.float32)
+    logits = even if kernels.forward(forward_w, engine.sizes, obs, even, odd, 50) else odd
+    with torch.no_grad():
+        reference = policy.net(torch.from_numpy(obs)).numpy()
+    np.testing.assert_allclose(logits[:, :2], reference, rtol=0, atol=2e-6)
+
+
+SETTINGS = [
+    ("algo.estimator=gpomdp", "algo.baseline=mean"),
+    ("algo.estimator=gpomdp", "algo.baseline=none"),
+    ("algo.estimator=reinforce", "algo.baseline=mean"),
+    ("algo.estimator=reinforce", "algo.baseline=none"),
+    ("algo.reward_to_go=from_step",),
+    ("algo.reward_to_go=from_step", "algo.normalize=batch"),
+    ("algo.normalize=episode",),
+    ("algo.normalize=batch", "algo.estimator=reinforce"),
+]
+
+
+@pytest.mark.parametrize("settings", SETTINGS, ids=["-".join(s) for s in SETTINGS])
+def test_the_gradient_and_bound_figures_are_autograds(settings) -> None:
+    """For each estimator option: the kernel's batch gradient (before clipping and the step)
+    and its per-trajectory moments equal common/local.py's torch autograd on the same
+    trajectories, to float32 rounding; and θ moves by step · gradient."""
+    run = _run(*settings, "env.gamma=0.97", agents=3)
+    policy, theta = _away_from_the_start(run)
+    sampled = _sample(run, [0, 1, 2], theta)
+    engine, batch, gammas, thetas, rows = (
+        sampled.engine, sampled.batch, sampled.gammas, sampled.thetas, sampled.rows,
+    )  # fmt: skip
+    before = thetas.copy()
+    measure = np.ones(3, dtype=np.bool_)
+    per_trajectory = np.zeros((int(batch.sum()), len(theta)), dtype=np.float32)
+    trajectory_start = np.concatenate([[0], np.cumsum(batch)[:-1]]).astype(np.int64)
+    unclipped = np.zeros((3, len(theta)), dtype=np.float32)
+    kernels.learn_iteration(thetas, np.zeros_like(thetas), np.zeros_like(thetas), engine.sizes,
+                            batch, gammas, np.zeros(3, dtype=np.int64), np.arange(3), rows.obs,
+                            rows.action, rows.copy, rows.time, rows.coef, sampled.span,
+                            sampled.copy_start, sampled.lengths, engine.options, 0.5, -1.0,
+                            np.zeros(3, dtype=np.bool_),
+                            measure, per_trajectory, trajectory_start, unclipped)  # fmt: skip
+    set_flat_params(policy, theta)
+    for a in range(3):
+        trajectories = sampled.trajectories(a)
+        reference = batch_gradient(policy, trajectories, algo=run.algo, gamma=gammas[a]).numpy()
+        scale = np.abs(reference).max()
+        assert scale > 0
+        np.testing.assert_allclose(unclipped[a], reference, rtol=0, atol=2e-5 * scale)
+        step = (thetas[a].astype(np.float64) - before[a]) / 0.5
+        np.testing.assert_allclose(step, unclipped[a], rtol=0, atol=1e-4 * scale)
+        if batch[a] >= 2:
+            moments = bound_statistics(policy, trajectories, algo=run.algo, gamma=gammas[a])
+            first = int(trajectory_start[a])
+            rows_a = torch.from_numpy(per_trajectory[first : first + int(batch[a])].copy())
+            ours = bound_stats(gradient_moments(rows_a))
+            for name, value in moments.items():
+                assert ours[name] == pytest.approx(value, rel=1e-4, abs=1e-6), name
+
+
+def test_adam_and_clipping_are_the_numpy_engines_steps() -> None:
+    from fedhpg.common.batched.engine import ascend
+
+    rng = np.random.default_rng(3)
+    theta = rng.normal(0, 1, (1, 50)).astype(np.float32)
+    first, second = np.zeros_like(theta), np.zeros_like(theta)
+    ours = theta[0].copy()
+    our_first, our_second = np.zeros(50, np.float32), np.zeros(50, np.float32)
+    for done in range(4):
+        gradient = rng.normal(0, 1, (1, 50)).astype(np.float32)
+        ascend("adam", 0.01, theta, gradient, (first, second), np.array([done]))
+        kernels.ascend(ours, gradient[0], our_first, our_second, 1, 0.01, done)
+        np.testing.assert_allclose(ours, theta[0], rtol=1e-6, atol=1e-7)
+    run = _run("algo.grad_clip=0.5", "algo.optimizer=sgd", "algo.step_size=1.0", agents=4)
+    start = initial_theta(variants_of(run, [0])[0], run)
+    engine = _engine(run, range(4))
+    results = engine.train(0, start, list(range(4)))
+    for k, result in results.items():
+        iterations = engine.budget(k).local_iters
+        assert result.stats.grad_clipped == iterations  # the initial gradients are larger
+        assert float((result.theta - start).norm()) <= 0.5 * iterations + 1e-5
+
+
+def test_episode_statistics_match_the_numpy_engine() -> None:
+    """The same θ̃_0 and population, 300 agents: the compiled and numpy engines' mean
+    training episode length agree within four standard errors (their random numbers differ,
+    their distributions must not)."""
+    run = _run(agents=300)
+    theta = initial_theta(variants_of(run, [0])[0], run)
+    lengths = {}
+    for engine in ("auto", "numpy"):
+        engine_run = _run(f"algo.engine={engine}", agents=300)
+        group = batched_group_or_none(engine_run, variants_of(engine_run, range(300)))
+        results = group.train(0, theta, list(range(300)))
+        per_episode = [r.stats.train_return for r in results.values()]
+        lengths[engine] = (np.mean(per_episode), np.std(per_episode) / math.sqrt(300))
+    (ours, se_ours), (theirs, se_theirs) = lengths["auto"], lengths["numpy"]
+    assert abs(ours - theirs) < 4 * math.hypot(se_ours, se_theirs), lengths
