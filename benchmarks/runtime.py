@@ -59,12 +59,18 @@ def _pss_bytes(pid: int) -> int:
 
 
 def _federation(
-    overrides: list[str], out_dir: Path, *, sample_memory: bool = False, poll_s: float = 0.01
+    overrides: list[str],
+    out_dir: Path,
+    *,
+    sample_memory: bool = False,
+    poll_s: float = 0.01,
+    env: dict[str, str] | None = None,
 ) -> tuple[list[dict], float, int]:
     """Run fedhpg-run; returns (metrics records, seconds to the end of round 1, peak PSS).
 
     ``poll_s`` is how often the metrics file and the memory are looked at: reading
-    ``smaps_rollup`` of a dozen processes costs CPU, so long runs poll less often.
+    ``smaps_rollup`` of a dozen processes costs CPU, so long runs poll less often. ``env``:
+    more environment variables for the federation's processes.
     """
     metrics = out_dir / "metrics.jsonl"
     started = time.monotonic()
@@ -80,7 +86,7 @@ def _federation(
         stdout=subprocess.DEVNULL,
         stderr=stderr,
         text=True,
-        env={**os.environ, "OMP_NUM_THREADS": "1"},
+        env={**os.environ, "OMP_NUM_THREADS": "1", **(env or {})},
     )
     first_round_s = float("nan")
     peak = 0

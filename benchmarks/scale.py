@@ -7,7 +7,9 @@ env steps per second while the hosts sample (from the engine's own split of its 
 reported per agent in metrics.jsonl), per second of round wall time, and the server's
 coordination time per participating agent. The two references run in this same process on
 the same number of env copies as one host steps: (a) a bare ``gym.make_vec`` CartPole loop,
-(b) the same plus one stacked forward and draw of every agent's own MLP per step.
+(b) the same plus one stacked forward and draw of every agent's own MLP per step; each is
+measured :data:`REF_REPEATS` times after the federation and the median is the reference (on
+a shared machine one measurement wanders by ±30 %), the range kept beside it.
 
     python -m benchmarks.scale            # all cases, table on stdout, JSON + figure
 """
@@ -43,6 +45,8 @@ class Case:
     rounds: int = 4
     hidden: int = 16
     extra: tuple[str, ...] = ()
+    cold_cache: bool = False
+    """Start with an empty numba cache (the compiled engine compiles its kernels first)."""
 
     def overrides(self) -> list[str]:
         out = [
@@ -80,6 +84,7 @@ class CaseResult:
     """Median over rounds of (round time − the slowest host's wall time) / participants."""
     copies_per_host: int
     refs: dict[str, float] = field(default_factory=dict)
+    ref_ranges: dict[str, tuple[float, float]] = field(default_factory=dict)
 
 
 def _sampled_copies(case: Case) -> list[int]:
@@ -92,7 +97,7 @@ def _sampled_copies(case: Case) -> list[int]:
     return [agent_profile(run, int(k)).budget.batch_size for k in chosen]  # type: ignore[attr-defined]
 
 
-def _summary(case: Case, name: str, rounds: list[dict], refs: dict[str, float],
+def _summary(case: Case, name: str, rounds: list[dict], refs: dict[str, list[float]],
              copies: int, first_round_s: float, peak: int) -> CaseResult:  # fmt: skip
     steps = [sum(a["env_steps"] for a in r["agents"]) for r in rounds]
     sample_s = [sum(a.get("engine_sample_s", float("nan")) for a in r["agents"]) for r in rounds]
@@ -111,23 +116,28 @@ def _summary(case: Case, name: str, rounds: list[dict], refs: dict[str, float],
         round_time_s=statistics.median(r["round_time_s"] for r in rounds),
         coordination_us_per_agent=1e6 * statistics.median(overhead),
         copies_per_host=copies,
-        refs=refs,
+        refs={name: statistics.median(values) for name, values in refs.items()},
+        ref_ranges={name: (min(values), max(values)) for name, values in refs.items()},
     )
+
+
+REF_REPEATS = 5
 
 
 def measure(case: Case) -> list[CaseResult]:
     """The case's figures over all its rounds, or, for a case that trains long enough for
     the episodes to lengthen, over its first and its last three rounds separately."""
     with tempfile.TemporaryDirectory() as tmp:
+        env = {"NUMBA_CACHE_DIR": str(Path(tmp) / "numba")} if case.cold_cache else None
         records, first_round_s, peak = _federation(
-            case.overrides(), Path(tmp), sample_memory=True, poll_s=0.05
+            case.overrides(), Path(tmp), sample_memory=True, poll_s=0.05, env=env
         )
     rounds = [r for r in records if r["agents"]]
     copies = _sampled_copies(case)
-    refs = {
-        "a_bare_gym": bare_loop(sum(copies), 300),
-        "b_gym_plus_forward": forward_loop(copies, (case.hidden, case.hidden), 300),
-    }
+    refs: dict[str, list[float]] = {"a_bare_gym": [], "b_gym_plus_forward": []}
+    for _ in range(REF_REPEATS):
+        refs["a_bare_gym"].append(bare_loop(sum(copies), 300))
+        refs["b_gym_plus_forward"].append(forward_loop(copies, (case.hidden, case.hidden), 300))
     if len(rounds) < 10:
         return [_summary(case, case.name, rounds, refs, sum(copies), first_round_s, peak)]
     return [
@@ -143,6 +153,10 @@ CASES = {
     "k1000": Case("K = 1,000, all train", agents=1000, per_host=500, rounds=30),
     "k10000": Case("K = 10,000, 1,000 per round", agents=10_000, per_host=5000, per_round=1000),
     "processes": Case("one process per agent, K = 100", agents=100, per_host=1, rounds=3),
+    "cold": Case(
+        "K = 1,000, all train, numba cache empty", agents=1000, per_host=500, rounds=3,
+        cold_cache=True,
+    ),
     "overhead": Case(
         "K = 1,000, d ≈ 10⁴ (96-96 MLP)", agents=1000, per_host=500, hidden=96, rounds=4
     ),
@@ -153,11 +167,13 @@ def table(results: list[CaseResult]) -> str:
     lines = [
         "| case | start → end of round 1 (s) | peak PSS (MiB) | agents per round | env steps "
         "per round | sampling: steps per CPU-s | vs (b) | round: steps/s (all hosts) | per "
-        "core vs (b) | (a) bare gym (M/s) | (b) + forward (M/s) | coordination per agent (µs) |",
+        "core vs (b) | (a) bare gym (M/s) | (b) + forward (M/s, median; range) | coordination "
+        "per agent (µs) |",
         "|---|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     for r in results:
         b = r.refs["b_gym_plus_forward"]
+        low, high = r.ref_ranges.get("b_gym_plus_forward", (b, b))
         hosts = -(-r.case.agents // r.case.per_host)
         cores = min(hosts, CORES)
         lines.append(
@@ -165,7 +181,8 @@ def table(results: list[CaseResult]) -> str:
             f"{r.participants:,.0f} | {r.env_steps_per_round:,.0f} | "
             f"{r.sampling_steps_per_cpu_s / 1e6:.2f} M | {r.sampling_steps_per_cpu_s / b:.2f} | "
             f"{r.round_steps_per_s / 1e6:.2f} M | {r.round_steps_per_s / cores / b:.2f} | "
-            f"{r.refs['a_bare_gym'] / 1e6:.1f} | {b / 1e6:.2f} | "
+            f"{r.refs['a_bare_gym'] / 1e6:.1f} | {b / 1e6:.2f} "
+            f"({low / 1e6:.2f}–{high / 1e6:.2f}) | "
             f"{r.coordination_us_per_agent:.0f} |"
         )
     return "\n".join(lines)

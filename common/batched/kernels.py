@@ -110,16 +110,21 @@ def tanh32(value: np.float32) -> np.float32:
 
 
 @kernel()
-def padded_weights(theta: np.ndarray, sizes: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """θ (flat, torch's layout) as (forward_weights, backward_weights): module docstring."""
-    layers = len(sizes) - 1
+def widest(sizes: np.ndarray) -> int:
     width = 0
     for size in sizes:
         width = max(width, size)
-    forward_w = np.zeros((layers, width + 1, width), dtype=np.float32)
-    backward_w = np.zeros((layers, width, width), dtype=np.float32)
+    return width
+
+
+@kernel()
+def fill_weights(
+    theta: np.ndarray, sizes: np.ndarray, forward_w: np.ndarray, backward_w: np.ndarray
+) -> None:
+    """θ (flat, torch's layout) into the padded ``forward_w`` [L, w + 1, w] and
+    ``backward_w`` [L, w, w] (module docstring); the padding is left as it is (zeros)."""
     offset = 0
-    for layer in range(layers):
+    for layer in range(len(sizes) - 1):
         n_in, n_out = sizes[layer], sizes[layer + 1]
         for o in range(n_out):
             for i in range(n_in):
@@ -128,6 +133,15 @@ def padded_weights(theta: np.ndarray, sizes: np.ndarray) -> tuple[np.ndarray, np
                 backward_w[layer, o, i] = value
             forward_w[layer, n_in, o] = theta[offset + n_in * n_out + o]
         offset += n_in * n_out + n_out
+
+
+@kernel()
+def padded_weights(theta: np.ndarray, sizes: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """θ as fresh (forward_weights, backward_weights): module docstring."""
+    width = widest(sizes)
+    forward_w = np.zeros((len(sizes) - 1, width + 1, width), dtype=np.float32)
+    backward_w = np.zeros((len(sizes) - 1, width, width), dtype=np.float32)
+    fill_weights(theta, sizes, forward_w, backward_w)
     return forward_w, backward_w
 
 
@@ -211,6 +225,25 @@ def greedy_action(logits: np.ndarray, row: int, n_actions: int) -> int:
 
 
 @kernel()
+def rollout_workspace(sizes: np.ndarray, copies: int) -> tuple[np.ndarray, ...]:
+    """Scratch for :func:`rollout_agent` of up to ``copies`` copies (made once per call of a
+    whole iteration, not per agent: at ~20-step episodes an agent's own allocations cost more
+    than its steps)."""
+    width = widest(sizes)
+    return (
+        np.zeros((len(sizes) - 1, width + 1, width), dtype=np.float32),  # forward weights
+        np.zeros((len(sizes) - 1, width, width), dtype=np.float32),  # backward weights
+        np.zeros((copies, sizes[0]), dtype=np.float32),  # observations
+        np.zeros((copies, width), dtype=np.float32),  # activations, even layers
+        np.zeros((copies, width), dtype=np.float32),  # activations, odd layers
+        np.zeros(sizes[len(sizes) - 1], dtype=np.float32),  # the draw's exponentials
+        np.zeros((copies, 4), dtype=np.float64),  # CartPole states
+        np.zeros(copies, dtype=np.int64),  # the copies still running
+        np.zeros(copies, dtype=np.float64),  # γ^t per copy
+    )
+
+
+@kernel()
 def rollout_agent(
     theta: np.ndarray,
     sizes: np.ndarray,
@@ -229,6 +262,7 @@ def rollout_agent(
     returns: np.ndarray,
     discounted: np.ndarray,
     first_copy: int,
+    workspace: tuple[np.ndarray, ...],
 ) -> int:
     """One CartPole episode in each of ``copies`` copies of one agent's variant from θ.
 
@@ -238,27 +272,22 @@ def rollout_agent(
     last written. Randomness, all from ``stream`` (the agent's own): the initial states as
     gymnasium's CartPole vector env draws them (``uniform(±0.05, size=(4, copies))``,
     row-major), then per step one uniform per running copy, in copy order (none if greedy)."""
+    weights, backward_w, obs, even, odd, scratch, state, running, discount = workspace
     obs_dim = sizes[0]
     n_actions = sizes[len(sizes) - 1]
-    weights, _ = padded_weights(theta, sizes)
-    width = weights.shape[2]
-    obs = np.zeros((copies, obs_dim), dtype=np.float32)
-    even = np.zeros((copies, width), dtype=np.float32)
-    odd = np.zeros((copies, width), dtype=np.float32)
-    scratch = np.zeros(n_actions, dtype=np.float32)
-    state = np.empty((copies, 4), dtype=np.float64)
+    fill_weights(theta, sizes, weights, backward_w)
     for i in range(4):
         for c in range(copies):
             state[c, i] = -0.05 + 0.1 * next_double(stream)
-    running = np.arange(copies)  # the copies still running, in copy order
-    alive = copies
-    limit = min(horizon, CARTPOLE_STEP_LIMIT)
-    discount = np.ones(copies, dtype=np.float64)
-    record = rows_obs.shape[0] > 0
-    row = first_row
     for c in range(copies):
+        running[c] = c  # the copies still running, in copy order
+        discount[c] = 1.0
         returns[first_copy + c] = 0.0
         discounted[first_copy + c] = 0.0
+    alive = copies
+    limit = min(horizon, CARTPOLE_STEP_LIMIT)
+    record = rows_obs.shape[0] > 0
+    row = first_row
     for t in range(limit):
         for slot in range(alive):
             for i in range(obs_dim):
@@ -318,14 +347,19 @@ def sample_iteration(
     … ``row_span[a, 1] − 1``), per copy its length and return (agent a's copies from
     ``copy_start[a]`` on)."""
     discounted = np.empty(returns.shape[0], dtype=np.float64)
+    most = 1
+    for a in agents:
+        most = max(most, batch[a])
+    workspace = rollout_workspace(sizes, most)
+    greedy = False
     row = 0
     copy = 0
     for a in agents:
         row_span[a, 0] = row
         copy_start[a] = copy
         row = rollout_agent(thetas[a], sizes, physics[a], batch[a], horizons[a], streams[a],
-                            False, gammas[a], rows_obs, rows_action, rows_copy, rows_time, row,
-                            lengths, returns, discounted, copy)  # fmt: skip
+                            greedy, gammas[a], rows_obs, rows_action, rows_copy, rows_time, row,
+                            lengths, returns, discounted, copy, workspace)  # fmt: skip
         copy += batch[a]
         row_span[a, 1] = row
 
@@ -433,6 +467,26 @@ def _standardise(coef: np.ndarray, alive: np.ndarray, per_copy: bool) -> None:
                 coef[t, c] = (coef[t, c] - mean) / scale if alive[t, c] else 0.0
 
 
+@kernel()
+def gradient_workspace(sizes: np.ndarray) -> tuple[np.ndarray, ...]:
+    """Scratch for :func:`score_gradient`, made once per iteration's call."""
+    layers = len(sizes) - 1
+    width = widest(sizes)
+    return (
+        np.zeros((layers, width + 1, width), dtype=np.float32),  # forward weights
+        np.zeros((layers, width, width), dtype=np.float32),  # backward weights
+        np.zeros((layers + 1, width, BLOCK), dtype=np.float32),  # activations
+        np.zeros((width, BLOCK), dtype=np.float32),  # δ
+        np.zeros((width, BLOCK), dtype=np.float32),  # Wᵀδ
+        np.zeros(BLOCK, dtype=np.float32),  # the largest logit per row
+        np.zeros(BLOCK, dtype=np.float32),  # the softmax's normaliser per row
+        np.zeros((layers, width, width), dtype=np.float64),  # weight gradient
+        np.zeros((layers, width), dtype=np.float64),  # bias gradient
+        np.zeros(BLOCK, dtype=np.float32),  # the block's coefficients
+        np.zeros(BLOCK, dtype=np.float32),  # the block's actions (as floats: one tuple type)
+    )
+
+
 @kernel(fastmath=GRADIENT_FASTMATH)
 def score_gradient(
     theta: np.ndarray,
@@ -443,6 +497,7 @@ def score_gradient(
     low: int,
     high: int,
     out: np.ndarray,
+    workspace: tuple[np.ndarray, ...],
 ) -> None:
     """out (float32, flat θ layout) = Σ_{r ∈ [low, high)} coef_r · ∇_θ log π(a_r|s_r).
 
@@ -450,72 +505,79 @@ def score_gradient(
     every loop runs along the block's rows: long and contiguous, where row-major loops along
     16 units cost LLVM more in loop entries than in arithmetic); each block's sums over its
     rows are added to float64 totals."""
+    forward_w, backward_w, acts, delta, below, top, total = workspace[:7]
+    weight_total, bias_total, coef, action = workspace[7:]
     layers = len(sizes) - 1
     n_actions = sizes[layers]
-    forward_w, backward_w = padded_weights(theta, sizes)
-    width = forward_w.shape[2]
-    acts = np.zeros((layers + 1, width, BLOCK), dtype=np.float32)
-    delta = np.zeros((width, BLOCK), dtype=np.float32)
-    below = np.zeros((width, BLOCK), dtype=np.float32)
-    top = np.zeros(BLOCK, dtype=np.float32)
-    total = np.zeros(BLOCK, dtype=np.float32)
-    weight_total = np.zeros((layers, width, width), dtype=np.float64)
-    bias_total = np.zeros((layers, width), dtype=np.float64)
+    fill_weights(theta, sizes, forward_w, backward_w)
+    weight_total[:] = 0.0
+    bias_total[:] = 0.0
     for start in range(low, high, BLOCK):
+        # every block is BLOCK rows long, a short last one padded with zero rows whose
+        # coefficient is 0 (they add exact zeros): loops of a constant length compile to
+        # straight vector code, without the remainder loops a variable length needs
         rows = min(BLOCK, high - start)
         for i in range(sizes[0]):
             for r in range(rows):
                 acts[0, i, r] = rows_obs[start + r, i]
+            for r in range(rows, BLOCK):
+                acts[0, i, r] = 0.0
+        for r in range(rows):
+            coef[r] = rows_coef[start + r]
+            action[r] = np.float32(rows_action[start + r])
+        for r in range(rows, BLOCK):
+            coef[r] = 0.0
+            action[r] = 0
         for layer in range(layers):
             n_in, n_out = sizes[layer], sizes[layer + 1]
             for o in range(n_out):
                 bias = forward_w[layer, n_in, o]
-                for r in range(rows):
+                for r in range(BLOCK):
                     acts[layer + 1, o, r] = bias
                 for i in range(n_in):
                     weight = forward_w[layer, i, o]
-                    for r in range(rows):
+                    for r in range(BLOCK):
                         acts[layer + 1, o, r] += weight * acts[layer, i, r]
                 if layer < layers - 1:
-                    for r in range(rows):
+                    for r in range(BLOCK):
                         acts[layer + 1, o, r] = tanh32(acts[layer + 1, o, r])
         # ∂ log π(a|s) / ∂ logits = onehot(a) − π, times the row's coefficient
-        for r in range(rows):
+        for r in range(BLOCK):
             top[r] = acts[layers, 0, r]
             total[r] = 0.0
         for j in range(1, n_actions):
-            for r in range(rows):
+            for r in range(BLOCK):
                 top[r] = max(top[r], acts[layers, j, r])
         for j in range(n_actions):
-            for r in range(rows):
+            for r in range(BLOCK):
                 delta[j, r] = np.float32(math.exp(acts[layers, j, r] - top[r]))
                 total[r] += delta[j, r]
         for j in range(n_actions):
-            for r in range(rows):
-                hit = np.float32(1.0) if j == rows_action[start + r] else np.float32(0.0)
-                delta[j, r] = (hit - delta[j, r] / total[r]) * rows_coef[start + r]
+            for r in range(BLOCK):
+                hit = np.float32(1.0) if np.float32(j) == action[r] else np.float32(0.0)
+                delta[j, r] = (hit - delta[j, r] / total[r]) * coef[r]
         for layer in range(layers - 1, -1, -1):
             n_in, n_out = sizes[layer], sizes[layer + 1]
             for o in range(n_out):
                 block_sum = np.float32(0.0)
-                for r in range(rows):
+                for r in range(BLOCK):
                     block_sum += delta[o, r]
                 bias_total[layer, o] += block_sum
                 for i in range(n_in):
                     block_sum = np.float32(0.0)
-                    for r in range(rows):
+                    for r in range(BLOCK):
                         block_sum += delta[o, r] * acts[layer, i, r]
                     weight_total[layer, o, i] += block_sum
             if layer > 0:  # δ below = (Wᵀ δ) ⊙ tanh', tanh' = 1 − h²
                 for i in range(n_in):
-                    for r in range(rows):
+                    for r in range(BLOCK):
                         below[i, r] = 0.0
                     for o in range(n_out):
                         weight = backward_w[layer, o, i]
-                        for r in range(rows):
+                        for r in range(BLOCK):
                             below[i, r] += weight * delta[o, r]
                 for i in range(n_in):
-                    for r in range(rows):
+                    for r in range(BLOCK):
                         h = acts[layer, i, r]
                         delta[i, r] = below[i, r] * (np.float32(1.0) - h * h)
     offset = 0
@@ -592,27 +654,40 @@ def learn_iteration(
     gradient g(τ_b) (rows ``trajectory_start[a]`` … + B_a − 1 of ``per_trajectory``) and the
     unclipped batch gradient (``unclipped[a]``); nothing else changes."""
     gradient = np.empty(thetas.shape[1], dtype=np.float32)
+    workspace = gradient_workspace(sizes)
+    most_steps, most_copies = 1, 1
+    for a in agents:
+        most_copies = max(most_copies, batch[a])
+        for c in range(batch[a]):
+            most_steps = max(most_steps, lengths[copy_start[a] + c])
+    # [T, B] grids of the largest batch, an agent using its own corner (views, one per agent)
+    reward_grid = np.zeros((most_steps, most_copies), dtype=np.float64)
+    alive_grid = np.zeros((most_steps, most_copies), dtype=np.bool_)
+    coef_grid = np.zeros((most_steps, most_copies), dtype=np.float64)
     for a in agents:
         count = batch[a]
         low, high = row_span[a, 0], row_span[a, 1]
         steps = 0
         for c in range(count):
             steps = max(steps, lengths[copy_start[a] + c])
-        rewards = np.zeros((steps, count), dtype=np.float64)
-        alive = np.zeros((steps, count), dtype=np.bool_)
+        rewards = reward_grid[:steps, :count]
+        alive = alive_grid[:steps, :count]
+        coef = coef_grid[:steps, :count]
+        rewards[:] = 0.0
+        alive[:] = False
         for r in range(low, high):
             rewards[rows_time[r], rows_copy[r]] = 1.0  # CartPole: 1 per step, the last too
             alive[rows_time[r], rows_copy[r]] = True
-        coef = np.zeros((steps, count), dtype=np.float64)
         coefficients(rewards, alive, gammas[a], options[0], options[1], options[2], options[3],
                      coef)  # fmt: skip
         for r in range(low, high):
             rows_coef[r] = np.float32(coef[rows_time[r], rows_copy[r]] / count)
-        score_gradient(thetas[a], sizes, rows_obs, rows_action, rows_coef, low, high, gradient)
+        score_gradient(thetas[a], sizes, rows_obs, rows_action, rows_coef, low, high, gradient,
+                       workspace)  # fmt: skip
         if measure[a]:
             _per_trajectory_gradients(thetas[a], sizes, rows_obs, rows_action, rows_copy,
                                       rows_time, coef, low, high, count,
-                                      per_trajectory, trajectory_start[a])  # fmt: skip
+                                      per_trajectory, trajectory_start[a], workspace)  # fmt: skip
             unclipped[a, :] = gradient
         clipped[a] = False
         if grad_clip > 0.0:
@@ -642,6 +717,7 @@ def _per_trajectory_gradients(
     count: int,
     out: np.ndarray,
     first: int,
+    workspace: tuple[np.ndarray, ...],
 ) -> None:
     """out[first + b] = g(τ_b) = Σ_t coef[t, b] ∇ log π(a_t|s_t) (coef not divided by B), each
     copy's rows gathered in time order."""
@@ -664,7 +740,7 @@ def _per_trajectory_gradients(
         coefs[slot] = np.float32(coef[rows_time[r], rows_copy[r]])
     for c in range(count):
         score_gradient(theta, sizes, obs, actions, coefs, per_copy[c], per_copy[c + 1],
-                       out[first + c])  # fmt: skip
+                       out[first + c], workspace)  # fmt: skip
 
 
 @kernel()
@@ -685,7 +761,9 @@ def evaluate_agents(
     episode (agent-major, [A · episodes]) its length, return and discounted return."""
     no_obs = np.empty((0, sizes[0]), dtype=np.float32)
     no_ints = np.empty(0, dtype=np.int32)
+    workspace = rollout_workspace(sizes, episodes)
+    no_row = 0
     for a in range(thetas.shape[0]):
         rollout_agent(thetas[a], sizes, physics[a], episodes, horizons[a], streams[a], greedy,
-                      gammas[a], no_obs, no_ints, no_ints, no_ints, 0, lengths, returns,
-                      discounted, a * episodes)  # fmt: skip
+                      gammas[a], no_obs, no_ints, no_ints, no_ints, no_row, lengths, returns,
+                      discounted, a * episodes, workspace)  # fmt: skip
