@@ -47,6 +47,9 @@ def compiled_unsupported(run: RunConfig, variants: Mapping[int, EnvVariant]) -> 
 class CompiledFedHPG:
     """The agents ``variants`` of a FedHPG run on CartPole variants (see the module docstring)."""
 
+    LARGE_TEMPORARIES = True
+    """Megabytes allocated every round (common/runtime/memory.py tunes malloc for it)."""
+
     def __init__(self, run: RunConfig, variants: Mapping[int, EnvVariant], shape: MLPShape):
         self.run = run
         self.variants = variants

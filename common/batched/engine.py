@@ -81,6 +81,9 @@ class _Lazy(dict[int, Any]):
 class BatchedFedHPG:
     """The agents ``variants`` of a FedHPG run with the MLP categorical policy."""
 
+    LARGE_TEMPORARIES = True
+    """Megabytes allocated every round (common/runtime/memory.py tunes malloc for it)."""
+
     def __init__(self, run: RunConfig, variants: Mapping[int, EnvVariant], shape: mlp.MLPShape):
         self.run = run
         self.variants = variants

@@ -33,15 +33,16 @@ ENGINE_MMAP_THRESHOLD = 16 * 2**20
 
 
 def tune_malloc_for(group: object) -> None:
-    """The batched engine allocates temporaries of megabytes every local iteration (rings,
-    packed chunks, activations): mmapped and faulted in each time at the 128 KiB threshold,
-    they doubled its gradient time (CartPole, 500 agents, 500-step episodes: 2.1 s against
-    1.1 s). Its processes take blocks below 16 MiB from the heap instead, where they are
-    reused; the loop over LocalWorkers keeps the pinned 128 KiB (the fragmentation it guards
-    against came from that loop's rollout buffers)."""
-    from fedhpg.common.batched.engine import BatchedFedHPG
+    """The batched engines allocate temporaries of megabytes every round (the numpy engine's
+    rings, packed chunks and activations every local iteration; both engines' [A, d] rows of
+    θ and the answers stacked from them): mmapped and faulted in each time at the 128 KiB
+    threshold, they doubled the numpy engine's gradient time (CartPole, 500 agents, 500-step
+    episodes: 2.1 s against 1.1 s). Their processes take blocks below 16 MiB from the heap
+    instead, where they are reused; the loop over LocalWorkers keeps the pinned 128 KiB (the
+    fragmentation it guards against came from that loop's rollout buffers)."""
     from fedhpg.common.group import SplitGroup
 
     parts = group.parts if isinstance(group, SplitGroup) else (group,)
-    if any(isinstance(part, BatchedFedHPG) for part in parts):
+    # an attribute, not isinstance: importing the compiled engine would import numba here
+    if any(getattr(part, "LARGE_TEMPORARIES", False) for part in parts):
         pin_malloc_mmap_threshold(ENGINE_MMAP_THRESHOLD)
