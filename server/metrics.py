@@ -8,9 +8,11 @@ import json
 import logging
 import os
 import socket
+import struct
 import time
+from collections.abc import Callable
 from pathlib import Path
-from typing import Any
+from typing import Any, BinaryIO, cast
 
 import numpy as np
 import torch
@@ -56,6 +58,36 @@ def read_metrics(path: Path) -> list[dict[str, Any]]:
 
 TENSORBOARD_DIR = "tensorboard"
 _files_opened = itertools.count()
+
+
+def _crc32c() -> Callable[[bytes], int]:
+    """CRC-32C in C (google-crc32c) when installed: tensorboard's own, without TensorFlow, is
+    a Python loop over the bytes (48 ms for the 280 kB of one round of 1,000 agents' scalars,
+    against 0.07 ms)."""
+    try:
+        import google_crc32c  # type: ignore[import-not-found,unused-ignore]
+    except ImportError:
+        from tensorboard.compat.tensorflow_stub.pywrap_tensorflow import crc32c
+
+        return cast(Callable[[bytes], int], crc32c)
+    return cast(Callable[[bytes], int], google_crc32c.value)
+
+
+class RecordWriter:
+    """TFRecord framing, as tensorboard's ``RecordWriter`` writes it (length, masked CRC-32C
+    of the length, data, masked CRC-32C of the data), with a C CRC where one is installed."""
+
+    def __init__(self, file: BinaryIO) -> None:
+        self._file = file
+        self._crc = _crc32c()
+
+    def _masked(self, data: bytes) -> bytes:
+        crc = self._crc(data)
+        return struct.pack("<I", (((crc >> 15) | (crc << 17)) + 0xA282EAD8) & 0xFFFFFFFF)
+
+    def write(self, data: bytes) -> None:
+        header = struct.pack("<Q", len(data))
+        self._file.write(header + self._masked(header) + data + self._masked(data))
 
 
 class EventFile:
@@ -163,7 +195,6 @@ def tensorboard_sink(
     try:
         from tensorboard.compat.proto.event_pb2 import Event, SessionLog
         from tensorboard.compat.proto.summary_pb2 import Summary
-        from tensorboard.summary.writer.record_writer import RecordWriter
     except ImportError:
         logger.warning(
             "tensorboard is not installed (pip install 'fedhpg[tensorboard]'): no event "

@@ -9,6 +9,7 @@ import logging
 import sys
 from pathlib import Path
 
+import numpy as np
 import pytest
 from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
 
@@ -80,10 +81,27 @@ def test_without_tensorboard_installed_a_warning_and_the_run_goes_on(
     tmp_path: Path, monkeypatch: pytest.MonkeyPatch, caplog: pytest.LogCaptureFixture
 ) -> None:
     # The package cannot be uninstalled for one test: a None entry makes its import fail.
-    monkeypatch.setitem(sys.modules, "tensorboard.summary.writer.record_writer", None)
+    monkeypatch.setitem(sys.modules, "tensorboard.compat.proto.event_pb2", None)
     out_dir = tmp_path / "run"
     with caplog.at_level(logging.WARNING, logger="fedhpg.server.metrics"):
         result = api.run(overrides=[*RUN, "rounds=2"], out_dir=out_dir)
     assert len(result.records) == 2 and not (out_dir / "tensorboard").exists()
     warnings = [r for r in caplog.records if "tensorboard is not installed" in r.getMessage()]
     assert len(warnings) == 1
+
+
+def test_event_records_are_framed_as_tensorboards_own_writer_frames_them() -> None:
+    """Our RecordWriter (C CRC-32C) writes the bytes tensorboard's RecordWriter writes."""
+    import io
+
+    from tensorboard.summary.writer.record_writer import RecordWriter as Reference
+
+    from fedhpg.server.metrics import RecordWriter
+
+    rng = np.random.default_rng(0)
+    for size in (0, 1, 7, 1000, 70_000):
+        data = rng.integers(0, 256, size, dtype=np.uint8).tobytes()
+        ours, theirs = io.BytesIO(), io.BytesIO()
+        RecordWriter(ours).write(data)
+        Reference(theirs).write(data)
+        assert ours.getvalue() == theirs.getvalue(), size
