@@ -8,8 +8,11 @@ reported per agent in metrics.jsonl), per second of round wall time, and the ser
 coordination time per participating agent. The two references run in this same process on
 the same number of env copies as one host steps: (a) a bare ``gym.make_vec`` CartPole loop,
 (b) the same plus one stacked forward and draw of every agent's own MLP per step; each is
-measured :data:`REF_REPEATS` times after the federation and the median is the reference (on
-a shared machine one measurement wanders by ±30 %), the range kept beside it.
+measured :data:`REF_REPEATS` times before the federation and as many after it, and the
+median is the reference (on a shared machine one measurement wanders by ±30 %; right after a
+minute of load on both cores it was once 40 % below its usual figure), the range kept beside
+it. Then :mod:`benchmarks.scale_engine` cross-checks the sampling ratio in one process,
+interleaved with (b), at θ̃_0 and at the K = 1,000 case's final θ̃.
 
     python -m benchmarks.scale            # all cases, table on stdout, JSON + figure
 """
@@ -25,11 +28,14 @@ from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
+import torch
 
+from benchmarks import scale_engine
 from benchmarks.runtime import _federation
 from benchmarks.scale_refs import bare_loop, forward_loop
 from fedhpg.common.components import agent_profile
 from fedhpg.common.runtime.cli import compose
+from fedhpg.server.checkpoint import latest_valid_checkpoint
 
 RESULTS = Path(__file__).parent / "results" / "scale.json"
 FIGURE = Path(__file__).parents[1] / "docs" / "scale.png"
@@ -121,23 +127,34 @@ def _summary(case: Case, name: str, rounds: list[dict], refs: dict[str, list[flo
     )
 
 
-REF_REPEATS = 5
+REF_REPEATS = 3
+"""Measurements of each reference before the federation, and as many after it."""
+FINAL_THETA: dict[str, torch.Tensor] = {}
+"""θ̃ at the end of each case (for the in-process cross-check at a trained θ̃)."""
+
+
+def _references(case: Case, copies: list[int], refs: dict[str, list[float]]) -> None:
+    for _ in range(REF_REPEATS):
+        refs["a_bare_gym"].append(bare_loop(sum(copies), 300))
+        refs["b_gym_plus_forward"].append(forward_loop(copies, (case.hidden, case.hidden), 300))
 
 
 def measure(case: Case) -> list[CaseResult]:
     """The case's figures over all its rounds, or, for a case that trains long enough for
     the episodes to lengthen, over its first and its last three rounds separately."""
+    copies = _sampled_copies(case)
+    refs: dict[str, list[float]] = {"a_bare_gym": [], "b_gym_plus_forward": []}
+    _references(case, copies, refs)
     with tempfile.TemporaryDirectory() as tmp:
         env = {"NUMBA_CACHE_DIR": str(Path(tmp) / "numba")} if case.cold_cache else None
         records, first_round_s, peak = _federation(
             case.overrides(), Path(tmp), sample_memory=True, poll_s=0.05, env=env
         )
+        checkpoint = latest_valid_checkpoint(Path(tmp) / "checkpoints")
+        if checkpoint is not None:
+            FINAL_THETA[case.name] = checkpoint.theta
+    _references(case, copies, refs)
     rounds = [r for r in records if r["agents"]]
-    copies = _sampled_copies(case)
-    refs: dict[str, list[float]] = {"a_bare_gym": [], "b_gym_plus_forward": []}
-    for _ in range(REF_REPEATS):
-        refs["a_bare_gym"].append(bare_loop(sum(copies), 300))
-        refs["b_gym_plus_forward"].append(forward_loop(copies, (case.hidden, case.hidden), 300))
     # Round 1 is start-up (first messages, first-touch of the buffers; the start-up column
     # times it): the throughput columns are of the rounds after it.
     steady = rounds[1:] if len(rounds) > 1 else rounds
@@ -239,12 +256,24 @@ def main() -> None:
         results += measured
         print("\n".join(table(measured).splitlines()[2:]), flush=True)
     print(table(results))
+    engine = [scale_engine.measure(scale_engine.start_theta(), "θ̃_0")]
+    trained = FINAL_THETA.get(CASES["k1000"].name)
+    if trained is not None:
+        engine.append(scale_engine.measure(trained, f"after {CASES['k1000'].rounds} rounds"))
+    print(scale_engine.table(engine))
     if len(args.cases) < len(CASES):
         # a subset is a spot check: the results file and the figure hold the whole table
         return
     RESULTS.parent.mkdir(parents=True, exist_ok=True)
     RESULTS.write_text(
-        json.dumps([{**asdict(r), "case": asdict(r.case)} for r in results], indent=1) + "\n"
+        json.dumps(
+            {
+                "cases": [{**asdict(r), "case": asdict(r.case)} for r in results],
+                "engine_in_process": [asdict(r) for r in engine],
+            },
+            indent=1,
+        )
+        + "\n"
     )
     figure(results)
 
