@@ -13,7 +13,6 @@ names the first bad key in a :class:`~fedhpg.common.config.ConfigError`. Pure Py
 from __future__ import annotations
 
 import dataclasses
-import functools
 import importlib
 import math
 import pkgutil
@@ -149,11 +148,16 @@ def _hint_name(hint: Any) -> str:
     return getattr(hint, "__name__", None) or str(hint).replace("typing.", "")
 
 
-@functools.cache
+_HINTS: dict[type, dict[str, Any]] = {}
+
+
 def _type_hints(cls: type) -> dict[str, Any]:
     """``typing.get_type_hints``, once per class: it evaluates every annotation string again
     on each call (~40 µs), and a host of 5,000 agents parses options per agent it meets."""
-    return typing.get_type_hints(cls)
+    hints = _HINTS.get(cls)
+    if hints is None:
+        hints = _HINTS[cls] = typing.get_type_hints(cls)
+    return hints
 
 
 def parse_options(cls: type[OptionsT], values: Mapping[str, Any] | None, key: str) -> OptionsT:

@@ -18,18 +18,16 @@ from collections.abc import Mapping, Sequence
 import numpy as np
 import torch
 
-from fedhpg.common.algorithms.fedhpg import FedHPGBudget
 from fedhpg.common.batched import kernels
-from fedhpg.common.batched.engine import _Lazy
+from fedhpg.common.batched.agents import EngineAgents, Lazy
 from fedhpg.common.batched.mlp import MLPShape
 from fedhpg.common.batched.streams import agent_streams
 from fedhpg.common.bounds import gradient_moments
-from fedhpg.common.components import agent_profile, planned_budget
+from fedhpg.common.components import planned_budget
 from fedhpg.common.config import RunConfig
 from fedhpg.common.group import Budgets, GroupHook
 from fedhpg.common.local import LocalTally, SmoothnessProbe, bound_stats
 from fedhpg.common.types import EvaluationStats, LocalResult
-from fedhpg.common.variants import discount, training_horizon
 from fedhpg.common.worker import IterationWork, Stream
 from fedhpg.envs.base import EnvVariant
 from fedhpg.envs.compiled import CARTPOLE_STEP_LIMIT, cartpole_table
@@ -44,21 +42,13 @@ def compiled_unsupported(run: RunConfig, variants: Mapping[int, EnvVariant]) -> 
     return None
 
 
-class CompiledFedHPG:
+class CompiledFedHPG(EngineAgents):
     """The agents ``variants`` of a FedHPG run on CartPole variants (see the module docstring)."""
 
-    LARGE_TEMPORARIES = True
-    """Megabytes allocated every round (common/runtime/memory.py tunes malloc for it)."""
-
     def __init__(self, run: RunConfig, variants: Mapping[int, EnvVariant], shape: MLPShape):
-        self.run = run
-        self.variants = variants
-        self.shape = shape
+        super().__init__(run, variants, shape)
         self.sizes = np.asarray(shape.sizes, dtype=np.int64)
-        self.profiles = _Lazy(lambda k: agent_profile(run, k))
-        self.gammas = _Lazy(lambda k: discount(run, variants[k]))
-        self.horizons = _Lazy(lambda k: training_horizon(run, variants[k]))
-        self.physics = _Lazy(self._physics_of)
+        self.physics = Lazy(self._physics_of)
         self._buffers: _RowBuffers | None = None
         algo = run.algo
         self.options = np.array(
@@ -77,19 +67,6 @@ class CompiledFedHPG:
         if table is None:
             raise ValueError(f"agent {k}'s variant is not a CartPole the compiled engine models")
         return table[0]
-
-    def budget(self, k: int) -> FedHPGBudget:
-        budget = self.profiles[k].budget
-        assert isinstance(budget, FedHPGBudget), "the engine runs FedHPG"
-        return budget
-
-    @property
-    def indices(self) -> Sequence[int]:
-        return sorted(self.variants)
-
-    @property
-    def num_params(self) -> int:
-        return self.shape.num_params
 
     def _per_agent(self, order: Sequence[int]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         horizons = np.array([self.horizons[k] for k in order], dtype=np.int64)
@@ -221,9 +198,6 @@ class CompiledFedHPG:
                 episodes=episodes,
             )
         return stats
-
-    def close(self) -> None:
-        pass
 
 
 class _RowBuffers:

@@ -10,27 +10,23 @@ the same θ bit for bit (see :mod:`fedhpg.common.batched.mlp` for how).
 
 from __future__ import annotations
 
-from collections.abc import Callable, Mapping, Sequence
+from collections.abc import Sequence
 from contextlib import closing
-from typing import Any
 
 import numpy as np
 import torch
 
-from fedhpg.common.algorithms.fedhpg import FedHPGBudget
 from fedhpg.common.batched import coefficients as coef
 from fedhpg.common.batched import mlp
+from fedhpg.common.batched.agents import EngineAgents
 from fedhpg.common.batched.sampler import Batches, block_order, rollout
 from fedhpg.common.batched.scheduler import RoundTiming, run_round
 from fedhpg.common.bounds import gradient_moments
-from fedhpg.common.components import agent_profile, planned_budget
-from fedhpg.common.config import RunConfig
+from fedhpg.common.components import planned_budget
 from fedhpg.common.group import Budgets, GroupHook
 from fedhpg.common.local import SmoothnessProbe, bound_stats
 from fedhpg.common.types import EvaluationStats, LocalResult
-from fedhpg.common.variants import discount, training_horizon
 from fedhpg.common.worker import IterationWork, Stream, random_stream
-from fedhpg.envs.base import EnvVariant
 from fedhpg.envs.multi import make_multi_batch_env
 
 ADAM_BETAS = (0.9, 0.999)
@@ -66,45 +62,8 @@ def ascend(
     theta += np.float32(step_size) * first_hat / (np.sqrt(second_hat) + np.float32(ADAM_EPS))
 
 
-class _Lazy(dict[int, Any]):
-    """A dict that computes a missing key's value once."""
-
-    def __init__(self, make: Callable[[int], Any]) -> None:
-        super().__init__()
-        self.make = make
-
-    def __missing__(self, key: int) -> Any:
-        value = self[key] = self.make(key)
-        return value
-
-
-class BatchedFedHPG:
+class BatchedFedHPG(EngineAgents):
     """The agents ``variants`` of a FedHPG run with the MLP categorical policy."""
-
-    LARGE_TEMPORARIES = True
-    """Megabytes allocated every round (common/runtime/memory.py tunes malloc for it)."""
-
-    def __init__(self, run: RunConfig, variants: Mapping[int, EnvVariant], shape: mlp.MLPShape):
-        self.run = run
-        self.variants = variants
-        self.shape = shape
-        # per agent on first use: a host of 5,000 agents may see 500 of them in a round
-        self.profiles = _Lazy(lambda k: agent_profile(run, k))
-        self.gammas = _Lazy(lambda k: discount(run, variants[k]))
-        self.horizons = _Lazy(lambda k: training_horizon(run, variants[k]))
-
-    def budget(self, k: int) -> FedHPGBudget:
-        budget = self.profiles[k].budget
-        assert isinstance(budget, FedHPGBudget), "the engine runs FedHPG"
-        return budget
-
-    @property
-    def indices(self) -> Sequence[int]:
-        return sorted(self.variants)
-
-    @property
-    def num_params(self) -> int:
-        return self.shape.num_params
 
     # -- training -------------------------------------------------------------------------
 
@@ -312,6 +271,3 @@ class BatchedFedHPG:
                 episodes=episodes,
             )
         return stats
-
-    def close(self) -> None:
-        pass
