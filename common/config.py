@@ -358,6 +358,10 @@ class ServerConfig:
     tensorboard: bool = True
     """Also write TensorBoard event files to ``<out_dir>/tensorboard/`` (needs the optional
     ``tensorboard`` package; without it a warning, and metrics.jsonl alone)."""
+    tensorboard_agents: int = 100
+    """Per-agent TensorBoard scalars (``agent/<k>/…``, ``eval/<id>/…``) for runs of at most
+    this many agents; larger runs write the federation's and the across-agent keys only
+    (metrics.jsonl keeps every agent)."""
     endpoint_file: str | None = None
     """Once listening, write where agents reach the server to this JSON file (host, port):
     how ``fedhpg-cluster``'s agent jobs find a server on a port it chose (shared filesystem)."""
@@ -682,6 +686,7 @@ def _validate_server(server: ServerConfig, num_agents: int) -> None:
     if server.max_connections is not None:
         # low=1, not K: agent hosts serve many agents over one connection each
         _check_int(server.max_connections, "server.max_connections", low=1)
+    _check_int(server.tensorboard_agents, "server.tensorboard_agents", low=0)
 
 
 def _validate_buffered(server: ServerConfig, num_agents: int) -> None:

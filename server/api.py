@@ -206,7 +206,11 @@ def _in_process_with_directory(
     metrics = MetricsWriter(run_dir.metrics)
     start = theta if theta is not None else initial_theta(variant_of(run_config, 0), run_config)
     board = tensorboard_sink(
-        run_config.server.tensorboard, directory, first_round=progress.next_round, theta=start
+        run_config.server.tensorboard,
+        directory,
+        first_round=progress.next_round,
+        theta=start,
+        per_agent=run_config.agents.num_agents <= run_config.server.tensorboard_agents,
     )
     sinks: list[RoundCallback] = [
         metrics,

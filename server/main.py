@@ -264,7 +264,11 @@ def _serve_claimed(
     pool.restore_counters(counters)
     metrics = MetricsWriter(run_dir.metrics)
     board = tensorboard_sink(
-        run.server.tensorboard, out_dir, first_round=progress.next_round, theta=theta
+        run.server.tensorboard,
+        out_dir,
+        first_round=progress.next_round,
+        theta=theta,
+        per_agent=run.agents.num_agents <= run.server.tensorboard_agents,
     )
     last_eval: dict[str, Any] = {}
 

@@ -125,12 +125,18 @@ class TensorBoardWriter:
     Keys: docs/metrics.md. A round's scalars go out as one event (one summary of many values),
     not one event per scalar: a fraction of the cost."""
 
-    def __init__(self, file_writer: Any, summary: Any, theta: torch.Tensor) -> None:
+    def __init__(
+        self, file_writer: Any, summary: Any, theta: torch.Tensor, *, per_agent: bool = True
+    ) -> None:
         self._file_writer = file_writer
         self._summary = summary
         """tensorboard's ``Summary`` message class."""
         self._previous = theta.detach().numpy().astype(np.float64)
         """θ̃ before the round: the update norms are measured from it."""
+        self._per_agent = per_agent
+        """Write ``agent/<k>/…`` and ``eval/<id>/…`` (``server.tensorboard_agents``): at 1,000
+        agents they are 14,000 values a round, ~45 ms of the server's time between rounds,
+        and more curves than anyone reads."""
 
     def _values(self, record: RoundRecord, after: np.ndarray) -> dict[str, float]:
         before = self._previous
@@ -149,14 +155,23 @@ class TensorBoardWriter:
             # The round's emulated duration is its slowest agent's emulated time.
             values["fed/emulated_round_s"] = max(s.emulated_s for s in stats)
             values["fed/trajectories"] = sum(s.trajectories for s in stats)
+        across: dict[str, list[float]] = {}
         for update in record.agents:
-            prefix = f"agent/{update.agent_index}/"
-            for name, value in update.stats.to_json().items():
-                values[prefix + name] = value
-            norm = np.linalg.norm(update.theta.numpy().astype(np.float64) - before)
-            values[prefix + "update_norm"] = float(norm)
+            row = update.stats.to_json()
+            row["update_norm"] = float(
+                np.linalg.norm(update.theta.numpy().astype(np.float64) - before)
+            )
+            for name, value in row.items():
+                if value is not None:
+                    across.setdefault(name, []).append(value)
+                    if self._per_agent:
+                        values[f"agent/{update.agent_index}/{name}"] = value
+        for name, column in across.items():  # the spread over the round's agents
+            values[f"agents/{name}/mean"] = float(np.mean(column))
+            values[f"agents/{name}/min"] = float(np.min(column))
+            values[f"agents/{name}/max"] = float(np.max(column))
         if record.eval:
-            for agent, evaluation in record.eval.items():
+            for agent, evaluation in record.eval.items() if self._per_agent else ():
                 values[f"eval/{agent}/return"] = evaluation.return_mean
                 values[f"eval/{agent}/discounted_return"] = evaluation.discounted_return_mean
                 values[f"eval/{agent}/success_rate"] = evaluation.success_rate
@@ -184,7 +199,12 @@ class TensorBoardWriter:
 
 
 def tensorboard_sink(
-    enabled: bool, out_dir: Path, *, first_round: int, theta: torch.Tensor
+    enabled: bool,
+    out_dir: Path,
+    *,
+    first_round: int,
+    theta: torch.Tensor,
+    per_agent: bool = True,
 ) -> TensorBoardWriter | None:
     """A TensorBoard writer for ``out_dir/tensorboard``, or None when off or not installed.
 
@@ -205,4 +225,4 @@ def tensorboard_sink(
     if first_round > 1:
         # What TensorBoard's purge_step writes: readers drop older events of later steps.
         events.add_event(Event(step=first_round, session_log=SessionLog(status=SessionLog.START)))
-    return TensorBoardWriter(events, Summary, theta)
+    return TensorBoardWriter(events, Summary, theta, per_agent=per_agent)

@@ -56,6 +56,26 @@ def test_tensorboard_reads_each_rounds_scalars_under_grouped_keys(tmp_path: Path
     assert all(v > 0 for _, v in board["fed/theta_step_norm"]), "θ̃ moved every round"
 
 
+def test_past_tensorboard_agents_only_the_spread_over_agents_is_written(tmp_path: Path) -> None:
+    """4 agents with server.tensorboard_agents=3: no agent/<k>/ or eval/<id>/ keys, and the
+    agents/<field>/mean|min|max of every round equal metrics.jsonl's (also written when the
+    per-agent keys are)."""
+    out_dir = tmp_path / "run"
+    api.run(overrides=[*RUN, "server.tensorboard_agents=3"], out_dir=out_dir)
+    board, records = scalars(out_dir), metrics(out_dir)
+    assert not [t for t in board if t.startswith("agent/") or t.startswith("eval/agent-")]
+    assert [s for s, _ in board["eval/mean/return"]] == [2, 4]
+    for statistic, reduce in (("mean", np.mean), ("min", np.min), ("max", np.max)):
+        expected = [reduce([a["train_return"] for a in r["agents"]]) for r in records]
+        assert [v for _, v in board[f"agents/train_return/{statistic}"]] == pytest.approx(
+            expected, rel=1e-6, abs=1e-7
+        )
+    assert all(v > 0 for _, v in board["agents/update_norm/min"])
+    with_agents = tmp_path / "all"
+    api.run(overrides=[*RUN, "rounds=1"], out_dir=with_agents)
+    assert {"agents/train_return/mean", "agent/0/train_return"} <= set(scalars(with_agents))
+
+
 def test_a_resumed_run_shows_no_round_twice(tmp_path: Path) -> None:
     out_dir = tmp_path / "run"
     api.run(overrides=[*RUN[1:], "rounds=3"], out_dir=out_dir)
