@@ -60,9 +60,15 @@ OPTION_SETS: dict[str, list[str]] = {
 }
 
 
+ENGINE = "auto"
+"""``algo.engine`` of the runs (``--engine``): the compiled engine by default;
+``estimator_options_numpy.json`` holds the same study on the numpy engine."""
+
+
 def setup_overrides(seed: int, rounds: int, server_lr: float) -> list[str]:
     """FedPG-BR's CartPole set-up (benchmarks/learning.py's run_curve, homogeneous)."""
     return [
+        f"algo.engine={ENGINE}",
         f"seed={seed}",
         f"rounds={rounds}",
         "env=cartpole",
@@ -207,7 +213,15 @@ def main() -> None:
     parser.add_argument("--max-trajectories", type=int, default=1600)
     parser.add_argument("--out", type=Path, default=RESULTS)
     parser.add_argument("--table-only", action="store_true", help="print the stored outcomes")
+    parser.add_argument(
+        "--engine",
+        choices=["auto", "numpy"],
+        default="auto",
+        help="algo.engine (the outcomes differ by engine: give each its own --out)",
+    )
     args = parser.parse_args()
+    global ENGINE
+    ENGINE = args.engine
     known = [Outcome(**o) for o in json.loads(args.out.read_text())] if args.out.exists() else []
     done = {(o.options, o.server_lr, o.seed) for o in known}
     outcomes = list(known)

@@ -93,6 +93,7 @@ def run_curve(
     seed: int,
     budget: int = BUDGET,
     extra: Sequence[str] = (),
+    engine: str = "auto",
 ) -> Curve:
     """One run of ``ALGOS[algo]`` (then the ``extra`` overrides) until sustained or
     ``budget`` trajectories per agent."""
@@ -122,6 +123,7 @@ def run_curve(
         f"strategy.params.step_size={server_lr}",
         f"seed={seed}",
         f"rounds={budget // 16}",
+        f"algo.engine={engine}",  # FedHPG's engine; FedHPGVR and FedPG-BR use the loop
         *extra,
     ]
     with contextlib.suppress(_Stop):
@@ -138,7 +140,7 @@ def _spread(values: Sequence[float | None]) -> str:
     return text + (f", {missed} never" if missed else "")
 
 
-def table(curves: list[Curve]) -> str:
+def table(curves: list[Curve], preset_results: Path = PRESET_RESULTS) -> str:
     lines = [
         f"| run | server step | seeds | trajectories/agent to first ≥ {TARGET:g}, median "
         f"(range) | to sustained ({SUSTAINED} evaluations) | source |",
@@ -154,12 +156,12 @@ def table(curves: list[Curve]) -> str:
                     f"| {LABELS[algo]} | {lr:g} | {len(group)} | {first} | {held} "
                     "| this benchmark |"
                 )
-        preset = [c for c in preset_curves() if c.server_lr == lr]
+        preset = [c for c in preset_curves(preset_results) if c.server_lr == lr]
         if preset:
             lines.append(
                 f"| best preset (`experiment=k10_cartpole_tuned`: eq. 6, B=1) | {lr:g} | "
                 f"{len(preset)} | {_spread([c.first() for c in preset])} | "
-                f"{_spread([c.sustained() for c in preset])} | {PRESET_RESULTS} |"
+                f"{_spread([c.sustained() for c in preset])} | {preset_results} |"
             )
         if lr in PUBLISHED:
             firsts = [float(f) for f, _ in PUBLISHED[lr]]
@@ -202,6 +204,18 @@ def main(argv: Sequence[str] | None = None) -> None:
         "--resume", action="store_true", help=f"keep the curves already in {RESULTS}"
     )
     parser.add_argument("--results", type=Path, default=RESULTS, help="where the curves are kept")
+    parser.add_argument(
+        "--engine",
+        choices=["auto", "numpy"],
+        default="auto",
+        help="algo.engine (FedHPG's curves differ by engine: give each its own --results)",
+    )
+    parser.add_argument(
+        "--preset-results",
+        type=Path,
+        default=PRESET_RESULTS,
+        help="the estimator-options runs the best preset's row is read from",
+    )
     args = parser.parse_args(argv)
     curves = load(args.results) if args.resume or args.table_only else []
     if not args.table_only:
@@ -211,7 +225,7 @@ def main(argv: Sequence[str] | None = None) -> None:
                 for seed in range(args.seeds):
                     if (algo, lr, seed) in done:  # kept from an earlier, interrupted run
                         continue
-                    curve = run_curve(algo, lr, seed)
+                    curve = run_curve(algo, lr, seed, engine=args.engine)
                     print(
                         f"{algo} lr={lr:g} seed {seed}: first {curve.first()}, sustained "
                         f"{curve.sustained()}",
@@ -219,7 +233,7 @@ def main(argv: Sequence[str] | None = None) -> None:
                     )
                     curves.append(curve)
                     save(curves, args.results)
-    print(table(curves))
+    print(table(curves, args.preset_results))
 
 
 if __name__ == "__main__":
