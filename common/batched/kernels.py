@@ -9,18 +9,22 @@ at the front) until its last episode ends, then the next agent's; its weights an
 stay in L1, and nothing an agent computes can depend on another agent: placement invariance
 by construction.
 
-Numerics, so that θ is the same bit for bit on any x86-64 host:
-- no ``fastmath``: LLVM may not reassociate or contract, so a vectorised loop computes what
-  the scalar one would; ``error_model="numpy"`` (IEEE division, no zero check: the check
-  stops LLVM from vectorising a loop with a division);
+Numerics:
+- sampling and the dynamics are strict IEEE (no ``fastmath``: LLVM may not reassociate or
+  contract, so a vectorised loop computes what the scalar one would), so an episode is the
+  same on any x86-64 host given θ; ``error_model="numpy"`` everywhere (IEEE division, no zero
+  check: the check stops LLVM from vectorising any loop with a division);
 - tanh by :func:`tanh32`, a rational function evaluated in float64 and rounded to float32:
   a libm ``tanhf`` per unit cannot be vectorised and made the whole sampler 2.5× slower. Its
   relative error is below 1.5·10⁻¹⁰ before rounding, so it is within one float32 ulp of tanh
   (over every float32 in [2⁻³⁰, 10.5]: 0.07 % of them one ulp off the correctly rounded
   value; numpy's float32 tanh is one ulp off for 11 %, torch's for 0.03 %);
 - the estimator's coefficients in float64, as the numpy engine; the gradient summed in
-  float32 over blocks of :data:`BLOCK` rows, the blocks in float64, rounded to float32 once;
-  the steps are the numpy engine's ``ascend``, one row.
+  float32 over blocks of :data:`BLOCK` rows, the blocks in float64, rounded to float32 once,
+  with LLVM free to reorder and fuse the sums within a block (:data:`GRADIENT_FASTMATH`):
+  fixed by the compiled code, so the same in any company and placement on one CPU type, but
+  hosts of different CPU types may round the gradient differently;
+- the steps are the numpy engine's ``ascend``, one row.
 
 Layouts. θ is torch's flat layout (each ``nn.Linear``: weight [out, in] row-major, then
 bias). Inside a kernel the weights are padded 3-D arrays indexed by loop variables only (a
