@@ -321,3 +321,21 @@ def test_episode_statistics_match_the_numpy_engine() -> None:
         lengths[engine] = (np.mean(per_episode), np.std(per_episode) / math.sqrt(300))
     (ours, se_ours), (theirs, se_theirs) = lengths["auto"], lengths["numpy"]
     assert abs(ours - theirs) < 4 * math.hypot(se_ours, se_theirs), lengths
+
+
+def test_a_round_cut_into_parts_of_agents_is_the_same_round(monkeypatch) -> None:
+    """Buffers too small for all the agents' rows at once: the iteration runs in parts, and
+    every θ, count and bound figure is what one pass gives."""
+    from fedhpg.common.batched import compiled
+
+    run = _run("algo.bound_estimates=true", agents=7)
+    theta = initial_theta(variants_of(run, [0])[0], run)
+    whole = _engine(run, range(7)).train(2, theta, list(range(7)))
+    monkeypatch.setattr(compiled, "MAX_ROWS", 1)  # parts the size of the largest agent's rows
+    parts = _engine(run, range(7)).train(2, theta, list(range(7)))
+    for k in range(7):
+        assert torch.equal(parts[k].theta, whole[k].theta)
+        mine, theirs = parts[k].stats, whole[k].stats
+        assert (mine.env_steps, mine.train_return) == (theirs.env_steps, theirs.train_return)
+        bound = {n: v for n, v in mine.algorithm.items() if n.startswith("bound_")}
+        assert bound and bound == {n: v for n, v in theirs.algorithm.items() if n in bound}

@@ -103,7 +103,8 @@ class CompiledFedHPG(EngineAgents):
         flat = theta.detach().numpy().astype(np.float32)
         thetas = np.repeat(flat[None, :], len(order), 0)
         firsts, seconds = np.zeros_like(thetas), np.zeros_like(thetas)
-        rows = self._rows(int((batch * np.minimum(horizons, CARTPOLE_STEP_LIMIT)).sum()))
+        most_rows = batch * np.minimum(horizons, CARTPOLE_STEP_LIMIT)  # per agent, at most
+        rows = self._rows(int(min(most_rows.sum(), max(MAX_ROWS, most_rows.max()))))
         row_span = np.zeros((len(order), 2), dtype=np.int64)
         copy_start = np.zeros(len(order), dtype=np.int64)
         lengths = np.zeros(int(batch.sum()), dtype=np.int64)
@@ -117,39 +118,40 @@ class CompiledFedHPG(EngineAgents):
         # An agent whose steps diverge samples from NaN logits until its round ends; the server
         # rejects its update and says why.
         for iteration in range(int(iters.max(initial=0))):
-            active = np.flatnonzero(iters > iteration)
-            measure = bounds.wanted(iteration, active)
-            before = thetas[measure].copy() if measure.any() else None
-            started = time.thread_time()
-            kernels.sample_iteration(thetas, self.sizes, physics, batch, horizons, gammas,
-                                     streams, active, rows.obs, rows.action, rows.copy,
-                                     rows.time, row_span, copy_start, lengths,
-                                     returns)  # fmt: skip
-            sampled = time.thread_time()
-            kernels.learn_iteration(thetas, firsts, seconds, self.sizes, batch, gammas, done,
-                                    active, rows.obs, rows.action, rows.copy, rows.time,
-                                    rows.coef, row_span, copy_start, lengths, self.options,
-                                    float(algo.step_size), clip, clipped, measure,
-                                    bounds.per_trajectory, bounds.start,
-                                    bounds.unclipped)  # fmt: skip
-            learned = time.thread_time()
-            if before is not None:
-                bounds.record(iteration, measure, before)
-            sample_s += sampled - started
-            gradient_s += learned - sampled
-            copies = int(batch[active].sum())
-            starts = copy_start[active]
-            steps = np.add.reduceat(lengths[:copies], starts)
-            cpu_per_step = (learned - started) / max(int(steps.sum()), 1)
-            totals["steps"][active] += steps
-            totals["returns"][active] += np.add.reduceat(returns[:copies], starts)
-            totals["compute"][active] += cpu_per_step * steps
-            totals["clip"][active] += clipped[active]
-            done[active] += 1
-            if on_iteration is not None:
-                for position, env_steps in zip(active.tolist(), steps.tolist(), strict=True):
-                    work = IterationWork(iteration, cpu_per_step * env_steps, env_steps, env_steps)
-                    on_iteration(order[position], work)
+            for part in _parts(np.flatnonzero(iters > iteration), most_rows, rows.capacity):
+                measure = bounds.wanted(iteration, part)
+                before = thetas[measure].copy() if measure.any() else None
+                started = time.thread_time()
+                kernels.sample_iteration(thetas, self.sizes, physics, batch, horizons, gammas,
+                                         streams, part, rows.obs, rows.action, rows.copy,
+                                         rows.time, row_span, copy_start, lengths,
+                                         returns)  # fmt: skip
+                sampled = time.thread_time()
+                kernels.learn_iteration(thetas, firsts, seconds, self.sizes, batch, gammas,
+                                        done, part, rows.obs, rows.action, rows.copy,
+                                        rows.time, rows.coef, row_span, copy_start, lengths,
+                                        self.options, float(algo.step_size), clip, clipped,
+                                        measure, bounds.per_trajectory, bounds.start,
+                                        bounds.unclipped)  # fmt: skip
+                learned = time.thread_time()
+                if before is not None:
+                    bounds.record(iteration, measure, before)
+                sample_s += sampled - started
+                gradient_s += learned - sampled
+                copies = int(batch[part].sum())
+                starts = copy_start[part]
+                steps = np.add.reduceat(lengths[:copies], starts)
+                cpu_per_step = (learned - started) / max(int(steps.sum()), 1)
+                totals["steps"][part] += steps
+                totals["returns"][part] += np.add.reduceat(returns[:copies], starts)
+                totals["compute"][part] += cpu_per_step * steps
+                totals["clip"][part] += clipped[part]
+                done[part] += 1
+                if on_iteration is not None:
+                    for position, env_steps in zip(part.tolist(), steps.tolist(), strict=True):
+                        work = IterationWork(iteration, cpu_per_step * env_steps, env_steps,
+                                             env_steps)  # fmt: skip
+                        on_iteration(order[position], work)
         all_steps = max(float(totals["steps"].sum()), 1.0)
         results = {}
         for i, k in enumerate(order):
@@ -198,6 +200,24 @@ class CompiledFedHPG(EngineAgents):
                 episodes=episodes,
             )
         return stats
+
+
+MAX_ROWS = 1 << 21
+"""Rows (one per sampled step) the buffers hold, ~56 MB: a local iteration whose agents could
+sample more (500 agents of B = 64 at CartPole's 500 steps: 16 M) runs in parts of agents that
+fit, one after another, which changes no agent's numbers."""
+
+
+def _parts(agents: np.ndarray, most_rows: np.ndarray, capacity: int) -> list[np.ndarray]:
+    """``agents`` (positions) cut, in order, into runs whose rows at most fit ``capacity``."""
+    parts, start, filled = [], 0, 0
+    for i, a in enumerate(agents.tolist()):
+        if filled + most_rows[a] > capacity and i > start:
+            parts.append(agents[start:i])
+            start, filled = i, 0
+        filled += int(most_rows[a])
+    parts.append(agents[start:])
+    return parts
 
 
 class _RowBuffers:
