@@ -339,3 +339,37 @@ def test_a_round_cut_into_parts_of_agents_is_the_same_round(monkeypatch) -> None
         assert (mine.env_steps, mine.train_return) == (theirs.env_steps, theirs.train_return)
         bound = {n: v for n, v in mine.algorithm.items() if n.startswith("bound_")}
         assert bound and bound == {n: v for n, v in theirs.algorithm.items() if n in bound}
+
+
+@pytest.mark.parametrize("hidden", [[], [8, 12, 8]], ids=["linear", "three-layers"])
+def test_any_number_of_hidden_layers(hidden: list[int]) -> None:
+    """A linear softmax policy and three hidden layers of different widths: the forward is
+    torch's and the gradient autograd's, as with the 16-16 MLP of the other tests."""
+    run = _run(f"policy.hidden={hidden}", agents=2)
+    policy, theta = _away_from_the_start(run)
+    sampled = _sample(run, [0, 1], theta)
+    engine = sampled.engine
+    obs = np.random.default_rng(1).normal(0, 1, (9, 4)).astype(np.float32)
+    forward_w, _ = kernels.padded_weights(theta.numpy(), engine.sizes)
+    width = forward_w.shape[2]
+    even, odd = np.zeros((9, width), np.float32), np.zeros((9, width), np.float32)
+    logits = even if kernels.forward(forward_w, engine.sizes, obs, even, odd, 9) else odd
+    with torch.no_grad():
+        reference = policy.net(torch.from_numpy(obs)).numpy()
+    np.testing.assert_allclose(logits[:, :2], reference, rtol=0, atol=2e-6)
+    unclipped = np.zeros((2, len(theta)), dtype=np.float32)
+    thetas = sampled.thetas
+    kernels.learn_iteration(thetas, np.zeros_like(thetas), np.zeros_like(thetas), engine.sizes,
+                            sampled.batch, sampled.gammas, np.zeros(2, dtype=np.int64),
+                            np.arange(2), sampled.rows.obs, sampled.rows.action,
+                            sampled.rows.copy, sampled.rows.time, sampled.rows.coef,
+                            sampled.span, sampled.copy_start, sampled.lengths, engine.options,
+                            1.0, -1.0, np.zeros(2, dtype=np.bool_), np.ones(2, dtype=np.bool_),
+                            np.zeros((int(sampled.batch.sum()), len(theta)), np.float32),
+                            np.concatenate([[0], np.cumsum(sampled.batch)[:-1]]),
+                            unclipped)  # fmt: skip
+    for a in range(2):
+        gamma = sampled.gammas[a]
+        reference = batch_gradient(policy, sampled.trajectories(a), algo=run.algo, gamma=gamma)
+        scale = np.abs(reference.numpy()).max()
+        np.testing.assert_allclose(unclipped[a], reference.numpy(), rtol=0, atol=2e-5 * scale)
