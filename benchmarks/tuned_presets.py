@@ -35,6 +35,8 @@ from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
 
+from fedhpg.common.runtime.cli import limit_threads
+
 LOG = logging.getLogger("benchmarks.tuned_presets")
 RESULTS = Path("benchmarks/results")
 FIGURES = Path("docs/figures")
@@ -117,6 +119,12 @@ TASKS = {
             ),
             "B=16, Adam 3e-3, normalize=episode": Setting(
                 LUNARLANDER, [_batch(16), "algo.normalize=episode"]
+            ),
+            "B=8, Adam 3e-3, normalize=episode": Setting(
+                LUNARLANDER, [_batch(8), "algo.normalize=episode"]
+            ),
+            "B=32, Adam 3e-3, normalize=episode": Setting(
+                LUNARLANDER, [_batch(32), "algo.normalize=episode"]
             ),
         },
     ),
@@ -346,7 +354,8 @@ def plot(task: Task, curves: list[Curve], path: Path, budget: float) -> None:
 def main(argv: Sequence[str] | None = None) -> None:
     parser = argparse.ArgumentParser(description=__doc__)
     parser.add_argument("--task", choices=sorted(TASKS), required=True)
-    parser.add_argument("--settings", nargs="+", default=None, help="labels (default: tuned)")
+    default = "the tuned preset's, and the paper-faithful one's where it is not stored"
+    parser.add_argument("--settings", nargs="+", default=None, help=f"labels (default: {default})")
     parser.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2, 3, 4])
     parser.add_argument("--budget", type=int, default=None, help="trajectories per agent")
     parser.add_argument("--no-stop", action="store_true", help="run to the budget")
@@ -358,7 +367,11 @@ def main(argv: Sequence[str] | None = None) -> None:
     LOG.setLevel(logging.INFO)
     task = TASKS[args.task]
     budget = args.budget or task.budget
-    labels = args.settings or [task.tuned]
+    if not args.table_only:
+        # One torch thread, as each process of fedhpg-run has: how a sum is split over threads
+        # changes its last bits, and the runs here must be those a federation computes.
+        limit_threads()
+    labels = args.settings or ([task.tuned] if task.paper_stored else [task.paper, task.tuned])
     for label in labels:
         runnable = [s for s in task.settings if s != task.paper or not task.paper_stored]
         if label not in runnable:
