@@ -106,7 +106,7 @@ TASKS = {
         budget=4096,
         paper="paper-faithful: B=32, Adam 3e-3",
         paper_stored=True,
-        tuned="B=16, Adam 3e-3",
+        tuned="B=16, Adam 3e-3, normalize=episode",
         preset="k10_lunarlander_tuned",
         settings={
             "paper-faithful: B=32, Adam 3e-3": Setting(LUNARLANDER),
