@@ -8,8 +8,9 @@ from pathlib import Path
 import pytest
 from procs import BIN, processes, start
 
-from fedhpg.common.config import ConfigError
+from fedhpg.common.config import ConfigError, to_dict
 from fedhpg.common.runtime.cli import compose
+from fedhpg.server.api import resolve_config
 from fedhpg.server.plot import main as plot_main
 
 CONF = Path(__file__).parents[1] / "conf"
@@ -80,3 +81,53 @@ def test_tiny_multirun_then_plot(tmp_path: Path) -> None:
         assert plot_main([str(sweep), "--x", axis, "--out", str(out)]) == 0
         assert out.stat().st_size > 1000 and out.with_suffix(".svg").exists()
     assert plot_main([str(tmp_path / "missing")]) == 2
+
+
+# -- the K=10 LunarLander and HalfCheetah presets are the benchmarked set-ups -----------------
+
+K10_PRESETS = [
+    # (preset, family, B, algo.normalize, evaluated every so many trajectories per agent)
+    ("k10_lunarlander", "lunarlander", 32, "none", 128),
+    ("k10_lunarlander_tuned", "lunarlander", 16, "episode", 128),
+    ("k10_halfcheetah", "halfcheetah", 48, "none", 192),
+    ("k10_halfcheetah_tuned", "halfcheetah", 16, "none", 192),
+]
+
+
+@pytest.mark.parametrize(("preset", "family", "batch_size", "normalize", "cadence"), K10_PRESETS)
+def test_k10_presets_are_the_benchmarked_set_up(
+    preset: str, family: str, batch_size: int, normalize: str, cadence: int
+) -> None:
+    """The keys of benchmarks/learning_long.py and benchmarks/tuned_presets.py (BENCHMARKS.md's
+    figures), composed and validated as a run is."""
+    run = resolve_config(overrides=[f"experiment={preset}"])
+    assert (run.env.family, run.env.level, run.env.gamma) == (family, 0.0, 1.0)
+    assert run.agents.num_agents == 10
+    assert run.agents.budget["batch_size"] == [batch_size]
+    assert run.agents.budget["local_iters"] == [1]
+    assert run.policy.hidden == [64, 64]
+    assert (run.algo.name, run.algo.estimator, run.algo.baseline) == ("fedhpg", "gpomdp", "mean")
+    assert (run.algo.reward_to_go, run.algo.normalize) == ("from_start", normalize)
+    assert (run.algo.optimizer, run.algo.step_size) == ("sgd", 1.0)
+    assert run.strategy.name == "fedadam" and run.strategy.params["step_size"] == 0.003
+    # one greedy episode per agent at the same trajectories per agent, whatever B is
+    assert (run.eval.episodes, run.eval.greedy, run.eval.horizon) == (1, True, 1000)
+    assert run.eval.every * batch_size == cadence
+
+
+@pytest.mark.parametrize("task", ["lunarlander", "halfcheetah"])
+def test_tuned_k10_preset_is_the_benchmarked_setting(task: str) -> None:
+    """benchmarks/tuned_presets.py measures the tuned preset as the paper-faithful one with B,
+    the estimator's normalisation and the evaluation interval changed: the two compose to the
+    same run."""
+    tuned = compose([f"experiment=k10_{task}_tuned"])
+    base = compose(
+        [
+            f"experiment=k10_{task}",
+            f"agents.budget.batch_size={tuned.agents.budget['batch_size']}",
+            f"algo.normalize={tuned.algo.normalize}",
+            f"eval.every={tuned.eval.every}",
+            f"rounds={tuned.rounds}",
+        ]
+    )
+    assert to_dict(tuned) == to_dict(base)
