@@ -33,7 +33,6 @@ from fedhpg.common.config import RunConfig, host_id_of
 from fedhpg.common.device import DeviceModel, device_for, message_bytes
 from fedhpg.common.group import AgentGroup, make_agent_group
 from fedhpg.common.runtime.memory import pin_malloc_mmap_threshold, tune_malloc_for
-from fedhpg.common.types import UpdateStats
 from fedhpg.common.variants import range_digest, variant_digest, variants_of
 from fedhpg.common.wire.protocol import (
     MAX_BATCH_ANSWERS,
@@ -44,6 +43,7 @@ from fedhpg.common.wire.protocol import (
     Message,
     TrainBatch,
     UpdateBatch,
+    UpdateColumns,
 )
 from fedhpg.common.wire.transport import answers_per_message, batch_message_cap
 from fedhpg.common.worker import IterationWork
@@ -154,23 +154,25 @@ class AgentHost(AgentProcess):
         )
         # Each answer leaves with the batch: the host's wall time on the round is each one's.
         wall_s = time.perf_counter() - started
-        stats: dict[int, UpdateStats] = {}
+        emulated, speeds = {}, {}
         for k in agents:
             device = self.devices[k]
             device.transmit(message)  # the answer's
-            stats[k] = dataclasses.replace(
-                results[k].stats,
-                emulated_s=device.take_emulated(),
-                local_wall_s=wall_s,
-                speed=device.speed_at(request.round),
-            )
+            emulated[k] = device.take_emulated()
+            speeds[k] = device.speed_at(request.round)
         per_message = answers_per_message(batch_message_cap(self.max_bytes, num_params), num_params)
         return [
             UpdateBatch(
                 round=request.round,
                 agents=chunk,
                 thetas=np.stack([results[k].theta.numpy() for k in chunk]),
-                stats=[stats[k] for k in chunk],
+                # the device's fields replaced column-wise, not record by record
+                stats=dataclasses.replace(
+                    UpdateColumns.of([results[k].stats for k in chunk]),
+                    emulated_s=[emulated[k] for k in chunk],
+                    local_wall_s=[wall_s] * len(chunk),
+                    speed=[speeds[k] for k in chunk],
+                ),
             )
             for chunk in _chunks(agents, per_message)
         ]
@@ -186,12 +188,12 @@ class AgentHost(AgentProcess):
             rows = [i for i, k in enumerate(answer.agents) if k in wanted]
             if not rows:
                 continue
-            picked: dict[str, Any] = {
-                "agents": [answer.agents[i] for i in rows],
-                "stats": [answer.stats[i] for i in rows],
-            }
+            picked: dict[str, Any] = {"agents": [answer.agents[i] for i in rows]}
             if isinstance(answer, UpdateBatch):
                 picked["thetas"] = answer.thetas[rows]
+                picked["stats"] = answer.stats.take(rows)
+            else:
+                picked["stats"] = [answer.stats[i] for i in rows]
             again.append(replace(answer, **picked))
         return again
 

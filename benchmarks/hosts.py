@@ -69,7 +69,12 @@ def server_side_us(num_params: int, rounds: int = 5) -> list[float]:
     from fedhpg.common.types import UpdateStats
     from fedhpg.common.variants import range_digest
     from fedhpg.common.wire.codec import encode
-    from fedhpg.common.wire.protocol import MAX_BATCH_ANSWERS, HostHello, UpdateBatch
+    from fedhpg.common.wire.protocol import (
+        MAX_BATCH_ANSWERS,
+        HostHello,
+        UpdateBatch,
+        UpdateColumns,
+    )
     from fedhpg.server.pools.zmq_pool import ZmqAgentPool
     from fedhpg.server.validation import UpdateCheck
 
@@ -115,7 +120,10 @@ def server_side_us(num_params: int, rounds: int = 5) -> list[float]:
                 host.send_multipart(
                     encode(
                         UpdateBatch(
-                            round=1, agents=agents, thetas=thetas, stats=[stats] * len(agents)
+                            round=1,
+                            agents=agents,
+                            thetas=thetas,
+                            stats=UpdateColumns.of([stats] * len(agents)),
                         )
                     )
                 )

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import typing
 from collections.abc import Iterator
 from typing import Any
 
@@ -13,7 +14,7 @@ import msgpack
 import numpy as np
 import pytest
 import zmq
-from hypothesis import HealthCheck, given, settings
+from hypothesis import HealthCheck, example, given, settings
 from hypothesis import strategies as st
 from hypothesis.extra import numpy as hnp
 
@@ -41,6 +42,7 @@ from fedhpg.common.wire.protocol import (
     TrainBatch,
     Update,
     UpdateBatch,
+    UpdateColumns,
     Welcome,
 )
 
@@ -101,7 +103,7 @@ SAMPLES = [
         round=7,
         agents=[500, 503, 999],
         thetas=np.stack([THETA, -THETA, 2 * THETA]),
-        stats=[STATS, dataclasses.replace(STATS, trajectories=3), STATS],
+        stats=UpdateColumns.of([STATS, dataclasses.replace(STATS, trajectories=3), STATS]),
     ),
     EvaluateBatch(round=9, theta=THETA, episodes=20, agents=list(range(500, 1000))),
     EvaluationBatch(round=9, agents=[1, 2], stats=[EVALUATION, EVALUATION]),
@@ -297,7 +299,7 @@ def test_encode_normalises_numpy_scalars_and_tuples() -> None:
                 round=1,
                 agents=[0] * (MAX_BATCH_ANSWERS + 1),
                 thetas=np.zeros((MAX_BATCH_ANSWERS + 1, 2), np.float32),
-                stats=[STATS] * (MAX_BATCH_ANSWERS + 1),
+                stats=UpdateColumns.of([STATS] * (MAX_BATCH_ANSWERS + 1)),
             ),
             "bad_fields",
         ),
@@ -314,7 +316,7 @@ def test_encode_normalises_numpy_scalars_and_tuples() -> None:
                 round=1,
                 agents=[0],
                 thetas=np.zeros((1, 2), np.float32),
-                stats=[dataclasses.replace(STATS, compute_s=-1.0)],
+                stats=UpdateColumns.of([dataclasses.replace(STATS, compute_s=-1.0)]),
             ),
             "bad_fields",
         ),
@@ -394,6 +396,21 @@ _UPDATE_STATS = st.builds(
     local_wall_s=st.none() | _SECONDS,
     algorithm=st.dictionaries(st.text(max_size=64), _FINITE, max_size=32),
 )
+# A batch's agents report statistics out of one set (an algorithm's), each agent a subset.
+_UPDATE_COLUMNS = (
+    st.lists(st.text(max_size=64), max_size=32, unique=True)
+    .flatmap(
+        lambda keys: st.lists(
+            st.builds(
+                dataclasses.replace,
+                _UPDATE_STATS,
+                algorithm=st.fixed_dictionaries({}, optional=dict.fromkeys(keys, _FINITE)),
+            ),
+            max_size=4,
+        )
+    )
+    .map(UpdateColumns.of)
+)
 _EVALUATION_STATS = st.builds(
     EvaluationStats,
     return_mean=_FINITE,
@@ -431,7 +448,7 @@ _MESSAGES = st.one_of(
         round=_ROUNDS,
         agents=st.lists(_ROUNDS, max_size=4),
         thetas=_ARRAYS,
-        stats=st.lists(_UPDATE_STATS, max_size=4),
+        stats=_UPDATE_COLUMNS,
     ),
     st.builds(
         EvaluationBatch,
@@ -500,7 +517,8 @@ REJECTIONS: list[tuple[str, list[Any], str]] = [
     ("too deep", [b"\x91" * 5000 + b"\xc0"], "malformed"),
     # envelope
     ("no version", [_header(v=_DROP), GOOD_ARRAY], "malformed"),
-    ("version 6", [_header(v=6), GOOD_ARRAY], "version"),
+    ("version 7", [_header(v=7), GOOD_ARRAY], "version"),
+    ("version 5", [_header(v=5), GOOD_ARRAY], "version"),
     ("version 4", [_header(v=4), GOOD_ARRAY], "version"),
     ("version 3", [_header(v=3), GOOD_ARRAY], "version"),
     ("version 2", [_header(v=2), GOOD_ARRAY], "version"),
@@ -569,7 +587,7 @@ def test_rejections_carry_a_code(frames: list[Any], code: str) -> None:
 
 
 def test_version_error_names_both_versions() -> None:
-    with pytest.raises(ProtocolError, match=r"received protocol version 3, expected 5"):
+    with pytest.raises(ProtocolError, match=r"received protocol version 3, expected 6"):
         decode([_header(v=3), GOOD_ARRAY])
 
 
@@ -579,8 +597,10 @@ def test_a_batched_answers_header_is_capped_by_the_agents_it_lists(
     """Each row may cost what its agent's own message could (``HEADER_PER_AGENT``), no
     more: a batch cannot buy a big header with few agents. (With the real allowance no
     bounded stats reach it; a small one shows the cap is applied both ways.)"""
-    lean = [dataclasses.replace(STATS, algorithm={})] * 2
-    heavy = [dataclasses.replace(STATS, algorithm={f"{i:064d}": 1.0 for i in range(32)})] * 2
+    lean = UpdateColumns.of([dataclasses.replace(STATS, algorithm={})] * 2)
+    heavy = UpdateColumns.of(
+        [dataclasses.replace(STATS, algorithm={f"{i:064d}": 1.0 for i in range(32)})] * 2
+    )
     thetas = np.zeros((2, 3), np.float32)
     heavy_frames = _wire(UpdateBatch(round=1, agents=[0, 1], thetas=thetas, stats=heavy))
     monkeypatch.setitem(protocol.HEADER_PER_AGENT, UpdateBatch, ("agents", 256, 512))
@@ -888,6 +908,108 @@ def test_lists_and_maps_of_bounded_numbers_fast_path_agrees_with_the_generic_che
     assert _outcome(codec._checker(algorithm), entries) == _outcome(
         lambda v, w, d: codec._check_dict(limits.Finite, v, w, d), entries
     )
+
+
+_COLUMN_ITEMS = [spec.hint for spec in codec._specs(UpdateColumns) if spec.name != "algorithm"] + [
+    limits.Finite | None
+]
+# Random mixes rarely reach the whole-list test; lists of one kind do (ints at the 64-bit edges,
+# floats with ±Inf and NaN, huge ones).
+_COLUMNS_OF_ONE_KIND = st.one_of(
+    st.lists(_ANY_SCALAR, max_size=6),
+    st.lists(st.floats(allow_nan=True, allow_infinity=True), max_size=6),
+    st.lists(st.floats(-1e10, 1e10), max_size=6),
+    st.lists(st.integers(-(2**64), 2**64), max_size=6),
+    st.lists(st.integers(-3, 2**41), max_size=6),
+)
+
+
+@settings(max_examples=400, deadline=None, derandomize=True)
+@given(st.sampled_from(_COLUMN_ITEMS), _COLUMNS_OF_ONE_KIND)
+@example(limits.Finite, [1, 2**70])  # beyond msgpack's ints, where no bound stops it
+@example(limits.Finite, [-(2**63) - 1])
+@example(limits.Finite, [2**64 - 1])
+@example(limits.Seconds, [0.5, math.nan])
+@example(limits.Seconds, [0.5, math.inf])
+@example(limits.Count, [3, True])
+@example(limits.Finite, [1.5, 2])
+def test_a_columns_whole_list_test_agrees_with_the_generic_checks(
+    column: Any, items: list[Any]
+) -> None:
+    """Every ``UpdateColumns`` column is tested as a whole (``codec._all_fit``): the same lists
+    pass as item by item, and one that does not gets the generic checks' reason."""
+    (item,) = (
+        typing.get_args(codec.bounds_of(column)[0])
+        if typing.get_origin(codec.bounds_of(column)[0]) is list
+        else (column,)
+    )
+    assert _outcome(codec._checker(list[item]), items) == _outcome(
+        lambda v, w, d: codec._check_list(item, v, w, d), items
+    ), (item, items)
+
+
+def test_update_columns_mirror_update_stats() -> None:
+    """One column per ``UpdateStats`` field, each a list of that field's own type."""
+    stats = typing.get_type_hints(UpdateStats, include_extras=True)
+    columns = typing.get_type_hints(UpdateColumns, include_extras=True)
+    assert list(columns) == [f.name for f in dataclasses.fields(UpdateStats)]
+    for name, hint in columns.items():
+        base, _ = limits.bounds_of(hint)
+        if name == "algorithm":
+            (_, item) = typing.get_args(base)
+            (inner,) = typing.get_args(limits.bounds_of(item)[0])
+            assert inner == typing.get_args(stats[name])[0].__args__[1] | None
+        else:
+            assert typing.get_args(base) == (stats[name],), name
+
+
+def test_update_columns_give_back_each_agents_record() -> None:
+    """Agents may report different algorithm statistics: each gets back exactly its own, through
+    the wire too; ``take`` picks rows, a slice is a ``take``."""
+    records = [
+        STATS,
+        dataclasses.replace(STATS, trajectories=3, local_wall_s=None, algorithm={}),
+        dataclasses.replace(STATS, algorithm={"iw_max": 7.0, "other": -1.0}),
+    ]
+    columns = UpdateColumns.of(records)
+    assert list(columns) == records and len(columns) == 3
+    assert columns.algorithm == {
+        "iw_mean": [1.0, None, None],
+        "iw_max": [2.5, None, 7.0],
+        "other": [None, None, -1.0],
+    }
+    batch = UpdateBatch(
+        round=2, agents=[7, 8, 9], thetas=np.zeros((3, 2), np.float32), stats=columns
+    )
+    decoded = decode(_wire(batch))
+    assert isinstance(decoded, UpdateBatch) and list(decoded.stats) == records
+    assert list(columns.take([2, 0])) == [records[2], records[0]]
+    assert list(columns[1:]) == records[1:]
+    assert list(UpdateColumns.of([])) == []
+
+
+def test_a_bad_column_is_refused_with_the_agent_row_named() -> None:
+    thetas = np.zeros((2, 2), np.float32)
+    good = UpdateBatch(
+        round=1, agents=[0, 1], thetas=thetas, stats=UpdateColumns.of([STATS, STATS])
+    )
+    columns = msgpack.unpackb(_wire(good)[0])["fields"]["stats"]
+    for changed, reason in [
+        ({"compute_s": [0.5, -1.0]}, r"stats\.compute_s\[1\]: -1\.0 is below 0"),
+        ({"env_steps": [1, 2**41]}, r"stats\.env_steps\[1\]: .* is above"),
+        ({"train_return": [math.nan, 1.0]}, r"stats\.train_return\[0\]: nan is not finite"),
+        ({"speed": [1.0, True]}, r"stats\.speed\[1\]: must be float, got bool"),
+        ({"env_steps": [1]}, "columns of different lengths"),
+    ]:
+        frames = _with_fields(good, stats={**columns, **changed})
+        with pytest.raises(ProtocolError, match=reason) as info:
+            decode(frames)
+        assert info.value.code == "bad_fields"
+    bad = UpdateColumns.of([STATS, dataclasses.replace(STATS, compute_s=-1.0)])
+    with pytest.raises(ProtocolError, match=r"stats\.compute_s\[1\]: -1\.0 is below 0"):
+        encode(dataclasses.replace(good, stats=bad))
+    with pytest.raises(ValueError, match="columns of different lengths"):
+        dataclasses.replace(bad, speed=[1.0])
 
 
 # --- planned budgets (agents.plan) ------------------------------------------------------------

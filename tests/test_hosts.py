@@ -36,6 +36,7 @@ from fedhpg.common.wire.protocol import (
     Shutdown,
     TrainBatch,
     UpdateBatch,
+    UpdateColumns,
 )
 from fedhpg.common.worker import initial_theta
 from fedhpg.server.checkpoint import latest_valid_checkpoint
@@ -245,18 +246,23 @@ def test_a_host_claiming_foreign_agents_or_a_huge_batch_is_refused_and_the_run_g
                 results = group.train(message.round, theta, message.agents)
                 stats = results[0].stats
                 row = results[0].theta.numpy()[None]
-                foreign = UpdateBatch(round=message.round, agents=[5], thetas=row, stats=[stats])
+                foreign = UpdateBatch(
+                    round=message.round, agents=[5], thetas=row, stats=UpdateColumns.of([stats])
+                )
                 rows = MAX_BATCH_ANSWERS + 44
                 huge = raw_frames(
                     UpdateBatch(
                         round=message.round,
                         agents=[0] * rows,
                         thetas=np.repeat(row, rows, axis=0),
-                        stats=[stats] * rows,
+                        stats=UpdateColumns.of([stats] * rows),
                     )
                 )
                 mismatch = UpdateBatch(
-                    round=message.round, agents=[0, 1], thetas=row, stats=[stats, stats]
+                    round=message.round,
+                    agents=[0, 1],
+                    thetas=row,
+                    stats=UpdateColumns.of([stats, stats]),
                 )
                 for frames in (encode(foreign), huge, raw_frames(mismatch)):
                     host.send_multipart(frames)
@@ -265,7 +271,7 @@ def test_a_host_claiming_foreign_agents_or_a_huge_batch_is_refused_and_the_run_g
                     round=message.round,
                     agents=agents,
                     thetas=np.stack([results[k].theta.numpy() for k in agents]),
-                    stats=[results[k].stats for k in agents],
+                    stats=UpdateColumns.of([results[k].stats for k in agents]),
                 )
                 host.send_multipart(encode(honest))
             elif isinstance(message, EvaluateBatch):

@@ -15,7 +15,14 @@ from fedhpg.common.config import ServerConfig
 from fedhpg.common.types import AgentUpdate, UpdateStats
 from fedhpg.common.variants import range_digest
 from fedhpg.common.wire.codec import decode, encode
-from fedhpg.common.wire.protocol import Error, HostHello, HostWelcome, TrainBatch, UpdateBatch
+from fedhpg.common.wire.protocol import (
+    Error,
+    HostHello,
+    HostWelcome,
+    TrainBatch,
+    UpdateBatch,
+    UpdateColumns,
+)
 from fedhpg.server.pools.zmq_pool import ZmqAgentPool
 from fedhpg.server.round_rows import ALIGNMENT, RoundRows
 from fedhpg.server.strategies import stacked
@@ -109,11 +116,23 @@ def test_bad_rows_of_a_batch_reject_their_agents_only() -> None:
         # two batches, agents listed out of order: queued before the round collects them
         host.send_multipart(
             encode(
-                UpdateBatch(round=1, agents=[4, 0, 3], thetas=thetas[[4, 0, 3]], stats=[STATS] * 3)
+                UpdateBatch(
+                    round=1,
+                    agents=[4, 0, 3],
+                    thetas=thetas[[4, 0, 3]],
+                    stats=UpdateColumns.of([STATS] * 3),
+                )
             )
         )
         host.send_multipart(
-            encode(UpdateBatch(round=1, agents=[2, 1], thetas=thetas[[2, 1]], stats=[STATS] * 2))
+            encode(
+                UpdateBatch(
+                    round=1,
+                    agents=[2, 1],
+                    thetas=thetas[[2, 1]],
+                    stats=UpdateColumns.of([STATS] * 2),
+                )
+            )
         )
         answers = pool.train(1, torch.zeros(d), range(count))
         replies = []

@@ -328,9 +328,10 @@ def _check_list(item_hint: Any, value: Any, where: str, depth: int) -> list[Any]
 def _check_number_list(
     item_hint: Any, rule: _NumberRule, value: Any, where: str, depth: int
 ) -> list[Any]:
-    """A list of bounded numbers (a batch's agent indices: hundreds per message), tested
-    inline; a list that fails the test goes through the generic checks, which say why."""
-    if type(value) is list and depth < MAX_NESTING and all(_fits(item, rule) for item in value):
+    """A list of bounded numbers (a batch's agent indices, an ``UpdateColumns`` column:
+    hundreds per message), tested as a whole; a list that fails the test goes through the
+    generic checks, which say why."""
+    if type(value) is list and depth < MAX_NESTING and _all_fit(value, rule):
         return value
     return _check_list(item_hint, value, where, depth)
 
@@ -392,6 +393,33 @@ def _fits(value: Any, rule: _NumberRule) -> bool:
     else:
         return value is None and optional
     return (low is None or value >= low) and (high is None or value <= high)
+
+
+_INT_KINDS = frozenset({int})
+_FLOAT_KIND = frozenset({float})
+
+
+def _all_fit(values: list[Any], rule: _NumberRule) -> bool:
+    """Whether every item passes :func:`_fits`, decided with C-level passes over the list
+    (item types, finiteness, min and max) instead of a Python call per item. Lists of ints,
+    and of floats where the field must be finite, are decided so; any other (a None of an
+    optional column, ints mixed with floats, a float field that admits NaN, which min and
+    max cannot order) is tested item by item."""
+    if not values:
+        return True
+    is_float, _, low, high, finite = rule
+    kinds = set(map(type, values))
+    if kinds == _INT_KINDS:
+        smallest, largest = min(values), max(values)
+        if not (smallest >= _INT_MIN and largest < _INT_END):
+            return False
+    elif kinds == _FLOAT_KIND and is_float and finite:
+        if not all(map(math.isfinite, values)):
+            return False
+        smallest, largest = min(values), max(values)
+    else:
+        return all(_fits(item, rule) for item in values)
+    return (low is None or smallest >= low) and (high is None or largest <= high)
 
 
 def _compile_record(cls: type) -> Checker:
