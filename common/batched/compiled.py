@@ -153,6 +153,9 @@ class CompiledFedHPG(EngineAgents):
                                              env_steps)  # fmt: skip
                         on_iteration(order[position], work)
         all_steps = max(float(totals["steps"].sum()), 1.0)
+        # each θ_k a row of this call's own [A, d] array: no copies (500 of them cost ~5 ms a
+        # host round)
+        final = torch.from_numpy(thetas)
         results = {}
         for i, k in enumerate(order):
             share = totals["steps"][i] / all_steps
@@ -168,7 +171,7 @@ class CompiledFedHPG(EngineAgents):
                     **bounds.of(i),
                 },
             )
-            results[k] = tally.result(torch.from_numpy(thetas[i].copy()))
+            results[k] = tally.result(final[i])
         return results
 
     # -- evaluation -----------------------------------------------------------------------
