@@ -155,21 +155,29 @@ class TensorBoardWriter:
             # The round's emulated duration is its slowest agent's emulated time.
             values["fed/emulated_round_s"] = max(s.emulated_s for s in stats)
             values["fed/trajectories"] = sum(s.trajectories for s in stats)
+        # every agent's ‖θ_k − θ̃_before‖ in one pass over the [K, d] block, not K numpy calls
+        norms = (
+            np.linalg.norm(
+                np.stack([u.theta.numpy() for u in record.agents]).astype(np.float64) - before,
+                axis=1,
+            ).tolist()
+            if record.agents
+            else []
+        )
         across: dict[str, list[float]] = {}
-        for update in record.agents:
+        for update, norm in zip(record.agents, norms, strict=True):
             row = update.stats.to_json()
-            row["update_norm"] = float(
-                np.linalg.norm(update.theta.numpy().astype(np.float64) - before)
-            )
+            row["update_norm"] = norm
             for name, value in row.items():
                 if value is not None:
                     across.setdefault(name, []).append(value)
                     if self._per_agent:
                         values[f"agent/{update.agent_index}/{name}"] = value
         for name, column in across.items():  # the spread over the round's agents
-            values[f"agents/{name}/mean"] = float(np.mean(column))
-            values[f"agents/{name}/min"] = float(np.min(column))
-            values[f"agents/{name}/max"] = float(np.max(column))
+            spread = np.asarray(column, dtype=np.float64)
+            values[f"agents/{name}/mean"] = float(spread.mean())
+            values[f"agents/{name}/min"] = float(spread.min())
+            values[f"agents/{name}/max"] = float(spread.max())
         if record.eval:
             for agent, evaluation in record.eval.items() if self._per_agent else ():
                 values[f"eval/{agent}/return"] = evaluation.return_mean
