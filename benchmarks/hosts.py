@@ -11,6 +11,10 @@ agents each in this process, and the answers already queued (no training, no agg
 
     python -m benchmarks.hosts --agents 1000 --per-host 500 --rounds 3
     python -m benchmarks.hosts --server-side 10000
+    python -m benchmarks.hosts --codec
+
+:func:`batch_codec_us`: one host's ``UpdateBatch`` of 256 agents, built and encoded, then
+decoded with every agent's stats read back, in this process.
 """
 
 from __future__ import annotations
@@ -20,6 +24,7 @@ import statistics
 import tempfile
 import time
 from pathlib import Path
+from typing import Any
 
 from benchmarks.runtime import _federation
 
@@ -139,6 +144,63 @@ def server_side_us(num_params: int, rounds: int = 5) -> list[float]:
     return times
 
 
+def batch_codec_us(num_params: int = 386, agents: int = 256, repeats: int = 5) -> dict:
+    """Microseconds per agent to build and encode one host's ``UpdateBatch`` (the host's side)
+    and to decode it and read back every agent's ``UpdateStats`` (the server's), median of
+    ``repeats`` timings of 40 messages each; and the header's size."""
+    import numpy as np
+
+    from fedhpg.common.types import UpdateStats
+    from fedhpg.common.wire.codec import decode, encode
+    from fedhpg.common.wire.protocol import UpdateBatch, UpdateColumns
+
+    rng = np.random.default_rng(0)
+    records = [
+        UpdateStats(
+            trajectories=int(rng.integers(4, 48)),
+            env_steps=int(rng.integers(100, 9000)),
+            compute_s=float(rng.random() * 1e-3),
+            train_return=float(rng.random() * 30),
+            emulated_s=float(rng.random()),
+            speed=float(rng.random() + 0.5),
+            local_wall_s=0.1,
+            algorithm={
+                "engine_sample_s": float(rng.random()),
+                "engine_gradient_s": float(rng.random()),
+            },
+        )
+        for _ in range(agents)
+    ]
+    thetas = rng.standard_normal((agents, num_params)).astype(np.float32)
+
+    def build_and_encode() -> list:
+        columns = UpdateColumns.of(records)
+        batch = UpdateBatch(round=3, agents=list(range(agents)), thetas=thetas, stats=columns)
+        return encode(batch)
+
+    frames = [bytes(f) for f in build_and_encode()]
+
+    def decode_and_read() -> None:
+        message = decode(frames)
+        assert isinstance(message, UpdateBatch)
+        list(message.stats)
+
+    def per_agent(work: Any) -> float:
+        times = []
+        for _ in range(repeats):
+            started = time.perf_counter()
+            for _ in range(40):
+                work()
+            times.append((time.perf_counter() - started) / 40 / agents * 1e6)
+        return statistics.median(times)
+
+    return {
+        "encode_us_per_agent": per_agent(build_and_encode),
+        "decode_us_per_agent": per_agent(decode_and_read),
+        "header_bytes": len(frames[0]),
+    }
+
+
 if __name__ == "__main__":
     parser = argparse.ArgumentParser()
     parser.add_argument("--agents", type=int, default=1000)
@@ -146,9 +208,12 @@ if __name__ == "__main__":
     parser.add_argument("--rounds", type=int, default=3)
     parser.add_argument("--family", default="gridworld")
     parser.add_argument("--server-side", type=int, metavar="D", help="num_params: pool only")
+    parser.add_argument("--codec", action="store_true", help="one UpdateBatch's codec only")
     parser.add_argument("extra", nargs="*")
     args = parser.parse_args()
-    if args.server_side:
+    if args.codec:
+        print(batch_codec_us())
+    elif args.server_side:
         times = server_side_us(args.server_side)
         print(f"server µs per agent per round (d={args.server_side}): {times}")
     else:
