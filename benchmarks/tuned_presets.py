@@ -76,6 +76,9 @@ class Task:
     preset: str
     """That preset (conf/experiment/)."""
     settings: dict[str, Setting]
+    floor: float | None = None
+    """Lowest greedy return drawn: the first evaluations' excursions (LunarLander's greedy
+    policy can crash for −1,000 to −4,000) would flatten the curves near the threshold."""
 
     @property
     def long_results(self) -> Path:
@@ -108,6 +111,7 @@ TASKS = {
         paper_stored=True,
         tuned="B=16, Adam 3e-3, normalize=episode",
         preset="k10_lunarlander_tuned",
+        floor=-500.0,
         settings={
             "paper-faithful: B=32, Adam 3e-3": Setting(LUNARLANDER),
             "B=16, Adam 3e-3": Setting(LUNARLANDER, [_batch(16)]),
@@ -350,6 +354,8 @@ def plot(task: Task, curves: list[Curve], path: Path, budget: float) -> None:
             seeds.append((x[x <= budget], y[x <= budget]))
         draw_band(axis, label, seeds)
     axis.axhline(task.threshold, color="grey", linestyle="--", linewidth=1)
+    if task.floor is not None:
+        axis.set_ylim(bottom=task.floor)
     axis.set_xlabel("trajectories per agent")
     axis.set_ylabel("greedy return (10 episodes)")
     axis.set_title(f"{task.title}: tuned preset and paper-faithful set-up")
