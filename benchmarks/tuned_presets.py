@@ -367,8 +367,10 @@ def plot(task: Task, curves: list[Curve], path: Path, budget: float) -> None:
 def main(argv: Sequence[str] | None = None) -> None:
     parser = argparse.ArgumentParser(description=__doc__)
     parser.add_argument("--task", choices=sorted(TASKS), required=True)
-    default = "the tuned preset's, and the paper-faithful one's where it is not stored"
-    parser.add_argument("--settings", nargs="+", default=None, help=f"labels (default: {default})")
+    described = "the tuned preset's, and the paper-faithful one's where it is not stored"
+    parser.add_argument(
+        "--settings", nargs="+", default=None, help=f"labels (default: {described})"
+    )
     parser.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2, 3, 4])
     parser.add_argument("--budget", type=int, default=None, help="trajectories per agent")
     parser.add_argument("--no-stop", action="store_true", help="run to the budget")
@@ -384,7 +386,8 @@ def main(argv: Sequence[str] | None = None) -> None:
         # One torch thread, as each process of fedhpg-run has: how a sum is split over threads
         # changes its last bits, and the runs here must be those a federation computes.
         limit_threads()
-    labels = args.settings or ([task.tuned] if task.paper_stored else [task.paper, task.tuned])
+    default = [task.tuned] if task.paper_stored else [task.paper, task.tuned]
+    labels = list(dict.fromkeys(args.settings or default))  # the tuned may be the paper's
     for label in labels:
         runnable = [s for s in task.settings if s != task.paper or not task.paper_stored]
         if label not in runnable:
