@@ -9,15 +9,18 @@ agent trains through one :func:`~fedhpg.common.group.make_agent_group` of the wh
 in the one-agent process and the in-process pool, so θ̃ does not depend on the placement.
 
 Device emulation runs on a virtual clock per logical agent: the emulated time of each agent
-(measured or counted, ``agents.clock``) is accounted in its own ``emulated_s``, never slept —
-a host of 500 agents cannot sleep 500 devices' time on one thread. A host's answers therefore
+(measured or counted, ``agents.clock``) is accounted, never slept — a host of 500 agents
+cannot sleep 500 devices' time on one thread. The host takes its round as columns
+(:func:`~fedhpg.common.round_columns.train_columns`) and prices all its agents' iterations
+at once (:class:`~fedhpg.common.device.DeviceColumns`), to the bit what each agent's own
+``DeviceModel`` gives in a one-agent process. A host's answers therefore
 arrive when its real compute is done, whatever the emulated speeds; a run that needs the
 sleeping emulation (wall-clock deadlines against emulated slowness) uses one process per agent.
 """
 
 from __future__ import annotations
 
-import dataclasses
+import functools
 import logging
 import os
 import time
@@ -30,8 +33,9 @@ import torch
 
 from fedhpg.agent.process import AgentFailure, AgentProcess, Cancelled, Job, Request
 from fedhpg.common.config import RunConfig, host_id_of
-from fedhpg.common.device import DeviceModel, device_for, message_bytes
+from fedhpg.common.device import DeviceColumns, DeviceModel, device_for, message_bytes
 from fedhpg.common.group import AgentGroup, make_agent_group
+from fedhpg.common.round_columns import train_columns
 from fedhpg.common.runtime.memory import pin_malloc_mmap_threshold, tune_malloc_for
 from fedhpg.common.variants import range_digest, variant_digest, variants_of
 from fedhpg.common.wire.protocol import (
@@ -46,7 +50,6 @@ from fedhpg.common.wire.protocol import (
     UpdateColumns,
 )
 from fedhpg.common.wire.transport import answers_per_message, batch_message_cap
-from fedhpg.common.worker import IterationWork
 
 logger = logging.getLogger(__name__)
 
@@ -75,6 +78,11 @@ class AgentHost(AgentProcess):
     def _devices(self, run: RunConfig) -> dict[int, DeviceModel]:
         return {k: replace(device_for(run, k), virtual_clock=True) for k in self.indices}
 
+    @functools.cached_property
+    def device_columns(self) -> DeviceColumns:
+        """The range's devices, row ``k - first`` agent k's (built on the first round)."""
+        return DeviceColumns([self.devices[k] for k in self.indices])
+
     # -- registration -----------------------------------------------------------------------
 
     def _hello(self) -> Message:
@@ -96,6 +104,7 @@ class AgentHost(AgentProcess):
 
     def _make_group(self, run: RunConfig) -> AgentGroup:
         self.devices = self._devices(run)
+        self.__dict__.pop("device_columns", None)  # the run's devices, not the last run's
         group = make_agent_group(run, self.indices, variants=self.variants)
         tune_malloc_for(group)
         return group
@@ -131,50 +140,46 @@ class AgentHost(AgentProcess):
                 for chunk in _chunks(agents, MAX_BATCH_ANSWERS)
             ]
         started = time.perf_counter()
-        num_params = self.group.num_params
-        message = message_bytes(num_params)
-        for k in agents:  # the request's one-way latency (and transfer), per logical agent
-            self.devices[k].take_emulated()
-            self.devices[k].transmit(message)
 
-        def on_iteration(k: int, work: IterationWork) -> None:
+        def interrupt() -> None:
             if job.cancel.is_set():
                 raise Cancelled
-            self.devices[k].spend(
-                work.compute_s,
-                work.env_steps,
-                request.round,
-                grad_steps=work.grad_steps,
-                num_params=num_params,
-            )
 
         planned = dict(zip(request.agents, request.budgets, strict=True)) if request.budgets else {}
-        results = self.group.train(
-            request.round, theta, agents, on_iteration=on_iteration, budgets=planned
+        trained = train_columns(
+            self.group, request.round, theta, agents, budgets=planned, interrupt=interrupt
+        )
+        num_params = trained.thetas.shape[1]
+        rows = np.asarray(trained.agents, dtype=np.int64) - self.first
+        emulated, speeds = self.device_columns.round(
+            rows,
+            request.round,
+            message_bytes(num_params),
+            [(i.positions, i.compute_s, i.env_steps, i.grad_steps) for i in trained.iterations],
+            num_params,
         )
         # Each answer leaves with the batch: the host's wall time on the round is each one's.
         wall_s = time.perf_counter() - started
-        emulated, speeds = {}, {}
-        for k in agents:
-            device = self.devices[k]
-            device.transmit(message)  # the answer's
-            emulated[k] = device.take_emulated()
-            speeds[k] = device.speed_at(request.round)
+        stats = UpdateColumns(
+            trajectories=trained.trajectories.tolist(),
+            env_steps=trained.env_steps.tolist(),
+            compute_s=trained.compute_s.tolist(),
+            train_return=trained.train_return.tolist(),
+            grad_clipped=trained.grad_clipped.tolist(),
+            emulated_s=emulated.tolist(),
+            speed=speeds.tolist(),
+            local_wall_s=[wall_s] * len(rows),
+            algorithm=trained.algorithm,
+        )
         per_message = answers_per_message(batch_message_cap(self.max_bytes, num_params), num_params)
         return [
             UpdateBatch(
                 round=request.round,
-                agents=chunk,
-                thetas=np.stack([results[k].theta.numpy() for k in chunk]),
-                # the device's fields replaced column-wise, not record by record
-                stats=dataclasses.replace(
-                    UpdateColumns.of([results[k].stats for k in chunk]),
-                    emulated_s=[emulated[k] for k in chunk],
-                    local_wall_s=[wall_s] * len(chunk),
-                    speed=[speeds[k] for k in chunk],
-                ),
+                agents=trained.agents[start : start + per_message],
+                thetas=trained.thetas[start : start + per_message],
+                stats=stats[start : start + per_message],
             )
-            for chunk in _chunks(agents, per_message)
+            for start in range(0, len(rows), per_message)
         ]
 
     def _resend(self, answers: list[Message], request: Request) -> list[Message]:

@@ -25,7 +25,7 @@ from __future__ import annotations
 
 import math
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -172,3 +172,66 @@ def device_for(run: RunConfig, index: int) -> DeviceModel:
         bandwidth_mbps=device_value(run, index, "bandwidth_mbps"),
         seed=int(np.random.SeedSequence([run.seed, index]).generate_state(1)[0]),
     )
+
+
+class DeviceColumns:
+    """The devices of an agent host's agents on the virtual clock, emulated a column at a time.
+
+    :meth:`round` applies :class:`DeviceModel`'s arithmetic (the request's transfer, each
+    iteration's ``spend``, the answer's transfer, in that order) elementwise over float64
+    arrays. IEEE 754 rounds each elementwise operation exactly as the same operation on one
+    Python float, so every agent's emulated time is, bit for bit, what its own DeviceModel
+    gives in a one-agent process or the in-process pool (tests/test_counted_clock.py)."""
+
+    def __init__(self, devices: Sequence[DeviceModel]) -> None:
+        if any(not d.virtual_clock for d in devices):
+            raise ValueError("column-wise emulation only accounts time: it needs the virtual clock")
+        clocks = {d.clock for d in devices}
+        if len(clocks) > 1:
+            raise ValueError(f"one clock per run, not {sorted(clocks)}")
+        self.devices = list(devices)
+        self.counted = clocks == {"counted"}
+        self.step_delay_s = np.array([d.step_delay_s for d in devices], dtype=np.float64)
+        self.latency_s = np.array([d.latency_s for d in devices], dtype=np.float64)
+        self.step_cost_s = np.array([d.step_cost_s for d in devices], dtype=np.float64)
+        self.grad_cost_s = np.array([d.grad_cost_s for d in devices], dtype=np.float64)
+        self.bandwidth_mbps = np.array([d.bandwidth_mbps for d in devices], dtype=np.float64)
+
+    def transfer_s(self, rows: np.ndarray, num_bytes: int) -> np.ndarray:
+        """:meth:`DeviceModel.transfer_s` of the devices at ``rows``."""
+        latency = self.latency_s[rows]
+        if not self.counted:
+            return latency
+        bandwidth = self.bandwidth_mbps[rows]
+        limited = bandwidth > 0
+        # where the bandwidth is 0 the quotient is not used (np.where), only silenced
+        with np.errstate(divide="ignore"):
+            transfer = latency + 8.0 * num_bytes / (bandwidth * 1e6)
+        return np.where(limited, transfer, latency)
+
+    def round(
+        self,
+        rows: np.ndarray,
+        round_index: int,
+        num_bytes: int,
+        iterations: Sequence[tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]],
+        num_params: int,
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """The emulated seconds and the speed of the devices at ``rows`` over one round: a
+        message of ``num_bytes`` each way around ``iterations``, each (positions into
+        ``rows``, compute seconds, env steps, gradient steps) of the devices that ran it."""
+        speeds = np.array([self.devices[r].speed_at(round_index) for r in rows.tolist()])
+        delay = self.step_delay_s[rows]
+        step_cost, grad_cost = self.step_cost_s[rows], self.grad_cost_s[rows]
+        message = self.transfer_s(rows, num_bytes)
+        emulated = np.zeros(len(rows), dtype=np.float64)
+        emulated += message
+        for at, real_s, env_steps, grad_steps in iterations:
+            if self.counted:  # DeviceModel.compute_s's order of operations
+                gradient = grad_steps * grad_cost[at] * num_params / GRAD_PARAMS_UNIT
+                compute = env_steps * step_cost[at] + gradient
+            else:
+                compute = real_s
+            emulated[at] += compute / speeds[at] + env_steps * delay[at]
+        emulated += message
+        return emulated, speeds

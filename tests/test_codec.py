@@ -965,7 +965,8 @@ def test_update_columns_mirror_update_stats() -> None:
 
 def test_update_columns_give_back_each_agents_record() -> None:
     """Agents may report different algorithm statistics: each gets back exactly its own, through
-    the wire too; ``take`` picks rows, a slice is a ``take``."""
+    the wire too, one at a time or all at once (``records``, what the server reads); ``take``
+    picks rows, a slice gives the columns of its rows."""
     records = [
         STATS,
         dataclasses.replace(STATS, trajectories=3, local_wall_s=None, algorithm={}),
@@ -973,6 +974,7 @@ def test_update_columns_give_back_each_agents_record() -> None:
     ]
     columns = UpdateColumns.of(records)
     assert list(columns) == records and len(columns) == 3
+    assert [columns[i] for i in range(3)] == records == columns.records()
     assert columns.algorithm == {
         "iw_mean": [1.0, None, None],
         "iw_max": [2.5, None, 7.0],
@@ -984,8 +986,9 @@ def test_update_columns_give_back_each_agents_record() -> None:
     decoded = decode(_wire(batch))
     assert isinstance(decoded, UpdateBatch) and list(decoded.stats) == records
     assert list(columns.take([2, 0])) == [records[2], records[0]]
-    assert list(columns[1:]) == records[1:]
-    assert list(UpdateColumns.of([])) == []
+    assert list(columns[1:]) == records[1:] and isinstance(columns[1:], UpdateColumns)
+    assert columns[::2].records() == records[::2] and columns[1:].algorithm["iw_mean"] == [None] * 2
+    assert list(UpdateColumns.of([])) == [] and UpdateColumns.of([]).records() == []
 
 
 def test_a_bad_column_is_refused_with_the_agent_row_named() -> None:

@@ -43,9 +43,15 @@ def _engine(run, indices) -> CompiledFedHPG:
 @pytest.mark.parametrize("seed", [0, 7, 123456789, 2**32 + 5, 2**40])
 def test_agent_streams_are_numpys_default_rng(seed: int) -> None:
     """The kernels' PCG64 seeded through SeedSequence draws what default_rng([seed, k, round,
-    purpose]) draws, including entropy words past 32 bits and past the pool of four."""
-    agents = [0, 1, 499, 9999, 2**31, 2**33 + 1]
-    for round_index, purpose in [(0, 0), (17, 1), (100_000, 2)]:
+    purpose]) draws, including entropy words past 32 bits and past the pool of four, for
+    agent indices of one word (seeded in one call) and past one word (one by one)."""
+    one_word = [0, 1, 499, 9999, 2**31, 2**32 - 1]
+    for agents, round_index, purpose in [
+        (one_word, 0, 0),
+        (one_word, 17, 1),
+        (one_word, 2**40, 2),
+        ([*one_word, 2**33 + 1], 100_000, 2),
+    ]:
         streams = agent_streams(seed, agents, round_index, purpose)
         for row, k in enumerate(agents):
             ours = [next_double(streams[row]) for _ in range(64)]
@@ -373,3 +379,44 @@ def test_any_number_of_hidden_layers(hidden: list[int]) -> None:
         reference = batch_gradient(policy, sampled.trajectories(a), algo=run.algo, gamma=gamma)
         scale = np.abs(reference.numpy()).max()
         np.testing.assert_allclose(unclipped[a], reference.numpy(), rtol=0, atol=2e-5 * scale)
+
+
+def test_the_engines_columns_are_its_per_agent_results() -> None:
+    """What an agent host sends (the round as columns) and what a one-agent process or the
+    in-process pool reads (one LocalResult and one hook call per agent and iteration) are the
+    same numbers: the columns gathered from the per-agent path equal the engine's own, but
+    for the CPU times measured on the way."""
+    from fedhpg.common.round_columns import gathered, train_columns
+
+    run = _run("algo.bound_estimates=true", agents=9)
+    theta = initial_theta(variants_of(run, [0])[0], run)
+    agents = [0, 2, 3, 5, 6, 8]
+    own = train_columns(_engine(run, range(9)), 3, theta, agents)
+    works: list[list] = []
+
+    def hook(k: int, work) -> None:
+        while len(works) <= work.iteration:
+            works.append([])
+        works[work.iteration].append((agents.index(k), work))
+
+    results = _engine(run, range(9)).train(3, theta, agents, on_iteration=hook)
+    theirs = gathered(agents, [results[k] for k in agents], works)
+    assert own.agents == theirs.agents == agents
+    assert np.array_equal(own.thetas, theirs.thetas)
+    for name in ("trajectories", "env_steps", "train_return", "grad_clipped"):
+        assert getattr(own, name).tolist() == getattr(theirs, name).tolist(), name
+    measured = {"engine_sample_s", "engine_gradient_s"}
+    assert set(own.algorithm) == set(theirs.algorithm) > measured
+    for name in set(own.algorithm) - measured:
+        assert own.algorithm[name] == theirs.algorithm[name], name
+    assert (
+        len(own.iterations)
+        == len(theirs.iterations)
+        == max(_engine(run, range(9)).budget(k).local_iters for k in agents)
+    )
+    for mine, their in zip(own.iterations, theirs.iterations, strict=True):
+        assert mine.positions.tolist() == their.positions.tolist()
+        assert mine.env_steps.tolist() == their.env_steps.tolist() == mine.grad_steps.tolist()
+    assert [own.record(i).env_steps for i in range(6)] == [
+        results[k].stats.env_steps for k in agents
+    ]

@@ -12,15 +12,17 @@ import sys
 import time
 from collections.abc import Iterator
 from contextlib import contextmanager
+from dataclasses import replace
 from pathlib import Path
 
+import numpy as np
 import pytest
 import torch
 from procs import processes, start
 
 from fedhpg.common.components import agent_profile
 from fedhpg.common.config import ConfigError, RunConfig, validate
-from fedhpg.common.device import GRAD_PARAMS_UNIT, DeviceModel, message_bytes
+from fedhpg.common.device import GRAD_PARAMS_UNIT, DeviceColumns, DeviceModel, message_bytes
 from fedhpg.common.runtime.cli import compose
 from fedhpg.common.variants import run_variants
 from fedhpg.common.worker import IterationWork, LocalWorker
@@ -190,3 +192,60 @@ def test_unknown_clock_is_named() -> None:
         validate(compose(["agents.clock=wall"]))
     with pytest.raises(ConfigError, match=r"agents\.bandwidths_mbps\[0\]"):
         validate(compose(["agents.bandwidths_mbps=[-1]"]))
+
+
+@pytest.mark.parametrize("clock", ["counted", "measured"])
+@pytest.mark.parametrize("schedule", ["constant", "periodic", "random_walk"])
+def test_column_wise_emulation_is_each_devices_own_to_the_bit(clock: str, schedule: str) -> None:
+    """An agent host prices its agents' iterations a column at a time (DeviceColumns); each
+    agent's emulated time and speed must be what its own DeviceModel gives, transmit, spend
+    per iteration, transmit, exactly (the rounding of each operation is the same only if the
+    operations and their order are)."""
+    rng = np.random.default_rng(11)
+    count, num_params, num_bytes = 300, 4_738, message_bytes(4_738)
+
+    def device(k: int) -> DeviceModel:
+        return DeviceModel(
+            speed=float(rng.lognormal(0.0, 0.5)),
+            step_delay_s=float(rng.uniform(0, 4e-4)) if k % 3 else 0.0,
+            latency_s=float(rng.uniform(0, 0.01)) if k % 4 else 0.0,
+            schedule=schedule,
+            amplitude=0.4,
+            virtual_clock=True,
+            clock=clock,
+            step_cost_s=float(rng.uniform(1e-6, 3e-5)),
+            grad_cost_s=float(rng.uniform(1e-6, 3e-5)),
+            bandwidth_mbps=float(rng.choice([0.0, rng.uniform(1, 100)])),
+            seed=k,
+        )
+
+    own = [device(k) for k in range(count)]
+    columns = DeviceColumns([replace(d) for d in own])
+    for round_index in (1, 2, 7):
+        rows = np.sort(rng.choice(count, size=200, replace=False))
+        iterations = []
+        for _ in range(3):  # each iteration run by a shrinking subset, as τ_k differ
+            at = np.flatnonzero(rng.random(len(rows)) < 0.7)
+            steps = rng.integers(1, 5_000, size=len(at))
+            iterations.append((at, rng.uniform(0, 0.05, len(at)), steps, 2 * steps))
+        emulated, speeds = columns.round(rows, round_index, num_bytes, iterations, num_params)
+        expected = []
+        for position, r in enumerate(rows.tolist()):
+            d = own[r]
+            d.take_emulated()
+            d.transmit(num_bytes)
+            for at, real_s, steps, grads in iterations:
+                (hit,) = np.flatnonzero(at == position)[:1].tolist() or [None]
+                if hit is not None:
+                    d.spend(float(real_s[hit]), int(steps[hit]), round_index,
+                            grad_steps=int(grads[hit]), num_params=num_params)  # fmt: skip
+            d.transmit(num_bytes)
+            expected.append((d.take_emulated(), d.speed_at(round_index)))
+        assert emulated.tolist() == [e for e, _ in expected]
+        assert speeds.tolist() == [s for _, s in expected]
+        assert len(set(emulated.tolist())) > 150
+
+
+def test_column_wise_emulation_needs_the_virtual_clock() -> None:
+    with pytest.raises(ValueError, match="virtual clock"):
+        DeviceColumns([DeviceModel(virtual_clock=False)])

@@ -73,18 +73,32 @@ def _fedhpg_run(tmp_path: Path, keys: list[str], name: str) -> tuple[torch.Tenso
 ENGINE_RUN = [
     "env=cartpole", "agents=population", "rounds=3", "seed=5", "agents.num_agents=7",
     "agents.clock=counted", "eval.every=3", "eval.episodes=2", "attack.kind=sign_flip",
-    "attack.agents=[2]",
+    "attack.agents=[2]", "agents.latencies_s=[0.002]",
+    "agents.bandwidths_mbps=[0,25,0,40,10,0,25]",
 ]  # fmt: skip
 
 
 def test_theta_does_not_depend_on_the_placement_of_the_agents(tmp_path: Path) -> None:
+    """Nor does any agent's emulated time on the counted clock: a host emulates its agents'
+    devices column-wise (common/device.py's DeviceColumns), a lone agent and the in-process
+    pool one DeviceModel at a time. Agent 2 attacks, so hosts of 3 and 7 hold an engine and a
+    loop side by side (their columns gathered from per-agent results), the host of agents 3..5
+    the engine alone (its own columns)."""
     run = compose(ENGINE_RUN)
-    expected = run_in_process(run)
+    records: list = []
+    expected = run_in_process(run, on_round=[lambda record, _: records.append(record)])
     assert not torch.equal(expected, initial_theta(variant_of(run, 0), run))
+    emulated = [{a.agent_index: a.stats.emulated_s for a in r.agents} for r in records]
+    speeds = [{a.agent_index: a.stats.speed for a in r.agents} for r in records]
+    assert len({e for r in emulated for e in r.values()}) > 7, "the agents' times differ"
     for per_host in (1, 3, 7):  # 7 processes; hosts of 3 + 3 + 1; one host of 7
         keys = [*ENGINE_RUN, f"agents.per_host={per_host}"]
         theta, summary = _fedhpg_run(tmp_path, keys, str(per_host))
         assert torch.equal(theta, expected), per_host
+        lines = (tmp_path / str(per_host) / "metrics.jsonl").read_text().splitlines()
+        rounds = [json.loads(line)["agents"] for line in lines]
+        assert [{a["index"]: a["emulated_s"] for a in r} for r in rounds] == (emulated), per_host
+        assert [{a["index"]: a["speed"] for a in r} for r in rounds] == (speeds), per_host
         assert summary["agent_deaths"] == 0 and summary["rejected_messages"] == 0
         assert sorted(summary["eval"]) == sorted(f"agent-{k}" for k in range(7))
 

@@ -13,7 +13,7 @@ agent runs the same kernel on the same inputs for it.
 from __future__ import annotations
 
 import time
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 
 import numpy as np
 import torch
@@ -26,7 +26,8 @@ from fedhpg.common.bounds import gradient_moments
 from fedhpg.common.components import planned_budget
 from fedhpg.common.config import RunConfig
 from fedhpg.common.group import Budgets, GroupHook
-from fedhpg.common.local import LocalTally, SmoothnessProbe, bound_stats
+from fedhpg.common.local import SmoothnessProbe, bound_stats
+from fedhpg.common.round_columns import Interrupt, IterationColumns, TrainedColumns
 from fedhpg.common.types import EvaluationStats, LocalResult
 from fedhpg.common.worker import IterationWork, Stream
 from fedhpg.envs.base import EnvVariant
@@ -50,6 +51,7 @@ class CompiledFedHPG(EngineAgents):
         self.sizes = np.asarray(shape.sizes, dtype=np.int64)
         self.physics = Lazy(self._physics_of)
         self._buffers: _RowBuffers | None = None
+        self._constants: tuple[tuple[int, ...], np.ndarray, np.ndarray, np.ndarray] | None = None
         algo = run.algo
         self.options = np.array(
             [
@@ -69,10 +71,17 @@ class CompiledFedHPG(EngineAgents):
         return table[0]
 
     def _per_agent(self, order: Sequence[int]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        horizons = np.array([self.horizons[k] for k in order], dtype=np.int64)
-        gammas = np.array([self.gammas[k] for k in order], dtype=np.float64)
-        physics = np.stack([self.physics[k] for k in order])
-        return horizons, gammas, physics
+        """The agents' horizons (a copy: evaluation writes it), discounts and physics rows,
+        kept for the last set of agents (a host whose agents all train meets the same 500
+        every round)."""
+        key = tuple(order)
+        if self._constants is None or self._constants[0] != key:
+            horizons = np.array([self.horizons[k] for k in order], dtype=np.int64)
+            gammas = np.array([self.gammas[k] for k in order], dtype=np.float64)
+            physics = np.stack([self.physics[k] for k in order])
+            self._constants = (key, horizons, gammas, physics)
+        _, horizons, gammas, physics = self._constants
+        return horizons.copy(), gammas, physics
 
     # -- training -------------------------------------------------------------------------
 
@@ -92,6 +101,49 @@ class CompiledFedHPG(EngineAgents):
         on_iteration: GroupHook | None = None,
         budgets: Budgets | None = None,
     ) -> dict[int, LocalResult]:
+        after = None
+        if on_iteration is not None:
+            hook = on_iteration
+
+            def after(order: list[int], number: int, done: IterationColumns) -> None:
+                for position, compute, steps in zip(
+                    done.positions.tolist(),
+                    done.compute_s.tolist(),
+                    done.env_steps.tolist(),
+                    strict=True,
+                ):
+                    hook(order[position], IterationWork(number, compute, steps, steps))
+
+        trained = self._train(round_index, theta, agents, budgets, after)
+        return {k: trained.result(i) for i, k in enumerate(trained.agents)}
+
+    def train_columns(
+        self,
+        round_index: int,
+        theta: torch.Tensor,
+        agents: Sequence[int],
+        *,
+        budgets: Budgets | None = None,
+        interrupt: Interrupt | None = None,
+    ) -> TrainedColumns:
+        """The round as :meth:`train` computes it, as columns (an agent host's path)."""
+        after = None
+        if interrupt is not None:
+            stop = interrupt
+
+            def after(order: list[int], number: int, done: IterationColumns) -> None:
+                stop()
+
+        return self._train(round_index, theta, agents, budgets, after)
+
+    def _train(
+        self,
+        round_index: int,
+        theta: torch.Tensor,
+        agents: Sequence[int],
+        budgets: Budgets | None,
+        after: Callable[[list[int], int, IterationColumns], None] | None,
+    ) -> TrainedColumns:
         algo = self.run.algo
         order = sorted(agents)
         planned = budgets or {}
@@ -113,6 +165,7 @@ class CompiledFedHPG(EngineAgents):
         done = np.zeros(len(order), dtype=np.int64)
         bounds = _BoundEstimates(order, batch, thetas.shape[1], algo.bound_estimates)
         totals = {name: np.zeros(len(order)) for name in ("steps", "returns", "compute", "clip")}
+        iterations: list[IterationColumns] = []
         sample_s = gradient_s = 0.0
         clip = -1.0 if algo.grad_clip is None else float(algo.grad_clip)
         # An agent whose steps diverge samples from NaN logits until its round ends; the server
@@ -142,37 +195,37 @@ class CompiledFedHPG(EngineAgents):
                 starts = copy_start[part]
                 steps = np.add.reduceat(lengths[:copies], starts)
                 cpu_per_step = (learned - started) / max(int(steps.sum()), 1)
+                compute = cpu_per_step * steps
                 totals["steps"][part] += steps
                 totals["returns"][part] += np.add.reduceat(returns[:copies], starts)
-                totals["compute"][part] += cpu_per_step * steps
+                totals["compute"][part] += compute
                 totals["clip"][part] += clipped[part]
                 done[part] += 1
-                if on_iteration is not None:
-                    for position, env_steps in zip(part.tolist(), steps.tolist(), strict=True):
-                        work = IterationWork(iteration, cpu_per_step * env_steps, env_steps,
-                                             env_steps)  # fmt: skip
-                        on_iteration(order[position], work)
-        all_steps = max(float(totals["steps"].sum()), 1.0)
-        # each θ_k a row of this call's own [A, d] array: no copies (500 of them cost ~5 ms a
-        # host round)
-        final = torch.from_numpy(thetas)
-        results = {}
-        for i, k in enumerate(order):
-            share = totals["steps"][i] / all_steps
-            tally = LocalTally(
-                trajectories=int(batch[i] * iters[i]),
-                env_steps=int(totals["steps"][i]),
-                return_sum=float(totals["returns"][i]),
-                compute_s=float(totals["compute"][i]),
-                clipped=int(totals["clip"][i]),
-                algorithm={
-                    "engine_sample_s": sample_s * share,
-                    "engine_gradient_s": gradient_s * share,
-                    **bounds.of(i),
-                },
-            )
-            results[k] = tally.result(final[i])
-        return results
+                # every CartPole step is differentiated once (grad_steps = env_steps)
+                ran = IterationColumns(positions=part, compute_s=compute, env_steps=steps,
+                                       grad_steps=steps)  # fmt: skip
+                iterations.append(ran)
+                if after is not None:
+                    after(order, iteration, ran)
+        trajectories = batch * iters
+        share = totals["steps"] / max(float(totals["steps"].sum()), 1.0)
+        algorithm: dict[str, list[float | None]] = {
+            "engine_sample_s": (sample_s * share).tolist(),
+            "engine_gradient_s": (gradient_s * share).tolist(),
+        }
+        for key, column in bounds.columns(len(order)).items():
+            algorithm.setdefault(key, column)
+        return TrainedColumns(
+            agents=order,
+            thetas=thetas,
+            trajectories=trajectories,
+            env_steps=totals["steps"].astype(np.int64),
+            compute_s=totals["compute"],
+            train_return=totals["returns"] / np.maximum(trajectories, 1),
+            grad_clipped=totals["clip"].astype(np.int64),
+            algorithm=algorithm,
+            iterations=iterations,
+        )
 
     # -- evaluation -----------------------------------------------------------------------
 
@@ -213,6 +266,8 @@ fit, one after another, which changes no agent's numbers."""
 
 def _parts(agents: np.ndarray, most_rows: np.ndarray, capacity: int) -> list[np.ndarray]:
     """``agents`` (positions) cut, in order, into runs whose rows at most fit ``capacity``."""
+    if int(most_rows[agents].sum()) <= capacity:
+        return [agents]  # the usual case: all at once
     parts, start, filled = [], 0, 0
     for i, a in enumerate(agents.tolist()):
         if filled + most_rows[a] > capacity and i > start:
@@ -273,8 +328,16 @@ class _BoundEstimates:
             probe.add(torch.from_numpy(before[row]), torch.from_numpy(self.unclipped[i]), noise)
             self.found.setdefault(i, {}).update(probe.stats())
 
-    def of(self, i: int) -> dict[str, float]:
-        return self.found.get(i, {})
+    def columns(self, agents: int) -> dict[str, list[float | None]]:
+        """Each statistic found, as a column over the round's agents (None: not measured)."""
+        names = dict.fromkeys(key for found in self.found.values() for key in found)
+        return {
+            key: [
+                None if (value := self.found.get(i, {}).get(key)) is None else float(value)
+                for i in range(agents)
+            ]
+            for key in names
+        }
 
 
 def warm_up() -> float:

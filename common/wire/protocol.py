@@ -241,11 +241,14 @@ class UpdateColumns(Sequence[UpdateStats]):
     def __getitem__(self, index: int) -> UpdateStats: ...
 
     @overload
-    def __getitem__(self, index: slice) -> Sequence[UpdateStats]: ...
+    def __getitem__(self, index: slice) -> UpdateColumns: ...
 
-    def __getitem__(self, index: int | slice) -> UpdateStats | Sequence[UpdateStats]:
-        if isinstance(index, slice):
-            return self.take(range(len(self))[index])
+    def __getitem__(self, index: int | slice) -> UpdateStats | UpdateColumns:
+        if isinstance(index, slice):  # the columns' own slices: a host cuts its batch so
+            return UpdateColumns(
+                **{name: getattr(self, name)[index] for name in _SCALAR_COLUMNS},
+                algorithm={key: column[index] for key, column in self.algorithm.items()},
+            )
         return UpdateStats(
             trajectories=self.trajectories[index],
             env_steps=self.env_steps[index],
@@ -263,7 +266,44 @@ class UpdateColumns(Sequence[UpdateStats]):
         )
 
     def __iter__(self) -> Iterator[UpdateStats]:
-        return (self[i] for i in range(len(self)))
+        return iter(self.records())
+
+    def records(self) -> list[UpdateStats]:
+        """Every row's record (what ``self[i]`` gives for each i), built in one pass over the
+        columns: a server reads a host's 500 records so each round."""
+        algorithm = (
+            [
+                {
+                    key: value
+                    for key, value in zip(self.algorithm, values, strict=True)
+                    if value is not None
+                }
+                for values in zip(*self.algorithm.values(), strict=True)
+            ]
+            if self.algorithm
+            else [{} for _ in range(len(self))]
+        )
+        return [
+            UpdateStats(
+                trajectories=trajectories,
+                env_steps=env_steps,
+                compute_s=compute_s,
+                train_return=train_return,
+                grad_clipped=grad_clipped,
+                emulated_s=emulated_s,
+                speed=speed,
+                local_wall_s=local_wall_s,
+                algorithm=own,
+            )
+            for (
+                trajectories, env_steps, compute_s, train_return, grad_clipped, emulated_s, speed,
+                local_wall_s, own,
+            ) in zip(
+                self.trajectories, self.env_steps, self.compute_s, self.train_return,
+                self.grad_clipped, self.emulated_s, self.speed, self.local_wall_s, algorithm,
+                strict=True,
+            )
+        ]  # fmt: skip
 
 
 _SCALAR_COLUMNS = tuple(f.name for f in fields(UpdateStats) if f.name != "algorithm")

@@ -783,13 +783,16 @@ class ZmqAgentPool:
         """A host's updates, row by row as if each had come alone, but checked and copied a
         batch at a time."""
         collection = self._collection
-        open_round = collection is not None and collection.round == batch.round
+        open_round = (
+            collection is not None
+            and isinstance(collection.request, Train)
+            and collection.round == batch.round
+        )
         broadcast = collection.request.theta if open_round and collection else None
         # decoded stats are within their bounds: the codec enforced them field by field
         problems = self.check.problems(batch.thetas, batch.stats, broadcast, stats_bounded=True)
         indices: list[int] = []
         rows: list[int] = []
-        stats: list[UpdateStats] = []
         for i, index in enumerate(batch.agents):
             peer = self.peers.get(index)
             if peer is None or peer.link is not link:
@@ -800,11 +803,17 @@ class ZmqAgentPool:
                 if self._open_for(peer, batch.round, Train):
                     assert self._collection is not None
                     self._collection.failures[index] = problem
-            elif self._open_for(peer, batch.round, Train):
+            elif (
+                open_round
+                and collection is not None
+                and index in collection.expected
+                and not collection.answered(index)
+            ) or self._open_for(peer, batch.round, Train):  # the same test, logged if late
                 indices.append(index)
                 rows.append(i)
-                stats.append(batch.stats[i])
         if indices:
+            records = batch.stats.records()
+            stats = [records[i] for i in rows]
             self._file_updates(batch.round, indices, batch.thetas, rows, stats)
 
     def _on_evaluation(self, identity: bytes, peer: Peer | None, evaluation: Evaluation) -> None:
