@@ -106,6 +106,7 @@ class AgentHost(AgentProcess):
         self.devices = self._devices(run)
         self.__dict__.pop("device_columns", None)  # the run's devices, not the last run's
         group = make_agent_group(run, self.indices, variants=self.variants)
+        group.prepare()  # every agent's constants now, not inside the rounds that select it
         tune_malloc_for(group)
         return group
 

@@ -62,6 +62,11 @@ class AgentGroup(Protocol):
         """The unified policy's return and success in each agent's environment."""
         ...
 
+    def prepare(self) -> None:
+        """Compute now what the group would compute of each agent on its first round (an
+        agent host calls it once, at registration, so that rounds do not pay for it)."""
+        ...
+
     def close(self) -> None: ...
 
 
@@ -119,6 +124,9 @@ class WorkerLoopGroup:
     ) -> dict[int, EvaluationStats]:
         return {k: self.worker(k).evaluate(round_index, theta, episodes) for k in sorted(agents)}
 
+    def prepare(self) -> None:
+        pass  # a worker holds its environment: built for the agents that train, not ahead
+
     def close(self) -> None:
         for worker in self._workers.values():
             worker.close()
@@ -171,6 +179,10 @@ class SplitGroup:
             if chosen:
                 stats.update(part.evaluate(round_index, theta, episodes, chosen))
         return dict(sorted(stats.items()))
+
+    def prepare(self) -> None:
+        for part in self.parts:
+            part.prepare()
 
     def close(self) -> None:
         for part in self.parts:

@@ -4,7 +4,7 @@ round), and the MLP's shape."""
 
 from __future__ import annotations
 
-from collections.abc import Callable, Mapping, Sequence
+from collections.abc import Callable, Iterable, Mapping, Sequence
 from typing import Any
 
 from fedhpg.common.algorithms.fedhpg import FedHPGBudget
@@ -21,6 +21,12 @@ class Lazy(dict[int, Any]):
     def __init__(self, make: Callable[[int], Any]) -> None:
         super().__init__()
         self.make = make
+
+    def fill(self, keys: Iterable[int]) -> None:
+        """Compute the values of ``keys`` not computed yet."""
+        for key in keys:
+            if key not in self:
+                self[key] = self.make(key)
 
     def __missing__(self, key: int) -> Any:
         value = self[key] = self.make(key)
@@ -53,6 +59,13 @@ class EngineAgents:
     @property
     def num_params(self) -> int:
         return self.shape.num_params
+
+    def prepare(self) -> None:
+        """Every agent's profile, discount and horizon now (a host of 5,000 agents with 1,000
+        of 10,000 training per round meets ~470 new agents a round, ~60 µs each, mostly
+        the population's seeded draws of their budgets)."""
+        for values in (self.profiles, self.gammas, self.horizons):
+            values.fill(self.variants)
 
     def close(self) -> None:
         pass

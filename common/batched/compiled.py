@@ -64,6 +64,10 @@ class CompiledFedHPG(EngineAgents):
             dtype=np.int64,
         )
 
+    def prepare(self) -> None:
+        super().prepare()
+        self.physics.fill(self.variants)
+
     def _physics_of(self, k: int) -> np.ndarray:
         table = cartpole_table([self.variants[k]])
         if table is None:
