@@ -12,6 +12,7 @@ agents each in this process, and the answers already queued (no training, no agg
     python -m benchmarks.hosts --agents 1000 --per-host 500 --rounds 3
     python -m benchmarks.hosts --server-side 10000
     python -m benchmarks.hosts --codec
+    python -m benchmarks.hosts --host-round [--agents 10000 --per-host 5000]
 
 :func:`batch_codec_us`: one host's ``UpdateBatch`` of 256 agents, built and encoded, then
 decoded with every agent's stats read back, in this process.
@@ -201,6 +202,75 @@ def batch_codec_us(num_params: int = 386, agents: int = 256, repeats: int = 5) -
     }
 
 
+def host_round_us(agents: int = 1000, per_host: int = 500, rounds: int = 8) -> dict:
+    """One agent host's round in this process, no sockets: ``AgentHost._work`` on a
+    ``TrainBatch`` of its ``per_host`` CartPole population agents (all of them, or 500
+    drawn anew each round where the host holds more), at one fixed θ; the time outside the
+    engine's two kernels per agent (budgets, streams, results, device emulation, the
+    batches built) and the answers' encoding, medians over the rounds after the first."""
+    import numpy as np
+    import torch
+
+    from fedhpg.agent.host import AgentHost
+    from fedhpg.agent.process import Job
+    from fedhpg.common.batched import kernels
+    from fedhpg.common.runtime.cli import compose
+    from fedhpg.common.wire.codec import encode
+    from fedhpg.common.wire.protocol import TrainBatch
+
+    torch.set_num_threads(1)
+    run = compose(
+        [
+            "env=cartpole", "agents=population", f"agents.num_agents={agents}",
+            f"agents.per_host={per_host}", "agents.clock=counted", "agent.first=0",
+            f"agent.count={per_host}",
+        ]
+    )  # fmt: skip
+    host = AgentHost(run)
+    started = time.perf_counter()
+    host.group = host._make_group(run)
+    group_s = time.perf_counter() - started
+    in_kernels = [0.0]
+    originals = {name: getattr(kernels, name) for name in ("sample_iteration", "learn_iteration")}
+
+    def timed(kernel: Any) -> Any:
+        def call(*args: Any) -> None:
+            begin = time.perf_counter()
+            kernel(*args)
+            in_kernels[0] += time.perf_counter() - begin
+
+        return call
+
+    rng = np.random.default_rng(0)
+    theta = (rng.standard_normal(host.group.num_params) * 0.1).astype(np.float32)
+    outside, encoding = [], []
+    try:
+        for name, kernel in originals.items():
+            setattr(kernels, name, timed(kernel))
+        for round_index in range(1, rounds + 1):
+            chosen = range(per_host) if per_host <= 500 else rng.choice(per_host, 500, False)
+            request = TrainBatch(round=round_index, theta=theta, agents=sorted(map(int, chosen)))
+            in_kernels[0] = 0.0
+            begin = time.perf_counter()
+            answers = host._work(Job(request))
+            wall = time.perf_counter() - begin
+            begin = time.perf_counter()
+            for answer in answers:
+                encode(answer)
+            encoding.append(time.perf_counter() - begin)
+            outside.append((wall - in_kernels[0]) / len(request.agents))
+    finally:
+        for name, kernel in originals.items():
+            setattr(kernels, name, kernel)
+        host.close()
+    return {
+        "agents_per_round": min(per_host, 500),
+        "group_and_prepare_s": group_s,
+        "outside_kernels_us_per_agent": 1e6 * statistics.median(outside[1:]),
+        "encode_ms_per_round": 1e3 * statistics.median(encoding[1:]),
+    }
+
+
 if __name__ == "__main__":
     parser = argparse.ArgumentParser()
     parser.add_argument("--agents", type=int, default=1000)
@@ -209,10 +279,13 @@ if __name__ == "__main__":
     parser.add_argument("--family", default="gridworld")
     parser.add_argument("--server-side", type=int, metavar="D", help="num_params: pool only")
     parser.add_argument("--codec", action="store_true", help="one UpdateBatch's codec only")
+    parser.add_argument("--host-round", action="store_true", help="one host's round, no sockets")
     parser.add_argument("extra", nargs="*")
     args = parser.parse_args()
     if args.codec:
         print(batch_codec_us())
+    elif args.host_round:
+        print(host_round_us(args.agents, args.per_host))
     elif args.server_side:
         times = server_side_us(args.server_side)
         print(f"server µs per agent per round (d={args.server_side}): {times}")
