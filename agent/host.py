@@ -20,7 +20,6 @@ sleeping emulation (wall-clock deadlines against emulated slowness) uses one pro
 
 from __future__ import annotations
 
-import functools
 import logging
 import os
 import time
@@ -78,11 +77,6 @@ class AgentHost(AgentProcess):
     def _devices(self, run: RunConfig) -> dict[int, DeviceModel]:
         return {k: replace(device_for(run, k), virtual_clock=True) for k in self.indices}
 
-    @functools.cached_property
-    def device_columns(self) -> DeviceColumns:
-        """The range's devices, row ``k - first`` agent k's (built on the first round)."""
-        return DeviceColumns([self.devices[k] for k in self.indices])
-
     # -- registration -----------------------------------------------------------------------
 
     def _hello(self) -> Message:
@@ -104,7 +98,8 @@ class AgentHost(AgentProcess):
 
     def _make_group(self, run: RunConfig) -> AgentGroup:
         self.devices = self._devices(run)
-        self.__dict__.pop("device_columns", None)  # the run's devices, not the last run's
+        # the range's devices, row k - first agent k's: what a round prices
+        self.device_columns = DeviceColumns([self.devices[k] for k in self.indices])
         group = make_agent_group(run, self.indices, variants=self.variants)
         group.prepare()  # every agent's constants now, not inside the rounds that select it
         tune_malloc_for(group)
@@ -156,7 +151,7 @@ class AgentHost(AgentProcess):
             rows,
             request.round,
             message_bytes(num_params),
-            [(i.positions, i.compute_s, i.env_steps, i.grad_steps) for i in trained.iterations],
+            trained.iterations,
             num_params,
         )
         # Each answer leaves with the batch: the host's wall time on the round is each one's.

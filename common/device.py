@@ -27,11 +27,15 @@ import math
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from fedhpg.common.config import RunConfig
 from fedhpg.common.population import device_value
+
+if TYPE_CHECKING:
+    from fedhpg.common.round_columns import IterationColumns
 
 GRAD_PARAMS_UNIT = 10_000
 """``grad_cost_s`` is the cost of one trajectory step's backward pass per this many
@@ -214,24 +218,25 @@ class DeviceColumns:
         rows: np.ndarray,
         round_index: int,
         num_bytes: int,
-        iterations: Sequence[tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]],
+        iterations: Sequence[IterationColumns],
         num_params: int,
     ) -> tuple[np.ndarray, np.ndarray]:
         """The emulated seconds and the speed of the devices at ``rows`` over one round: a
-        message of ``num_bytes`` each way around ``iterations``, each (positions into
-        ``rows``, compute seconds, env steps, gradient steps) of the devices that ran it."""
+        message of ``num_bytes`` each way around ``iterations`` (their ``positions`` index
+        ``rows``)."""
         speeds = np.array([self.devices[r].speed_at(round_index) for r in rows.tolist()])
         delay = self.step_delay_s[rows]
         step_cost, grad_cost = self.step_cost_s[rows], self.grad_cost_s[rows]
         message = self.transfer_s(rows, num_bytes)
         emulated = np.zeros(len(rows), dtype=np.float64)
         emulated += message
-        for at, real_s, env_steps, grad_steps in iterations:
+        for ran in iterations:
+            at, env_steps = ran.positions, ran.env_steps
             if self.counted:  # DeviceModel.compute_s's order of operations
-                gradient = grad_steps * grad_cost[at] * num_params / GRAD_PARAMS_UNIT
+                gradient = ran.grad_steps * grad_cost[at] * num_params / GRAD_PARAMS_UNIT
                 compute = env_steps * step_cost[at] + gradient
             else:
-                compute = real_s
+                compute = ran.compute_s
             emulated[at] += compute / speeds[at] + env_steps * delay[at]
         emulated += message
         return emulated, speeds

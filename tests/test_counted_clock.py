@@ -23,6 +23,7 @@ from procs import processes, start
 from fedhpg.common.components import agent_profile
 from fedhpg.common.config import ConfigError, RunConfig, validate
 from fedhpg.common.device import GRAD_PARAMS_UNIT, DeviceColumns, DeviceModel, message_bytes
+from fedhpg.common.round_columns import IterationColumns
 from fedhpg.common.runtime.cli import compose
 from fedhpg.common.variants import run_variants
 from fedhpg.common.worker import IterationWork, LocalWorker
@@ -227,18 +228,18 @@ def test_column_wise_emulation_is_each_devices_own_to_the_bit(clock: str, schedu
         for _ in range(3):  # each iteration run by a shrinking subset, as τ_k differ
             at = np.flatnonzero(rng.random(len(rows)) < 0.7)
             steps = rng.integers(1, 5_000, size=len(at))
-            iterations.append((at, rng.uniform(0, 0.05, len(at)), steps, 2 * steps))
+            iterations.append(IterationColumns(at, rng.uniform(0, 0.05, len(at)), steps, 2 * steps))
         emulated, speeds = columns.round(rows, round_index, num_bytes, iterations, num_params)
         expected = []
         for position, r in enumerate(rows.tolist()):
             d = own[r]
             d.take_emulated()
             d.transmit(num_bytes)
-            for at, real_s, steps, grads in iterations:
-                (hit,) = np.flatnonzero(at == position)[:1].tolist() or [None]
+            for ran in iterations:
+                (hit,) = np.flatnonzero(ran.positions == position)[:1].tolist() or [None]
                 if hit is not None:
-                    d.spend(float(real_s[hit]), int(steps[hit]), round_index,
-                            grad_steps=int(grads[hit]), num_params=num_params)  # fmt: skip
+                    d.spend(float(ran.compute_s[hit]), int(ran.env_steps[hit]), round_index,
+                            grad_steps=int(ran.grad_steps[hit]), num_params=num_params)  # fmt: skip
             d.transmit(num_bytes)
             expected.append((d.take_emulated(), d.speed_at(round_index)))
         assert emulated.tolist() == [e for e, _ in expected]

@@ -156,6 +156,10 @@ class Collection:
     def answered(self, index: int) -> bool:
         return index in self.answers or index in self.failures
 
+    def awaits(self, index: int) -> bool:
+        """Whether agent ``index`` was asked and has not answered."""
+        return index in self.expected and not self.answered(index)
+
 
 @dataclass
 class OpenTrain:
@@ -396,11 +400,7 @@ class ZmqAgentPool:
             if train is not None and train.sent:  # dropped: it is sent anew on rejoining
                 train.sent = False
                 missing += 1
-            if (
-                collection is not None
-                and index in collection.expected
-                and not collection.answered(index)
-            ):
+            if collection is not None and collection.awaits(index):
                 missing += 1
         if self._buffered and missing and collection is None:
             suffix = "; its update in flight is dropped"
@@ -642,7 +642,7 @@ class ZmqAgentPool:
         """The collection's request as ``link`` gets it (for a host: a batch naming those of
         ``agents``, by default its agents, still unanswered); None if it owes nothing."""
         candidates = link.indices if agents is None else agents
-        owed = [k for k in candidates if k in collection.expected and not collection.answered(k)]
+        owed = [k for k in candidates if collection.awaits(k)]
         if not owed:
             return None
         request = collection.request
@@ -679,8 +679,7 @@ class ZmqAgentPool:
             collection is not None
             and isinstance(collection.request, kind)
             and collection.round == round_index
-            and peer.index in collection.expected
-            and not collection.answered(peer.index)
+            and collection.awaits(peer.index)
         ):
             return True
         self.late_answers += 1
@@ -803,12 +802,9 @@ class ZmqAgentPool:
                 if self._open_for(peer, batch.round, Train):
                     assert self._collection is not None
                     self._collection.failures[index] = problem
-            elif (
-                open_round
-                and collection is not None
-                and index in collection.expected
-                and not collection.answered(index)
-            ) or self._open_for(peer, batch.round, Train):  # the same test, logged if late
+            elif (open_round and collection is not None and collection.awaits(index)) or (
+                self._open_for(peer, batch.round, Train)  # not awaited: logged as late
+            ):
                 indices.append(index)
                 rows.append(i)
         if indices:
