@@ -9,15 +9,19 @@ each one's received byte count from the kernel (``TCP_INFO``). It closes, with
 buffered):
 
 - a connection that has received more than ``max_inflight_bytes`` since its last message was
-  delivered (a message larger than any this run sends, still arriving);
+  delivered (a message larger than any this run sends, still arriving). A registered peer's
+  bytes may also be whole messages queued while the round loop is busy elsewhere (a host's
+  answers come in several messages at once): its connection is closed only once the round
+  loop has found the socket empty ``SETTLE_S`` after the bytes were counted, so no whole
+  message of it was waiting. An unregistered peer has nothing to queue but a hello: at once;
 - a connection that has not registered within ``hello_timeout_s`` (idle connections cost a
   descriptor each);
 - connections beyond ``max_connections`` (the newest unregistered ones), so descriptors remain
   for checkpoints, metrics and the registered agents.
 
-The round loop tells it which descriptor each message came from (``ZMQ_SRCFD``) and which ones
-belong to registered agents. Linux only (``TCP_INFO``); elsewhere, or for IPC, only the
-connection count and the hello timeout apply.
+The round loop tells it which descriptor each message came from (``ZMQ_SRCFD``), which ones
+belong to registered agents, and when it found the socket empty. Linux only (``TCP_INFO``);
+elsewhere, or for IPC, only the connection count and the hello timeout apply.
 """
 
 from __future__ import annotations
@@ -42,6 +46,10 @@ logger = logging.getLogger(__name__)
 
 WATCH_INTERVAL_S = 0.01
 """How often connections are looked at: at loopback speed a peer sends ~10-30 MB meanwhile."""
+SETTLE_S = 0.05
+"""A registered peer's excess bytes are judged by a drain of the socket this long after they
+were counted: libzmq's I/O thread has read them by then, so a whole message among them would
+have been delivered."""
 REPORT_EVERY_S = 10.0
 FD_RESERVE = 64
 """Descriptors kept free of connections: files, the ZAP and monitor sockets, libzmq's own."""
@@ -112,6 +120,8 @@ class _Connection:
     delivered: int = 0
     seen_delivered: int = 0
     registered: bool = False
+    over_since: float | None = None
+    """When more than the cap was first counted since the last delivery (registered peers)."""
 
 
 @dataclass
@@ -149,6 +159,10 @@ class ConnectionGuard:
     _monitor: zmq.Socket | None = None
     _reported_at: float = 0.0
     _reported: tuple[int, int, int] = (0, 0, 0)
+    _registered_early: set[int] = field(default_factory=set)
+    """Descriptors registered before the guard read their accept event."""
+    _drained_at: float = float("-inf")
+    _waiting: bool = False
 
     def start(self) -> ConnectionGuard:
         self._monitor = self.socket.get_monitor_socket(_EVENTS)
@@ -182,6 +196,19 @@ class ConnectionGuard:
             connection = self._connections.get(fd)
             if connection is not None:
                 connection.registered = registered
+            elif registered and fd >= 0:  # its hello overtook the accept event
+                self._registered_early.add(fd)
+            else:
+                self._registered_early.discard(fd)
+
+    def drained(self) -> None:
+        """The round loop found no whole message waiting."""
+        self._drained_at = time.monotonic()  # a float store: atomic for the guard thread
+
+    def waiting(self, blocked: bool) -> None:
+        """The round loop blocks in a poll of the socket (True) or woke from it (False): while
+        it waits, no whole message is waiting."""
+        self._waiting = blocked
 
     def open_connections(self) -> int:
         return len(self._connections)
@@ -218,12 +245,15 @@ class ConnectionGuard:
                     peer=_peer_name(value),
                     accepted=time.monotonic(),
                     baseline=_bytes_received(value) or 0,
+                    registered=value in self._registered_early,
                 )
+                self._registered_early.discard(value)
             if len(self._connections) > self.max_connections:
                 self._evict()
         elif kind in (zmq.EVENT_DISCONNECTED, zmq.EVENT_CLOSED):
             with self._lock:
                 self._connections.pop(value, None)
+                self._registered_early.discard(value)
         elif kind == zmq.EVENT_HANDSHAKE_FAILED_PROTOCOL:
             self.on_handshake_failed(value)
 
@@ -254,15 +284,23 @@ class ConnectionGuard:
         self._report(now)
         with self._lock:
             connections = list(self._connections.values())
+        # a waking round loop may not have said so yet: SETTLE_S covers that latency too
+        drained_at = now if self._waiting else self._drained_at
         for connection in connections:
             received = _bytes_received(connection.fd)
             if received is not None:
                 if connection.delivered != connection.seen_delivered:
                     connection.seen_delivered = connection.delivered
                     connection.baseline = received
+                    connection.over_since = None
                 elif received - connection.baseline > self.max_inflight_bytes:
-                    self._close(connection, "oversized")
-                    continue
+                    if connection.over_since is None:
+                        connection.over_since = now
+                    if not connection.registered or drained_at >= (
+                        connection.over_since + SETTLE_S
+                    ):
+                        self._close(connection, "oversized")
+                        continue
             if not connection.registered and now - connection.accepted > self.hello_timeout_s:
                 self._close(connection, "idle")
 

@@ -15,6 +15,8 @@ from __future__ import annotations
 import multiprocessing
 import os
 import resource
+import socket as pysocket
+import struct
 import threading
 import time
 from collections.abc import Callable
@@ -145,3 +147,172 @@ def test_stopping_the_guard_while_peers_come_and_go_never_hangs() -> None:
     """12 tries, each stopping a guard while a churn of connections sends it events; the socket
     must then still serve, close and terminate."""
     _in_child(_stop_during_churn)
+
+
+def _round_loop(router: zmq.Socket, guard: ConnectionGuard, seconds: float) -> list[list[bytes]]:
+    """What the server's round loop does with the guard for ``seconds``: poll (saying it
+    waits), receive each whole message (saying where it came from), say when it found the
+    socket empty."""
+    messages: list[list[bytes]] = []
+    end = time.monotonic() + seconds
+    while time.monotonic() < end:
+        guard.waiting(True)
+        ready = router.poll(10)
+        guard.waiting(False)
+        if not ready:
+            guard.drained()
+            continue
+        while True:
+            try:
+                frames = router.recv_multipart(copy=False, flags=zmq.NOBLOCK)
+            except zmq.Again:
+                guard.drained()
+                break
+            guard.delivered(int(frames[1].get(zmq.SRCFD)))
+            messages.append([frame.bytes for frame in frames[1:]])
+    return messages
+
+
+def _guarded(cap: int) -> tuple[zmq.Context, zmq.Socket, str, ConnectionGuard]:
+    context = zmq.Context()
+    router = context.socket(zmq.ROUTER)
+    router.setsockopt(zmq.LINGER, 0)
+    guard = ConnectionGuard(
+        router, max_inflight_bytes=cap, hello_timeout_s=30.0, max_connections=100
+    ).start()
+    port = router.bind_to_random_port("tcp://127.0.0.1")
+    return context, router, f"tcp://127.0.0.1:{port}", guard
+
+
+def _registered_peer(
+    context: zmq.Context, router: zmq.Socket, endpoint: str, guard: ConnectionGuard
+) -> zmq.Socket:
+    """A DEALER whose hello the round loop has taken and registered (by its ZMQ_SRCFD)."""
+    peer = context.socket(zmq.DEALER)
+    peer.setsockopt(zmq.LINGER, 0)
+    peer.connect(endpoint)
+    peer.send(b"hello")
+    assert router.poll(3000), "the hello never arrived"
+    frames = router.recv_multipart(copy=False)
+    fd = int(frames[1].get(zmq.SRCFD))
+    guard.delivered(fd)
+    guard.registered(fd, True)
+    return peer
+
+
+CAP = 256 << 10
+
+
+def _queued_while_the_loop_is_busy() -> None:
+    """A registered peer sends many whole messages, more bytes than the in-flight cap, while the
+    round loop is busy elsewhere: they queue in libzmq, none is oversized."""
+    context, router, endpoint, guard = _guarded(CAP)
+    peer = _registered_peer(context, router, endpoint, guard)
+    for _ in range(24):
+        peer.send(bytes(64 << 10))  # 1.5 MiB in all, six times the cap
+    time.sleep(0.5)  # the round loop aggregates, writes a checkpoint, ... (no receive)
+    received = len(_round_loop(router, guard, 1.0))
+    assert guard.counts.oversized == 0, "a peer's queued whole messages were taken as one"
+    assert received == 24, f"{received} of 24 messages arrived"
+    guard.stop()
+    peer.close()
+    router.close()
+    context.term()
+
+
+class _RawPeer:
+    """A DEALER spoken by hand (ZMTP 3.0, NULL mechanism) over a plain TCP socket, so that a
+    multipart message can arrive slowly: libzmq's own sockets send a message only once its last
+    frame is queued."""
+
+    def __init__(self, endpoint: str) -> None:
+        host, port = endpoint.removeprefix("tcp://").rsplit(":", 1)
+        self.socket = pysocket.create_connection((host, int(port)), timeout=5.0)
+        greeting = b"\xff" + bytes(8) + b"\x7f" + bytes([3, 0]) + b"NULL".ljust(20, b"\0")
+        self.socket.sendall(greeting + bytes(32))
+        self._read(64)  # the server's greeting
+        ready = b"\x05READY" + b"\x0bSocket-Type" + struct.pack(">I", 6) + b"DEALER"
+        self.socket.sendall(bytes([0x04, len(ready)]) + ready)
+        flags, size = self._read(2)  # the server's READY, a short command
+        assert flags == 0x04, f"the server answered with flags {flags:#x}"
+        self._read(size)
+
+    def _read(self, count: int) -> bytes:
+        data = b""
+        while len(data) < count:
+            chunk = self.socket.recv(count - len(data))
+            assert chunk, "the server closed the connection during the handshake"
+            data += chunk
+        return data
+
+    def send_frame(self, body: bytes, more: bool) -> bool:
+        """False once the server has cut the connection."""
+        header = bytes([0x03 if more else 0x02]) + struct.pack(">Q", len(body))
+        try:
+            self.socket.sendall(header + body)
+            return True
+        except OSError:
+            return False
+
+    def close(self) -> None:
+        self.socket.close()
+
+
+def _send_slowly(peer: _RawPeer, frames: int, frame_bytes: int, gap_s: float) -> None:
+    """One multipart message, a frame every ``gap_s``, until the server cuts it."""
+    for i in range(frames):
+        if not peer.send_frame(bytes(frame_bytes), more=i < frames - 1):
+            return
+        time.sleep(gap_s)
+
+
+def _oversized_from_a_registered_peer() -> None:
+    """A registered peer's one message larger than the cap, every frame small, is cut while
+    the round loop waits, and never delivered; so is an unregistered peer's."""
+    context, router, endpoint, guard = _guarded(CAP)
+    peer, stranger = _RawPeer(endpoint), _RawPeer(endpoint)
+    peer.send_frame(b"hello", more=False)
+    assert router.poll(3000), "the hello never arrived"
+    frames = router.recv_multipart(copy=False)
+    guard.delivered(int(frames[1].get(zmq.SRCFD)))
+    guard.registered(int(frames[1].get(zmq.SRCFD)), True)
+    # 1 MiB each over ~0.3 s: four times the cap, arriving for many of the guard's looks
+    senders = [
+        threading.Thread(target=_send_slowly, args=(sender, 64, 16 << 10, 0.005))
+        for sender in (peer, stranger)
+    ]
+    for sender in senders:
+        sender.start()
+    delivered = _round_loop(router, guard, 1.0)
+    for sender in senders:
+        sender.join(5.0)
+    assert guard.counts.oversized == 2, guard.counts
+    assert delivered == [], f"{len(delivered)} oversized messages were delivered"
+    guard.stop()
+    peer.close()
+    stranger.close()
+    router.close()
+    context.term()
+
+
+def test_whole_messages_queued_while_the_loop_is_busy_are_not_oversized() -> None:
+    _in_child(_queued_while_the_loop_is_busy)
+
+
+def test_an_oversized_message_is_cut_from_registered_and_unregistered_peers() -> None:
+    _in_child(_oversized_from_a_registered_peer)
+
+
+def test_a_registration_before_the_accept_event_is_kept() -> None:
+    """The round loop may register a peer whose accept event the guard has not read yet (its
+    hello came first): the registration must hold, or the peer is cut as idle."""
+    guard = ConnectionGuard(
+        socket=None,  # type: ignore[arg-type]  # only the bookkeeping is exercised
+        max_inflight_bytes=CAP, hello_timeout_s=0.0, max_connections=100,
+    )  # fmt: skip
+    guard.registered(7, True)
+    guard._on_event({"event": zmq.EVENT_ACCEPTED, "value": 7})
+    assert guard._connections[7].registered
+    guard._on_event({"event": zmq.EVENT_CLOSED, "value": 7})
+    guard._on_event({"event": zmq.EVENT_ACCEPTED, "value": 7})  # another connection, same fd
+    assert not guard._connections[7].registered

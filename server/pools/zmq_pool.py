@@ -345,18 +345,30 @@ class ZmqAgentPool:
         """Handle what arrives within ``timeout_s`` (capped), one bounded turn, then purge
         and heartbeat."""
         wait_ms = int(max(min(timeout_s, POLL_INTERVAL_S), 0.0) * 1000)
-        if self.socket.poll(wait_ms):
+        guard = self.guard
+        if guard is not None:
+            guard.waiting(True)
+        ready = self.socket.poll(wait_ms)
+        if guard is not None:
+            guard.waiting(False)
+            if not ready:
+                guard.drained()
+        if ready:
             turn_end = time.monotonic() + TURN_S
             per_peer: dict[bytes, int] = {}
             for _ in range(TURN_MESSAGES):
                 try:
                     frames = self.socket.recv_multipart(copy=False, flags=zmq.NOBLOCK)
                 except zmq.Again:
+                    if guard is not None:
+                        guard.drained()
                     break
                 identity = frames[0].bytes
                 seen = per_peer[identity] = per_peer.get(identity, 0) + 1
                 if seen > PEER_TURN_MESSAGES:
                     self.dropped += 1
+                    if guard is not None:  # a whole message, though not handled
+                        guard.delivered(_source_fd(frames[1]))
                     continue
                 self._handle(frames)
                 if time.monotonic() >= turn_end:
