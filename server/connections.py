@@ -13,7 +13,9 @@ buffered):
   bytes may also be whole messages queued while the round loop is busy elsewhere (a host's
   answers come in several messages at once): its connection is closed only once the round
   loop has found the socket empty ``SETTLE_S`` after the bytes were counted, so no whole
-  message of it was waiting. An unregistered peer has nothing to queue but a hello: at once;
+  message of it was waiting, or at once beyond what its answers to a round could ever queue
+  (its ``allowance``, at least ``QUEUED_MESSAGES`` messages' worth: a stalled round loop does
+  not lift the bound). An unregistered peer has nothing to queue but a hello: at once;
 - a connection that has not registered within ``hello_timeout_s`` (idle connections cost a
   descriptor each);
 - connections beyond ``max_connections`` (the newest unregistered ones), so descriptors remain
@@ -50,6 +52,8 @@ SETTLE_S = 0.05
 """A registered peer's excess bytes are judged by a drain of the socket this long after they
 were counted: libzmq's I/O thread has read them by then, so a whole message among them would
 have been delivered."""
+QUEUED_MESSAGES = 8
+"""Caps' worth of whole messages a registered peer may have queued, at the least."""
 REPORT_EVERY_S = 10.0
 FD_RESERVE = 64
 """Descriptors kept free of connections: files, the ZAP and monitor sockets, libzmq's own."""
@@ -121,6 +125,8 @@ class _Connection:
     seen_delivered: int = 0
     registered: bool = False
     over_since: float | None = None
+    allowance: int = 0
+    """Bytes a registered peer may have in flight before it is cut without a drain."""
     """When more than the cap was first counted since the last delivery (registered peers)."""
 
 
@@ -159,7 +165,7 @@ class ConnectionGuard:
     _monitor: zmq.Socket | None = None
     _reported_at: float = 0.0
     _reported: tuple[int, int, int] = (0, 0, 0)
-    _registered_early: set[int] = field(default_factory=set)
+    _registered_early: dict[int, int] = field(default_factory=dict)
     """Descriptors registered before the guard read their accept event."""
     _drained_at: float = float("-inf")
     _waiting: bool = False
@@ -191,15 +197,19 @@ class ConnectionGuard:
         if connection is not None:
             connection.delivered += 1  # read by the guard thread: an int store is atomic
 
-    def registered(self, fd: int, registered: bool) -> None:
+    def registered(self, fd: int, registered: bool, allowance: int = 0) -> None:
+        """``fd``'s peer registered (or left); ``allowance``: the bytes its answers to one
+        round may take (a host's: all its agents'), which it may have queued at once."""
+        allowance = max(allowance, QUEUED_MESSAGES * self.max_inflight_bytes) if registered else 0
         with self._lock:
             connection = self._connections.get(fd)
             if connection is not None:
                 connection.registered = registered
+                connection.allowance = allowance
             elif registered and fd >= 0:  # its hello overtook the accept event
-                self._registered_early.add(fd)
+                self._registered_early[fd] = allowance
             else:
-                self._registered_early.discard(fd)
+                self._registered_early.pop(fd, None)
 
     def drained(self) -> None:
         """The round loop found no whole message waiting."""
@@ -246,14 +256,14 @@ class ConnectionGuard:
                     accepted=time.monotonic(),
                     baseline=_bytes_received(value) or 0,
                     registered=value in self._registered_early,
+                    allowance=self._registered_early.pop(value, 0),
                 )
-                self._registered_early.discard(value)
             if len(self._connections) > self.max_connections:
                 self._evict()
         elif kind in (zmq.EVENT_DISCONNECTED, zmq.EVENT_CLOSED):
             with self._lock:
                 self._connections.pop(value, None)
-                self._registered_early.discard(value)
+                self._registered_early.pop(value, None)
         elif kind == zmq.EVENT_HANDSHAKE_FAILED_PROTOCOL:
             self.on_handshake_failed(value)
 
@@ -293,11 +303,13 @@ class ConnectionGuard:
                     connection.seen_delivered = connection.delivered
                     connection.baseline = received
                     connection.over_since = None
-                elif received - connection.baseline > self.max_inflight_bytes:
+                elif (over := received - connection.baseline) > self.max_inflight_bytes:
                     if connection.over_since is None:
                         connection.over_since = now
-                    if not connection.registered or drained_at >= (
-                        connection.over_since + SETTLE_S
+                    if (
+                        not connection.registered
+                        or over > connection.allowance
+                        or drained_at >= connection.over_since + SETTLE_S
                     ):
                         self._close(connection, "oversized")
                         continue

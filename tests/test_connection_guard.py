@@ -295,12 +295,40 @@ def _oversized_from_a_registered_peer() -> None:
     context.term()
 
 
+def _beyond_the_allowance_while_the_loop_is_stalled() -> None:
+    """A registered peer's message still arriving past its allowance is cut though the round
+    loop never drains the socket (a stalled loop does not lift the bound)."""
+    context, router, endpoint, guard = _guarded(CAP)
+    peer = _RawPeer(endpoint)
+    peer.send_frame(b"hello", more=False)
+    assert router.poll(3000), "the hello never arrived"
+    fd = int(router.recv_multipart(copy=False)[1].get(zmq.SRCFD))
+    guard.delivered(fd)
+    guard.registered(fd, True)  # allowance: QUEUED_MESSAGES caps, 2 MiB
+    sender = threading.Thread(target=_send_slowly, args=(peer, 64, 64 << 10, 0.005))
+    sender.start()  # 4 MiB over ~0.3 s
+    sender.join(10.0)  # the round loop is busy all along: no poll, no drain
+    deadline = time.monotonic() + 2.0
+    while guard.counts.oversized == 0 and time.monotonic() < deadline:
+        time.sleep(0.01)
+    assert guard.counts.oversized == 1, guard.counts
+    assert _round_loop(router, guard, 0.3) == [], "the cut message was delivered"
+    guard.stop()
+    peer.close()
+    router.close()
+    context.term()
+
+
 def test_whole_messages_queued_while_the_loop_is_busy_are_not_oversized() -> None:
     _in_child(_queued_while_the_loop_is_busy)
 
 
 def test_an_oversized_message_is_cut_from_registered_and_unregistered_peers() -> None:
     _in_child(_oversized_from_a_registered_peer)
+
+
+def test_a_registered_peer_past_its_allowance_is_cut_without_a_drain() -> None:
+    _in_child(_beyond_the_allowance_while_the_loop_is_stalled)
 
 
 def test_a_registration_before_the_accept_event_is_kept() -> None:
@@ -310,9 +338,10 @@ def test_a_registration_before_the_accept_event_is_kept() -> None:
         socket=None,  # type: ignore[arg-type]  # only the bookkeeping is exercised
         max_inflight_bytes=CAP, hello_timeout_s=0.0, max_connections=100,
     )  # fmt: skip
-    guard.registered(7, True)
+    guard.registered(7, True, allowance=10 * CAP)
     guard._on_event({"event": zmq.EVENT_ACCEPTED, "value": 7})
     assert guard._connections[7].registered
+    assert guard._connections[7].allowance == 10 * CAP
     guard._on_event({"event": zmq.EVENT_CLOSED, "value": 7})
     guard._on_event({"event": zmq.EVENT_ACCEPTED, "value": 7})  # another connection, same fd
     assert not guard._connections[7].registered

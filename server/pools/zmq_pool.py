@@ -89,6 +89,9 @@ heartbeats and checks the round: a flooding peer cannot starve the others."""
 PEER_TURN_MESSAGES = 64
 """Messages of one identity handled per turn; the rest of its turn is dropped unread (libzmq
 fair-queues peers, so the others' messages still come through)."""
+ANSWER_OVERHEAD_BYTES = 4096
+"""An agent's answer beside its θ_k (statistics, framing), generously: the connection guard's
+allowance for a registered peer's queued answers."""
 REPLY_BURST = 32
 REPLY_RATE = 10.0
 """Error replies to an unregistered peer: a bucket of this many, refilled at this rate per
@@ -595,7 +598,9 @@ class ZmqAgentPool:
 
     def _register(self, link: Link, agent_ids: list[str], profile: dict[str, Any]) -> None:
         if self.guard is not None:
-            self.guard.registered(link.fd, True)
+            # a round's answers, twice over (an evaluation's beside them): all it may queue
+            answers = len(link.indices) * (4 * self.check.num_params + ANSWER_OVERHEAD_BYTES)
+            self.guard.registered(link.fd, True, allowance=2 * answers)
         self._links[link.identity] = link
         now = time.monotonic()
         rejoined, away_s = 0, 0.0
