@@ -35,6 +35,7 @@ from fedhpg.common.config import RunConfig, host_id_of
 from fedhpg.common.device import DeviceColumns, DeviceModel, device_for, message_bytes
 from fedhpg.common.group import AgentGroup, make_agent_group
 from fedhpg.common.round_columns import train_columns
+from fedhpg.common.runtime import timeline
 from fedhpg.common.runtime.memory import pin_malloc_mmap_threshold, tune_malloc_for
 from fedhpg.common.variants import range_digest, variant_digest, variants_of
 from fedhpg.common.wire.protocol import (
@@ -142,9 +143,11 @@ class AgentHost(AgentProcess):
                 raise Cancelled
 
         planned = dict(zip(request.agents, request.budgets, strict=True)) if request.budgets else {}
+        timeline.mark(self.agent_id, "work-start", request.round)
         trained = train_columns(
             self.group, request.round, theta, agents, budgets=planned, interrupt=interrupt
         )
+        timeline.mark(self.agent_id, "trained", request.round)
         num_params = trained.thetas.shape[1]
         rows = np.asarray(trained.agents, dtype=np.int64) - self.first
         emulated, speeds = self.device_columns.round(

@@ -36,6 +36,7 @@ from fedhpg.common.components import agent_profile, validate_run
 from fedhpg.common.config import ConfigError, RunConfig, adopt_settings, agent_id_of
 from fedhpg.common.device import DeviceModel, device_for, message_bytes
 from fedhpg.common.group import AgentGroup, make_agent_group
+from fedhpg.common.runtime import timeline
 from fedhpg.common.runtime.memory import pin_malloc_mmap_threshold, tune_malloc_for
 from fedhpg.common.variants import variant_digest, variant_of
 from fedhpg.common.wire.codec import MAX_HEADER_BYTES, ProtocolError
@@ -457,6 +458,7 @@ class AgentProcess:
             self.last_answer = (job.request, job.answers)
             for answer in job.answers:
                 self._send(answer)
+            timeline.mark(self.agent_id, "answers-sent", job.request.round)
         if self.pending is not None:
             request, self.pending = self.pending, None
             self._start(request)

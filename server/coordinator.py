@@ -17,6 +17,7 @@ import numpy as np
 import torch
 
 from fedhpg.common.config import RunConfig
+from fedhpg.common.runtime import timeline
 from fedhpg.common.types import AgentUpdate, EvaluationStats, SavedState
 from fedhpg.server.bound_report import round_bound
 from fedhpg.server.participation import make_participation
@@ -178,13 +179,16 @@ class Coordinator:
         started = time.perf_counter() - self.progress.elapsed_s
         for round_number in range(self.progress.next_round, self.run.rounds + 1):
             round_started = time.perf_counter()
+            timeline.mark("server", "round-start", round_number)
             # participation first: every strategy chooses among the agents that take part
             participating = self.participation.select(round_number)
             selected = self.strategy.select(round_number, participating)
             budgets = self.replanner.budgets() if self.replanner is not None else None
             answers = self.pool.train(round_number, self.theta, selected, budgets=budgets)
+            timeline.mark("server", "answers-in", round_number)
             self._aggregate(round_number, answers.updates, answers.failures)
             round_time = time.perf_counter() - round_started
+            timeline.mark("server", "aggregated", round_number)
             evaluation = None
             if should_evaluate(self.run, round_number):
                 evaluation = self.pool.evaluate(round_number, self.theta, self.run.eval.episodes)

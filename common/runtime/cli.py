@@ -16,6 +16,7 @@ from collections.abc import Callable, Iterator, Sequence
 from typing import Any
 
 from fedhpg.common.config import ConfigError, RunConfig, unknown_key
+from fedhpg.common.runtime import timeline
 
 logger = logging.getLogger(__name__)
 
@@ -266,6 +267,7 @@ def setup_logging(level: str | int | None = None) -> None:
     handler.setFormatter(logging.Formatter(LOG_FORMAT, datefmt=LOG_DATE_FORMAT))
     root.addHandler(handler)
     root.setLevel(level)
+    timeline.configure()
 
 
 def limit_threads() -> None:

@@ -49,6 +49,7 @@ import torch
 import zmq
 
 from fedhpg.common.config import ServerConfig, agent_id_of
+from fedhpg.common.runtime import timeline
 from fedhpg.common.types import AgentUpdate, EvaluationStats, UpdateStats
 from fedhpg.common.variants import range_digest
 from fedhpg.common.wire.codec import ProtocolError
@@ -798,6 +799,7 @@ class ZmqAgentPool:
     def _on_update_batch(self, identity: bytes, link: Link, batch: UpdateBatch) -> None:
         """A host's updates, row by row as if each had come alone, but checked and copied a
         batch at a time."""
+        timeline.mark("server", f"batch-from-{link.label}", batch.round)
         collection = self._collection
         open_round = (
             collection is not None
@@ -915,11 +917,13 @@ class ZmqAgentPool:
             message = self._request_for(link, collection, selected)
             if message is not None:
                 self._send_to_link(link, message)
+        timeline.mark("server", f"{type(request).__name__.lower()}-sent", request.round)
         try:
             while not self._complete(collection, what):
                 self._pump(POLL_INTERVAL_S)
         finally:
             self._collection = None
+        timeline.mark("server", f"{type(request).__name__.lower()}-collected", request.round)
         return collection
 
     def _complete(self, collection: Collection, what: str) -> bool:
