@@ -42,7 +42,10 @@ def test_rows_land_at_their_agents_place_in_any_order() -> None:
     # a batch listing its agents out of order, with a row left out (a rejected agent)
     views = rows.put([21, 10, 11, 13], thetas, [5, 0, 1, 3])
     rows.put([12, 20], thetas[[2, 4]], [0, 1])
-    assert all(np.array_equal(v, thetas[i]) for v, i in zip(views, [5, 0, 1, 3], strict=True))
+    assert all(
+        np.array_equal(v.numpy(), thetas[i]) for v, i in zip(views, [5, 0, 1, 3], strict=True)
+    )
+    assert all(v.untyped_storage().data_ptr() == rows.matrix.ctypes.data for v in views)
     assert rows.block([10, 11, 12, 13, 20, 21]) is rows.matrix
     assert np.array_equal(rows.matrix, thetas)
     compact = rows.block([10, 13, 21])

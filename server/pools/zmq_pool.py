@@ -145,7 +145,7 @@ class Collection:
     expected: frozenset[int]
     """The agents asked (the strategy's selection; every agent for an evaluation)."""
     started: float = field(default_factory=time.monotonic)
-    answers: dict[int, Update | Evaluation] = field(default_factory=dict)
+    answers: dict[int, AgentUpdate | Evaluation] = field(default_factory=dict)
     failures: dict[int, str] = field(default_factory=dict)
     """Agents whose answer was rejected (it counts as their answer: they are not waited for)."""
     rows: RoundRows | None = None
@@ -723,7 +723,9 @@ class ZmqAgentPool:
         assert collection is not None and collection.rows is not None
         views = collection.rows.put(indices, thetas, rows)
         for index, theta, agent_stats in zip(indices, views, stats, strict=True):
-            collection.answers[index] = Update(round=round_index, theta=theta, stats=agent_stats)
+            collection.answers[index] = AgentUpdate(
+                agent_index=index, agent_id=self._name(index), theta=theta, stats=agent_stats
+            )
 
     def _on_update(self, identity: bytes, peer: Peer | None, update: Update) -> None:
         """A lone agent's answer."""
@@ -977,21 +979,14 @@ class ZmqAgentPool:
                 ", ".join(stragglers),
             )
         accepted = [
-            (index, update)
-            for index, update in sorted(collection.answers.items())
-            if isinstance(update, Update)
+            update
+            for _, update in sorted(collection.answers.items())
+            if isinstance(update, AgentUpdate)
         ]
         assert collection.rows is not None
-        block = collection.rows.block([index for index, _ in accepted])
-        # views of one [K, d] matrix: strategies.stacked hands it on as it is
-        thetas = torch.from_numpy(block).unbind(0)
         return RoundAnswers(
-            updates=[
-                AgentUpdate(
-                    agent_index=index, agent_id=self._name(index), theta=theta, stats=update.stats
-                )
-                for (index, update), theta in zip(accepted, thetas, strict=True)
-            ],
+            # views of one [K, d] matrix: strategies.stacked hands it on as it is
+            updates=collection.rows.compacted(accepted),
             failures={self._name(k): r for k, r in sorted(collection.failures.items())},
             stragglers=stragglers,
         )
