@@ -42,8 +42,6 @@ def parse(stderr: str) -> dict[int, dict[str, float]]:
             continue
         stamp, who, event, round_index = text.split()
         key = event if who == "server" else f"host-{event}"
-        if event.startswith("batch-from-"):
-            key = "batch"
         marks[int(round_index)][key].append(float(stamp))
     rounds: dict[int, dict[str, float]] = {}
     for number, seen in marks.items():

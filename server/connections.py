@@ -125,9 +125,9 @@ class _Connection:
     seen_delivered: int = 0
     registered: bool = False
     over_since: float | None = None
+    """When more than the cap was first counted since the last delivery (registered peers)."""
     allowance: int = 0
     """Bytes a registered peer may have in flight before it is cut without a drain."""
-    """When more than the cap was first counted since the last delivery (registered peers)."""
 
 
 @dataclass

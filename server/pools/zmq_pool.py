@@ -801,7 +801,7 @@ class ZmqAgentPool:
     def _on_update_batch(self, identity: bytes, link: Link, batch: UpdateBatch) -> None:
         """A host's updates, row by row as if each had come alone, but checked and copied a
         batch at a time."""
-        timeline.mark("server", f"batch-from-{link.label}", batch.round)
+        timeline.mark("server", "batch", batch.round)
         collection = self._collection
         open_round = (
             collection is not None
@@ -919,13 +919,16 @@ class ZmqAgentPool:
             message = self._request_for(link, collection, selected)
             if message is not None:
                 self._send_to_link(link, message)
-        timeline.mark("server", f"{type(request).__name__.lower()}-sent", request.round)
+        is_train = isinstance(request, Train)  # the marks' names: nothing formatted per round
+        timeline.mark("server", "train-sent" if is_train else "evaluate-sent", request.round)
         try:
             while not self._complete(collection, what):
                 self._pump(POLL_INTERVAL_S)
         finally:
             self._collection = None
-        timeline.mark("server", f"{type(request).__name__.lower()}-collected", request.round)
+        timeline.mark(
+            "server", "train-collected" if is_train else "evaluate-collected", request.round
+        )
         return collection
 
     def _complete(self, collection: Collection, what: str) -> bool:
