@@ -30,8 +30,9 @@ Layouts. θ is torch's flat layout (each ``nn.Linear``: weight [out, in] row-maj
 bias). Inside a kernel the weights are padded 3-D arrays indexed by loop variables only (a
 computed flat index costs numba a negative-index check per access, which LLVM cannot vectorise
 away): ``forward_weights`` [L, w + 1, w] holds layer l's weight as [in, out] with its bias as
-row ``in`` (the forward loops over contiguous outputs), ``backward_weights`` [L, w, w] as
-[out, in] (the backward loops over contiguous inputs), w the widest layer.
+the last row (the forward loops over contiguous outputs), ``backward_weights`` [L, w, w] as
+[out, in] (the backward loops over contiguous inputs), w the widest layer (for the gradient,
+rounded up to :data:`LANES`, the padding zeros).
 """
 
 from __future__ import annotations
@@ -63,6 +64,10 @@ TANH_CLAMP = 10.0
 """|x| beyond which float32 tanh(x) is ±1 (it is from |x| ≈ 9.01 on)."""
 BLOCK = 64
 """Rows whose gradient is summed in float32 before it joins the float64 total."""
+LANES = 16
+"""Inputs the gradient's layer sums take in one pass: a row's running sum stays in a register
+across them and is written back once per pass. Summed through memory term by term
+(``out[o, r] += w · in[i, r]``), each term waits for the last one's store."""
 
 ESTIMATORS = {"reinforce": 0, "gpomdp": 1}
 BASELINES = {"none": 0, "mean": 1}
@@ -127,6 +132,7 @@ def fill_weights(
 ) -> None:
     """θ (flat, torch's layout) into the padded ``forward_w`` [L, w + 1, w] and
     ``backward_w`` [L, w, w] (module docstring); the padding is left as it is (zeros)."""
+    bias_row = forward_w.shape[1] - 1
     offset = 0
     for layer in range(len(sizes) - 1):
         n_in, n_out = sizes[layer], sizes[layer + 1]
@@ -135,7 +141,7 @@ def fill_weights(
                 value = theta[offset + o * n_in + i]
                 forward_w[layer, i, o] = value
                 backward_w[layer, o, i] = value
-            forward_w[layer, n_in, o] = theta[offset + n_in * n_out + o]
+            forward_w[layer, bias_row, o] = theta[offset + n_in * n_out + o]
         offset += n_in * n_out + n_out
 
 
@@ -161,9 +167,10 @@ def dense(
     activate: bool,
 ) -> None:
     """above[r, :n_out] = tanh?(below[r, :n_in] · W + b) for the first ``rows`` rows."""
+    bias_row = weights.shape[1] - 1
     for r in range(rows):
         for o in range(n_out):
-            above[r, o] = weights[layer, n_in, o]
+            above[r, o] = weights[layer, bias_row, o]
         for i in range(n_in):
             value = below[r, i]
             for o in range(n_out):
@@ -471,23 +478,34 @@ def _standardise(coef: np.ndarray, alive: np.ndarray, per_copy: bool) -> None:
                 coef[t, c] = (coef[t, c] - mean) / scale if alive[t, c] else 0.0
 
 
+@kernel(inline=True)
+def _zero_rows(rows: np.ndarray, first: int) -> None:
+    """rows[first:] = 0: a layer's padding units, which a pass of :data:`LANES` reads."""
+    for j in range(first, rows.shape[0]):
+        for r in range(rows.shape[1]):
+            rows[j, r] = 0.0
+
+
 @kernel()
 def gradient_workspace(sizes: np.ndarray) -> tuple[np.ndarray, ...]:
-    """Scratch for :func:`score_gradient`, made once per iteration's call."""
+    """Scratch for :func:`score_gradient`, made once per iteration's call: units padded to
+    a multiple of :data:`LANES` with zeros (weights, activations and δ of no unit)."""
     layers = len(sizes) - 1
     width = widest(sizes)
+    padded = (width + LANES - 1) // LANES * LANES
     return (
-        np.zeros((layers, width + 1, width), dtype=np.float32),  # forward weights
-        np.zeros((layers, width, width), dtype=np.float32),  # backward weights
-        np.zeros((layers + 1, width, BLOCK), dtype=np.float32),  # activations
-        np.zeros((width, BLOCK), dtype=np.float32),  # δ
-        np.zeros((width, BLOCK), dtype=np.float32),  # Wᵀδ
+        np.zeros((layers, padded + 1, padded), dtype=np.float32),  # forward weights
+        np.zeros((layers, padded, padded), dtype=np.float32),  # backward weights
+        np.zeros((layers + 1, padded, BLOCK), dtype=np.float32),  # activations
+        np.zeros((padded, BLOCK), dtype=np.float32),  # δ
+        np.zeros((padded, BLOCK), dtype=np.float32),  # a layer's sums: Wx + b, then Wᵀδ
         np.zeros(BLOCK, dtype=np.float32),  # the largest logit per row
         np.zeros(BLOCK, dtype=np.float32),  # the softmax's normaliser per row
         np.zeros((layers, width, width), dtype=np.float64),  # weight gradient
         np.zeros((layers, width), dtype=np.float64),  # bias gradient
         np.zeros(BLOCK, dtype=np.float32),  # the block's coefficients
         np.zeros(BLOCK, dtype=np.float32),  # the block's actions (as floats: one tuple type)
+        np.ones(BLOCK, dtype=np.float32),  # ones: a bias's inputs
     )
 
 
@@ -510,7 +528,7 @@ def score_gradient(
     16 units cost LLVM more in loop entries than in arithmetic); each block's sums over its
     rows are added to float64 totals."""
     forward_w, backward_w, acts, delta, below, top, total = workspace[:7]
-    weight_total, bias_total, coef, action = workspace[7:]
+    weight_total, bias_total, coef, action, ones = workspace[7:]
     layers = len(sizes) - 1
     n_actions = sizes[layers]
     fill_weights(theta, sizes, forward_w, backward_w)
@@ -532,19 +550,26 @@ def score_gradient(
         for r in range(rows, BLOCK):
             coef[r] = 0.0
             action[r] = 0
+        bias_row = forward_w.shape[1] - 1
         for layer in range(layers):
             n_in, n_out = sizes[layer], sizes[layer + 1]
-            for o in range(n_out):
-                bias = forward_w[layer, n_in, o]
-                for r in range(BLOCK):
-                    acts[layer + 1, o, r] = bias
-                for i in range(n_in):
-                    weight = forward_w[layer, i, o]
+            # The sums go to ``below``, not to the next layer's rows of ``acts``: LLVM cannot
+            # tell two rows of one array apart, and would not keep a row's sum in a register.
+            for first in range(0, n_in, LANES):  # padded inputs: zero weights, zero units
+                for o in range(n_out):
+                    bias = forward_w[layer, bias_row, o]
                     for r in range(BLOCK):
-                        acts[layer + 1, o, r] += weight * acts[layer, i, r]
+                        value = bias if first == 0 else below[o, r]
+                        for i in range(LANES):
+                            value += forward_w[layer, first + i, o] * acts[layer, first + i, r]
+                        below[o, r] = value
+            for o in range(n_out):
                 if layer < layers - 1:
                     for r in range(BLOCK):
-                        acts[layer + 1, o, r] = tanh32(acts[layer + 1, o, r])
+                        acts[layer + 1, o, r] = tanh32(below[o, r])
+                else:
+                    for r in range(BLOCK):
+                        acts[layer + 1, o, r] = below[o, r]
         # ∂ log π(a|s) / ∂ logits = onehot(a) − π, times the row's coefficient
         for r in range(BLOCK):
             top[r] = acts[layers, 0, r]
@@ -560,12 +585,13 @@ def score_gradient(
             for r in range(BLOCK):
                 hit = np.float32(1.0) if np.float32(j) == action[r] else np.float32(0.0)
                 delta[j, r] = (hit - delta[j, r] / total[r]) * coef[r]
+        _zero_rows(delta, n_actions)
         for layer in range(layers - 1, -1, -1):
             n_in, n_out = sizes[layer], sizes[layer + 1]
             for o in range(n_out):
                 block_sum = np.float32(0.0)
-                for r in range(BLOCK):
-                    block_sum += delta[o, r]
+                for r in range(BLOCK):  # times ones: a plain sum compiled to a serial chain
+                    block_sum += delta[o, r] * ones[r]
                 bias_total[layer, o] += block_sum
                 for i in range(n_in):
                     block_sum = np.float32(0.0)
@@ -573,17 +599,18 @@ def score_gradient(
                         block_sum += delta[o, r] * acts[layer, i, r]
                     weight_total[layer, o, i] += block_sum
             if layer > 0:  # δ below = (Wᵀ δ) ⊙ tanh', tanh' = 1 − h²
-                for i in range(n_in):
-                    for r in range(BLOCK):
-                        below[i, r] = 0.0
-                    for o in range(n_out):
-                        weight = backward_w[layer, o, i]
+                for first in range(0, n_out, LANES):  # δ's padding rows are zeros
+                    for i in range(n_in):
                         for r in range(BLOCK):
-                            below[i, r] += weight * delta[o, r]
+                            value = np.float32(0.0) if first == 0 else below[i, r]
+                            for o in range(LANES):
+                                value += backward_w[layer, first + o, i] * delta[first + o, r]
+                            below[i, r] = value
                 for i in range(n_in):
                     for r in range(BLOCK):
                         h = acts[layer, i, r]
                         delta[i, r] = below[i, r] * (np.float32(1.0) - h * h)
+                _zero_rows(delta, n_in)
     offset = 0
     for layer in range(layers):
         n_in, n_out = sizes[layer], sizes[layer + 1]
