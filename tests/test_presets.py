@@ -22,14 +22,18 @@ happens in 500 steps) the floor ``MIN_MARGIN`` is 5% of the control's magnitude.
 Measured (seed 0, the one tested; control → final, gain / margin): gridworld −0.06 → 0.41,
 0.47 / 0.07; cartpole 10.3 → 247.0, 237 / 0.96; acrobot −500 → −91.3, 409 / 25; pendulum
 −1,219.5 → −967.3, 252 / 108; lunarlander −417.8 → −137.1, 281 / 132; lunarlander-continuous
-−331.7 → −151.8, 180 / 73; halfcheetah −0.03 → 256.5 after 24 rounds, 257 / 1.3. HalfCheetah's
-greedy return (the mean action) wanders far while its stochastic return climbs, and where it
-wanders depends on the machine: torch's and MuJoCo's floats differ with the CPU type (and with
-torch's thread count), and the chaotic runs then part. Seed 0 at round 12 was +464.8 on an
-earlier machine of this pool and −434.0 on another (greedy at rounds 2–16 there: 80, −209, 13,
-−156, −937, −434, −151, −210; the training return −129 → −43), then 257 at rounds 24 and 30:
-24 rounds leave the wander behind. Pendulum needs 60 rounds: its greedy return is flat for
-~40 rounds while σ shrinks.
+−331.7 → −151.8, 180 / 73. Pendulum needs 60 rounds: its greedy return is flat for ~40 rounds
+while σ shrinks.
+
+HalfCheetah is judged by its training return instead (``Case.by_training``): the mean over
+agents of the round's training trajectories, averaged over the second half of the rounds,
+against round 1's (θ̃₀'s own batch), with the margin from round 1's spread over seeds 0–19
+(sd 12.2). Its evaluated return after 24 rounds is chaotic: torch's and MuJoCo's floats differ
+with the CPU type and torch's thread count, and the runs then part. Seed 0's greedy return at
+round 24 was 256.5 on one machine of this pool and −199.7 on another (an AMD EPYC with
+AVX-512); there, with sampled actions, it was −98.1 with one torch thread and −345.5 with two.
+The training return climbed on every one of these: on the EPYC from −135.7 (round 1) to
+−7.1 over rounds 13–24 (peak 53.8 at round 18), 129 / 52.
 Runtimes on the shared 2-core machine: halfcheetah ~45 s, pendulum ~37 s, acrobot ~11 s, the
 others < 10 s each, ~2 min for the file. Marked ``slow``: ``make test-long`` runs them.
 """
@@ -62,7 +66,10 @@ class Case:
     episodes: int
     """Evaluation episodes per agent (K = 4 agents, the default devices)."""
     control_sd: float
-    """Measured sd of θ̃₀'s greedy return (mean over agents) across 20 evaluation seed sets."""
+    """Measured sd of θ̃₀'s greedy return (mean over agents) across 20 evaluation seed sets;
+    with ``by_training``, of round 1's training return across seeds 0–19."""
+    by_training: bool = False
+    """Judge by the training return (module docstring: HalfCheetah)."""
 
 
 CASES: dict[str, Case] = {
@@ -72,7 +79,7 @@ CASES: dict[str, Case] = {
     "pendulum": Case(rounds=60, episodes=30, control_sd=25.4),
     "lunarlander": Case(rounds=10, episodes=20, control_sd=31.1),
     "lunarlander-continuous": Case(rounds=10, episodes=10, control_sd=17.3),
-    "halfcheetah": Case(rounds=24, episodes=2, control_sd=0.31),
+    "halfcheetah": Case(rounds=24, episodes=2, control_sd=12.2, by_training=True),
 }
 
 
@@ -126,11 +133,19 @@ def test_preset_learns(name: str) -> None:
     final_eval = records[-1].eval
     assert final_eval is not None
     final = statistics.mean(e.return_mean for e in final_eval.values())
-    control = greedy_return(run, initial_theta(run_variants(run)[0], run), case.rounds)
+    assert math.isfinite(final)
+    what = "greedy return"
+    if case.by_training:
+        what = "training return over the second half"
+        trained = [statistics.mean(u.stats.train_return for u in r.agents) for r in records]
+        control = trained[0]
+        final = statistics.mean(trained[case.rounds // 2 :])
+    else:
+        control = greedy_return(run, initial_theta(run_variants(run)[0], run), case.rounds)
     assert math.isfinite(final) and math.isfinite(control)
     need = margin(case, control)
     assert final - control >= need, (
-        f"env={name}: greedy return {final:.2f} after {case.rounds} rounds against the "
+        f"env={name}: {what} {final:.2f} after {case.rounds} rounds against the "
         f"no-learning control's {control:.2f}: gain {final - control:.2f} < margin {need:.2f}"
     )
 
