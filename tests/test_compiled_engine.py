@@ -6,6 +6,7 @@ engines), placement through real processes in test_hosts.py."""
 
 from __future__ import annotations
 
+import itertools
 import math
 from dataclasses import dataclass
 
@@ -235,6 +236,32 @@ def test_the_kernels_forward_is_torchs_policy() -> None:
     with torch.no_grad():
         reference = policy.net(torch.from_numpy(obs)).numpy()
     np.testing.assert_allclose(logits[:, :2], reference, rtol=0, atol=2e-6)
+
+
+@pytest.mark.parametrize("hidden", [[16, 16], [], [8, 12, 8], [20, 5]])
+def test_the_lanes_forward_gives_the_row_forwards_numbers(hidden: list[int]) -> None:
+    """The sampler's two forwards, row by row (fewer than LANES_FROM copies running) and as
+    lanes (from it on), give the same numbers for any count of columns, so the switch never
+    changes an episode."""
+    sizes = np.array([4, *hidden, 2], dtype=np.int64)
+    rng = np.random.default_rng(len(hidden))
+    count = sum(int(a) * int(b) + int(b) for a, b in itertools.pairwise(sizes))
+    theta = (rng.standard_normal(count) * 0.7).astype(np.float32)
+    forward_w, _ = kernels.padded_weights(theta, sizes)
+    width, lanes = forward_w.shape[2], kernels.LANES
+    for columns in (1, 5, 12, 16, 17, 40):
+        obs = (rng.standard_normal((columns, 4)) * 2).astype(np.float32)
+        even, odd = np.zeros((columns, width), np.float32), np.zeros((columns, width), np.float32)
+        rows = even if kernels.forward(forward_w, sizes, obs, even, odd, columns) else odd
+        chunks = -(-columns // lanes)
+        first = np.zeros((chunks, width, lanes), np.float32)
+        for c in range(columns):
+            first[c // lanes, :4, c % lanes] = obs[c]
+        even_l, odd_l = np.zeros_like(first), np.zeros_like(first)
+        in_even = kernels.forward_lanes(forward_w, sizes, first, even_l, odd_l, columns)
+        out = even_l if in_even else odd_l
+        got = np.stack([out[c // lanes, :2, c % lanes] for c in range(columns)])
+        assert np.array_equal(got, rows[:, :2]), (hidden, columns)
 
 
 SETTINGS = [

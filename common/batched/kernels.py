@@ -65,9 +65,13 @@ TANH_CLAMP = 10.0
 BLOCK = 64
 """Rows whose gradient is summed in float32 before it joins the float64 total."""
 LANES = 16
-"""Inputs the gradient's layer sums take in one pass: a row's running sum stays in a register
-across them and is written back once per pass. Summed through memory term by term
-(``out[o, r] += w · in[i, r]``), each term waits for the last one's store."""
+"""Inputs a layer's sums take in one pass (the gradient's, and the sampler's with many copies
+running): a running sum stays in a register across them and is written back once per pass.
+Summed through memory term by term (``out[o, r] += w · in[i, r]``), each term waits for the
+last one's store."""
+LANES_FROM = 12
+"""Running copies from which the sampler's forward takes them as lanes (:func:`forward_lanes`);
+below, row by row (:func:`forward`), whose cost grows with the rows where the lanes' does not."""
 
 ESTIMATORS = {"reinforce": 0, "gpomdp": 1}
 BASELINES = {"none": 0, "mean": 1}
@@ -146,9 +150,15 @@ def fill_weights(
 
 
 @kernel()
+def padded_width(sizes: np.ndarray) -> int:
+    """The widest layer rounded up to :data:`LANES`."""
+    return (widest(sizes) + LANES - 1) // LANES * LANES
+
+
+@kernel()
 def padded_weights(theta: np.ndarray, sizes: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """θ as fresh (forward_weights, backward_weights): module docstring."""
-    width = widest(sizes)
+    width = padded_width(sizes)
     forward_w = np.zeros((len(sizes) - 1, width + 1, width), dtype=np.float32)
     backward_w = np.zeros((len(sizes) - 1, width, width), dtype=np.float32)
     fill_weights(theta, sizes, forward_w, backward_w)
@@ -203,6 +213,64 @@ def forward(
 
 
 @kernel(inline=True)
+def dense_lanes(
+    weights: np.ndarray,
+    layer: int,
+    n_in: int,
+    n_out: int,
+    below: np.ndarray,
+    above: np.ndarray,
+    chunks: int,
+    activate: bool,
+) -> None:
+    """:func:`dense` on columns: above[k, o, c] = tanh?(b_o + Σ_i W[i, o] · below[k, i, c]) for
+    the first ``chunks`` chunks of :data:`LANES` columns ([chunk, unit, lane], a lane a copy).
+    The terms are added in input order after the bias, each rounded as :func:`dense` rounds it
+    (strict IEEE), so a column is exactly what :func:`dense` gives that row; the padding inputs
+    add 0 · 0 (``above``'s padding units are zeroed for the layer above). The lanes are a
+    constant count at a constant offset, which is what lets LLVM keep the sums in registers."""
+    bias_row = weights.shape[1] - 1
+    for k in range(chunks):
+        for first in range(0, n_in, LANES):
+            for o in range(n_out):
+                bias = weights[layer, bias_row, o]
+                for c in range(LANES):
+                    value = bias if first == 0 else above[k, o, c]
+                    for i in range(LANES):
+                        value += weights[layer, first + i, o] * below[k, first + i, c]
+                    above[k, o, c] = value
+        if activate:
+            for o in range(n_out):
+                for c in range(LANES):
+                    above[k, o, c] = tanh32(above[k, o, c])
+        for o in range(n_out, (n_out + LANES - 1) // LANES * LANES):
+            for c in range(LANES):
+                above[k, o, c] = 0.0
+
+
+@kernel(inline=True)
+def forward_lanes(
+    weights: np.ndarray, sizes: np.ndarray, first: np.ndarray, even: np.ndarray,
+    odd: np.ndarray, columns: int,
+) -> bool:  # fmt: skip
+    """:func:`forward` on the first ``columns`` columns of ``first`` ([chunk, feature, lane],
+    zero past the input's features; the weights padded to :data:`LANES` units)."""
+    chunks = (columns + LANES - 1) // LANES
+    layers = len(sizes) - 1
+    dense_lanes(weights, 0, sizes[0], sizes[1], first, even, chunks, layers > 1)
+    in_even = True
+    for layer in range(1, layers):
+        if in_even:
+            dense_lanes(weights, layer, sizes[layer], sizes[layer + 1], even, odd, chunks,
+                        layer < layers - 1)  # fmt: skip
+        else:
+            dense_lanes(weights, layer, sizes[layer], sizes[layer + 1], odd, even, chunks,
+                        layer < layers - 1)  # fmt: skip
+        in_even = not in_even
+    return in_even
+
+
+@kernel(inline=True)
 def draw_action(logits: np.ndarray, row: int, n_actions: int, uniform: float,
                 scratch: np.ndarray) -> int:  # fmt: skip
     """Inverse-CDF categorical draw, one row (the numpy engine's ``draw_actions``)."""
@@ -240,7 +308,8 @@ def rollout_workspace(sizes: np.ndarray, copies: int) -> tuple[np.ndarray, ...]:
     """Scratch for :func:`rollout_agent` of up to ``copies`` copies (made once per call of a
     whole iteration, not per agent: at ~20-step episodes an agent's own allocations cost more
     than its steps)."""
-    width = widest(sizes)
+    width = padded_width(sizes)
+    chunks = (copies + LANES - 1) // LANES
     return (
         np.zeros((len(sizes) - 1, width + 1, width), dtype=np.float32),  # forward weights
         np.zeros((len(sizes) - 1, width, width), dtype=np.float32),  # backward weights
@@ -251,6 +320,9 @@ def rollout_workspace(sizes: np.ndarray, copies: int) -> tuple[np.ndarray, ...]:
         np.zeros((copies, 4), dtype=np.float64),  # CartPole states
         np.zeros(copies, dtype=np.int64),  # the copies still running
         np.zeros(copies, dtype=np.float64),  # γ^t per copy
+        np.zeros((chunks, width, LANES), dtype=np.float32),  # observations as lanes
+        np.zeros((chunks, width, LANES), dtype=np.float32),  # lanes, even layers
+        np.zeros((chunks, width, LANES), dtype=np.float32),  # lanes, odd layers
     )
 
 
@@ -283,7 +355,8 @@ def rollout_agent(
     last written. Randomness, all from ``stream`` (the agent's own): the initial states as
     gymnasium's CartPole vector env draws them (``uniform(±0.05, size=(4, copies))``,
     row-major), then per step one uniform per running copy, in copy order (none if greedy)."""
-    weights, backward_w, obs, even, odd, scratch, state, running, discount = workspace
+    weights, backward_w, obs, even, odd, scratch, state, running, discount = workspace[:9]
+    obs_lanes, even_lanes, odd_lanes = workspace[9:]
     obs_dim = sizes[0]
     n_actions = sizes[len(sizes) - 1]
     fill_weights(theta, sizes, weights, backward_w)
@@ -300,11 +373,24 @@ def rollout_agent(
     record = rows_obs.shape[0] > 0
     row = first_row
     for t in range(limit):
-        for slot in range(alive):
-            for i in range(obs_dim):
-                obs[slot, i] = np.float32(state[running[slot], i])
-        in_even = forward(weights, sizes, obs, even, odd, alive)
-        logits = even if in_even else odd
+        if alive >= LANES_FROM:
+            for slot in range(alive):
+                for i in range(obs_dim):
+                    value = np.float32(state[running[slot], i])
+                    obs[slot, i] = value
+                    obs_lanes[slot // LANES, i, slot % LANES] = value
+            in_even = forward_lanes(weights, sizes, obs_lanes, even_lanes, odd_lanes, alive)
+            lanes = even_lanes if in_even else odd_lanes
+            for slot in range(alive):  # the same numbers as rows, for the draw
+                for j in range(n_actions):
+                    even[slot, j] = lanes[slot // LANES, j, slot % LANES]
+            logits = even
+        else:
+            for slot in range(alive):
+                for i in range(obs_dim):
+                    obs[slot, i] = np.float32(state[running[slot], i])
+            in_even = forward(weights, sizes, obs, even, odd, alive)
+            logits = even if in_even else odd
         kept = 0
         for slot in range(alive):
             c = running[slot]
@@ -492,7 +578,7 @@ def gradient_workspace(sizes: np.ndarray) -> tuple[np.ndarray, ...]:
     a multiple of :data:`LANES` with zeros (weights, activations and δ of no unit)."""
     layers = len(sizes) - 1
     width = widest(sizes)
-    padded = (width + LANES - 1) // LANES * LANES
+    padded = padded_width(sizes)
     return (
         np.zeros((layers, padded + 1, padded), dtype=np.float32),  # forward weights
         np.zeros((layers, padded, padded), dtype=np.float32),  # backward weights
