@@ -199,17 +199,13 @@ def forward(
     """The MLP on the first ``rows`` rows of ``first`` (the inputs), tanh between layers,
     ping-ponging between ``even`` and ``odd``; True if the logits ended in ``even``."""
     layers = len(sizes) - 1
-    dense(weights, 0, sizes[0], sizes[1], first, even, rows, layers > 1)
-    in_even = True
-    for layer in range(1, layers):
-        if in_even:
-            dense(weights, layer, sizes[layer], sizes[layer + 1], even, odd, rows,
-                  layer < layers - 1)  # fmt: skip
-        else:
-            dense(weights, layer, sizes[layer], sizes[layer + 1], odd, even, rows,
-                  layer < layers - 1)  # fmt: skip
-        in_even = not in_even
-    return in_even
+    below = first
+    for layer in range(layers):
+        above = even if layer % 2 == 0 else odd
+        dense(weights, layer, sizes[layer], sizes[layer + 1], below, above, rows,
+              layer < layers - 1)  # fmt: skip
+        below = above
+    return (layers - 1) % 2 == 0
 
 
 @kernel(inline=True)
@@ -257,17 +253,13 @@ def forward_lanes(
     zero past the input's features; the weights padded to :data:`LANES` units)."""
     chunks = (columns + LANES - 1) // LANES
     layers = len(sizes) - 1
-    dense_lanes(weights, 0, sizes[0], sizes[1], first, even, chunks, layers > 1)
-    in_even = True
-    for layer in range(1, layers):
-        if in_even:
-            dense_lanes(weights, layer, sizes[layer], sizes[layer + 1], even, odd, chunks,
-                        layer < layers - 1)  # fmt: skip
-        else:
-            dense_lanes(weights, layer, sizes[layer], sizes[layer + 1], odd, even, chunks,
-                        layer < layers - 1)  # fmt: skip
-        in_even = not in_even
-    return in_even
+    below = first
+    for layer in range(layers):
+        above = even if layer % 2 == 0 else odd
+        dense_lanes(weights, layer, sizes[layer], sizes[layer + 1], below, above, chunks,
+                    layer < layers - 1)  # fmt: skip
+        below = above
+    return (layers - 1) % 2 == 0
 
 
 @kernel(inline=True)
