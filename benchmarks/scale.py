@@ -84,13 +84,31 @@ class CaseResult:
     sampling_steps_per_cpu_s: float
     """Env steps per CPU second of the hosts' sampling (engine_sample_s)."""
     round_steps_per_s: float
-    """Env steps per second of round wall time (all hosts together)."""
+    """Env steps per second of wall time from one round's θ̃ to the next's, all hosts together:
+    the round and whatever the server does between rounds (its record keeping), evaluations
+    excluded (:func:`round_walls`)."""
     round_time_s: float
     coordination_us_per_agent: float
     """Median over rounds of (round time − the slowest host's wall time) / participants."""
     copies_per_host: int
     refs: dict[str, float] = field(default_factory=dict)
     ref_ranges: dict[str, tuple[float, float]] = field(default_factory=dict)
+
+
+def round_walls(records: list[dict]) -> None:
+    """Each record's ``round_wall_s``: wall time since the round before's θ̃ (``wall_time_s``
+    apart, less this round's evaluation), so that what the server does between rounds counts;
+    ``round_time_s`` for the first. Until the server wrote a round's record while the next one
+    trained, that writing (~15–40 ms a round at K = 1,000) fell between the rounds, where
+    ``round_time_s`` alone did not see it."""
+    previous = None
+    for record in records:
+        if previous is None:
+            record["round_wall_s"] = record["round_time_s"]
+        else:
+            evaluation = record.get("eval_time_s") or 0.0
+            record["round_wall_s"] = record["wall_time_s"] - previous["wall_time_s"] - evaluation
+        previous = record
 
 
 def _sampled_copies(case: Case) -> list[int]:
@@ -118,8 +136,8 @@ def _summary(case: Case, name: str, rounds: list[dict], refs: dict[str, list[flo
         participants=statistics.median(len(r["agents"]) for r in rounds),
         env_steps_per_round=statistics.mean(steps),
         sampling_steps_per_cpu_s=sum(steps) / sum(sample_s),
-        round_steps_per_s=sum(steps) / sum(r["round_time_s"] for r in rounds),
-        round_time_s=statistics.median(r["round_time_s"] for r in rounds),
+        round_steps_per_s=sum(steps) / sum(r["round_wall_s"] for r in rounds),
+        round_time_s=statistics.median(r["round_wall_s"] for r in rounds),
         coordination_us_per_agent=1e6 * statistics.median(overhead),
         copies_per_host=copies,
         refs={name: statistics.median(values) for name, values in refs.items()},
@@ -154,6 +172,7 @@ def measure(case: Case) -> list[CaseResult]:
         if checkpoint is not None:
             FINAL_THETA[case.name] = checkpoint.theta
     _references(case, copies, refs)
+    round_walls(records)
     rounds = [r for r in records if r["agents"]]
     # Round 1 is start-up (first messages, first-touch of the buffers; the start-up column
     # times it): the throughput columns are of the rounds after it.

@@ -30,6 +30,8 @@ PHASES = [
     ("train-collected", "every answer filed"),
     ("answers-in", "the round's updates built"),
     ("aggregated", "θ̃ aggregated (round time)"),
+    ("next-start", "the next round starts"),
+    ("recorded", "(the round before's record written)"),
 ]
 
 
@@ -61,6 +63,13 @@ def parse(stderr: str) -> dict[int, dict[str, float]]:
             "aggregated": seen["aggregated"][0],
         }
         rounds[number] = {key: value - start for key, value in phases.items()}
+        # the round before's record (metrics, checkpoint) is written while this round trains
+        before = marks.get(number - 1, {}).get("recorded")
+        if before:
+            rounds[number]["recorded"] = before[0] - start
+        following = marks.get(number + 1, {}).get("round-start")
+        if following:
+            rounds[number]["next-start"] = following[0] - start
     return rounds
 
 
@@ -89,7 +98,9 @@ def main() -> None:
         raise SystemExit("error: no round after the first was marked")
     print(f"{len(steady)} rounds (2–{args.rounds}), ms from the round's start, median [min–max]:")
     for key, label in PHASES:
-        values = [1e3 * r[key] for r in steady]
+        values = [1e3 * r[key] for r in steady if key in r]
+        if not values:
+            continue
         print(f"  {label:32s} {statistics.median(values):7.1f} "
               f"[{min(values):.1f}–{max(values):.1f}]")  # fmt: skip
     spread = [1e3 * (r["last-trained"] - r["first-trained"]) for r in steady]

@@ -7,7 +7,7 @@ Two pools: :mod:`.inprocess` (K workers on this thread: tests and sweeps) and :m
 
 from __future__ import annotations
 
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Protocol
 
@@ -45,9 +45,12 @@ class AgentPool(Protocol):
         agents: Sequence[int],
         *,
         budgets: Mapping[int, Mapping[str, int]] | None = None,
+        while_training: Callable[[], None] | None = None,
     ) -> RoundAnswers:
         """The local updates of ``round_index`` from θ̃ of the selected agent indices;
-        ``budgets``: the round's planned budget fields per agent (``agents.plan``)."""
+        ``budgets``: the round's planned budget fields per agent (``agents.plan``);
+        ``while_training``: the server's own work, called once, while the agents train where
+        they train elsewhere (after the requests went out), else before they train."""
         ...
 
     def evaluate(

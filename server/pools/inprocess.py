@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import dataclasses
 import logging
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 
 import torch
 
@@ -59,7 +59,10 @@ class InProcessPool:
         agents: Sequence[int],
         *,
         budgets: Mapping[int, Mapping[str, int]] | None = None,
+        while_training: Callable[[], None] | None = None,
     ) -> RoundAnswers:
+        if while_training is not None:  # the agents train on this thread: nothing overlaps
+            while_training()
         updates, failures = [], {}
         for update, problem in self.checked_updates(round_index, theta, agents, budgets=budgets):
             if problem is None:

@@ -40,7 +40,7 @@ import dataclasses
 import logging
 import time
 from collections import deque
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -901,9 +901,11 @@ class ZmqAgentPool:
         what: str,
         agents: Sequence[int],
         budgets: Mapping[int, Mapping[str, int]] | None = None,
+        while_waiting: Callable[[], None] | None = None,
     ) -> Collection:
         """Send ``request`` to the selected agents and gather answers as the round policy says:
-        one message per link (a host's names its selected agents)."""
+        one message per link (a host's names its selected agents); ``while_waiting`` is called
+        once the requests are out, before any answer is read."""
         expected = frozenset(agents)
         rows = RoundRows(expected, self.check.num_params) if isinstance(request, Train) else None
         collection = Collection(
@@ -922,6 +924,8 @@ class ZmqAgentPool:
         is_train = isinstance(request, Train)  # the marks' names: nothing formatted per round
         timeline.mark("server", "train-sent" if is_train else "evaluate-sent", request.round)
         try:
+            if while_waiting is not None:
+                while_waiting()
             while not self._complete(collection, what):
                 self._pump(POLL_INTERVAL_S)
         finally:
@@ -967,9 +971,10 @@ class ZmqAgentPool:
         agents: Sequence[int],
         *,
         budgets: Mapping[int, Mapping[str, int]] | None = None,
+        while_training: Callable[[], None] | None = None,
     ) -> RoundAnswers:
         request = Train(round=round_index, theta=theta.detach().numpy())
-        collection = self._collect(request, "round", agents, budgets)
+        collection = self._collect(request, "round", agents, budgets, while_training)
         stragglers = [
             self._name(k) for k in sorted(collection.expected) if not collection.answered(k)
         ]
