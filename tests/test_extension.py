@@ -43,7 +43,7 @@ OVERRIDES = [
 
 
 @contextmanager
-def tests_on_pythonpath() -> Iterator[None]:
+def plugins_on_pythonpath() -> Iterator[None]:
     """The plugin modules importable by the child processes too."""
     os.environ["PYTHONPATH"] = f"{TESTS}{os.pathsep}{os.environ.get('PYTHONPATH', '')}"
     try:
@@ -54,7 +54,7 @@ def tests_on_pythonpath() -> Iterator[None]:
 
 def fedhpg_run(overrides: list[str], tmp_path: Path) -> tuple[Path, str]:
     out_dir = tmp_path / "run"
-    with tests_on_pythonpath(), processes() as started:
+    with plugins_on_pythonpath(), processes() as started:
         launcher = start(
             started,
             "fedhpg-run",
