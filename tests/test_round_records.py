@@ -113,3 +113,16 @@ def test_a_record_that_cannot_be_written_stops_the_run_and_is_not_retried() -> N
         pool.inner.close()
     assert calls == [1, 2], "round 2's record was tried once, and no round after it trained on"
     assert "answers 3" not in log
+
+
+def test_bench_scale_times_a_round_from_one_theta_to_the_next_less_evaluations() -> None:
+    from benchmarks.scale import round_walls
+
+    records = [
+        {"wall_time_s": 0.50, "round_time_s": 0.40},
+        {"wall_time_s": 0.62, "round_time_s": 0.10},  # 20 ms between the rounds counted
+        {"wall_time_s": 0.95, "round_time_s": 0.11, "eval_time_s": 0.20},
+    ]
+    round_walls(records)
+    walls = [r["round_wall_s"] for r in records]
+    assert walls == pytest.approx([0.40, 0.12, 0.13])
