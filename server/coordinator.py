@@ -164,6 +164,8 @@ class Coordinator:
         self.theta = theta
         self.progress = progress or RunProgress()
         self.on_round = on_round or []
+        self._unwritten: tuple[RoundRecord, torch.Tensor] | None = None
+        """The last round's record and θ̃, until written (:meth:`_write_record`)."""
         self.participation = make_participation(run)
         self.replanner = make_replanner(run, self.progress.plan_state)
         if self.progress.next_round > 1:
@@ -193,76 +195,71 @@ class Coordinator:
         not between the rounds, where the agents would wait for it; always before anything
         else of the next round is recorded, and before this returns or raises."""
         started = time.perf_counter() - self.progress.elapsed_s
-        unwritten: list[Callable[[], None]] = []  # the last round's record, if not yet written
-
-        def write_record() -> None:
-            while unwritten:
-                unwritten.pop()()
-
         try:
-            self._run_rounds(started, unwritten, write_record)
+            for round_number in range(self.progress.next_round, self.run.rounds + 1):
+                self._round(round_number, started)
         finally:
-            write_record()
+            self._write_record()
         return self.theta
 
-    def _run_rounds(
-        self,
-        started: float,
-        unwritten: list[Callable[[], None]],
-        write_record: Callable[[], None],
-    ) -> None:
-        for round_number in range(self.progress.next_round, self.run.rounds + 1):
-            round_started = time.perf_counter()
-            timeline.mark("server", "round-start", round_number)
-            # participation first: every strategy chooses among the agents that take part
-            participating = self.participation.select(round_number)
-            selected = self.strategy.select(round_number, participating)
-            budgets = self.replanner.budgets() if self.replanner is not None else None
-            answers = self.pool.train(
-                round_number, self.theta, selected, budgets=budgets, while_training=write_record
-            )
-            write_record()  # where the pool did not call it
-            timeline.mark("server", "answers-in", round_number)
-            self._aggregate(round_number, answers.updates, answers.failures)
-            round_time = time.perf_counter() - round_started
-            timeline.mark("server", "aggregated", round_number)
-            evaluation, eval_time = None, None
-            if should_evaluate(self.run, round_number):
-                evaluated = time.perf_counter()
-                evaluation = self.pool.evaluate(round_number, self.theta, self.run.eval.episodes)
-                eval_time = time.perf_counter() - evaluated
-            wall_time = time.perf_counter() - started
-            progress = self.progress
-            progress.next_round = round_number + 1
-            progress.trajectories_per_agent += (
-                sum(u.stats.trajectories for u in answers.updates) / self.run.agents.num_agents
-            )
-            progress.elapsed_s = wall_time
-            progress.strategy_state = self.strategy.state()
-            plan = None
-            if self.replanner is not None:
-                plan = self.replanner.observe(round_number, answers.updates)
-                progress.plan_state = self.replanner.saved()
-            record = RoundRecord(
-                round=round_number,
-                wall_time_s=wall_time,
-                round_time_s=round_time,
-                agents=sorted(answers.updates, key=lambda u: u.agent_index),
-                trajectories_per_agent=progress.trajectories_per_agent,
-                eval=evaluation,
-                eval_time_s=eval_time,
-                failures=answers.failures,
-                stragglers=answers.stragglers,
-                selected=sorted(selected),
-                bound=round_bound(self.run, answers.updates, budgets)
-                if self.run.algo.bound_estimates
-                else None,
-                plan=plan,
-                strategy=self.strategy.round_stats(),
-            )
-            unwritten.append(functools.partial(self._write, record, self.theta))
+    def _round(self, round_number: int, started: float) -> None:
+        """Select, train (the round before's record is written meanwhile), aggregate, evaluate;
+        this round's record is left for the next round's training (:attr:`_unwritten`)."""
+        round_started = time.perf_counter()
+        timeline.mark("server", "round-start", round_number)
+        # participation first: every strategy chooses among the agents that take part
+        participating = self.participation.select(round_number)
+        selected = self.strategy.select(round_number, participating)
+        budgets = self.replanner.budgets() if self.replanner is not None else None
+        answers = self.pool.train(
+            round_number, self.theta, selected, budgets=budgets, while_training=self._write_record
+        )
+        self._write_record()  # where the pool did not call it
+        timeline.mark("server", "answers-in", round_number)
+        self._aggregate(round_number, answers.updates, answers.failures)
+        round_time = time.perf_counter() - round_started
+        timeline.mark("server", "aggregated", round_number)
+        evaluation, eval_time = None, None
+        if should_evaluate(self.run, round_number):
+            evaluated = time.perf_counter()
+            evaluation = self.pool.evaluate(round_number, self.theta, self.run.eval.episodes)
+            eval_time = time.perf_counter() - evaluated
+        wall_time = time.perf_counter() - started
+        progress = self.progress
+        progress.next_round = round_number + 1
+        progress.trajectories_per_agent += (
+            sum(u.stats.trajectories for u in answers.updates) / self.run.agents.num_agents
+        )
+        progress.elapsed_s = wall_time
+        progress.strategy_state = self.strategy.state()
+        plan = None
+        if self.replanner is not None:
+            plan = self.replanner.observe(round_number, answers.updates)
+            progress.plan_state = self.replanner.saved()
+        record = RoundRecord(
+            round=round_number,
+            wall_time_s=wall_time,
+            round_time_s=round_time,
+            agents=sorted(answers.updates, key=lambda u: u.agent_index),
+            trajectories_per_agent=progress.trajectories_per_agent,
+            eval=evaluation,
+            eval_time_s=eval_time,
+            failures=answers.failures,
+            stragglers=answers.stragglers,
+            selected=sorted(selected),
+            bound=round_bound(self.run, answers.updates, budgets)
+            if self.run.algo.bound_estimates
+            else None,
+            plan=plan,
+            strategy=self.strategy.round_stats(),
+        )
+        self._unwritten = (record, self.theta)
 
-    def _write(self, record: RoundRecord, theta: torch.Tensor) -> None:
+    def _write_record(self) -> None:
+        """The last round's record to every ``on_round`` callback, once (none is retried)."""
+        if self._unwritten is None:
+            return
+        (record, theta), self._unwritten = self._unwritten, None
         for callback in self.on_round:
             callback(record, theta)
         timeline.mark("server", "recorded", record.round)
