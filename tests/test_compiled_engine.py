@@ -447,3 +447,51 @@ def test_the_engines_columns_are_its_per_agent_results() -> None:
     assert [own.record(i).env_steps for i in range(6)] == [
         results[k].stats.env_steps for k in agents
     ]
+
+
+GRADIENT_PROBE = """
+import hashlib
+import numpy as np
+from numba import njit
+from fedhpg.common.batched import kernels
+
+
+@njit(cache=True, error_model="numpy")
+def call(theta, sizes, obs, action, coef, out):  # a caller without fastmath, as learn_iteration
+    kernels.score_gradient(theta, sizes, obs, action, coef, 0, len(coef), out,
+                           kernels.gradient_workspace(sizes))
+
+
+sizes = np.array([4, 16, 16, 2], dtype=np.int64)
+d = sum(int(sizes[i] * sizes[i + 1] + sizes[i + 1]) for i in range(len(sizes) - 1))
+rng = np.random.default_rng(0)
+theta = (rng.standard_normal(d) * 0.5).astype(np.float32)
+obs = rng.standard_normal((1000, 4)).astype(np.float32)
+action = rng.integers(0, 2, 1000).astype(np.int64)
+coef = rng.standard_normal(1000).astype(np.float32)
+out = np.zeros(d, dtype=np.float32)
+call(theta, sizes, obs, action, coef, out)
+print(hashlib.sha256(out.tobytes()).hexdigest())
+"""
+
+
+def test_a_gradient_just_compiled_is_the_one_loaded_from_the_cache(tmp_path) -> None:
+    """A process that compiles the kernels and one that loads them from numba's cache must
+    round the gradient alike, or θ̃ would depend on which process compiled (placement, resume).
+    With ``nsz``/``arcp`` among the gradient's fastmath flags they did not."""
+    import os
+    import subprocess
+    import sys
+
+    probe = tmp_path / "gradient_probe.py"
+    probe.write_text(GRADIENT_PROBE)
+    env = {**os.environ, "NUMBA_CACHE_DIR": str(tmp_path / "cache"), "OMP_NUM_THREADS": "1"}
+    compiled, cached = (
+        subprocess.run(
+            [sys.executable, str(probe)], env=env, capture_output=True, text=True, check=True,
+            timeout=300,
+        ).stdout.strip()
+        for _ in range(2)
+    )  # fmt: skip
+    assert (tmp_path / "cache").exists(), "the first run wrote numba's cache"
+    assert compiled == cached

@@ -100,11 +100,14 @@ def kernel(*, inline: bool = False, fastmath: set[str] | None = None) -> Callabl
     return compile_lazily
 
 
-GRADIENT_FASTMATH = {"reassoc", "contract", "nsz", "arcp"}
+GRADIENT_FASTMATH = {"reassoc", "contract"}
 """LLVM may reorder and fuse the gradient's sums (vectorised reductions over a block's rows:
 2× the speed of strict order). The order it picks depends on the compiled code alone, so a
 host's results never depend on the company an agent keeps; hosts of different CPU types
-(AVX-512 against AVX2) may round differently. Sampling and dynamics stay strict."""
+(AVX-512 against AVX2) may round differently. Sampling and dynamics stay strict. Not ``nsz``
+nor ``arcp``: with them, the kernel called from :func:`learn_iteration` rounded differently
+when just compiled than when loaded from numba's cache (no faster either), so a process that
+compiled the kernels disagreed with one that loaded them (tests/test_compiled_engine.py)."""
 
 
 @kernel(inline=True)
