@@ -43,6 +43,7 @@ def starts_federations(module: str) -> bool:
     return path.is_file() and bool(STARTS_FEDERATIONS.search(path.read_text(encoding="utf-8")))
 
 
+@pytest.hookimpl(optionalhook=True)  # a plain pytest without xdist does not know the hook
 def pytest_xdist_make_scheduler(config: pytest.Config, log: Any) -> Any:
     from xdist.scheduler import LoadScopeScheduling
 
