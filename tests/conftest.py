@@ -22,8 +22,7 @@ from typing import Any
 import pytest
 import torch
 
-TESTS = Path(__file__).parent
-sys.path.insert(0, str(TESTS))
+sys.path.insert(0, str(Path(__file__).parent))
 torch.set_num_threads(1)
 
 STARTS_FEDERATIONS = re.compile(
@@ -36,20 +35,21 @@ STARTS_FEDERATIONS = re.compile(
 
 
 @cache
-def starts_federations(module: str) -> bool:
-    """Whether the test module at ``module`` (a path relative to the rootdir) starts
-    federations."""
-    path = TESTS.parent / module
-    return path.is_file() and bool(STARTS_FEDERATIONS.search(path.read_text(encoding="utf-8")))
+def starts_federations(path: Path) -> bool:
+    """Whether the test module at ``path`` starts federations (a module that cannot be read
+    fails the run here rather than being spread over both workers)."""
+    return bool(STARTS_FEDERATIONS.search(path.read_text(encoding="utf-8")))
 
 
 @pytest.hookimpl(optionalhook=True)  # a plain pytest without xdist does not know the hook
 def pytest_xdist_make_scheduler(config: pytest.Config, log: Any) -> Any:
     from xdist.scheduler import LoadScopeScheduling
 
+    root = config.rootpath  # nodeids are relative to it
+
     class FederationsInOrder(LoadScopeScheduling):
         def _split_scope(self, nodeid: str) -> str:
             module = nodeid.split("::", 1)[0]
-            return "federations" if starts_federations(module) else module
+            return "federations" if starts_federations(root / module) else module
 
     return FederationsInOrder(config, log)
