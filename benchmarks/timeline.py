@@ -31,6 +31,7 @@ PHASES = [
     ("answers-in", "the round's updates built"),
     ("aggregated", "θ̃ aggregated (round time)"),
     ("next-start", "the next round starts"),
+    ("recording", "(the round before's record started)"),
     ("recorded", "(the round before's record written)"),
 ]
 
@@ -64,9 +65,10 @@ def parse(stderr: str) -> dict[int, dict[str, float]]:
         }
         rounds[number] = {key: value - start for key, value in phases.items()}
         # the round before's record (metrics, checkpoint) is written while this round trains
-        before = marks.get(number - 1, {}).get("recorded")
-        if before:
-            rounds[number]["recorded"] = before[0] - start
+        for mark in ("recording", "recorded"):
+            before = marks.get(number - 1, {}).get(mark)
+            if before:
+                rounds[number][mark] = before[0] - start
         following = marks.get(number + 1, {}).get("round-start")
         if following:
             rounds[number]["next-start"] = following[0] - start

@@ -71,18 +71,23 @@ class UpdateStats:
         """The flat ``agents[]`` entry of metrics.jsonl (schema 1): algorithm stats inline,
         ``local_wall_s`` only where it was measured."""
         # the field names once per class, not dataclasses.fields() per call: metrics.jsonl
-        # takes this for every agent of every round (1,000 rows a round at K = 1,000)
-        values = dict(zip(_STATS_FIELDS, _stats_values(self), strict=True))
-        algorithm = values.pop("algorithm")
-        if values["local_wall_s"] is None:
-            del values["local_wall_s"]
-        for name, value in algorithm.items():
+        # takes this for every agent of every round (1,000 rows a round at K = 1,000), on a
+        # core the round's agents could use (server.shared_cores)
+        values = dict(zip(ALWAYS_FIELDS, _always_values(self)))
+        if self.local_wall_s is not None:
+            values["local_wall_s"] = self.local_wall_s
+        for name, value in self.algorithm.items():
             values[name] = float(value)
         return values
 
 
 _STATS_FIELDS = tuple(f.name for f in dataclasses.fields(UpdateStats))
-_stats_values = operator.attrgetter(*_STATS_FIELDS)
+_OPTIONAL_FIELDS = ("local_wall_s", "algorithm")
+"""Written only where measured, and the algorithm's own, inline: the fields after the others."""
+assert _STATS_FIELDS[-len(_OPTIONAL_FIELDS) :] == _OPTIONAL_FIELDS, "to_json's key order"
+ALWAYS_FIELDS = _STATS_FIELDS[: -len(_OPTIONAL_FIELDS)]
+"""The numbers every ``agents[]`` row of metrics.jsonl holds (schema 1)."""
+_always_values = operator.attrgetter(*ALWAYS_FIELDS)
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -124,7 +129,9 @@ class AgentUpdate:
     stats: UpdateStats
 
     def to_json(self) -> dict[str, Any]:
-        return {**self.stats.to_json(), "id": self.agent_id, "index": self.agent_index}
+        row = self.stats.to_json()
+        row["id"], row["index"] = self.agent_id, self.agent_index
+        return row
 
 
 @dataclass(frozen=True, kw_only=True)

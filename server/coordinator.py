@@ -260,6 +260,7 @@ class Coordinator:
         if self._unwritten is None:
             return
         (record, theta), self._unwritten = self._unwritten, None
+        timeline.mark("server", "recording", record.round)
         for callback in self.on_round:
             callback(record, theta)
         timeline.mark("server", "recorded", record.round)
