@@ -73,7 +73,7 @@ class UpdateStats:
         # the field names once per class, not dataclasses.fields() per call: metrics.jsonl
         # takes this for every agent of every round (1,000 rows a round at K = 1,000), on a
         # core the round's agents could use (server.shared_cores)
-        values = dict(zip(ALWAYS_FIELDS, _always_values(self)))
+        values = dict(zip(ALWAYS_FIELDS, _always_values(self), strict=True))
         if self.local_wall_s is not None:
             values["local_wall_s"] = self.local_wall_s
         for name, value in self.algorithm.items():

@@ -5,8 +5,8 @@ from __future__ import annotations
 
 import itertools
 import json
-import operator
 import logging
+import operator
 import os
 import socket
 import struct
