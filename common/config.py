@@ -362,12 +362,6 @@ class ServerConfig:
     """Per-agent TensorBoard scalars (``agent/<k>/…``, ``eval/<id>/…``) for runs of at most
     this many agents; larger runs write the federation's and the across-agent keys only
     (metrics.jsonl keeps every agent)."""
-    shared_cores: int | None = None
-    """CPUs the server shares with the agents of its rounds; None = those it may run on
-    (``os.sched_getaffinity``). The round before's record (metrics line, TensorBoard,
-    checkpoint) waits until fewer of the round's connections are still training than this, so
-    that it takes a core no agent needs; 0: written as soon as the requests are out (agents on
-    other machines)."""
     endpoint_file: str | None = None
     """Once listening, write where agents reach the server to this JSON file (host, port):
     how ``fedhpg-cluster``'s agent jobs find a server on a port it chose (shared filesystem)."""
@@ -693,8 +687,6 @@ def _validate_server(server: ServerConfig, num_agents: int) -> None:
         # low=1, not K: agent hosts serve many agents over one connection each
         _check_int(server.max_connections, "server.max_connections", low=1)
     _check_int(server.tensorboard_agents, "server.tensorboard_agents", low=0)
-    if server.shared_cores is not None:
-        _check_int(server.shared_cores, "server.shared_cores", low=0)
 
 
 def _validate_buffered(server: ServerConfig, num_agents: int) -> None:

@@ -71,8 +71,8 @@ class UpdateStats:
         """The flat ``agents[]`` entry of metrics.jsonl (schema 1): algorithm stats inline,
         ``local_wall_s`` only where it was measured."""
         # the field names once per class, not dataclasses.fields() per call: metrics.jsonl
-        # takes this for every agent of every round (1,000 rows a round at K = 1,000), on a
-        # core the round's agents could use (server.shared_cores)
+        # takes this for every agent of every round (1,000 rows a round at K = 1,000), while
+        # the next round's agents train on the same cores
         values = dict(zip(ALWAYS_FIELDS, _always_values(self), strict=True))
         if self.local_wall_s is not None:
             values["local_wall_s"] = self.local_wall_s

@@ -149,8 +149,8 @@ def _update_norms(updates: Sequence[AgentUpdate], before: np.ndarray) -> dict[in
 def _columns(updates: Sequence[AgentUpdate], rows: list[dict[str, Any]]) -> dict[str, Any]:
     """Each statistic of the round's ``agents[]`` rows as a column, without its missing values
     (rows differ in keys: an algorithm's own, ``local_wall_s`` where measured). A column per
-    statistic, not a loop over every agent's every value: this runs on a core the round's
-    agents could use (``server.shared_cores``)."""
+    statistic, not a loop over every agent's every value: the record is written while the next
+    round's agents train, on a core they could use."""
     columns: dict[str, Any] = {
         name: np.fromiter(map(operator.itemgetter(name), rows), np.float64, len(rows))
         for name in ALWAYS_FIELDS

@@ -50,8 +50,7 @@ class AgentPool(Protocol):
         """The local updates of ``round_index`` from θ̃ of the selected agent indices;
         ``budgets``: the round's planned budget fields per agent (``agents.plan``);
         ``while_training``: the server's own work, called once, while the agents train where
-        they train elsewhere (after the requests went out; the zmq pool waits for a core none
-        of them needs), else before they train."""
+        they train elsewhere (after the requests went out), else before they train."""
         ...
 
     def evaluate(

@@ -38,7 +38,6 @@ from __future__ import annotations
 
 import dataclasses
 import logging
-import os
 import time
 from collections import deque
 from collections.abc import Callable, Mapping, Sequence
@@ -267,9 +266,6 @@ class ZmqAgentPool:
         self.dropped = 0
         """Messages of flooding peers dropped unread."""
         self.liveness_s = settings.heartbeat_interval_s * settings.heartbeat_liveness
-        self.shared_cores = (
-            len(os.sched_getaffinity(0)) if settings.shared_cores is None else settings.shared_cores
-        )
         self.peers: dict[int, Peer] = {}
         self._links: dict[bytes, Link] = {}
         self._names: dict[int, str] = {}
@@ -909,8 +905,7 @@ class ZmqAgentPool:
     ) -> Collection:
         """Send ``request`` to the selected agents and gather answers as the round policy says:
         one message per link (a host's names its selected agents); ``while_waiting`` is called
-        once, after the requests are out, as soon as fewer links still train than the server
-        shares cores with (``server.shared_cores``), at the latest once every answer is in."""
+        once the requests are out, before any answer is read."""
         expected = frozenset(agents)
         rows = RoundRows(expected, self.check.num_params) if isinstance(request, Train) else None
         collection = Collection(
@@ -928,39 +923,17 @@ class ZmqAgentPool:
                 self._send_to_link(link, message)
         is_train = isinstance(request, Train)  # the marks' names: nothing formatted per round
         timeline.mark("server", "train-sent" if is_train else "evaluate-sent", request.round)
-        # The server's own work waits for a core that no connection of the round trains on:
-        # beside a training host it slows that host, and the round waits for the slowest.
-        pending = while_waiting
-        working = [selected for _, selected in by_link.values()]
         try:
-            while True:
-                if pending is not None and self._core_free(collection, working):
-                    pending()
-                    pending = None
-                if self._complete(collection, what):
-                    break
+            if while_waiting is not None:
+                while_waiting()
+            while not self._complete(collection, what):
                 self._pump(POLL_INTERVAL_S)
         finally:
             self._collection = None
-        if pending is not None:
-            pending()
         timeline.mark(
             "server", "train-collected" if is_train else "evaluate-collected", request.round
         )
         return collection
-
-    def _core_free(self, collection: Collection, working: list[list[int]]) -> bool:
-        """Whether fewer of the collection's connections still owe answers than the server
-        shares cores with them (``server.shared_cores``; 0: it shares none)."""
-        if self.shared_cores == 0:
-            return True
-        training = 0
-        for selected in working:
-            if any(collection.awaits(index) for index in selected):
-                training += 1
-                if training >= self.shared_cores:
-                    return False
-        return True
 
     def _complete(self, collection: Collection, what: str) -> bool:
         now = time.monotonic()
