@@ -69,6 +69,10 @@ LANES = 16
 running): a running sum stays in a register across them and is written back once per pass.
 Summed through memory term by term (``out[o, r] += w · in[i, r]``), each term waits for the
 last one's store."""
+NARROW = 4
+"""A pass's inputs when at most this many are left (CartPole's observation, a policy's two
+logits in the backward pass): a constant count again, without the 12 padding terms of 0 · 0
+that a pass of :data:`LANES` would add (the sums, and so every number, are the same)."""
 LANES_FROM = 12
 """Running copies from which the sampler's forward takes them as lanes (:func:`forward_lanes`);
 below, row by row (:func:`forward`), whose cost grows with the rows where the lanes' does not."""
@@ -231,13 +235,21 @@ def dense_lanes(
     bias_row = weights.shape[1] - 1
     for k in range(chunks):
         for first in range(0, n_in, LANES):
+            narrow = n_in - first <= NARROW  # the terms left out add 0 · 0: the same sums
             for o in range(n_out):
                 bias = weights[layer, bias_row, o]
-                for c in range(LANES):
-                    value = bias if first == 0 else above[k, o, c]
-                    for i in range(LANES):
-                        value += weights[layer, first + i, o] * below[k, first + i, c]
-                    above[k, o, c] = value
+                if narrow:
+                    for c in range(LANES):
+                        value = bias if first == 0 else above[k, o, c]
+                        for i in range(NARROW):
+                            value += weights[layer, first + i, o] * below[k, first + i, c]
+                        above[k, o, c] = value
+                else:
+                    for c in range(LANES):
+                        value = bias if first == 0 else above[k, o, c]
+                        for i in range(LANES):
+                            value += weights[layer, first + i, o] * below[k, first + i, c]
+                        above[k, o, c] = value
         if activate:
             for o in range(n_out):
                 for c in range(LANES):
@@ -637,13 +649,21 @@ def score_gradient(
             # The sums go to ``below``, not to the next layer's rows of ``acts``: LLVM cannot
             # tell two rows of one array apart, and would not keep a row's sum in a register.
             for first in range(0, n_in, LANES):  # padded inputs: zero weights, zero units
+                narrow = n_in - first <= NARROW
                 for o in range(n_out):
                     bias = forward_w[layer, bias_row, o]
-                    for r in range(BLOCK):
-                        value = bias if first == 0 else below[o, r]
-                        for i in range(LANES):
-                            value += forward_w[layer, first + i, o] * acts[layer, first + i, r]
-                        below[o, r] = value
+                    if narrow:
+                        for r in range(BLOCK):
+                            value = bias if first == 0 else below[o, r]
+                            for i in range(NARROW):
+                                value += forward_w[layer, first + i, o] * acts[layer, first + i, r]
+                            below[o, r] = value
+                    else:
+                        for r in range(BLOCK):
+                            value = bias if first == 0 else below[o, r]
+                            for i in range(LANES):
+                                value += forward_w[layer, first + i, o] * acts[layer, first + i, r]
+                            below[o, r] = value
             for o in range(n_out):
                 if layer < layers - 1:
                     for r in range(BLOCK):
@@ -681,12 +701,20 @@ def score_gradient(
                     weight_total[layer, o, i] += block_sum
             if layer > 0:  # δ below = (Wᵀ δ) ⊙ tanh', tanh' = 1 − h²
                 for first in range(0, n_out, LANES):  # δ's padding rows are zeros
+                    narrow = n_out - first <= NARROW
                     for i in range(n_in):
-                        for r in range(BLOCK):
-                            value = np.float32(0.0) if first == 0 else below[i, r]
-                            for o in range(LANES):
-                                value += backward_w[layer, first + o, i] * delta[first + o, r]
-                            below[i, r] = value
+                        if narrow:
+                            for r in range(BLOCK):
+                                value = np.float32(0.0) if first == 0 else below[i, r]
+                                for o in range(NARROW):
+                                    value += backward_w[layer, first + o, i] * delta[first + o, r]
+                                below[i, r] = value
+                        else:
+                            for r in range(BLOCK):
+                                value = np.float32(0.0) if first == 0 else below[i, r]
+                                for o in range(LANES):
+                                    value += backward_w[layer, first + o, i] * delta[first + o, r]
+                                below[i, r] = value
                 for i in range(n_in):
                     for r in range(BLOCK):
                         h = acts[layer, i, r]
