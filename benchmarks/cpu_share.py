@@ -21,6 +21,7 @@ import time
 from pathlib import Path
 
 from benchmarks.runtime import BIN, _children
+from benchmarks.timeline import held_at_start
 
 TICKS = os.sysconf("SC_CLK_TCK")
 
@@ -45,11 +46,8 @@ def main() -> None:
     with tempfile.TemporaryDirectory() as tmp:
         out = Path(tmp)
         overrides = [
-            "env=cartpole", "agents=population", f"agents.num_agents={args.agents}",
-            f"agents.per_host={args.per_host}", "agents.clock=counted", "rounds=100000",
-            "eval.every=100001", "eval.episodes=1", "strategy.params.step_size=1e-7",
-            "server.register_timeout_s=600", f"server.out_dir={out}",
-            f"hydra.run.dir={out / 'hydra'}", *args.extra,
+            *held_at_start(args.agents, args.per_host, rounds=100_000),
+            f"server.out_dir={out}", f"hydra.run.dir={out / 'hydra'}", *args.extra,
         ]  # fmt: skip
         with (out / "stderr").open("w") as stderr:
             process = subprocess.Popen(

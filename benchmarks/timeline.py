@@ -75,13 +75,19 @@ def parse(stderr: str) -> dict[int, dict[str, float]]:
     return rounds
 
 
-def measure(agents: int, per_host: int, rounds: int, extra: list[str]) -> dict[int, dict]:
-    overrides = [
+def held_at_start(agents: int, per_host: int, rounds: int) -> list[str]:
+    """The overrides of a CartPole population federation on agent hosts whose rounds stay at
+    θ̃_0 (server step 1e-7), so that they are comparable; no evaluation."""
+    return [
         "env=cartpole", "agents=population", f"agents.num_agents={agents}",
         f"agents.per_host={per_host}", "agents.clock=counted", f"rounds={rounds}",
         f"eval.every={rounds + 1}", "eval.episodes=1", "strategy.params.step_size=1e-7",
-        "server.register_timeout_s=600", *extra,
+        "server.register_timeout_s=600",
     ]  # fmt: skip
+
+
+def measure(agents: int, per_host: int, rounds: int, extra: list[str]) -> dict[int, dict]:
+    overrides = [*held_at_start(agents, per_host, rounds), *extra]
     with tempfile.TemporaryDirectory() as tmp:
         _federation(overrides, Path(tmp), env={"FEDHPG_TIMELINE": "1"})
         return parse((Path(tmp) / "fedhpg-run.stderr").read_text())

@@ -63,3 +63,18 @@ def test_the_round_befores_record_is_read_against_the_round_it_ran_in() -> None:
     assert "recording" not in rounds[1] and rounds[1]["next-start"] == pytest.approx(0.2)
     assert rounds[2]["first-trained"] == pytest.approx(0.05)
     assert rounds[2]["last-trained"] == pytest.approx(0.06)
+
+
+def test_cpu_share_reads_a_process_cpu_time_from_proc() -> None:
+    """``benchmarks.cpu_share`` reads user + system CPU time from ``/proc/<pid>/stat``: it
+    follows this process's own CPU clock across a busy spell (to the kernel's 10 ms ticks)."""
+    import os
+    import time
+
+    from benchmarks.cpu_share import _cpu_s
+
+    before, clock = _cpu_s(os.getpid()), time.process_time()
+    while time.process_time() - clock < 0.5:
+        sum(range(10_000))
+    used = _cpu_s(os.getpid()) - before
+    assert abs(used - (time.process_time() - clock)) < 0.05
