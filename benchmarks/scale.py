@@ -34,7 +34,7 @@ import torch
 
 from benchmarks import scale_engine
 from benchmarks.runtime import _federation
-from benchmarks.scale_refs import bare_loop, forward_loop
+from benchmarks.scale_refs import bare_loop, cpu_description, forward_loop
 from fedhpg.common.components import agent_profile
 from fedhpg.common.runtime.cli import compose
 from fedhpg.server.checkpoint import latest_valid_checkpoint
@@ -250,7 +250,7 @@ def table(results: list[CaseResult]) -> str:
     return "\n".join(lines)
 
 
-def figure(results: list[CaseResult]) -> None:
+def figure(results: list[CaseResult], machine: str) -> None:
     """Left: the federation's throughput as a multiple of reference (b), sampling and whole
     round per core, against the issue's 0.7 and 0.3; right: peak PSS against 2 GB. The
     one-process-per-agent case is left out of the ratios (its (b) is one agent's copies)."""
@@ -283,13 +283,16 @@ def figure(results: list[CaseResult]) -> None:
     right.set_yticks(y, [""] * len(y))
     right.set_xlabel("peak PSS of the federation (MiB)")
     right.legend(fontsize=7, loc="lower right")
-    fig.suptitle("fedhpg at scale on 2 cores (make bench-scale; (b) = gym + every agent's forward)")
+    fig.suptitle(
+        f"fedhpg at scale (make bench-scale; (b) = gym + every agent's forward)\n{machine}",
+        fontsize=10,
+    )
     fig.tight_layout()
     FIGURE.parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(FIGURE, dpi=120)
 
 
-def _load() -> list[CaseResult]:
+def _load() -> tuple[list[CaseResult], str]:
     stored = json.loads(RESULTS.read_text())
     out = []
     for entry in stored["cases"]:
@@ -297,7 +300,7 @@ def _load() -> list[CaseResult]:
         fields = {k: v for k, v in entry.items() if k != "case"}
         fields["ref_ranges"] = {k: tuple(v) for k, v in fields["ref_ranges"].items()}
         out.append(CaseResult(case=case, **fields))
-    return out
+    return out, stored.get("machine", "CPU not recorded")
 
 
 def main() -> None:
@@ -306,11 +309,14 @@ def main() -> None:
     parser.add_argument("--plot-only", action="store_true", help="redraw from scale.json")
     args = parser.parse_args()
     if args.plot_only:
-        results = _load()
+        results, machine = _load()
+        print(f"machine: {machine}")
         print(table(results))
-        figure(results)
+        figure(results, machine)
         return
     args.cases = args.cases or list(CASES)
+    machine = cpu_description()
+    print(f"machine: {machine}", flush=True)
     results = []
     for name in args.cases:
         measured = measure(CASES[name])
@@ -329,6 +335,7 @@ def main() -> None:
     RESULTS.write_text(
         json.dumps(
             {
+                "machine": machine,
                 "cases": [{**asdict(r), "case": asdict(r.case)} for r in results],
                 "engine_in_process": [asdict(r) for r in engine],
             },
@@ -336,7 +343,7 @@ def main() -> None:
         )
         + "\n"
     )
-    figure(results)
+    figure(results, machine)
 
 
 if __name__ == "__main__":
