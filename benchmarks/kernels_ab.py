@@ -9,7 +9,9 @@ order alternating. Each pair is measured under the same machine conditions, so t
 ratio (this tree / the commit's) is the figure; a single run of each, minutes apart, wanders
 by more than the changes it would judge. Sampling and the gradient-and-step phase are timed
 apart (CPU time, ``engine_sample_s`` / ``engine_gradient_s``), and every round's θ of the
-two engines is compared bit for bit.
+two engines is compared bit for bit. Each order is taken equally often (an odd ``--rounds``
+is rounded up): whichever engine runs second in a pair may find the caches warmer. Against
+``HEAD`` with no change in the tree, it measures its own noise floor.
 
     python -m benchmarks.kernels_ab --against HEAD [--rounds 15] [--theta trained.pt]
 """
@@ -56,14 +58,15 @@ def engine_module(revision: str) -> ModuleType:
     sha = subprocess.run(["git", "rev-parse", "--short=12", revision], cwd=repo, text=True,
                          capture_output=True).stdout.strip() or revision  # fmt: skip
     name = f"fedhpg_kernels_ab_{sha}"
-    folder = Path(tempfile.gettempdir()) / "fedhpg-kernels-ab" / sha
-    folder.mkdir(parents=True, exist_ok=True)
     compiled_source = show("common/batched/compiled.py")
+    kernels_source = show("common/batched/kernels.py")
     if KERNELS_IMPORT not in compiled_source:
         raise SystemExit(f"kernels_ab: {revision}'s compiled.py does not import its kernels "
                          f"as {KERNELS_IMPORT.strip()!r}")  # fmt: skip
+    folder = Path(tempfile.gettempdir()) / "fedhpg-kernels-ab" / sha
+    folder.mkdir(parents=True, exist_ok=True)
     for file, text in (
-        ("kernels.py", show("common/batched/kernels.py")),
+        ("kernels.py", kernels_source),
         ("compiled.py", compiled_source.replace(KERNELS_IMPORT, f"import {name}_k as kernels\n")),
     ):
         target = folder / file
@@ -115,8 +118,8 @@ def compare(revision: str, rounds: int, theta: torch.Tensor) -> Comparison:
         for name in ("this", "that") if r % 2 else ("that", "this"):
             trained = engines[name].train_columns(r, theta, agents)
             thetas[name] = trained.thetas.copy()
-            sample = sum(trained.algorithm["engine_sample_s"])  # type: ignore[arg-type]
-            gradient = sum(trained.algorithm["engine_gradient_s"])  # type: ignore[arg-type]
+            sample = sum(v or 0.0 for v in trained.algorithm["engine_sample_s"])
+            gradient = sum(v or 0.0 for v in trained.algorithm["engine_gradient_s"])
             if r:
                 times[name].append((sample, gradient))
         if r:
@@ -133,7 +136,8 @@ def compare(revision: str, rounds: int, theta: torch.Tensor) -> Comparison:
         )
 
     def medians(name: str) -> tuple[float, float]:
-        return tuple(1e3 * statistics.median(t[i] for t in times[name]) for i in (0, 1))  # type: ignore[return-value]
+        sample, gradient = (1e3 * statistics.median(t[i] for t in times[name]) for i in (0, 1))
+        return sample, gradient
 
     return Comparison(
         rounds=rounds,
@@ -168,6 +172,7 @@ def main() -> None:
     args = parser.parse_args()
     if args.rounds < 1:
         parser.error("--rounds must be at least 1")
+    args.rounds += args.rounds % 2
     logging.basicConfig(level=logging.INFO, format="%(message)s")
     torch.set_num_threads(1)
     theta = torch.load(args.theta) if args.theta else start_theta()

@@ -18,7 +18,7 @@ def cpu_description(cpuinfo: Path = Path("/proc/cpuinfo")) -> str:
     """The CPU the figures were measured on, e.g. ``AMD EPYC, 2 cores, AVX2``: the ratios
     against (b) depend on it, since (b)'s stacked numpy matmuls and the engine's compiled
     kernels gain unequally from wider vectors (AVX-512 against AVX2)."""
-    model, flags = "unknown CPU", set()
+    model, flags = "unknown CPU", set[str]()
     try:
         for line in cpuinfo.read_text(encoding="utf-8", errors="replace").splitlines():
             key, _, value = line.partition(":")
