@@ -48,15 +48,19 @@ def engine_module(revision: str) -> ModuleType:
     """``compiled.py`` of ``revision``, bound to that revision's ``kernels.py``."""
     repo = Path(__file__).resolve().parents[1]
 
+    def git(*args: str) -> subprocess.CompletedProcess[str]:
+        try:
+            return subprocess.run(["git", *args], cwd=repo, text=True, capture_output=True)
+        except OSError as error:
+            raise SystemExit(f"kernels_ab: cannot run git: {error}") from None
+
     def show(path: str) -> str:
-        shown = subprocess.run(["git", "show", f"{revision}:{path}"], cwd=repo, text=True,
-                               capture_output=True)  # fmt: skip
+        shown = git("show", f"{revision}:{path}")
         if shown.returncode:
             raise SystemExit(f"kernels_ab: no {path} at {revision!r}: {shown.stderr.strip()}")
         return shown.stdout
 
-    sha = subprocess.run(["git", "rev-parse", "--short=12", revision], cwd=repo, text=True,
-                         capture_output=True).stdout.strip() or revision  # fmt: skip
+    sha = git("rev-parse", "--short=12", revision).stdout.strip() or revision
     name = f"fedhpg_kernels_ab_{sha}"
     compiled_source = show("common/batched/compiled.py")
     kernels_source = show("common/batched/kernels.py")
@@ -175,7 +179,12 @@ def main() -> None:
     args.rounds += args.rounds % 2
     logging.basicConfig(level=logging.INFO, format="%(message)s")
     torch.set_num_threads(1)
-    theta = torch.load(args.theta) if args.theta else start_theta()
+    try:
+        theta = torch.load(args.theta) if args.theta else start_theta()
+    except (OSError, RuntimeError) as error:
+        parser.error(f"--theta {args.theta}: {error}")
+    if not isinstance(theta, torch.Tensor) or theta.dim() != 1:
+        parser.error(f"--theta {args.theta}: not a flat θ (a torch-saved 1-D tensor)")
     print(report(args.against, compare(args.against, args.rounds, theta)))
 
 
