@@ -8,8 +8,9 @@ case train a round through each engine in turn, from the same θ, round after ro
 order alternating. Each pair is measured under the same machine conditions, so the paired
 ratio (this tree / the commit's) is the figure; a single run of each, minutes apart, wanders
 by more than the changes it would judge. Sampling and the gradient-and-step phase are timed
-apart (CPU time, ``engine_sample_s`` / ``engine_gradient_s``), and every round's θ of the
-two engines is compared bit for bit. Each order is taken equally often (an odd ``--rounds``
+apart (CPU time, ``engine_sample_s`` / ``engine_gradient_s``) and divided by the round's env
+steps (a change that moves θ changes the episodes, and so the work), and every round's θ of
+the two engines is compared bit for bit. Each order is taken equally often (an odd ``--rounds``
 is rounded up): whichever engine runs second in a pair may find the caches warmer. Against
 ``HEAD`` with no change in the tree, it measures its own noise floor.
 
@@ -91,13 +92,16 @@ def engine_module(revision: str) -> ModuleType:
 class Comparison:
     rounds: int
     sampling: float
-    """Median over rounds of this tree's sampling CPU / the commit's."""
+    """Median over rounds of this tree's sampling CPU per env step / the commit's (per step:
+    where θ differs, so do the episodes and their lengths)."""
     gradient: float
     """The same for the estimator, gradient and step."""
     whole: float
-    this_ms: tuple[float, float]
-    """This tree's sampling and gradient CPU per round (ms, medians)."""
-    that_ms: tuple[float, float]
+    this_ns: tuple[float, float]
+    """This tree's sampling and gradient CPU per env step (ns, medians)."""
+    that_ns: tuple[float, float]
+    steps: tuple[float, float]
+    """Env steps per round, this tree's and the commit's (medians)."""
     identical_rounds: int
     largest_difference: float
     """The largest |θ_this − θ_that| over all agents and rounds."""
@@ -115,7 +119,8 @@ def compare(revision: str, rounds: int, theta: torch.Tensor) -> Comparison:
     }
     for engine in engines.values():
         engine.prepare()
-    times: dict[str, list[tuple[float, float]]] = {"this": [], "that": []}
+    times: dict[str, list[tuple[float, float]]] = {"this": [], "that": []}  # s per env step
+    steps: dict[str, list[int]] = {"this": [], "that": []}
     identical, largest = 0, 0.0
     for r in range(rounds + 1):  # round 0 compiles or loads the kernels, and is dropped
         thetas = {}
@@ -124,8 +129,10 @@ def compare(revision: str, rounds: int, theta: torch.Tensor) -> Comparison:
             thetas[name] = trained.thetas.copy()
             sample = sum(v or 0.0 for v in trained.algorithm["engine_sample_s"])
             gradient = sum(v or 0.0 for v in trained.algorithm["engine_gradient_s"])
+            count = max(int(trained.env_steps.sum()), 1)
             if r:
-                times[name].append((sample, gradient))
+                times[name].append((sample / count, gradient / count))
+                steps[name].append(count)
         if r:
             identical += bool(np.array_equal(thetas["this"], thetas["that"]))
             largest = max(largest, float(np.abs(thetas["this"] - thetas["that"]).max()))
@@ -140,7 +147,7 @@ def compare(revision: str, rounds: int, theta: torch.Tensor) -> Comparison:
         )
 
     def medians(name: str) -> tuple[float, float]:
-        sample, gradient = (1e3 * statistics.median(t[i] for t in times[name]) for i in (0, 1))
+        sample, gradient = (1e9 * statistics.median(t[i] for t in times[name]) for i in (0, 1))
         return sample, gradient
 
     return Comparison(
@@ -148,8 +155,9 @@ def compare(revision: str, rounds: int, theta: torch.Tensor) -> Comparison:
         sampling=paired(0),
         gradient=paired(1),
         whole=paired(None),
-        this_ms=medians("this"),
-        that_ms=medians("that"),
+        this_ns=medians("this"),
+        that_ns=medians("that"),
+        steps=(statistics.median(steps["this"]), statistics.median(steps["that"])),
         identical_rounds=identical,
         largest_difference=largest,
     )
@@ -157,10 +165,11 @@ def compare(revision: str, rounds: int, theta: torch.Tensor) -> Comparison:
 
 def report(revision: str, c: Comparison) -> str:
     return "\n".join([
-        f"this tree against {revision}: {HOST} agents, {c.rounds} interleaved rounds",
-        f"  sampling CPU            {c.this_ms[0]:8.1f} ms against {c.that_ms[0]:8.1f} ms: "
+        f"this tree against {revision}: {HOST} agents, {c.rounds} interleaved rounds, "
+        f"{c.steps[0]:,.0f} against {c.steps[1]:,.0f} env steps a round (medians)",
+        f"  sampling CPU            {c.this_ns[0]:6.1f} ns against {c.that_ns[0]:6.1f} ns a step: "
         f"paired median ratio {c.sampling:.3f}",
-        f"  gradient-and-step CPU   {c.this_ms[1]:8.1f} ms against {c.that_ms[1]:8.1f} ms: "
+        f"  gradient-and-step CPU   {c.this_ns[1]:6.1f} ns against {c.that_ns[1]:6.1f} ns a step: "
         f"paired median ratio {c.gradient:.3f}",
         f"  both                    paired median ratio {c.whole:.3f}",
         f"  θ bit-identical in {c.identical_rounds} of {c.rounds} rounds; largest difference "

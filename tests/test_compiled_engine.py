@@ -60,7 +60,11 @@ def test_agent_streams_are_numpys_default_rng(seed: int) -> None:
             assert np.array_equal(ours, theirs), (seed, k, round_index, purpose)
 
 
-def test_tanh32_is_within_one_ulp_of_tanh() -> None:
+def test_tanh32_is_within_seven_ulps_of_tanh() -> None:
+    """The float32 rational function (common/batched/kernels.py's docstring: every float32
+    in [2⁻³⁰, 10.5] measured, at most 7 ulps off, 0.28 % three or more); a fixed sample of
+    them here (the function is deterministic, so are its errors: the bounds are this
+    sample's figures, rounded up). A coefficient 0.1 % off fails it."""
     rng = np.random.default_rng(0)
     magnitudes = np.concatenate(
         [
@@ -75,8 +79,9 @@ def test_tanh32_is_within_one_ulp_of_tanh() -> None:
     ours = np.concatenate([ours, _tanh32_many(values[2000:])])
     exact = np.tanh(values.astype(np.float64)).astype(np.float32)
     ulps = np.abs(ours.view(np.int32).astype(np.int64) - exact.view(np.int32).astype(np.int64))
-    assert ulps.max() <= 1
-    assert (ulps > 0).mean() < 0.005
+    assert ulps.max() <= 7
+    assert (ulps > 2).mean() < 0.015  # 1.39 % in this sample
+    assert (ulps > 0).mean() < 0.45  # 43 %: the sample is dense in [1, 12], where most are off
     assert np.array_equal(np.sign(ours), np.sign(exact))
     assert np.isnan(kernels.tanh32(np.float32("nan")))
     assert kernels.tanh32(np.float32("inf")) == 1.0 and kernels.tanh32(np.float32("-inf")) == -1.0

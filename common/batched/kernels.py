@@ -14,11 +14,16 @@ Numerics:
   contract, so a vectorised loop computes what the scalar one would), so an episode is the
   same on any x86-64 host given θ; ``error_model="numpy"`` everywhere (IEEE division, no zero
   check: the check stops LLVM from vectorising any loop with a division);
-- tanh by :func:`tanh32`, a rational function evaluated in float64 and rounded to float32:
-  a libm ``tanhf`` per unit cannot be vectorised and made the whole sampler 2.5× slower. Its
-  relative error is below 1.5·10⁻¹⁰ before rounding, so it is within one float32 ulp of tanh
-  (over every float32 in [2⁻³⁰, 10.5]: 0.07 % of them one ulp off the correctly rounded
-  value; numpy's float32 tanh is one ulp off for 11 %, torch's for 0.03 %);
+- tanh by :func:`tanh32`, a rational function evaluated in float32 (a libm ``tanhf`` per
+  unit cannot be vectorised and made the whole sampler 2.5× slower). An AVX2 vector holds 8
+  float32 lanes, not float64's 4: the sampler took 0.85–0.89 and the gradient 0.79–0.82 of
+  their CPU per env step with the float64 evaluation it replaced (two runs of ``python -m
+  benchmarks.kernels_ab``). The price is accuracy: over every float32 in [2⁻³⁰, 10.5], 24 %
+  are one ulp or more off the correctly rounded tanh, 3.2 % two or more, 0.28 % three or
+  more, none more than seven (< 10⁻⁶ relative), where the float64 evaluation was within one
+  ulp (0.07 % off); numpy's float32 tanh is one ulp off for 11 %, torch's for 0.03 %.
+  Returning ±1 exactly from |x| ≈ 9.01 on, as the float64 evaluation did, took back half
+  the sampler's gain, so it is not done;
 - the estimator's coefficients in float64, as the numpy engine; the gradient summed in
   float32 over blocks of :data:`BLOCK` rows, the blocks in float64, rounded to float32 once,
   with LLVM free to reorder and fuse the sums within a block (:data:`GRADIENT_FASTMATH`):
@@ -60,8 +65,11 @@ _Q2 = 0.029023816398434932
 _Q3 = 0.0004911404283108202
 _Q4 = 2.4847341405748074e-06
 _Q5 = 2.6850501254705975e-09
-TANH_CLAMP = 10.0
-"""|x| beyond which float32 tanh(x) is ±1 (it is from |x| ≈ 9.01 on)."""
+_P32 = tuple(np.float32(c) for c in (_P0, _P1, _P2, _P3, _P4, _P5))
+_Q32 = tuple(np.float32(c) for c in (_Q1, _Q2, _Q3, _Q4, _Q5))
+TANH_CLAMP = np.float32(10.0)
+"""|x| at which the rational function's input is clamped (float32 tanh(x) is ±1 from |x| ≈
+9.01 on; the clamp keeps the powers of x finite)."""
 BLOCK = 64
 """Rows whose gradient is summed in float32 before it joins the float64 total."""
 LANES = 16
@@ -116,17 +124,19 @@ compiled the kernels disagreed with one that loaded them (tests/test_compiled_en
 
 @kernel(inline=True)
 def tanh32(value: np.float32) -> np.float32:
-    """tanh of a float32, through a float64 rational function (see the module docstring);
-    NaN stays NaN."""
-    x = float(value)
+    """tanh of a float32, through a rational function evaluated in float32 (see the module
+    docstring); NaN stays NaN."""
+    x = value
     if x > TANH_CLAMP:
         x = TANH_CLAMP
     elif x < -TANH_CLAMP:
         x = -TANH_CLAMP
     s = x * x
-    p = _P0 + s * (_P1 + s * (_P2 + s * (_P3 + s * (_P4 + s * _P5))))
-    q = 1.0 + s * (_Q1 + s * (_Q2 + s * (_Q3 + s * (_Q4 + s * _Q5))))
-    return np.float32(x * p / q)
+    p = _P32[0] + s * (_P32[1] + s * (_P32[2] + s * (_P32[3] + s * (_P32[4] + s * _P32[5]))))
+    q = np.float32(1.0) + s * (
+        _Q32[0] + s * (_Q32[1] + s * (_Q32[2] + s * (_Q32[3] + s * _Q32[4])))
+    )
+    return x * p / q
 
 
 @kernel()
