@@ -102,7 +102,10 @@ bench-presets: $(STAMP)
 # Thousands of agents on agent hosts (issue 17): CartPole K = 1,000 and 10,000, one process per
 # agent for comparison, the coordination cost at 10^4 parameters, GridWorld K = 1,000. Minutes on
 # 2 cores; results in benchmarks/results/scale*.json, figures in docs/scale*.png.
+# numba's kernel cache, filled at setup, is emptied by any edit of kernels.py: refilled first,
+# or the first case's start-up would time a compilation.
 bench-scale: $(STAMP)
+	$(BIN)/python -m fedhpg.common.batched.compiled
 	OMP_NUM_THREADS=1 $(BIN)/python -m benchmarks.scale
 	OMP_NUM_THREADS=1 $(BIN)/python -m benchmarks.scale_gridworld
 
