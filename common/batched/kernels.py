@@ -66,7 +66,7 @@ _Q3 = 0.0004911404283108202
 _Q4 = 2.4847341405748074e-06
 _Q5 = 2.6850501254705975e-09
 _P32 = tuple(np.float32(c) for c in (_P0, _P1, _P2, _P3, _P4, _P5))
-_Q32 = tuple(np.float32(c) for c in (_Q1, _Q2, _Q3, _Q4, _Q5))
+_Q32 = tuple(np.float32(c) for c in (1.0, _Q1, _Q2, _Q3, _Q4, _Q5))
 TANH_CLAMP = np.float32(10.0)
 """|x| at which the rational function's input is clamped (float32 tanh(x) is ±1 from |x| ≈
 9.01 on; the clamp keeps the powers of x finite)."""
@@ -133,9 +133,7 @@ def tanh32(value: np.float32) -> np.float32:
         x = -TANH_CLAMP
     s = x * x
     p = _P32[0] + s * (_P32[1] + s * (_P32[2] + s * (_P32[3] + s * (_P32[4] + s * _P32[5]))))
-    q = np.float32(1.0) + s * (
-        _Q32[0] + s * (_Q32[1] + s * (_Q32[2] + s * (_Q32[3] + s * _Q32[4])))
-    )
+    q = _Q32[0] + s * (_Q32[1] + s * (_Q32[2] + s * (_Q32[3] + s * (_Q32[4] + s * _Q32[5]))))
     return x * p / q
 
 
