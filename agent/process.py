@@ -394,6 +394,7 @@ class AgentProcess:
             budgets={self.index: request.budget},
         )[self.index]
         self.device.transmit(message)  # the answer's
+        self.device.settle()
         stats = replace(
             result.stats,
             emulated_s=self.device.take_emulated(),

@@ -18,7 +18,11 @@ steps × step_delay_s``; a message of ``n`` bytes takes ``latency_s + 8n / (band
 
 Unless the virtual clock is on, the device sleeps the emulated time minus the compute time
 (speeds above 1 cannot be emulated by sleeping and are only accounted); with it on, the
-emulated time is only accounted.
+emulated time is only accounted. The sleeping is owed through the round and paid once, by
+:meth:`DeviceModel.settle` before the answer leaves, not after each iteration: compute that
+follows a sleep can run on cold caches and a clocked-down core, so sleeping between iterations
+charged a slow device for the emulation's own disturbance (on one 2-core CI machine a device
+of speed 0.25 measured 5.1× the compute time of an equal-work device of speed 1, not 4×).
 """
 
 from __future__ import annotations
@@ -75,6 +79,8 @@ class DeviceModel:
     seed: int = 0
     emulated_s: float = 0.0
     """Emulated seconds accumulated since the last :meth:`take_emulated`."""
+    owed_s: float = 0.0
+    """Seconds of sleep owed since the last :meth:`settle` or :meth:`take_emulated`."""
     sleep: Callable[[float], None] = time.sleep
     """How waiting is done; the agent process swaps in a sleep its server can interrupt."""
     _walk: float = field(default=1.0, init=False)
@@ -126,7 +132,8 @@ class DeviceModel:
         grad_steps: int = 0,
         num_params: int = 0,
     ) -> float:
-        """Emulate one local iteration; returns its emulated duration.
+        """Emulate one local iteration (its sleep is owed until :meth:`settle`); returns its
+        emulated duration.
 
         ``grad_steps`` and ``num_params`` only matter to the counted clock.
         """
@@ -143,19 +150,28 @@ class DeviceModel:
         return self.latency_s + 8.0 * num_bytes / (self.bandwidth_mbps * 1e6)
 
     def transmit(self, num_bytes: int = 0) -> None:
-        """Emulate the one-way latency (and, on the counted clock, transfer) of a message."""
+        """Emulate the one-way latency (and, on the counted clock, transfer) of a message
+        (owed until :meth:`settle`, like an iteration's sleep)."""
         seconds = self.transfer_s(num_bytes)
         if seconds > 0:
             self._wait(seconds)
             self.emulated_s += seconds
 
+    def settle(self) -> None:
+        """Sleep what the round owes (nothing on the virtual clock)."""
+        owed, self.owed_s = self.owed_s, 0.0
+        if owed > 0:
+            self.sleep(owed)
+
     def take_emulated(self) -> float:
-        spent, self.emulated_s = self.emulated_s, 0.0
+        """The emulated seconds since the last call; what was owed and not settled (a
+        cancelled round's) is forgiven."""
+        spent, self.emulated_s, self.owed_s = self.emulated_s, 0.0, 0.0
         return spent
 
     def _wait(self, seconds: float) -> None:
         if seconds > 0 and not self.virtual_clock:
-            self.sleep(seconds)
+            self.owed_s += seconds
 
 
 def device_for(run: RunConfig, index: int) -> DeviceModel:

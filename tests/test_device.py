@@ -22,13 +22,46 @@ def test_virtual_clock_accounts_without_sleeping() -> None:
     assert device.take_emulated() == 0.0
 
 
-def test_real_clock_sleeps_the_difference() -> None:
+def test_real_clock_sleeps_the_difference_once_when_the_round_settles() -> None:
+    slept: list[float] = []
+    device = DeviceModel(speed=0.5, latency_s=0.02, sleep=slept.append)
+    device.transmit()  # owes 0.02
+    device.spend(real_s=0.05, env_steps=0, round_index=1)  # owes 0.1 - 0.05
+    device.spend(real_s=0.05, env_steps=0, round_index=1)
+    assert slept == [], "no sleep between iterations: it would disturb the compute measured"
+    device.settle()
+    assert slept == [pytest.approx(0.02 + 0.05 + 0.05)]
+    device.settle()
+    assert len(slept) == 1, "paid once"
+    assert device.take_emulated() == pytest.approx(0.02 + 0.1 + 0.1)
+
+
+def test_real_clock_really_sleeps() -> None:
     device = DeviceModel(speed=0.5, latency_s=0.02)
     started = time.perf_counter()
-    device.spend(real_s=0.05, env_steps=0, round_index=1)  # sleeps 0.1 - 0.05
-    device.transmit()  # sleeps 0.02
+    device.spend(real_s=0.05, env_steps=0, round_index=1)
+    device.transmit()
+    device.settle()
     assert time.perf_counter() - started >= 0.07
-    assert device.take_emulated() == pytest.approx(0.1 + 0.02)
+
+
+def test_a_cancelled_rounds_sleep_is_forgiven() -> None:
+    slept: list[float] = []
+    device = DeviceModel(speed=0.25, sleep=slept.append)
+    device.spend(real_s=0.1, env_steps=0, round_index=1)  # the round is cancelled here
+    device.take_emulated()  # the next round starts
+    device.spend(real_s=0.1, env_steps=0, round_index=2)
+    device.settle()
+    assert slept == [pytest.approx(0.3)]
+
+
+def test_the_virtual_clock_owes_nothing() -> None:
+    slept: list[float] = []
+    device = DeviceModel(speed=0.25, latency_s=0.5, virtual_clock=True, sleep=slept.append)
+    device.spend(real_s=0.1, env_steps=0, round_index=1)
+    device.transmit()
+    device.settle()
+    assert slept == [] and device.take_emulated() == pytest.approx(0.9)
 
 
 def test_periodic_schedule() -> None:

@@ -132,6 +132,7 @@ class InProcessPool:
         device = self.device(k)
         if device.counted:
             device.transmit(message)
+        device.settle()
         stats = dataclasses.replace(
             result.stats, emulated_s=device.take_emulated(), speed=device.speed_at(round_index)
         )
