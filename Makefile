@@ -6,7 +6,7 @@ STAMP := $(VENV)/.installed
 export OMP_NUM_THREADS ?= 1
 export MKL_NUM_THREADS ?= 1
 
-.PHONY: setup demo test test-long image test-containers bench-containers clean-containers lint typecheck contracts bench bench-learning bench-learning-long bench-tuned bench-robustness bench-presets bench-scale bench-plan bench-async figures clean
+.PHONY: setup demo test test-long image test-containers bench-containers clean-containers lint typecheck contracts bench bench-learning bench-learning-long bench-tuned bench-robustness bench-presets bench-scale bench-device bench-plan bench-async figures clean
 
 setup: $(STAMP)
 
@@ -108,6 +108,14 @@ bench-scale: $(STAMP)
 	$(BIN)/python -m fedhpg.common.batched.compiled
 	OMP_NUM_THREADS=1 $(BIN)/python -m benchmarks.scale
 	OMP_NUM_THREADS=1 $(BIN)/python -m benchmarks.scale_gridworld
+
+# The torch engine's policy maths on a CUDA GPU (issue 17): the largest K one host trains,
+# against the numpy maths and the compiled engine on this CPU; benchmarks/results/scale_device.json.
+# One line and exit 1 where torch sees no CUDA device. DEVICE=cpu runs it on the CPU.
+DEVICE ?= cuda
+bench-device: $(STAMP)
+	$(BIN)/python -m fedhpg.common.batched.compiled
+	OMP_NUM_THREADS=1 $(BIN)/python -m benchmarks.scale_device --device $(DEVICE)
 
 # The Theorem 1 planner against uniform, speed-proportional and the paper's budgets at one
 # emulated-time budget (issue 18): GridWorld K=4 (two speed spreads), CartPole K=10 and K=100,

@@ -32,6 +32,7 @@ import numpy as np
 import torch
 import zmq
 
+from fedhpg.common.batched.maths import DeviceUnavailable
 from fedhpg.common.components import agent_profile, validate_run
 from fedhpg.common.config import ConfigError, RunConfig, adopt_settings, agent_id_of
 from fedhpg.common.device import DeviceModel, device_for, message_bytes
@@ -300,7 +301,10 @@ class AgentProcess:
         self._retire_job()
         if self.group is not None:
             self.group.close()
-        self.group = self._make_group(run)
+        try:
+            self.group = self._make_group(run)
+        except DeviceUnavailable as error:
+            raise AgentFailure(str(error)) from None
         needed = MAX_HEADER_BYTES + 4 * self.group.num_params
         if self.max_bytes < needed:
             raise AgentFailure(

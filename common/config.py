@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import re
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -25,7 +26,7 @@ BASELINES: tuple[str, ...] = ("none", "mean")
 REWARD_TO_GO: tuple[str, ...] = ("from_start", "from_step")
 NORMALIZE: tuple[str, ...] = ("none", "batch", "episode")
 OPTIMIZERS = ("sgd", "adam")
-ENGINES = ("auto", "numpy", "loop")
+ENGINES = ("auto", "numpy", "torch", "loop")
 ATTACKS = ("none", "zero_gradient", "random_noise", "sign_flip", "reward_flip", "random_action")
 SCHEDULES = ("constant", "periodic", "random_walk")
 PLANS = ("none", "theorem1")
@@ -92,9 +93,13 @@ class AlgoConfig:
     covers the run (FedHPG, MLP categorical policy, honest agents: all of the process's agents
     sampled and differentiated together; compiled with numba on CartPole, numpy elsewhere),
     else one LocalWorker after another; 'numpy' = the numpy batched engine wherever it covers
-    the run (the engine of runs made before the compiled one); 'loop' = always LocalWorkers.
-    They round floats differently, so the server dictates it; either way an agent's θ does not
-    depend on where it runs."""
+    the run (the engine of runs made before the compiled one); 'torch' = the numpy engine with
+    its policy maths (forwards, draws, gradients) in torch on ``algo.device``, e.g. a CUDA GPU;
+    'loop' = always LocalWorkers. They round floats differently, so the server dictates it;
+    with all but 'torch' an agent's θ does not depend on where it runs (a device library picks
+    its kernels by shape, so under 'torch' the last bits may follow the agent's company)."""
+    device: str = "cpu"
+    """``algo.engine=torch``: the torch device of the policy maths ('cpu', 'cuda', 'cuda:N')."""
     bound_estimates: bool = False
     """Estimate Theorem 1's constants every round (``common/bounds.py``): each agent's σ̂², M̂
     and ‖∇J_k‖² at θ̃ from the per-trajectory gradients of its first local batch, written as
@@ -598,6 +603,16 @@ def _validate_algo(algo: AlgoConfig) -> None:
         )
     _check_choice(algo.optimizer, "algo.optimizer", OPTIMIZERS)
     _check_choice(algo.engine, "algo.engine", ENGINES)
+    _require(
+        isinstance(algo.device, str) and re.fullmatch(r"cpu|cuda(:\d+)?", algo.device) is not None,
+        "algo.device",
+        f"got {algo.device!r}, allowed: cpu, cuda, cuda:N",
+    )
+    _require(
+        algo.device == "cpu" or algo.engine == "torch",
+        "algo.device",
+        f"{algo.device!r} needs algo.engine=torch (got {algo.engine!r})",
+    )
     _check_number(algo.step_size, "algo.step_size", low=0.0, low_open=True)
     if algo.grad_clip is not None:
         _check_number(algo.grad_clip, "algo.grad_clip", low=0.0, low_open=True)

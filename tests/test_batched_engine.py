@@ -7,9 +7,10 @@ import numpy as np
 import pytest
 import torch
 
-from fedhpg.common.batched import batched_group_or_none, mlp, unsupported
+from fedhpg.common.batched import batched_group_or_none, unsupported
 from fedhpg.common.batched.compiled import CompiledFedHPG
 from fedhpg.common.batched.engine import BatchedFedHPG
+from fedhpg.common.batched.maths import NUMPY
 from fedhpg.common.batched.sampler import Batches, rollout
 from fedhpg.common.group import WorkerLoopGroup, make_agent_group
 from fedhpg.common.local import batch_gradient
@@ -23,7 +24,7 @@ from fedhpg.server.api import resolve_config
 POPULATION = ["agents=population", "policy.hidden=[16,16]"]
 
 
-ENGINES = {"numpy": BatchedFedHPG, "auto": CompiledFedHPG}
+ENGINES = {"numpy": BatchedFedHPG, "torch": BatchedFedHPG, "auto": CompiledFedHPG}
 """algo.engine → the engine it picks for CartPole."""
 
 
@@ -97,9 +98,11 @@ def _three_agents_away_from_the_start(run):
         for p in policy.parameters():
             p.add_(0.3 * torch.randn(p.shape, generator=torch.Generator().manual_seed(p.numel())))
     theta = get_flat_params(policy).numpy()
-    layers = mlp.unflatten(engine.shape, np.repeat(theta[None], 3, 0))
+    maths = engine.maths if isinstance(engine, BatchedFedHPG) else NUMPY
+    layers = maths.unflatten(engine.shape, np.repeat(theta[None], 3, 0))
     env = make_multi_batch_env([variants[k] for k in range(3)], COUNTS)
-    batches = rollout(env, layers, [np.random.default_rng(i) for i in range(3)], [500] * 3)
+    rngs = [np.random.default_rng(i) for i in range(3)]
+    batches = rollout(env, layers, rngs, [500] * 3, maths=maths)
     return engine, policy, layers, batches
 
 
@@ -117,10 +120,11 @@ def _agent_batch(batches, a: int) -> TrajectoryBatch:
     )
 
 
+@pytest.mark.parametrize("engine", ["numpy", "torch"])
 @pytest.mark.parametrize("estimator", ["gpomdp", "reinforce"])
 @pytest.mark.parametrize("baseline", ["mean", "none"])
-def test_the_stacked_gradient_is_autograds_to_float32_rounding(estimator, baseline) -> None:
-    run = _run(f"algo.estimator={estimator}", f"algo.baseline={baseline}", agents=3)
+def test_the_stacked_gradient_is_autograds_to_float32_rounding(estimator, baseline, engine) -> None:
+    run = _run(f"algo.estimator={estimator}", f"algo.baseline={baseline}", agents=3, engine=engine)
     engine, policy, layers, batches = _three_agents_away_from_the_start(run)
     gradient = engine._gradient(Batches.of(batches), layers, [0, 1, 2])
     for a in range(3):

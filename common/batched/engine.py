@@ -10,8 +10,9 @@ the same θ bit for bit (see :mod:`fedhpg.common.batched.mlp` for how).
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from contextlib import closing
+from typing import Any
 
 import numpy as np
 import torch
@@ -19,14 +20,17 @@ import torch
 from fedhpg.common.batched import coefficients as coef
 from fedhpg.common.batched import mlp
 from fedhpg.common.batched.agents import EngineAgents
+from fedhpg.common.batched.maths import PolicyMaths, maths_for
 from fedhpg.common.batched.sampler import Batches, block_order, rollout
 from fedhpg.common.batched.scheduler import RoundTiming, run_round
 from fedhpg.common.bounds import gradient_moments
 from fedhpg.common.components import planned_budget
+from fedhpg.common.config import RunConfig
 from fedhpg.common.group import Budgets, GroupHook
 from fedhpg.common.local import SmoothnessProbe, bound_stats
 from fedhpg.common.types import EvaluationStats, LocalResult
 from fedhpg.common.worker import IterationWork, Stream, random_stream
+from fedhpg.envs.base import EnvVariant
 from fedhpg.envs.multi import make_multi_batch_env
 
 ADAM_BETAS = (0.9, 0.999)
@@ -65,6 +69,11 @@ def ascend(
 class BatchedFedHPG(EngineAgents):
     """The agents ``variants`` of a FedHPG run with the MLP categorical policy."""
 
+    def __init__(self, run: RunConfig, variants: Mapping[int, EnvVariant], shape: mlp.MLPShape):
+        super().__init__(run, variants, shape)
+        self.maths: PolicyMaths = maths_for(run.algo.engine, run.algo.device)
+        """Where the policy maths run (``algo.engine``, ``algo.device``)."""
+
     # -- training -------------------------------------------------------------------------
 
     def train(
@@ -92,7 +101,7 @@ class BatchedFedHPG(EngineAgents):
         probes: dict[int, SmoothnessProbe] = {}
 
         def gradient_step(batches: Batches, rows: np.ndarray, done: np.ndarray) -> np.ndarray:
-            layers = mlp.unflatten(self.shape, params[rows])
+            layers = self.maths.unflatten(self.shape, params[rows])
             active = [order[i] for i in rows]
             found: list[dict[str, float]] = []
             if algo.bound_estimates:  # off: nothing added to the gradient step
@@ -137,6 +146,7 @@ class BatchedFedHPG(EngineAgents):
                 gradient_step,
                 on_batch,
                 timing,
+                self.maths,
             )
         total_steps = max(sum(t.env_steps for t in tallies), 1)
         results = {}
@@ -151,7 +161,7 @@ class BatchedFedHPG(EngineAgents):
             results[k] = tallies[i].result(torch.from_numpy(params[i].copy()))
         return results
 
-    def _gradient(self, batches: Batches, layers: mlp.Layers, active: list[int]) -> np.ndarray:
+    def _gradient(self, batches: Batches, layers: Any, active: list[int]) -> np.ndarray:
         """(1/B_k) Σ_b g(τ_b) of every active agent, [A, d]."""
         gammas = np.array([self.gammas[k] for k in active])
         c = coef.coefficients(
@@ -170,10 +180,10 @@ class BatchedFedHPG(EngineAgents):
             c.reshape(-1)[batches.row_cell].astype(np.float32),
             len(active),
         )
-        return mlp.score_gradient(self.shape, layers, chunks)
+        return self.maths.score_gradient(self.shape, layers, chunks)
 
     def _bound_statistics(
-        self, batches: Batches, layers: mlp.Layers, active: list[int], wanted: np.ndarray
+        self, batches: Batches, layers: Any, active: list[int], wanted: np.ndarray
     ) -> list[dict[str, float]]:
         """Theorem 1's constants of every active agent's batch (``common/bounds.py``), from
         per-trajectory gradients: the same kernel with one owner per trajectory instead of per
@@ -217,8 +227,8 @@ class BatchedFedHPG(EngineAgents):
                 coefficient[r0:r1],
                 high - low,
             )
-            owners = mlp.select(layers, batches.owner[low:high])
-            rows = mlp.score_gradient(self.shape, owners, chunks)
+            owners = self.maths.select(layers, batches.owner[low:high])
+            rows = self.maths.score_gradient(self.shape, owners, chunks)
             for i in range(agent, last):
                 start, stop = int(batches.offsets[i]) - low, int(batches.offsets[i + 1]) - low
                 if stop - start < 2:
@@ -249,12 +259,14 @@ class BatchedFedHPG(EngineAgents):
     ) -> dict[int, EvaluationStats]:
         order = sorted(agents)
         params = np.repeat(theta.detach().numpy().astype(np.float32)[None, :], len(order), 0)
-        layers = mlp.unflatten(self.shape, params)
+        layers = self.maths.unflatten(self.shape, params)
         env = make_multi_batch_env([self.variants[k] for k in order], [episodes] * len(order))
         rngs = [random_stream(self.run.seed, k, round_index, Stream.EVALUATE) for k in order]
         horizons = [self.run.eval.horizon or self.horizons[k] for k in order]
         with closing(env), np.errstate(invalid="ignore", over="ignore", divide="ignore"):
-            rollouts = rollout(env, layers, rngs, horizons, greedy=self.run.eval.greedy)
+            rollouts = rollout(
+                env, layers, rngs, horizons, greedy=self.run.eval.greedy, maths=self.maths
+            )
         gammas = np.array([self.gammas[k] for k in order])
         undiscounted = coef.returns(rollouts)
         discounted = coef.returns(rollouts, gammas)

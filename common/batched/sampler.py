@@ -12,10 +12,11 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 
-from fedhpg.common.batched import mlp
+from fedhpg.common.batched.maths import NUMPY, PolicyMaths
 from fedhpg.envs.multi import MultiBatchEnv
 
 UNIFORM_CHUNK = 32
@@ -88,17 +89,18 @@ class Batches:
 
 def rollout(
     env: MultiBatchEnv,
-    layers: mlp.Layers,
+    layers: Any,
     rngs: Sequence[np.random.Generator],
     horizons: Sequence[int],
     *,
     greedy: bool = False,
+    maths: PolicyMaths = NUMPY,
 ) -> Rollouts:
     """One episode in every copy of every agent (agents in ``env``'s block order).
 
     Agents whose copies have all ended drop out of the stepping and the forward: the set of
     stepped agents is narrowed whenever it has shrunk by a quarter (episode lengths vary a
-    lot, and a batch lasts as long as its longest episode).
+    lot, and a batch lasts as long as its longest episode). ``layers`` come from ``maths``.
     """
     counts = np.asarray(env.counts)
     offsets = np.concatenate([[0], np.cumsum(counts)])
@@ -116,11 +118,11 @@ def rollout(
     agent_running = np.ones(num_agents, dtype=bool)
     lengths = np.zeros(num_agents, dtype=np.int64)
     uniforms = np.zeros((UNIFORM_CHUNK, num_envs))
-    plan = _Plan(np.arange(num_agents), counts, offsets, layers)
+    plan = _Plan(np.arange(num_agents), counts, offsets, layers, maths)
     steps = 0
     while steps < horizon and agent_running.any():
         if 4 * int(agent_running.sum()) <= 3 * len(plan.agents):
-            plan = _Plan(np.nonzero(agent_running)[0], counts, offsets, layers)
+            plan = _Plan(np.nonzero(agent_running)[0], counts, offsets, layers, maths)
         if not greedy and steps % UNIFORM_CHUNK == 0:
             for a in np.nonzero(agent_running)[0]:
                 block = slice(offsets[a], offsets[a + 1])
@@ -131,13 +133,8 @@ def rollout(
         row = 0
         for group_layers, num, size in plan.groups:
             rows = slice(row, row + num * size)
-            logit = mlp.logits(group_layers, live_obs[rows].reshape(num, size, -1))
-            logit = logit.reshape(num * size, -1)
-            if greedy:
-                actions[rows] = logit.argmax(axis=-1)
-            else:
-                draws = uniforms[steps % UNIFORM_CHUNK, copies[rows]]
-                actions[rows] = mlp.draw_actions(logit, draws)
+            draws = None if greedy else uniforms[steps % UNIFORM_CHUNK, copies[rows]]
+            actions[rows] = maths.act(group_layers, live_obs[rows].reshape(num, size, -1), draws)
             row += num * size
         obs_buf[steps, copies] = live_obs
         act_buf[steps, copies] = actions
@@ -171,7 +168,12 @@ class _Plan:
     agents with equal copy counts (with those agents' layers)."""
 
     def __init__(
-        self, agents: np.ndarray, counts: np.ndarray, offsets: np.ndarray, layers: mlp.Layers
+        self,
+        agents: np.ndarray,
+        counts: np.ndarray,
+        offsets: np.ndarray,
+        layers: Any,
+        maths: PolicyMaths,
     ) -> None:
         self.agents = agents
         self.everyone = len(agents) == len(counts)
@@ -180,10 +182,10 @@ class _Plan:
             if self.everyone
             else np.concatenate([np.arange(offsets[a], offsets[a + 1]) for a in agents])
         )
-        self.groups: list[tuple[mlp.Layers, int, int]] = []
+        self.groups: list[tuple[Any, int, int]] = []
         for start, end, size in _groups(counts[agents]):
             chosen = agents[start:end]
-            self.groups.append((mlp.select(layers, chosen), end - start, size))
+            self.groups.append((maths.select(layers, chosen), end - start, size))
 
 
 def _groups(counts: np.ndarray) -> list[tuple[int, int, int]]:

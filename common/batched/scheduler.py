@@ -18,11 +18,13 @@ from __future__ import annotations
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 
 from fedhpg.common.batched import mlp
 from fedhpg.common.batched.coefficients import returns as copy_returns
+from fedhpg.common.batched.maths import NUMPY, PolicyMaths
 from fedhpg.common.batched.sampler import UNIFORM_CHUNK, Batches, _groups
 from fedhpg.common.local import LocalTally
 from fedhpg.envs.multi import MultiBatchEnv, block_columns
@@ -72,7 +74,7 @@ class _Frame:
         self.uniforms = np.zeros((UNIFORM_CHUNK, size))
         self.ring = _Rings(ring, (size, *obs_shape))
         self.runs = [(s, e, size) for s, e, size in _groups(self.counts)]
-        self.layers: list[mlp.Layers] = []
+        self.layers: list[Any] = []
 
     def narrowed(self, keep: np.ndarray, since: int, now: int) -> _Frame:
         """The frame of the local agents ``keep``, carrying their state and the ring's slots
@@ -89,19 +91,20 @@ class _Frame:
         frame.ring = self.ring.narrowed(columns, since, now)
         return frame
 
-    def load(self, params: np.ndarray, shape: mlp.MLPShape) -> None:
+    def load(self, params: np.ndarray, shape: mlp.MLPShape, maths: PolicyMaths) -> None:
         self.layers = [
-            mlp.unflatten(shape, params[self.agents[start:end]]) for start, end, _ in self.runs
+            maths.unflatten(shape, params[self.agents[start:end]]) for start, end, _ in self.runs
         ]
 
-    def refresh(self, params: np.ndarray, shape: mlp.MLPShape, changed: np.ndarray) -> None:
+    def refresh(
+        self, params: np.ndarray, shape: mlp.MLPShape, changed: np.ndarray, maths: PolicyMaths
+    ) -> None:
         """Reload the layers of the local agents ``changed`` after their step."""
         for (start, end, _), layers in zip(self.runs, self.layers, strict=True):
             rows = changed[(changed >= start) & (changed < end)]
             if len(rows):
-                fresh = mlp.unflatten(shape, params[self.agents[rows]])
-                for (weight, bias), (new_w, new_b) in zip(layers, fresh, strict=True):
-                    weight[rows - start], bias[rows - start] = new_w, new_b
+                fresh = maths.unflatten(shape, params[self.agents[rows]])
+                maths.assign(layers, rows - start, fresh)
 
 
 def run_round(
@@ -114,11 +117,12 @@ def run_round(
     gradient_step: GradientStep,
     on_batch: Callable[[int, int, int, float], None] | None = None,
     timing: RoundTiming | None = None,
+    maths: PolicyMaths = NUMPY,
 ) -> list[LocalTally]:
     """Every agent (env block a, θ row ``params[a]``) runs ``iterations[a]`` local iterations.
 
     ``on_batch(position, iteration, env_steps, compute_s)`` follows each agent's step;
-    ``timing`` receives the round's split of CPU time.
+    ``timing`` receives the round's split of CPU time; ``maths`` does the policy's forwards.
     """
     counts = np.asarray(env.counts)
     num_agents = len(counts)
@@ -158,7 +162,7 @@ def run_round(
         batches = frame.ring.ended(local, local_step[agents], started_at[agents],
                                    frame.offsets, frame.counts)  # fmt: skip
         clipped = gradient_step(batches, agents, done[agents])
-        frame.refresh(params, shape, local)
+        frame.refresh(params, shape, local, maths)
         steps = batches.env_steps()
         returns = np.add.reduceat(copy_returns(batches), batches.offsets[:-1])
         steps_so_far += int(steps.sum())
@@ -176,7 +180,7 @@ def run_round(
             start(again, now)
         gradient_s += time.thread_time() - entered
 
-    frame.load(params, shape)
+    frame.load(params, shape, maths)
     start(np.arange(len(frame.agents)), 0)
     now = 0
     while working.any():
@@ -185,7 +189,7 @@ def run_round(
             keep = np.nonzero(still)[0]
             since = int(started_at[frame.agents[keep]].min())
             frame = frame.narrowed(keep, since, now)
-            frame.load(params, shape)
+            frame.load(params, shape, maths)
         agents = frame.agents
         active = np.nonzero(sampling[agents])[0]
         in_flight = working[agents]
@@ -201,9 +205,9 @@ def run_round(
         for (start_agent, end_agent, size), layers in zip(frame.runs, frame.layers, strict=True):
             rows = slice(frame.offsets[start_agent], frame.offsets[end_agent])
             num = end_agent - start_agent
-            logit = mlp.logits(layers, obs[rows].reshape(num, size, -1))
-            actions[rows] = mlp.draw_actions(
-                logit.reshape(num * size, -1),
+            actions[rows] = maths.act(
+                layers,
+                obs[rows].reshape(num, size, -1),
                 frame.uniforms[chunk_row[rows], np.arange(rows.start, rows.stop)],
             )
         running = frame.running
