@@ -82,8 +82,14 @@ def measure(device: str, start: int, max_agents: int, max_round_s: float,
             compare_up_to: int, hidden: int = 16) -> tuple[list[Row], str]:  # fmt: skip
     """The rows up to the largest K reached, and why the doubling stopped."""
     cuda = device.startswith("cuda")
-    for engine, on in (("torch", device), ("numpy", "cpu"), ("auto", "cpu")):
+    for engine, on in (("torch", device), ("numpy", "cpu")):
         _round(WARM_UP_AGENTS, engine, on, hidden)
+    try:  # numba compiles the kernels on a machine whose cache is empty
+        _round(WARM_UP_AGENTS, "auto", "cpu", hidden)
+        compiled = True
+    except Exception as error:  # e.g. a numba that does not support this numpy
+        logger.warning("the compiled engine cannot run here, not compared: %s", error)
+        compiled = False
     rows: list[Row] = []
     agents = start
     while agents <= max_agents:
@@ -95,7 +101,7 @@ def measure(device: str, start: int, max_agents: int, max_round_s: float,
             return rows, f"K = {agents:,}: out of memory ({type(error).__name__})"
         compared = agents <= compare_up_to
         numpy_s = _round(agents, "numpy", "cpu", hidden)[1] if compared else None
-        compiled_s = _round(agents, "auto", "cpu", hidden)[1] if compared else None
+        compiled_s = _round(agents, "auto", "cpu", hidden)[1] if compared and compiled else None
         rows.append(Row(
             agents=agents,
             env_steps=steps,

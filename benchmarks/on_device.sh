@@ -1,0 +1,46 @@
+#!/usr/bin/env bash
+# make bench-device on a lent GPU machine, whose python3 holds a CUDA torch (and numpy, numba,
+# msgpack) but not the rest of fedhpg's stack, and which cannot reach an index.
+#
+#   bash benchmarks/on_device.sh fetch   # here: the missing wheels (Python 3.12) into .whl/
+#   bash benchmarks/on_device.sh run     # there (device run, carry .whl): results in $OUT
+#
+# `run` installs the wheels into /tmp/site, maps the repository's folders to fedhpg.* the
+# way pyproject.toml does (links under /tmp/pkg), checks the placement properties and
+# doubles K (benchmarks/scale_device.py). Extra arguments go to scale_device.
+set -euo pipefail
+cd "$(dirname "$0")/.."
+WHEELS=.whl
+PLATFORMS=(--platform manylinux_2_28_x86_64 --platform manylinux_2_17_x86_64
+           --platform manylinux2014_x86_64)
+mode=${1:-}
+shift || true
+case "$mode" in
+fetch)
+    mkdir -p "$WHEELS"
+    pip() { "${PYTHON:-python3}" -m pip "$@"; }
+    # pure-Python wheels, and the two compiled ones for CPython 3.12
+    pip download --quiet --no-deps --only-binary=:all: --python-version 3.12 \
+        --implementation cp "${PLATFORMS[@]}" -d "$WHEELS" \
+        gymnasium==1.4.0 Farama-Notifications==0.0.6 hydra-core==1.3.8 omegaconf==2.3.1 \
+        cloudpickle==3.1.2 pyzmq==27.3.0 orjson==3.13.0
+    # antlr4 4.9.3 (Hydra's parser) is published as a source archive only: built here
+    pip wheel --quiet --no-deps -w "$WHEELS" antlr4-python3-runtime==4.9.3
+    ls "$WHEELS"
+    ;;
+run)
+    ls "$WHEELS"/*.whl > /dev/null || { echo "error: no wheels in $WHEELS: run 'fetch' here and carry it" >&2; exit 1; }
+    "${PYTHON:-python3}" -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --upgrade \
+        --target /tmp/site "$WHEELS"/*.whl
+    mkdir -p /tmp/pkg/fedhpg
+    for d in agent common envs server conf; do ln -sfn "$PWD/$d" "/tmp/pkg/fedhpg/$d"; done
+    export PYTHONPATH="/tmp/site:/tmp/pkg:$PWD" OMP_NUM_THREADS=1 PYTHONUNBUFFERED=1
+    out=${OUT:-benchmarks/results}
+    "${PYTHON:-python3}" -c 'import torch; print("torch", torch.__version__, "cuda", torch.cuda.is_available())'
+    "${PYTHON:-python3}" -m benchmarks.scale_device --device cuda --out "$out/scale_device.json" "$@"
+    ;;
+*)
+    echo "usage: bash benchmarks/on_device.sh fetch|run [scale_device arguments]" >&2
+    exit 2
+    ;;
+esac
