@@ -40,8 +40,6 @@ class NumpyMaths:
     """:mod:`fedhpg.common.batched.mlp` as it is: an agent's numbers do not depend on its
     company, so placement does not change θ."""
 
-    name = "numpy"
-
     def unflatten(self, shape: mlp.MLPShape, theta: np.ndarray) -> mlp.Layers:
         return mlp.unflatten(shape, theta)
 

@@ -29,8 +29,6 @@ TorchLayers = list[tuple[torch.Tensor, torch.Tensor]]
 class TorchMaths:
     """Per-agent MLP maths with torch on ``device`` ('cpu', 'cuda', 'cuda:1', …)."""
 
-    name = "torch"
-
     def __init__(self, device: str) -> None:
         self.device = torch.device(device)
 
