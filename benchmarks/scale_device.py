@@ -32,6 +32,7 @@ from fedhpg.common.batched import batched_group_or_none
 from fedhpg.common.batched.compiled import CompiledFedHPG
 from fedhpg.common.batched.engine import BatchedFedHPG
 from fedhpg.common.batched.maths import device_problem
+from fedhpg.common.config import DEVICE_PATTERN
 from fedhpg.common.runtime.cli import compose
 from fedhpg.common.variants import variants_of
 from fedhpg.common.worker import initial_theta
@@ -175,7 +176,7 @@ def main(argv: list[str] | None = None) -> None:
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(message)s", datefmt="%H:%M:%S")
     if args.start < 1 or args.max_agents < args.start or args.hidden < 1:
         sys.exit("error: need 1 <= --start <= --max-agents and --hidden >= 1")
-    if args.device != "cpu" and not args.device.startswith("cuda"):
+    if DEVICE_PATTERN.fullmatch(args.device) is None:
         sys.exit(f"error: --device: got {args.device!r}, allowed: cpu, cuda, cuda:N")
     problem = device_problem("torch", args.device)
     if problem is not None:

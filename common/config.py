@@ -27,6 +27,8 @@ REWARD_TO_GO: tuple[str, ...] = ("from_start", "from_step")
 NORMALIZE: tuple[str, ...] = ("none", "batch", "episode")
 OPTIMIZERS = ("sgd", "adam")
 ENGINES = ("auto", "numpy", "torch", "loop")
+DEVICE_PATTERN = re.compile(r"cpu|cuda(:\d+)?")
+"""``algo.device``: a torch device name the torch engine accepts."""
 ATTACKS = ("none", "zero_gradient", "random_noise", "sign_flip", "reward_flip", "random_action")
 SCHEDULES = ("constant", "periodic", "random_walk")
 PLANS = ("none", "theorem1")
@@ -604,7 +606,7 @@ def _validate_algo(algo: AlgoConfig) -> None:
     _check_choice(algo.optimizer, "algo.optimizer", OPTIMIZERS)
     _check_choice(algo.engine, "algo.engine", ENGINES)
     _require(
-        isinstance(algo.device, str) and re.fullmatch(r"cpu|cuda(:\d+)?", algo.device) is not None,
+        isinstance(algo.device, str) and DEVICE_PATTERN.fullmatch(algo.device) is not None,
         "algo.device",
         f"got {algo.device!r}, allowed: cpu, cuda, cuda:N",
     )

@@ -79,7 +79,7 @@ class DeviceModel:
     seed: int = 0
     emulated_s: float = 0.0
     """Emulated seconds accumulated since the last :meth:`take_emulated`."""
-    owed_s: float = 0.0
+    owed_s: float = field(default=0.0, init=False)
     """Seconds of sleep owed since the last :meth:`settle` or :meth:`take_emulated`."""
     sleep: Callable[[float], None] = time.sleep
     """How waiting is done; the agent process swaps in a sleep its server can interrupt."""

@@ -43,6 +43,7 @@ def test_a_slow_round_stops_the_doubling(tmp_path) -> None:
     ("args", "message"),
     [
         (["--device", "tpu"], "error: --device: got 'tpu', allowed: cpu, cuda, cuda:N"),
+        (["--device", "cudax"], "error: --device: got 'cudax', allowed: cpu, cuda, cuda:N"),
         (["--start", "0"], "error: need 1 <= --start <= --max-agents and --hidden >= 1"),
     ],
 )
