@@ -6,8 +6,10 @@
 #   bash benchmarks/on_device.sh run     # there (device run, carry .whl): results in $OUT
 #
 # `run` installs the wheels into /tmp/site, maps the repository's folders to fedhpg.* the
-# way pyproject.toml does (links under /tmp/pkg), checks the placement properties and
-# doubles K (benchmarks/scale_device.py). Extra arguments go to scale_device.
+# way pyproject.toml does (links under /tmp/pkg), runs a whole federation the way
+# fedhpg-run does (server and agent hosts forked, each host's maths on the device: the path
+# the in-process benchmark does not take), then checks the placement properties and doubles
+# K (benchmarks/scale_device.py). Extra arguments go to scale_device.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 WHEELS=.whl
@@ -37,7 +39,16 @@ run)
     export PYTHONPATH="/tmp/site:/tmp/pkg:$PWD" OMP_NUM_THREADS=1 PYTHONUNBUFFERED=1
     out=${OUT:-benchmarks/results}
     "${PYTHON:-python3}" -c 'import torch; print("torch", torch.__version__, "cuda", torch.cuda.is_available())'
+    # 1,000 agents on 4 forked hosts, 3 rounds; its log and run directory come back in $OUT
+    status=0
+    "${PYTHON:-python3}" -c 'import sys; from fedhpg.server.launcher import main
+sys.argv[0] = "fedhpg-run"; main()' env=cartpole agents=population agents.num_agents=1000 \
+        agents.per_host=250 algo.engine=torch algo.device=cuda rounds=3 \
+        hydra.run.dir="$out/federation" > "$out/federation.log" 2>&1 || status=$?
+    grep -v '^agent-' "$out/federation.log" | tail -12
+    echo "federation on the device (fedhpg-run's forked path): exit status $status"
     "${PYTHON:-python3}" -m benchmarks.scale_device --device cuda --out "$out/scale_device.json" "$@"
+    exit "$status"
     ;;
 *)
     echo "usage: bash benchmarks/on_device.sh fetch|run [scale_device arguments]" >&2

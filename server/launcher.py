@@ -174,7 +174,7 @@ def check_launch(run: RunConfig) -> None:
     if run.server.transport == "tcp" and run.server.bind_all:
         raise ConfigError("server.bind_all", "fedhpg-run runs every process here: keep loopback")
     check_launch_keys(run)  # security: every agent's key, before anything is forked
-    problem = device_problem(run.algo.engine, run.algo.device)
+    problem = device_problem(run.algo.engine, run.algo.device, before_fork=True)
     if problem is not None:  # the agents are forked here, onto this machine's devices
         raise ConfigError("algo.device", problem)
     if run.server.out_dir and not run.resume:
