@@ -54,11 +54,16 @@ def random_stream(
 def build_policy(variant: EnvVariant, run: RunConfig) -> Policy:
     """The run's policy for the variant's spaces, initialised from the run seed alone."""
     env = variant.make_env()
+    # Only the CPU generator, saved and restored by hand: torch.random.fork_rng() and
+    # torch.manual_seed() also reach for every CUDA device, which initialises CUDA where torch
+    # has it, and CUDA then refuses every process forked afterwards (fedhpg-run calls this
+    # before it forks the server and the agents, and each of them calls it again).
+    state = torch.default_generator.get_state()
     try:
-        with torch.random.fork_rng():
-            torch.manual_seed(run.seed)
-            return make_policy(env.observation_space, env.action_space, run.policy)
+        torch.default_generator.manual_seed(run.seed)
+        return make_policy(env.observation_space, env.action_space, run.policy)
     finally:
+        torch.default_generator.set_state(state)
         env.close()
 
 
