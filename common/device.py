@@ -21,8 +21,11 @@ Unless the virtual clock is on, the device sleeps the emulated time minus the co
 emulated time is only accounted. The sleeping is owed through the round and paid once, by
 :meth:`DeviceModel.settle` before the answer leaves, not after each iteration: compute that
 follows a sleep can run on cold caches and a clocked-down core, so sleeping between iterations
-charged a slow device for the emulation's own disturbance (on one 2-core CI machine a device
-of speed 0.25 measured 5.1× the compute time of an equal-work device of speed 1, not 4×).
+would charge a slow device for the emulation's own disturbance. (That was the suspected cause
+when a 2-core CI machine measured a device of speed 0.25 at 5.2× the emulated time of an
+equal-work device of speed 1, not 4×. With the sleep paid once, a later CI run still measured
+4.9×, while this machine measures 3.7-4.2×. So the measured clock itself moves that much under
+parallel load; the counted clock does not move.)
 """
 
 from __future__ import annotations

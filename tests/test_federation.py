@@ -99,9 +99,9 @@ def test_distributed_theta_equals_in_process_bit_for_bit(
 
 def test_emulated_time_follows_the_speed_factor(tmp_path: Path) -> None:
     """Equal work (same B and τ, one-step episodes of an identical environment, so both agents
-    do the same arithmetic), speeds 1 and 0.25: the slow agent's emulated time is 4× the fast
-    one's within 20% (median over rounds 2-10; round 1 pays one-off warm-up costs), and it
-    really took that long."""
+    do the same arithmetic), speeds 1 and 0.25: each agent's emulated time is its measured
+    compute over its speed, exactly; the slow agent's is about 4× the fast one's (median over
+    rounds 2-10; round 1 pays one-off warm-up costs); and it really took that long."""
     overrides = [
         "rounds=10",
         "seed=1",
@@ -125,8 +125,13 @@ def test_emulated_time_follows_the_speed_factor(tmp_path: Path) -> None:
     for record in records:
         for agent, speed in zip(record["agents"], (1.0, 0.25), strict=True):
             assert agent["emulated_s"] == pytest.approx(agent["compute_s"] / speed, rel=1e-9)
-    # Median of the per-round ratios: one round disturbed by the machine cannot decide it.
+    # Median of the per-round ratios: one round disturbed by the machine cannot decide it. The
+    # bounds are the measured clock's, not the code's: equal work measured 0.91-1.05x as much
+    # CPU time in the slow agent here (medians 3.65-4.19 over 20 runs, idle and under CPU
+    # hogs), and 1.23-1.30x on two CI runs with the other xdist worker busy (medians 4.92,
+    # 5.20). 4 ÷/× 1.6 holds those and still fails a speed ignored (1), inverted (1/16) or
+    # applied twice (16), or a slept slowdown counted as compute (16).
     ratios = [r["agents"][1]["emulated_s"] / r["agents"][0]["emulated_s"] for r in records[1:]]
-    assert 4 * 0.8 <= statistics.median(ratios) <= 4 * 1.2, ratios
+    assert 4 / 1.6 <= statistics.median(ratios) <= 4 * 1.6, ratios
     for agent in (r["agents"][1] for r in records):
         assert agent["local_wall_s"] >= 0.9 * agent["emulated_s"], "the slowdown was slept"
