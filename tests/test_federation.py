@@ -129,7 +129,7 @@ def test_emulated_time_follows_the_speed_factor(tmp_path: Path) -> None:
     # bounds are the measured clock's, not the code's: equal work measured 0.91-1.05x as much
     # CPU time in the slow agent here (medians 3.65-4.19 over 20 runs, idle and under CPU
     # hogs), and 1.23-1.30x on two CI runs with the other xdist worker busy (medians 4.92,
-    # 5.20). 4 ÷/× 1.6 holds those and still fails a speed ignored (1), inverted (1/16) or
+    # 5.20). 4 ÷/× 1.6 holds those and still fails a speed ignored (1), inverted (1/4) or
     # applied twice (16), or a slept slowdown counted as compute (16).
     ratios = [r["agents"][1]["emulated_s"] / r["agents"][0]["emulated_s"] for r in records[1:]]
     assert 4 / 1.6 <= statistics.median(ratios) <= 4 * 1.6, ratios
