@@ -243,15 +243,12 @@ def _in_process_with_directory(
 
 
 def _run_distributed(run_config: RunConfig, directory: Path | None) -> RunResult:
-    from fedhpg.common.batched.maths import device_problem
+    from fedhpg.common.batched.maths import check_device_before_fork
     from fedhpg.common.wire.security import check_launch_keys
     from fedhpg.server.launcher import run_federation
 
     check_launch_keys(run_config)
-    # the agents are forked from this process: CUDA refuses them if it has used CUDA
-    problem = device_problem(run_config.algo.engine, run_config.algo.device, before_fork=True)
-    if problem is not None:
-        raise ConfigError("algo.device", problem)
+    check_device_before_fork(run_config)  # the agents are forked from this process
     check_distributed_policy(run_config)
     # What the server would refuse in its own process (exit 2): found here, as an exception.
     initial_theta(variant_of(run_config, 0), run_config)

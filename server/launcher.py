@@ -163,7 +163,7 @@ class Supervisor:
 def check_launch(run: RunConfig) -> None:
     """What fedhpg-run checks of a composed run before starting anything: the strategy, every
     agent's key files, loopback."""
-    from fedhpg.common.batched.maths import device_problem
+    from fedhpg.common.batched.maths import check_device_before_fork
     from fedhpg.common.wire.security import check_launch_keys
     from fedhpg.server.rounds import check_distributed_policy
     from fedhpg.server.run_dir import RunDirectory
@@ -174,9 +174,7 @@ def check_launch(run: RunConfig) -> None:
     if run.server.transport == "tcp" and run.server.bind_all:
         raise ConfigError("server.bind_all", "fedhpg-run runs every process here: keep loopback")
     check_launch_keys(run)  # security: every agent's key, before anything is forked
-    problem = device_problem(run.algo.engine, run.algo.device, before_fork=True)
-    if problem is not None:  # the agents are forked here, onto this machine's devices
-        raise ConfigError("algo.device", problem)
+    check_device_before_fork(run)  # the agents are forked here, onto this machine's devices
     if run.server.out_dir and not run.resume:
         RunDirectory.precheck(Path(run.server.out_dir), resume=False)
 

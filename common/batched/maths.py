@@ -17,6 +17,7 @@ from typing import Any, Protocol
 import numpy as np
 
 from fedhpg.common.batched import mlp
+from fedhpg.common.config import ConfigError, RunConfig
 
 
 class PolicyMaths(Protocol):
@@ -126,6 +127,14 @@ def device_problem(engine: str, device: str, *, before_fork: bool = False) -> st
     if index >= count:
         return f"{device!r}: this machine has {count} CUDA device(s)"
     return None
+
+
+def check_device_before_fork(run: RunConfig) -> None:
+    """Raise a :class:`ConfigError` where a process about to fork the run's agents (the
+    launcher, ``api.run(distributed=True)``) finds that they could not use ``algo.device``."""
+    problem = device_problem(run.algo.engine, run.algo.device, before_fork=True)
+    if problem is not None:
+        raise ConfigError("algo.device", problem)
 
 
 def maths_for(engine: str, device: str) -> PolicyMaths:
