@@ -70,8 +70,11 @@ class NumpyMaths:
 NUMPY = NumpyMaths()
 
 
-class DeviceUnavailable(ValueError):
+class DeviceUnavailable(ConfigError):
     """``algo.device`` names a device this machine's torch cannot use."""
+
+    def __init__(self, problem: str) -> None:
+        super().__init__("algo.device", problem)
 
 
 def cuda_devices_here() -> int:
@@ -130,11 +133,12 @@ def device_problem(engine: str, device: str, *, before_fork: bool = False) -> st
 
 
 def check_device_before_fork(run: RunConfig) -> None:
-    """Raise a :class:`ConfigError` where a process about to fork the run's agents (the
-    launcher, ``api.run(distributed=True)``) finds that they could not use ``algo.device``."""
+    """Raise :class:`DeviceUnavailable` (a :class:`ConfigError`) where a process about to
+    fork the run's agents (the launcher, ``api.run(distributed=True)``) finds that they could
+    not use ``algo.device``."""
     problem = device_problem(run.algo.engine, run.algo.device, before_fork=True)
     if problem is not None:
-        raise ConfigError("algo.device", problem)
+        raise DeviceUnavailable(problem)
 
 
 def maths_for(engine: str, device: str) -> PolicyMaths:
@@ -143,7 +147,7 @@ def maths_for(engine: str, device: str) -> PolicyMaths:
         return NUMPY
     problem = device_problem(engine, device)
     if problem is not None:
-        raise DeviceUnavailable(f"algo.device: {problem}")
+        raise DeviceUnavailable(problem)
     from fedhpg.common.batched.torch_maths import TorchMaths
 
     return TorchMaths(device)
