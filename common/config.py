@@ -21,6 +21,8 @@ import re
 from dataclasses import dataclass, field
 from typing import Any
 
+from fedhpg.common.limits import MAX_HOST_AGENTS
+
 ESTIMATORS: tuple[str, ...] = ("reinforce", "gpomdp")
 BASELINES: tuple[str, ...] = ("none", "mean")
 REWARD_TO_GO: tuple[str, ...] = ("from_start", "from_step")
@@ -37,6 +39,7 @@ TRANSPORTS = ("tcp", "ipc")
 ROUND_POLICIES = ("wait_all", "deadline", "buffered")
 STALENESS_WEIGHTS = ("inverse_sqrt", "constant")
 PARTICIPATION_MODES = ("all", "uniform", "trace")
+TOLERANCE_CHECKS = ("refuse", "warn")
 CLUSTER_KINDS = ("auto", "slurm", "local")
 LOG_STDS = ("state_independent", "state_dependent")
 
@@ -143,6 +146,17 @@ class ParticipationConfig:
     inclusive, per row; format in the README, Participation)."""
 
 
+def _validate_tolerance(strategy: StrategyConfig, num_agents: int) -> None:
+    if strategy.tolerate is not None:
+        _check_int(strategy.tolerate, "strategy.tolerate", low=0)
+        _require(
+            strategy.tolerate < num_agents,
+            "strategy.tolerate",
+            f"got {strategy.tolerate}, must be < agents.num_agents={num_agents}",
+        )
+    _check_choice(strategy.tolerance_check, "strategy.tolerance_check", TOLERANCE_CHECKS)
+
+
 def _validate_participation(participation: ParticipationConfig, num_agents: int) -> None:
     key = "strategy.participation"
     _check_choice(participation.mode, f"{key}.mode", PARTICIPATION_MODES)
@@ -176,6 +190,14 @@ class StrategyConfig:
     """The strategy's own options (its ``Params`` dataclass), e.g. fedadam's ``step_size``."""
     participation: ParticipationConfig = field(default_factory=ParticipationConfig)
     """Who trains each round (default: every agent, as in the paper)."""
+    tolerate: int | None = None
+    """A robust rule (median, trimmed_mean, fedadam over one): how many arbitrary updates
+    every aggregated set must survive; None = the agents ``attack.agents`` lists (at least 1).
+    Checked at start against the smallest set the run aggregates (``per_round`` agents with
+    sampling, ``server.min_agents`` under a deadline)."""
+    tolerance_check: str = "refuse"
+    """What a run whose robust rule tolerates fewer than ``tolerate`` in its smallest set
+    does: 'refuse' to start (one line) or 'warn' and run."""
 
 
 @dataclass(kw_only=True)
@@ -382,6 +404,10 @@ class ServerConfig:
     staleness_weight: str = "inverse_sqrt"
     """'buffered' policy: the weight of an update of staleness s in its buffer's mean change,
     'inverse_sqrt' (FedBuff's 1/sqrt(1 + s)) or 'constant' (1)."""
+    diverged_share: float = 0.5
+    """'buffered' policy: the run stops (diverged) once more than this share of the K agents
+    had an update rejected since the last θ̃. Distinct agents count: an agent whose update is
+    rejected waits for the next θ̃, so one peer that keeps failing never ends a run."""
 
 
 @dataclass(kw_only=True)
@@ -717,6 +743,12 @@ def _validate_buffered(server: ServerConfig, num_agents: int) -> None:
     if server.max_staleness is not None:
         _check_int(server.max_staleness, "server.max_staleness", low=0)
     _check_choice(server.staleness_weight, "server.staleness_weight", STALENESS_WEIGHTS)
+    _check_number(server.diverged_share, "server.diverged_share", low=0.0, low_open=True)
+    _require(
+        server.diverged_share <= 1.0,
+        "server.diverged_share",
+        f"got {server.diverged_share!r}, must be in (0, 1]",
+    )
 
 
 def _validate_host_range(agent: AgentConfig, num_agents: int) -> None:
@@ -724,6 +756,11 @@ def _validate_host_range(agent: AgentConfig, num_agents: int) -> None:
         return
     _check_int(agent.first, "agent.first", low=0)
     _check_int(agent.count, "agent.count", low=1)
+    _require(
+        agent.count <= MAX_HOST_AGENTS,
+        "agent.count",
+        f"got {agent.count}, more than the {MAX_HOST_AGENTS} agents one host may serve",
+    )
     _require(
         agent.first + agent.count <= num_agents,
         "agent.first",
@@ -748,6 +785,7 @@ def validate(config: RunConfig) -> RunConfig:
     _validate_agents(config.agents)
     _validate_attack(config.attack, config.agents.num_agents)
     _validate_participation(config.strategy.participation, config.agents.num_agents)
+    _validate_tolerance(config.strategy, config.agents.num_agents)
 
     policy = config.policy
     _require(
@@ -772,6 +810,11 @@ def validate(config: RunConfig) -> RunConfig:
     _check_int(config.agent.index, "agent.index", low=0)
     _validate_host_range(config.agent, config.agents.num_agents)
     _check_int(config.agents.per_host, "agents.per_host", low=1)
+    _require(
+        config.agents.per_host <= MAX_HOST_AGENTS,
+        "agents.per_host",
+        f"got {config.agents.per_host}, more than the {MAX_HOST_AGENTS} agents one host may serve",
+    )
     _check_number(config.agent.connect_timeout_s, "agent.connect_timeout_s", low=0.0, low_open=True)
     _check_int(config.agent.max_restarts, "agent.max_restarts", low=0)
     _require(

@@ -53,6 +53,8 @@ class Bound:
         return None
 
 
+MAX_HOST_AGENTS = 1 << 16
+"""Most logical agents one host serves (and one server request names)."""
 MAX_COUNT = 2**40
 """Trajectories, steps, episodes: far above any real round, far below float32 trouble."""
 MAX_SECONDS = 1e9

@@ -23,6 +23,16 @@ cancel whenever a buffer's updates share one staleness (always, with M = 1). A f
 (s = 0, w = 1) is passed as θ_k itself, so with M = K every buffer
 holds K fresh updates from one θ̃ and a round is bit for bit a synchronous ``wait_all`` round.
 
+A robust rule (one that states a :meth:`~fedhpg.server.strategies.Strategy.tolerance`) is
+given one row per agent instead (:func:`robust_rows`): the agents that answer fastest would
+otherwise fill the buffer, and the rule's tolerance holds per aggregated set. Every agent not
+in the buffer votes with its latest aggregated change, staleness-weighted, or for no change.
+
+An update the check rejects (non-finite, too far) parks its agent until the next θ̃, so a
+peer that fails at once, again and again, costs one rejection per version; the run stops as
+diverged only when more than ``server.diverged_share`` of the agents were rejected since the
+last θ̃, or when the buffer can no longer fill.
+
 What continues a run exactly is :meth:`BufferedSchedule.state`: the emulated clock, each
 agent's dispatch count and its in-flight update (θ_k, Δ_k, stats, base version, arrival time),
 kept in the checkpoint beside θ̃.
@@ -110,6 +120,14 @@ class InFlight:
         return (self.arrival_s, self.agent)
 
 
+def _weighted_row(
+    server: ServerConfig, theta: torch.Tensor, version: int, delta: torch.Tensor, current: int
+) -> torch.Tensor:
+    """θ̃ + w(s) Δ for a change Δ started from version ``version``, at version ``current``."""
+    weight = staleness_weight(server, current - version)
+    return (theta + weight * delta).to(theta.dtype)
+
+
 def buffer_rows(
     server: ServerConfig, theta: torch.Tensor, buffer: Sequence[InFlight], current: int
 ) -> list[AgentUpdate]:
@@ -118,13 +136,53 @@ def buffer_rows(
     w = 1), in agent order."""
     rows = []
     for item in buffer:
-        weight = staleness_weight(server, current - item.version)
         if item.version == current:  # w(0) = 1 under every weighting
             row = item.update.theta
         else:
-            row = (theta + weight * item.delta).to(theta.dtype)
+            row = _weighted_row(server, theta, item.version, item.delta, current)
         rows.append(dataclasses.replace(item.update, theta=row))
     return sorted(rows, key=lambda u: u.agent_index)
+
+
+@dataclass(frozen=True)
+class Contribution:
+    """An agent's latest aggregated change: what a robust rule's set keeps voting with."""
+
+    version: int
+    delta: torch.Tensor
+
+
+NO_WORK = UpdateStats(trajectories=0, env_steps=0, compute_s=0.0, train_return=0.0)
+"""The stats of a row that stands for an agent not heard from (it votes for no change)."""
+
+
+def robust_rows(
+    server: ServerConfig,
+    theta: torch.Tensor,
+    buffer: Sequence[InFlight],
+    latest: dict[int, Contribution],
+    agents: Sequence[int],
+    current: int,
+) -> list[AgentUpdate]:
+    """A robust rule's set in buffered rounds: one row per agent, never one per arrival, so
+    agents that answer fastest cannot fill the set. The buffer's updates as in
+    :func:`buffer_rows`; every other agent's latest aggregated change Δ again, weighted by its
+    staleness (no change, θ̃ itself, where it has none yet or it is older than
+    ``server.max_staleness``). The rule then tolerates its share of K rows, not of M."""
+    arrived = {item.agent: item for item in buffer}
+    limit = server.max_staleness
+    rows = []
+    for k in agents:
+        item = arrived.get(k)
+        if item is not None:
+            rows.extend(buffer_rows(server, theta, [item], current))
+            continue
+        kept = latest.get(k)
+        row = theta
+        if kept is not None and (limit is None or current - kept.version <= limit):
+            row = _weighted_row(server, theta, kept.version, kept.delta, current)
+        rows.append(AgentUpdate(agent_index=k, agent_id=agent_id_of(k), theta=row, stats=NO_WORK))
+    return rows
 
 
 @dataclass(kw_only=True)
@@ -134,6 +192,8 @@ class BufferedSchedule:
     clock_s: float = 0.0
     dispatches: dict[int, int] = field(default_factory=dict)
     in_flight: dict[int, InFlight] = field(default_factory=dict)
+    latest: dict[int, Contribution] = field(default_factory=dict)
+    """A robust rule's memory: each agent's latest aggregated change (:func:`robust_rows`)."""
     _queue: list[tuple[float, int]] = field(default_factory=list)
     """A heap of (arrival time, agent index): the order arrivals are taken in."""
 
@@ -163,10 +223,13 @@ class BufferedSchedule:
                     "stats": dataclasses.asdict(item.update.stats),
                 }
             )
+        for agent, kept in sorted(self.latest.items()):
+            arrays[f"latest.{agent}"] = kept.delta.numpy().copy()
         scalars = {
             "clock_s": self.clock_s,
             "dispatches": [[k, n] for k, n in sorted(self.dispatches.items())],
             "in_flight": flights,
+            "latest": [[k, kept.version] for k, kept in sorted(self.latest.items())],
         }
         return SavedState(scalars=scalars, arrays=arrays)
 
@@ -175,6 +238,10 @@ class BufferedSchedule:
         schedule = cls(
             clock_s=float(state.scalars["clock_s"]),
             dispatches={int(k): int(n) for k, n in state.scalars["dispatches"]},
+            latest={
+                int(k): Contribution(int(v), torch.from_numpy(state.arrays[f"latest.{k}"].copy()))
+                for k, v in state.scalars.get("latest", [])
+            },
         )
         for flight in state.scalars["in_flight"]:
             agent = int(flight["agent"])
@@ -208,6 +275,8 @@ class BufferedCoordinator(Coordinator):
         self.size = buffer_size(self.run)
         saved = self.progress.schedule_state  # a resumed run's in-flight updates
         self.schedule = BufferedSchedule.restore(saved) if saved is not None else None
+        self.parked: list[int] = []
+        """Agents whose update was rejected since the last θ̃: restarted with the next one."""
 
     def _dispatch(self, agents: Sequence[int], version: int, at_s: float) -> None:
         """Start ``agents`` from θ̃ (version ``version``) at emulated time ``at_s``."""
@@ -234,14 +303,17 @@ class BufferedCoordinator(Coordinator):
                 )
 
     def _fill_buffer(self, version: int) -> tuple[list[InFlight], dict[str, int], dict[str, str]]:
-        """Arrivals until M accepted ones; stale and rejected agents restart at once."""
+        """Arrivals until M accepted ones. A stale agent restarts at once from the newest θ̃; an
+        agent whose update is rejected waits for the next θ̃ (:attr:`parked`), so one peer that
+        keeps failing costs one rejection per version and never ends the run by itself."""
         assert self.schedule is not None
         buffer: list[InFlight] = []
         stale: dict[str, int] = {}
         failures: dict[str, str] = {}
-        rejected_in_a_row = 0
         limit = self.run.server.max_staleness
         while len(buffer) < self.size:
+            if len(buffer) + self._outstanding() < self.size:
+                raise FederationError(self._unfillable(version, len(buffer), failures))
             item = self._next_arrival()
             self.progress.trajectories_per_agent += (
                 item.update.stats.trajectories / self.run.agents.num_agents
@@ -249,16 +321,10 @@ class BufferedCoordinator(Coordinator):
             staleness = version - 1 - item.version
             if item.problem is not None:
                 failures[item.update.agent_id] = item.problem
-                rejected_in_a_row += 1
-                if rejected_in_a_row >= self.run.agents.num_agents:
-                    if all(NON_FINITE in why for why in failures.values()):
-                        raise FederationError(diverged_message(self.run, version))
-                    raise FederationError(
-                        f"round {version}: every agent's update was rejected ({failures})"
-                    )
-                self._dispatch([item.agent], version - 1, item.arrival_s)
+                self.parked.append(item.agent)
+                if len(self.parked) > self.run.server.diverged_share * self.run.agents.num_agents:
+                    raise FederationError(self._diverged(version, failures))
                 continue
-            rejected_in_a_row = 0
             if limit is not None and staleness > limit:
                 logger.debug("dropped %s's update: staleness %d", item.update.agent_id, staleness)
                 stale[item.update.agent_id] = staleness
@@ -267,6 +333,42 @@ class BufferedCoordinator(Coordinator):
             buffer.append(item)
         return buffer, stale, failures
 
+    def _diverged(self, version: int, failures: dict[str, str]) -> str:
+        if all(NON_FINITE in why for why in failures.values()):
+            return diverged_message(self.run, version)
+        share = self.run.server.diverged_share
+        return (
+            f"round {version}: the updates of {len(failures)} of {self.run.agents.num_agents} "
+            f"agents were rejected, more than server.diverged_share={share:g} of them "
+            f"({failures})"
+        )
+
+    def _unfillable(self, version: int, accepted: int, failures: dict[str, str]) -> str:
+        if failures and all(NON_FINITE in why for why in failures.values()):
+            return diverged_message(self.run, version)
+        return (
+            f"round {version}: {accepted} updates accepted and no more can come, "
+            f"server.buffer_size={self.size} needed (rejected: {failures})"
+        )
+
+    def _outstanding(self) -> int:
+        """Updates still to arrive (computed or in flight) that could fill the buffer."""
+        assert self.schedule is not None
+        return len(self.schedule.in_flight)
+
+    def _rows(self, buffer: Sequence[InFlight], current: int) -> list[AgentUpdate]:
+        """What the strategy aggregates: the buffer, or for a robust rule (one that states a
+        tolerance) one row per agent, its latest change (:func:`robust_rows`)."""
+        assert self.schedule is not None
+        server = self.run.server
+        if self.strategy.tolerance(len(buffer)) is None:
+            return buffer_rows(server, self.theta, buffer, current)
+        latest = self.schedule.latest
+        rows = robust_rows(server, self.theta, buffer, latest, self._agents(), current)
+        for item in buffer:
+            latest[item.agent] = Contribution(item.version, item.delta)
+        return rows
+
     def _next_arrival(self) -> InFlight:
         assert self.schedule is not None
         return self.schedule.pop()
@@ -274,10 +376,11 @@ class BufferedCoordinator(Coordinator):
     def _agents(self) -> Sequence[int]:
         return self.pool.group.indices
 
-    def _restart(self, version: int, buffer: Sequence[InFlight]) -> None:
-        """Restart the aggregated agents from the new θ̃ (version ``version``)."""
+    def _restart(self, version: int, agents: Sequence[int]) -> None:
+        """Restart ``agents`` (the aggregated and the parked ones) from the new θ̃ (version
+        ``version``)."""
         assert self.schedule is not None
-        self._dispatch([i.agent for i in buffer], version, self.schedule.clock_s)
+        self._dispatch(agents, version, self.schedule.clock_s)
 
     def _evaluate(self, version: int) -> dict[str, EvaluationStats]:
         return self.pool.evaluate(version, self.theta, self.run.eval.episodes)
@@ -294,9 +397,10 @@ class BufferedCoordinator(Coordinator):
         for version in range(self.progress.next_round, self.run.rounds + 1):
             round_started = time.perf_counter()
             buffer, stale, failures = self._fill_buffer(version)
-            rows = buffer_rows(self.run.server, self.theta, buffer, version - 1)
+            rows = self._rows(buffer, version - 1)
             self._aggregate(version, rows, failures)
-            self._restart(version, buffer)
+            restarted, self.parked = sorted([i.agent for i in buffer] + self.parked), []
+            self._restart(version, restarted)
             round_time = time.perf_counter() - round_started
             evaluation = self._evaluate(version) if should_evaluate(self.run, version) else None
             wall_time = time.perf_counter() - started
@@ -321,6 +425,7 @@ class BufferedCoordinator(Coordinator):
                 bound=round_bound(self.run, [i.update for i in ordered])
                 if self.run.algo.bound_estimates
                 else None,
+                strategy=self.strategy.round_stats(),
             )
             for callback in self.on_round:
                 callback(record, self.theta)

@@ -56,6 +56,7 @@ class ZmqBufferedCoordinator(BufferedCoordinator):
         self.schedule = BufferedSchedule(
             clock_s=saved.clock_s if saved is not None else 0.0,
             dispatches=dict(saved.dispatches) if saved is not None else {},
+            latest=dict(saved.latest) if saved is not None else {},
         )
         """``dispatches``: each agent's count of answered requests (its rounds done)."""
         self._dispatched_at: dict[int, float] = {}
@@ -95,11 +96,14 @@ class ZmqBufferedCoordinator(BufferedCoordinator):
             problem=arrival.problem,
         )
 
-    def _restart(self, version: int, buffer: Sequence[InFlight]) -> None:
+    def _restart(self, version: int, agents: Sequence[int]) -> None:
         if should_evaluate(self.run, version):
-            self._waiting = [i.agent for i in buffer]  # after the evaluation
+            self._waiting = list(agents)  # after the evaluation
             return
-        super()._restart(version, buffer)
+        super()._restart(version, agents)
+
+    def _outstanding(self) -> int:
+        return self.pool.outstanding()
 
     def _evaluate(self, version: int) -> dict[str, EvaluationStats]:
         assert self.schedule is not None

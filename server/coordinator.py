@@ -25,6 +25,7 @@ from fedhpg.server.participation import make_participation
 from fedhpg.server.pools import AgentPool, FederationError
 from fedhpg.server.replan import make_replanner
 from fedhpg.server.strategies import Strategy
+from fedhpg.server.tolerance import tolerance_shortfall
 
 logger = logging.getLogger(__name__)
 
@@ -168,6 +169,9 @@ class Coordinator:
         """The last round's record and θ̃, until written (:meth:`_write_record`)."""
         self.participation = make_participation(run)
         self.replanner = make_replanner(run, self.progress.plan_state)
+        shortfall = tolerance_shortfall(run, strategy)  # refused at validation unless 'warn'
+        if shortfall is not None:
+            logger.warning("%s", shortfall)
         if self.progress.next_round > 1:
             strategy.restore(self.progress.strategy_state)
 

@@ -6,6 +6,11 @@ Writes, into one directory::
     agent-<k>.key, agent-<k>.key_secret  each agent's key pair (or the names given)
     allowed/agent-<k>.key                the agents' public keys: the server's allow-list
 
+An allow-list entry binds its key to the agents it may speak for
+(:func:`~fedhpg.common.wire.security.parse_binding`): ``agent-<k>`` and ``host-<f>-<l>`` by
+their names, any other name by a suffix (``--names alice@3`` writes ``alice.key_secret`` and
+``allowed/alice@3.key``; ``--names rack@0-99`` a host's key for agents 0..99).
+
 Secret files are mode 0600 from the start (generated in a private temporary directory, then
 renamed into place). Existing keys are never replaced without ``--force``.
 """
@@ -20,22 +25,36 @@ import stat
 import sys
 import tempfile
 from collections.abc import Sequence
+from dataclasses import dataclass
 from pathlib import Path
 from typing import NoReturn
 
 import zmq
 import zmq.auth
 
+from fedhpg.common.config import host_id_of, host_ranges
 from fedhpg.common.wire.security import (
     ALLOWED_DIR,
+    BIND,
     PUBLIC_SUFFIX,
     SECRET_SUFFIX,
     SERVER_KEY_NAME,
+    parse_binding,
 )
 
 EXIT_USAGE = 2
 MAX_AGENTS = 10_000
 NAME = re.compile(r"[A-Za-z0-9][A-Za-z0-9._-]{0,63}")
+
+
+@dataclass(frozen=True)
+class Entry:
+    """One agent's (or host's) key pair: its own files' name and its allow-list entry's."""
+
+    name: str
+    allowed: str
+    """The allow-list file's name without ``.key`` (``name``, or ``name@agents``)."""
+
 
 WHERE_TO = """\
 Which file goes where:
@@ -43,6 +62,7 @@ Which file goes where:
                  fedhpg-server security.curve=true security.keys_dir={dir} ...
   agent host k:  {dir}/agent-k.key_secret and {dir}/server.key (nothing else)
                  fedhpg-agent agent.index=k security.curve=true security.keys_dir=<their dir> ...
+  (a host of agents f..l: {dir}/host-f-l.key_secret and {dir}/server.key)
   one machine:   fedhpg-run security.curve=true security.keys_dir={dir}
 Never copy a .key_secret file anywhere but to the host it belongs to.
 """
@@ -80,7 +100,18 @@ def _parser() -> argparse.ArgumentParser:
         "--names",
         nargs="+",
         metavar="NAME",
-        help="agent ids to generate keys for, instead of agent-0 ... (e.g. a custom agent.id)",
+        help=(
+            "ids to generate keys for, instead of agent-0 ...: agent-K and host-F-L speak for "
+            f"the agents they name; any other id says which, NAME{BIND}K (a lone agent with "
+            f"agent.id=NAME agent.index=K) or NAME{BIND}F-L (an agent host)"
+        ),
+    )
+    parser.add_argument(
+        "--per-host",
+        metavar="N",
+        default=None,
+        help="with --agents K: keys for agent hosts of N agents each (host-0-<N-1>, ...), as "
+        "fedhpg-run agents.per_host=N starts them",
     )
     parser.add_argument(
         "--force", action="store_true", help="replace keys that already exist in DIR"
@@ -88,9 +119,23 @@ def _parser() -> argparse.ArgumentParser:
     return parser
 
 
-def _agent_names(agents: str, names: list[str] | None) -> list[str]:
+def _integer(flag: str, value: str, high: int) -> int:
+    try:
+        number = int(value)
+    except ValueError:
+        raise UsageError(f"{flag}: got {value!r}, must be an integer >= 1") from None
+    if not 1 <= number <= high:
+        raise UsageError(f"{flag}: got {number}, must be an integer in 1..{high}")
+    return number
+
+
+def _entries(agents: str, names: list[str] | None, per_host: str | None) -> list[Entry]:
     if names is not None:
-        for name in names:
+        if per_host is not None:
+            raise UsageError("--per-host: goes with --agents, not with --names")
+        entries = []
+        for given in names:
+            name = given.partition(BIND)[0]
             if not NAME.fullmatch(name):
                 raise UsageError(
                     f"--names: {name!r} is not a valid agent id (letters, digits, '.', '_', '-'; "
@@ -98,24 +143,30 @@ def _agent_names(agents: str, names: list[str] | None) -> list[str]:
                 )
             if name == SERVER_KEY_NAME:
                 raise UsageError(f"--names: {name!r} is the server's key name")
-        duplicates = sorted({n for n in names if names.count(n) > 1})
+            binding = parse_binding(given)
+            if isinstance(binding, str):
+                raise UsageError(f"--names: {given!r} {binding}")
+            entries.append(Entry(name, given))
+        seen = [e.name for e in entries]
+        duplicates = sorted({n for n in seen if seen.count(n) > 1})
         if duplicates:
             raise UsageError(f"--names: given more than once: {', '.join(duplicates)}")
-        return list(names)
-    try:
-        count = int(agents)
-    except ValueError:
-        raise UsageError(f"--agents: got {agents!r}, must be an integer >= 1") from None
-    if not 1 <= count <= MAX_AGENTS:
-        raise UsageError(f"--agents: got {count}, must be an integer in 1..{MAX_AGENTS}")
-    return [f"agent-{k}" for k in range(count)]
+        return entries
+    count = _integer("--agents", agents, MAX_AGENTS)
+    if per_host is None:
+        return [Entry(f"agent-{k}", f"agent-{k}") for k in range(count)]
+    size = _integer("--per-host", per_host, count)
+    return [Entry(n, n) for n in (host_id_of(f, c) for f, c in host_ranges(count, size))]
 
 
-def _targets(directory: Path, names: list[str]) -> list[Path]:
+def _targets(directory: Path, entries: list[Entry]) -> list[Path]:
     paths = [directory / f"{SERVER_KEY_NAME}{suffix}" for suffix in (PUBLIC_SUFFIX, SECRET_SUFFIX)]
-    for name in names:
-        paths += [directory / f"{name}{PUBLIC_SUFFIX}", directory / f"{name}{SECRET_SUFFIX}"]
-        paths.append(directory / ALLOWED_DIR / f"{name}{PUBLIC_SUFFIX}")
+    for entry in entries:
+        paths += [
+            directory / f"{entry.name}{PUBLIC_SUFFIX}",
+            directory / f"{entry.name}{SECRET_SUFFIX}",
+        ]
+        paths.append(directory / ALLOWED_DIR / f"{entry.allowed}{PUBLIC_SUFFIX}")
     return paths
 
 
@@ -133,9 +184,9 @@ def _prepare(directory: Path) -> None:
         raise UsageError(f"cannot write to {directory}: permission denied")
 
 
-def generate(directory: Path, names: list[str], *, force: bool = False) -> list[Path]:
+def generate(directory: Path, entries: list[Entry], *, force: bool = False) -> list[Path]:
     """Write the server's and the agents' key pairs and the allow-list; returns the files."""
-    targets = _targets(directory, names)
+    targets = _targets(directory, entries)
     if not force:
         existing = [path for path in targets if path.exists() or path.is_symlink()]
         if existing:
@@ -149,16 +200,17 @@ def generate(directory: Path, names: list[str], *, force: bool = False) -> list[
         raise UsageError(f"cannot write to {directory}: {error.strerror or error}") from None
     try:
         written: list[Path] = []
-        for name in [SERVER_KEY_NAME, *names]:
-            public, secret = (Path(p) for p in zmq.auth.create_certificates(staging, name))
+        for entry in [Entry(SERVER_KEY_NAME, ""), *entries]:
+            public, secret = (Path(p) for p in zmq.auth.create_certificates(staging, entry.name))
             os.chmod(secret, stat.S_IRUSR | stat.S_IWUSR)
             os.chmod(public, 0o644)
-            if name != SERVER_KEY_NAME:
-                allowed = staging / f"{name}.allowed"
+            if entry.allowed:
+                allowed = staging / f"{entry.name}.allowed"
                 shutil.copyfile(public, allowed)
                 os.chmod(allowed, 0o644)
-                os.replace(allowed, directory / ALLOWED_DIR / public.name)
-                written.append(directory / ALLOWED_DIR / public.name)
+                target = directory / ALLOWED_DIR / f"{entry.allowed}{PUBLIC_SUFFIX}"
+                os.replace(allowed, target)
+                written.append(target)
             for path in (public, secret):
                 os.replace(path, directory / path.name)
                 written.append(directory / path.name)
@@ -169,9 +221,9 @@ def generate(directory: Path, names: list[str], *, force: bool = False) -> list[
         shutil.rmtree(staging, ignore_errors=True)
 
 
-def _stale_allowed(directory: Path, names: list[str]) -> list[str]:
+def _stale_allowed(directory: Path, entries: list[Entry]) -> list[str]:
     """Allow-list entries this run did not write: they stay valid until removed."""
-    current = {f"{name}{PUBLIC_SUFFIX}" for name in names}
+    current = {f"{entry.allowed}{PUBLIC_SUFFIX}" for entry in entries}
     return sorted(
         path.name[: -len(PUBLIC_SUFFIX)]
         for path in (directory / ALLOWED_DIR).glob(f"*{PUBLIC_SUFFIX}")
@@ -182,18 +234,19 @@ def _stale_allowed(directory: Path, names: list[str]) -> list[str]:
 def run(argv: Sequence[str]) -> int:
     try:
         args = _parser().parse_args(list(argv))
-        names = _agent_names(args.agents, args.names)
+        entries = _entries(args.agents, args.names, args.per_host)
         directory = Path(args.directory)
-        generate(directory, names, force=args.force)
+        generate(directory, entries, force=args.force)
     except UsageError as error:
         sys.stderr.write(f"fedhpg-keys: error: {error}\n")
         return EXIT_USAGE
+    names = [e.allowed for e in entries]
     shown = ", ".join(names) if len(names) <= 6 else f"{names[0]} ... {names[-1]}"
     sys.stdout.write(
         f"wrote CURVE keys to {directory}: server and {len(names)} agents ({shown}); "
         f"allow-list {directory / ALLOWED_DIR}\n" + WHERE_TO.format(dir=directory)
     )
-    stale = _stale_allowed(directory, names)
+    stale = _stale_allowed(directory, entries)
     if stale:
         sys.stdout.write(
             f"note: {directory / ALLOWED_DIR} still allows {', '.join(stale)} from before; "

@@ -134,11 +134,12 @@ def resume_point(
     if changed is not None:
         message = str(changed).split(": ", 1)[1]
         raise ConfigError(changed.key, f"{message} (the checkpoint in {out_dir})")
-    if run.rounds < checkpoint.round:
+    planned = int(checkpoint.config.get("rounds", checkpoint.round))
+    if run.rounds < planned:
         raise ConfigError(
             "rounds",
-            f"got {run.rounds}, but {out_dir} is checkpointed at round {checkpoint.round}; a "
-            "resume may keep or raise rounds",
+            f"got {run.rounds}, but the run in {out_dir} has rounds={planned} (checkpointed at "
+            f"round {checkpoint.round}); a resume may keep or raise rounds, never lower them",
         )
     if strategy.state().scalars and not checkpoint.strategy.scalars:
         raise ConfigError(

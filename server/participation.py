@@ -127,15 +127,29 @@ def make_participation(run: RunConfig) -> Participation:
     return Participation(config, seed=run.seed, num_agents=num_agents, offline=offline)
 
 
+def smallest_participation(run: RunConfig) -> tuple[int, str]:
+    """The fewest agents any round of ``run`` asks, and the setting that makes it so."""
+    config = run.strategy.participation
+    if config.mode == "uniform":
+        assert config.per_round is not None  # validated
+        return config.per_round, f"strategy.participation.per_round={config.per_round}"
+    if config.mode == "trace":
+        participation = make_participation(run)
+        counts = [len(participation.select(r)) for r in range(1, run.rounds + 1)]
+        fewest = min(counts)
+        sparsest = counts.index(fewest) + 1
+        return fewest, f"round {sparsest} of {config.trace}"
+    return run.agents.num_agents, f"every one of agents.num_agents={run.agents.num_agents}"
+
+
 def validate_participation(run: RunConfig) -> None:
     """Server-side checks: the trace parses and leaves somebody available in every round."""
-    participation = make_participation(run)
+    make_participation(run)
     if run.strategy.participation.mode != "trace":
         return
-    for round_number in range(1, run.rounds + 1):
-        if not participation.select(round_number):
-            raise ConfigError(
-                TRACE_KEY,
-                f"every agent is offline in round {round_number} of "
-                f"{run.strategy.participation.trace}; a round needs at least one agent",
-            )
+    fewest, where = smallest_participation(run)
+    if not fewest:
+        raise ConfigError(
+            TRACE_KEY,
+            f"every agent is offline in {where}; a round needs at least one agent",
+        )

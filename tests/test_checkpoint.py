@@ -146,6 +146,10 @@ def test_resume_refuses_a_changed_run_and_a_missing_checkpoint(tmp_path: Path) -
             state={"trajectories_per_agent": 24.0, "elapsed_s": 1.5},
         ),
     )
+    # rounds above the checkpoint but below the run's own: "kept or raised", never lowered
+    with pytest.raises(ConfigError, match=r"has rounds=5 \(checkpointed at round 2\)") as error:
+        resume_point(compose(["rounds=4", "seed=3"]), run_dir, strategy)
+    assert error.value.key == "rounds"
     theta, progress, _ = resume_point(run, run_dir, strategy)
     assert torch.equal(theta, checkpoint.theta)
     assert (tmp_path / "metrics.jsonl").read_text().count("\n") == 2, "cut back to round 2"

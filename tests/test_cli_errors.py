@@ -53,6 +53,16 @@ CASES: dict[str, tuple[str, list[str], str]] = {
         ["strategy=fedpgbr"],
         "strategy: fedpgbr aggregates FedPG-BR's gradients: it runs with algo=fedpgbr",
     ),
+    "host-beyond-the-protocol": (  # built 70,000 variants, then a traceback, before
+        "fedhpg-agent",
+        ["agents=population", "agents.num_agents=70000", "agent.first=0", "agent.count=70000"],
+        "agent.count: got 70000, more than the 65536 agents one host may serve",
+    ),
+    "hosts-beyond-the-protocol": (
+        "fedhpg-run",
+        ["agents=population", "agents.num_agents=70000", "agents.per_host=70000"],
+        "agents.per_host: got 70000, more than the 65536 agents one host may serve",
+    ),
     "unknown-top-key": ("fedhpg-run", ["+foo=1"], "foo: not a fedhpg key"),
     "typo-added-with-plus": (
         "fedhpg-run",

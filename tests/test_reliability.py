@@ -174,3 +174,49 @@ def test_bad_and_late_updates_of_a_registered_agent_are_never_averaged(tmp_path:
     assert all(r["updates"] == 2 for r in records[2:])
     summary = json.loads((out_dir / "summary.json").read_text())
     assert summary["late_answers"] == 1
+
+
+def test_one_rogue_spewing_nan_cannot_end_a_buffered_run(tmp_path: Path) -> None:
+    """Buffered rounds, M = 2 of K = 4: agent-3 answers every request at once with a NaN θ_k
+    (it ended the run at version 1 before: the abort counted rejections in a row, not agents).
+    Each of its updates is refused and counted, it waits for the next θ̃, and the honest three
+    carry the run to its end with a finite θ̃."""
+    run_keys = [
+        "rounds=6", "seed=5", "agents.num_agents=4", "agents.budget.batch_size=[4]",
+        "agents.budget.local_iters=[1]", "agents.speeds=[1]", "agents.step_delays_s=[0.001]",
+        "eval.every=6", "eval.episodes=3", "server.round_policy=buffered",
+        "server.buffer_size=2", "server.tensorboard=false",
+    ]  # fmt: skip
+    port = free_port()
+    out_dir = tmp_path / "run"
+    wire = [f"server.port={port}", f"server.out_dir={out_dir}", *FAST_LIVENESS]
+    rogue = ScriptedAgent(
+        port,
+        hello_for(compose(run_keys), 3),
+        lambda train: [_update(train.round, np.full_like(train.theta, np.nan))],
+    )
+    with processes() as started:
+        server = start(started, "fedhpg-server", [*run_keys, *wire], cwd=tmp_path)
+        rogue.thread.start()
+        try:
+            honest = [
+                start(started, "fedhpg-agent", [*run_keys, *wire, f"agent.index={k}"], cwd=tmp_path)
+                for k in range(3)
+            ]
+            _, server_err = server.communicate(timeout=TIMEOUT_S)
+            for agent in honest:
+                agent.wait(timeout=30)
+        finally:
+            rogue.close()
+    assert server.returncode == 0, server_err[-3000:]
+    assert [a.returncode for a in honest] == [0, 0, 0]
+    records = _records(out_dir / "metrics.jsonl")
+    assert [r["round"] for r in records] == list(range(1, 7))
+    assert all("agent-3" not in [a["id"] for a in r["agents"]] for r in records)
+    refused = [r for r in records if "agent-3" in r.get("failures", {})]
+    assert refused and all("NaN" in r["failures"]["agent-3"] for r in refused)
+    # parked until the next θ̃: at most one of its updates is refused per version
+    assert len(rogue.rounds_seen) <= len(records) + 1, rogue.rounds_seen
+    assert rogue.refusals and set(rogue.refusals) == {"bad_update"}
+    checkpoint = latest_valid_checkpoint(out_dir / "checkpoints")
+    assert checkpoint is not None and bool(torch.isfinite(checkpoint.theta).all())

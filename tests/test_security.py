@@ -35,8 +35,12 @@ from fedhpg.common.wire.codec import decode
 from fedhpg.common.wire.protocol import PROTOCOL_VERSION, Error
 from fedhpg.common.wire.security import (
     KEY_MISMATCH,
+    KeyBinding,
     SecurityConfig,
     authenticated_name,
+    key_mismatch,
+    load_allow_list,
+    parse_binding,
     secure_server_socket,
 )
 
@@ -274,6 +278,117 @@ def test_allowed_key_lent_to_another_agent_id_is_rejected(tmp_path: Path, starte
     assert _metrics_rounds(out_dir) == 3
 
 
+@pytest.mark.timeout(TIMEOUT_S + 60)
+def test_a_hosts_key_cannot_register_another_range(tmp_path: Path, started: list) -> None:
+    """The key of host-0-2 claiming agents 3..5 under its own name (it took them, and with 6
+    of 9 agents the median, before): refused with key_mismatch before anything is registered;
+    the real hosts then run the federation to its end."""
+    keys = _keys(tmp_path, "keys", "--names", "host-0-2", "host-3-5")
+    port, out_dir = free_port(), tmp_path / "run"
+    overrides = [*_overrides(port, out_dir, agents=6), *_curve(keys)]
+    server = start(started, "fedhpg-server", overrides, cwd=tmp_path)
+    thief = [*overrides, "agent.first=3", "agent.count=3", "agent.id=host-0-2"]
+    stderr, _ = _refused(started, thief, tmp_path)
+    assert f"server refused registration ({KEY_MISMATCH})" in stderr
+    assert "'host-0-2' (agents 0..2)" in stderr and "'host-0-2' (agents 3..5)" in stderr
+    hosts = [
+        start(
+            started, "fedhpg-agent", [*overrides, f"agent.first={f}", "agent.count=3"], cwd=tmp_path
+        )
+        for f in (0, 3)
+    ]
+    server_err = _finish(server, hosts)
+    assert f"{KEY_MISMATCH}: the CURVE key of 'host-0-2' (agents 0..2)" in server_err
+    assert "duplicate_agent" not in server_err
+    assert _metrics_rounds(out_dir) == 3
+
+
+@pytest.mark.timeout(TIMEOUT_S + 60)
+def test_a_lone_agents_key_cannot_register_another_index(tmp_path: Path, started: list) -> None:
+    """agent-0's key, under agent-0's own id, claiming index 1 (it took the index before, and
+    the honest agent-1 was refused): refused; agent-1 then takes its place."""
+    keys = _keys(tmp_path, "keys", "--agents", "2")
+    port, out_dir = free_port(), tmp_path / "run"
+    overrides = [*_overrides(port, out_dir), *_curve(keys)]
+    server = start(started, "fedhpg-server", overrides, cwd=tmp_path)
+    stderr, _ = _refused(started, [*overrides, "agent.index=1", "agent.id=agent-0"], tmp_path)
+    assert f"server refused registration ({KEY_MISMATCH})" in stderr
+    assert "'agent-0' (agent 0)" in stderr and "'agent-0' (agent 1)" in stderr
+    agents = [
+        start(started, "fedhpg-agent", [*overrides, f"agent.index={k}"], cwd=tmp_path)
+        for k in range(2)
+    ]
+    _finish(server, agents)
+    assert _metrics_rounds(out_dir) == 3
+
+
+class _Frame:
+    """What key_mismatch reads of a received frame: its connection's properties."""
+
+    def __init__(self, user_id: str | None) -> None:
+        self.user_id = user_id
+
+    def get(self, name: str) -> str:
+        if name == "Peer-Address":
+            return "127.0.0.1"
+        if self.user_id is None:
+            raise zmq.ZMQError(zmq.EINVAL)
+        return self.user_id
+
+
+@pytest.mark.parametrize(
+    ("stem", "name", "agents"),
+    [
+        ("agent-3", "agent-3", range(3, 4)),
+        ("host-0-2", "host-0-2", range(0, 3)),
+        ("alice@5", "alice", range(5, 6)),
+        ("rack.a@10-19", "rack.a", range(10, 20)),
+        ("agent-3@7", "agent-3", range(7, 8)),
+    ],
+)
+def test_an_allow_list_entry_names_exactly_its_agents(stem: str, name: str, agents: range) -> None:
+    binding = parse_binding(stem)
+    assert binding == KeyBinding(name, agents)
+    assert KeyBinding.from_user_id(binding.user_id()) == binding
+    frame = _Frame(binding.user_id())
+    assert key_mismatch(frame, name, agents) is None
+    assert key_mismatch(frame, name, range(agents.start, agents.stop + 1)) is not None  # wider
+    assert key_mismatch(frame, name, range(agents.start + 1, agents.stop + 1)) is not None
+    assert key_mismatch(frame, name + "x", agents) is not None
+    assert key_mismatch(_Frame(None), "anyone", range(0, 9)) is None  # no CURVE: no key
+    assert key_mismatch(_Frame("forged"), name, agents) is not None  # never fails open
+
+
+def test_an_allow_list_entry_without_agents_is_refused_in_one_line(tmp_path: Path) -> None:
+    keys = _keys(tmp_path, "keys", "--names", "alice@0")
+    (keys / "allowed" / "alice@0.key").rename(keys / "allowed" / "alice.key")
+    with pytest.raises(ConfigError, match=r"alice.key: names no agents: call it alice@<index>"):
+        load_allow_list(keys / "allowed", "security.allowed_keys_dir")
+
+
+def test_launcher_checks_each_hosts_key_is_bound_to_its_range(tmp_path: Path) -> None:
+    keys = _keys(tmp_path, "keys", "--agents", "4", "--per-host", "2")
+    allowed = keys / "allowed"
+    (allowed / "host-2-3.key").rename(allowed / "host-2-3@2-2.key")
+    result = subprocess.run(
+        [
+            str(BIN / "fedhpg-run"),
+            *_overrides(0, tmp_path / "run", agents=4),
+            *_curve(keys),
+            "agents.per_host=2",
+        ],
+        capture_output=True,
+        text=True,
+        timeout=60,
+        cwd=tmp_path,
+    )
+    assert result.returncode == 2
+    assert result.stderr.strip().splitlines() == [
+        f"error: security.allowed_keys_dir: {allowed}: host-2-3's public key is allowed as "
+        "'host-2-3' (agent 2), not as 'host-2-3' (agents 2..3)"
+    ]
+
+
 # --- compose: docker-compose.keys.yml, run as its commands on loopback (no Docker engine here) --
 
 COMPOSE_VARIABLE = re.compile(r"\$\{(\w+):-([^}]*)\}")
@@ -343,7 +458,7 @@ def test_compose_with_keys_runs_a_curve_federation(tmp_path: Path, started: list
 
 
 def test_authenticated_name_is_the_allow_list_file_name(tmp_path: Path) -> None:
-    keys = _keys(tmp_path, "keys", "--names", "alice", "bob")
+    keys = _keys(tmp_path, "keys", "--names", "alice@0", "bob@1")
     security = SecurityConfig(curve=True, keys_dir=str(keys))
     before = set(threading.enumerate())
     context = zmq.Context()
@@ -410,7 +525,12 @@ def test_keys_command_force_replaces_and_names_stale_entries(tmp_path: Path) -> 
         (["--agents", "0"], "--agents: got 0"),
         (["--agents", "two"], "--agents: got 'two'"),
         (["--names", "bad/name"], "is not a valid agent id"),
-        (["--names", "a", "a"], "given more than once: a"),
+        (["--names", "a@0", "a@1"], "given more than once: a"),
+        (["--names", "alice"], "'alice' names no agents: call it alice@<index>"),
+        (["--names", "alice@x"], "comes an agent index or a range FIRST-LAST, got 'x'"),
+        (["--names", "rack@5-2"], "the range 5-2 is empty"),
+        (["--agents", "4", "--per-host", "0"], "--per-host: got 0"),
+        (["--names", "a@0", "--per-host", "2"], "--per-host: goes with --agents"),
         (["--names", "server"], "is the server's key name"),
         (["--agents", "2", "--names", "a"], "not allowed with argument"),
         (["--no-such-flag"], "unrecognized arguments"),
@@ -474,7 +594,11 @@ def test_security_is_off_by_default_and_takes_overrides(tmp_path: Path) -> None:
             "no such",
         ),
         (["security.curve=true", "security.server_secret_key=NOTAKEY"], None, "not a CURVE key"),
-        (["security.curve=true", "security.allowed_keys_dir=KEYS"], None, "also allowed as"),
+        (
+            ["security.curve=true", "security.allowed_keys_dir=KEYS/allowed"],
+            None,
+            "also allowed as 'agent-0' (agent 0)",
+        ),
     ],
 )
 def test_bad_security_values_name_the_key(
@@ -482,8 +606,8 @@ def test_bad_security_values_name_the_key(
 ) -> None:
     keys = _keys(tmp_path, "keys", "--agents", "1")
     (tmp_path / "not-a-key").write_text("public-key-ish = nothing\n")
-    # A second name for agent-0's key: KEYS used as an allow-list is then ambiguous.
-    (keys / "twin.key").write_bytes((keys / "agent-0.key").read_bytes())
+    # A second name for agent-0's key: the allow-list is then ambiguous.
+    (keys / "allowed" / "twin@1.key").write_bytes((keys / "agent-0.key").read_bytes())
     resolved = [
         o.replace("KEYS", str(keys)).replace("NOTAKEY", str(tmp_path / "not-a-key"))
         for o in overrides

@@ -17,6 +17,7 @@ from typing import Annotated, Any, overload
 import numpy as np
 
 from fedhpg.common.limits import (
+    MAX_HOST_AGENTS,
     AgentIndex,
     Bound,
     Count,
@@ -37,8 +38,6 @@ PROTOCOL_VERSION = 6
 6: ``UpdateBatch.stats`` as columns (:class:`UpdateColumns`), not one map per agent."""
 
 KIB = 1024
-MAX_HOST_AGENTS = 1 << 16
-"""Most logical agents one host serves (and one server request names)."""
 MAX_BATCH_ANSWERS = 256
 """Most agents' answers in one ``UpdateBatch`` / ``EvaluationBatch``: a host sends a round's
 answers in ceil(A / this) messages (fewer agents per message where θ is large)."""

@@ -2,11 +2,14 @@
 
 With ``security.curve=true`` the server's ROUTER socket is a CURVE server, and a ZAP handler
 (pyzmq's :class:`~zmq.auth.thread.ThreadAuthenticator`) admits only the public keys found in the
-allow-list directory. Each allow-list file is named after the agent the key belongs to
-(``agent-3.key``); that name becomes the connection's ZAP User-Id, and the server refuses any
-message whose agent id differs from it (error code :data:`KEY_MISMATCH`). Each agent's DEALER
-socket is a CURVE client with its own key pair and the server's public key; a monitor on it
-turns a refused handshake into one clear error instead of a silent wait.
+allow-list directory. Each allow-list file binds its key to a name and to the agents it may
+speak for (:class:`KeyBinding`): ``agent-3.key`` is agent 3 alone, ``host-0-2.key`` the host of
+agents 0..2, ``alice@5.key`` the agent ``alice`` at index 5, ``rack@0-99.key`` the host
+``rack`` of agents 0..99. The binding becomes the connection's ZAP User-Id, and the server
+refuses any hello (and any later message) whose id or agent range differs from it, exactly
+(error code :data:`KEY_MISMATCH`): a key cannot register another index or a wider range.
+Each agent's DEALER socket is a CURVE client with its own key pair and the server's public
+key; a monitor on it turns a refused handshake into one clear error instead of a silent wait.
 
 ``fedhpg-keys`` (:mod:`fedhpg.server.keys`) writes the files this module reads. Everything the
 entry points need lives here, so that the wiring into the server, the pool and the agent is a
@@ -23,6 +26,7 @@ from __future__ import annotations
 import atexit
 import logging
 import os
+import re
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -58,6 +62,65 @@ NO_DETAIL_FAILURES = 3
 LOG_EVERY_S = 60.0
 """A repeated refusal (same key, same error) is a warning at most this often, else debug: a
 refused peer retries every few seconds."""
+
+
+_DEFAULT_AGENT = re.compile(r"agent-(\d+)")
+_DEFAULT_HOST = re.compile(r"host-(\d+)-(\d+)")
+_AGENTS = re.compile(r"(\d+)(?:-(\d+))?")
+BIND = "@"
+"""Separates an allow-list entry's name from the agents it speaks for (``alice@5.key``)."""
+
+
+@dataclass(frozen=True)
+class KeyBinding:
+    """Who an allowed key speaks for: the id it registers under and exactly these agents."""
+
+    name: str
+    agents: range
+
+    def user_id(self) -> str:
+        """The ZAP User-Id of a connection made with the key (what the pool reads back)."""
+        return f"{self.name}{BIND}{self.agents.start}-{self.agents.stop - 1}"
+
+    @classmethod
+    def from_user_id(cls, user_id: str) -> KeyBinding | None:
+        name, _, agents = user_id.rpartition(BIND)
+        found = _AGENTS.fullmatch(agents)
+        if not name or found is None:
+            return None
+        first = int(found.group(1))
+        last = int(found.group(2) or first)
+        return cls(name, range(first, last + 1))
+
+    def describe(self) -> str:
+        if len(self.agents) == 1:
+            return f"{self.name!r} (agent {self.agents.start})"
+        return f"{self.name!r} (agents {self.agents.start}..{self.agents.stop - 1})"
+
+
+def parse_binding(stem: str) -> KeyBinding | str:
+    """The binding an allow-list entry's file name (without ``.key``) declares, or why it
+    declares none. ``NAME@K`` / ``NAME@F-L`` name the agents outright; ``agent-K`` and
+    ``host-F-L`` (the ids ``fedhpg-run`` gives) name them by themselves."""
+    name, bind, agents = stem.partition(BIND)
+    if bind:
+        found = _AGENTS.fullmatch(agents)
+        if not name or found is None:
+            return f"after {BIND!r} comes an agent index or a range FIRST-LAST, got {agents!r}"
+        first, last = int(found.group(1)), int(found.group(2) or found.group(1))
+    elif found := _DEFAULT_AGENT.fullmatch(name):
+        first = last = int(found.group(1))
+    elif found := _DEFAULT_HOST.fullmatch(name):
+        first, last = int(found.group(1)), int(found.group(2))
+    else:
+        return (
+            f"names no agents: call it {name}{BIND}<index> (a lone agent) or "
+            f"{name}{BIND}<first>-<last> (an agent host); fedhpg-keys --names {name}{BIND}<index> "
+            "writes it"
+        )
+    if last < first:
+        return f"the range {first}-{last} is empty"
+    return KeyBinding(name, range(first, last + 1))
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -117,20 +180,26 @@ def load_public_key(path: str | Path, key: str) -> bytes:
     return public
 
 
-def load_allow_list(directory: str | Path, key: str) -> dict[bytes, str]:
-    """{public key (z85): agent name} from the ``<name>.key`` files of the allow-list."""
+def load_allow_list(directory: str | Path, key: str) -> dict[bytes, KeyBinding]:
+    """{public key (z85): its binding} from the ``*.key`` files of the allow-list."""
     folder = Path(directory)
     if not folder.is_dir():
         _fail(key, f"{folder}: no such allow-list directory")
-    names: dict[bytes, str] = {}
+    bindings: dict[bytes, KeyBinding] = {}
+    names: dict[str, Path] = {}
     for path in sorted(folder.glob(f"*{PUBLIC_SUFFIX}")):
         public = load_public_key(path, key)
-        if public in names:
-            _fail(key, f"{path}: the same key is also allowed as {names[public]!r}")
-        names[public] = path.name[: -len(PUBLIC_SUFFIX)]
-    if not names:
+        binding = parse_binding(path.name[: -len(PUBLIC_SUFFIX)])
+        if isinstance(binding, str):
+            _fail(key, f"{path}: {binding}")
+        if public in bindings:
+            _fail(key, f"{path}: the same key is also allowed as {bindings[public].describe()}")
+        if binding.name in names:
+            _fail(key, f"{path}: {binding.name!r} is also allowed by {names[binding.name]}")
+        bindings[public], names[binding.name] = binding, path
+    if not bindings:
         _fail(key, f"{folder}: the allow-list holds no <agent id>{PUBLIC_SUFFIX} files")
-    return names
+    return bindings
 
 
 def _path(security: SecurityConfig, key: str, default: str) -> tuple[Path, str]:
@@ -181,8 +250,8 @@ def validate_security(security: SecurityConfig) -> None:
 @dataclass(frozen=True, kw_only=True)
 class ServerKeys:
     own: KeyPair
-    allowed: dict[bytes, str]
-    """{agent public key (z85): agent name}."""
+    allowed: dict[bytes, KeyBinding]
+    """{agent public key (z85): who it speaks for}."""
     allowed_dir: Path
 
 
@@ -226,17 +295,23 @@ def check_launch_keys(run: RunConfig) -> None:
         )
     server = server_keys(security)
     if run.agents.per_host > 1:  # each host has one connection, one key, named by its id
-        ids = [host_id_of(f, c) for f, c in host_ranges(run.agents.num_agents, run.agents.per_host)]
+        wanted = [
+            KeyBinding(host_id_of(f, c), range(f, f + c))
+            for f, c in host_ranges(run.agents.num_agents, run.agents.per_host)
+        ]
     else:
-        ids = [agent_id_of(index) for index in range(run.agents.num_agents)]
-    for agent_id in ids:
-        keys = agent_keys(security, agent_id)
+        wanted = [KeyBinding(agent_id_of(k), range(k, k + 1)) for k in range(run.agents.num_agents)]
+    for binding in wanted:
+        keys = agent_keys(security, binding.name)
         if keys.server_public != server.own.public:
             _fail("security.server_public_key", "is not the public half of the server's key")
-        if server.allowed.get(keys.own.public) != agent_id:
+        allowed = server.allowed.get(keys.own.public)
+        if allowed != binding:
+            as_what = "not allowed" if allowed is None else f"allowed as {allowed.describe()}"
             _fail(
                 "security.allowed_keys_dir",
-                f"{server.allowed_dir}: {agent_id}'s public key is not allowed as {agent_id!r}",
+                f"{server.allowed_dir}: {binding.name}'s public key is {as_what}, "
+                f"not as {binding.describe()}",
             )
 
 
@@ -265,7 +340,9 @@ class _AllowListAuthenticator(ThreadAuthenticator):
     """ZAP handler: admits the allow-listed CURVE keys, names the connection after the key's
     file (the ZAP User-Id), and logs refused keys with the peer address."""
 
-    def __init__(self, context: zmq.Context, allowed: dict[bytes, str], allowed_dir: Path) -> None:
+    def __init__(
+        self, context: zmq.Context, allowed: dict[bytes, KeyBinding], allowed_dir: Path
+    ) -> None:
         super().__init__(context, log=logging.getLogger(f"{__name__}.zap"))
         self.allowed = allowed
         self.allowed_dir = allowed_dir
@@ -295,7 +372,7 @@ class _AllowListAuthenticator(ThreadAuthenticator):
         return False
 
     def curve_user_id(self, client_public_key: bytes) -> str:
-        return self.allowed[z85.encode(client_public_key)]
+        return self.allowed[z85.encode(client_public_key)].user_id()
 
 
 def _protocol_error(value: int, *, curve: bool) -> str:
@@ -360,7 +437,7 @@ def secure_server_socket(
             "CURVE on: %d allowed agent keys from %s (%s)",
             len(keys.allowed),
             keys.allowed_dir,
-            ", ".join(sorted(keys.allowed.values())),
+            ", ".join(sorted(b.name for b in keys.allowed.values())),
         )
     return ServerGuard(authenticator)
 
@@ -374,17 +451,29 @@ def _monitor(socket: zmq.Socket, events: int) -> zmq.Socket:
     return monitor
 
 
-def authenticated_name(frame: object) -> str | None:
-    """The agent name bound to the CURVE key a message came with (its ZAP User-Id), or None
-    without CURVE. ``frame`` is any frame of the message, received with ``copy=False``."""
+def _user_id(frame: object) -> str | None:
+    """The ZAP User-Id of the connection a message came on, or None without CURVE. ``frame``
+    is any frame of the message, received with ``copy=False``."""
     get = getattr(frame, "get", None)
     if get is None:
         return None
     try:
-        name = get("User-Id")
+        user_id = get("User-Id")
     except zmq.ZMQError:  # no such property: the connection was not authenticated by ZAP
         return None
-    return name or None
+    return str(user_id) or None
+
+
+def authenticated_binding(frame: object) -> KeyBinding | None:
+    """Who the CURVE key a message came with speaks for, or None without CURVE."""
+    user_id = _user_id(frame)
+    return KeyBinding.from_user_id(user_id) if user_id is not None else None
+
+
+def authenticated_name(frame: object) -> str | None:
+    """The id bound to the CURVE key a message came with, or None without CURVE."""
+    binding = authenticated_binding(frame)
+    return binding.name if binding is not None else None
 
 
 def _peer_address(frame: object) -> str:
@@ -394,15 +483,21 @@ def _peer_address(frame: object) -> str:
         return "?"
 
 
-def key_mismatch(frame: object, agent_id: str | None) -> str | None:
-    """Why a message claiming ``agent_id`` must be refused, or None: with CURVE, a key may speak
-    only for the agent its allow-list file is named after."""
-    name = authenticated_name(frame)
-    if name is None or agent_id is None or name == agent_id:
+def key_mismatch(frame: object, agent_id: str | None, agents: range | None) -> str | None:
+    """Why a message claiming to be ``agent_id`` speaking for ``agents`` must be refused, or
+    None: with CURVE, a key speaks only as the id its allow-list entry names and for exactly
+    the agents it names (a lone agent's key for its index, a host's for its whole range)."""
+    user_id = _user_id(frame)
+    if agent_id is None or agents is None or user_id is None:
         return None
+    binding = KeyBinding.from_user_id(user_id)  # None only for a foreign User-Id: refused
+    claimed = KeyBinding(agent_id, agents)
+    if binding == claimed:
+        return None
+    held = binding.describe() if binding is not None else repr(user_id)
     return (
-        f"the CURVE key of {name!r} (from {_peer_address(frame)}) cannot act as {agent_id!r}; "
-        f"each agent uses its own key"
+        f"the CURVE key of {held} (from {_peer_address(frame)}) cannot act as "
+        f"{claimed.describe()}; a key speaks only for the agents its allow-list entry names"
     )
 
 

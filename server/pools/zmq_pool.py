@@ -441,18 +441,18 @@ class ZmqAgentPool:
             self._reject(identity, decoded.code, str(decoded))
             return
         link = self._links.get(identity)
-        # security: with CURVE, a key speaks only for the agent (or host) its allow-list
-        # file names
-        claimed = (
-            decoded.agent_id
+        # security: with CURVE, a key speaks only as the id and for exactly the agents its
+        # allow-list entry names
+        claimed: tuple[str, range] | tuple[None, None] = (
+            (decoded.agent_id, range(decoded.agent_index, decoded.agent_index + 1))
             if isinstance(decoded, Hello)
-            else decoded.host_id
+            else (decoded.host_id, range(decoded.first, decoded.first + decoded.count))
             if isinstance(decoded, HostHello)
-            else link.label
+            else (link.label, link.indices)
             if link
-            else None
+            else (None, None)
         )
-        if (mismatch := key_mismatch(frames[1], claimed)) is not None:
+        if (mismatch := key_mismatch(frames[1], *claimed)) is not None:
             self._reject(identity, KEY_MISMATCH, mismatch)
             return
         if link is not None:
@@ -1032,6 +1032,10 @@ class ZmqAgentPool:
                 f"died and did not rejoin within {self.settings.rejoin_timeout_s:g} s "
                 "(server.rejoin_timeout_s)"
             )
+
+    def outstanding(self) -> int:
+        """Buffered rounds: updates that may still arrive (open requests, queued arrivals)."""
+        return len(self._trains) + len(self._arrivals)
 
     def next_arrival(self) -> Arrival:
         """The next answer in arrival order (waiting for one)."""

@@ -26,7 +26,7 @@ from typing import Any, ClassVar, Generic, TypeVar
 
 import torch
 
-from fedhpg.common.config import RunConfig, StrategyConfig
+from fedhpg.common.config import ConfigError, RunConfig, StrategyConfig
 from fedhpg.common.registry import Registry, import_plugins, parse_options
 from fedhpg.common.types import AgentUpdate, SavedState
 from fedhpg.server.participation import validate_participation
@@ -68,6 +68,14 @@ class Strategy(abc.ABC, Generic[P]):
         the run than its own options (fedpgbr's environment); ConfigError for a run it cannot
         serve."""
 
+    def tolerance(self, rows: int) -> int | None:
+        """How many of ``rows`` aggregated updates may be arbitrary (Byzantine) while each
+        coordinate of θ̃ stays within the range of the honest rows' values; None: the rule
+        claims no tolerance (a mean: one row moves it anywhere). A robust rule's claim holds
+        per aggregated set, not per federation: with participation or a deadline it is that
+        of the round's rows (:mod:`fedhpg.server.tolerance` checks it at start)."""
+        return None
+
     def round_stats(self) -> dict[str, Any]:
         """What the strategy reports of the last :meth:`aggregate` (``metrics.jsonl``'s
         ``strategy``; nothing, for most rules)."""
@@ -85,6 +93,8 @@ class CoordinateRule(Strategy[P]):
     """A strategy whose θ̃ depends on the θ_k alone: :meth:`combine` maps the [K, d] matrix of
     the accepted updates (rows in agent-index order) to θ̃."""
 
+    _aggregated: int | None = None
+
     def aggregate(
         self,
         round_index: int,
@@ -92,11 +102,20 @@ class CoordinateRule(Strategy[P]):
         results: Sequence[AgentUpdate],
         failures: Mapping[str, str],
     ) -> torch.Tensor:
+        self._aggregated = len(results)
         return self.combine(stacked(results))
 
     @abc.abstractmethod
     def combine(self, rows: torch.Tensor) -> torch.Tensor:
         """θ̃ from the [K, d] matrix of updates."""
+
+    def round_stats(self) -> dict[str, Any]:
+        """A robust rule's last aggregated set: its rows and the arbitrary rows it tolerated."""
+        rows = self._aggregated
+        tolerates = self.tolerance(rows) if rows is not None else None
+        if rows is None or tolerates is None:
+            return {}
+        return {"aggregated": rows, "tolerates": tolerates}
 
 
 STRATEGIES: Registry[type[Strategy[Any]]] = Registry("strategy", "strategy.name", __name__)
@@ -124,9 +143,14 @@ def make_strategy(
 
 def validate_strategy(run: RunConfig) -> None:
     """The server-side checks of a run config (the agents never see ``strategy``)."""
+    from fedhpg.server.tolerance import REMEDY, tolerance_shortfall
+
     import_plugins(run.plugins)
-    make_strategy(run.strategy, run=run)
+    strategy = make_strategy(run.strategy, run=run)
     validate_participation(run)
+    shortfall = tolerance_shortfall(run, strategy)
+    if shortfall is not None and run.strategy.tolerance_check == "refuse":
+        raise ConfigError("strategy", f"{shortfall}: {REMEDY}")
 
 
 def stacked(results: Sequence[AgentUpdate]) -> torch.Tensor:

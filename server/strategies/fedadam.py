@@ -66,6 +66,12 @@ class FedAdam(Strategy[FedAdamParams]):
     def select(self, round_index: int, agents: Sequence[int]) -> list[int]:
         return self.inner.select(round_index, agents)
 
+    def tolerance(self, rows: int) -> int | None:
+        return self.inner.tolerance(rows)
+
+    def round_stats(self) -> dict[str, Any]:
+        return self.inner.round_stats()
+
     def aggregate(
         self,
         round_index: int,

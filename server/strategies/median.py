@@ -1,4 +1,5 @@
-"""``median``: θ̃ = the coordinate-wise median of the θ_k (robust to fewer than K/2 attackers)."""
+"""``median``: θ̃ = the coordinate-wise median of the θ_k aggregated (robust while fewer than
+half of those rows are attackers: ⌈m/2⌉ − 1 of m)."""
 
 from __future__ import annotations
 
@@ -20,9 +21,12 @@ def coordinate_median(rows: torch.Tensor) -> torch.Tensor:
 @register_strategy
 class Median(CoordinateRule[NoParams]):
     """Coordinate-wise median (Yin et al., 2018): any coordinate stays between honest values
-    while attackers are fewer than half."""
+    while attackers are fewer than half of the aggregated rows."""
 
     name = "median"
+
+    def tolerance(self, rows: int) -> int:
+        return (rows - 1) // 2
 
     def combine(self, rows: torch.Tensor) -> torch.Tensor:
         return coordinate_median(rows)

@@ -1,4 +1,5 @@
-"""``trimmed_mean``: per coordinate, drop the ⌊βK⌋ largest and smallest θ_k, average the rest."""
+"""``trimmed_mean``: per coordinate, drop the ⌊βm⌋ largest and smallest of the m θ_k
+aggregated, average the rest (robust to ⌊βm⌋ attackers among those m rows)."""
 
 from __future__ import annotations
 
@@ -14,8 +15,9 @@ from fedhpg.server.strategies import CoordinateRule, register_strategy
 @dataclass(frozen=True, kw_only=True)
 class TrimmedMeanParams:
     trim_fraction: float = 0.2
-    """β: the fraction of updates trimmed from each end, per coordinate. Tolerates up to βK
-    attackers; set it to at least the share you expect."""
+    """β: the fraction of the aggregated updates trimmed from each end, per coordinate.
+    Tolerates ⌊βm⌋ attackers among the m rows of a round (m = K only when every agent takes
+    part): ⌊0.2 · 4⌋ = 0, so β = 0.2 over 4 sampled agents tolerates none."""
 
     def __post_init__(self) -> None:
         if not 0.0 <= self.trim_fraction < 0.5:
@@ -37,6 +39,9 @@ class TrimmedMean(CoordinateRule[TrimmedMeanParams]):
 
     name = "trimmed_mean"
     Params = TrimmedMeanParams
+
+    def tolerance(self, rows: int) -> int:
+        return math.floor(self.params.trim_fraction * rows)
 
     def combine(self, rows: torch.Tensor) -> torch.Tensor:
         return trimmed_mean(rows, self.params.trim_fraction)
