@@ -32,10 +32,10 @@ import numpy as np
 import torch
 import zmq
 
-from fedhpg.common.batched.maths import DeviceUnavailable
 from fedhpg.common.components import agent_profile, validate_run
 from fedhpg.common.config import ConfigError, RunConfig, adopt_settings, agent_id_of
 from fedhpg.common.device import DeviceModel, device_for, message_bytes
+from fedhpg.common.engine.devices import DeviceUnavailable
 from fedhpg.common.group import AgentGroup, make_agent_group
 from fedhpg.common.runtime import timeline
 from fedhpg.common.runtime.memory import pin_malloc_mmap_threshold, tune_malloc_for

@@ -19,15 +19,10 @@ reproducible as honest work, in one process or many.
 
 from __future__ import annotations
 
-import dataclasses
-
-import gymnasium as gym
-import numpy as np
 import torch
 
 from fedhpg.common.config import AttackConfig
-from fedhpg.common.policies import ActionSampler
-from fedhpg.common.rollout import TrajectoryBatch
+from fedhpg.common.randomness import Purpose, trajectory_keys, uniforms
 
 UPDATE_ATTACKS = ("zero_gradient", "random_noise", "sign_flip")
 SAMPLING_ATTACKS = ("reward_flip", "random_action")
@@ -38,50 +33,39 @@ def attack_of(attack: AttackConfig, agent_index: int) -> str:
     return attack.kind if agent_index in attack.agents else "none"
 
 
-def corrupt_update(
-    kind: str,
+def corrupt_rows(
+    attack: AttackConfig,
     start: torch.Tensor,
     honest: torch.Tensor,
-    attack: AttackConfig,
-    rng: np.random.Generator,
+    agents: list[int],
+    *,
+    seed: int,
+    round_index: int,
 ) -> torch.Tensor:
-    """The θ_k an attacker sends instead of ``honest`` (computed from θ̃ = ``start``)."""
+    """The θ_k rows the agents send: ``honest`` [A, d] where the agent is honest or attacks
+    its sampling, the corrupted update where it attacks its update (from θ̃ = ``start``).
+    ``random_noise`` draws from the agent's (seed, agent, round) attack stream."""
+    kinds = [attack_of(attack, k) for k in agents]
+    if not any(kind in UPDATE_ATTACKS for kind in kinds):
+        return honest
+    sent = honest.clone()
     delta = honest - start
-    if kind == "zero_gradient":
-        return start.clone()
-    if kind == "sign_flip":
-        return start - attack.sign_flip_scale * delta
-    if kind == "random_noise":
-        spread = float(delta.max() - delta.min()) if delta.numel() else 0.0
-        noise = rng.uniform(-1.0, 1.0, size=delta.shape) * attack.noise_scale * spread
-        return start + delta + torch.from_numpy(noise.astype(np.float32))
-    return honest
-
-
-def corrupt_batch(kind: str, batch: TrajectoryBatch) -> TrajectoryBatch:
-    """The batch an attacker learns from: negated rewards for ``reward_flip``."""
-    if kind == "reward_flip":
-        return dataclasses.replace(batch, rewards=-batch.rewards)
-    return batch
-
-
-def random_action_sampler(space: gym.Space, policy_sampler: ActionSampler) -> ActionSampler:
-    """Uniform actions from ``space`` (a bounded Box or Discrete), with the policy's
-    log-probabilities of them (what the attacker's gradient is computed from)."""
-
-    if isinstance(space, gym.spaces.Discrete):
-        start, n = int(space.start), int(space.n)
-
-        def act(obs: np.ndarray, rng: np.random.Generator, greedy: bool) -> np.ndarray:
-            return start + rng.integers(n, size=(int(obs.shape[0]),))
-
-    elif isinstance(space, gym.spaces.Box) and space.is_bounded():
-        low, high = space.low.astype(np.float32), space.high.astype(np.float32)
-
-        def act(obs: np.ndarray, rng: np.random.Generator, greedy: bool) -> np.ndarray:
-            draws = rng.random((obs.shape[0], *low.shape), dtype=np.float32)
-            return low + draws * (high - low)
-
-    else:
-        raise ValueError(f"random actions need a Discrete or bounded Box space, got {space}")
-    return ActionSampler(act, policy_sampler.log_prob)
+    for row, kind in enumerate(kinds):
+        if kind == "zero_gradient":
+            sent[row] = start
+        elif kind == "sign_flip":
+            sent[row] = start - attack.sign_flip_scale * delta[row]
+        elif kind == "random_noise":
+            spread = float(delta[row].max() - delta[row].min()) if delta.shape[1] else 0.0
+            key = trajectory_keys(
+                seed,
+                torch.tensor([agents[row]]),
+                round_index,
+                Purpose.ATTACK,
+                0,
+                torch.zeros(1, dtype=torch.int64),
+            )
+            coordinates = torch.arange(delta.shape[1], device=key.device)
+            noise = (2.0 * uniforms(key, coordinates) - 1.0) * attack.noise_scale * spread
+            sent[row] = start + delta[row] + noise.to(sent.device, sent.dtype)
+    return sent

@@ -26,6 +26,7 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import dataclass
+from typing import Any
 
 import torch
 
@@ -146,3 +147,50 @@ def theorem1_terms(
         heterogeneity=gl * second_moment / tau_bar * (gl * alpha_a + (1 - gl / 2) * alpha_b),
         step_size_ok=step_size < limit,
     )
+
+
+class RowBounds:
+    """``algo.bound_estimates`` for rows of agents: each row's moments at θ̃ (its first batch)
+    and L̂ from the secant between its first two batch gradients (unclipped)."""
+
+    NAMES = ("bound_variance", "bound_second_moment", "bound_grad_norm_sq", "bound_smoothness")
+
+    def __init__(self, rows: int) -> None:
+        self.values = {
+            name: torch.full((rows,), float("nan"), dtype=torch.float64) for name in self.NAMES
+        }
+        self.points: dict[int, list[tuple[torch.Tensor, torch.Tensor, float]]] = {}
+
+    def measure(
+        self, engine: Any, theta: torch.Tensor, batch: Any, gradient: torch.Tensor, *, first: bool
+    ) -> None:
+        """Per-trajectory gradients of ``batch`` at ``theta`` (rows of ``engine``'s round):
+        the moments of a first batch, a point of each row's secant."""
+        with engine.untimed():  # a diagnostic, not the device's work
+            per_trajectory = engine.trajectory_gradients(theta, batch, engine.coefficients(batch))
+            owner = batch.owner
+            for row in torch.nonzero(batch.counts >= 2).squeeze(1).tolist():
+                moments = gradient_moments(per_trajectory[owner == row].cpu())
+                if first:
+                    self.values["bound_variance"][row] = moments.variance
+                    self.values["bound_second_moment"][row] = moments.second_moment
+                    self.values["bound_grad_norm_sq"][row] = moments.grad_norm_sq
+                noise = moments.variance / int(batch.counts[row])
+                self.points.setdefault(row, []).append(
+                    (theta[row].detach().cpu().clone(), gradient[row].detach().cpu().clone(), noise)
+                )
+
+    def report(self, engine: Any) -> None:
+        for row, points in self.points.items():
+            if len(points) >= 2:
+                (t0, g0, n0), (t1, g1, n1) = points[:2]
+                found = secant_smoothness(t0, t1, g0, g1, n0, n1)
+                if found is not None:
+                    self.values["bound_smoothness"][row] = found
+        for name, values in self.values.items():
+            if not bool(values.isnan().all()):
+                engine.report(name, values)
+
+
+def row_bound_statistics(rows: int) -> RowBounds:
+    return RowBounds(rows)

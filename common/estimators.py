@@ -44,32 +44,53 @@ NormalizeName = Literal["none", "batch", "episode"]
 NORMALIZE_EPS = 1e-8
 
 
-def _leave_one_out_mean(values: torch.Tensor) -> torch.Tensor:
-    """For each column b of [..., B], the mean of the other columns (0 when B = 1)."""
-    count = values.shape[-1]
-    if count == 1:
-        return torch.zeros_like(values)
-    return (values.sum(dim=-1, keepdim=True) - values) / (count - 1)
+Gamma = float | torch.Tensor
+"""A discount: one for every trajectory, or one per trajectory (column) [B]."""
 
 
-def _discounts(gamma: float, length: int, like: torch.Tensor) -> torch.Tensor:
-    return gamma ** torch.arange(length, dtype=like.dtype, device=like.device)
+def _leave_one_out_mean(values: torch.Tensor, groups: torch.Tensor | None) -> torch.Tensor:
+    """For each column b of [..., B], the mean of the other columns of its group (0 where
+    the group has one column). ``groups`` [B]: each column's group (one agent's batch);
+    None: every column in one group."""
+    if groups is None:
+        count = values.shape[-1]
+        if count == 1:
+            return torch.zeros_like(values)
+        return (values.sum(dim=-1, keepdim=True) - values) / (count - 1)
+    size = int(groups.max()) + 1 if groups.numel() else 0
+    totals = values.new_zeros((*values.shape[:-1], size)).index_add_(-1, groups, values)
+    counts = torch.bincount(groups, minlength=size).to(values.dtype)
+    others = (counts - 1).clamp_min(1.0)[groups]
+    loo = (totals.index_select(-1, groups) - values) / others
+    return torch.where(counts[groups] > 1, loo, torch.zeros_like(loo))
+
+
+def _discounts(gamma: Gamma, length: int, like: torch.Tensor) -> torch.Tensor:
+    """γ^t for t < length: [T], or [T, B] for per-column discounts."""
+    steps = torch.arange(length, dtype=like.dtype, device=like.device)
+    if isinstance(gamma, torch.Tensor):
+        return gamma.to(like.dtype).unsqueeze(0) ** steps.unsqueeze(1)
+    return gamma**steps
 
 
 def reinforce_coefficients(
     rewards: torch.Tensor,
     alive: torch.Tensor,
     *,
-    gamma: float,
+    gamma: Gamma,
     baseline: BaselineName = "mean",
     weights: torch.Tensor | None = None,
+    groups: torch.Tensor | None = None,
 ) -> torch.Tensor:
     """Eq. (5): coef[t, b] = w_b · (Σ_h γ^h r_{h,b} − C_b) on alive steps.
 
-    rewards, alive: [T, B]; weights: optional [B] importance weights.
+    rewards, alive: [T, B]; weights: optional [B] importance weights; ``groups``: each
+    column's agent, for a batch of several agents' trajectories (the baseline C_b is the mean
+    over the other trajectories of b's own agent).
     """
-    returns = _discounts(gamma, rewards.shape[0], rewards) @ rewards  # [B]
-    centred = returns - _leave_one_out_mean(returns) if baseline == "mean" else returns
+    discounts = _discounts(gamma, rewards.shape[0], rewards)
+    returns = (discounts.reshape(rewards.shape[0], -1) * rewards).sum(dim=0)  # [B]
+    centred = returns - _leave_one_out_mean(returns, groups) if baseline == "mean" else returns
     if weights is not None:
         centred = centred * weights
     return alive.to(rewards.dtype) * centred.unsqueeze(0)
@@ -79,60 +100,82 @@ def gpomdp_coefficients(
     rewards: torch.Tensor,
     alive: torch.Tensor,
     *,
-    gamma: float,
+    gamma: Gamma,
     baseline: BaselineName = "mean",
     weights: torch.Tensor | None = None,
     reward_to_go: RewardToGoName = "from_start",
+    groups: torch.Tensor | None = None,
 ) -> torch.Tensor:
     """Eq. (6): coef[t, b] = Σ_{h ≥ t} w_{0:h,b} · (γ^h r_{h,b} − C_{h,b}) on alive steps.
 
     The per-step baseline C_h is applied at every step h < T, dead steps included: masking it
     by "still alive at h" would correlate it with the earlier actions and bias the estimate.
-    weights: optional [T, B] per-decision cumulative importance weights.
+    weights: optional [T, B] per-decision cumulative importance weights; ``groups`` as in
+    :func:`reinforce_coefficients`.
 
     ``reward_to_go="from_step"`` (a departure, biased): Σ_{h ≥ t} w_{0:h,b} · γ^{h−t} (r_{h,b} −
     C_{h,b}), i.e. eq. (6)'s coefficient divided by γ^t; computed by the backward recursion
     R_t = x_t + γ R_{t+1}, so no γ^{−t} is ever formed (it would overflow on long horizons).
     """
     if reward_to_go == "from_step":
-        step_values = rewards - _leave_one_out_mean(rewards) if baseline == "mean" else rewards
+        step_values = (
+            rewards - _leave_one_out_mean(rewards, groups) if baseline == "mean" else rewards
+        )
         if weights is not None:
             step_values = step_values * weights
         return alive.to(rewards.dtype) * _discounted_tail_sums(step_values, gamma)
-    step_rewards = _discounts(gamma, rewards.shape[0], rewards).unsqueeze(1) * rewards  # [T, B]
+    discounts = _discounts(gamma, rewards.shape[0], rewards)
+    step_rewards = discounts.reshape(rewards.shape[0], -1) * rewards  # [T, B]
     if baseline == "mean":
-        step_rewards = step_rewards - _leave_one_out_mean(step_rewards)
+        step_rewards = step_rewards - _leave_one_out_mean(step_rewards, groups)
     if weights is not None:
         step_rewards = step_rewards * weights
     tail_sums = step_rewards.flip(0).cumsum(0).flip(0)
     return alive.to(rewards.dtype) * tail_sums
 
 
-def _discounted_tail_sums(values: torch.Tensor, gamma: float) -> torch.Tensor:
+def _discounted_tail_sums(values: torch.Tensor, gamma: Gamma) -> torch.Tensor:
     """R[t] = Σ_{h ≥ t} γ^{h−t} values[h] along dim 0 (backward recursion)."""
     out = torch.empty_like(values)
+    factor = gamma.to(values.dtype) if isinstance(gamma, torch.Tensor) else gamma
     running = torch.zeros_like(values[0]) if values.shape[0] else values.new_zeros(())
     for t in range(values.shape[0] - 1, -1, -1):
-        running = values[t] + gamma * running
+        running = values[t] + factor * running
         out[t] = running
     return out
 
 
 def normalize_coefficients(
-    coefficients: torch.Tensor, alive: torch.Tensor, mode: NormalizeName
+    coefficients: torch.Tensor,
+    alive: torch.Tensor,
+    mode: NormalizeName,
+    groups: torch.Tensor | None = None,
 ) -> torch.Tensor:
-    """Standardise coefficients over the alive cells: of the whole batch (``"batch"``) or of
-    each trajectory (``"episode"``): (c − mean) / (std + ε), 0 on dead steps. A departure from
-    eq. 5/6, biased for ∇J: the mean and std are taken from the samples they rescale, so
-    E[g] is neither ∇J nor a fixed multiple of it (README, Estimator options)."""
+    """Standardise coefficients over the alive cells: of the whole batch (``"batch"``, per
+    agent where ``groups`` says whose each column is) or of each trajectory (``"episode"``):
+    (c − mean) / (std + ε), 0 on dead steps. A departure from eq. 5/6, biased for ∇J: the
+    mean and std are taken from the samples they rescale, so E[g] is neither ∇J nor a fixed
+    multiple of it (README, Estimator options)."""
     if mode == "none":
         return coefficients
     mask = alive.to(coefficients.dtype)
-    dims: tuple[int, ...] = (0, 1) if mode == "batch" else (0,)
-    count = mask.sum(dim=dims, keepdim=True).clamp_min(1.0)
-    mean = (coefficients * mask).sum(dim=dims, keepdim=True) / count
-    spread = ((coefficients - mean) ** 2 * mask).sum(dim=dims, keepdim=True) / count
-    return mask * (coefficients - mean) / (spread.sqrt() + NORMALIZE_EPS)
+    if mode == "episode" or groups is None:
+        dims: tuple[int, ...] = (0, 1) if mode == "batch" else (0,)
+        count = mask.sum(dim=dims, keepdim=True).clamp_min(1.0)
+        mean = (coefficients * mask).sum(dim=dims, keepdim=True) / count
+        spread = ((coefficients - mean) ** 2 * mask).sum(dim=dims, keepdim=True) / count
+        return mask * (coefficients - mean) / (spread.sqrt() + NORMALIZE_EPS)
+    size = int(groups.max()) + 1
+
+    def per_group(values: torch.Tensor) -> torch.Tensor:
+        column_sums = values.sum(dim=0)
+        return values.new_zeros(size).index_add_(0, groups, column_sums)
+
+    count = per_group(mask).clamp_min(1.0)
+    mean = per_group(coefficients * mask) / count
+    centred = coefficients - mean[groups]
+    spread = per_group(centred**2 * mask) / count
+    return mask * centred / (spread.sqrt()[groups] + NORMALIZE_EPS)
 
 
 def estimator_coefficients(
@@ -140,20 +183,22 @@ def estimator_coefficients(
     rewards: torch.Tensor,
     alive: torch.Tensor,
     *,
-    gamma: float,
+    gamma: Gamma,
     baseline: BaselineName = "mean",
     weights: torch.Tensor | None = None,
     reward_to_go: RewardToGoName = "from_start",
     normalize: NormalizeName = "none",
+    groups: torch.Tensor | None = None,
 ) -> torch.Tensor:
     """Dispatch to :func:`reinforce_coefficients` or :func:`gpomdp_coefficients`, then
     :func:`normalize_coefficients`. ``reward_to_go="from_step"`` is GPOMDP's alone (REINFORCE
-    has no reward-to-go); config validation rejects the other pairings first."""
+    has no reward-to-go); config validation rejects the other pairings first. ``groups``:
+    each column's agent where the batch holds several agents' trajectories."""
     if estimator == "reinforce":
         if reward_to_go != "from_start":
             raise ValueError("reward_to_go='from_step' needs estimator 'gpomdp'")
         coef = reinforce_coefficients(
-            rewards, alive, gamma=gamma, baseline=baseline, weights=weights
+            rewards, alive, gamma=gamma, baseline=baseline, weights=weights, groups=groups
         )
     elif estimator == "gpomdp":
         coef = gpomdp_coefficients(
@@ -163,10 +208,11 @@ def estimator_coefficients(
             baseline=baseline,
             weights=weights,
             reward_to_go=reward_to_go,
+            groups=groups,
         )
     else:
         raise ValueError(f"estimator must be one of {ESTIMATORS}, got {estimator!r}")
-    return normalize_coefficients(coef, alive, normalize)
+    return normalize_coefficients(coef, alive, normalize, groups)
 
 
 def estimate_gradient(
@@ -197,11 +243,18 @@ def per_trajectory_gradients(
     return torch.cat([grads[name].reshape(coefficients.shape[1], -1) for name in params], dim=1)
 
 
+def clip_rows(gradient: torch.Tensor, max_norm: float | None) -> tuple[torch.Tensor, torch.Tensor]:
+    """Scale each row of [A, d] down to norm ``max_norm`` (Assumption 3); returns the rows and
+    which were clipped [A]."""
+    if max_norm is None:
+        return gradient, torch.zeros(gradient.shape[0], dtype=torch.bool, device=gradient.device)
+    norms = gradient.double().norm(dim=1)
+    clipped = norms > max_norm
+    scale = torch.where(clipped, max_norm / norms.clamp_min(1e-300), torch.ones_like(norms))
+    return gradient * scale.to(gradient.dtype).unsqueeze(1), clipped
+
+
 def clip_by_norm(gradient: torch.Tensor, max_norm: float | None) -> tuple[torch.Tensor, bool]:
     """Scale ``gradient`` down to norm ``max_norm`` (Assumption 3); returns (g, was_clipped)."""
-    if max_norm is None:
-        return gradient, False
-    norm = float(gradient.norm())
-    if norm <= max_norm:
-        return gradient, False
-    return gradient * (max_norm / norm), True
+    rows, clipped = clip_rows(gradient.unsqueeze(0), max_norm)
+    return rows[0], bool(clipped[0])

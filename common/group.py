@@ -6,26 +6,30 @@ Every placement of an agent (one per process, many per host, all in-process) tra
 learning results; device emulation (clocks, sleeping, message costs) stays with its caller,
 fed per agent and per local iteration through ``on_iteration``.
 
-Two implementations: :class:`WorkerLoopGroup` (one :class:`LocalWorker` per agent, trained
-one after another: every algorithm, policy and environment) and the batched engine of
-:mod:`fedhpg.common.batched` (all the group's agents stepped, evaluated and differentiated as
-one batch, where the run's algorithm, policy and family allow it).
+:class:`EngineGroup` runs the run's algorithm over rows of agents on the engine
+(:mod:`fedhpg.common.engine`: every algorithm, policy and environment family); the compiled
+CartPole engine of :mod:`fedhpg.common.batched` trains FedHPG's honest agents where it applies.
 """
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable, Mapping, Sequence
-from typing import Protocol
+from typing import TYPE_CHECKING, Protocol
 
+import numpy as np
 import torch
 
 from fedhpg.common.attacks import attack_of
-from fedhpg.common.components import agent_profile, planned_budget
 from fedhpg.common.config import RunConfig
 from fedhpg.common.types import EvaluationStats, LocalResult
 from fedhpg.common.variants import variants_of
-from fedhpg.common.worker import IterationWork, LocalWorker
+from fedhpg.common.worker import IterationWork
 from fedhpg.envs.base import EnvVariant
+
+if TYPE_CHECKING:
+    from fedhpg.common.engine.engine import RowWork
+    from fedhpg.common.round_columns import IterationColumns, TrainedColumns
 
 Budgets = Mapping[int, Mapping[str, int]]
 """Agent index -> the fields of its budget the round's plan sets (``agents.plan``)."""
@@ -70,32 +74,86 @@ class AgentGroup(Protocol):
     def close(self) -> None: ...
 
 
-class WorkerLoopGroup:
-    """One :class:`LocalWorker` per agent, built on first use and kept, trained in index
-    order: exactly what a lone agent process computes for each of them."""
+class EngineGroup:
+    """The run's algorithm over rows of agents on the engine (:mod:`fedhpg.common.engine`):
+    every algorithm, policy and environment family; each agent's numbers depend on it alone,
+    so a group of one, a host of 500 and the in-process pool give it the same θ."""
 
     def __init__(self, run: RunConfig, variants: Mapping[int, EnvVariant]) -> None:
+        from fedhpg.common.components import resolve_algorithm
+        from fedhpg.common.engine.engine import Engine
+
         self.run = run
         self.variants = variants
-        self._workers: dict[int, LocalWorker] = {}
+        self.engine = Engine(run, variants)
+        self.algorithm, self.params = resolve_algorithm(run)
 
     @property
     def indices(self) -> Sequence[int]:
         return sorted(self.variants)
 
-    def worker(self, index: int) -> LocalWorker:
-        if index not in self._workers:
-            self._workers[index] = LocalWorker(
-                index=index,
-                variant=self.variants[index],
-                run=self.run,
-                profile=agent_profile(self.run, index),
-            )
-        return self._workers[index]
-
     @property
     def num_params(self) -> int:
-        return self.worker(self.indices[0]).num_params
+        return self.engine.policy.num_params
+
+    def train_columns(
+        self,
+        round_index: int,
+        theta: torch.Tensor,
+        agents: Sequence[int],
+        *,
+        budgets: Budgets | None = None,
+        interrupt: Callable[[], None] | None = None,
+        on_work: Callable[[IterationColumns], None] | None = None,
+    ) -> TrainedColumns:
+        from fedhpg.common.attacks import corrupt_rows
+        from fedhpg.common.round_columns import IterationColumns, TrainedColumns
+
+        order = sorted(agents)
+        works: list[IterationColumns] = []
+
+        def hook(work: RowWork) -> None:
+            if interrupt is not None:
+                interrupt()
+            columns = IterationColumns(
+                positions=work.rows.numpy(),
+                compute_s=work.compute_s.numpy(),
+                env_steps=work.env_steps.numpy(),
+                grad_steps=work.grad_steps.numpy(),
+            )
+            works.append(columns)
+            if on_work is not None:
+                on_work(columns)
+
+        engine = self.engine
+        rows = engine.begin(round_index, theta, order, budgets, hook)
+        honest = self.algorithm.local_update(rows, engine, self.params)
+        sent = corrupt_rows(
+            self.run.attack,
+            rows.theta[0],
+            honest,
+            order,
+            seed=self.run.seed,
+            round_index=round_index,
+        )
+        tally = engine.tally
+        assert tally is not None
+        engine.rows = engine.tally = None
+        trajectories = tally.trajectories.clamp_min(1).double()
+        return TrainedColumns(
+            agents=order,
+            thetas=sent.detach().cpu().numpy().astype(np.float32, copy=False),
+            trajectories=tally.trajectories.numpy(),
+            env_steps=tally.env_steps.numpy(),
+            compute_s=tally.compute_s.numpy(),
+            train_return=(tally.return_sum / trajectories).numpy(),
+            grad_clipped=tally.clipped.numpy(),
+            algorithm={
+                name: [None if math.isnan(v) else v for v in values.tolist()]
+                for name, values in tally.algorithm.items()
+            },
+            iterations=works,
+        )
 
     def train(
         self,
@@ -106,31 +164,41 @@ class WorkerLoopGroup:
         on_iteration: GroupHook | None = None,
         budgets: Budgets | None = None,
     ) -> dict[int, LocalResult]:
-        results: dict[int, LocalResult] = {}
-        for k in sorted(agents):
-            hook = None
-            if on_iteration is not None:
+        order = sorted(agents)
+        done = dict.fromkeys(order, 0)
 
-                def hook(work: IterationWork, k: int = k) -> None:
-                    on_iteration(k, work)
+        def interrupt_free(work: IterationColumns) -> None:
+            assert on_iteration is not None
+            for position, compute, steps, grads in zip(
+                work.positions.tolist(),
+                work.compute_s.tolist(),
+                work.env_steps.tolist(),
+                work.grad_steps.tolist(),
+                strict=True,
+            ):
+                k = order[position]
+                on_iteration(k, IterationWork(done[k], compute, steps, grads))
+                done[k] += 1
 
-            worker = self.worker(k)
-            budget = planned_budget(worker.profile.budget, (budgets or {}).get(k))
-            results[k] = worker.train(round_index, theta.clone(), on_iteration=hook, budget=budget)
-        return results
+        columns = self.train_columns(
+            round_index,
+            theta,
+            order,
+            budgets=budgets,
+            on_work=interrupt_free if on_iteration is not None else None,
+        )
+        return {k: columns.result(i) for i, k in enumerate(order)}
 
     def evaluate(
         self, round_index: int, theta: torch.Tensor, episodes: int, agents: Sequence[int]
     ) -> dict[int, EvaluationStats]:
-        return {k: self.worker(k).evaluate(round_index, theta, episodes) for k in sorted(agents)}
+        return self.engine.evaluate(round_index, theta, episodes, sorted(agents))
 
     def prepare(self) -> None:
-        pass  # a worker holds its environment: built for the agents that train, not ahead
+        self.engine.prepare()
 
     def close(self) -> None:
-        for worker in self._workers.values():
-            worker.close()
-        self._workers.clear()
+        self.engine.close()
 
 
 class SplitGroup:
@@ -204,7 +272,7 @@ def make_agent_group(
     honest = [k for k in indices if attack_of(run.attack, k) == "none"]
     batched = batched_group_or_none(run, {k: variants[k] for k in honest}) if honest else None
     if batched is None:
-        return WorkerLoopGroup(run, {k: variants[k] for k in indices})
+        return EngineGroup(run, {k: variants[k] for k in indices})
     if not attackers:
         return batched
-    return SplitGroup(batched, WorkerLoopGroup(run, {k: variants[k] for k in attackers}))
+    return SplitGroup(batched, EngineGroup(run, {k: variants[k] for k in attackers}))

@@ -51,10 +51,17 @@ def clip_weights(
     return clipped, float(changed.double().mean())
 
 
-def self_normalise(weights: torch.Tensor) -> torch.Tensor:
-    """Rescale so the weights average to 1 across the batch (per step for [T, B] weights).
+def self_normalise(weights: torch.Tensor, groups: torch.Tensor | None = None) -> torch.Tensor:
+    """Rescale so the weights average to 1 across the batch (per step for [T, B] weights), or
+    across each agent's own columns where ``groups`` [B] says whose each column is.
 
     Used in a batch mean (1/b) Σ_j w_j g_j, this turns it into Σ_j w_j g_j / Σ_j w_j.
     """
-    total = weights.sum(dim=-1, keepdim=True)
-    return weights * weights.shape[-1] / total.clamp_min(torch.finfo(weights.dtype).tiny)
+    tiny = torch.finfo(weights.dtype).tiny
+    if groups is None:
+        total = weights.sum(dim=-1, keepdim=True)
+        return weights * weights.shape[-1] / total.clamp_min(tiny)
+    size = int(groups.max()) + 1
+    totals = weights.new_zeros((*weights.shape[:-1], size)).index_add_(-1, groups, weights)
+    counts = torch.bincount(groups, minlength=size).to(weights.dtype)
+    return weights * counts[groups] / totals.index_select(-1, groups).clamp_min(tiny)

@@ -13,14 +13,22 @@ from fedhpg.common.config import AlgoConfig
 from fedhpg.common.types import SavedState
 
 
+def _masked(direction: torch.Tensor, active: torch.Tensor | None) -> torch.Tensor:
+    if active is None:
+        return direction
+    return torch.where(active.unsqueeze(-1), direction, torch.zeros_like(direction))
+
+
 class PlainAscent:
-    """θ ← θ + η g: the paper's update (Algorithm 1 line 8, Algorithm 2 line 10)."""
+    """θ ← θ + η g: the paper's update (Algorithm 1 line 8, Algorithm 2 line 10).
+
+    ``gradient`` is one vector [d], or rows [A, d] of which only the ``active`` ones step."""
 
     def __init__(self, step_size: float) -> None:
         self.step_size = step_size
 
-    def direction(self, gradient: torch.Tensor) -> torch.Tensor:
-        return self.step_size * gradient
+    def direction(self, gradient: torch.Tensor, active: torch.Tensor | None = None) -> torch.Tensor:
+        return _masked(self.step_size * gradient, active)
 
 
 class AdamAscent:
@@ -38,7 +46,11 @@ class AdamAscent:
         self.first: torch.Tensor | None = None
         self.second: torch.Tensor | None = None
 
-    def direction(self, gradient: torch.Tensor) -> torch.Tensor:
+    def direction(self, gradient: torch.Tensor, active: torch.Tensor | None = None) -> torch.Tensor:
+        """The step for ``gradient``: one vector [d], or rows [A, d] (several agents' own
+        Adams), of which only the ``active`` ones step and count a step."""
+        if gradient.dim() == 2:
+            return self._rows(gradient, active)
         beta1, beta2 = self.betas
         if self.first is None or self.second is None:
             self.first, self.second = torch.zeros_like(gradient), torch.zeros_like(gradient)
@@ -48,6 +60,28 @@ class AdamAscent:
         first_hat = self.first / (1 - beta1**self.steps)
         second_hat = self.second / (1 - beta2**self.steps)
         return self.step_size * first_hat / (second_hat.sqrt() + self.eps)
+
+    def _rows(self, gradient: torch.Tensor, active: torch.Tensor | None) -> torch.Tensor:
+        beta1, beta2 = self.betas
+        if self.first is None or self.second is None:
+            self.first, self.second = torch.zeros_like(gradient), torch.zeros_like(gradient)
+            self.row_steps = torch.zeros(
+                gradient.shape[0], dtype=torch.int64, device=gradient.device
+            )
+        stepping = (
+            torch.ones(gradient.shape[0], dtype=torch.bool, device=gradient.device)
+            if active is None
+            else active
+        )
+        self.row_steps = self.row_steps + stepping.long()
+        keep = stepping.unsqueeze(-1)
+        self.first = torch.where(keep, beta1 * self.first + (1 - beta1) * gradient, self.first)
+        second = beta2 * self.second + (1 - beta2) * gradient * gradient
+        self.second = torch.where(keep, second, self.second)
+        steps = self.row_steps.clamp_min(1).double().unsqueeze(-1)
+        first_hat = self.first / (1 - beta1**steps).to(gradient.dtype)
+        second_hat = self.second / (1 - beta2**steps).to(gradient.dtype)
+        return _masked(self.step_size * first_hat / (second_hat.sqrt() + self.eps), stepping)
 
     def state(self) -> SavedState:
         """The step count and both moments: what :meth:`restore` takes back."""

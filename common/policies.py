@@ -19,12 +19,13 @@ import importlib.metadata
 import itertools
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
-from typing import Literal
+from typing import ClassVar, Literal
 
 import gymnasium as gym
 import numpy as np
 import torch
 from torch import nn
+from torch.func import functional_call
 
 from fedhpg.common.config import LOG_STDS, ConfigError, PolicyConfig
 
@@ -44,15 +45,45 @@ class ActionSampler:
         return self.act(obs, rng, greedy)
 
 
+Params = dict[str, torch.Tensor]
+"""Parameter name → tensor: a policy's own (``named_parameters``), or several agents' at once
+with a leading row dimension [A, *shape] (what the engine passes)."""
+
+
 class Policy(nn.Module, abc.ABC):
     """A parameterised stochastic policy.
 
     The contract a custom policy (``policy.name``) keeps: θ is ``parameters()`` in their
     order, float32 (the server averages the flat vector); :meth:`log_prob` is differentiable
-    in θ; :meth:`sampler` draws every random number from the ``Generator`` it is handed (so
-    runs are reproducible across processes) and its ``log_prob`` equals :meth:`log_prob`'s.
-    Build it deterministically from ``torch``'s RNG: every process seeds it with the run seed.
+    in θ; :meth:`act` draws every random number from the uniforms it is handed (so runs are
+    reproducible in any process and on any device). Build it deterministically from
+    ``torch``'s RNG: every process seeds it with the run seed.
+
+    The engine evaluates many agents' θ at once through :meth:`log_prob_with` and
+    :meth:`act_with`, which take the parameters explicitly. By default they call the module
+    under ``torch.func`` (the engine vmaps them over agents); a policy whose maths broadcast
+    over a leading row dimension of its parameters says so with ``rows_batched = True`` and
+    is then called with all rows in one go (the built-in policies do).
     """
+
+    rows_batched: ClassVar[bool] = False
+    """Whether :meth:`log_prob_with` / :meth:`act_with` accept row-batched parameters
+    [A, *shape] with inputs [A, R, ...] (else the engine vmaps them over rows)."""
+
+    def own_params(self) -> Params:
+        return dict(self.named_parameters())
+
+    def log_prob_with(self, params: Params, obs: torch.Tensor, act: torch.Tensor) -> torch.Tensor:
+        """log π(act | obs) under ``params``."""
+        return functional_call(self, params, (obs, act))
+
+    def act_with(
+        self, params: Params, obs: torch.Tensor, noise: torch.Tensor | None
+    ) -> torch.Tensor:
+        """:meth:`act` under ``params``."""
+        return functional_call(
+            _Acting(self), {f"policy.{k}": v for k, v in params.items()}, (obs, noise)
+        )
 
     @abc.abstractmethod
     def log_prob(self, obs: torch.Tensor, act: torch.Tensor) -> torch.Tensor:
@@ -65,18 +96,62 @@ class Policy(nn.Module, abc.ABC):
     def sampler(self) -> ActionSampler:
         """A gradient-free sampler bound to the current θ."""
 
+    noise_size: int = 1
+    """Uniforms in [0, 1) one decision consumes (:meth:`act`'s ``noise`` last dimension)."""
+
+    @abc.abstractmethod
+    def act(self, obs: torch.Tensor, noise: torch.Tensor | None) -> torch.Tensor:
+        """Actions for ``obs`` [..., *obs_shape] from ``noise`` [..., noise_size] uniforms in
+        [0, 1) (every random number comes from there), or the greedy ones where ``noise`` is
+        None."""
+
     @property
     def num_params(self) -> int:
         return sum(p.numel() for p in self.parameters())
 
 
-def _draw(cumulative: np.ndarray, uniforms: np.ndarray) -> np.ndarray:
-    """Categorical draws by inverting each row's (unnormalised) CDF with one uniform.
+class _Acting(nn.Module):
+    """A policy's ``act`` as a module call (what ``functional_call`` calls)."""
 
-    The last column is left out of the comparison, so rounding can never yield an action
-    beyond the last one."""
+    def __init__(self, policy: Policy) -> None:
+        super().__init__()
+        self.policy = policy
+
+    def forward(self, obs: torch.Tensor, noise: torch.Tensor | None) -> torch.Tensor:
+        return self.policy.act(obs, noise)
+
+
+def linear(x: torch.Tensor, weight: torch.Tensor, bias: torch.Tensor) -> torch.Tensor:
+    """x Wᵀ + b for one layer [out, in] or rows of layers [A, out, in] (x [A, R, in])."""
+    return torch.matmul(x, weight.transpose(-1, -2)) + bias.unsqueeze(-2)
+
+
+def mlp_with(params: Params, prefix: str, depth: int, x: torch.Tensor) -> torch.Tensor:
+    """The tanh MLP of :func:`_mlp` (``depth`` Linear layers under ``prefix``) under
+    ``params``, for one θ or rows of θ."""
+    for i in range(depth):
+        x = linear(x, params[f"{prefix}.{2 * i}.weight"], params[f"{prefix}.{2 * i}.bias"])
+        if i < depth - 1:
+            x = torch.tanh(x)
+    return x
+
+
+def _draw(cumulative: np.ndarray, uniforms: np.ndarray) -> np.ndarray:
+    """Categorical draws by inverting each row's (unnormalised) CDF with one uniform (numpy)."""
     thresholds = uniforms * cumulative[:, -1]
     return (thresholds[:, None] > cumulative[:, :-1]).sum(axis=-1)
+
+
+def categorical_act(logits: torch.Tensor, noise: torch.Tensor | None) -> torch.Tensor:
+    """Draw from softmax(logits) by inverting its CDF with one uniform (``noise[..., 0]``);
+    the argmax where ``noise`` is None. The last action is never past the end: rounding in
+    the CDF's last entry cannot yield an action beyond it."""
+    if noise is None:
+        return logits.argmax(dim=-1)
+    weights = torch.exp(logits - logits.max(dim=-1, keepdim=True).values)
+    cumulative = weights.cumsum(dim=-1)
+    thresholds = noise[..., :1] * cumulative[..., -1:]
+    return (thresholds > cumulative[..., :-1]).sum(dim=-1)
 
 
 def _last_linear(net: nn.Sequential) -> nn.Linear:
@@ -114,9 +189,32 @@ class TabularSoftmaxPolicy(Policy):
         super().__init__()
         self.logits = nn.Parameter(torch.zeros(num_states, num_actions))
 
+    rows_batched = True
+
+    def _logits(self, params: Params, obs: torch.Tensor) -> torch.Tensor:
+        """θ[s] for every state of ``obs`` [..., R] ([A, S, n] rows with obs [A, R])."""
+        table = params["logits"]
+        index = obs.long().unsqueeze(-1)
+        return torch.take_along_dim(table, index, dim=-2)
+
+    def log_prob_with(self, params: Params, obs: torch.Tensor, act: torch.Tensor) -> torch.Tensor:
+        log_pi = torch.log_softmax(self._logits(params, obs), dim=-1)
+        return log_pi.gather(-1, act.long().unsqueeze(-1)).squeeze(-1)
+
+    def act_with(
+        self, params: Params, obs: torch.Tensor, noise: torch.Tensor | None
+    ) -> torch.Tensor:
+        return categorical_act(self._logits(params, obs), noise)
+
     def log_prob(self, obs: torch.Tensor, act: torch.Tensor) -> torch.Tensor:
-        log_pi = torch.log_softmax(self.logits, dim=-1)
-        return log_pi[obs.long(), act.long()]
+        return self.log_prob_with(self.own_params(), obs.reshape(-1), act.reshape(-1)).reshape(
+            obs.shape
+        )
+
+    def act(self, obs: torch.Tensor, noise: torch.Tensor | None) -> torch.Tensor:
+        return self.act_with(
+            self.own_params(), obs.reshape(-1), None if noise is None else noise.reshape(-1, 1)
+        ).reshape(obs.shape)
 
     def sampler(self) -> ActionSampler:
         # θ is fixed during a batch, so the whole table π(·|s) is one forward, done here once.
@@ -153,13 +251,30 @@ class MLPCategoricalPolicy(Policy):
     def __init__(self, *, obs_dim: int, num_actions: int, hidden: Sequence[int] = (64, 64)) -> None:
         super().__init__()
         self.net = _mlp([obs_dim, *hidden, num_actions])
+        self.depth = len(hidden) + 1
         with torch.no_grad():  # small last layer: a near-uniform initial policy
             _last_linear(self.net).weight.mul_(0.01)
             _last_linear(self.net).bias.zero_()
 
-    def log_prob(self, obs: torch.Tensor, act: torch.Tensor) -> torch.Tensor:
-        log_pi = torch.log_softmax(self.net(obs.float()), dim=-1)
+    rows_batched = True
+
+    def _logits(self, params: Params, obs: torch.Tensor) -> torch.Tensor:
+        return mlp_with(params, "net", self.depth, obs.float())
+
+    def log_prob_with(self, params: Params, obs: torch.Tensor, act: torch.Tensor) -> torch.Tensor:
+        log_pi = torch.log_softmax(self._logits(params, obs), dim=-1)
         return log_pi.gather(-1, act.long().unsqueeze(-1)).squeeze(-1)
+
+    def act_with(
+        self, params: Params, obs: torch.Tensor, noise: torch.Tensor | None
+    ) -> torch.Tensor:
+        return categorical_act(self._logits(params, obs), noise)
+
+    def log_prob(self, obs: torch.Tensor, act: torch.Tensor) -> torch.Tensor:
+        return self.log_prob_with(self.own_params(), obs, act)
+
+    def act(self, obs: torch.Tensor, noise: torch.Tensor | None) -> torch.Tensor:
+        return self.act_with(self.own_params(), obs, noise)
 
     def sampler(self) -> ActionSampler:
         layers = _numpy_layers(self.net)
@@ -208,6 +323,7 @@ class GaussianMLPPolicy(Policy):
         super().__init__()
         self.mode: LogStdMode = log_std
         self.mean_net = _mlp([obs_dim, *hidden, act_dim])
+        self.depth = len(hidden) + 1
         with torch.no_grad():
             _last_linear(self.mean_net).weight.mul_(0.01)
             _last_linear(self.mean_net).bias.zero_()
@@ -223,17 +339,51 @@ class GaussianMLPPolicy(Policy):
                 f"log_std must be 'state_independent' or 'state_dependent', got {log_std!r}"
             )
 
-    def _mean_and_log_std(self, obs: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    rows_batched = True
+
+    def _mean_and_log_std_with(
+        self, params: Params, obs: torch.Tensor
+    ) -> tuple[torch.Tensor, torch.Tensor]:
         obs = obs.float()
-        mean = self.mean_net(obs)
-        raw = self.log_std if self.mode == "state_independent" else self.log_std_net(obs)
+        mean = mlp_with(params, "mean_net", self.depth, obs)
+        if self.mode == "state_independent":
+            raw = (
+                params["log_std"].unsqueeze(-2)
+                if params["log_std"].dim() > 1
+                else params["log_std"]
+            )
+        else:
+            raw = mlp_with(params, "log_std_net", self.depth, obs)
         return mean, raw.clamp(self.LOG_STD_MIN, self.LOG_STD_MAX).expand_as(mean)
 
-    def log_prob(self, obs: torch.Tensor, act: torch.Tensor) -> torch.Tensor:
-        mean, log_std = self._mean_and_log_std(obs)
+    def _mean_and_log_std(self, obs: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        return self._mean_and_log_std_with(self.own_params(), obs)
+
+    def log_prob_with(self, params: Params, obs: torch.Tensor, act: torch.Tensor) -> torch.Tensor:
+        mean, log_std = self._mean_and_log_std_with(params, obs)
         z = (act.float() - mean) / log_std.exp()
         per_dim = -0.5 * z.pow(2) - log_std - 0.5 * float(np.log(2.0 * np.pi))
         return per_dim.sum(dim=-1)
+
+    def act_with(
+        self, params: Params, obs: torch.Tensor, noise: torch.Tensor | None
+    ) -> torch.Tensor:
+        mean, log_std = self._mean_and_log_std_with(params, obs)
+        if noise is None:
+            return mean
+        # a standard normal per dimension by inverting its CDF (the uniform kept off 0 and 1)
+        z = torch.special.ndtri(noise.double().clamp(2.0**-54, 1.0 - 2.0**-53)).to(mean.dtype)
+        return mean + log_std.exp() * z
+
+    def log_prob(self, obs: torch.Tensor, act: torch.Tensor) -> torch.Tensor:
+        return self.log_prob_with(self.own_params(), obs, act)
+
+    @property
+    def noise_size(self) -> int:  # type: ignore[override]
+        return int(_last_linear(self.mean_net).out_features)
+
+    def act(self, obs: torch.Tensor, noise: torch.Tensor | None) -> torch.Tensor:
+        return self.act_with(self.own_params(), obs, noise)
 
     def sampler(self) -> ActionSampler:
         mean_layers = _numpy_layers(self.mean_net)

@@ -1,10 +1,9 @@
 """Compiled (numba) dynamics of the families that have them, for the compiled engine
 (common/batched/kernels.py), which steps one copy at a time inside a kernel.
 
-CartPole: :class:`~fedhpg.envs.multi.CartPoleMulti`'s equations, operation for operation (so
-the same floats: tests/test_compiled_engine.py steps both from the same states and actions
-and compares bit for bit), on one copy's state with its variant's constants in a row of
-:data:`CARTPOLE_PHYSICS` order. Imports numba: only the compiled engine imports this module.
+CartPole: gymnasium's equations (those of :func:`fedhpg.envs.device.cartpole.cartpole_update`)
+on one copy's float64 state with its variant's constants in a row of :data:`PHYSICS` order.
+Imports numba: only the compiled backend imports this module.
 """
 
 from __future__ import annotations
@@ -16,24 +15,15 @@ import numpy as np
 from numba import njit
 
 from fedhpg.envs.base import EnvVariant
-from fedhpg.envs.multi import CARTPOLE_PHYSICS, CartPoleMulti, cartpole_physics
+from fedhpg.envs.device.cartpole import DEFAULTS, PHYSICS, STEP_LIMIT, TAU, THETA_LIMIT, X_LIMIT
+from fedhpg.envs.device.cartpole import physics_of as cartpole_physics
 
-TAU = CartPoleMulti.TAU
-THETA_THRESHOLD = CartPoleMulti.THETA_THRESHOLD
-X_THRESHOLD = CartPoleMulti.X_THRESHOLD
-CARTPOLE_STEP_LIMIT = 500
-"""CartPole-v1's truncation (the only limit :func:`cartpole_physics` accepts)."""
-_DEFAULTS = {
-    "gravity": 9.8,
-    "masscart": 1.0,
-    "masspole": 0.1,
-    "total_mass": 1.1,
-    "length": 0.5,
-    "polemass_length": 0.05,
-    "force_mag": 10.0,
-}
-"""gymnasium CartPole-v1's constants (tests check them against gymnasium's)."""
-CARTPOLE_DEFAULTS = tuple(_DEFAULTS[name] for name in CARTPOLE_PHYSICS)
+THETA_THRESHOLD = THETA_LIMIT
+X_THRESHOLD = X_LIMIT
+CARTPOLE_STEP_LIMIT = STEP_LIMIT
+"""CartPole-v1's truncation (the only limit the compiled backend models)."""
+CARTPOLE_PHYSICS = PHYSICS
+CARTPOLE_DEFAULTS = tuple(DEFAULTS[name] for name in CARTPOLE_PHYSICS)
 
 
 def cartpole_table(variants: Sequence[EnvVariant]) -> np.ndarray | None:
@@ -42,9 +32,9 @@ def cartpole_table(variants: Sequence[EnvVariant]) -> np.ndarray | None:
     rows = []
     for variant in variants:
         physics = cartpole_physics(variant)
-        if physics is None:
+        if physics is None or getattr(variant, "step_limit", 0) not in (0, STEP_LIMIT):
             return None
-        rows.append([physics.get(name, _DEFAULTS[name]) for name in CARTPOLE_PHYSICS])
+        rows.append([physics[name] for name in CARTPOLE_PHYSICS])
     return np.asarray(rows, dtype=np.float64).reshape(len(rows), len(CARTPOLE_PHYSICS))
 
 

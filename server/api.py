@@ -243,7 +243,7 @@ def _in_process_with_directory(
 
 
 def _run_distributed(run_config: RunConfig, directory: Path | None) -> RunResult:
-    from fedhpg.common.batched.maths import check_device_before_fork
+    from fedhpg.common.engine.devices import check_device_before_fork
     from fedhpg.common.wire.security import check_launch_keys
     from fedhpg.server.launcher import run_federation
 

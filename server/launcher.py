@@ -163,7 +163,7 @@ class Supervisor:
 def check_launch(run: RunConfig) -> None:
     """What fedhpg-run checks of a composed run before starting anything: the strategy, every
     agent's key files, loopback."""
-    from fedhpg.common.batched.maths import check_device_before_fork
+    from fedhpg.common.engine.devices import check_device_before_fork
     from fedhpg.common.wire.security import check_launch_keys
     from fedhpg.server.rounds import check_distributed_policy
     from fedhpg.server.run_dir import RunDirectory

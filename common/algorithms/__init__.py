@@ -1,31 +1,35 @@
 """Agent-side algorithms by name (``algo.name``): each module of this package is one.
 
-An algorithm is the local half of a federated method: from the server's θ̃ and the agent's own
-trajectories it computes θ_k. It declares its own options (``Params``, from ``algo.params``)
-and its per-agent compute budget (``Budget``, one entry of every ``agents.budget`` list), so
-adding one is its module here (or in a plugin) and a YAML in ``conf/algo/``::
+An algorithm is the local half of a federated method: from the server's θ̃ and the agents' own
+trajectories it computes each agent's θ_k. It runs on rows: ``rows.theta`` is [A, d], one row
+per agent the process trains this round (A = 1 for a lone agent), and every budget field is a
+vector ``rows.budget(name)`` [A]. Its ``local_update`` holds the one loop of the method, written
+with the engine's primitives (:class:`~fedhpg.common.engine.engine.Engine`: sample,
+coefficients, gradients, log-probabilities, bookkeeping), so it runs batched over any number of
+agents, on the CPU or a GPU, without a line of its own for that. Adding one is its module here
+(or in a plugin) and a YAML in ``conf/algo/``::
 
     @register_algorithm
     class MyAlgorithm(Algorithm[MyParams, MyBudget]):
         name = "mine"
         Params, Budget = MyParams, MyBudget
 
-        def local_update(self, theta, context, params, budget) -> LocalResult: ...
+        def local_update(self, rows, engine, params) -> torch.Tensor: ...  # θ_k rows [A, d]
 """
 
 from __future__ import annotations
 
 import abc
 from dataclasses import dataclass
-from typing import Any, ClassVar, Generic, TypeVar
+from typing import TYPE_CHECKING, Any, ClassVar, Generic, TypeVar
 
 import torch
 
 from fedhpg.common.config import AlgoConfig
-from fedhpg.common.local import IterationHook, TrajectorySource
-from fedhpg.common.policies import Policy
 from fedhpg.common.registry import OptionError, Registry
-from fedhpg.common.types import LocalResult
+
+if TYPE_CHECKING:
+    from fedhpg.common.engine.engine import Engine, Rows
 
 P = TypeVar("P")
 B = TypeVar("B")
@@ -34,28 +38,6 @@ B = TypeVar("B")
 @dataclass(frozen=True, kw_only=True)
 class NoParams:
     """For algorithms without options of their own."""
-
-
-@dataclass(frozen=True, kw_only=True)
-class LocalContext:
-    """What an agent gives its algorithm each round."""
-
-    policy: Policy
-    """The agent's policy network; the update loads θ̃ into it and steps it."""
-    sample: TrajectorySource
-    """n -> n fresh trajectories from the agent's environment at the policy's current θ."""
-    settings: AlgoConfig
-    """The run's local policy-gradient settings (estimator, baseline, step size, ...)."""
-    gamma: float
-    """The agent's discount γ_k."""
-    on_iteration: IterationHook | None = None
-    """Called after every iteration with its compute time and env steps (device emulation,
-    cancellation)."""
-    seed: int = 0
-    """The run's seed: with ``round_index``, what a schedule every agent and the server must
-    agree on is drawn from (FedPG-BR's B_t)."""
-    round_index: int = 0
-    """The round this update belongs to (rounds count from 1)."""
 
 
 class Algorithm(abc.ABC, Generic[P, B]):
@@ -70,10 +52,9 @@ class Algorithm(abc.ABC, Generic[P, B]):
     """The one server strategy the algorithm's updates mean anything to (None: any)."""
 
     @abc.abstractmethod
-    def local_update(
-        self, theta: torch.Tensor, context: LocalContext, params: P, budget: B
-    ) -> LocalResult:
-        """θ_k from θ̃ for one agent and round."""
+    def local_update(self, rows: Rows, engine: Engine, params: P) -> torch.Tensor:
+        """θ_k of every row from θ̃ (``rows.theta``), [A, d]; statistics go to the engine
+        (:meth:`Engine.finished` after each iteration, :meth:`Engine.report`)."""
 
     def check(self, settings: AlgoConfig, params: P) -> None:
         """Raise :class:`~fedhpg.common.registry.OptionError` for options that do not go with

@@ -1,4 +1,5 @@
-"""FedHPGVR's local update: Algorithm 2, lines 5-10, for one agent (SVRPG inside the round).
+"""FedHPGVR's local update: Algorithm 2, lines 5-10, for every agent of the batch at once
+(SVRPG inside the round).
 
 θ_0 ← θ̃_t
 μ_k = (1/B_k) Σ_s g(l_s | θ_0),                  l_s ~ p_k(·|θ_0)
@@ -6,40 +7,30 @@ for n = 0 … N − 1:
     v_n = (1/b_k) Σ_j [g(l_j | θ_n) − w_j · g(l_j | θ_0)] + μ_k,   l_j ~ p_k(·|θ_n)
     θ_{n+1} = θ_n + η v_n
 with w_j = p(l_j | θ_0) / p(l_j | θ_n)   (eq. 9 as SVRPG defines it; the paper prints θ_0 twice)
+
+Rows whose N is spent sit out the later inner steps.
 """
 
 from __future__ import annotations
 
-import copy
-import time
 from dataclasses import dataclass
 from typing import Literal
 
 import torch
 
-from fedhpg.common.algorithms import Algorithm, LocalContext, at_least_one, register_algorithm
+from fedhpg.common.algorithms import Algorithm, at_least_one, register_algorithm
 from fedhpg.common.config import AlgoConfig, ConfigError
-from fedhpg.common.estimators import clip_by_norm
+from fedhpg.common.engine.engine import Engine, Rows
+from fedhpg.common.engine.trajectories import Trajectories
+from fedhpg.common.estimators import clip_rows
 from fedhpg.common.importance import (
-    clip_weights,
     log_ratio_steps,
     per_decision_weights,
     self_normalise,
     trajectory_weights,
 )
-from fedhpg.common.local import (
-    IterationHook,
-    LocalTally,
-    TrajectorySource,
-    apply_ascent,
-    batch_gradient,
-    batch_tensors,
-)
 from fedhpg.common.optim import make_optimizer
-from fedhpg.common.policies import Policy, get_flat_params, set_flat_params
 from fedhpg.common.registry import OptionError
-from fedhpg.common.rollout import TrajectoryBatch
-from fedhpg.common.types import LocalResult
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -87,99 +78,67 @@ def importance_mode(params: FedHPGVRParams, algo: AlgoConfig) -> str:
     return "trajectory" if algo.estimator == "reinforce" else "per_decision"
 
 
+@dataclass(frozen=True)
+class Weights:
+    """The importance weights of a batch and what the statistics report of them."""
+
+    values: torch.Tensor
+    """[N] (per trajectory) or [T, N] (per decision)."""
+    final: torch.Tensor
+    """Each trajectory's weight over its whole length, [N]."""
+    clipped: torch.Tensor
+    """Per row: the fraction of its weights the clip changed, [A]."""
+
+
 def importance_weights(
-    snapshot: Policy,
-    current: Policy,
-    batch: TrajectoryBatch,
-    algo: AlgoConfig,
+    engine: Engine,
+    theta_n: torch.Tensor,
+    theta_0: torch.Tensor,
+    batch: Trajectories,
     params: FedHPGVRParams,
-) -> tuple[torch.Tensor, float]:
-    """The weights the correction term uses ([B] or [T, B]) and the fraction clipped."""
-    obs, actions = batch_tensors(batch)
-    alive = torch.from_numpy(batch.alive)
-    with torch.no_grad():
-        log_ratios = log_ratio_steps(
-            snapshot.log_prob(obs, actions), current.log_prob(obs, actions), alive
-        )
-    bounds = None if params.iw_clip is None else list(params.iw_clip)
-    if importance_mode(params, algo) == "trajectory":
-        weights, clipped = clip_weights(trajectory_weights(log_ratios), bounds)
-    else:
-        weights, clipped = clip_weights(per_decision_weights(log_ratios), bounds, alive)
+) -> Weights:
+    """w = p(τ|θ_0) / p(τ|θ_n) for every trajectory of ``batch`` (drawn at θ_n), each row at
+    its own two θ rows; clipped and self-normalised as ``params`` say."""
+    log_ratios = log_ratio_steps(
+        engine.log_probs(theta_0, batch), engine.log_probs(theta_n, batch), batch.alive
+    )
+    per_decision = importance_mode(params, engine.run.algo) == "per_decision"
+    weights = per_decision_weights(log_ratios) if per_decision else trajectory_weights(log_ratios)
+    counted = batch.alive if per_decision else torch.ones_like(weights, dtype=torch.bool)
+    changed = torch.zeros_like(weights, dtype=torch.bool)
+    if params.iw_clip is not None:
+        low, high = params.iw_clip
+        clipped = weights.clamp(min=low, max=high)
+        changed = clipped != weights
+        weights = clipped
+    cells = counted.reshape(-1, counted.shape[-1]).sum(dim=0).double()
+    changes = (changed & counted).reshape(-1, counted.shape[-1]).sum(dim=0).double()
+    fraction = batch.per_row(changes) / batch.per_row(cells).clamp_min(1.0)
     if params.iw_self_normalize:
-        weights = self_normalise(weights)
-    return weights, clipped
+        weights = self_normalise(weights, batch.owner)
+    final = weights if weights.dim() == 1 else _last_alive(weights, batch.alive)
+    return Weights(values=weights, final=final, clipped=fraction)
+
+
+def _last_alive(weights: torch.Tensor, alive: torch.Tensor) -> torch.Tensor:
+    """Each column's weight at its last alive step (the weight of the whole trajectory)."""
+    last = (alive.sum(dim=0) - 1).clamp_min(0)
+    return weights.gather(0, last.unsqueeze(0)).squeeze(0)
 
 
 def semi_stochastic_gradient(
-    current: Policy,
-    snapshot: Policy,
-    batch: TrajectoryBatch,
-    snapshot_gradient: torch.Tensor,
-    *,
-    algo: AlgoConfig,
+    engine: Engine,
+    theta_n: torch.Tensor,
+    theta_0: torch.Tensor,
+    batch: Trajectories,
+    mu: torch.Tensor,
     params: FedHPGVRParams,
-    gamma: float,
-) -> tuple[torch.Tensor, torch.Tensor, float]:
-    """v = (1/b) Σ_j [g(τ_j|θ_n) − w_j g(τ_j|θ_0)] + μ; also returns the weights used."""
-    weights, clipped = importance_weights(snapshot, current, batch, algo, params)
-    current_term = batch_gradient(current, batch, algo=algo, gamma=gamma)
-    correction = batch_gradient(snapshot, batch, algo=algo, gamma=gamma, weights=weights)
-    return current_term - correction + snapshot_gradient, weights, clipped
-
-
-def fedhpgvr_local_update(
-    theta: torch.Tensor,
-    *,
-    policy: Policy,
-    sample: TrajectorySource,
-    algo: AlgoConfig,
-    params: FedHPGVRParams,
-    gamma: float,
-    batch_size: int,
-    mini_batch_size: int,
-    inner_steps: int,
-    on_iteration: IterationHook | None = None,
-) -> LocalResult:
-    """Snapshot gradient from B_k trajectories, then N variance-reduced steps on b_k each."""
-    set_flat_params(policy, theta)
-    snapshot = copy.deepcopy(policy)
-    tally = LocalTally()
-
-    started = time.thread_time()
-    snapshot_batch = sample(batch_size)
-    mu = batch_gradient(snapshot, snapshot_batch, algo=algo, gamma=gamma)
-    compute_s = time.thread_time() - started
-    tally.add(snapshot_batch, compute_s=compute_s)
-    if on_iteration is not None:
-        on_iteration(0, compute_s, snapshot_batch.num_steps)
-
-    optimizer = make_optimizer(algo)
-    weight_sum = weight_count = clipped_total = 0.0
-    weight_max = 0.0
-    for step in range(inner_steps):
-        started = time.thread_time()
-        batch = sample(mini_batch_size)
-        direction, weights, clipped = semi_stochastic_gradient(
-            policy, snapshot, batch, mu, algo=algo, params=params, gamma=gamma
-        )
-        direction, was_clipped = clip_by_norm(direction, algo.grad_clip)
-        apply_ascent(policy, optimizer, direction)
-        compute_s = time.thread_time() - started
-        tally.add(batch, compute_s=compute_s, clipped=was_clipped)
-        final = weights if weights.ndim == 1 else weights[-1]
-        weight_sum += float(final.sum())
-        weight_count += final.numel()
-        weight_max = max(weight_max, float(final.max()))
-        clipped_total += clipped
-        if on_iteration is not None:
-            on_iteration(step + 1, compute_s, batch.num_steps)
-    tally.algorithm.update(
-        iw_mean=weight_sum / max(weight_count, 1.0),
-        iw_max=weight_max,
-        iw_clipped_fraction=clipped_total / max(inner_steps, 1),
-    )
-    return tally.result(get_flat_params(policy))
+) -> tuple[torch.Tensor, Weights]:
+    """v = (1/b) Σ_j [g(τ_j|θ_n) − w_j g(τ_j|θ_0)] + μ per row; also the weights used."""
+    weights = importance_weights(engine, theta_n, theta_0, batch, params)
+    current = engine.mean_gradients(theta_n, batch)
+    correction = engine.mean_gradients(theta_0, batch, weights.values)
+    return current - correction + mu, weights
 
 
 @register_algorithm
@@ -190,25 +149,40 @@ class FedHPGVR(Algorithm[FedHPGVRParams, FedHPGVRBudget]):
     Params = FedHPGVRParams
     Budget = FedHPGVRBudget
 
-    def local_update(
-        self,
-        theta: torch.Tensor,
-        context: LocalContext,
-        params: FedHPGVRParams,
-        budget: FedHPGVRBudget,
-    ) -> LocalResult:
-        return fedhpgvr_local_update(
-            theta,
-            policy=context.policy,
-            sample=context.sample,
-            algo=context.settings,
-            params=params,
-            gamma=context.gamma,
-            batch_size=budget.batch_size,
-            mini_batch_size=budget.mini_batch_size,
-            inner_steps=budget.inner_steps,
-            on_iteration=context.on_iteration,
-        )
+    def local_update(self, rows: Rows, engine: Engine, params: FedHPGVRParams) -> torch.Tensor:
+        algo = engine.run.algo
+        theta_0 = rows.theta
+        snapshot = engine.sample(theta_0, rows.budget("batch_size"), iteration=0)
+        mu = engine.mean_gradients(theta_0, snapshot)
+        engine.finished(snapshot)
+        theta = theta_0.clone()
+        ascent = make_optimizer(algo)
+        inner_steps, mini_batch = rows.budget("inner_steps"), rows.budget("mini_batch_size")
+        weight_sum = torch.zeros(rows.size, dtype=torch.float64)
+        weight_max = torch.zeros(rows.size, dtype=torch.float64)
+        clipped_sum = torch.zeros(rows.size, dtype=torch.float64)
+        for step in range(int(inner_steps.max())):
+            active = inner_steps > step
+            batch = engine.sample(theta, torch.where(active, mini_batch, 0), iteration=step + 1)
+            direction, weights = semi_stochastic_gradient(engine, theta, theta_0, batch, mu, params)
+            direction, clipped = clip_rows(direction, algo.grad_clip)
+            theta += ascent.direction(direction, active.to(theta.device))
+            engine.finished(batch, clipped=clipped, grad_steps=2 * batch.steps_per_row())
+            final = weights.final.double().cpu()
+            owner = batch.owner.cpu()
+            weight_sum += batch.per_row(final.to(batch.owner.device)).cpu()
+            weight_max = torch.maximum(
+                weight_max,
+                torch.zeros(rows.size, dtype=torch.float64).scatter_reduce(
+                    0, owner, final, "amax", include_self=False
+                ),
+            )
+            clipped_sum += weights.clipped.cpu()
+        trajectories = (inner_steps * mini_batch).double()
+        engine.report("iw_mean", weight_sum / trajectories)
+        engine.report("iw_max", weight_max)
+        engine.report("iw_clipped_fraction", clipped_sum / inner_steps.double())
+        return theta
 
     def check(self, settings: AlgoConfig, params: FedHPGVRParams) -> None:
         # The practice options stay with FedHPG: standardising would rescale the snapshot

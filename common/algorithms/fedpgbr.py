@@ -13,18 +13,15 @@ and N_t ~ Geom(b / (B_t + b)) on {1, 2, …} (its code's draw: mean (B_t + b)/b)
 
 from __future__ import annotations
 
-import time
 from dataclasses import dataclass
 
 import numpy as np
 import torch
 
-from fedhpg.common.algorithms import Algorithm, LocalContext, register_algorithm
+from fedhpg.common.algorithms import Algorithm, register_algorithm
 from fedhpg.common.config import AlgoConfig, ConfigError
-from fedhpg.common.local import LocalTally, batch_gradient
-from fedhpg.common.policies import set_flat_params
+from fedhpg.common.engine.engine import Engine, Rows
 from fedhpg.common.registry import OptionError
-from fedhpg.common.types import LocalResult
 
 SCHEDULE_KEY = 0x46504252
 """Third word of the (seed, round, key) seed of a round's B_t and N_t: no agent stream
@@ -82,24 +79,12 @@ class FedPGBR(Algorithm[FedPGBRParams, FedPGBRBudget]):
     Budget = FedPGBRBudget
     strategy = "fedpgbr"
 
-    def local_update(
-        self,
-        theta: torch.Tensor,
-        context: LocalContext,
-        params: FedPGBRParams,
-        budget: FedPGBRBudget,
-    ) -> LocalResult:
-        set_flat_params(context.policy, theta)
-        tally = LocalTally()
-        started = time.thread_time()
-        size = round_schedule(context.seed, context.round_index, params).batch_size
-        batch = context.sample(size)
-        mu = batch_gradient(context.policy, batch, algo=context.settings, gamma=context.gamma)
-        compute_s = time.thread_time() - started
-        tally.add(batch, compute_s=compute_s)
-        if context.on_iteration is not None:
-            context.on_iteration(0, compute_s, batch.num_steps)
-        return tally.result(theta + mu)
+    def local_update(self, rows: Rows, engine: Engine, params: FedPGBRParams) -> torch.Tensor:
+        size = round_schedule(engine.run.seed, rows.round_index, params).batch_size
+        batch = engine.sample(rows.theta, torch.full((rows.size,), size), iteration=0)
+        mu = engine.mean_gradients(rows.theta, batch)
+        engine.finished(batch)
+        return rows.theta + mu
 
     def check(self, settings: AlgoConfig, params: FedPGBRParams) -> None:
         if settings.estimator != "gpomdp":

@@ -1,10 +1,9 @@
-"""The batched engines: many agents of one run sampled, evaluated and differentiated together.
+"""The compiled CartPole backend (numba): FedHPG for CartPole agents with the MLP categorical
+policy, each local iteration of all of them in two kernel calls.
 
-:func:`batched_group_or_none` returns an engine for the run when one supports the run's
-algorithm, policy and environment family, else None (the caller loops over LocalWorkers):
-with ``algo.engine=auto`` the compiled engine (:mod:`.compiled`, numba: CartPole) where it
-applies, else the numpy engine (:mod:`.engine`: any family); ``algo.engine=numpy`` always the
-numpy engine.
+:func:`batched_group_or_none` returns it where it applies (``algo.engine=auto``, FedHPG, the
+MLP categorical policy, CartPole variants); everything else trains on the engine
+(:mod:`fedhpg.common.engine`).
 """
 
 from __future__ import annotations
@@ -25,11 +24,11 @@ def _unsupported(run: RunConfig, policy: Policy) -> str | None:
     from fedhpg.common.policies import MLPCategoricalPolicy
 
     if run.algo.name != "fedhpg":
-        return f"algorithm {run.algo.name!r} (the engine runs fedhpg)"
+        return f"algorithm {run.algo.name!r} (the compiled backend runs fedhpg)"
     if run.algo.optimizer not in ("sgd", "adam"):
         return f"optimizer {run.algo.optimizer!r}"
     if type(policy) is not MLPCategoricalPolicy:
-        return f"policy {type(policy).__name__} (the engine runs MLPCategoricalPolicy)"
+        return f"policy {type(policy).__name__} (the compiled backend runs MLPCategoricalPolicy)"
     return None
 
 
@@ -37,11 +36,6 @@ def _policy(run: RunConfig, variants: Mapping[int, EnvVariant]) -> Policy:
     from fedhpg.common.worker import build_policy
 
     return build_policy(variants[min(variants)], run)
-
-
-def unsupported(run: RunConfig, variants: Mapping[int, EnvVariant]) -> str | None:
-    """Why the batched engine cannot train this run (None: it can)."""
-    return _unsupported(run, _policy(run, variants))
 
 
 def mlp_shape(policy: Policy) -> MLPShape:
@@ -53,14 +47,14 @@ def mlp_shape(policy: Policy) -> MLPShape:
 
 
 def uses_compiled_engine(run: RunConfig) -> bool:
-    """Whether the run's agents train on the compiled engine (so a launcher can compile or
+    """Whether the run's agents train on the compiled backend (so a launcher can compile or
     load its kernels once, before it forks them)."""
     if run.algo.engine != "auto":
         return False
     from fedhpg.common.variants import variants_of
 
     variants = variants_of(run, [0])
-    if unsupported(run, variants) is not None:
+    if _unsupported(run, _policy(run, variants)) is not None:
         return False
     from fedhpg.common.batched.compiled import compiled_unsupported
 
@@ -68,18 +62,15 @@ def uses_compiled_engine(run: RunConfig) -> bool:
 
 
 def batched_group_or_none(run: RunConfig, variants: Mapping[int, EnvVariant]) -> AgentGroup | None:
-    """The batched engine for these agents, or None where it does not apply."""
-    if run.algo.engine == "loop":
+    """The compiled backend for these agents, or None where it does not apply."""
+    if run.algo.engine != "auto":
         return None
     policy = _policy(run, variants)  # one env, for the spaces
     if _unsupported(run, policy) is not None:
         return None
-    if run.algo.engine == "auto":
-        # imported here: numba's import and compilation are paid only by runs that use it
-        from fedhpg.common.batched.compiled import CompiledFedHPG, compiled_unsupported
+    # imported here: numba's import and compilation are paid only by runs that use it
+    from fedhpg.common.batched.compiled import CompiledFedHPG, compiled_unsupported
 
-        if compiled_unsupported(run, variants) is None:
-            return CompiledFedHPG(run, variants, mlp_shape(policy))
-    from fedhpg.common.batched.engine import BatchedFedHPG
-
-    return BatchedFedHPG(run, variants, mlp_shape(policy))
+    if compiled_unsupported(run, variants) is None:
+        return CompiledFedHPG(run, variants, mlp_shape(policy))
+    return None

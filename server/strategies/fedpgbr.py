@@ -10,8 +10,9 @@ for n = 0 … N_t − 1:                                     (SCSG, N_t ~ Geom(b
 
 The b inner trajectories come from the server's own copy of agent ``server_env_agent``'s
 environment variant (agent 0's by default: the federation's agents all share it in a
-homogeneous run), sampled from the run's (seed, round) stream, so a run is reproducible and a
-resumed run continues bit for bit. ω_j = p(τ_j|θ_0) / p(τ_j|θ_n) (FedHPGVR's weights,
+homogeneous run), sampled on the engine as a batch of one row, from keys of their own (the
+server's purpose, the round, the inner step), so a run is reproducible and a resumed run
+continues bit for bit. ω_j = p(τ_j|θ_0) / p(τ_j|θ_n) (FedHPGVR's weights,
 :mod:`fedhpg.common.algorithms.fedhpgvr`). The step is Adam, as in FedPG-BR's code; its
 moments persist across rounds and checkpoints keep them. Where the filter keeps no gradient,
 the round's inner steps are plain GPOMDP steps on the server's samples (FedPG-BR's code does
@@ -20,34 +21,26 @@ the same).
 
 from __future__ import annotations
 
-import copy
 import logging
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any, Literal
 
-import numpy as np
 import torch
 
 from fedhpg.common.algorithms.fedhpgvr import FedHPGVRParams, semi_stochastic_gradient
-from fedhpg.common.algorithms.fedpgbr import SCHEDULE_KEY, FedPGBRParams, round_schedule
+from fedhpg.common.algorithms.fedpgbr import FedPGBRParams, round_schedule
 from fedhpg.common.byzantine_filter import byzantine_filter
-from fedhpg.common.config import AlgoConfig, ConfigError, RunConfig
-from fedhpg.common.local import batch_gradient
+from fedhpg.common.config import ConfigError, RunConfig
+from fedhpg.common.engine.engine import Engine
 from fedhpg.common.optim import AdamAscent
-from fedhpg.common.policies import Policy, get_flat_params, set_flat_params
+from fedhpg.common.randomness import Purpose
 from fedhpg.common.registry import OptionError, parse_options
-from fedhpg.common.rollout import TrajectoryBatch, sample_trajectories
 from fedhpg.common.types import AgentUpdate, SavedState
-from fedhpg.common.variants import discount, training_horizon, variant_of
-from fedhpg.common.worker import build_policy
-from fedhpg.envs.base import BatchEnv
+from fedhpg.common.variants import variant_of
 from fedhpg.server.strategies import Strategy, register_strategy, stacked
 
 logger = logging.getLogger(__name__)
-
-INNER_KEY = SCHEDULE_KEY + 1
-"""Third word of the (seed, round, key) seed of the server's inner-loop trajectories."""
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -102,30 +95,9 @@ class _ServerSide:
 
     run: RunConfig
     schedule: FedPGBRParams
-    policy: Policy
-    env: BatchEnv
-    horizon: int
-    gamma: float
-
-
-def scsg_direction(
-    current: Policy,
-    snapshot: Policy,
-    batch: TrajectoryBatch,
-    mu: torch.Tensor | None,
-    *,
-    algo: AlgoConfig,
-    weights: FedHPGVRParams,
-    gamma: float,
-) -> torch.Tensor:
-    """v_n = (1/b) Σ_j [g(τ_j|θ_n) − ω_j g(τ_j|θ_0)] + μ_t on the b trajectories of ``batch``
-    (sampled at θ_n); the plain (1/b) Σ_j g(τ_j|θ_n) where no μ_t was kept."""
-    if mu is None:
-        return batch_gradient(current, batch, algo=algo, gamma=gamma)
-    direction, _, _ = semi_stochastic_gradient(
-        current, snapshot, batch, mu, algo=algo, params=weights, gamma=gamma
-    )
-    return direction
+    engine: Engine
+    """The engine of one row: agent ``server_env_agent``'s variant."""
+    agent: int
 
 
 @register_strategy
@@ -155,14 +127,12 @@ class FedPGBR(Strategy[FedPGBRStrategyParams]):
                 f"{run.agents.num_agents} agents (0 … {run.agents.num_agents - 1})",
             )
         schedule = parse_options(FedPGBRParams, run.algo.params, "algo.params")
-        variant = variant_of(run, self.params.server_env_agent)
+        agent = self.params.server_env_agent
         self.side = _ServerSide(
             run=run,
             schedule=schedule,
-            policy=build_policy(variant, run),
-            env=variant.make_batch_env(schedule.mini_batch_size),
-            horizon=training_horizon(run, variant),
-            gamma=discount(run, variant),
+            engine=Engine(run, {agent: variant_of(run, agent)}),
+            agent=agent,
         )
 
     def aggregate(
@@ -211,18 +181,24 @@ class FedPGBR(Strategy[FedPGBRStrategyParams]):
         steps: int,
         side: _ServerSide,
     ) -> torch.Tensor:
-        rng = np.random.default_rng([side.run.seed, round_index, INNER_KEY])
-        policy = side.policy
-        set_flat_params(policy, theta)
-        snapshot = copy.deepcopy(policy)
+        """N_t SCSG steps from θ̃_0 = ``theta`` on b trajectories each (Adam on v_n)."""
+        engine = side.engine
+        rows = engine.begin(round_index, theta, [side.agent])
+        snapshot = rows.theta
+        current = snapshot.clone()
         weights = FedHPGVRParams(iw_mode=self.params.iw_mode)
-        for _ in range(steps):
-            batch = sample_trajectories(side.env, policy, rng, horizon=side.horizon)
-            direction = scsg_direction(
-                policy, snapshot, batch, mu, algo=side.run.algo, weights=weights, gamma=side.gamma
-            )
-            set_flat_params(policy, get_flat_params(policy) + self.adam.direction(direction))
-        return get_flat_params(policy).clone()
+        size = torch.tensor([side.schedule.mini_batch_size])
+        for step in range(steps):
+            batch = engine.sample(current, size, iteration=step, purpose=Purpose.SERVER)
+            if mu is None:  # no kept gradient: a plain GPOMDP step on the server's samples
+                direction = engine.mean_gradients(current, batch)
+            else:
+                direction, _ = semi_stochastic_gradient(
+                    engine, current, snapshot, batch, mu.to(current).unsqueeze(0), weights
+                )
+            current = current + self.adam.direction(direction[0].cpu()).to(current)
+        engine.rows = engine.tally = None
+        return current[0].detach().cpu().clone()
 
     def round_stats(self) -> dict[str, Any]:
         return dict(self.stats)

@@ -1,0 +1,150 @@
+"""Blocks of environment copies the sampler steps: one block per row, its trajectories.
+
+Two paths behind one interface. A family with a torch implementation
+(:func:`fedhpg.envs.device.device_copies`) keeps every copy in tensors on the engine's
+device. Any other family steps through its variants' gymnasium batch environments on the CPU,
+one per block, observations and actions converted at the boundary.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Sequence
+from typing import Protocol
+
+import gymnasium as gym
+import numpy as np
+import torch
+
+from fedhpg.common.randomness import seeds, uniforms64
+from fedhpg.envs.base import BatchEnv, EnvVariant
+from fedhpg.envs.device import CopyStep, DeviceCopies, device_copies
+
+
+class KeyedReset:
+    """The reset stream of copies with trajectory keys ``keys`` (reset draws use negative
+    counters, which no action draw uses)."""
+
+    def __init__(self, keys: torch.Tensor) -> None:
+        self.keys = keys
+
+    def uniforms(self, count: int) -> torch.Tensor:
+        counters = -1 - torch.arange(count, device=self.keys.device)
+        return uniforms64(self.keys.unsqueeze(1), counters.unsqueeze(0))
+
+    def seeds(self) -> list[int]:
+        return seeds(self.keys, -1)
+
+
+class Copies(Protocol):
+    """Blocks of copies, block b columns ``offsets[b]:offsets[b + 1]``."""
+
+    offsets: torch.Tensor
+
+    def reset(self, blocks: torch.Tensor, keys: torch.Tensor) -> torch.Tensor:
+        """Start an episode in every copy of ``blocks``, their copies' keys ``keys``; the
+        first observations of those copies, in order."""
+        ...
+
+    def step(
+        self, actions: torch.Tensor, blocks: torch.Tensor, columns: torch.Tensor | None
+    ) -> CopyStep:
+        """One action per copy of ``blocks`` (their ``columns``; None: every block)."""
+        ...
+
+    def close(self) -> None: ...
+
+
+def columns_of(offsets: torch.Tensor, blocks: torch.Tensor) -> torch.Tensor:
+    """The columns of ``blocks`` (increasing), in order."""
+    starts, ends = offsets[blocks], offsets[blocks + 1]
+    sizes = ends - starts
+    first = torch.repeat_interleave(starts - torch.cumsum(sizes, 0) + sizes, sizes)
+    return first + torch.arange(int(sizes.sum()), device=offsets.device)
+
+
+class DeviceBlocks:
+    """Blocks over a family's torch copies."""
+
+    def __init__(self, copies: DeviceCopies, offsets: torch.Tensor) -> None:
+        self.copies = copies
+        self.offsets = offsets.to(copies.device)
+
+    def reset(self, blocks: torch.Tensor, keys: torch.Tensor) -> torch.Tensor:
+        return self.copies.reset(columns_of(self.offsets, blocks), KeyedReset(keys))
+
+    def step(
+        self, actions: torch.Tensor, blocks: torch.Tensor, columns: torch.Tensor | None
+    ) -> CopyStep:
+        return self.copies.step(actions, columns)
+
+    def close(self) -> None:
+        pass
+
+
+class GymBlocks:
+    """Blocks over gymnasium batch environments, one per block, on the CPU."""
+
+    def __init__(self, envs: Sequence[BatchEnv], device: torch.device) -> None:
+        self.envs = list(envs)
+        counts = torch.tensor([env.num_envs for env in self.envs], dtype=torch.int64)
+        self.offsets = torch.cat([torch.zeros(1, dtype=torch.int64), counts.cumsum(0)]).to(device)
+        self.device = device
+        space = self.envs[0].single_action_space
+        self.discrete = isinstance(space, gym.spaces.Discrete)
+
+    def reset(self, blocks: torch.Tensor, keys: torch.Tensor) -> torch.Tensor:
+        block_seeds = seeds(keys, -1)
+        sizes = self.offsets[blocks + 1] - self.offsets[blocks]
+        starts = (torch.cumsum(sizes, 0) - sizes).tolist()
+        parts = [
+            np.asarray(self.envs[b].reset(seed=block_seeds[start]))
+            for b, start in zip(blocks.tolist(), starts, strict=True)
+        ]
+        return torch.from_numpy(np.concatenate(parts)).to(self.device)
+
+    def step(
+        self, actions: torch.Tensor, blocks: torch.Tensor, columns: torch.Tensor | None
+    ) -> CopyStep:
+        chosen = actions.cpu().numpy()
+        parts, at = [], 0
+        for b in blocks.tolist():
+            env = self.envs[b]
+            parts.append(env.step(chosen[at : at + env.num_envs]))
+            at += env.num_envs
+        cat = np.concatenate
+
+        def tensor(values: np.ndarray) -> torch.Tensor:
+            return torch.from_numpy(values).to(self.device)
+
+        return CopyStep(
+            obs=tensor(cat([p.obs for p in parts])),
+            reward=tensor(cat([p.reward for p in parts]).astype(np.float64)),
+            terminated=tensor(cat([p.terminated for p in parts]).astype(bool)),
+            truncated=tensor(cat([p.truncated for p in parts]).astype(bool)),
+            success=tensor(cat([p.success for p in parts]).astype(bool)),
+        )
+
+    def close(self) -> None:
+        pass  # the environments belong to the engine's cache
+
+
+EnvSource = Callable[[int, int], BatchEnv]
+"""(row's agent index, copies) -> that agent's batch environment of so many copies."""
+
+
+def make_copies(
+    variants: Sequence[EnvVariant],
+    counts: Sequence[int],
+    device: torch.device,
+    batch_env: EnvSource,
+    agents: Sequence[int],
+) -> Copies:
+    """Blocks of ``counts[i]`` copies of ``variants[i]``: on the device where the family has a
+    torch implementation, else through gymnasium (``batch_env`` for agent ``agents[i]``)."""
+    offsets = torch.cat(
+        [torch.zeros(1, dtype=torch.int64), torch.tensor(list(counts), dtype=torch.int64).cumsum(0)]
+    )
+    native = device_copies(variants, counts, device)
+    if native is not None:
+        return DeviceBlocks(native, offsets)
+    return GymBlocks([batch_env(k, c) for k, c in zip(agents, counts, strict=True)], device)

@@ -1,0 +1,513 @@
+"""The engine: the primitives an algorithm's loop is written with, for rows of agents.
+
+An algorithm (``common/algorithms/<name>.py``) holds the one loop of its local update over
+θ rows [A, d]; the engine gives it, for any subset of rows at once:
+
+- :meth:`Engine.sample`: B trajectories per row, drawn at each row's own θ from its own
+  environment variant (keys: seed, agent, round, purpose, iteration, trajectory);
+- :meth:`Engine.coefficients`: the run's estimator (REINFORCE or GPOMDP, baselines,
+  discounting: ``common/estimators.py``, the one implementation) for those trajectories;
+- :meth:`Engine.gradients`, :meth:`Engine.log_probs`, :meth:`Engine.trajectory_gradients`:
+  the policy's score-function maths per row (``PolicyRows``);
+- :meth:`Engine.finished`: the bookkeeping of an iteration (statistics, the device
+  emulation's hook, cancellation).
+
+Everything lives on ``algo.device``: torch on the CPU or on a GPU. Rows are placement-free:
+what a row computes depends on its agent, round and θ alone.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Iterator, Mapping, Sequence
+from contextlib import contextmanager
+from dataclasses import dataclass, field
+from typing import Any
+
+import gymnasium as gym
+import torch
+
+from fedhpg.common.attacks import attack_of
+from fedhpg.common.components import AgentProfile, agent_profile, planned_budget
+from fedhpg.common.config import RunConfig
+from fedhpg.common.engine.copies import make_copies
+from fedhpg.common.engine.devices import check_device
+from fedhpg.common.engine.policy_rows import PolicyRows, chunked
+from fedhpg.common.engine.sampling import Faults, sample
+from fedhpg.common.engine.trajectories import Trajectories
+from fedhpg.common.estimators import estimator_coefficients
+from fedhpg.common.randomness import Purpose, trajectory_keys
+from fedhpg.common.types import EvaluationStats
+from fedhpg.common.variants import discount, training_horizon
+from fedhpg.envs.base import BatchEnv, EnvVariant
+
+PACKED_ELEMENTS = 1 << 24
+"""Elements (tiles × tile steps × parameters) one gradient call holds at once."""
+TILE = 64
+"""Steps per tile of the policy's maths. Every per-row reduction over steps is made of
+fixed-size tiles summed in order, so its floats never depend on the batch's shape (a matrix
+product's blocking over a longer reduction would change the order of the additions)."""
+
+
+@dataclass(frozen=True)
+class _Tiles:
+    """A batch's alive steps cut into tiles of :data:`TILE` steps of one group each."""
+
+    obs: torch.Tensor
+    """[tiles, TILE, *obs_shape] (zeros past a group's last step)."""
+    act: torch.Tensor
+    tile: torch.Tensor
+    """Each alive step's tile."""
+    slot: torch.Tensor
+    """Its place in the tile."""
+    flat: torch.Tensor
+    """Its (t, n) cell as a flat index of [T, N]."""
+    tile_group: torch.Tensor
+    """Each tile's group."""
+    tile_start: torch.Tensor
+    """Each group's first tile."""
+    tiles_per_group: torch.Tensor
+
+
+@dataclass
+class RowWork:
+    """What one iteration cost each row: what the device emulation prices."""
+
+    rows: torch.Tensor
+    """Positions of the rows that ran it."""
+    iterations: torch.Tensor
+    """Each one's iteration number (its own count of iterations this round)."""
+    compute_s: torch.Tensor
+    env_steps: torch.Tensor
+    grad_steps: torch.Tensor
+
+
+@dataclass
+class Rows:
+    """The agents one call trains, as rows: their θ̃ copies, budgets, discounts, horizons."""
+
+    agents: list[int]
+    theta: torch.Tensor
+    """[A, d]: every row starts from θ̃."""
+    budgets: dict[str, torch.Tensor]
+    """Each budget field as [A] int64 (the configured budget, or the round's plan)."""
+    round_index: int
+
+    def budget(self, name: str) -> torch.Tensor:
+        return self.budgets[name]
+
+    @property
+    def size(self) -> int:
+        return len(self.agents)
+
+
+@dataclass
+class Tally:
+    """Per-row totals of a round (``UpdateStats``), and its work per iteration."""
+
+    trajectories: torch.Tensor
+    env_steps: torch.Tensor
+    return_sum: torch.Tensor
+    compute_s: torch.Tensor
+    clipped: torch.Tensor
+    iterations: torch.Tensor
+    algorithm: dict[str, torch.Tensor] = field(default_factory=dict)
+    """Per-row algorithm statistics; NaN where a row has none."""
+    work: list[RowWork] = field(default_factory=list)
+
+    @classmethod
+    def zeros(cls, rows: int) -> Tally:
+        def z(dtype: torch.dtype) -> torch.Tensor:
+            return torch.zeros(rows, dtype=dtype)
+
+        return cls(
+            z(torch.int64),
+            z(torch.int64),
+            z(torch.float64),
+            z(torch.float64),
+            z(torch.int64),
+            z(torch.int64),
+        )
+
+
+class Engine:
+    """The primitives for the agents ``variants`` of one run (see the module docstring)."""
+
+    def __init__(self, run: RunConfig, variants: Mapping[int, EnvVariant]) -> None:
+        from fedhpg.common.worker import build_policy
+
+        self.run = run
+        self.variants = dict(variants)
+        check_device(run.algo.device)
+        self.device = torch.device(run.algo.device)
+        first = self.variants[min(self.variants)]
+        self.policy = PolicyRows(build_policy(first, run), self.device)
+        env = first.make_env()
+        try:
+            self.action_space: gym.Space = env.action_space
+        finally:
+            env.close()
+        self._envs: dict[tuple[int, int], BatchEnv] = {}
+        self._profiles: dict[int, AgentProfile] = {}
+        self._gamma: dict[int, float] = {}
+        self._horizon: dict[int, int] = {}
+        self.rows: Rows | None = None
+        self.tally: Tally | None = None
+        self._hook: Any = None
+        self._clock = 0.0
+
+    # -- per-agent constants ----------------------------------------------------------------
+
+    def profile(self, k: int) -> AgentProfile:
+        if k not in self._profiles:
+            self._profiles[k] = agent_profile(self.run, k)
+        return self._profiles[k]
+
+    def gamma(self, k: int) -> float:
+        if k not in self._gamma:
+            self._gamma[k] = discount(self.run, self.variants[k])
+        return self._gamma[k]
+
+    def horizon(self, k: int) -> int:
+        if k not in self._horizon:
+            self._horizon[k] = training_horizon(self.run, self.variants[k])
+        return self._horizon[k]
+
+    def prepare(self) -> None:
+        for k in self.variants:
+            self.profile(k), self.gamma(k), self.horizon(k)
+
+    def _batch_env(self, k: int, copies: int) -> BatchEnv:
+        if (k, copies) not in self._envs:
+            self._envs[(k, copies)] = self.variants[k].make_batch_env(copies)
+        return self._envs[(k, copies)]
+
+    def close(self) -> None:
+        for env in self._envs.values():
+            env.close()
+        self._envs.clear()
+
+    # -- a round ----------------------------------------------------------------------------
+
+    def begin(
+        self,
+        round_index: int,
+        theta: torch.Tensor,
+        agents: Sequence[int],
+        budgets: Mapping[int, Mapping[str, int]] | None = None,
+        hook: Any = None,
+    ) -> Rows:
+        """The rows of ``agents`` for a round from θ̃ (their budgets planned or their own)."""
+        chosen = [planned_budget(self.profile(k).budget, (budgets or {}).get(k)) for k in agents]
+        names = list(vars(chosen[0])) if chosen else []
+        rows = Rows(
+            agents=list(agents),
+            theta=theta.detach().to(self.device, torch.float32).unsqueeze(0).repeat(len(agents), 1),
+            budgets={
+                name: torch.tensor([int(getattr(b, name)) for b in chosen], dtype=torch.int64)
+                for name in names
+            },
+            round_index=round_index,
+        )
+        self.rows, self.tally, self._hook = rows, Tally.zeros(rows.size), hook
+        self._clock = time.thread_time()
+        return rows
+
+    def _rows(self) -> Rows:
+        assert self.rows is not None, "begin() a round first"
+        return self.rows
+
+    def gammas(self) -> torch.Tensor:
+        """γ_k of every row, [A] float64."""
+        return torch.tensor(
+            [self.gamma(k) for k in self._rows().agents], dtype=torch.float64, device=self.device
+        )
+
+    def sample(
+        self,
+        theta: torch.Tensor,
+        counts: torch.Tensor,
+        *,
+        iteration: int,
+        purpose: Purpose = Purpose.TRAIN,
+        greedy: bool = False,
+        horizons: torch.Tensor | None = None,
+    ) -> Trajectories:
+        """``counts[a]`` trajectories of row a at θ row ``theta[a]`` (0: none)."""
+        rows = self._rows()
+        counts_list = counts.tolist()
+        order = [i for i, c in enumerate(counts_list) if c > 0]
+        positions = torch.tensor(order, dtype=torch.int64, device=self.device)
+        chosen = torch.tensor(
+            [counts_list[i] for i in order], dtype=torch.int64, device=self.device
+        )
+        agents = [rows.agents[i] for i in order]
+        owner = torch.repeat_interleave(torch.arange(len(order), device=self.device), chosen)
+        starts = torch.cumsum(chosen, 0) - chosen
+        index = torch.arange(int(chosen.sum()), device=self.device) - starts[owner]
+        agent_ids = torch.tensor(agents, dtype=torch.int64, device=self.device)[owner]
+        keys = trajectory_keys(
+            self.run.seed, agent_ids, rows.round_index, purpose, iteration, index
+        )
+        limit = (
+            torch.tensor([self.horizon(k) for k in agents], dtype=torch.int64, device=self.device)
+            if horizons is None
+            else horizons.to(self.device)[positions]
+        )
+        copies = make_copies(
+            [self.variants[k] for k in agents],
+            chosen.tolist(),
+            self.device,
+            self._batch_env,
+            agents,
+        )
+        faults = None
+        if not greedy:
+            kinds = [attack_of(self.run.attack, k) for k in agents]
+            faults = Faults(
+                random_actions=torch.tensor(
+                    [a == "random_action" for a in kinds], device=self.device
+                ),
+                flipped_rewards=torch.tensor(
+                    [a == "reward_flip" for a in kinds], device=self.device
+                ),
+            )
+        try:
+            batch = sample(
+                self.policy,
+                copies,
+                theta.to(self.device)[positions],
+                chosen,
+                keys,
+                limit,
+                greedy=greedy,
+                faults=faults,
+                action_space=self.action_space,
+            )
+        finally:
+            copies.close()
+        full = torch.zeros(rows.size, dtype=torch.int64, device=self.device)
+        full[positions] = chosen
+        return Trajectories(
+            obs=batch.obs,
+            actions=batch.actions,
+            rewards=batch.rewards,
+            alive=batch.alive,
+            success=batch.success,
+            owner=positions[batch.owner],
+            counts=full,
+        )
+
+    def coefficients(
+        self, batch: Trajectories, weights: torch.Tensor | None = None
+    ) -> torch.Tensor:
+        """The run's estimator coefficients of ``batch``, [T, N] float64 (per-row baselines
+        and discounts; ``weights`` [N] or [T, N] importance weights)."""
+        algo = self.run.algo
+        return estimator_coefficients(
+            algo.estimator,  # type: ignore[arg-type]
+            batch.rewards,
+            batch.alive,
+            gamma=self.gammas()[batch.owner],
+            baseline=algo.baseline,  # type: ignore[arg-type]
+            weights=weights,
+            reward_to_go=algo.reward_to_go,  # type: ignore[arg-type]
+            normalize=algo.normalize,  # type: ignore[arg-type]
+            groups=batch.owner,
+        )
+
+    # -- the policy's maths per row ----------------------------------------------------------
+
+    def _tiles(self, batch: Trajectories, group: torch.Tensor) -> _Tiles:
+        """The alive steps of ``batch`` cut into tiles of :data:`TILE` steps, each tile the
+        steps of one group (``group`` [N]: each column's; a group's columns contiguous)."""
+        cells = torch.nonzero(batch.alive.T)  # (n, t): by column, columns grouped
+        column, step = cells[:, 0], cells[:, 1]
+        owner = group[column]
+        groups = int(group.max()) + 1 if len(group) else 0
+        per_group = torch.bincount(owner, minlength=groups)
+        slot = (
+            torch.arange(len(owner), device=owner.device)
+            - (torch.cumsum(per_group, 0) - per_group)[owner]
+        )
+        tiles_per_group = (per_group + TILE - 1) // TILE
+        tile_start = torch.cumsum(tiles_per_group, 0) - tiles_per_group
+        tile = tile_start[owner] + slot // TILE
+        total = int(tiles_per_group.sum())
+        flat = step * batch.alive.shape[1] + column
+        obs_flat = batch.obs.reshape(-1, *batch.obs.shape[2:])
+        act_flat = batch.actions.reshape(-1, *batch.actions.shape[2:])
+        obs = obs_flat.new_zeros((total, TILE, *batch.obs.shape[2:]))
+        act = act_flat.new_zeros((total, TILE, *batch.actions.shape[2:]))
+        obs[tile, slot % TILE] = obs_flat[flat]
+        act[tile, slot % TILE] = act_flat[flat]
+        tile_group = torch.repeat_interleave(
+            torch.arange(groups, device=owner.device), tiles_per_group
+        )
+        return _Tiles(obs, act, tile, slot % TILE, flat, tile_group, tile_start, tiles_per_group)
+
+    def _tile_gradients(
+        self, theta_of_tile: torch.Tensor, tiles: _Tiles, values: torch.Tensor
+    ) -> torch.Tensor:
+        """Each tile's Σ coef ∇ log π under its own θ row, [tiles, d], in chunks."""
+        coef = torch.zeros(tiles.obs.shape[:2], dtype=torch.float64, device=self.device)
+        coef[tiles.tile, tiles.slot] = values.reshape(-1)[tiles.flat].to(torch.float64)
+        out = theta_of_tile.new_empty((tiles.obs.shape[0], self.policy.num_params))
+        chunked(
+            tiles.obs.shape[0],
+            TILE * self.policy.num_params,
+            PACKED_ELEMENTS,
+            lambda block: out.__setitem__(
+                block,
+                self.policy.score_gradients(
+                    theta_of_tile[block], tiles.obs[block], tiles.act[block], coef[block]
+                ),
+            ),
+        )
+        return out
+
+    @staticmethod
+    def _group_sums(tiles: _Tiles, per_tile: torch.Tensor, groups: int) -> torch.Tensor:
+        """Each group's tile gradients summed in tile order (the same sums in any company)."""
+        out = per_tile.new_zeros((groups, per_tile.shape[1]))
+        count = tiles.tiles_per_group
+        for j in range(int(count.max()) if len(count) else 0):
+            having = torch.nonzero(count > j).squeeze(1)
+            out[having] += per_tile[tiles.tile_start[having] + j]
+        return out
+
+    def gradients(
+        self, theta: torch.Tensor, batch: Trajectories, coefficients: torch.Tensor
+    ) -> torch.Tensor:
+        """Σ_n Σ_t coef[t, n] ∇ log π_θa(a_t|s_t) over each row a's trajectories n, [A, d]
+        (zero for a row without trajectories)."""
+        tiles = self._tiles(batch, batch.owner)
+        per_tile = self._tile_gradients(theta[tiles.tile_group], tiles, coefficients)
+        return self._group_sums(tiles, per_tile, theta.shape[0])
+
+    def mean_gradients(
+        self, theta: torch.Tensor, batch: Trajectories, weights: torch.Tensor | None = None
+    ) -> torch.Tensor:
+        """(1/B_a) Σ_n g(τ_n | θ_a) with the run's estimator, per row [A, d]."""
+        gradient = self.gradients(theta, batch, self.coefficients(batch, weights))
+        return gradient / batch.counts.clamp_min(1).to(gradient.dtype).unsqueeze(1)
+
+    def log_probs(self, theta: torch.Tensor, batch: Trajectories) -> torch.Tensor:
+        """log π_θa(a_t|s_t) of every alive step under its row's θ row, [T, N] (0 elsewhere)."""
+        tiles = self._tiles(batch, batch.owner)
+        values = tiles.obs.new_zeros(tiles.obs.shape[:2], dtype=torch.float64)
+        chunked(
+            tiles.obs.shape[0],
+            TILE * self.policy.num_params,
+            PACKED_ELEMENTS,
+            lambda block: values.__setitem__(
+                block,
+                self.policy.log_probs(
+                    theta[tiles.tile_group[block]], tiles.obs[block], tiles.act[block]
+                ).double(),
+            ),
+        )
+        out = torch.zeros(batch.alive.numel(), dtype=torch.float64, device=self.device)
+        out[tiles.flat] = values[tiles.tile, tiles.slot]
+        return out.reshape(batch.alive.shape)
+
+    def trajectory_gradients(
+        self, theta: torch.Tensor, batch: Trajectories, coefficients: torch.Tensor
+    ) -> torch.Tensor:
+        """g(τ_n | θ_{owner(n)}) of every trajectory, [N, d]."""
+        columns = torch.arange(batch.alive.shape[1], device=self.device)
+        tiles = self._tiles(batch, columns)
+        per_tile = self._tile_gradients(theta[batch.owner[tiles.tile_group]], tiles, coefficients)
+        return self._group_sums(tiles, per_tile, len(columns))
+
+    # -- bookkeeping -----------------------------------------------------------------------
+
+    def finished(
+        self,
+        batch: Trajectories,
+        *,
+        clipped: torch.Tensor | None = None,
+        grad_steps: torch.Tensor | None = None,
+    ) -> None:
+        """An iteration is done for the rows that sampled ``batch``: their totals, and the
+        work each row did (its share of the iteration's CPU time, by env steps) to the hook."""
+        tally = self.tally
+        assert tally is not None
+        now = time.thread_time()
+        elapsed, self._clock = now - self._clock, now
+        counts = batch.counts.cpu()
+        ran = torch.nonzero(counts > 0).squeeze(1)
+        steps = batch.steps_per_row().cpu()
+        returns = batch.per_row(batch.returns()).cpu()
+        share = steps.double() / max(int(steps.sum()), 1)
+        compute = share * elapsed
+        tally.trajectories += counts
+        tally.env_steps += steps
+        tally.return_sum += returns
+        tally.compute_s += compute
+        if clipped is not None:
+            tally.clipped += clipped.cpu().long()
+        numbers = tally.iterations[ran].clone()
+        tally.iterations[ran] += 1
+        work = RowWork(
+            rows=ran,
+            iterations=numbers,
+            compute_s=compute[ran],
+            env_steps=steps[ran],
+            grad_steps=(steps if grad_steps is None else grad_steps.cpu())[ran],
+        )
+        tally.work.append(work)
+        if self._hook is not None:
+            self._hook(work)
+        self._clock = time.thread_time()
+
+    @contextmanager
+    def untimed(self) -> Iterator[None]:
+        """Work inside is left out of the rows' compute time (diagnostics)."""
+        started = time.thread_time()
+        try:
+            yield
+        finally:
+            self._clock += time.thread_time() - started
+
+    def report(self, name: str, values: torch.Tensor) -> None:
+        """An algorithm statistic of every row, [A] (NaN: none for that row)."""
+        assert self.tally is not None
+        self.tally.algorithm[name] = values.detach().double().cpu()
+
+    # -- evaluation --------------------------------------------------------------------------
+
+    def evaluate(
+        self, round_index: int, theta: torch.Tensor, episodes: int, agents: Sequence[int]
+    ) -> dict[int, EvaluationStats]:
+        """The return and success of θ̃ in each agent's environment (greedy per eval.greedy)."""
+        rows = self.begin(round_index, theta, agents)
+        horizons = torch.tensor([self.run.eval.horizon or self.horizon(k) for k in agents])
+        counts = torch.full((rows.size,), episodes, dtype=torch.int64)
+        batch = self.sample(
+            rows.theta,
+            counts,
+            iteration=0,
+            purpose=Purpose.EVALUATE,
+            greedy=self.run.eval.greedy,
+            horizons=horizons,
+        )
+        undiscounted = batch.returns().cpu()
+        discounted = batch.returns(self.gammas()).cpu()
+        lengths = batch.lengths().cpu().double()
+        success = batch.success.cpu().double()
+        owner = batch.owner.cpu()
+        stats = {}
+        for a, k in enumerate(rows.agents):
+            mine = owner == a
+            values = undiscounted[mine]
+            stats[k] = EvaluationStats(
+                return_mean=float(values.mean()),
+                return_std=float(values.std(unbiased=False)),
+                discounted_return_mean=float(discounted[mine].mean()),
+                success_rate=float(success[mine].mean()),
+                length_mean=float(lengths[mine].mean()),
+                episodes=episodes,
+            )
+        self.rows = self.tally = None
+        return stats

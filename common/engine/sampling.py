@@ -1,0 +1,202 @@
+"""Sampling: one episode in every copy of every block, all blocks stepped together.
+
+Block b holds ``counts[b]`` copies of one row's environment (its trajectories this
+iteration); every copy's randomness comes from its own trajectory key (its reset from negative
+counters, its decisions from counters t · noise_size + j), so a trajectory is the same in any
+company and any layout. Every stepped block acts in one call of the policy
+(``PolicyRows.act`` on a [blocks, widest block] grid of copies); blocks whose copies have all
+ended leave the stepping, and the set of stepped blocks is narrowed when it has shrunk by a
+quarter (episode lengths vary a lot, and a batch lasts as long as its longest episode).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import gymnasium as gym
+import torch
+
+from fedhpg.common.engine.copies import Copies, columns_of
+from fedhpg.common.engine.policy_rows import PolicyRows
+from fedhpg.common.engine.trajectories import Trajectories
+from fedhpg.common.randomness import uniforms
+
+
+@dataclass(frozen=True)
+class Faults:
+    """What attacking rows do to their own sampling (``common/attacks.py``), per block."""
+
+    random_actions: torch.Tensor
+    """[B] bool: act uniformly at random over the action space (a faulty actuator)."""
+    flipped_rewards: torch.Tensor
+    """[B] bool: learn from negated rewards."""
+
+
+NOISE_CHUNK = 32
+"""Time steps of decision draws made at once for every stepped copy."""
+
+
+class _Plan:
+    """The blocks still stepped: their copies, the same as a padded [blocks, widest] grid (one
+    policy call for all of them), and their θ rows."""
+
+    def __init__(
+        self, blocks: torch.Tensor, counts: torch.Tensor, offsets: torch.Tensor, theta: torch.Tensor
+    ) -> None:
+        self.blocks = blocks
+        self.columns = columns_of(offsets, blocks)
+        sizes = counts[blocks]
+        slots = torch.arange(int(sizes.max()), device=blocks.device)
+        self.valid = slots.unsqueeze(0) < sizes.unsqueeze(1)
+        grid = offsets[blocks].unsqueeze(1) + slots.unsqueeze(0)
+        self.grid = torch.where(self.valid, grid, offsets[blocks].unsqueeze(1))
+        self.theta = theta[blocks]
+        self.everyone = len(blocks) == len(counts)
+
+
+def sample(
+    policy: PolicyRows,
+    copies: Copies,
+    theta: torch.Tensor,
+    counts: torch.Tensor,
+    keys: torch.Tensor,
+    horizons: torch.Tensor,
+    *,
+    greedy: bool = False,
+    faults: Faults | None = None,
+    action_space: gym.Space | None = None,
+) -> Trajectories:
+    """One episode in each copy: block b is row b (θ row ``theta[b]``, ``counts[b]`` ≥ 1
+    copies, at most ``horizons[b]`` steps); ``keys`` [N] are the copies' trajectory keys."""
+    device = theta.device
+    num_blocks = int(counts.shape[0])
+    offsets = copies.offsets
+    total = int(offsets[-1])
+    owner = torch.repeat_interleave(torch.arange(num_blocks, device=device), counts)
+    everyone = torch.arange(num_blocks, device=device)
+    obs = copies.reset(everyone, keys)
+    horizon = int(horizons.max())
+    stop_at = horizons[owner]
+    record = _Record(total, obs, device)
+    success = torch.zeros(total, dtype=torch.bool, device=device)
+    running = torch.ones(total, dtype=torch.bool, device=device)
+    flipped = faults.flipped_rewards[owner] if faults is not None else None
+    random_columns = faults.random_actions[owner] if faults is not None and not greedy else None
+    k = policy.noise_size
+    noise = torch.zeros((total, NOISE_CHUNK, k), dtype=torch.float32, device=device)
+    plan = _Plan(everyone, counts, offsets, theta)
+    t = 0
+    while t < horizon:
+        live_copies = torch.zeros(num_blocks, dtype=torch.int64, device=device)
+        block_running = live_copies.index_add_(0, owner, running.long()) > 0
+        if not bool(block_running.any()):
+            break
+        if 4 * int(block_running.sum()) <= 3 * len(plan.blocks):
+            plan = _Plan(torch.nonzero(block_running).squeeze(1), counts, offsets, theta)
+        columns = plan.columns
+        if not greedy and t % NOISE_CHUNK == 0:
+            counters = t * k + torch.arange(NOISE_CHUNK * k, device=device)
+            draws = uniforms(keys[columns].unsqueeze(1), counters.unsqueeze(0))
+            noise[columns] = draws.reshape(-1, NOISE_CHUNK, k)
+        decision = None if greedy else noise[plan.grid, t % NOISE_CHUNK]
+        actions = policy.act(plan.theta, obs[plan.grid], decision)[plan.valid]
+        if random_columns is not None and bool(random_columns[columns].any()):
+            actions = _random_actions(
+                actions, random_columns[columns], keys[columns], t, k, action_space
+            )
+        step = copies.step(actions, plan.blocks, None if plan.everyone else columns)
+        live = running[columns]
+        reward = step.reward.to(torch.float64) * live
+        if flipped is not None:
+            reward = torch.where(flipped[columns], -reward, reward)
+        record.add(t, None if plan.everyone else columns, obs, actions, reward, running)
+        success[columns] |= live & step.success
+        running[columns] = live & ~(step.terminated | step.truncated)
+        t += 1
+        running &= stop_at > t
+        obs[columns] = step.obs.to(obs.dtype)
+    obs_seen, actions_taken, rewards, alive = record.taken(t)
+    return Trajectories(
+        obs=obs_seen,
+        actions=actions_taken,
+        rewards=rewards,
+        alive=alive,
+        success=success,
+        owner=owner,
+        counts=counts.clone(),
+    )
+
+
+class _Record:
+    """The steps taken so far, time-major, in buffers that double as episodes grow (a batch
+    of short episodes never holds a horizon's worth of memory)."""
+
+    START = 64
+
+    def __init__(self, total: int, obs: torch.Tensor, device: torch.device) -> None:
+        self.total, self.device = total, device
+        self.obs = torch.zeros((self.START, *obs.shape), dtype=obs.dtype, device=device)
+        self.actions: torch.Tensor | None = None
+        self.rewards = torch.zeros((self.START, total), dtype=torch.float64, device=device)
+        self.alive = torch.zeros((self.START, total), dtype=torch.bool, device=device)
+
+    def _grow(self, steps: int) -> None:
+        def grown(buffer: torch.Tensor) -> torch.Tensor:
+            bigger = buffer.new_zeros((steps, *buffer.shape[1:]))
+            bigger[: buffer.shape[0]] = buffer
+            return bigger
+
+        self.obs, self.rewards, self.alive = grown(self.obs), grown(self.rewards), grown(self.alive)
+        if self.actions is not None:
+            self.actions = grown(self.actions)
+
+    def add(
+        self,
+        t: int,
+        columns: torch.Tensor | None,
+        obs: torch.Tensor,
+        actions: torch.Tensor,
+        reward: torch.Tensor,
+        running: torch.Tensor,
+    ) -> None:
+        if t >= self.obs.shape[0]:
+            self._grow(2 * self.obs.shape[0])
+        if self.actions is None:
+            self.actions = torch.zeros(
+                (self.obs.shape[0], self.total, *actions.shape[1:]),
+                dtype=actions.dtype,
+                device=self.device,
+            )
+        if columns is None:
+            self.obs[t], self.actions[t], self.rewards[t] = obs, actions, reward
+        else:
+            self.obs[t, columns] = obs[columns]
+            self.actions[t, columns] = actions
+            self.rewards[t, columns] = reward
+        self.alive[t] = running
+
+    def taken(self, steps: int) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+        assert self.actions is not None, "a batch takes at least one step"
+        return self.obs[:steps], self.actions[:steps], self.rewards[:steps], self.alive[:steps]
+
+
+def _random_actions(
+    actions: torch.Tensor,
+    chosen: torch.Tensor,
+    keys: torch.Tensor,
+    step: int,
+    k: int,
+    space: gym.Space | None,
+) -> torch.Tensor:
+    """Uniformly random actions for the columns ``chosen`` (from their own decision draws)."""
+    u = uniforms(keys.unsqueeze(1), (step * k + torch.arange(k, device=keys.device)).unsqueeze(0))
+    if isinstance(space, gym.spaces.Discrete):
+        drawn = (u[:, 0] * int(space.n)).long().clamp_max(int(space.n) - 1) + int(space.start)
+    elif isinstance(space, gym.spaces.Box) and space.is_bounded():
+        low = torch.as_tensor(space.low, dtype=torch.float32, device=keys.device)
+        high = torch.as_tensor(space.high, dtype=torch.float32, device=keys.device)
+        drawn = low + u[:, : low.numel()].reshape(-1, *low.shape) * (high - low)
+    else:
+        raise ValueError(f"random actions need a Discrete or bounded Box space, got {space}")
+    mask = chosen.reshape(-1, *([1] * (actions.dim() - 1)))
+    return torch.where(mask, drawn.to(actions.dtype), actions)
