@@ -1,14 +1,13 @@
-"""How many agents one host trains with its policy maths on a torch device (algo.engine=torch).
+"""How many agents one host trains on a torch device (algo.engine=torch, algo.device).
 
 One agent host's round (CartPole variants of the population, a 16-16 MLP unless
-``--hidden``, every agent training, the counted clock so nothing sleeps) through the numpy
-engine with its policy maths in torch on ``--device``. K doubles from ``--start`` until a
-round takes longer than ``--max-round-s``, memory runs out, or K would pass
+``--hidden``, every agent training, the counted clock so nothing sleeps) on the engine, its
+environments, policies and gradients in torch on ``--device``. K doubles from ``--start``
+until a round takes longer than ``--max-round-s``, memory runs out, or K would pass
 ``--max-agents``; the largest K whose round ended is the figure. Up to ``--compare-up-to``
-agents the same round also runs with the numpy maths and on the compiled engine (the CPU
-default) on this CPU, from the same θ and streams: ratios measured in the same process.
-First, a placement check: whether an agent's θ is bit-identical in any company and on a
-second run, on this device.
+agents the same round also runs on the compiled backend (the CPU default for CartPole) on
+this CPU: ratios measured in the same process. First, a placement check: whether an agent's
+θ is bit-identical in any company and on a second run, on this device.
 
     python -m benchmarks.scale_device --device cuda      # make bench-device
     python -m benchmarks.scale_device --device cpu --start 100 --max-agents 400   # a smoke run
@@ -28,11 +27,10 @@ from pathlib import Path
 import torch
 
 from benchmarks.scale_refs import cpu_description
-from fedhpg.common.batched import batched_group_or_none
 from fedhpg.common.batched.compiled import CompiledFedHPG
-from fedhpg.common.batched.engine import BatchedFedHPG
-from fedhpg.common.batched.maths import device_problem
 from fedhpg.common.config import DEVICE_PATTERN
+from fedhpg.common.engine.devices import device_problem
+from fedhpg.common.group import EngineGroup, make_agent_group
 from fedhpg.common.runtime.cli import compose
 from fedhpg.common.variants import variants_of
 from fedhpg.common.worker import initial_theta
@@ -51,8 +49,6 @@ class Row:
     env_steps: int
     round_s: float
     steps_per_s: float
-    numpy_round_s: float | None
-    """The same round with the numpy maths on this CPU (None: not compared at this K)."""
     compiled_round_s: float | None
     """The same round on the compiled engine, the CPU default for CartPole (None: not
     compared)."""
@@ -67,8 +63,8 @@ def _round(agents: int, engine: str, device: str, hidden: int) -> tuple[int, flo
     run = compose([*OVERRIDES, f"agents.num_agents={agents}", f"algo.engine={engine}",
                    f"algo.device={device}", f"policy.hidden=[{hidden},{hidden}]"])  # fmt: skip
     indices = list(range(agents))
-    group = batched_group_or_none(run, variants_of(run, indices))
-    assert isinstance(group, CompiledFedHPG if engine == "auto" else BatchedFedHPG)
+    group = make_agent_group(run, indices, variants_of(run, indices))
+    assert isinstance(group, CompiledFedHPG if engine == "auto" else EngineGroup)
     group.prepare()
     theta = initial_theta(variants_of(run, [0])[0], run)
     started = time.perf_counter()
@@ -83,8 +79,7 @@ def measure(device: str, start: int, max_agents: int, max_round_s: float,
             compare_up_to: int, hidden: int = 16) -> tuple[list[Row], str]:  # fmt: skip
     """The rows up to the largest K reached, and why the doubling stopped."""
     cuda = device.startswith("cuda")
-    for engine, on in (("torch", device), ("numpy", "cpu")):
-        _round(WARM_UP_AGENTS, engine, on, hidden)
+    _round(WARM_UP_AGENTS, "torch", device, hidden)
     try:  # numba compiles the kernels on a machine whose cache is empty
         _round(WARM_UP_AGENTS, "auto", "cpu", hidden)
         compiled = True
@@ -101,14 +96,12 @@ def measure(device: str, start: int, max_agents: int, max_round_s: float,
         except (torch.OutOfMemoryError, MemoryError) as error:
             return rows, f"K = {agents:,}: out of memory ({type(error).__name__})"
         compared = agents <= compare_up_to
-        numpy_s = _round(agents, "numpy", "cpu", hidden)[1] if compared else None
         compiled_s = _round(agents, "auto", "cpu", hidden)[1] if compared and compiled else None
         rows.append(Row(
             agents=agents,
             env_steps=steps,
             round_s=wall,
             steps_per_s=steps / wall,
-            numpy_round_s=numpy_s,
             compiled_round_s=compiled_s,
             device_peak_mib=torch.cuda.max_memory_allocated() / 2**20 if cuda else None,
             host_peak_mib=resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024,
@@ -122,15 +115,14 @@ def measure(device: str, start: int, max_agents: int, max_round_s: float,
 
 def placement_check(device: str, hidden: int) -> dict[str, bool]:
     """Whether, on ``device``, an agent's θ after a round is bit-identical in any company
-    (alone, in small groups, all nine together) and on a second run: the numpy maths
-    promise both; a device's libraries pick kernels by shape, so there it is measured."""
+    (alone, in small groups, all nine together) and on a second run."""
     run = compose([*OVERRIDES, "agents.num_agents=9", "algo.engine=torch",
                    f"algo.device={device}", f"policy.hidden=[{hidden},{hidden}]"])  # fmt: skip
     theta = initial_theta(variants_of(run, [0])[0], run)
 
     def train(company: list[int]) -> dict[int, torch.Tensor]:
-        group = batched_group_or_none(run, variants_of(run, company))
-        assert isinstance(group, BatchedFedHPG)
+        group = make_agent_group(run, company, variants_of(run, company))
+        assert isinstance(group, EngineGroup)
         return {k: r.theta for k, r in group.train(3, theta, company).items()}
 
     everyone = train(list(range(9)))
@@ -146,20 +138,18 @@ def placement_check(device: str, hidden: int) -> dict[str, bool]:
 
 
 def table(rows: list[Row]) -> str:
-    lines = ["| K | env steps | round (s) | steps/s | numpy maths (s) | compiled (s) "
-             "| torch / numpy | torch / compiled | device peak (MiB) | host peak (MiB) |",
-             "|---|---|---|---|---|---|---|---|---|---|"]  # fmt: skip
+    lines = ["| K | env steps | round (s) | steps/s | compiled (s) | torch / compiled "
+             "| device peak (MiB) | host peak (MiB) |",
+             "|---|---|---|---|---|---|---|---|"]  # fmt: skip
 
     def cell(value: float | None, digits: int = 2) -> str:
         return "—" if value is None else f"{value:.{digits}f}"
 
     for r in rows:
-        vs_numpy = r.round_s / r.numpy_round_s if r.numpy_round_s else None
         vs_compiled = r.round_s / r.compiled_round_s if r.compiled_round_s else None
         lines.append(f"| {r.agents:,} | {r.env_steps:,} | {r.round_s:.2f} | {r.steps_per_s:.3g} "
-                     f"| {cell(r.numpy_round_s)} | {cell(r.compiled_round_s)} | {cell(vs_numpy)} "
-                     f"| {cell(vs_compiled)} | {cell(r.device_peak_mib, 0)} "
-                     f"| {r.host_peak_mib:.0f} |")  # fmt: skip
+                     f"| {cell(r.compiled_round_s)} | {cell(vs_compiled)} "
+                     f"| {cell(r.device_peak_mib, 0)} | {r.host_peak_mib:.0f} |")  # fmt: skip
     return "\n".join(lines)
 
 
@@ -178,7 +168,7 @@ def main(argv: list[str] | None = None) -> None:
         sys.exit("error: need 1 <= --start <= --max-agents and --hidden >= 1")
     if DEVICE_PATTERN.fullmatch(args.device) is None:
         sys.exit(f"error: --device: got {args.device!r}, allowed: cpu, cuda, cuda:N")
-    problem = device_problem("torch", args.device)
+    problem = device_problem(args.device)
     if problem is not None:
         sys.exit(f"error: --device: {problem}")
     torch.set_num_threads(1)

@@ -149,6 +149,34 @@ def theorem1_terms(
     )
 
 
+def bound_stats(moments: GradientMoments) -> dict[str, float]:
+    """The names under which an agent reports :class:`GradientMoments` (``algorithm`` stats)."""
+    return {
+        "bound_variance": moments.variance,
+        "bound_second_moment": moments.second_moment,
+        "bound_grad_norm_sq": moments.grad_norm_sq,
+    }
+
+
+class SmoothnessProbe:
+    """``bound_smoothness``: L̂ from an agent's first two local iterations, the noise-corrected
+    secant between its (unclipped) batch gradients at θ̃ and one step on
+    (:func:`fedhpg.common.bounds.secant_smoothness`); nothing with one local iteration."""
+
+    def __init__(self) -> None:
+        self.points: list[tuple[torch.Tensor, torch.Tensor, float]] = []
+
+    def add(self, theta: torch.Tensor, gradient: torch.Tensor, noise: float) -> None:
+        self.points.append((theta.detach().clone(), gradient.detach().clone(), noise))
+
+    def stats(self) -> dict[str, float]:
+        if len(self.points) < 2:
+            return {}
+        (theta0, g0, n0), (theta1, g1, n1) = self.points[:2]
+        smoothness = secant_smoothness(theta0, theta1, g0, g1, n0, n1)
+        return {} if smoothness is None else {"bound_smoothness": smoothness}
+
+
 class RowBounds:
     """``algo.bound_estimates`` for rows of agents: each row's moments at θ̃ (its first batch)
     and L̂ from the secant between its first two batch gradients (unclipped)."""

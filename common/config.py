@@ -28,7 +28,7 @@ BASELINES: tuple[str, ...] = ("none", "mean")
 REWARD_TO_GO: tuple[str, ...] = ("from_start", "from_step")
 NORMALIZE: tuple[str, ...] = ("none", "batch", "episode")
 OPTIMIZERS = ("sgd", "adam")
-ENGINES = ("auto", "numpy", "torch", "loop")
+ENGINES = ("auto", "torch")
 DEVICE_PATTERN = re.compile(r"cpu|cuda(:\d+)?")
 """``algo.device``: a torch device name the torch engine accepts."""
 ATTACKS = ("none", "zero_gradient", "random_noise", "sign_flip", "reward_flip", "random_action")
@@ -94,17 +94,15 @@ class AlgoConfig:
     params: dict[str, Any] = field(default_factory=dict)
     """The algorithm's own options (its ``Params`` dataclass), e.g. FedHPGVR's ``iw_mode``."""
     engine: str = "auto"
-    """How a process computes its agents' local updates: 'auto' = a batched engine where one
-    covers the run (FedHPG, MLP categorical policy, honest agents: all of the process's agents
-    sampled and differentiated together; compiled with numba on CartPole, numpy elsewhere),
-    else one LocalWorker after another; 'numpy' = the numpy batched engine wherever it covers
-    the run (the engine of runs made before the compiled one); 'torch' = the numpy engine with
-    its policy maths (forwards, draws, gradients) in torch on ``algo.device``, e.g. a CUDA GPU;
-    'loop' = always LocalWorkers. They round floats differently, so the server dictates it;
-    with all but 'torch' an agent's θ does not depend on where it runs (a device library picks
-    its kernels by shape, so under 'torch' the last bits may follow the agent's company)."""
+    """How a process computes its agents' local updates. 'torch': the engine
+    (``common/engine``), every algorithm, policy and family, all of the process's agents
+    sampled and differentiated together in torch on ``algo.device``; 'auto': the same, except
+    FedHPG's honest agents with the MLP categorical policy on CartPole on the CPU, which the
+    compiled numba backend trains (``common/batched``, several times faster there). The two
+    round floats differently, so the server dictates the choice; within either an agent's θ
+    does not depend on where it runs or with whom."""
     device: str = "cpu"
-    """``algo.engine=torch``: the torch device of the policy maths ('cpu', 'cuda', 'cuda:N')."""
+    """The torch device of the engine: 'cpu', 'cuda' or 'cuda:N'."""
     bound_estimates: bool = False
     """Estimate Theorem 1's constants every round (``common/bounds.py``): each agent's σ̂², M̂
     and ‖∇J_k‖² at θ̃ from the per-trajectory gradients of its first local batch, written as
@@ -635,11 +633,6 @@ def _validate_algo(algo: AlgoConfig) -> None:
         isinstance(algo.device, str) and DEVICE_PATTERN.fullmatch(algo.device) is not None,
         "algo.device",
         f"got {algo.device!r}, allowed: cpu, cuda, cuda:N",
-    )
-    _require(
-        algo.device == "cpu" or algo.engine == "torch",
-        "algo.device",
-        f"{algo.device!r} needs algo.engine=torch (got {algo.engine!r})",
     )
     _check_number(algo.step_size, "algo.step_size", low=0.0, low_open=True)
     if algo.grad_clip is not None:

@@ -257,4 +257,4 @@ def clip_rows(gradient: torch.Tensor, max_norm: float | None) -> tuple[torch.Ten
 def clip_by_norm(gradient: torch.Tensor, max_norm: float | None) -> tuple[torch.Tensor, bool]:
     """Scale ``gradient`` down to norm ``max_norm`` (Assumption 3); returns (g, was_clipped)."""
     rows, clipped = clip_rows(gradient.unsqueeze(0), max_norm)
-    return rows[0], bool(clipped[0])
+    return (rows[0], True) if bool(clipped[0]) else (gradient, False)

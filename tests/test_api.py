@@ -48,11 +48,10 @@ def test_a_loaded_policy_reproduces_a_distributed_runs_summary(tmp_path: Path) -
         assert stats.to_json() == summary["eval"][f"agent-{k}"]  # exactly: same streams
     # an earlier evaluation round uses that round's streams: another sample of episodes
     assert api.evaluate(policy, out_dir, agent=0, round=2, episodes=6).episodes == 6
-    # acting: the greedy action is the sampler's, one observation at a time
-    sampler = policy.sampler()
-    states = np.arange(25)
-    greedy = sampler(states, np.random.default_rng(0), True)
-    assert [api.act(policy, s) for s in states] == greedy.tolist()
+    # acting: the greedy action is the policy's, one observation at a time
+    states = torch.arange(25)
+    greedy = policy.act(states, None)
+    assert [api.act(policy, s) for s in range(25)] == greedy.tolist()
     sampled = api.act(policy, 0, greedy=False, rng=np.random.default_rng(1))
     assert sampled in range(4)
 

@@ -4,15 +4,16 @@ magnitudes, and every attack reproducible from the agent's random streams."""
 from __future__ import annotations
 
 import gymnasium as gym
-import numpy as np
 import pytest
 import torch
 
-from fedhpg.common.attacks import corrupt_batch, corrupt_update, random_action_sampler
+from fedhpg.common.attacks import corrupt_rows
 from fedhpg.common.config import AttackConfig
-from fedhpg.common.policies import MLPCategoricalPolicy
-from fedhpg.common.rollout import TrajectoryBatch
+from fedhpg.common.engine.engine import Engine
+from fedhpg.common.engine.sampling import _random_actions
 from fedhpg.common.runtime.cli import compose
+from fedhpg.common.variants import variants_of
+from fedhpg.common.worker import initial_theta
 from fedhpg.server.coordinator import RoundRecord
 from fedhpg.server.pools.inprocess import run_in_process
 
@@ -25,51 +26,70 @@ def test_no_agent_attacks_by_default() -> None:
     assert attack.kind == "none" and attack.agents == []
 
 
+def _sent(kind: str, start: torch.Tensor, honest: torch.Tensor) -> torch.Tensor:
+    attack = AttackConfig(kind=kind, agents=[3])
+    rows = corrupt_rows(attack, start, honest.unsqueeze(0), [3], seed=0, round_index=1)
+    return rows[0]
+
+
 def test_update_attacks_have_fedpg_brs_magnitudes() -> None:
-    attack = AttackConfig(kind="sign_flip", agents=[0])
-    rng = np.random.default_rng(0)
-    assert torch.equal(
-        corrupt_update("zero_gradient", START + 1, HONEST + 1, attack, rng), START + 1
-    )
-    torch.testing.assert_close(
-        corrupt_update("sign_flip", START, HONEST, attack, rng), -2.5 * HONEST
-    )
-    noisy = corrupt_update("random_noise", START, HONEST, attack, rng) - HONEST
+    assert torch.equal(_sent("zero_gradient", START + 1, HONEST + 1), START + 1)
+    torch.testing.assert_close(_sent("sign_flip", START, HONEST), -2.5 * HONEST)
+    noisy = _sent("random_noise", START, HONEST) - HONEST
     spread = float(HONEST.max() - HONEST.min())
     assert float(noisy.abs().max()) <= 3.0 * spread  # U(−1, 1) · 3 · (max − min)
     assert float(noisy.abs().max()) > 0.5 * 3.0 * spread, "and it is that large, not tiny"
+    honest_agent = corrupt_rows(AttackConfig(kind="sign_flip", agents=[3]), START,
+                                HONEST.unsqueeze(0), [2], seed=0, round_index=1)  # fmt: skip
+    assert torch.equal(honest_agent[0], HONEST), "only the listed agents attack"
 
 
-def test_reward_flip_negates_only_the_rewards() -> None:
-    batch = TrajectoryBatch(
-        obs=np.zeros((3, 2, 4), np.float32),
-        actions=np.zeros((3, 2), np.int64),
-        log_probs=np.zeros((3, 2)),
-        rewards=np.arange(6.0).reshape(3, 2),
-        alive=np.ones((3, 2), bool),
-        success=np.zeros(2, bool),
+def _engine(overrides: list[str]) -> Engine:
+    run = compose([
+        "env=cartpole", "algo.engine=torch", "policy.hidden=[8]", "agents.num_agents=2",
+        "agents.budget.batch_size=[4]", "agents.budget.local_iters=[1]", "agents.speeds=[1]",
+        "agents.step_delays_s=[0]", *overrides,
+    ])  # fmt: skip
+    return Engine(run, variants_of(run, [0, 1]))
+
+
+def test_reward_flip_negates_only_the_attackers_rewards() -> None:
+    honest, flipped = (
+        _engine(extra) for extra in ([], ["attack=reward_flip", "attack.agents=[1]"])
     )
-    flipped = corrupt_batch("reward_flip", batch)
-    assert np.array_equal(flipped.rewards, -batch.rewards)
-    assert flipped.obs is batch.obs and corrupt_batch("sign_flip", batch) is batch
+    batches = []
+    for engine in (honest, flipped):
+        rows = engine.begin(1, initial_theta(engine.variants[0], engine.run), [0, 1])
+        batches.append(engine.sample(rows.theta, torch.tensor([3, 3]), iteration=0))
+    clean, attacked = batches
+    torch.testing.assert_close(attacked.rewards[:, 3:], -clean.rewards[:, 3:])
+    assert torch.equal(attacked.rewards[:, :3], clean.rewards[:, :3])
+    assert torch.equal(attacked.obs, clean.obs) and torch.equal(attacked.actions, clean.actions)
 
 
 def test_random_actions_are_uniform_and_scored_by_the_policy() -> None:
-    policy = MLPCategoricalPolicy(obs_dim=4, num_actions=3, hidden=[8])
-    with torch.no_grad():  # a policy that almost always picks action 2
-        policy.net[-1].bias.copy_(torch.tensor([-9.0, -9.0, 9.0]))
-    sampler = random_action_sampler(gym.spaces.Discrete(3), policy.sampler())
-    obs = np.zeros((30_000, 4), np.float32)
-    actions = sampler(obs, np.random.default_rng(1), False)
-    counts = np.bincount(actions, minlength=3) / len(actions)
-    # Uniform: each count within 5 standard errors (√(p(1−p)/n) ≈ 0.0027) of 1/3.
-    assert np.all(np.abs(counts - 1 / 3) < 5 * np.sqrt(2 / 9 / len(actions))), counts
-    np.testing.assert_allclose(
-        sampler.log_prob(obs[:3], actions[:3]), policy.sampler().log_prob(obs[:3], actions[:3])
-    )
-    box = random_action_sampler(gym.spaces.Box(-2.0, 1.0, (2,)), policy.sampler())
-    drawn = box(obs[:1000], np.random.default_rng(2), False)
-    assert drawn.shape == (1000, 2) and drawn.min() >= -2.0 and drawn.max() <= 1.0
+    """An attacker whose policy almost always picks action 1 acts uniformly instead; its
+    gradient is computed for those actions under its policy's log-probabilities."""
+    engine = _engine(["attack=random_action", "attack.agents=[0]"])
+    theta = initial_theta(engine.variants[0], engine.run)
+    rows = engine.begin(1, theta, [0, 1])
+    skewed = rows.theta.clone()
+    skewed[:, -2:] = torch.tensor([-9.0, 9.0])  # the last layer's biases
+    batch = engine.sample(skewed, torch.tensor([400, 400]), iteration=0)
+    actions = batch.actions[batch.alive]
+    owner = batch.owner.expand_as(batch.alive)[batch.alive]
+    attacker = actions[owner == 0].double()
+    honest = actions[owner == 1].double()
+    share = float(attacker.mean())
+    assert abs(share - 0.5) < 5 * (0.25 / len(attacker)) ** 0.5, share
+    assert float(honest.mean()) > 0.99, "the honest agent follows its policy"
+    log_probs = engine.log_probs(skewed, batch)[batch.alive]
+    assert float(log_probs[owner == 0][attacker == 0].max()) < -15, "scored by the policy"
+    box = _random_actions(
+        torch.zeros(1000, 2), torch.ones(1000, dtype=torch.bool), torch.arange(1000), 0, 2,
+        gym.spaces.Box(-2.0, 1.0, (2,)),
+    )  # fmt: skip
+    assert box.shape == (1000, 2) and float(box.min()) >= -2.0 and float(box.max()) <= 1.0
 
 
 @pytest.mark.parametrize(

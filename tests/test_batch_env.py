@@ -9,7 +9,7 @@ import pytest
 import torch
 
 from fedhpg.common.policies import PolicyConfig, make_policy
-from fedhpg.common.rollout import TrajectoryBatch, sample_trajectories
+from oracle import TrajectoryBatch, sample_trajectories
 from fedhpg.envs.gym_adapter import GymLoopBatchEnv, GymVectorBatchEnv
 from fedhpg.envs.gym_variant import GymVariant
 from fedhpg.envs.registry import make_variants

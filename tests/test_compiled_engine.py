@@ -14,18 +14,18 @@ import gymnasium as gym
 import numpy as np
 import pytest
 import torch
+from oracle import TrajectoryBatch, batch_gradient, bound_statistics
 
 from fedhpg.common.batched import batched_group_or_none, kernels
 from fedhpg.common.batched.compiled import CompiledFedHPG, _RowBuffers
 from fedhpg.common.batched.streams import agent_streams, next_double
-from fedhpg.common.bounds import gradient_moments
-from fedhpg.common.local import batch_gradient, bound_statistics, bound_stats
+from fedhpg.common.bounds import bound_stats, gradient_moments
+from fedhpg.common.group import make_agent_group
+from fedhpg.common.optim import AdamAscent
 from fedhpg.common.policies import set_flat_params
-from fedhpg.common.rollout import TrajectoryBatch
 from fedhpg.common.variants import variants_of
 from fedhpg.common.worker import Stream, build_policy, initial_theta
-from fedhpg.envs.compiled import CARTPOLE_DEFAULTS, cartpole_step, cartpole_table
-from fedhpg.envs.multi import CARTPOLE_PHYSICS, CartPoleMulti, make_multi_batch_env
+from fedhpg.envs.compiled import CARTPOLE_DEFAULTS, CARTPOLE_PHYSICS, cartpole_step, cartpole_table
 from fedhpg.server.api import resolve_config
 
 POPULATION = ["env=cartpole", "agents=population", "policy.hidden=[16,16]"]
@@ -105,29 +105,26 @@ def test_cartpole_constants_are_gymnasiums() -> None:
     assert tuple(float(getattr(stock, n)) for n in CARTPOLE_PHYSICS) == CARTPOLE_DEFAULTS
 
 
-def test_cartpole_steps_exactly_like_the_numpy_batch() -> None:
-    """The compiled step and CartPoleMulti from the same states and actions: the same floats
-    and the same ends, for heterogeneous variants, until every copy has ended."""
+def test_cartpole_steps_exactly_like_gymnasium() -> None:
+    """The compiled step and gymnasium's CartPoleEnv (both float64) from the same states and
+    actions: the same floats and the same ends, for heterogeneous variants."""
     run = _run("env.level=1.0", agents=4)
     variants = [variants_of(run, [k])[k] for k in range(4)]
-    counts = [3, 1, 4, 2]
-    multi = make_multi_batch_env(variants, counts)
-    assert isinstance(multi, CartPoleMulti)
-    multi.reset(list(range(4)))
-    physics = np.repeat(cartpole_table(variants), counts, axis=0)
-    state = multi.state.T.copy()
-    running = np.ones(multi.num_envs, dtype=bool)
+    physics = cartpole_table(variants)
     rng = np.random.default_rng(1)
     compared = 0
-    while running.any():
-        actions = rng.integers(0, 2, multi.num_envs)
-        step = multi.step(actions)
-        for c in np.flatnonzero(running):
-            terminated = cartpole_step(state, c, physics[c], int(actions[c]))
-            assert np.array_equal(state[c].astype(np.float32), step.obs[c])
-            assert terminated == step.terminated[c]
+    for k, variant in enumerate(variants):
+        env = variant.make_env().unwrapped
+        env.reset(seed=k)
+        state = np.asarray(env.state, dtype=np.float64)[None].copy()
+        ended = False
+        while not ended:
+            action = int(rng.integers(0, 2))
+            _, _, ended, _, _ = env.step(action)
+            terminated = cartpole_step(state, 0, physics[k], action)
+            assert np.array_equal(state[0], np.asarray(env.state, dtype=np.float64))
+            assert terminated == ended
             compared += 1
-        running &= ~(step.terminated | step.truncated)
     assert compared > 50
 
 
@@ -321,19 +318,19 @@ def test_the_gradient_and_bound_figures_are_autograds(settings) -> None:
                 assert ours[name] == pytest.approx(value, rel=1e-4, abs=1e-6), name
 
 
-def test_adam_and_clipping_are_the_numpy_engines_steps() -> None:
-    from fedhpg.common.batched.engine import ascend
-
+def test_adam_and_clipping_are_the_engines_steps() -> None:
+    """The kernel's Adam is the engine's (common/optim.py's rows of Adams), step by step."""
     rng = np.random.default_rng(3)
-    theta = rng.normal(0, 1, (1, 50)).astype(np.float32)
-    first, second = np.zeros_like(theta), np.zeros_like(theta)
-    ours = theta[0].copy()
+    theta = rng.normal(0, 1, 50).astype(np.float32)
+    adam = AdamAscent(0.01)
+    reference = torch.from_numpy(theta.copy()).unsqueeze(0)
+    ours = theta.copy()
     our_first, our_second = np.zeros(50, np.float32), np.zeros(50, np.float32)
     for done in range(4):
-        gradient = rng.normal(0, 1, (1, 50)).astype(np.float32)
-        ascend("adam", 0.01, theta, gradient, (first, second), np.array([done]))
-        kernels.ascend(ours, gradient[0], our_first, our_second, 1, 0.01, done)
-        np.testing.assert_allclose(ours, theta[0], rtol=1e-6, atol=1e-7)
+        gradient = rng.normal(0, 1, 50).astype(np.float32)
+        reference += adam.direction(torch.from_numpy(gradient).unsqueeze(0))
+        kernels.ascend(ours, gradient, our_first, our_second, 1, 0.01, done)
+        np.testing.assert_allclose(ours, reference[0].numpy(), rtol=1e-6, atol=1e-7)
     run = _run("algo.grad_clip=0.5", "algo.optimizer=sgd", "algo.step_size=1.0", agents=4)
     start = initial_theta(variants_of(run, [0])[0], run)
     engine = _engine(run, range(4))
@@ -344,20 +341,20 @@ def test_adam_and_clipping_are_the_numpy_engines_steps() -> None:
         assert float((result.theta - start).norm()) <= 0.5 * iterations + 1e-5
 
 
-def test_episode_statistics_match_the_numpy_engine() -> None:
-    """The same θ̃_0 and population, 300 agents: the compiled and numpy engines' mean
-    training episode length agree within four standard errors (their random numbers differ,
-    their distributions must not)."""
+def test_episode_statistics_match_the_torch_engine() -> None:
+    """The same θ̃_0 and population, 300 agents: the compiled backend's and the torch engine's
+    mean training episode length agree within four standard errors (their random numbers
+    differ, their distributions must not)."""
     run = _run(agents=300)
     theta = initial_theta(variants_of(run, [0])[0], run)
     lengths = {}
-    for engine in ("auto", "numpy"):
+    for engine in ("auto", "torch"):
         engine_run = _run(f"algo.engine={engine}", agents=300)
-        group = batched_group_or_none(engine_run, variants_of(engine_run, range(300)))
+        group = make_agent_group(engine_run, list(range(300)))
         results = group.train(0, theta, list(range(300)))
         per_episode = [r.stats.train_return for r in results.values()]
         lengths[engine] = (np.mean(per_episode), np.std(per_episode) / math.sqrt(300))
-    (ours, se_ours), (theirs, se_theirs) = lengths["auto"], lengths["numpy"]
+    (ours, se_ours), (theirs, se_theirs) = lengths["auto"], lengths["torch"]
     assert abs(ours - theirs) < 4 * math.hypot(se_ours, se_theirs), lengths
 
 

@@ -20,13 +20,13 @@ import pytest
 import torch
 from procs import processes, start
 
-from fedhpg.common.components import agent_profile
 from fedhpg.common.config import ConfigError, RunConfig, validate
 from fedhpg.common.device import GRAD_PARAMS_UNIT, DeviceColumns, DeviceModel, message_bytes
+from fedhpg.common.group import make_agent_group
 from fedhpg.common.round_columns import IterationColumns
 from fedhpg.common.runtime.cli import compose
 from fedhpg.common.variants import run_variants
-from fedhpg.common.worker import IterationWork, LocalWorker
+from fedhpg.common.worker import IterationWork, initial_theta
 from fedhpg.server.coordinator import RoundRecord
 from fedhpg.server.pools.inprocess import run_in_process
 
@@ -133,14 +133,13 @@ def test_gradient_steps_are_counted_per_iteration(algo: str, gradients_per_step:
     """FedHPG differentiates each batch once; a FedHPGVR step differentiates its mini-batch at
     θ and at the snapshot (its iteration 0, the snapshot's large batch, once)."""
     run = compose(_overrides(algo))
-    variant = run_variants(run)[0]
-    worker = LocalWorker(index=0, variant=variant, run=run, profile=agent_profile(run, 0))
+    group = make_agent_group(run, [0])
     work: list[IterationWork] = []
     try:
-        theta = torch.nn.utils.parameters_to_vector(worker.policy.parameters()).detach()
-        worker.train(1, theta, on_iteration=work.append)
+        theta = initial_theta(run_variants(run)[0], run)
+        group.train(1, theta, [0], on_iteration=lambda _, w: work.append(w))
     finally:
-        worker.close()
+        group.close()
     assert len(work) >= 2 and all(w.env_steps > 0 for w in work)
     for w in work:
         per_step = 1 if (algo == "fedhpgvr" and w.iteration == 0) else gradients_per_step

@@ -1,15 +1,16 @@
-"""Whether this machine can run ``algo.engine=torch`` on ``algo.device=cuda…``, asked the
+"""Whether this machine can run the engine on ``algo.device=cuda…``, asked the
 way CUDA allows: the process that forks the agents (``fedhpg-run``'s launcher,
 ``api.run(distributed=True)``) never asks CUDA itself, since CUDA refuses every process forked
-after its parent used it; a fresh interpreter asks instead (common/batched/maths.py)."""
+after its parent used it; a fresh interpreter asks instead (common/engine/devices.py)."""
 
 from __future__ import annotations
 
 import pytest
 import torch
 
-from fedhpg.common.batched.maths import DeviceUnavailable, maths_for
 from fedhpg.common.config import ConfigError
+from fedhpg.common.engine import devices as maths
+from fedhpg.common.engine.devices import DeviceUnavailable, check_device
 from fedhpg.server import api
 from fedhpg.server.api import resolve_config
 
@@ -37,7 +38,6 @@ def test_the_launcher_checks_the_device_without_touching_cuda(
 ) -> None:
     # CUDA refuses a process forked after its parent asked it anything (torch poisons the
     # fork), and fedhpg-run forks the agents after its checks: a fresh interpreter asks
-    from fedhpg.common.batched import maths
     from fedhpg.server.launcher import check_launch
 
     maths.cuda_devices_in_a_fresh_process.cache_clear()
@@ -51,8 +51,6 @@ def test_the_launcher_checks_the_device_without_touching_cuda(
 
 
 def test_the_device_count_decides_the_device(monkeypatch: pytest.MonkeyPatch) -> None:
-    from fedhpg.common.batched import maths
-
     for count, device, problem in [
         (2, "cuda:1", None),
         (2, "cuda", None),
@@ -64,21 +62,18 @@ def test_the_device_count_decides_the_device(monkeypatch: pytest.MonkeyPatch) ->
         monkeypatch.setattr(maths, "cuda_devices_in_a_fresh_process", lambda c=count: c)
         monkeypatch.setattr(maths, "cuda_devices_here", lambda c=count: c)
         for before_fork in (True, False):
-            assert maths.device_problem("torch", device, before_fork=before_fork) == problem
-    assert maths.device_problem("numpy", "cuda:7") is None
-    assert maths.device_problem("torch", "cpu", before_fork=True) is None
+            assert maths.device_problem(device, before_fork=before_fork) == problem
+    assert maths.device_problem("cpu", before_fork=True) is None
 
 
 def test_cuda_used_before_a_fork_is_one_line_on_both_sides(monkeypatch: pytest.MonkeyPatch) -> None:
-    from fedhpg.common.batched import maths
-
     monkeypatch.setattr(maths, "cuda_devices_in_a_fresh_process", lambda: 1)
     monkeypatch.setattr(maths, "cuda_devices_here", lambda: 1)
     monkeypatch.setattr(torch.cuda, "is_initialized", lambda: True)
-    assert maths.device_problem("torch", "cuda", before_fork=True) == (
+    assert maths.device_problem("cuda", before_fork=True) == (
         "'cuda': this process has already used CUDA, so the agents it forks could not: "
         "start the federation from a process that has not"
     )
     monkeypatch.setattr(torch.cuda, "_is_in_bad_fork", lambda: True, raising=False)
     with pytest.raises(DeviceUnavailable, match=r"^algo.device: 'cuda': this process was forked"):
-        maths_for("torch", "cuda")
+        check_device("cuda")

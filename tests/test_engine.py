@@ -14,12 +14,12 @@
 from __future__ import annotations
 
 import dataclasses
-from dataclasses import dataclass
 
 import gymnasium as gym
 import numpy as np
 import pytest
 import torch
+from engine_mdp import mdp_engine
 from tabular_mdp import HORIZON as TABULAR_HORIZON
 from tabular_mdp import TabularMDPBatchEnv, exact_gradient, seeded_policy
 
@@ -29,7 +29,7 @@ from fedhpg.common.group import EngineGroup
 from fedhpg.common.runtime.cli import compose
 from fedhpg.common.variants import variants_of
 from fedhpg.common.worker import initial_theta
-from fedhpg.envs.base import BatchEnv, BatchStep, EnvVariant
+from fedhpg.envs.base import BatchStep
 
 ROWS = 3000
 BATCH = 8
@@ -91,39 +91,14 @@ class _NoTerminalBatchEnv:
         pass
 
 
-@dataclass(frozen=True, kw_only=True)
-class _TabularVariant(EnvVariant):
-    """A tabular MDP as an agent's variant (the engine's gymnasium path)."""
-
-    terminal: bool = True
-
-    def make_batch_env(self, num_envs: int) -> BatchEnv:
-        return TabularMDPBatchEnv(num_envs) if self.terminal else _NoTerminalBatchEnv(num_envs)
-
-    def make_env(self, *, render_mode: str | None = None) -> gym.Env:
-        batch = self.make_batch_env(1)
-        env = gym.Env()
-        env.observation_space = batch.single_observation_space
-        env.action_space = batch.single_action_space
-        return env
-
-    @property
-    def max_episode_steps(self) -> int:
-        return TABULAR_HORIZON if self.terminal else _NoTerminal.HORIZON
-
-
 def _engine(
     estimator: str, baseline: str, gamma: float, rows: int, terminal: bool = True
 ) -> Engine:
-    run = compose(
-        [
-            f"algo.estimator={estimator}", f"algo.baseline={baseline}", f"env.gamma={gamma}",
-            f"agents.num_agents={rows}", "agents.budget.batch_size=[8]",
-            "agents.budget.local_iters=[1]", "agents.speeds=[1]", "agents.step_delays_s=[0]",
-        ]
-    )  # fmt: skip
-    variant = _TabularVariant(family="tabular", index=0, gamma=gamma, terminal=terminal)
-    return Engine(run, dict.fromkeys(range(rows), variant))
+    if terminal:
+        return mdp_engine(TabularMDPBatchEnv, TABULAR_HORIZON, rows, gamma=gamma,
+                          estimator=estimator, baseline=baseline)  # fmt: skip
+    return mdp_engine(_NoTerminalBatchEnv, _NoTerminal.HORIZON, rows, gamma=gamma,
+                      estimator=estimator, baseline=baseline)  # fmt: skip
 
 
 @pytest.mark.parametrize("terminal", [True, False], ids=["terminal", "no-terminal"])
@@ -205,7 +180,9 @@ VR_BUDGETS = [
 PLACEMENT_RUNS = {
     "fedhpg-gridworld": ["algo=fedhpg", *FEDHPG_BUDGETS],
     "fedhpgvr-gridworld": ["algo=fedhpgvr", *VR_BUDGETS],
-    "fedpgbr-cartpole": ["env=cartpole", "algo=fedpgbr", "strategy=fedpgbr", "algo.engine=torch", *FEDHPG_BUDGETS],
+    "fedpgbr-cartpole": [
+        "env=cartpole", "algo=fedpgbr", "strategy=fedpgbr", "algo.engine=torch", *FEDHPG_BUDGETS,
+    ],
     "fedhpg-cartpole-torch": [
         "env=cartpole", "algo.engine=torch", "policy.hidden=[8]", *FEDHPG_BUDGETS,
     ],

@@ -18,6 +18,7 @@ from collections.abc import Callable
 import numpy as np
 import pytest
 import torch
+from oracle import sample_trajectories
 from tabular_mdp import (
     HORIZON,
     CoefficientFn,
@@ -27,7 +28,6 @@ from tabular_mdp import (
     exact_gradient,
     seeded_policy,
 )
-from test_batched_engine import _agent_batch, _run, _three_agents_away_from_the_start
 from test_estimators_exact import (
     Z_BROKEN,
     Z_LIMIT,
@@ -38,16 +38,17 @@ from test_estimators_exact import (
     max_standard_errors,
 )
 
-from fedhpg.common.batched.sampler import Batches
 from fedhpg.common.config import ConfigError
+from fedhpg.common.engine.engine import Engine
 from fedhpg.common.estimators import (
+    estimate_gradient,
     estimator_coefficients,
     normalize_coefficients,
     per_trajectory_gradients,
 )
-from fedhpg.common.local import batch_gradient
-from fedhpg.common.policies import TabularSoftmaxPolicy
-from fedhpg.common.rollout import sample_trajectories
+from fedhpg.common.policies import TabularSoftmaxPolicy, set_flat_params
+from fedhpg.common.variants import variants_of
+from fedhpg.common.worker import build_policy, initial_theta
 from fedhpg.server.api import resolve_config
 
 GAMMA = 0.9
@@ -265,16 +266,33 @@ def test_bias_figures(estimates: Callable[..., torch.Tensor], exact: torch.Tenso
     ],
     ids=["from_step", "batch", "episode", "from_step-batch-nobaseline", "reinforce-batch"],
 )
-def test_the_engines_gradient_is_the_loops_with_the_options(options: tuple[str, ...]) -> None:
-    run = _run(*options, agents=3)
-    engine, policy, layers, batches = _three_agents_away_from_the_start(run)
-    gradient = engine._gradient(Batches.of(batches), layers, [0, 1, 2])
+def test_the_engines_gradient_is_the_oracles_with_the_options(options: tuple[str, ...]) -> None:
+    """Three CartPole agents with other batch sizes side by side: each row's gradient with the
+    option is the per-agent autograd oracle's on that row's own trajectories."""
+    run = resolve_config(overrides=[
+        "env=cartpole", "algo.engine=torch", "policy.hidden=[8]", "agents.num_agents=3",
+        "agents.budget.batch_size=[4,6,5]", "agents.speeds=[1]", "agents.step_delays_s=[0]",
+        "env.horizon=80", *options,
+    ])  # fmt: skip
+    engine = Engine(run, variants_of(run, [0, 1, 2]))
+    rows = engine.begin(2, initial_theta(engine.variants[0], run), [0, 1, 2])
+    generator = torch.Generator().manual_seed(4)
+    theta = rows.theta + 0.3 * torch.randn(rows.theta.shape, generator=generator)
+    batch = engine.sample(theta, torch.tensor([4, 6, 5]), iteration=0)
+    gradient = engine.mean_gradients(theta, batch)
+    policy = build_policy(engine.variants[0], run)
     for a in range(3):
-        batch = _agent_batch(batches, a)
-        reference = batch_gradient(policy, batch, algo=run.algo, gamma=engine.gammas[a]).numpy()
-        scale = np.abs(reference).max()
+        mine = batch.owner == a
+        set_flat_params(policy, theta[a])
+        coef = estimator_coefficients(
+            run.algo.estimator, batch.rewards[:, mine], batch.alive[:, mine],  # type: ignore[arg-type]
+            gamma=engine.gamma(a), baseline=run.algo.baseline,  # type: ignore[arg-type]
+            reward_to_go=run.algo.reward_to_go, normalize=run.algo.normalize,  # type: ignore[arg-type]
+        )  # fmt: skip
+        reference = estimate_gradient(policy, batch.obs[:, mine], batch.actions[:, mine], coef)
+        scale = float(reference.abs().max())
         assert scale > 0
-        np.testing.assert_allclose(gradient[a], reference, rtol=0, atol=2e-5 * scale)
+        torch.testing.assert_close(gradient[a], reference, rtol=0, atol=2e-5 * scale)
 
 
 # -- combinations that make no sense are one-line config errors --------------------------------

@@ -49,7 +49,7 @@ from fedhpg.common.estimators import (
     reinforce_coefficients,
 )
 from fedhpg.common.policies import TabularSoftmaxPolicy
-from fedhpg.common.rollout import TrajectoryBatch, sample_trajectories
+from oracle import TrajectoryBatch, sample_trajectories
 
 GAMMA = 0.9
 GAMMAS = (0.9, 1.0)

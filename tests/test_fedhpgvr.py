@@ -1,10 +1,9 @@
-"""FedHPGVR (Algorithm 2): importance weights and the semi-stochastic gradient."""
+"""FedHPGVR's semi-stochastic gradient on the engine: at the snapshot the weights are exactly 1
+and v is μ; off it the weights are the trajectories' probability ratios; clipping and
+self-normalisation do what they say, per agent."""
 
 from __future__ import annotations
 
-import copy
-
-import numpy as np
 import pytest
 import torch
 
@@ -13,79 +12,75 @@ from fedhpg.common.algorithms.fedhpgvr import (
     importance_weights,
     semi_stochastic_gradient,
 )
-from fedhpg.common.config import AlgoConfig
-from fedhpg.common.importance import clip_weights, self_normalise
-from fedhpg.common.local import batch_gradient
-from fedhpg.common.policies import MLPCategoricalPolicy
-from fedhpg.common.rollout import sample_trajectories
-from fedhpg.envs.gym_adapter import GymVectorBatchEnv
+from fedhpg.common.engine.engine import Engine
+from fedhpg.common.importance import self_normalise
+from fedhpg.common.runtime.cli import compose
+from fedhpg.common.variants import variants_of
+from fedhpg.common.worker import initial_theta
 
 
-@pytest.fixture(scope="module")
-def cartpole_batch():
-    torch.manual_seed(0)
-    policy = MLPCategoricalPolicy(obs_dim=4, num_actions=2, hidden=[16])
-    env = GymVectorBatchEnv("CartPole-v1", 8)
-    batch = sample_trajectories(env, policy, np.random.default_rng(0), horizon=200)
-    env.close()
-    return policy, batch
+def _cartpole(estimator: str = "gpomdp") -> tuple[Engine, torch.Tensor, object]:
+    run = compose([
+        "env=cartpole", "algo=fedhpgvr", "algo.engine=torch", f"algo.estimator={estimator}",
+        "policy.hidden=[16]", "agents.num_agents=3", "agents.budget.batch_size=[8]",
+        "agents.speeds=[1]", "agents.step_delays_s=[0]", "env.horizon=200",
+    ])  # fmt: skip
+    engine = Engine(run, variants_of(run, [0, 1, 2]))
+    rows = engine.begin(1, initial_theta(engine.variants[0], run), [0, 1, 2])
+    theta = rows.theta + 0.2 * torch.randn(
+        rows.theta.shape, generator=torch.Generator().manual_seed(0)
+    )
+    batch = engine.sample(theta, torch.tensor([8, 5, 6]), iteration=1)
+    return engine, theta, batch
 
 
 @pytest.mark.parametrize(
     ("estimator", "mode"),
     [("reinforce", "trajectory"), ("gpomdp", "per_decision"), ("gpomdp", "trajectory")],
 )
-def test_at_the_snapshot_weights_are_one_and_v_is_mu(cartpole_batch, estimator, mode) -> None:
-    policy, batch = cartpole_batch
-    snapshot = copy.deepcopy(policy)
-    algo = AlgoConfig(name="fedhpgvr", estimator=estimator)
+def test_at_the_snapshot_weights_are_one_and_v_is_mu(estimator: str, mode: str) -> None:
+    engine, theta, batch = _cartpole(estimator)
     params = FedHPGVRParams(iw_mode=mode)  # type: ignore[arg-type]
-    weights, clipped = importance_weights(snapshot, policy, batch, algo, params)
-    assert torch.equal(weights, torch.ones_like(weights)), "θ_n = θ_0 ⇒ every w is exactly 1"
-    assert clipped == 0.0
-    mu = torch.randn(policy.num_params, generator=torch.Generator().manual_seed(1))
-    v, _, _ = semi_stochastic_gradient(
-        policy, snapshot, batch, mu, algo=algo, params=params, gamma=0.99
-    )
+    weights = importance_weights(engine, theta, theta, batch, params)
+    assert torch.equal(weights.values, torch.ones_like(weights.values)), "θ_n = θ_0 ⇒ w = 1"
+    assert torch.equal(weights.clipped, torch.zeros_like(weights.clipped))
+    mu = torch.randn(theta.shape, generator=torch.Generator().manual_seed(1))
+    v, _ = semi_stochastic_gradient(engine, theta, theta, batch, mu, params)
     # g(τ|θ_n) − 1·g(τ|θ_0) vanishes term by term when θ_n = θ_0.
     torch.testing.assert_close(v, mu, atol=1e-6, rtol=0)
 
 
-def test_weights_move_away_from_one_off_the_snapshot(cartpole_batch) -> None:
-    policy, batch = cartpole_batch
-    snapshot = copy.deepcopy(policy)
-    with torch.no_grad():
-        for p in policy.parameters():
-            p.add_(0.3 * torch.randn_like(p))
-    algo = AlgoConfig(name="fedhpgvr", estimator="reinforce")
-    weights, _ = importance_weights(snapshot, policy, batch, algo, FedHPGVRParams())
-    obs, act = torch.from_numpy(batch.obs), torch.from_numpy(batch.actions)
-    alive = torch.from_numpy(batch.alive)
-    with torch.no_grad():
-        log_ratio = (snapshot.log_prob(obs, act) - policy.log_prob(obs, act)).double()
-    expected = torch.where(alive, log_ratio, 0.0).sum(0).exp()
-    torch.testing.assert_close(weights, expected)
-    assert not torch.allclose(weights, torch.ones_like(weights))
+def test_weights_are_each_rows_probability_ratios() -> None:
+    engine, theta, batch = _cartpole("reinforce")
+    snapshot = theta + 0.3 * torch.randn(theta.shape, generator=torch.Generator().manual_seed(2))
+    weights = importance_weights(engine, theta, snapshot, batch, FedHPGVRParams())
+    log_ratio = engine.log_probs(snapshot, batch) - engine.log_probs(theta, batch)
+    expected = torch.where(batch.alive, log_ratio, 0.0).sum(0).exp()
+    torch.testing.assert_close(weights.values, expected)
+    assert not torch.allclose(weights.values, torch.ones_like(weights.values))
+    clipped = importance_weights(engine, theta, snapshot, batch, FedHPGVRParams(iw_clip=(0.5, 2.0)))
+    torch.testing.assert_close(clipped.values, expected.clamp(0.5, 2.0))
+    changed = (expected.clamp(0.5, 2.0) != expected).double()
+    torch.testing.assert_close(clipped.clipped, batch.per_row(changed) / batch.counts.double())
 
 
-def test_clip_and_self_normalise() -> None:
-    weights = torch.tensor([0.1, 1.0, 5.0, 2.0], dtype=torch.float64)
-    clipped, fraction = clip_weights(weights, [0.5, 2.0])
-    torch.testing.assert_close(clipped, torch.tensor([0.5, 1.0, 2.0, 2.0], dtype=torch.float64))
-    assert fraction == 0.5
-    normalised = self_normalise(weights)
-    torch.testing.assert_close(normalised.mean(), torch.tensor(1.0, dtype=torch.float64))
+def test_self_normalise_averages_to_one_within_each_agent() -> None:
+    weights = torch.tensor([0.1, 1.0, 5.0, 2.0, 3.0], dtype=torch.float64)
+    groups = torch.tensor([0, 0, 0, 1, 1])
+    normalised = self_normalise(weights, groups)
+    torch.testing.assert_close(normalised[:3].mean(), torch.tensor(1.0, dtype=torch.float64))
+    torch.testing.assert_close(normalised[3:].mean(), torch.tensor(1.0, dtype=torch.float64))
     per_step = self_normalise(torch.tensor([[1.0, 3.0], [2.0, 2.0]], dtype=torch.float64))
     torch.testing.assert_close(per_step.mean(dim=-1), torch.ones(2, dtype=torch.float64))
 
 
-def test_self_normalised_correction_is_a_weighted_mean(cartpole_batch) -> None:
-    policy, batch = cartpole_batch
-    algo = AlgoConfig(name="fedhpgvr", estimator="reinforce")
-    weights = torch.tensor([0.5, 1.5, 1.0, 2.0, 0.2, 0.3, 0.4, 2.1], dtype=torch.float64)
-    scaled = batch_gradient(policy, batch, algo=algo, gamma=0.99, weights=self_normalise(weights))
-    unnormalised = batch_gradient(policy, batch, algo=algo, gamma=0.99, weights=weights)
-    # (1/b) Σ (b w_j / Σw) g_j = Σ w_j g_j / Σ w_j = (b / Σw) · (1/b) Σ w_j g_j
-    torch.testing.assert_close(
-        scaled, unnormalised * (8 / weights.sum()).float(), atol=1e-5, rtol=1e-4
+def test_self_normalised_correction_is_a_weighted_mean() -> None:
+    engine, theta, batch = _cartpole("reinforce")
+    weights = (
+        torch.rand(batch.owner.shape, generator=torch.Generator().manual_seed(3)).double() + 0.2
     )
+    scaled = engine.mean_gradients(theta, batch, self_normalise(weights, batch.owner))
+    plain = engine.mean_gradients(theta, batch, weights)
+    # (1/b) Σ (b w_j / Σw) g_j = Σ w_j g_j / Σ w_j = (b / Σw) · (1/b) Σ w_j g_j, per agent
+    factor = batch.counts.double() / batch.per_row(weights)
+    torch.testing.assert_close(scaled, plain * factor.float().unsqueeze(1), atol=1e-5, rtol=1e-4)

@@ -1,28 +1,33 @@
-"""FedHPGVR on the exact tabular MDP: importance weights are the true trajectory-probability
-ratios, the semi-stochastic gradient v is unbiased for ∇J(θ_n), and near the snapshot it has
-less variance than plain GPOMDP on the same number of fresh trajectories."""
+"""FedHPGVR on the exact tabular MDP, through the engine: importance weights are the true
+trajectory-probability ratios, the semi-stochastic gradient v is unbiased for ∇J(θ_n), and
+near the snapshot it has less variance than plain GPOMDP on the same number of trajectories.
+
+Each of DRAWS rows is one agent's independent step: μ from B_k trajectories at θ_0, then v
+from b_k fresh trajectories at θ_n, every row sampled and differentiated in one call.
+"""
 
 from __future__ import annotations
-
-import copy
 
 import numpy as np
 import pytest
 import torch
+from engine_mdp import mdp_engine
 from exact_mdp import (
+    HORIZON,
     Z_LIMIT,
+    ExactMDPBatchEnv,
     exact_gradient,
     make_policy,
     max_standard_errors,
-    sample,
     trajectory_log_probability,
 )
 
-from fedhpg.common.algorithms.fedhpgvr import FedHPGVRParams, importance_weights
-from fedhpg.common.config import AlgoConfig
-from fedhpg.common.estimators import estimator_coefficients, per_trajectory_gradients
-from fedhpg.common.policies import TabularSoftmaxPolicy
-from fedhpg.common.rollout import TrajectoryBatch
+from fedhpg.common.algorithms.fedhpgvr import (
+    FedHPGVRParams,
+    importance_weights,
+    semi_stochastic_gradient,
+)
+from fedhpg.common.engine.engine import Engine
 
 GAMMA = 0.9
 DRAWS = 3000
@@ -30,110 +35,74 @@ SNAPSHOT_BATCH = 16  # B_k
 MINI_BATCH = 4  # b_k
 
 
-def _moved(policy: TabularSoftmaxPolicy, scale: float, seed: int) -> TabularSoftmaxPolicy:
-    moved = copy.deepcopy(policy)
-    with torch.no_grad():
-        moved.logits.add_(
-            scale * torch.randn(moved.logits.shape, generator=torch.Generator().manual_seed(seed))
-        )
-    return moved
+def _logits(scale: float = 0.0, seed: int = 1) -> torch.Tensor:
+    logits = make_policy(seed=0).logits.detach().clone()
+    return logits + scale * torch.randn(logits.shape, generator=torch.Generator().manual_seed(seed))
 
 
-def _group_gradients(
-    policy: TabularSoftmaxPolicy,
-    batch: TrajectoryBatch,
-    group: int,
-    algo: AlgoConfig,
-    weights: torch.Tensor | None = None,
-) -> torch.Tensor:
-    """[G, d]: (1/group) Σ_j w_j g(τ_j | θ) for consecutive groups of trajectories."""
-    rewards, alive = torch.from_numpy(batch.rewards), torch.from_numpy(batch.alive)
-    parts = []
-    for start in range(0, rewards.shape[1], group):
-        cols = slice(start, start + group)
-        w = None if weights is None else weights[..., cols]
-        parts.append(
-            estimator_coefficients(
-                algo.estimator,
-                rewards[:, cols],
-                alive[:, cols],
-                gamma=GAMMA,  # type: ignore[arg-type]
-                baseline=algo.baseline,
-                weights=w,  # type: ignore[arg-type]
-            )
-        )
-    obs, actions = torch.from_numpy(batch.obs), torch.from_numpy(batch.actions)
-    rows = per_trajectory_gradients(policy, obs, actions, torch.cat(parts, dim=1)).double()
-    return rows.reshape(-1, group, rows.shape[1]).mean(dim=1)
+def _engine(estimator: str, baseline: str = "none") -> Engine:
+    return mdp_engine(ExactMDPBatchEnv, HORIZON, DRAWS, gamma=GAMMA, estimator=estimator,
+                      baseline=baseline)  # fmt: skip
 
 
 def _v_draws(
-    algo: AlgoConfig,
-    params: FedHPGVRParams,
-    snapshot: TabularSoftmaxPolicy,
-    current: TabularSoftmaxPolicy,
-    seed: int,
+    engine: Engine, params: FedHPGVRParams, snapshot: torch.Tensor, current: torch.Tensor
 ) -> torch.Tensor:
     """DRAWS independent semi-stochastic gradients v = mean_j[g_n − w g_0] + μ."""
-    mu = _group_gradients(
-        snapshot, sample(snapshot, DRAWS * SNAPSHOT_BATCH, seed), SNAPSHOT_BATCH, algo
+    rows = engine.begin(7, snapshot.reshape(-1), list(range(DRAWS)))
+    theta_0 = rows.theta
+    theta_n = current.reshape(1, -1).repeat(DRAWS, 1)
+    mu = engine.mean_gradients(
+        theta_0, engine.sample(theta_0, torch.full((DRAWS,), SNAPSHOT_BATCH), iteration=0)
     )
-    fresh = sample(current, DRAWS * MINI_BATCH, seed + 1)
-    weights, _ = importance_weights(snapshot, current, fresh, algo, params)
-    current_term = _group_gradients(current, fresh, MINI_BATCH, algo)
-    correction = _group_gradients(snapshot, fresh, MINI_BATCH, algo, weights=weights)
-    return current_term - correction + mu
+    fresh = engine.sample(theta_n, torch.full((DRAWS,), MINI_BATCH), iteration=1)
+    v, _ = semi_stochastic_gradient(engine, theta_n, theta_0, fresh, mu, params)
+    return v.double()
 
 
 def test_weights_are_the_exact_trajectory_probability_ratio() -> None:
-    snapshot = make_policy(seed=0)
-    current = _moved(snapshot, 0.5, seed=1)
-    batch = sample(current, 256, seed=2)
-    algo = AlgoConfig(name="fedhpgvr", estimator="reinforce")
-    weights, _ = importance_weights(
-        snapshot, current, batch, algo, FedHPGVRParams(iw_mode="trajectory")
+    snapshot, current = _logits(), _logits(0.5)
+    engine = _engine("reinforce")
+    rows = engine.begin(3, current.reshape(-1), list(range(64)))
+    batch = engine.sample(rows.theta, torch.full((64,), 4), iteration=0)
+    theta_0 = snapshot.reshape(1, -1).repeat(64, 1)
+    weights = importance_weights(
+        engine, rows.theta, theta_0, batch, FedHPGVRParams(iw_mode="trajectory")
     )
+    obs, actions, alive = (x.numpy() for x in (batch.obs, batch.actions, batch.alive))
     exact = np.exp(
-        trajectory_log_probability(snapshot.logits, batch.obs, batch.actions, batch.alive)
-        - trajectory_log_probability(current.logits, batch.obs, batch.actions, batch.alive)
+        trajectory_log_probability(snapshot, obs, actions, alive)
+        - trajectory_log_probability(current, obs, actions, alive)
     )
-    np.testing.assert_allclose(weights.numpy(), exact, rtol=1e-5)
+    np.testing.assert_allclose(weights.values.numpy(), exact, rtol=1e-5)
     assert np.ptp(exact) > 0.5, "the policies differ enough for the weights to matter"
-
-    per_decision, _ = importance_weights(
-        snapshot,
-        current,
-        batch,
-        AlgoConfig(name="fedhpgvr"),
-        FedHPGVRParams(iw_mode="per_decision"),
+    per_decision = importance_weights(
+        engine, rows.theta, theta_0, batch, FedHPGVRParams(iw_mode="per_decision")
     )
-    np.testing.assert_allclose(per_decision[-1].numpy(), exact, rtol=1e-5)  # w_{0:H-1} = w(τ)
-    assert per_decision.shape == (batch.obs.shape[0], 256)
+    np.testing.assert_allclose(per_decision.final.numpy(), exact, rtol=1e-5)  # w_{0:H-1} = w(τ)
+    assert per_decision.values.shape == batch.alive.shape
 
 
 @pytest.mark.parametrize(
     ("estimator", "mode"), [("reinforce", "trajectory"), ("gpomdp", "per_decision")]
 )
 def test_v_is_unbiased_for_the_gradient_at_theta_n(estimator: str, mode: str) -> None:
-    snapshot = make_policy(seed=0)
-    current = _moved(snapshot, 0.5, seed=1)
-    algo = AlgoConfig(name="fedhpgvr", estimator=estimator, baseline="none")
+    snapshot, current = _logits(), _logits(0.5)
     params = FedHPGVRParams(iw_mode=mode)  # type: ignore[arg-type]
-    draws = _v_draws(algo, params, snapshot, current, seed=10)
-    exact_current = exact_gradient(current.logits, GAMMA)
-    z = max_standard_errors(draws, exact_current)
+    draws = _v_draws(_engine(estimator), params, snapshot, current)
+    z = max_standard_errors(draws, exact_gradient(current, GAMMA))
     assert z < Z_LIMIT, f"{estimator}/{mode}: E[v] is {z:.2f} standard errors from ∇J(θ_n)"
     # ... and not merely close to the snapshot's gradient: the test can tell them apart.
-    assert max_standard_errors(draws, exact_gradient(snapshot.logits, GAMMA)) > Z_LIMIT
+    assert max_standard_errors(draws, exact_gradient(snapshot, GAMMA)) > Z_LIMIT
 
 
 def test_near_the_snapshot_v_has_less_variance_than_plain_gpomdp() -> None:
-    snapshot = make_policy(seed=0)
-    current = _moved(snapshot, 0.05, seed=1)
-    algo = AlgoConfig(name="fedhpgvr", estimator="gpomdp")
-    v = _v_draws(algo, FedHPGVRParams(iw_mode="per_decision"), snapshot, current, seed=20)
-    plain = _group_gradients(
-        current, sample(current, DRAWS * MINI_BATCH, seed=30), MINI_BATCH, algo
-    )
+    snapshot, current = _logits(), _logits(0.05)
+    engine = _engine("gpomdp", baseline="mean")
+    v = _v_draws(engine, FedHPGVRParams(iw_mode="per_decision"), snapshot, current)
+    rows = engine.begin(9, current.reshape(-1), list(range(DRAWS)))
+    plain = engine.mean_gradients(
+        rows.theta, engine.sample(rows.theta, torch.full((DRAWS,), MINI_BATCH), iteration=0)
+    ).double()
     variance_v, variance_plain = float(v.var(0).sum()), float(plain.var(0).sum())
     assert variance_v < variance_plain, (variance_v, variance_plain)

@@ -48,28 +48,31 @@ def test_gaussian_log_prob_matches_normal(mode: str) -> None:
     torch.testing.assert_close(policy.log_prob(obs, act), expected)
 
 
-def test_tabular_sampler_frequencies_follow_policy() -> None:
+def test_tabular_draws_follow_the_policy() -> None:
     policy = TabularSoftmaxPolicy(num_states=2, num_actions=3)
     with torch.no_grad():
         policy.logits.copy_(torch.tensor([[0.0, 1.0, 2.0], [2.0, 0.0, -1.0]]))
     probs = torch.softmax(policy.logits, -1).detach().numpy()
-    sample = policy.sampler()
     n = 200_000
     obs = np.repeat([0, 1], n // 2)
-    actions = sample(obs, np.random.default_rng(0), False)
+    noise = torch.from_numpy(np.random.default_rng(0).random((n, 1))).float()
+    with torch.no_grad():
+        actions = policy.act(torch.from_numpy(obs), noise).numpy()
     for state in (0, 1):
         freq = np.bincount(actions[obs == state], minlength=3) / (n // 2)
         stderr = np.sqrt(probs[state] * (1 - probs[state]) / (n // 2))
         assert np.all(np.abs(freq - probs[state]) < 4 * stderr)
-    greedy = sample(np.array([0, 1]), np.random.default_rng(0), True)
-    np.testing.assert_array_equal(greedy, [2, 0])
+    greedy = policy.act(torch.tensor([0, 1]), None)
+    np.testing.assert_array_equal(greedy.numpy(), [2, 0])
 
 
-def test_gaussian_sampler_moments() -> None:
+def test_gaussian_draws_have_the_policys_moments() -> None:
     torch.manual_seed(0)
     policy = GaussianMLPPolicy(obs_dim=2, act_dim=1, hidden=[4], init_log_std=np.log(0.5))
-    obs = np.zeros((100_000, 2), dtype=np.float32)
-    actions = policy.sampler()(obs, np.random.default_rng(0), False)
+    obs = torch.zeros(100_000, 2)
+    noise = torch.from_numpy(np.random.default_rng(0).random((100_000, 1))).float()
+    with torch.no_grad():
+        actions = policy.act(obs, noise).numpy()
     mean = policy._mean_and_log_std(torch.zeros(1, 2))[0].item()
     assert abs(actions.mean() - mean) < 4 * 0.5 / np.sqrt(len(obs))
     # std of the sample std of n normals ≈ σ / sqrt(2n) = 0.0011: 0.005 is > 4 of those.

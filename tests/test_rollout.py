@@ -1,4 +1,5 @@
-"""The rollout sampler: masking after episode end, counting, one policy call per time step."""
+"""The engine's sampler: masking after episode end, counting, horizons, returns, one policy
+call per time step for every agent's copies, and trajectories that depend on their keys."""
 
 from __future__ import annotations
 
@@ -6,11 +7,12 @@ import gymnasium as gym
 import numpy as np
 import pytest
 import torch
+from engine_mdp import mdp_engine
 
-from fedhpg.common.policies import ActionSampler, MLPCategoricalPolicy, TabularSoftmaxPolicy
-from fedhpg.common.rollout import sample_trajectories
+from fedhpg.common.engine.engine import Engine
+from fedhpg.common.engine.policy_rows import PolicyRows
+from fedhpg.common.randomness import Purpose
 from fedhpg.envs.base import BatchStep
-from fedhpg.envs.gym_adapter import GymVectorBatchEnv
 
 
 class CountdownEnv:
@@ -45,95 +47,60 @@ class CountdownEnv:
         pass
 
 
+def _countdown(rows: int = 1, truncate: bool = False, horizon: int = 10) -> Engine:
+    return mdp_engine(lambda n: CountdownEnv(n, truncate=truncate), horizon, rows, gamma=1.0)
+
+
+def _sample(engine: Engine, counts: list[int], **keywords: object):
+    rows = engine.begin(1, torch.zeros(8), list(range(len(counts))))
+    return engine.sample(rows.theta, torch.tensor(counts), iteration=0, **keywords)
+
+
 @pytest.mark.parametrize("truncate", [False, True])
 def test_steps_after_episode_end_neither_count_nor_leak(truncate: bool) -> None:
-    env = CountdownEnv(4, truncate=truncate)
-    policy = TabularSoftmaxPolicy(num_states=4, num_actions=2)
-    batch = sample_trajectories(env, policy, np.random.default_rng(0), horizon=10)
-
-    np.testing.assert_array_equal(batch.lengths, [1, 2, 3, 4])
-    np.testing.assert_array_equal(batch.returns(), [1.0, 2.0, 3.0, 4.0])
-    assert batch.num_steps == 10
-    assert batch.num_trajectories == 4
+    batch = _sample(_countdown(truncate=truncate), [4])
+    np.testing.assert_array_equal(batch.lengths().numpy(), [1, 2, 3, 4])
+    np.testing.assert_array_equal(batch.returns().numpy(), [1.0, 2.0, 3.0, 4.0])
+    assert int(batch.steps_per_row()[0]) == 10
     assert batch.obs.shape[0] == 4, "sampling stops once every copy is done"
-    assert not batch.log_probs[~batch.alive].any()
-    assert batch.success.all()
+    assert bool(batch.success.all())
 
 
 def test_horizon_cuts_episodes() -> None:
-    batch = sample_trajectories(
-        CountdownEnv(4),
-        TabularSoftmaxPolicy(num_states=4, num_actions=2),
-        np.random.default_rng(0),
-        horizon=2,
-    )
-    np.testing.assert_array_equal(batch.lengths, [1, 2, 2, 2])
-    assert batch.num_steps == 7
-    np.testing.assert_array_equal(batch.success, [True, True, False, False])
+    batch = _sample(_countdown(horizon=2), [4])
+    np.testing.assert_array_equal(batch.lengths().numpy(), [1, 2, 2, 2])
+    assert int(batch.steps_per_row()[0]) == 7
+    np.testing.assert_array_equal(batch.success.numpy(), [True, True, False, False])
 
 
-def test_discounted_returns() -> None:
-    batch = sample_trajectories(
-        CountdownEnv(3),
-        TabularSoftmaxPolicy(num_states=4, num_actions=2),
-        np.random.default_rng(0),
-        horizon=5,
-    )
-    np.testing.assert_allclose(batch.returns(0.5), [1.0, 1.5, 1.75])
+def test_each_row_keeps_its_own_horizon_and_discount() -> None:
+    engine = _countdown(rows=2)
+    rows = engine.begin(1, torch.zeros(8), [0, 1])
+    batch = engine.sample(rows.theta, torch.tensor([3, 3]), iteration=0,
+                          horizons=torch.tensor([2, 5]))  # fmt: skip
+    np.testing.assert_array_equal(batch.lengths().numpy(), [1, 2, 2, 1, 2, 3])
+    discounted = batch.returns(torch.tensor([0.5, 0.5], dtype=torch.float64))
+    np.testing.assert_allclose(discounted.numpy(), [1.0, 1.5, 1.5, 1.0, 1.5, 1.75])
 
 
-def test_one_batched_policy_call_per_time_step() -> None:
-    env = GymVectorBatchEnv("CartPole-v1", 16)
-    policy = MLPCategoricalPolicy(obs_dim=4, num_actions=2)
-    calls: list[int] = []
-    original = policy.sampler
+def test_one_policy_call_per_time_step_for_every_agent(monkeypatch: pytest.MonkeyPatch) -> None:
+    engine = _countdown(rows=3)
+    calls: list[tuple[int, ...]] = []
+    original = PolicyRows.act
 
-    def counting_sampler() -> ActionSampler:
-        inner = original()
+    def counting(self: PolicyRows, theta, obs, noise):  # type: ignore[no-untyped-def]
+        calls.append(tuple(obs.shape))
+        return original(self, theta, obs, noise)
 
-        def act(obs, rng, greedy):
-            calls.append(obs.shape[0])
-            return inner.act(obs, rng, greedy)
-
-        return ActionSampler(act, inner.log_prob)
-
-    policy.sampler = counting_sampler  # type: ignore[method-assign]
-    batch = sample_trajectories(env, policy, np.random.default_rng(1), horizon=500)
+    monkeypatch.setattr(PolicyRows, "act", counting)
+    batch = _sample(engine, [4, 2, 3])
     assert len(calls) == batch.obs.shape[0], "one call per time step"
-    assert set(calls) == {16}, "each call covers all B copies"
-    env.close()
+    assert calls[0] == (3, 4), "all three agents' copies in one call (a [rows, widest] grid)"
 
 
-def test_recorded_log_probs_match_policy() -> None:
-    env = GymVectorBatchEnv("CartPole-v1", 8)
-    torch.manual_seed(0)
-    policy = MLPCategoricalPolicy(obs_dim=4, num_actions=2, hidden=[8])
-    with torch.no_grad():
-        policy.net[-1].weight.normal_()  # a non-uniform policy
-    batch = sample_trajectories(env, policy, np.random.default_rng(2), horizon=50)
-    with torch.no_grad():
-        recomputed = policy.log_prob(torch.from_numpy(batch.obs), torch.from_numpy(batch.actions))
-    np.testing.assert_allclose(
-        batch.log_probs[batch.alive], recomputed.double().numpy()[batch.alive], atol=1e-5
-    )
-    env.close()
-
-
-def test_same_seed_same_batch() -> None:
-    policy = MLPCategoricalPolicy(obs_dim=4, num_actions=2)
-    env = GymVectorBatchEnv("CartPole-v1", 8)
-    first = sample_trajectories(env, policy, np.random.default_rng(3), horizon=100)
-    second = sample_trajectories(env, policy, np.random.default_rng(3), horizon=100)
-    np.testing.assert_array_equal(first.actions, second.actions)
-    np.testing.assert_array_equal(first.rewards, second.rewards)
-    env.close()
-
-
-def test_bad_horizon_is_named() -> None:
-    with pytest.raises(ValueError, match="horizon must be >= 1, got 0"):
-        sample_trajectories(
-            CountdownEnv(2),
-            TabularSoftmaxPolicy(num_states=4, num_actions=2),
-            np.random.default_rng(0),
-            horizon=0,
-        )
+def test_the_same_keys_give_the_same_batch_and_others_another() -> None:
+    engine = mdp_engine(lambda n: CountdownEnv(n), 10, 2, gamma=1.0)
+    first, second = (_sample(engine, [3, 3]) for _ in range(2))
+    assert torch.equal(first.actions, second.actions)
+    evaluation = _sample(engine, [3, 3], purpose=Purpose.EVALUATE)
+    assert not torch.equal(first.actions, evaluation.actions), "another purpose, other draws"

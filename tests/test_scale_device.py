@@ -24,7 +24,7 @@ def test_k_doubles_to_the_cap_with_ratios_and_the_placement_check(tmp_path, caps
     assert [r["agents"] for r in rows] == [15, 30, 60]
     assert result["largest_agents"] == 60 and "--max-agents" in result["stopped"]
     assert all(r["env_steps"] >= 8 * r["agents"] and r["round_s"] > 0 for r in rows)
-    assert [r["numpy_round_s"] is not None for r in rows] == [True, True, False]
+    assert [r["compiled_round_s"] is not None for r in rows] == [True, True, False]
     assert [r["compiled_round_s"] is not None for r in rows] == [True, True, False]
     assert all(r["device_peak_mib"] is None for r in rows), "no CUDA device measured"
     # on the CPU, torch's products keep an agent's θ independent of its company

@@ -49,7 +49,7 @@ def mlp_shape(policy: Policy) -> MLPShape:
 def uses_compiled_engine(run: RunConfig) -> bool:
     """Whether the run's agents train on the compiled backend (so a launcher can compile or
     load its kernels once, before it forks them)."""
-    if run.algo.engine != "auto":
+    if run.algo.engine != "auto" or run.algo.device != "cpu":
         return False
     from fedhpg.common.variants import variants_of
 
@@ -63,7 +63,7 @@ def uses_compiled_engine(run: RunConfig) -> bool:
 
 def batched_group_or_none(run: RunConfig, variants: Mapping[int, EnvVariant]) -> AgentGroup | None:
     """The compiled backend for these agents, or None where it does not apply."""
-    if run.algo.engine != "auto":
+    if run.algo.engine != "auto" or run.algo.device != "cpu":
         return None
     policy = _policy(run, variants)  # one env, for the spaces
     if _unsupported(run, policy) is not None:

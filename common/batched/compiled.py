@@ -22,11 +22,10 @@ from fedhpg.common.batched import kernels
 from fedhpg.common.batched.agents import EngineAgents, Lazy
 from fedhpg.common.batched.mlp import MLPShape
 from fedhpg.common.batched.streams import agent_streams
-from fedhpg.common.bounds import gradient_moments
+from fedhpg.common.bounds import SmoothnessProbe, bound_stats, gradient_moments
 from fedhpg.common.components import planned_budget
 from fedhpg.common.config import RunConfig
 from fedhpg.common.group import Budgets, GroupHook
-from fedhpg.common.local import SmoothnessProbe, bound_stats
 from fedhpg.common.round_columns import Interrupt, IterationColumns, TrainedColumns
 from fedhpg.common.types import EvaluationStats, LocalResult
 from fedhpg.common.worker import IterationWork, Stream

@@ -41,6 +41,24 @@ from fedhpg.common.types import EvaluationStats
 from fedhpg.common.variants import discount, training_horizon
 from fedhpg.envs.base import BatchEnv, EnvVariant
 
+
+@contextmanager
+def one_thread() -> Iterator[None]:
+    """Run the enclosed maths on one CPU thread. Several threads would split reductions (a
+    scatter-add's, a matrix product's) by the thread count, so the floats of an agent would
+    depend on the process's thread setting: an agent process (one thread) and the in-process
+    pool (as many as the machine) must compute the same θ."""
+    threads = torch.get_num_threads()
+    if threads == 1:
+        yield
+        return
+    torch.set_num_threads(1)
+    try:
+        yield
+    finally:
+        torch.set_num_threads(threads)
+
+
 PACKED_ELEMENTS = 1 << 24
 """Elements (tiles × tile steps × parameters) one gradient call holds at once."""
 TILE = 64

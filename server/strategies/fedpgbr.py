@@ -32,7 +32,7 @@ from fedhpg.common.algorithms.fedhpgvr import FedHPGVRParams, semi_stochastic_gr
 from fedhpg.common.algorithms.fedpgbr import FedPGBRParams, round_schedule
 from fedhpg.common.byzantine_filter import byzantine_filter
 from fedhpg.common.config import ConfigError, RunConfig
-from fedhpg.common.engine.engine import Engine
+from fedhpg.common.engine.engine import Engine, one_thread
 from fedhpg.common.optim import AdamAscent
 from fedhpg.common.randomness import Purpose
 from fedhpg.common.registry import OptionError, parse_options
@@ -160,7 +160,8 @@ class FedPGBR(Strategy[FedPGBRStrategyParams]):
         if not kept:
             logger.warning("round %d: the Byzantine filter kept no gradient", round_index)
         mu = gradients[found.kept].mean(dim=0) if kept else None
-        theta_n = self._inner_loop(round_index, theta, mu, plan.inner_steps, side)
+        with one_thread():
+            theta_n = self._inner_loop(round_index, theta, mu, plan.inner_steps, side)
         self.stats = {
             "batch_size": plan.batch_size,
             "inner_steps": plan.inner_steps,
