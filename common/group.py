@@ -79,6 +79,9 @@ class EngineGroup:
     every algorithm, policy and environment family; each agent's numbers depend on it alone,
     so a group of one, a host of 500 and the in-process pool give it the same θ."""
 
+    LARGE_TEMPORARIES = True
+    """Megabytes of buffers every round (common/runtime/memory.py)."""
+
     def __init__(self, run: RunConfig, variants: Mapping[int, EnvVariant]) -> None:
         from fedhpg.common.components import resolve_algorithm
         from fedhpg.common.engine.engine import Engine

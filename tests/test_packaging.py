@@ -1,6 +1,6 @@
-"""The wheel users install (the Docker image installs one) carries every Hydra config file: a
-config group folder missing from pyproject's package list would ship a server that cannot
-compose its defaults."""
+"""The wheel users install (the Docker image installs one) carries every module and every Hydra
+config file: a package or config group folder missing from pyproject's package list would ship
+a server that cannot import itself or compose its defaults."""
 
 from __future__ import annotations
 
@@ -54,3 +54,16 @@ def test_wheel_ships_every_config_file(tmp_path: Path) -> None:
     }
     expected = {p.relative_to(ROOT / "conf").as_posix() for p in (ROOT / "conf").rglob("*.yaml")}
     assert expected and shipped == expected
+    modules = {
+        name.removeprefix("fedhpg/")
+        for name in zipfile.ZipFile(wheel).namelist()
+        if name.startswith("fedhpg/") and name.endswith(".py")
+    }
+    folders = {"common": "common", "envs": "envs", "server": "server", "agent": "agent"}
+    sources = {
+        f"{folder}/{p.relative_to(ROOT / folder).as_posix()}"
+        for folder in folders
+        for p in (ROOT / folder).rglob("*.py")
+        if "__pycache__" not in p.parts
+    }
+    assert sources and sources <= modules, sorted(sources - modules)

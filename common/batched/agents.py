@@ -1,4 +1,4 @@
-"""What both batched engines know of their agents: the run, each agent's variant, budget,
+"""What the compiled backend knows of its agents: the run, each agent's variant, budget,
 discount and horizon (computed on first use: a host of 5,000 agents may see 500 of them in a
 round), and the MLP's shape."""
 

@@ -1,13 +1,13 @@
-"""The compiled engine: FedHPG for a group of CartPole agents with the MLP categorical policy,
-each local iteration of all of them in two numba calls (sample, then learn).
+"""The compiled backend: FedHPG for a group of CartPole agents with the MLP categorical
+policy, each local iteration of all of them in two numba calls (sample, then learn).
 
-It computes what the numpy engine (:mod:`fedhpg.common.batched.engine`) computes — the same
+It computes what the engine (:mod:`fedhpg.common.engine`) computes for FedHPG — the same
 estimators, options, clipping and steps, every agent from its own random stream — an agent
 at a time inside :mod:`fedhpg.common.batched.kernels` instead of all agents in lockstep
-through numpy. The floats differ from the numpy engine's (another tanh, another summation
-order, the random numbers used in another order), so ``algo.engine`` is dictated by the
-server; between placements of one run they never differ, since every process that holds an
-agent runs the same kernel on the same inputs for it.
+through torch. The floats differ from the engine's (another tanh, float64 dynamics, the
+random numbers drawn otherwise), so ``algo.engine`` is dictated by the server; between
+placements of one run they never differ, since every process that holds an agent runs the
+same kernel on the same inputs for it.
 """
 
 from __future__ import annotations

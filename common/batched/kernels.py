@@ -1,9 +1,9 @@
-"""The compiled engine's kernels (numba): sampling, FedHPG's estimators, gradients and steps of
+"""The compiled backend's kernels (numba): sampling, FedHPG's estimators, gradients and steps of
 many agents, an agent at a time, in one call per local iteration and phase.
 
-Why an agent at a time: the numpy engine steps a thousand agents in lockstep to spread each
-numpy call over many copies, and pays for it: copies whose episode ended wait for their
-agent's longest, and a few long episodes carry the per-step cost of ~40 numpy calls. Compiled,
+Why an agent at a time: a tensor engine steps a thousand agents in lockstep to spread each
+call over many copies, and pays for it on a CPU: copies whose episode ended wait for their
+agent's longest, and a few long episodes carry the per-step cost of dozens of calls. Compiled,
 an agent's copies are stepped together (layer by layer over its copies still running, packed
 at the front) until its last episode ends, then the next agent's; its weights and activations
 stay in L1, and nothing an agent computes can depend on another agent: placement invariance
@@ -24,12 +24,12 @@ Numerics:
   ulp (0.07 % off); numpy's float32 tanh is one ulp off for 11 %, torch's for 0.03 %.
   Returning ±1 exactly from |x| ≈ 9.01 on, as the float64 evaluation did, took back half
   the sampler's gain, so it is not done;
-- the estimator's coefficients in float64, as the numpy engine; the gradient summed in
+- the estimator's coefficients in float64, as common/estimators.py; the gradient summed in
   float32 over blocks of :data:`BLOCK` rows, the blocks in float64, rounded to float32 once,
   with LLVM free to reorder and fuse the sums within a block (:data:`GRADIENT_FASTMATH`):
   fixed by the compiled code, so the same in any company and placement on one CPU type, but
   hosts of different CPU types may round the gradient differently;
-- the steps are the numpy engine's ``ascend``, one row.
+- the steps are common/optim.py's plain and Adam steps, one row.
 
 Layouts. θ is torch's flat layout (each ``nn.Linear``: weight [out, in] row-major, then
 bias). Inside a kernel the weights are padded 3-D arrays indexed by loop variables only (a
@@ -288,7 +288,7 @@ def forward_lanes(
 @kernel(inline=True)
 def draw_action(logits: np.ndarray, row: int, n_actions: int, uniform: float,
                 scratch: np.ndarray) -> int:  # fmt: skip
-    """Inverse-CDF categorical draw, one row (the numpy engine's ``draw_actions``)."""
+    """Inverse-CDF categorical draw, one row (common/policies.py's ``categorical_act``)."""
     best = 0
     for j in range(1, n_actions):
         if logits[row, j] > logits[row, best]:
@@ -488,7 +488,7 @@ def coefficients(
     out: np.ndarray,
 ) -> None:
     """One agent's estimator coefficients coef[t, copy] (float64, 0 on dead steps) from its
-    [T, B] rewards (0 past a copy's end): common/batched/coefficients.py's maths, with sums
+    [T, B] rewards (0 past a copy's end): common/estimators.py's maths, with sums
     along time sequential and over copies in copy order."""
     steps, copies = rewards.shape
     values = np.zeros((steps, copies), dtype=np.float64)
@@ -549,7 +549,7 @@ def _subtract_leave_one_out(values: np.ndarray) -> None:
 @kernel()
 def _standardise(coef: np.ndarray, alive: np.ndarray, per_copy: bool) -> None:
     """(c − mean)/(std + ε) over the alive cells of the batch, or of each copy; sums along
-    time per copy first, then over the group's copies (the numpy engine's grouping)."""
+    time per copy first, then over the group's copies."""
     steps, copies = coef.shape
     for group in range(copies if per_copy else 1):
         low, high = (group, group + 1) if per_copy else (0, copies)
@@ -749,7 +749,7 @@ def ascend(
     steps_before: int,
 ) -> None:
     """θ += the ascent direction (float32): plain, or Adam with fresh moments each round
-    (common/batched/engine.py's ``ascend``, one row)."""
+    (common/optim.py's, one row)."""
     step = np.float32(step_size)
     if optimizer == 0:
         for i in range(len(theta)):

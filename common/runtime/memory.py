@@ -33,13 +33,11 @@ ENGINE_MMAP_THRESHOLD = 16 * 2**20
 
 
 def tune_malloc_for(group: object) -> None:
-    """The batched engines allocate temporaries of megabytes every round (the numpy engine's
-    rings, packed chunks and activations every local iteration; both engines' [A, d] rows of
-    θ and the answers stacked from them): mmapped and faulted in each time at the 128 KiB
-    threshold, they doubled the numpy engine's gradient time (CartPole, 500 agents, 500-step
-    episodes: 2.1 s against 1.1 s). Their processes take blocks below 16 MiB from the heap
-    instead, where they are reused; the loop over LocalWorkers keeps the pinned 128 KiB (the
-    fragmentation it guards against came from that loop's rollout buffers)."""
+    """The engines allocate temporaries of megabytes every round (trajectory buffers, packed
+    tiles and activations every local iteration; [A, d] rows of θ and the answers stacked from
+    them): mmapped and faulted in each time at glibc's 128 KiB threshold, they are paid for
+    again every round. Their processes take blocks below 16 MiB from the heap instead, where
+    they are reused."""
     from fedhpg.common.group import SplitGroup
 
     parts = group.parts if isinstance(group, SplitGroup) else (group,)
