@@ -12,10 +12,10 @@ from collections.abc import Callable
 import gymnasium as gym
 import numpy as np
 import torch
+from oracle import TrajectoryBatch, sample_trajectories
 
 from fedhpg.common.estimators import per_trajectory_gradients
 from fedhpg.common.policies import TabularSoftmaxPolicy
-from oracle import TrajectoryBatch, sample_trajectories
 from fedhpg.envs.base import BatchStep
 
 BATCH = 8

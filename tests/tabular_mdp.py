@@ -24,9 +24,9 @@ from dataclasses import dataclass
 import gymnasium as gym
 import numpy as np
 import torch
+from oracle import TrajectoryBatch, sample_trajectories
 
 from fedhpg.common.policies import TabularSoftmaxPolicy
-from oracle import TrajectoryBatch, sample_trajectories
 from fedhpg.envs.base import BatchStep
 
 NUM_STATES = 5  # 0..3 live, 4 terminal (absorbing)

@@ -11,9 +11,9 @@ import gymnasium as gym
 import numpy as np
 import pytest
 import torch
+from oracle import sample_trajectories
 
 from fedhpg.common.policies import GaussianMLPPolicy, PolicyConfig, make_policy
-from oracle import sample_trajectories
 from fedhpg.envs.base import BatchEnv
 from fedhpg.envs.gym_adapter import GymLoopBatchEnv, GymVectorBatchEnv
 from fedhpg.envs.gym_variant import GymVariant

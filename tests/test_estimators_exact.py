@@ -27,6 +27,7 @@ from typing import NamedTuple
 import numpy as np
 import pytest
 import torch
+from oracle import TrajectoryBatch, sample_trajectories
 from tabular_mdp import (
     HORIZON,
     NUM_ACTIONS,
@@ -49,7 +50,6 @@ from fedhpg.common.estimators import (
     reinforce_coefficients,
 )
 from fedhpg.common.policies import TabularSoftmaxPolicy
-from oracle import TrajectoryBatch, sample_trajectories
 
 GAMMA = 0.9
 GAMMAS = (0.9, 1.0)
