@@ -56,7 +56,6 @@ from fedhpg.common.config import ConfigError, RunConfig, ServerConfig, agent_id_
 from fedhpg.common.types import AgentUpdate, EvaluationStats, SavedState, UpdateStats
 from fedhpg.server.bound_report import round_bound
 from fedhpg.server.coordinator import (
-    NON_FINITE,
     Coordinator,
     RoundRecord,
     diverged_message,
@@ -64,6 +63,7 @@ from fedhpg.server.coordinator import (
 )
 from fedhpg.server.pools import FederationError
 from fedhpg.server.pools.inprocess import InProcessPool
+from fedhpg.server.validation import Rejection, diverged, reasons
 
 logger = logging.getLogger(__name__)
 
@@ -113,7 +113,7 @@ class InFlight:
     update: AgentUpdate
     delta: torch.Tensor
     """Δ_k = θ_k − θ̃_version."""
-    problem: str | None = None
+    problem: Rejection | None = None
     """Why the update check rejected it (it arrives, but is not aggregated)."""
 
     def key(self) -> tuple[float, int]:
@@ -219,7 +219,7 @@ class BufferedSchedule:
                     "version": item.version,
                     "dispatch": item.dispatch,
                     "arrival_s": item.arrival_s,
-                    "problem": item.problem,
+                    "problem": None if item.problem is None else item.problem.saved(),
                     "stats": dataclasses.asdict(item.update.stats),
                 }
             )
@@ -259,7 +259,9 @@ class BufferedSchedule:
                     arrival_s=float(flight["arrival_s"]),
                     update=update,
                     delta=torch.from_numpy(state.arrays[f"delta.{agent}"].copy()),
-                    problem=flight["problem"],
+                    problem=None
+                    if flight["problem"] is None
+                    else Rejection.restore(flight["problem"]),
                 )
             )
         return schedule
@@ -302,14 +304,16 @@ class BufferedCoordinator(Coordinator):
                     )
                 )
 
-    def _fill_buffer(self, version: int) -> tuple[list[InFlight], dict[str, int], dict[str, str]]:
+    def _fill_buffer(
+        self, version: int
+    ) -> tuple[list[InFlight], dict[str, int], dict[str, Rejection]]:
         """Arrivals until M accepted ones. A stale agent restarts at once from the newest θ̃; an
         agent whose update is rejected waits for the next θ̃ (:attr:`parked`), so one peer that
         keeps failing costs one rejection per version and never ends the run by itself."""
         assert self.schedule is not None
         buffer: list[InFlight] = []
         stale: dict[str, int] = {}
-        failures: dict[str, str] = {}
+        failures: dict[str, Rejection] = {}
         limit = self.run.server.max_staleness
         while len(buffer) < self.size:
             if len(buffer) + self._outstanding() < self.size:
@@ -333,22 +337,22 @@ class BufferedCoordinator(Coordinator):
             buffer.append(item)
         return buffer, stale, failures
 
-    def _diverged(self, version: int, failures: dict[str, str]) -> str:
-        if all(NON_FINITE in why for why in failures.values()):
+    def _diverged(self, version: int, failures: dict[str, Rejection]) -> str:
+        if diverged(failures):
             return diverged_message(self.run, version)
         share = self.run.server.diverged_share
         return (
             f"round {version}: the updates of {len(failures)} of {self.run.agents.num_agents} "
             f"agents were rejected, more than server.diverged_share={share:g} of them "
-            f"({failures})"
+            f"({reasons(failures)})"
         )
 
-    def _unfillable(self, version: int, accepted: int, failures: dict[str, str]) -> str:
-        if failures and all(NON_FINITE in why for why in failures.values()):
+    def _unfillable(self, version: int, accepted: int, failures: dict[str, Rejection]) -> str:
+        if diverged(failures):
             return diverged_message(self.run, version)
         return (
             f"round {version}: {accepted} updates accepted and no more can come, "
-            f"server.buffer_size={self.size} needed (rejected: {failures})"
+            f"server.buffer_size={self.size} needed (rejected: {reasons(failures)})"
         )
 
     def _outstanding(self) -> int:
@@ -417,7 +421,7 @@ class BufferedCoordinator(Coordinator):
                 agents=[i.update for i in ordered],
                 trajectories_per_agent=progress.trajectories_per_agent,
                 eval=evaluation,
-                failures=failures,
+                failures=reasons(failures),
                 selected=[i.agent for i in ordered],
                 emulated_clock_s=self.schedule.clock_s,
                 staleness=[version - 1 - i.version for i in ordered],

@@ -19,7 +19,7 @@ from fedhpg.server.pools import FederationError
 
 def check_distributed_policy(run: RunConfig) -> None:
     """Refuse what agent processes do not run with a policy: 'buffered' takes lone agent
-    processes only (a host's one TrainBatch cannot carry requests of different rounds)."""
+    processes only (one Train to a host cannot carry requests of different rounds)."""
     if run.server.round_policy != "buffered":
         return
     from fedhpg.server.buffered import validate_buffered

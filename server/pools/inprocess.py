@@ -26,7 +26,7 @@ from fedhpg.envs.base import EnvVariant
 from fedhpg.server.coordinator import Coordinator, RoundCallback, RunProgress
 from fedhpg.server.pools import RoundAnswers
 from fedhpg.server.strategies import make_strategy, validate_strategy
-from fedhpg.server.validation import UpdateCheck
+from fedhpg.server.validation import Rejection, UpdateCheck
 
 logger = logging.getLogger(__name__)
 
@@ -63,7 +63,8 @@ class InProcessPool:
     ) -> RoundAnswers:
         if while_training is not None:  # the agents train on this thread: nothing overlaps
             while_training()
-        updates, failures = [], {}
+        updates: list[AgentUpdate] = []
+        failures: dict[str, Rejection] = {}
         for update, problem in self.checked_updates(round_index, theta, agents, budgets=budgets):
             if problem is None:
                 updates.append(update)
@@ -73,7 +74,9 @@ class InProcessPool:
             return self._at_deadline(updates, failures)
         return RoundAnswers(updates=updates, failures=failures)
 
-    def _at_deadline(self, updates: list[AgentUpdate], failures: dict[str, str]) -> RoundAnswers:
+    def _at_deadline(
+        self, updates: list[AgentUpdate], failures: dict[str, Rejection]
+    ) -> RoundAnswers:
         """The deadline policy on the emulated clock (nothing here waits on the wall clock):
         the round closes at ``round_deadline_s`` emulated seconds, or later when fewer than
         ``min_agents`` updates had arrived by then, at the arrival that makes them enough;
@@ -93,7 +96,7 @@ class InProcessPool:
         agents: Sequence[int],
         *,
         budgets: Mapping[int, Mapping[str, int]] | None = None,
-    ) -> list[tuple[AgentUpdate, str | None]]:
+    ) -> list[tuple[AgentUpdate, Rejection | None]]:
         """Every selected agent's update of ``round_index`` from θ̃, in agent order, with why
         the update check rejects it (None: accepted)."""
         broadcast = theta.detach().numpy()
@@ -119,7 +122,7 @@ class InProcessPool:
         results = self.group.train(
             round_index, theta, selected, on_iteration=on_iteration, budgets=budgets
         )
-        checked: list[tuple[AgentUpdate, str | None]] = []
+        checked: list[tuple[AgentUpdate, Rejection | None]] = []
         for k in selected:
             update = self._update(k, round_index, results[k], message)
             problem = self.check.problem(update.theta.numpy(), update.stats, broadcast)
