@@ -47,12 +47,12 @@ import math
 import time
 from collections.abc import Sequence
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, Protocol
 
 import numpy as np
 import torch
 
-from fedhpg.common.config import ConfigError, RunConfig, ServerConfig, agent_id_of
+from fedhpg.common.config import RunConfig, ServerConfig, agent_id_of
 from fedhpg.common.types import AgentUpdate, EvaluationStats, SavedState, UpdateStats
 from fedhpg.server.bound_report import round_bound
 from fedhpg.server.coordinator import (
@@ -62,7 +62,6 @@ from fedhpg.server.coordinator import (
     should_evaluate,
 )
 from fedhpg.server.pools import FederationError
-from fedhpg.server.pools.inprocess import InProcessPool
 from fedhpg.server.validation import Rejection, diverged, reasons
 
 logger = logging.getLogger(__name__)
@@ -79,25 +78,6 @@ def staleness_weight(server: ServerConfig, staleness: int) -> float:
     if server.staleness_weight == "constant":
         return 1.0
     return 1.0 / math.sqrt(1.0 + staleness)
-
-
-def validate_buffered(run: RunConfig) -> None:
-    """What the buffered policy cannot combine with (config.py checks the keys' own ranges)."""
-    if run.server.round_policy != "buffered":
-        return
-    if run.strategy.participation.mode != "all":
-        raise ConfigError(
-            "strategy.participation.mode",
-            f"got {run.strategy.participation.mode!r}; server.round_policy=buffered keeps every "
-            "agent busy (each restarts as soon as it is aggregated): use 'all'",
-        )
-    if run.strategy.name == "fedpgbr":
-        # FedPG-BR's filter and SCSG loop need every agent's gradient at one θ̃ each round
-        raise ConfigError(
-            "server.round_policy",
-            "got 'buffered'; strategy=fedpgbr filters and steps from every agent's gradient at "
-            "one θ̃: use wait_all",
-        )
 
 
 @dataclass(kw_only=True)
@@ -267,10 +247,22 @@ class BufferedSchedule:
         return schedule
 
 
+class CheckingPool(Protocol):
+    """A pool whose updates are computed at once, checked (the in-process pool)."""
+
+    def checked_updates(
+        self, round_index: int, theta: torch.Tensor, agents: Sequence[int]
+    ) -> list[tuple[AgentUpdate, Rejection | None]]: ...
+
+    def evaluate(
+        self, round_index: int, theta: torch.Tensor, episodes: int
+    ) -> dict[str, EvaluationStats]: ...
+
+
 class BufferedCoordinator(Coordinator):
     """The round loop of :mod:`fedhpg.server.buffered` over the in-process pool."""
 
-    pool: InProcessPool
+    pool: CheckingPool  # type: ignore[assignment]
 
     def __init__(self, **kwargs: Any) -> None:
         super().__init__(**kwargs)
@@ -378,7 +370,7 @@ class BufferedCoordinator(Coordinator):
         return self.schedule.pop()
 
     def _agents(self) -> Sequence[int]:
-        return self.pool.group.indices
+        return range(self.run.agents.num_agents)
 
     def _restart(self, version: int, agents: Sequence[int]) -> None:
         """Restart ``agents`` (the aggregated and the parked ones) from the new θ̃ (version

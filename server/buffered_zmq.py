@@ -64,9 +64,6 @@ class ZmqBufferedCoordinator(BufferedCoordinator):
         self._waiting: list[int] = []
         """Agents aggregated into a version being evaluated: restarted after it."""
 
-    def _agents(self) -> Sequence[int]:
-        return range(self.run.agents.num_agents)
-
     def _dispatch(self, agents: Sequence[int], version: int, at_s: float) -> None:
         assert self.schedule is not None
         requests = []

@@ -13,8 +13,8 @@ from fedhpg.common.config import AttackConfig
 from fedhpg.common.policies import MLPCategoricalPolicy
 from fedhpg.common.rollout import TrajectoryBatch
 from fedhpg.common.runtime.cli import compose
+from fedhpg.server.assembly import run_in_process
 from fedhpg.server.coordinator import RoundRecord
-from fedhpg.server.pools.inprocess import run_in_process
 
 START = torch.zeros(50)
 HONEST = torch.linspace(-1.0, 2.0, 50)

@@ -20,8 +20,8 @@ from fedhpg.common.runtime.cli import compose
 from fedhpg.common.variants import run_variants
 from fedhpg.envs.registry import make_variants
 from fedhpg.server import api
+from fedhpg.server.assembly import run_in_process
 from fedhpg.server.checkpoint import latest_valid_checkpoint
-from fedhpg.server.pools.inprocess import run_in_process
 
 TESTS = Path(__file__).parent
 OVERRIDES = [

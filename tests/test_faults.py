@@ -17,8 +17,8 @@ from fedhpg.common.types import UpdateColumns, UpdateStats
 from fedhpg.common.variants import run_variants
 from fedhpg.common.wire.codec import decode, encode
 from fedhpg.common.wire.protocol import PROTOCOL_VERSION, Error, Hello, Update
+from fedhpg.server.assembly import run_in_process
 from fedhpg.server.checkpoint import latest_valid_checkpoint
-from fedhpg.server.pools.inprocess import run_in_process
 
 TIMEOUT_S = 120
 

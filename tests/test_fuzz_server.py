@@ -32,8 +32,8 @@ from fedhpg.common.wire.protocol import (
     Update,
     Welcome,
 )
+from fedhpg.server.assembly import run_in_process
 from fedhpg.server.checkpoint import latest_valid_checkpoint
-from fedhpg.server.pools.inprocess import run_in_process
 
 FRAMES = 10_000
 SEND_WAIT_MS = 60_000

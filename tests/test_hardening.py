@@ -23,8 +23,8 @@ from procs import BIN, QUIET, free_port, processes, start, start_federation, wai
 
 from fedhpg.common.runtime.cli import compose
 from fedhpg.common.wire.protocol import Train, Update
+from fedhpg.server.assembly import run_in_process
 from fedhpg.server.checkpoint import latest_valid_checkpoint
-from fedhpg.server.pools.inprocess import run_in_process
 
 TIMEOUT_S = 120
 RUN = [

@@ -39,8 +39,8 @@ from fedhpg.common.wire.protocol import (
     Welcome,
 )
 from fedhpg.common.worker import initial_theta
+from fedhpg.server.assembly import run_in_process
 from fedhpg.server.checkpoint import latest_valid_checkpoint
-from fedhpg.server.pools.inprocess import run_in_process
 
 TIMEOUT_S = 120
 RUN = [

@@ -23,8 +23,8 @@ from fedhpg.common.wire.protocol import (
     Train,
     Update,
 )
+from fedhpg.server.assembly import run_in_process
 from fedhpg.server.checkpoint import latest_valid_checkpoint
-from fedhpg.server.pools.inprocess import run_in_process
 
 TIMEOUT_S = 120
 FAST_LIVENESS = ["server.heartbeat_interval_s=0.25", "server.heartbeat_liveness=4"]

@@ -39,6 +39,11 @@ class AgentPool(Protocol):
     @property
     def agent_ids(self) -> list[str]: ...
 
+    def counters(self) -> dict[str, int]:
+        """What went wrong so far (rejected messages, deaths, ...), for summary.json and the
+        checkpoints."""
+        ...
+
     def train(
         self,
         round_index: int,

@@ -6,7 +6,7 @@ is not waited for), and, for a round, the accepted θ_k. It says what a link is 
 (:meth:`Collector.request_for`: the request names the link's selected agents that have not
 answered, so a link that rejoins is asked again for exactly those), files each answer's rows
 for their own agents as if each had come alone, and discards answers for a request no longer
-open with a log line. The round policy (:mod:`fedhpg.server.rounds`) decides when a
+open with a log line. The round policy (:mod:`fedhpg.server.pools.rounds`) decides when a
 collection is complete.
 
 Every row of an ``Update`` passes the same :class:`~fedhpg.server.validation.UpdateCheck` as
@@ -29,8 +29,8 @@ from fedhpg.common.types import AgentUpdate, EvaluationStats
 from fedhpg.common.wire.protocol import Evaluation, Request, Train, Update
 from fedhpg.server.pools import RoundAnswers
 from fedhpg.server.pools.links import Link, Links, Outbox
+from fedhpg.server.pools.rounds import request_complete
 from fedhpg.server.round_rows import RoundRows
-from fedhpg.server.rounds import request_complete
 from fedhpg.server.validation import Reject, Rejection, UpdateCheck
 
 

@@ -7,7 +7,7 @@ purge dead peers, send heartbeats. It only routes; each job is a module of its o
 
 - :mod:`.links`: registration, liveness, the connection guard's bookkeeping, the replies;
 - :mod:`.collection`: a synchronous round's or an evaluation's request and its answers, closed
-  by the round policy (:mod:`fedhpg.server.rounds`);
+  by the round policy (:mod:`fedhpg.server.pools.rounds`);
 - :mod:`.arrivals`: buffered rounds' per-agent requests and their answers in arrival order.
 
 Bad input (malformed frames, unknown types, wrong versions, bad shapes, dtypes, non-finite or
