@@ -137,15 +137,14 @@ class AgentWork:
         timeline.mark(self.label, "trained", request.round)
         num_params = thetas.shape[1]
         per_message = answers_per_message(batch_message_cap(max_bytes, num_params), num_params)
-        answered = agents if not self.sleeps else [self.indices.start]
         return [
             Update(
                 round=request.round,
-                agents=answered[start : start + per_message],
+                agents=agents[start : start + per_message],
                 thetas=thetas[start : start + per_message],
                 stats=stats[start : start + per_message],
             )
-            for start in range(0, len(answered), per_message)
+            for start in range(0, len(agents), per_message)
         ]
 
     def _train_columns(

@@ -9,7 +9,14 @@ import numpy as np
 import pytest
 
 from fedhpg.common.types import UpdateStats
-from fedhpg.server.validation import NON_FINITE, Reject, Rejection, UpdateCheck
+from fedhpg.server.validation import (
+    NON_FINITE,
+    Reject,
+    Rejection,
+    UpdateCheck,
+    diverged,
+    reasons,
+)
 
 D = 64
 STATS = UpdateStats(trajectories=4, env_steps=80, compute_s=0.1, train_return=20.0)
@@ -61,3 +68,15 @@ def test_a_batch_of_the_wrong_layout_or_stats_is_refused_row_by_row() -> None:
     assert check.problems(rows, mixed, None) == expected
     assert expected[0] is not None and expected[0].code is Reject.STATS
     assert expected[0].reason.startswith("update stats: ")
+
+
+def test_divergence_is_told_by_the_rejections_code_not_by_its_words() -> None:
+    """The round loop stops a run as diverged when every rejected update was non-finite: the
+    code says so, whatever a reason's text happens to contain; a checkpoint keeps both."""
+    nan = Rejection(Reject.NON_FINITE, NON_FINITE)
+    wordy = Rejection(Reject.STATS, f"update stats: {NON_FINITE} (a reason, not a code)")
+    assert diverged({"agent-0": nan, "agent-1": nan})
+    assert not diverged({}) and not diverged({"agent-0": nan, "agent-1": wordy})
+    assert reasons({"agent-1": wordy}) == {"agent-1": wordy.reason}
+    assert Rejection.restore(nan.saved()) == nan
+    assert Rejection.restore("an older checkpoint's reason").code is Reject.UNKNOWN
