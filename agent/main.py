@@ -1,12 +1,12 @@
-"""``fedhpg-agent``: one agent process of a federation, or an agent host (``agent.first``)."""
+"""``fedhpg-agent``: one agent of a federation (``agent.index``), or an agent host serving
+``agent.count`` agents from ``agent.first``: the same program (:mod:`fedhpg.agent.host`)."""
 
 from __future__ import annotations
 
 import logging
 import sys
 
-from fedhpg.agent.host import AgentHost
-from fedhpg.agent.process import AgentFailure, AgentProcess, RunAborted
+from fedhpg.agent.host import AgentFailure, AgentHost, RunAborted
 from fedhpg.common.config import RunConfig
 from fedhpg.common.runtime.cli import EXIT_RUN_ABORTED, run_entry
 
@@ -14,14 +14,14 @@ logger = logging.getLogger(__name__)
 
 
 def run_agent(run: RunConfig) -> int:
-    host = run.agent.first is not None
+    first = run.agent.first
     who = (
-        f"host {run.agent.first}..{run.agent.first + run.agent.count - 1}"
-        if run.agent.first is not None
+        f"host {first}..{first + run.agent.count - 1}"
+        if first is not None
         else f"agent {run.agent.index}"
     )
     try:
-        (AgentHost(run) if host else AgentProcess(run)).run()
+        AgentHost(run).run()
     except RunAborted as error:
         logger.error("%s: %s", who, error)
         return EXIT_RUN_ABORTED

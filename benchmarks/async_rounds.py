@@ -38,9 +38,9 @@ import numpy as np
 import torch
 
 from fedhpg.common.runtime.cli import compose
+from fedhpg.server.assembly import run_in_process
 from fedhpg.server.coordinator import RoundRecord
 from fedhpg.server.plot_stats import stratified_bootstrap_ci
-from fedhpg.server.pools.inprocess import run_in_process
 
 RESULTS = Path("benchmarks/results/async_rounds.json")
 FIGURE = Path("docs/figures/async_rounds.png")

@@ -55,7 +55,7 @@ def _round_trips(curve: bool, num_params: int, repeats: int) -> list[float]:
     )
     peer.start()
     identity = router.recv_multipart()[0]
-    message = Train(round=1, theta=np.ones(num_params, dtype=np.float32))
+    message = Train(round=1, theta=np.ones(num_params, dtype=np.float32), agents=[0])
     timings = []
     try:
         for _ in range(repeats + 2):

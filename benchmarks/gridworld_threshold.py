@@ -13,8 +13,8 @@ from dataclasses import dataclass
 import torch
 
 from fedhpg.common.runtime.cli import compose
+from fedhpg.server.assembly import run_in_process
 from fedhpg.server.coordinator import RoundRecord
-from fedhpg.server.pools.inprocess import run_in_process
 
 THRESHOLD = 0.9
 SEEDS = (0, 1, 2, 3, 4)

@@ -14,7 +14,7 @@ agents each in this process, and the answers already queued (no training, no agg
     python -m benchmarks.hosts --codec
     python -m benchmarks.hosts --host-round [--agents 10000 --per-host 5000]
 
-:func:`batch_codec_us`: one host's ``UpdateBatch`` of 256 agents, built and encoded, then
+:func:`batch_codec_us`: one host's ``Update`` of 256 agents, built and encoded, then
 decoded with every agent's stats read back, in this process.
 """
 
@@ -66,21 +66,16 @@ def measure(agents: int, per_host: int, rounds: int, family: str, extra: list[st
 
 def server_side_us(num_params: int, rounds: int = 5) -> list[float]:
     """Microseconds per agent of ``ZmqAgentPool.train`` for 2 hosts × 500 agents whose
-    ``UpdateBatch`` es (256 rows at most each) are queued before the round starts."""
+    ``Update`` es (256 rows at most each) are queued before the round starts."""
     import numpy as np
     import torch
     import zmq
 
     from fedhpg.common.config import ServerConfig
-    from fedhpg.common.types import UpdateStats
+    from fedhpg.common.types import UpdateColumns, UpdateStats
     from fedhpg.common.variants import range_digest
     from fedhpg.common.wire.codec import encode
-    from fedhpg.common.wire.protocol import (
-        MAX_BATCH_ANSWERS,
-        HostHello,
-        UpdateBatch,
-        UpdateColumns,
-    )
+    from fedhpg.common.wire.protocol import MAX_BATCH_ANSWERS, Hello, Update
     from fedhpg.server.pools.zmq_pool import ZmqAgentPool
     from fedhpg.server.validation import UpdateCheck
 
@@ -102,8 +97,8 @@ def server_side_us(num_params: int, rounds: int = 5) -> list[float]:
         host.connect(f"tcp://127.0.0.1:{port}")
         host.send_multipart(
             encode(
-                HostHello(
-                    host_id=f"host-{first}", first=first, count=per_host,
+                Hello(
+                    id=f"host-{first}", first=first, count=per_host,
                     env_signature={"spaces": "x"},
                     variant_digest=range_digest(digests[first : first + per_host]),
                 )
@@ -125,7 +120,7 @@ def server_side_us(num_params: int, rounds: int = 5) -> list[float]:
                 thetas = (rng.standard_normal((len(agents), num_params)) * 0.01).astype(np.float32)
                 host.send_multipart(
                     encode(
-                        UpdateBatch(
+                        Update(
                             round=1,
                             agents=agents,
                             thetas=thetas,
@@ -146,14 +141,14 @@ def server_side_us(num_params: int, rounds: int = 5) -> list[float]:
 
 
 def batch_codec_us(num_params: int = 386, agents: int = 256, repeats: int = 5) -> dict:
-    """Microseconds per agent to build and encode one host's ``UpdateBatch`` (the host's side)
+    """Microseconds per agent to build and encode one host's ``Update`` (the host's side)
     and to decode it and read back every agent's ``UpdateStats`` (the server's), median of
     ``repeats`` timings of 40 messages each; and the header's size."""
     import numpy as np
 
-    from fedhpg.common.types import UpdateStats
+    from fedhpg.common.types import UpdateColumns, UpdateStats
     from fedhpg.common.wire.codec import decode, encode
-    from fedhpg.common.wire.protocol import UpdateBatch, UpdateColumns
+    from fedhpg.common.wire.protocol import Update
 
     rng = np.random.default_rng(0)
     records = [
@@ -176,14 +171,14 @@ def batch_codec_us(num_params: int = 386, agents: int = 256, repeats: int = 5) -
 
     def build_and_encode() -> list:
         columns = UpdateColumns.of(records)
-        batch = UpdateBatch(round=3, agents=list(range(agents)), thetas=thetas, stats=columns)
+        batch = Update(round=3, agents=list(range(agents)), thetas=thetas, stats=columns)
         return encode(batch)
 
     frames = [bytes(f) for f in build_and_encode()]
 
     def decode_and_read() -> None:
         message = decode(frames)
-        assert isinstance(message, UpdateBatch)
+        assert isinstance(message, Update)
         list(message.stats)
 
     def per_agent(work: Any) -> float:
@@ -203,20 +198,22 @@ def batch_codec_us(num_params: int = 386, agents: int = 256, repeats: int = 5) -
 
 
 def host_round_us(agents: int = 1000, per_host: int = 500, rounds: int = 8) -> dict:
-    """One agent host's round in this process, no sockets: ``AgentHost._work`` on a
-    ``TrainBatch`` of its ``per_host`` CartPole population agents (all of them, or 500
+    """One agent host's round in this process, no sockets: ``AgentWork.answer`` on a
+    ``Train`` of its ``per_host`` CartPole population agents (all of them, or 500
     drawn anew each round where the host holds more), at one fixed θ; the time outside the
     engine's two kernels per agent (budgets, streams, results, device emulation, the
     batches built) and the answers' encoding, medians over the rounds after the first."""
+    import threading
+
     import numpy as np
     import torch
 
-    from fedhpg.agent.host import AgentHost
-    from fedhpg.agent.process import Job
+    from fedhpg.agent.work import AgentWork
     from fedhpg.common.batched import kernels
     from fedhpg.common.runtime.cli import compose
     from fedhpg.common.wire.codec import encode
-    from fedhpg.common.wire.protocol import TrainBatch
+    from fedhpg.common.wire.protocol import Train
+    from fedhpg.common.wire.transport import max_message_bytes
 
     torch.set_num_threads(1)
     run = compose(
@@ -226,10 +223,11 @@ def host_round_us(agents: int = 1000, per_host: int = 500, rounds: int = 8) -> d
             f"agent.count={per_host}",
         ]
     )  # fmt: skip
-    host = AgentHost(run)
+    work = AgentWork(run, range(per_host), label="bench")
     started = time.perf_counter()
-    host.group = host._make_group(run)
+    group = work.build(run)
     group_s = time.perf_counter() - started
+    max_bytes = max_message_bytes(run.server)
     in_kernels = [0.0]
     originals = {name: getattr(kernels, name) for name in ("sample_iteration", "learn_iteration")}
 
@@ -242,17 +240,17 @@ def host_round_us(agents: int = 1000, per_host: int = 500, rounds: int = 8) -> d
         return call
 
     rng = np.random.default_rng(0)
-    theta = (rng.standard_normal(host.group.num_params) * 0.1).astype(np.float32)
+    theta = (rng.standard_normal(group.num_params) * 0.1).astype(np.float32)
     outside, encoding = [], []
     try:
         for name, kernel in originals.items():
             setattr(kernels, name, timed(kernel))
         for round_index in range(1, rounds + 1):
             chosen = range(per_host) if per_host <= 500 else rng.choice(per_host, 500, False)
-            request = TrainBatch(round=round_index, theta=theta, agents=sorted(map(int, chosen)))
+            request = Train(round=round_index, theta=theta, agents=sorted(map(int, chosen)))
             in_kernels[0] = 0.0
             begin = time.perf_counter()
-            answers = host._work(Job(request))
+            answers = work.answer(request, threading.Event(), max_bytes)
             wall = time.perf_counter() - begin
             begin = time.perf_counter()
             for answer in answers:
@@ -262,7 +260,7 @@ def host_round_us(agents: int = 1000, per_host: int = 500, rounds: int = 8) -> d
     finally:
         for name, kernel in originals.items():
             setattr(kernels, name, kernel)
-        host.close()
+        work.close()
     return {
         "agents_per_round": min(per_host, 500),
         "group_and_prepare_s": group_s,
@@ -278,7 +276,7 @@ if __name__ == "__main__":
     parser.add_argument("--rounds", type=int, default=3)
     parser.add_argument("--family", default="gridworld")
     parser.add_argument("--server-side", type=int, metavar="D", help="num_params: pool only")
-    parser.add_argument("--codec", action="store_true", help="one UpdateBatch's codec only")
+    parser.add_argument("--codec", action="store_true", help="one host Update's codec only")
     parser.add_argument("--host-round", action="store_true", help="one host's round, no sockets")
     parser.add_argument("extra", nargs="*")
     args = parser.parse_args()

@@ -39,10 +39,10 @@ from fedhpg.common.config import RunConfig
 from fedhpg.common.device import device_for
 from fedhpg.common.planning import Constants, Limits, plan_budgets
 from fedhpg.common.runtime.cli import compose
+from fedhpg.server.assembly import run_in_process
 from fedhpg.server.coordinator import RoundRecord
 from fedhpg.server.plan import horizon_seconds_per_trajectory, round_overhead_s, run_pilot
 from fedhpg.server.plot_stats import stratified_bootstrap_ci
-from fedhpg.server.pools.inprocess import run_in_process
 
 RESULTS = Path("benchmarks/results/planner.json")
 FIGURE = Path("docs/figures/planner.png")

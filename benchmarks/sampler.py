@@ -16,8 +16,11 @@ import gymnasium as gym
 import numpy as np
 import torch
 
-from fedhpg.common.policies import Policy, PolicyConfig, make_policy
-from fedhpg.common.rollout import sample_trajectories
+from fedhpg.common.engine.copies import GymBlocks
+from fedhpg.common.engine.policy_rows import PolicyRows
+from fedhpg.common.engine.sampling import sample
+from fedhpg.common.policies import Policy, PolicyConfig, get_flat_params, make_policy
+from fedhpg.common.randomness import Purpose, trajectory_keys
 from fedhpg.envs.base import BatchEnv, EnvVariant
 from fedhpg.envs.gym_adapter import GymVectorBatchEnv
 from fedhpg.envs.gym_variant import GymVariant
@@ -58,9 +61,20 @@ def _bare_loop(env: BatchEnv, horizon: int, seconds: float, rng: np.random.Gener
 def _sampler_loop(
     env: BatchEnv, policy: Policy, horizon: int, seconds: float, rng: np.random.Generator
 ) -> float:
-    counted, started = 0, time.perf_counter()
+    """The engine's sampler (one agent's row, ``env.num_envs`` trajectories a batch) on
+    ``env``: env steps/s of the trajectories' alive steps."""
+    cpu = torch.device("cpu")
+    rows = PolicyRows(policy, cpu)
+    theta = get_flat_params(policy).unsqueeze(0)
+    copies = GymBlocks([env], cpu)
+    count = env.num_envs
+    counts, horizons = torch.tensor([count]), torch.tensor([horizon])
+    counted, started, batch_number = 0, time.perf_counter(), int(rng.integers(2**31))
     while time.perf_counter() - started < seconds:
-        counted += sample_trajectories(env, policy, rng, horizon=horizon).num_steps
+        keys = trajectory_keys(0, torch.zeros(count, dtype=torch.int64), batch_number,
+                               Purpose.TRAIN, 0, torch.arange(count))  # fmt: skip
+        counted += int(sample(rows, copies, theta, counts, keys, horizons).alive.sum())
+        batch_number += 1
     return counted / (time.perf_counter() - started)
 
 

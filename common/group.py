@@ -268,9 +268,9 @@ class SplitGroup:
 def make_agent_group(
     run: RunConfig, indices: Sequence[int], variants: Mapping[int, EnvVariant] | None = None
 ) -> AgentGroup:
-    """The group implementation for the run: the batched engine for the agents it covers
-    (FedHPG, MLP categorical policy; an attacking agent is not covered), a loop over
-    :class:`LocalWorker` s for the others."""
+    """The group for the run's agents ``indices``: the compiled backend for the agents it
+    covers (``algo.engine=auto``, FedHPG, the MLP categorical policy, CartPole, honest agents),
+    the engine for the others."""
     if not indices:
         raise ValueError("an agent group needs at least one agent")
     variants = variants_of(run, indices) if variants is None else variants

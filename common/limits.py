@@ -55,6 +55,9 @@ class Bound:
 
 MAX_HOST_AGENTS = 1 << 16
 """Most logical agents one host serves (and one server request names)."""
+MAX_BATCH_ANSWERS = 256
+"""Most agents' answers in one message: a host sends a round's answers in ceil(A / this)
+messages (fewer agents per message where θ is large)."""
 MAX_COUNT = 2**40
 """Trajectories, steps, episodes: far above any real round, far below float32 trouble."""
 MAX_SECONDS = 1e9

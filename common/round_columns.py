@@ -15,15 +15,16 @@ the two a placement calls.
 
 from __future__ import annotations
 
+import functools
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
-from typing import Protocol, runtime_checkable
+from typing import Any, Protocol, runtime_checkable
 
 import numpy as np
 import torch
 
 from fedhpg.common.group import AgentGroup, Budgets
-from fedhpg.common.types import LocalResult, UpdateStats
+from fedhpg.common.types import LocalResult, UpdateColumns, UpdateStats
 from fedhpg.common.worker import IterationWork
 
 Interrupt = Callable[[], None]
@@ -64,20 +65,24 @@ class TrainedColumns:
     iterations: list[IterationColumns] = field(default_factory=list)
     """In the order they ran; an agent's own iterations in its order."""
 
+    def stats(self, **device: Any) -> UpdateColumns:
+        """The round's :class:`UpdateStats` as columns: the fields this round computed, each
+        of ``device`` (the emulated device's columns: ``emulated_s``, ``speed``, ...), the
+        other fields at their defaults."""
+        own = {
+            name: getattr(self, name)
+            for name in (*UpdateColumns.scalar_fields, *UpdateColumns.map_fields)
+            if name not in device and hasattr(self, name)
+        }
+        return UpdateColumns.filled(len(self.agents), **own, **device)
+
+    @functools.cached_property
+    def _records(self) -> list[UpdateStats]:
+        return self.stats().records()
+
     def record(self, i: int) -> UpdateStats:
         """Row i as the per-agent record (``UpdateStats``'s device fields at their defaults)."""
-        return UpdateStats(
-            trajectories=int(self.trajectories[i]),
-            env_steps=int(self.env_steps[i]),
-            compute_s=float(self.compute_s[i]),
-            train_return=float(self.train_return[i]),
-            grad_clipped=int(self.grad_clipped[i]),
-            algorithm={
-                key: value
-                for key, column in self.algorithm.items()
-                if (value := column[i]) is not None
-            },
-        )
+        return self._records[i]
 
     def result(self, i: int) -> LocalResult:
         return LocalResult(theta=torch.from_numpy(self.thetas[i]), stats=self.record(i))

@@ -9,6 +9,7 @@ run directory's policy with θ̃ of its newest valid checkpoint; :func:`act` and
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import json
 import tempfile
@@ -26,22 +27,16 @@ from fedhpg.common.policies import Policy, get_flat_params, register_policy, set
 from fedhpg.common.registry import import_plugins
 from fedhpg.common.runtime.cli import compose, validate_config
 from fedhpg.common.types import EvaluationStats
-from fedhpg.common.variants import run_variants, variant_of
-from fedhpg.common.worker import build_policy, initial_theta
+from fedhpg.common.variants import variant_of
+from fedhpg.common.worker import build_policy
 from fedhpg.envs.registry import register_family
-from fedhpg.server.checkpoint import latest_valid_checkpoint, write_atomic
-from fedhpg.server.coordinator import RoundCallback, RoundRecord, RunProgress
-from fedhpg.server.metrics import (
-    METRICS_SCHEMA_VERSION,
-    MetricsWriter,
-    read_metrics,
-    tensorboard_sink,
-)
+from fedhpg.server.assembly import CheckedRun, assemble, check_run
+from fedhpg.server.checkpoint import latest_valid_checkpoint
+from fedhpg.server.coordinator import RoundCallback, RoundRecord
+from fedhpg.server.metrics import METRICS_SCHEMA_VERSION, read_metrics
 from fedhpg.server.pools import FederationError
-from fedhpg.server.pools.inprocess import run_in_process
-from fedhpg.server.rounds import check_distributed_policy
-from fedhpg.server.run_dir import RunDirectory, RunDirectoryError, claimed, holds_run
-from fedhpg.server.strategies import make_strategy, validate_strategy
+from fedhpg.server.pools.inprocess import make_in_process_pool
+from fedhpg.server.run_dir import RunDirectoryError, claimed, holds_run
 
 __all__ = [
     "ConfigError",
@@ -102,15 +97,21 @@ def _apply_overrides(config: RunConfig, overrides: Sequence[str]) -> RunConfig:
 
 def resolve_config(config: RunConfig | None = None, overrides: Sequence[str] = ()) -> RunConfig:
     """The config a run takes: ``conf/config.yaml`` composed with Hydra ``overrides`` when
-    ``config`` is None, else ``config`` with the overrides applied; checked like the CLI's."""
+    ``config`` is None, else ``config`` with the overrides applied; checked like the CLI's,
+    and as its server checks it (:func:`~fedhpg.server.assembly.check_run`)."""
+    return _checked(config, overrides, distributed=False).run
+
+
+def _checked(
+    config: RunConfig | None, overrides: Sequence[str], *, distributed: bool
+) -> CheckedRun:
     if config is None:
         run_config = compose(list(overrides))
     else:
         if not isinstance(config, RunConfig):
             raise TypeError(f"config must be a RunConfig or None, got {type(config).__name__}")
         run_config = validate_config(_apply_overrides(config, overrides))
-    validate_strategy(run_config)
-    return run_config
+    return check_run(run_config, distributed=distributed)
 
 
 def run(
@@ -128,7 +129,8 @@ def run(
     none): write the run directory there (metrics.jsonl, config.json, summary.json,
     checkpoints/, tensorboard/), as the server does.
     """
-    run_config = resolve_config(config, overrides)
+    checked = _checked(config, overrides, distributed=distributed)
+    run_config = checked.run
     if out_dir is None and run_config.server.out_dir:
         out_dir = run_config.server.out_dir
     directory = Path(out_dir) if out_dir is not None else None
@@ -136,122 +138,74 @@ def run(
         # As on the command line: resume the directory if it holds a run, else start.
         resumes = directory is not None and holds_run(directory)
         run_config = dataclasses.replace(run_config, resume="true" if resumes else None)
+        checked = dataclasses.replace(checked, run=run_config)
     if distributed:
         if callbacks:
             raise ValueError(
                 "callbacks run in this process, so in-process runs only; a distributed run's "
                 "rounds are in RunResult.records (and metrics.jsonl as they complete)"
             )
-        return _run_distributed(run_config, directory)
-    return _run_in_process(run_config, directory, list(callbacks))
+        return _run_distributed(checked, directory)
+    return _run_in_process(checked, directory, list(callbacks))
 
 
 # --- in-process ---------------------------------------------------------------------------------
 
 
-class _Collect:
+class _Records:
     def __init__(self) -> None:
         self.records: list[dict[str, Any]] = []
-        self.last_round: int | None = None
-        self.last_eval: dict[str, EvaluationStats] | None = None
 
     def __call__(self, record: RoundRecord, _: torch.Tensor) -> None:
         self.records.append({"schema": METRICS_SCHEMA_VERSION, **record.to_json()})
-        if record.eval:
-            self.last_round, self.last_eval = record.round, record.eval
 
 
 def _run_in_process(
-    run_config: RunConfig, directory: Path | None, callbacks: list[RoundCallback]
+    checked: CheckedRun, directory: Path | None, callbacks: list[RoundCallback]
 ) -> RunResult:
-    collect = _Collect()
-    if directory is None:
-        if run_config.resume:
-            raise ConfigError("resume", "resuming needs the run directory: pass out_dir")
-        theta = run_in_process(run_config, on_round=[collect, *callbacks])
-        return RunResult(
-            config=run_config,
-            theta=theta,
-            records=collect.records,
-            out_dir=None,
-            last_evaluation=collect.last_eval,
-        )
-    with claimed(directory, resume=bool(run_config.resume), key="out_dir") as run_dir:
-        theta = _in_process_with_directory(run_config, run_dir, collect, callbacks)
+    """The run with its agents in this process: assembled as the server assembles its own, so
+    a run directory written here is one fedhpg-server would have written (and can resume)."""
+    run_config = checked.run
+    if directory is None and run_config.resume:
+        raise ConfigError("resume", "resuming needs the run directory: pass out_dir")
+    records = _Records()
+    with contextlib.ExitStack() as stack:
+        run_dir = None
+        if directory is not None:
+            run_dir = stack.enter_context(
+                claimed(directory, resume=bool(run_config.resume), key="out_dir")
+            )
+        assembly = assemble(checked, run_dir=run_dir, callbacks=[records, *callbacks])
+        pool = make_in_process_pool(run_config)
+        try:
+            theta = assembly.run_rounds(pool)
+        finally:
+            pool.close()
+            assembly.close()
+        assembly.finish(pool.agent_ids)
     return RunResult(
         config=run_config,
         theta=theta,
-        records=read_metrics(directory / "metrics.jsonl"),
+        records=read_metrics(directory / "metrics.jsonl") if directory else records.records,
         out_dir=directory,
-        last_evaluation=collect.last_eval,
+        last_evaluation=assembly.last.eval,
     )
-
-
-def _in_process_with_directory(
-    run_config: RunConfig,
-    run_dir: RunDirectory,
-    collect: _Collect,
-    callbacks: list[RoundCallback],
-) -> torch.Tensor:
-    # The server's own pieces, so the directory is one fedhpg-server would have written (and
-    # can resume).
-    from fedhpg.server.main import checkpoint_callback, resume_point
-
-    directory = run_dir.path
-    theta: torch.Tensor | None = None
-    progress = RunProgress()
-    if run_config.resume:
-        theta, progress, _ = resume_point(run_config, run_dir, make_strategy(run_config.strategy))
-    write_atomic(directory / "config.json", json.dumps(to_dict(run_config), indent=2).encode())
-    metrics = MetricsWriter(run_dir.metrics)
-    start = theta if theta is not None else initial_theta(variant_of(run_config, 0), run_config)
-    board = tensorboard_sink(
-        run_config.server.tensorboard,
-        directory,
-        first_round=progress.next_round,
-        theta=start,
-        per_agent=run_config.agents.num_agents <= run_config.server.tensorboard_agents,
-    )
-    sinks: list[RoundCallback] = [
-        metrics,
-        checkpoint_callback(run_config, directory / "checkpoints", progress, dict),
-        collect,
-        *([board] if board is not None else []),
-    ]
-    try:
-        theta = run_in_process(
-            run_config, on_round=[*sinks, *callbacks], theta=start, progress=progress
-        )
-    finally:
-        metrics.close()
-        if board is not None:
-            board.close()
-    variants = run_variants(run_config)
-    summary = {
-        "rounds": run_config.rounds,
-        "final_eval_round": collect.last_round,
-        "eval": {a: e.to_json() for a, e in collect.last_eval.items()}
-        if collect.last_eval
-        else None,
-        "variants": {f"agent-{k}": {"gamma": v.gamma, **v.params} for k, v in enumerate(variants)},
-    }
-    write_atomic(directory / "summary.json", json.dumps(summary, indent=2).encode())
-    return theta
 
 
 # --- distributed --------------------------------------------------------------------------------
 
 
-def _run_distributed(run_config: RunConfig, directory: Path | None) -> RunResult:
+def _run_distributed(checked: CheckedRun, directory: Path | None) -> RunResult:
     from fedhpg.common.engine.devices import check_device_before_fork
     from fedhpg.common.wire.security import check_launch_keys
     from fedhpg.server.launcher import run_federation
+    from fedhpg.server.serving import message_cap
 
+    # What the server would refuse in its own process (exit 2): found here, as an exception.
+    run_config = checked.run
+    message_cap(run_config, int(checked.initial_theta.numel()))
     check_launch_keys(run_config)
     check_device_before_fork(run_config)  # the agents are forked from this process
-    check_distributed_policy(run_config)
-    # What the server would refuse in its own process (exit 2): found here, as an exception.
-    initial_theta(variant_of(run_config, 0), run_config)
     with tempfile.TemporaryDirectory(prefix="fedhpg-run-") as scratch:
         where = directory if directory is not None else Path(scratch) / "run"
         if run_config.resume and run_config.resume.lower() != "true":

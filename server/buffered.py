@@ -47,23 +47,22 @@ import math
 import time
 from collections.abc import Sequence
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, Protocol
 
 import numpy as np
 import torch
 
-from fedhpg.common.config import ConfigError, RunConfig, ServerConfig, agent_id_of
+from fedhpg.common.config import RunConfig, ServerConfig, agent_id_of
 from fedhpg.common.types import AgentUpdate, EvaluationStats, SavedState, UpdateStats
 from fedhpg.server.bound_report import round_bound
 from fedhpg.server.coordinator import (
-    NON_FINITE,
     Coordinator,
     RoundRecord,
     diverged_message,
     should_evaluate,
 )
 from fedhpg.server.pools import FederationError
-from fedhpg.server.pools.inprocess import InProcessPool
+from fedhpg.server.validation import Rejection, diverged, reasons
 
 logger = logging.getLogger(__name__)
 
@@ -81,25 +80,6 @@ def staleness_weight(server: ServerConfig, staleness: int) -> float:
     return 1.0 / math.sqrt(1.0 + staleness)
 
 
-def validate_buffered(run: RunConfig) -> None:
-    """What the buffered policy cannot combine with (config.py checks the keys' own ranges)."""
-    if run.server.round_policy != "buffered":
-        return
-    if run.strategy.participation.mode != "all":
-        raise ConfigError(
-            "strategy.participation.mode",
-            f"got {run.strategy.participation.mode!r}; server.round_policy=buffered keeps every "
-            "agent busy (each restarts as soon as it is aggregated): use 'all'",
-        )
-    if run.strategy.name == "fedpgbr":
-        # FedPG-BR's filter and SCSG loop need every agent's gradient at one θ̃ each round
-        raise ConfigError(
-            "server.round_policy",
-            "got 'buffered'; strategy=fedpgbr filters and steps from every agent's gradient at "
-            "one θ̃: use wait_all",
-        )
-
-
 @dataclass(kw_only=True)
 class InFlight:
     """One agent's update on its way: computed at dispatch, delivered at ``arrival_s``."""
@@ -113,7 +93,7 @@ class InFlight:
     update: AgentUpdate
     delta: torch.Tensor
     """Δ_k = θ_k − θ̃_version."""
-    problem: str | None = None
+    problem: Rejection | None = None
     """Why the update check rejected it (it arrives, but is not aggregated)."""
 
     def key(self) -> tuple[float, int]:
@@ -219,7 +199,7 @@ class BufferedSchedule:
                     "version": item.version,
                     "dispatch": item.dispatch,
                     "arrival_s": item.arrival_s,
-                    "problem": item.problem,
+                    "problem": None if item.problem is None else item.problem.saved(),
                     "stats": dataclasses.asdict(item.update.stats),
                 }
             )
@@ -259,16 +239,30 @@ class BufferedSchedule:
                     arrival_s=float(flight["arrival_s"]),
                     update=update,
                     delta=torch.from_numpy(state.arrays[f"delta.{agent}"].copy()),
-                    problem=flight["problem"],
+                    problem=None
+                    if flight["problem"] is None
+                    else Rejection.restore(flight["problem"]),
                 )
             )
         return schedule
 
 
+class CheckingPool(Protocol):
+    """A pool whose updates are computed at once, checked (the in-process pool)."""
+
+    def checked_updates(
+        self, round_index: int, theta: torch.Tensor, agents: Sequence[int]
+    ) -> list[tuple[AgentUpdate, Rejection | None]]: ...
+
+    def evaluate(
+        self, round_index: int, theta: torch.Tensor, episodes: int
+    ) -> dict[str, EvaluationStats]: ...
+
+
 class BufferedCoordinator(Coordinator):
     """The round loop of :mod:`fedhpg.server.buffered` over the in-process pool."""
 
-    pool: InProcessPool
+    pool: CheckingPool  # type: ignore[assignment]
 
     def __init__(self, **kwargs: Any) -> None:
         super().__init__(**kwargs)
@@ -302,14 +296,16 @@ class BufferedCoordinator(Coordinator):
                     )
                 )
 
-    def _fill_buffer(self, version: int) -> tuple[list[InFlight], dict[str, int], dict[str, str]]:
+    def _fill_buffer(
+        self, version: int
+    ) -> tuple[list[InFlight], dict[str, int], dict[str, Rejection]]:
         """Arrivals until M accepted ones. A stale agent restarts at once from the newest θ̃; an
         agent whose update is rejected waits for the next θ̃ (:attr:`parked`), so one peer that
         keeps failing costs one rejection per version and never ends the run by itself."""
         assert self.schedule is not None
         buffer: list[InFlight] = []
         stale: dict[str, int] = {}
-        failures: dict[str, str] = {}
+        failures: dict[str, Rejection] = {}
         limit = self.run.server.max_staleness
         while len(buffer) < self.size:
             if len(buffer) + self._outstanding() < self.size:
@@ -333,22 +329,22 @@ class BufferedCoordinator(Coordinator):
             buffer.append(item)
         return buffer, stale, failures
 
-    def _diverged(self, version: int, failures: dict[str, str]) -> str:
-        if all(NON_FINITE in why for why in failures.values()):
+    def _diverged(self, version: int, failures: dict[str, Rejection]) -> str:
+        if diverged(failures):
             return diverged_message(self.run, version)
         share = self.run.server.diverged_share
         return (
             f"round {version}: the updates of {len(failures)} of {self.run.agents.num_agents} "
             f"agents were rejected, more than server.diverged_share={share:g} of them "
-            f"({failures})"
+            f"({reasons(failures)})"
         )
 
-    def _unfillable(self, version: int, accepted: int, failures: dict[str, str]) -> str:
-        if failures and all(NON_FINITE in why for why in failures.values()):
+    def _unfillable(self, version: int, accepted: int, failures: dict[str, Rejection]) -> str:
+        if diverged(failures):
             return diverged_message(self.run, version)
         return (
             f"round {version}: {accepted} updates accepted and no more can come, "
-            f"server.buffer_size={self.size} needed (rejected: {failures})"
+            f"server.buffer_size={self.size} needed (rejected: {reasons(failures)})"
         )
 
     def _outstanding(self) -> int:
@@ -374,7 +370,7 @@ class BufferedCoordinator(Coordinator):
         return self.schedule.pop()
 
     def _agents(self) -> Sequence[int]:
-        return self.pool.group.indices
+        return range(self.run.agents.num_agents)
 
     def _restart(self, version: int, agents: Sequence[int]) -> None:
         """Restart ``agents`` (the aggregated and the parked ones) from the new θ̃ (version
@@ -417,7 +413,7 @@ class BufferedCoordinator(Coordinator):
                 agents=[i.update for i in ordered],
                 trajectories_per_agent=progress.trajectories_per_agent,
                 eval=evaluation,
-                failures=failures,
+                failures=reasons(failures),
                 selected=[i.agent for i in ordered],
                 emulated_clock_s=self.schedule.clock_s,
                 staleness=[version - 1 - i.version for i in ordered],

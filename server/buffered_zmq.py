@@ -19,7 +19,7 @@ With M = K every buffer holds K fresh updates from one θ̃, which is ``wait_all
 - **Checkpoints** hold θ̃, the strategy's state and each agent's count of answered requests;
   on resuming, every agent gets a fresh request from the checkpoint's θ̃. Work in flight (and
   updates queued but not yet aggregated) when a run was killed is lost.
-- **Agent hosts** (``agent.count > 1``) are refused: one ``TrainBatch`` per host cannot carry
+- **Agent hosts** (``agent.count > 1``) are refused: one ``Train`` per host cannot carry
   its agents' requests of different rounds.
 """
 
@@ -63,9 +63,6 @@ class ZmqBufferedCoordinator(BufferedCoordinator):
         """Emulated time each agent's open request started at (for ``emulated_clock_s``)."""
         self._waiting: list[int] = []
         """Agents aggregated into a version being evaluated: restarted after it."""
-
-    def _agents(self) -> Sequence[int]:
-        return range(self.run.agents.num_agents)
 
     def _dispatch(self, agents: Sequence[int], version: int, at_s: float) -> None:
         assert self.schedule is not None

@@ -75,9 +75,8 @@ class Placement:
 def check_placement(run: RunConfig, overrides: Sequence[str]) -> Path:
     """What ``fedhpg-cluster`` checks before it submits anything; returns the run directory."""
     from fedhpg.common.wire.security import check_launch_keys
-    from fedhpg.server.rounds import check_distributed_policy
+    from fedhpg.server.assembly import check_run
     from fedhpg.server.run_dir import RunDirectory
-    from fedhpg.server.strategies import validate_strategy
 
     if run.resume:
         raise ConfigError(
@@ -85,8 +84,7 @@ def check_placement(run: RunConfig, overrides: Sequence[str]) -> Path:
             "fedhpg-cluster starts new runs; resume one with fedhpg-server resume=true "
             "server.out_dir=DIR and its agents (README: When the server dies)",
         )
-    validate_strategy(run)
-    check_distributed_policy(run)
+    check_run(run, distributed=True)
     check_launch_keys(run)
     units = len(agent_commands(run, overrides))
     parallel = run.cluster.array_parallelism

@@ -10,7 +10,7 @@ from __future__ import annotations
 import functools
 import logging
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -26,6 +26,7 @@ from fedhpg.server.pools import AgentPool, FederationError
 from fedhpg.server.replan import make_replanner
 from fedhpg.server.strategies import Strategy
 from fedhpg.server.tolerance import tolerance_shortfall
+from fedhpg.server.validation import Rejection, diverged, reasons
 
 logger = logging.getLogger(__name__)
 
@@ -103,9 +104,6 @@ class RoundRecord:
 
 RoundCallback = Callable[[RoundRecord, torch.Tensor], None]
 
-NON_FINITE = "NaN or Inf"
-"""What server/validation.py says of an update with non-finite parameters."""
-
 
 def diverged_message(run: RunConfig, round_number: int) -> str:
     """One line for a run whose every local update diverged: what was set, and what to change.
@@ -175,14 +173,18 @@ class Coordinator:
         if self.progress.next_round > 1:
             strategy.restore(self.progress.strategy_state)
 
-    def _aggregate(self, round_number: int, updates: list[AgentUpdate], failures: dict) -> None:
+    def _aggregate(
+        self, round_number: int, updates: list[AgentUpdate], failures: Mapping[str, Rejection]
+    ) -> None:
         if not updates:
-            if failures and all(NON_FINITE in why for why in failures.values()):
+            if diverged(failures):
                 raise FederationError(diverged_message(self.run, round_number))
             raise FederationError(
-                f"round {round_number}: no update to aggregate (rejected: {failures})"
+                f"round {round_number}: no update to aggregate (rejected: {reasons(failures)})"
             )
-        theta = self.strategy.aggregate(round_number, self.theta, updates, failures).detach()
+        theta = self.strategy.aggregate(
+            round_number, self.theta, updates, reasons(failures)
+        ).detach()
         fits = theta.shape == self.theta.shape and theta.dtype == self.theta.dtype
         # numpy's isfinite: torch's allocates a bool tensor and costs ~14x as much per round
         if not fits or not bool(np.isfinite(theta.numpy()).all()):
@@ -248,7 +250,7 @@ class Coordinator:
             trajectories_per_agent=progress.trajectories_per_agent,
             eval=evaluation,
             eval_time_s=eval_time,
-            failures=answers.failures,
+            failures=reasons(answers.failures),
             stragglers=answers.stragglers,
             selected=sorted(selected),
             bound=round_bound(self.run, answers.updates, budgets)

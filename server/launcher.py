@@ -52,9 +52,9 @@ def _server_child(run: RunConfig, out_dir: str, ready: Connection) -> None:
     _child_setup()
     import zmq
 
-    from fedhpg.server.main import bind_error, serve
     from fedhpg.server.pools import FederationError
     from fedhpg.server.run_dir import RunDirectoryError
+    from fedhpg.server.serving import bind_error, serve
 
     try:
         # Bytes, not Connection.send: that would pickle (harmless here, but no pickle anywhere).
@@ -161,16 +161,15 @@ class Supervisor:
 
 
 def check_launch(run: RunConfig) -> None:
-    """What fedhpg-run checks of a composed run before starting anything: the strategy, every
-    agent's key files, loopback."""
+    """What fedhpg-run checks of a composed run before starting anything: the run as its
+    server will (:func:`~fedhpg.server.assembly.check_run`), every agent's key files,
+    loopback."""
     from fedhpg.common.engine.devices import check_device_before_fork
     from fedhpg.common.wire.security import check_launch_keys
-    from fedhpg.server.rounds import check_distributed_policy
+    from fedhpg.server.assembly import check_run
     from fedhpg.server.run_dir import RunDirectory
-    from fedhpg.server.strategies import validate_strategy
 
-    validate_strategy(run)
-    check_distributed_policy(run)
+    check_run(run, distributed=True)
     if run.server.transport == "tcp" and run.server.bind_all:
         raise ConfigError("server.bind_all", "fedhpg-run runs every process here: keep loopback")
     check_launch_keys(run)  # security: every agent's key, before anything is forked

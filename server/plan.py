@@ -36,6 +36,7 @@ from fedhpg.common.runtime.cli import (
     limit_threads,
     setup_logging,
 )
+from fedhpg.server.replan import round_overhead_s
 
 if TYPE_CHECKING:
     from fedhpg.common.planning import Plan
@@ -104,19 +105,6 @@ def run_pilot(run: RunConfig, rounds: int) -> Pilot:
         initial_return=statistics.fmean(float(a["train_return"]) for a in first),
         seconds_per_trajectory=tuple(spent[i] / trajectories[i] for i in range(k)),
     )
-
-
-def round_overhead_s(run: RunConfig, round_index: int = 1) -> list[float]:
-    """Each agent's fixed cost per round: θ̃ down and θ up (the counted clock charges both;
-    the measured clock charges the latency only in agent processes, the in-process pool none)."""
-    del round_index  # messages do not depend on the speed schedule
-    from fedhpg.common.device import device_for, message_bytes
-    from fedhpg.common.variants import variant_of
-    from fedhpg.common.worker import initial_theta
-
-    size = message_bytes(initial_theta(variant_of(run, 0), run).numel())
-    devices = [device_for(run, k) for k in range(run.agents.num_agents)]
-    return [2 * d.transfer_s(size) if d.counted else 0.0 for d in devices]
 
 
 def observed_seconds_per_trajectory(

@@ -77,8 +77,6 @@ class Replanner:
     """Decides each round's budgets for ``agents.plan=theorem1``."""
 
     def __init__(self, run: RunConfig, state: Mapping[str, Any] | None = None) -> None:
-        from fedhpg.server.plan import round_overhead_s
-
         self.run = run
         self.num_agents = run.agents.num_agents
         self.overhead = round_overhead_s(run)
@@ -219,6 +217,19 @@ class Replanner:
             "seconds_per_trajectory": list(speeds),
             "step_size_ok": plan.step_size_ok,
         }
+
+
+def round_overhead_s(run: RunConfig, round_index: int = 1) -> list[float]:
+    """Each agent's fixed cost per round: θ̃ down and θ up (the counted clock charges both;
+    the measured clock charges the latency only in agent processes, the in-process pool none)."""
+    del round_index  # messages do not depend on the speed schedule
+    from fedhpg.common.device import device_for, message_bytes
+    from fedhpg.common.variants import variant_of
+    from fedhpg.common.worker import initial_theta
+
+    size = message_bytes(initial_theta(variant_of(run, 0), run).numel())
+    devices = [device_for(run, k) for k in range(run.agents.num_agents)]
+    return [2 * d.transfer_s(size) if d.counted else 0.0 for d in devices]
 
 
 def make_replanner(run: RunConfig, state: Mapping[str, Any] | None) -> Replanner | None:

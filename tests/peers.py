@@ -24,8 +24,8 @@ import zmq
 
 from fedhpg.common.config import RunConfig
 from fedhpg.common.group import make_agent_group
-from fedhpg.common.types import EvaluationStats
-from fedhpg.common.variants import run_variants, variant_digest
+from fedhpg.common.types import EvaluationStats, UpdateColumns
+from fedhpg.common.variants import range_digest, run_variants, variant_digest
 from fedhpg.common.wire.codec import decode, encode
 from fedhpg.common.wire.protocol import (
     MSG_TYPE_OF,
@@ -79,10 +79,12 @@ def hello_for(run: RunConfig, index: int) -> Hello:
     """The Hello a real agent ``index`` of ``run`` would send."""
     variant = run_variants(run)[index]
     return Hello(
-        agent_id=f"agent-{index}",
-        agent_index=index,
+        id=f"agent-{index}",
+        first=index,
+        count=1,
+        names_agent=True,
         env_signature=variant.signature(),
-        variant_digest=variant_digest(run, variant),
+        variant_digest=range_digest([variant_digest(run, variant)]),
     )
 
 
@@ -116,7 +118,7 @@ class ScriptedAgent:
             return_mean=0.0, return_std=0.0, discounted_return_mean=0.0,
             success_rate=0.0, length_mean=1.0, episodes=1,
         )  # fmt: skip
-        return Evaluation(round=request.round, stats=stats)
+        return Evaluation(round=request.round, agents=list(request.agents), stats=[stats])
 
     def after_answer(self, request: Train | Evaluate) -> None:
         """Called after each answer; a hook for tests."""
@@ -181,7 +183,14 @@ class HonestAgent(ScriptedAgent):
     def _train(self, request: Train) -> list[Reply]:
         theta = torch.from_numpy(np.array(request.theta))
         result = self.group.train(request.round, theta, [self.index])[self.index]
-        return [Update(round=request.round, theta=result.theta.numpy(), stats=result.stats)]
+        return [
+            Update(
+                round=request.round,
+                agents=[self.index],
+                thetas=result.theta.numpy()[None],
+                stats=UpdateColumns.of([result.stats]),
+            )
+        ]
 
     def tick(self) -> None:
         if self.release.is_set() and self.held:
@@ -193,4 +202,4 @@ class HonestAgent(ScriptedAgent):
     def evaluate(self, request: Evaluate) -> Evaluation:
         theta = torch.from_numpy(np.array(request.theta))
         stats = self.group.evaluate(request.round, theta, request.episodes, [self.index])
-        return Evaluation(round=request.round, stats=stats[self.index])
+        return Evaluation(round=request.round, agents=[self.index], stats=[stats[self.index]])

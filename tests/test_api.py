@@ -14,7 +14,7 @@ import torch
 
 from fedhpg.common.runtime.cli import compose
 from fedhpg.server import api
-from fedhpg.server.pools.inprocess import run_in_process
+from fedhpg.server.assembly import run_in_process
 
 README = Path(__file__).parent.parent / "README.md"
 GRID = ["rounds=3", "seed=1", "eval.every=2", "eval.episodes=6"]

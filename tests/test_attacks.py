@@ -14,8 +14,8 @@ from fedhpg.common.engine.sampling import _random_actions
 from fedhpg.common.runtime.cli import compose
 from fedhpg.common.variants import variants_of
 from fedhpg.common.worker import initial_theta
+from fedhpg.server.assembly import run_in_process
 from fedhpg.server.coordinator import RoundRecord
-from fedhpg.server.pools.inprocess import run_in_process
 
 START = torch.zeros(50)
 HONEST = torch.linspace(-1.0, 2.0, 50)

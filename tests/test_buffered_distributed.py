@@ -17,8 +17,8 @@ import torch
 from procs import child_pids, free_port, processes, start, wait_until
 
 from fedhpg.common.runtime.cli import compose
+from fedhpg.server.assembly import run_in_process
 from fedhpg.server.checkpoint import latest_valid_checkpoint
-from fedhpg.server.pools.inprocess import run_in_process
 
 TIMEOUT_S = 120
 QUIET = ["server.tensorboard=false"]

@@ -17,6 +17,7 @@ import torch
 from fedhpg.common.config import ConfigError, to_dict
 from fedhpg.common.runtime.cli import compose
 from fedhpg.common.types import SavedState
+from fedhpg.server.assembly import resume_point
 from fedhpg.server.checkpoint import (
     Checkpoint,
     CheckpointError,
@@ -26,7 +27,6 @@ from fedhpg.server.checkpoint import (
     save_checkpoint,
     write_atomic,
 )
-from fedhpg.server.main import resume_point
 from fedhpg.server.run_dir import RunDirectory
 from fedhpg.server.strategies import make_strategy
 

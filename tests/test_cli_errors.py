@@ -51,7 +51,8 @@ CASES: dict[str, tuple[str, list[str], str]] = {
     "fedpgbr-strategy-other-algo": (
         "fedhpg-run",
         ["strategy=fedpgbr"],
-        "strategy: fedpgbr aggregates FedPG-BR's gradients: it runs with algo=fedpgbr",
+        "strategy: fedpgbr aggregates gradients: it runs with an algorithm that sends them "
+        "(algo=fedpgbr), not algo=fedhpg, which sends parameters",
     ),
     "host-beyond-the-protocol": (  # built 70,000 variants, then a traceback, before
         "fedhpg-agent",
@@ -101,7 +102,8 @@ CASES: dict[str, tuple[str, list[str], str]] = {
     "fedpgbr-buffered": (
         "fedhpg-run",
         ["algo=fedpgbr", "server.round_policy=buffered"],
-        "server.round_policy: got 'buffered'; strategy=fedpgbr filters and steps",
+        "server.round_policy: got 'buffered'; strategy=fedpgbr aggregates every agent's update "
+        "at one θ̃ each round",
     ),
     "plan-buffered": (
         "fedhpg-run",

@@ -19,7 +19,8 @@ from hypothesis import strategies as st
 from hypothesis.extra import numpy as hnp
 
 from fedhpg.common import limits
-from fedhpg.common.types import EvaluationStats, UpdateStats
+from fedhpg.common.columns import Columns, columns_of
+from fedhpg.common.types import EvaluationStats, UpdateColumns, UpdateStats
 from fedhpg.common.wire import codec, protocol
 from fedhpg.common.wire.codec import ProtocolError, decode, encode
 from fedhpg.common.wire.protocol import (
@@ -30,19 +31,12 @@ from fedhpg.common.wire.protocol import (
     PROTOCOL_VERSION,
     Error,
     Evaluate,
-    EvaluateBatch,
     Evaluation,
-    EvaluationBatch,
     Heartbeat,
     Hello,
-    HostHello,
-    HostWelcome,
     Shutdown,
     Train,
-    TrainBatch,
     Update,
-    UpdateBatch,
-    UpdateColumns,
     Welcome,
 )
 
@@ -65,48 +59,72 @@ EVALUATION = EvaluationStats(
     length_mean=12.0,
     episodes=20,
 )
+SIGNATURE = {"observation": "Discrete(25)", "action": "Discrete(4)"}
+
+
+def _update(stats: Any = STATS, *, round: int = 7, theta: np.ndarray = THETA) -> Update:
+    """One agent's answer: a row of one."""
+    columns = UpdateColumns.of([stats]) if isinstance(stats, UpdateStats) else stats
+    return Update(round=round, agents=[0], thetas=theta[None], stats=columns)
+
+
+def _hello(**fields: Any) -> Hello:
+    """A lone agent's hello with ``fields`` in place (values the codec may refuse)."""
+    values: dict[str, Any] = {
+        "id": "a",
+        "first": 0,
+        "count": 1,
+        "env_signature": {},
+        "variant_digest": "d",
+    }
+    return Hello(**(values | fields))
+
+
 SAMPLES = [
     Hello(
-        agent_id="agent-0",
-        agent_index=0,
-        env_signature={"observation": "Discrete(25)", "action": "Discrete(4)"},
+        id="agent-0",
+        first=0,
+        count=1,
+        names_agent=True,
+        env_signature=SIGNATURE,
         variant_digest="0123456789abcdef",
         profile={"budget": {"batch_size": 16}, "speed": 0.5, "pid": 4242, "raw": b"\x00\xff"},
     ),
-    Welcome(
-        run_id="abc",
-        agent_index=3,
-        run={"seed": 1, "algo": {"name": "fedhpg", "lr": 0.01}, "tags": ["a", None, True]},
-    ),
-    Train(round=7, theta=THETA),
-    Train(round=7, theta=THETA, budget={"batch_size": 12, "local_iters": 3}),
-    Update(round=7, theta=THETA, stats=STATS),
-    Evaluate(round=9, theta=THETA.astype(np.float64), episodes=20),
-    Evaluation(round=9, stats=EVALUATION),
-    HostHello(
-        host_id="host-0-499",
+    Hello(
+        id="host-0-499",
         first=0,
         count=500,
-        env_signature={"observation": "Discrete(25)", "action": "Discrete(4)"},
+        env_signature=SIGNATURE,
         variant_digest="0123456789abcdef",
         profile={"pid": 4242, "agents": 500},
     ),
-    HostWelcome(run_id="abc", first=500, count=500, run={"seed": 1}),
-    TrainBatch(round=7, theta=THETA, agents=[500, 503, 999]),
-    TrainBatch(
+    Welcome(
+        run_id="abc",
+        first=3,
+        count=1,
+        run={"seed": 1, "algo": {"name": "fedhpg", "lr": 0.01}, "tags": ["a", None, True]},
+    ),
+    Welcome(run_id="abc", first=500, count=500, run={"seed": 1}),
+    Train(round=7, theta=THETA, agents=[3]),
+    Train(round=7, theta=THETA, agents=[3], budgets=[{"batch_size": 12, "local_iters": 3}]),
+    Train(round=7, theta=THETA, agents=[500, 503, 999]),
+    Train(
         round=7,
         theta=THETA,
         agents=[500, 503],
         budgets=[{"batch_size": 2, "local_iters": 1}, {"batch_size": 64, "local_iters": 8}],
     ),
-    UpdateBatch(
+    _update(),
+    Update(
         round=7,
         agents=[500, 503, 999],
         thetas=np.stack([THETA, -THETA, 2 * THETA]),
         stats=UpdateColumns.of([STATS, dataclasses.replace(STATS, trajectories=3), STATS]),
     ),
-    EvaluateBatch(round=9, theta=THETA, episodes=20, agents=list(range(500, 1000))),
-    EvaluationBatch(round=9, agents=[1, 2], stats=[EVALUATION, EVALUATION]),
+    Evaluate(round=9, theta=THETA.astype(np.float64), episodes=20, agents=[3]),
+    Evaluate(round=9, theta=THETA, episodes=20, agents=list(range(500, 1000))),
+    Evaluation(round=9, agents=[3], stats=[EVALUATION]),
+    Evaluation(round=9, agents=[1, 2], stats=[EVALUATION, EVALUATION]),
     Heartbeat(),
     Shutdown(reason="run complete"),
     Error(code="bad_update", reason="parameters contain NaN or Inf"),
@@ -160,14 +178,24 @@ def test_round_trip(message: object) -> None:
 
 
 def test_header_layout() -> None:
-    stats = STATS
-    frames = encode(Update(round=3, theta=THETA, stats=stats))
+    frames = encode(_update(round=3))
     assert len(frames) == 2
     assert msgpack.unpackb(frames[0]) == {
         "v": PROTOCOL_VERSION,
         "type": "update",
-        "fields": {"round": 3, "stats": dataclasses.asdict(stats)},
-        "arrays": [{"field": "theta", "dtype": "<f4", "shape": [1000]}],
+        "fields": {
+            "round": 3,
+            "agents": [0],
+            "stats": {
+                name: (
+                    {key: [value] for key, value in STATS.algorithm.items()}
+                    if name == "algorithm"
+                    else [value]
+                )
+                for name, value in dataclasses.asdict(STATS).items()
+            },
+        },
+        "arrays": [{"field": "thetas", "dtype": "<f4", "shape": [1, 1000]}],
     }
     assert bytes(frames[1]) == THETA.tobytes()
 
@@ -176,7 +204,7 @@ def test_header_layout() -> None:
 @pytest.mark.parametrize("shape", [(0,), (), (3, 4), (2, 0, 3), (1_000_000,)], ids=str)
 def test_arrays_round_trip_bit_exactly(dtype: str, shape: tuple[int, ...]) -> None:
     array = (np.arange(math.prod(shape)) % 7).astype(dtype).reshape(shape)
-    theta = decode(_wire(Train(round=1, theta=array))).theta  # type: ignore[union-attr]
+    theta = decode(_wire(Train(round=1, theta=array, agents=[0]))).theta  # type: ignore[union-attr]
     assert theta.dtype == array.dtype and theta.shape == shape
     assert theta.tobytes() == array.tobytes()
 
@@ -184,7 +212,7 @@ def test_arrays_round_trip_bit_exactly(dtype: str, shape: tuple[int, ...]) -> No
 def test_float_bit_patterns_survive() -> None:
     special = np.array([np.nan, -np.nan, np.inf, -np.inf, -0.0, 1e-45, 3.4e38], dtype=np.float32)
     special = np.concatenate([special, np.array([0x7FC00001], np.uint32).view(np.float32)])
-    theta = decode(_wire(Train(round=1, theta=special))).theta  # type: ignore[union-attr]
+    theta = decode(_wire(Train(round=1, theta=special, agents=[0]))).theta  # type: ignore[union-attr]
     assert theta.tobytes() == special.tobytes()
 
 
@@ -193,13 +221,13 @@ def test_non_contiguous_and_big_endian_arrays_are_normalised() -> None:
     fortran = np.asfortranarray(np.arange(12, dtype=np.int64).reshape(3, 4))
     swapped = np.arange(6, dtype=">f8").reshape(2, 3)
     for array in (strided, fortran, swapped):
-        theta = decode(_wire(Train(round=1, theta=array))).theta  # type: ignore[union-attr]
+        theta = decode(_wire(Train(round=1, theta=array, agents=[0]))).theta  # type: ignore[union-attr]
         np.testing.assert_array_equal(theta, array)
         assert theta.dtype.str in codec.ALLOWED_DTYPES
 
 
 def test_encode_and_decode_do_not_copy_arrays() -> None:
-    frames = encode(Train(round=1, theta=THETA))
+    frames = encode(Train(round=1, theta=THETA, agents=[0]))
     assert np.shares_memory(np.frombuffer(frames[1], np.uint8), THETA)
     payload = bytearray(THETA.tobytes())  # writable, like a zmq.Frame
     theta = decode([frames[0], payload]).theta  # type: ignore[union-attr]
@@ -209,93 +237,60 @@ def test_encode_and_decode_do_not_copy_arrays() -> None:
 
 def test_encode_normalises_numpy_scalars_and_tuples() -> None:
     stats = {"a": np.float32(0.5), "b": np.int64(3), "c": np.bool_(True), "d": (1, np.str_("x"))}
-    decoded = decode(_wire(Welcome(run_id="r", agent_index=0, run=stats)))
+    decoded = decode(_wire(Welcome(run_id="r", first=0, count=1, run=stats)))
     assert decoded.run == {"a": 0.5, "b": 3, "c": True, "d": [1, "x"]}  # type: ignore[union-attr]
     assert type(decoded.run["b"]) is int and type(decoded.run["c"]) is bool  # type: ignore[union-attr]
-    update = decode(
-        _wire(
-            Update(
-                round=1,
-                theta=THETA,
-                stats=dataclasses.replace(
-                    STATS, trajectories=np.int64(4), algorithm={"w": np.float32(0.5)}
-                ),
-            )
-        )
-    )  # type: ignore[arg-type]
-    assert update.stats == dataclasses.replace(STATS, trajectories=4, algorithm={"w": 0.5})  # type: ignore[union-attr]
+    numpy_stats = dataclasses.replace(
+        STATS, trajectories=np.int64(4), algorithm={"w": np.float32(0.5)}
+    )
+    update = decode(_wire(_update(numpy_stats, round=1)))
+    assert isinstance(update, Update)
+    assert update.stats[0] == dataclasses.replace(STATS, trajectories=4, algorithm={"w": 0.5})
 
 
 @pytest.mark.parametrize(
     ("message", "code"),
     [
-        (Train(round=1, theta=np.zeros(3, np.float16)), "bad_array"),
-        (Train(round=1, theta=np.zeros(3, np.complex64)), "bad_array"),
-        (Train(round=1, theta=np.array([None], dtype=object)), "bad_array"),
-        (Train(round=1, theta=[1.0, 2.0]), "bad_array"),  # type: ignore[arg-type]
-        (Train(round=True, theta=THETA), "bad_fields"),
-        (Train(round="1", theta=THETA), "bad_fields"),  # type: ignore[arg-type]
-        (Welcome(run_id="r", agent_index=0, run={1: "int key"}), "bad_fields"),  # type: ignore[dict-item]
-        (Welcome(run_id="r", agent_index=0, run={"x": object()}), "bad_fields"),
-        (Welcome(run_id="r", agent_index=0, run={"x": 1 << 64}), "bad_fields"),
-        (Welcome(run_id="r", agent_index=0, run={"x": THETA}), "bad_fields"),
-        (Update(round=1, theta=THETA, stats={"trajectories": 1}), "bad_fields"),  # type: ignore[arg-type]
+        (Train(round=1, theta=np.zeros(3, np.float16), agents=[0]), "bad_array"),
+        (Train(round=1, theta=np.zeros(3, np.complex64), agents=[0]), "bad_array"),
+        (Train(round=1, theta=np.array([None], dtype=object), agents=[0]), "bad_array"),
+        (Train(round=1, theta=[1.0, 2.0], agents=[0]), "bad_array"),  # type: ignore[arg-type]
+        (Train(round=True, theta=THETA, agents=[0]), "bad_fields"),
+        (Train(round="1", theta=THETA, agents=[0]), "bad_fields"),  # type: ignore[arg-type]
+        (Welcome(run_id="r", first=0, count=1, run={1: "int key"}), "bad_fields"),  # type: ignore[dict-item]
+        (Welcome(run_id="r", first=0, count=1, run={"x": object()}), "bad_fields"),
+        (Welcome(run_id="r", first=0, count=1, run={"x": 1 << 64}), "bad_fields"),
+        (Welcome(run_id="r", first=0, count=1, run={"x": THETA}), "bad_fields"),
+        (_update({"trajectories": [1]}, round=1), "bad_fields"),  # type: ignore[arg-type]
         (
-            Update(round=1, theta=THETA, stats=dataclasses.replace(STATS, algorithm={"x": b"1"})),
+            _update(dataclasses.replace(STATS, algorithm={"x": b"1"}), round=1),
             "bad_fields",
         ),  # type: ignore[dict-item]
         (
-            Update(round=1, theta=THETA, stats=dataclasses.replace(STATS, compute_s="0")),
+            _update(dataclasses.replace(STATS, compute_s="0"), round=1),
             "bad_fields",
         ),  # type: ignore[arg-type]
-        (Evaluation(round=1, stats=dataclasses.replace(EVALUATION, episodes=1.5)), "bad_fields"),  # type: ignore[arg-type]
-        (Hello(agent_id="a", agent_index=0, env_signature={"obs": 3}), "bad_fields"),
-        (Welcome(run_id="r", agent_index=0, run={"x": "x" * (2 << 20)}), "too_large"),
         (
-            Hello(
-                agent_id="a",
-                agent_index=0,
-                env_signature={},
-                profile={f"k{i}": "x" * 8000 for i in range(9)},
-            ),
-            "too_large",
-        ),  # > 64 KiB
+            Evaluation(round=1, agents=[0], stats=[dataclasses.replace(EVALUATION, episodes=1.5)]),
+            "bad_fields",
+        ),  # type: ignore[arg-type]
+        (_hello(env_signature={"obs": 3}), "bad_fields"),
+        (Welcome(run_id="r", first=0, count=1, run={"x": "x" * (2 << 20)}), "too_large"),
+        (_hello(profile={f"k{i}": "x" * 8000 for i in range(9)}), "too_large"),  # > 64 KiB
         (Shutdown(reason="x" * 5000), "bad_fields"),
-        (Hello(agent_id="a" * 129, agent_index=0, env_signature={}), "bad_fields"),
-        (Hello(agent_id="a", agent_index=-1, env_signature={}), "bad_fields"),
+        (_hello(id="a" * 129), "bad_fields"),
+        (_hello(first=-1), "bad_fields"),
+        (_hello(profile={f"k{i}": i for i in range(17)}), "bad_fields"),
+        (_hello(names_agent=1), "bad_fields"),
+        (Train(round=-1, theta=THETA, agents=[0]), "bad_fields"),
+        # ranges and answers are bounded
+        (_hello(count=0), "bad_fields"),
+        (_hello(count=MAX_HOST_AGENTS + 1), "bad_fields"),
+        (Train(round=1, theta=THETA, agents=[0] * (MAX_HOST_AGENTS + 1)), "bad_fields"),
+        (Train(round=1, theta=THETA, agents=[-1]), "bad_fields"),
+        (Evaluate(round=1, theta=THETA, episodes=1, agents=[-1]), "bad_fields"),
         (
-            Hello(
-                agent_id="a",
-                agent_index=0,
-                env_signature={},
-                profile={f"k{i}": i for i in range(17)},
-            ),
-            "bad_fields",
-        ),
-        (Train(round=-1, theta=THETA), "bad_fields"),
-        # agent hosts: ranges and batches are bounded
-        (
-            HostHello(host_id="h", first=0, count=0, env_signature={}, variant_digest="d"),
-            "bad_fields",
-        ),
-        (
-            HostHello(
-                host_id="h",
-                first=0,
-                count=MAX_HOST_AGENTS + 1,
-                env_signature={},
-                variant_digest="d",
-            ),
-            "bad_fields",
-        ),
-        (
-            HostHello(host_id="h", first=-1, count=1, env_signature={}, variant_digest="d"),
-            "bad_fields",
-        ),
-        (TrainBatch(round=1, theta=THETA, agents=[0] * (MAX_HOST_AGENTS + 1)), "bad_fields"),
-        (TrainBatch(round=1, theta=THETA, agents=[-1]), "bad_fields"),
-        (
-            UpdateBatch(
+            Update(
                 round=1,
                 agents=[0] * (MAX_BATCH_ANSWERS + 1),
                 thetas=np.zeros((MAX_BATCH_ANSWERS + 1, 2), np.float32),
@@ -304,7 +299,7 @@ def test_encode_normalises_numpy_scalars_and_tuples() -> None:
             "bad_fields",
         ),
         (
-            EvaluationBatch(
+            Evaluation(
                 round=1,
                 agents=[0] * (MAX_BATCH_ANSWERS + 1),
                 stats=[EVALUATION] * (MAX_BATCH_ANSWERS + 1),
@@ -312,7 +307,7 @@ def test_encode_normalises_numpy_scalars_and_tuples() -> None:
             "bad_fields",
         ),
         (
-            UpdateBatch(
+            Update(
                 round=1,
                 agents=[0],
                 thetas=np.zeros((1, 2), np.float32),
@@ -321,33 +316,27 @@ def test_encode_normalises_numpy_scalars_and_tuples() -> None:
             "bad_fields",
         ),
         (
-            Update(
-                round=1,
-                theta=THETA,
-                stats=dataclasses.replace(STATS, trajectories=limits.MAX_COUNT + 1),
+            _update(dataclasses.replace(STATS, trajectories=limits.MAX_COUNT + 1), round=1),
+            "bad_fields",
+        ),
+        (
+            _update(dataclasses.replace(STATS, compute_s=math.inf), round=1),
+            "bad_fields",
+        ),
+        (
+            _update(dataclasses.replace(STATS, algorithm={"w": math.nan}), round=1),
+            "bad_fields",
+        ),
+        (
+            _update(
+                dataclasses.replace(STATS, algorithm={f"s{i}": 1.0 for i in range(33)}), round=1
             ),
             "bad_fields",
         ),
         (
-            Update(round=1, theta=THETA, stats=dataclasses.replace(STATS, compute_s=math.inf)),
-            "bad_fields",
-        ),
-        (
-            Update(
-                round=1, theta=THETA, stats=dataclasses.replace(STATS, algorithm={"w": math.nan})
+            Evaluation(
+                round=1, agents=[0], stats=[dataclasses.replace(EVALUATION, success_rate=1.5)]
             ),
-            "bad_fields",
-        ),
-        (
-            Update(
-                round=1,
-                theta=THETA,
-                stats=dataclasses.replace(STATS, algorithm={f"s{i}": 1.0 for i in range(33)}),
-            ),
-            "bad_fields",
-        ),
-        (
-            Evaluation(round=1, stats=dataclasses.replace(EVALUATION, success_rate=1.5)),
             "bad_fields",
         ),
     ],
@@ -361,7 +350,7 @@ def test_encode_refuses_what_decode_would_reject(message: object, code: str) -> 
 
 def test_encode_refuses_deep_nesting_and_non_messages() -> None:
     with pytest.raises(ProtocolError, match="deeper"):
-        encode(Welcome(run_id="r", agent_index=0, run={"deep": _nested(codec.MAX_NESTING + 2)}))
+        encode(Welcome(run_id="r", first=0, count=1, run={"deep": _nested(codec.MAX_NESTING + 2)}))
     with pytest.raises(TypeError):
         encode("hello")  # type: ignore[arg-type]
 
@@ -426,32 +415,40 @@ _ARRAYS = hnp.arrays(
     elements=None,
 )
 _ROUNDS = st.integers(0, limits.MAX_ROUND)
+_AGENTS = st.lists(_ROUNDS, max_size=20)
 _MESSAGES = st.one_of(
-    st.builds(Train, round=_ROUNDS, theta=_ARRAYS),
-    st.builds(Update, round=_ROUNDS, theta=_ARRAYS, stats=_UPDATE_STATS),
-    st.builds(Evaluate, round=_ROUNDS, theta=_ARRAYS, episodes=st.integers(1, 2**20)),
-    st.builds(Evaluation, round=_ROUNDS, stats=_EVALUATION_STATS),
+    st.builds(Train, round=_ROUNDS, theta=_ARRAYS, agents=_AGENTS),
+    st.builds(
+        Evaluate, round=_ROUNDS, theta=_ARRAYS, episodes=st.integers(1, 2**20), agents=_AGENTS
+    ),
     st.builds(
         Hello,
-        agent_id=st.text(max_size=128),
-        agent_index=_ROUNDS,
+        id=st.text(max_size=128),
+        first=_ROUNDS,
+        count=st.integers(1, MAX_HOST_AGENTS),
+        names_agent=st.booleans(),
         env_signature=st.dictionaries(st.text(max_size=64), st.text(max_size=20), max_size=8),
         variant_digest=st.text(max_size=128),
         profile=st.dictionaries(st.text(max_size=64), _PLAIN, max_size=16),
     ),
-    st.builds(Welcome, run_id=st.text(max_size=128), agent_index=_ROUNDS, run=_STATS),
+    st.builds(
+        Welcome,
+        run_id=st.text(max_size=128),
+        first=_ROUNDS,
+        count=st.integers(1, MAX_HOST_AGENTS),
+        run=_STATS,
+    ),
     st.builds(Error, code=st.text(max_size=128), reason=st.text(max_size=4096)),
     st.builds(Shutdown, reason=st.text(max_size=200), complete=st.booleans()),
-    st.builds(TrainBatch, round=_ROUNDS, theta=_ARRAYS, agents=st.lists(_ROUNDS, max_size=20)),
     st.builds(
-        UpdateBatch,
+        Update,
         round=_ROUNDS,
         agents=st.lists(_ROUNDS, max_size=4),
         thetas=_ARRAYS,
         stats=_UPDATE_COLUMNS,
     ),
     st.builds(
-        EvaluationBatch,
+        Evaluation,
         round=_ROUNDS,
         agents=st.lists(_ROUNDS, max_size=4),
         stats=st.lists(_EVALUATION_STATS, max_size=4),
@@ -472,11 +469,16 @@ def _header(**overrides: object) -> bytes:
     header: dict[str, object] = {
         "v": PROTOCOL_VERSION,
         "type": "train",
-        "fields": {"round": 1, "budget": {}},
+        "fields": _fields(),
         "arrays": [{"field": "theta", "dtype": "<f4", "shape": [2]}],
     }
     header.update(overrides)
     return msgpack.packb({k: v for k, v in header.items() if v is not _DROP})
+
+
+def _fields(**overrides: object) -> dict[str, object]:
+    """A Train's header fields, with ``overrides``."""
+    return {"round": 1, "agents": [0], "budgets": []} | overrides
 
 
 def _descriptor(**overrides: object) -> bytes:
@@ -517,7 +519,8 @@ REJECTIONS: list[tuple[str, list[Any], str]] = [
     ("too deep", [b"\x91" * 5000 + b"\xc0"], "malformed"),
     # envelope
     ("no version", [_header(v=_DROP), GOOD_ARRAY], "malformed"),
-    ("version 7", [_header(v=7), GOOD_ARRAY], "version"),
+    ("version 8", [_header(v=8), GOOD_ARRAY], "version"),
+    ("version 6", [_header(v=6), GOOD_ARRAY], "version"),
     ("version 5", [_header(v=5), GOOD_ARRAY], "version"),
     ("version 4", [_header(v=4), GOOD_ARRAY], "version"),
     ("version 3", [_header(v=3), GOOD_ARRAY], "version"),
@@ -536,19 +539,39 @@ REJECTIONS: list[tuple[str, list[Any], str]] = [
     ("arrays not list", [_header(arrays={}), GOOD_ARRAY], "malformed"),
     # header fields
     ("missing field", [_header(fields={}), GOOD_ARRAY], "bad_fields"),
-    ("unknown field", [_header(fields={"round": 1, "extra": 2}), GOOD_ARRAY], "bad_fields"),
-    ("bytes field key", [_header(fields={b"round": 1}), GOOD_ARRAY], "bad_fields"),
-    ("str for int", [_header(fields={"round": "1"}), GOOD_ARRAY], "bad_fields"),
-    ("bool for int", [_header(fields={"round": True}), GOOD_ARRAY], "bad_fields"),
-    ("float for int", [_header(fields={"round": 1.0}), GOOD_ARRAY], "bad_fields"),
-    ("None for int", [_header(fields={"round": None}), GOOD_ARRAY], "bad_fields"),
+    ("unknown field", [_header(fields=_fields(extra=2)), GOOD_ARRAY], "bad_fields"),
     (
-        "int in dict[str, str]",
-        [_packed("hello", agent_id="a", agent_index=0, env_signature={"obs": 3}, profile={})],
+        "bytes field key",
+        [_header(fields={b"round": 1, "agents": [0], "budgets": []}), GOOD_ARRAY],
         "bad_fields",
     ),
-    ("stats not a map", [_packed("evaluation", round=1, stats=[])], "bad_fields"),
-    ("stats too deep", [_packed("evaluation", round=1, stats={"x": _nested(40)})], "bad_fields"),
+    ("str for int", [_header(fields=_fields(round="1")), GOOD_ARRAY], "bad_fields"),
+    ("bool for int", [_header(fields=_fields(round=True)), GOOD_ARRAY], "bad_fields"),
+    ("float for int", [_header(fields=_fields(round=1.0)), GOOD_ARRAY], "bad_fields"),
+    ("None for int", [_header(fields=_fields(round=None)), GOOD_ARRAY], "bad_fields"),
+    ("str for agent", [_header(fields=_fields(agents=["0"])), GOOD_ARRAY], "bad_fields"),
+    (
+        "int in dict[str, str]",
+        [
+            _packed(
+                "hello",
+                id="a",
+                first=0,
+                count=1,
+                names_agent=True,
+                env_signature={"obs": 3},
+                variant_digest="d",
+                profile={},
+            )
+        ],
+        "bad_fields",
+    ),
+    ("stats not a list", [_packed("evaluation", round=1, agents=[0], stats={})], "bad_fields"),
+    (
+        "stats too deep",
+        [_packed("evaluation", round=1, agents=[0], stats=[{"x": _nested(40)}])],
+        "bad_fields",
+    ),
     # arrays
     ("no array frame", [_header()], "bad_array"),
     ("extra frame", [_header(), GOOD_ARRAY, GOOD_ARRAY], "bad_array"),
@@ -587,7 +610,7 @@ def test_rejections_carry_a_code(frames: list[Any], code: str) -> None:
 
 
 def test_version_error_names_both_versions() -> None:
-    with pytest.raises(ProtocolError, match=r"received protocol version 3, expected 6"):
+    with pytest.raises(ProtocolError, match=r"received protocol version 3, expected 7"):
         decode([_header(v=3), GOOD_ARRAY])
 
 
@@ -602,18 +625,18 @@ def test_a_batched_answers_header_is_capped_by_the_agents_it_lists(
         [dataclasses.replace(STATS, algorithm={f"{i:064d}": 1.0 for i in range(32)})] * 2
     )
     thetas = np.zeros((2, 3), np.float32)
-    heavy_frames = _wire(UpdateBatch(round=1, agents=[0, 1], thetas=thetas, stats=heavy))
-    monkeypatch.setitem(protocol.HEADER_PER_AGENT, UpdateBatch, ("agents", 256, 512))
-    decode(_wire(UpdateBatch(round=1, agents=[0, 1], thetas=thetas, stats=lean)))
+    heavy_frames = _wire(Update(round=1, agents=[0, 1], thetas=thetas, stats=heavy))
+    monkeypatch.setitem(protocol.HEADER_PER_AGENT, Update, ("agents", 256, 512))
+    decode(_wire(Update(round=1, agents=[0, 1], thetas=thetas, stats=lean)))
     with pytest.raises(ProtocolError) as info:
         decode(heavy_frames)
     assert info.value.code == "too_large" and "for 2 agents" in str(info.value)
     with pytest.raises(ProtocolError, match="for 2 agents"):
-        encode(UpdateBatch(round=1, agents=[0, 1], thetas=thetas, stats=heavy))
+        encode(Update(round=1, agents=[0, 1], thetas=thetas, stats=heavy))
 
 
 def test_size_cap() -> None:
-    frames = _wire(Train(round=1, theta=np.zeros(1000, dtype=np.float32)))
+    frames = _wire(Train(round=1, theta=np.zeros(1000, dtype=np.float32), agents=[0]))
     decode(frames, max_bytes=4000 + len(frames[0]))
     with pytest.raises(ProtocolError) as info:
         decode(frames, max_bytes=4000)
@@ -835,21 +858,21 @@ def router_dealer() -> Iterator[tuple[zmq.Socket, zmq.Socket]]:
 
 def test_over_real_sockets(router_dealer: tuple[zmq.Socket, zmq.Socket]) -> None:
     router, dealer = router_dealer
-    big = Update(round=1, theta=np.arange(1_000_000, dtype=np.float32), stats=STATS)
-    for message in (SAMPLES[3], big):
+    big = _update(round=1, theta=np.arange(1_000_000, dtype=np.float32))
+    for message in (SAMPLES[5], big):
         dealer.send_multipart(encode(message), copy=False)
         assert router.poll(5000)
         identity, *frames = router.recv_multipart(copy=False)
         assert identity.bytes == b"agent-0#1"
         assert _equal(decode(frames), message)
-    router.send_multipart([b"agent-0#1", *encode(SAMPLES[2])], copy=False)
+    router.send_multipart([b"agent-0#1", *encode(SAMPLES[4])], copy=False)
     assert dealer.poll(5000)
-    assert _equal(decode(dealer.recv_multipart(copy=False)), SAMPLES[2])
+    assert _equal(decode(dealer.recv_multipart(copy=False)), SAMPLES[4])
 
 
 def test_zmq_frames_are_accepted_directly() -> None:
-    frames = [zmq.Frame(bytes(f)) for f in encode(SAMPLES[2])]
-    assert _equal(decode(frames), SAMPLES[2])
+    frames = [zmq.Frame(bytes(f)) for f in encode(SAMPLES[4])]
+    assert _equal(decode(frames), SAMPLES[4])
 
 
 _ANY_SCALAR = st.one_of(
@@ -948,10 +971,11 @@ def test_a_columns_whole_list_test_agrees_with_the_generic_checks(
     ), (item, items)
 
 
-def test_update_columns_mirror_update_stats() -> None:
+def test_update_columns_are_generated_from_update_stats() -> None:
     """One column per ``UpdateStats`` field, each a list of that field's own type."""
     stats = typing.get_type_hints(UpdateStats, include_extras=True)
-    columns = typing.get_type_hints(UpdateColumns, include_extras=True)
+    hints = typing.get_type_hints(UpdateColumns, include_extras=True)
+    columns = {f.name: hints[f.name] for f in dataclasses.fields(UpdateColumns)}
     assert list(columns) == [f.name for f in dataclasses.fields(UpdateStats)]
     for name, hint in columns.items():
         base, _ = limits.bounds_of(hint)
@@ -961,6 +985,38 @@ def test_update_columns_mirror_update_stats() -> None:
             assert inner == typing.get_args(stats[name])[0].__args__[1] | None
         else:
             assert typing.get_args(base) == (stats[name],), name
+
+
+def test_a_records_new_field_is_a_column_at_once() -> None:
+    """``columns_of`` reads the record's declaration: a field added there is a column, with
+    its bounds, its default where a round does not fill it, and it crosses the wire."""
+
+    @dataclasses.dataclass(frozen=True, kw_only=True)
+    class Record:
+        count: limits.Count
+        seconds: limits.Seconds | None = None
+        extra: dict[str, limits.Finite] = dataclasses.field(default_factory=dict)
+
+    @columns_of(Record, rows=3)
+    class RecordColumns(Columns[Record]):
+        pass
+
+    rows = [Record(count=1, extra={"a": 1.0}), Record(count=2, seconds=0.5)]
+    columns = RecordColumns.of(rows)
+    assert columns.records() == rows and columns.extra == {"a": [1.0, None]}
+    assert RecordColumns.filled(2, count=[1, 2]).records() == [Record(count=1), Record(count=2)]
+    checker = codec._checker(RecordColumns)
+    assert checker({"count": [1], "seconds": [None], "extra": {}}, "x", 0) == RecordColumns.of(
+        [Record(count=1)]
+    )
+    for bad, reason in [
+        ({"count": [-1], "seconds": [None], "extra": {}}, "below 0"),
+        ({"count": [1] * 4, "seconds": [None] * 4, "extra": {}}, "more than 3"),
+        ({"count": [1], "seconds": [None], "extra": {"a": [math.inf]}}, "not finite"),
+        ({"count": [1], "extra": {}}, "missing fields"),
+    ]:
+        with pytest.raises(ProtocolError, match=reason):
+            checker(bad, "x", 0)
 
 
 def test_update_columns_give_back_each_agents_record() -> None:
@@ -980,11 +1036,9 @@ def test_update_columns_give_back_each_agents_record() -> None:
         "iw_max": [2.5, None, 7.0],
         "other": [None, None, -1.0],
     }
-    batch = UpdateBatch(
-        round=2, agents=[7, 8, 9], thetas=np.zeros((3, 2), np.float32), stats=columns
-    )
+    batch = Update(round=2, agents=[7, 8, 9], thetas=np.zeros((3, 2), np.float32), stats=columns)
     decoded = decode(_wire(batch))
-    assert isinstance(decoded, UpdateBatch) and list(decoded.stats) == records
+    assert isinstance(decoded, Update) and list(decoded.stats) == records
     assert list(columns.take([2, 0])) == [records[2], records[0]]
     assert list(columns[1:]) == records[1:] and isinstance(columns[1:], UpdateColumns)
     assert columns[::2].records() == records[::2] and columns[1:].algorithm["iw_mean"] == [None] * 2
@@ -993,9 +1047,7 @@ def test_update_columns_give_back_each_agents_record() -> None:
 
 def test_a_bad_column_is_refused_with_the_agent_row_named() -> None:
     thetas = np.zeros((2, 2), np.float32)
-    good = UpdateBatch(
-        round=1, agents=[0, 1], thetas=thetas, stats=UpdateColumns.of([STATS, STATS])
-    )
+    good = Update(round=1, agents=[0, 1], thetas=thetas, stats=UpdateColumns.of([STATS, STATS]))
     columns = msgpack.unpackb(_wire(good)[0])["fields"]["stats"]
     for changed, reason in [
         ({"compute_s": [0.5, -1.0]}, r"stats\.compute_s\[1\]: -1\.0 is below 0"),
@@ -1029,15 +1081,18 @@ def _with_fields(message: object, **changes: Any) -> list[bytes]:
 @pytest.mark.parametrize(
     ("message", "changes"),
     [
-        (Train(round=1, theta=THETA), {"budget": {"batch_size": 0}}),
-        (Train(round=1, theta=THETA), {"budget": {"local_iters": protocol.MAX_BUDGET + 1}}),
-        (Train(round=1, theta=THETA), {"budget": {"batch_size": 2.5}}),
-        (Train(round=1, theta=THETA), {"budget": {"x" * 65: 2}}),
-        (Train(round=1, theta=THETA), {"budget": [4, 2]}),
-        (TrainBatch(round=1, theta=THETA, agents=[3, 4]), {"budgets": [{"batch_size": 4}]}),
-        (TrainBatch(round=1, theta=THETA, agents=[3]), {"budgets": [{"batch_size": -1}]}),
+        (Train(round=1, theta=THETA, agents=[0]), {"budgets": [{"batch_size": 0}]}),
+        (
+            Train(round=1, theta=THETA, agents=[0]),
+            {"budgets": [{"local_iters": protocol.MAX_BUDGET + 1}]},
+        ),
+        (Train(round=1, theta=THETA, agents=[0]), {"budgets": [{"batch_size": 2.5}]}),
+        (Train(round=1, theta=THETA, agents=[0]), {"budgets": [{"x" * 65: 2}]}),
+        (Train(round=1, theta=THETA, agents=[0]), {"budgets": [[4, 2]]}),
+        (Train(round=1, theta=THETA, agents=[3, 4]), {"budgets": [{"batch_size": 4}]}),
+        (Train(round=1, theta=THETA, agents=[3]), {"budgets": [{"batch_size": -1}]}),
     ],
-    ids=["zero", "huge", "float", "long-key", "not-a-map", "one-short", "negative-in-batch"],
+    ids=["zero", "huge", "float", "long-key", "not-a-map", "one-short", "negative"],
 )
 def test_a_bad_planned_budget_is_refused(message: object, changes: dict[str, Any]) -> None:
     """The round's budget is checked as every field is: counts in [1, MAX_BUDGET], a map of

@@ -27,8 +27,8 @@ from fedhpg.common.round_columns import IterationColumns
 from fedhpg.common.runtime.cli import compose
 from fedhpg.common.variants import run_variants
 from fedhpg.common.worker import IterationWork, initial_theta
+from fedhpg.server.assembly import run_in_process
 from fedhpg.server.coordinator import RoundRecord
-from fedhpg.server.pools.inprocess import run_in_process
 
 STEP_S, GRAD_S, LATENCY_S, BANDWIDTH_MBPS = 2e-5, 3e-5, 0.004, 50.0
 

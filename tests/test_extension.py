@@ -20,8 +20,8 @@ from fedhpg.common.runtime.cli import compose
 from fedhpg.common.variants import run_variants
 from fedhpg.envs.registry import make_variants
 from fedhpg.server import api
+from fedhpg.server.assembly import run_in_process
 from fedhpg.server.checkpoint import latest_valid_checkpoint
-from fedhpg.server.pools.inprocess import run_in_process
 
 TESTS = Path(__file__).parent
 OVERRIDES = [
@@ -84,6 +84,52 @@ def test_plugin_options_are_checked_by_name() -> None:
     with pytest.raises(ConfigError, match="must be > 0") as info:
         run_in_process(compose([*OVERRIDES, "algo.params.scale=-1"]))
     assert info.value.key == "algo.params.scale"
+
+
+def test_a_strategy_declares_the_updates_it_takes_and_whether_rounds_may_be_buffered(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """No strategy or algorithm is named in a check: a strategy of a kind of update of its own
+    (``takes``) runs only with an algorithm that sends that kind (one that names it,
+    ``Algorithm.strategy``), and one that is not ``buffered`` refuses buffered rounds."""
+    from fedhpg_toy_plugin import ToySign
+
+    from fedhpg.common.algorithms import ALGORITHMS
+    from fedhpg.server.assembly import check_run
+    from fedhpg.server.strategies import STRATEGIES, CoordinateRule, NoParams
+
+    class Deltas(CoordinateRule[NoParams]):
+        name = "toy_deltas"
+        takes = "deltas"
+        buffered = False
+
+        def combine(self, rows: torch.Tensor) -> torch.Tensor:
+            return rows.mean(dim=0)
+
+    class SendsDeltas(ToySign):
+        name = "toy_sends_deltas"
+        strategy = "toy_deltas"
+
+    ALGORITHMS.names(), STRATEGIES.names()  # the package's own entries first
+    monkeypatch.setitem(ALGORITHMS._entries, SendsDeltas.name, SendsDeltas())
+    monkeypatch.setitem(STRATEGIES._entries, Deltas.name, Deltas)
+    toy = ("algo.name", "+algo.params", "++agents.budget", "strategy.name")
+    common = [o for o in OVERRIDES if not o.startswith(toy)]
+    with pytest.raises(ConfigError) as info:
+        check_run(compose([*common, "strategy.name=toy_deltas"]), distributed=False)
+    assert info.value.key == "strategy"
+    assert "toy_deltas aggregates deltas: it runs with an algorithm that sends them " in str(
+        info.value
+    )
+    assert "(algo=toy_sends_deltas), not algo=fedhpg, which sends parameters" in str(info.value)
+    toy_algorithm = [o for o in OVERRIDES if o.startswith(toy[:3])]
+    sends_deltas = [o.replace("toy_sign", SendsDeltas.name) for o in toy_algorithm]
+    paired = [*common, *sends_deltas, "strategy.name=toy_deltas"]
+    with pytest.raises(ConfigError) as info:
+        check_run(compose([*paired, "server.round_policy=buffered"]), distributed=False)
+    assert info.value.key == "server.round_policy" and "strategy=toy_deltas" in str(info.value)
+    result = api.run(overrides=[*paired, "rounds=1"])
+    assert [r["round"] for r in result.records] == [1]
 
 
 ENV_PLUGIN = "fedhpg_toy_env_plugin"

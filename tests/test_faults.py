@@ -13,12 +13,12 @@ import zmq
 from procs import BIN, free_port, processes, start, wait_until
 
 from fedhpg.common.runtime.cli import compose
-from fedhpg.common.types import UpdateStats
+from fedhpg.common.types import UpdateColumns, UpdateStats
 from fedhpg.common.variants import run_variants
 from fedhpg.common.wire.codec import decode, encode
 from fedhpg.common.wire.protocol import PROTOCOL_VERSION, Error, Hello, Update
+from fedhpg.server.assembly import run_in_process
 from fedhpg.server.checkpoint import latest_valid_checkpoint
-from fedhpg.server.pools.inprocess import run_in_process
 
 TIMEOUT_S = 120
 
@@ -68,7 +68,7 @@ def _header(**overrides: object) -> bytes:
 
 def _update(theta: np.ndarray) -> list:
     stats = UpdateStats(trajectories=1, env_steps=1, compute_s=0.0, train_return=0.0)
-    return encode(Update(round=1, theta=theta, stats=stats))
+    return encode(Update(round=1, agents=[0], thetas=theta[None], stats=UpdateColumns.of([stats])))
 
 
 def test_server_survives_bad_input_and_finishes_right(tmp_path: Path) -> None:
@@ -100,9 +100,12 @@ def test_server_survives_bad_input_and_finishes_right(tmp_path: Path) -> None:
             reply = rogue.ask(_update(np.zeros(num_params, dtype=np.float32)))
             assert reply is not None and reply.code == "not_registered"
             bad_signature = Hello(
-                agent_id="mallory",
-                agent_index=0,
+                id="mallory",
+                first=0,
+                count=1,
+                names_agent=True,
                 env_signature={"observation": "Box(4)", "action": "Discrete(2)"},
+                variant_digest="",
             )
             reply = rogue.ask(encode(bad_signature))
             assert reply is not None and reply.code == "env_signature"
@@ -110,12 +113,16 @@ def test_server_survives_bad_input_and_finishes_right(tmp_path: Path) -> None:
                 compose([o for o in overrides if not o.startswith("server.")])
             )[0].signature()
             reply = rogue.ask(
-                encode(Hello(agent_id="mallory", agent_index=0, env_signature=signature,
-                             variant_digest="not-the-run's"))
+                encode(Hello(id="mallory", first=0, count=1, names_agent=True,
+                             env_signature=signature, variant_digest="not-the-run's"))
             )  # fmt: skip
             assert reply is not None and reply.code == "variant_mismatch"
-            reply = rogue.ask(encode(Hello(agent_id="mallory", agent_index=9, env_signature={})))
-            assert reply is not None and reply.code == "bad_index"
+            for first, count in ((9, 1), (1, 3)):  # beyond the run's three agents
+                reply = rogue.ask(
+                    encode(Hello(id="mallory", first=first, count=count, env_signature={},
+                                 variant_digest=""))
+                )  # fmt: skip
+                assert reply is not None and reply.code == "bad_index"
             # Over the run's cap (a 1 MiB header and θ): libzmq drops the connection, no reply.
             oversized = Rogue(context, port, b"rogue#2")
             assert oversized.ask([_header(), b"\x00" * (2 << 20)], timeout_s=1.0) is None

@@ -15,9 +15,9 @@ import torch
 from procs import processes, start
 
 from fedhpg.common.runtime.cli import compose
+from fedhpg.server.assembly import run_in_process
 from fedhpg.server.checkpoint import latest_valid_checkpoint
 from fedhpg.server.coordinator import RoundRecord
-from fedhpg.server.pools.inprocess import run_in_process
 
 ROUNDS = 4
 TIMEOUT_S = 180

@@ -19,7 +19,7 @@ from peers import HonestAgent, raw_frames
 from procs import free_port, processes, start, wait_until
 
 from fedhpg.common.runtime.cli import compose
-from fedhpg.common.types import EvaluationStats, UpdateStats
+from fedhpg.common.types import EvaluationStats, UpdateColumns, UpdateStats
 from fedhpg.common.variants import run_variants
 from fedhpg.common.wire.protocol import (
     Error,
@@ -32,8 +32,8 @@ from fedhpg.common.wire.protocol import (
     Update,
     Welcome,
 )
+from fedhpg.server.assembly import run_in_process
 from fedhpg.server.checkpoint import latest_valid_checkpoint
-from fedhpg.server.pools.inprocess import run_in_process
 
 FRAMES = 10_000
 SEND_WAIT_MS = 60_000
@@ -56,6 +56,13 @@ arrays = st.one_of(
     st.just(np.ones(NUM_PARAMS, dtype=np.float64)),
     st.just(np.zeros((NUM_PARAMS, 1), dtype=np.float32)),
 )
+rows = st.one_of(  # an answer's [A, d]: of the run's d, or not
+    st.integers(0, 2 * NUM_PARAMS).map(lambda n: np.zeros((1, n), dtype=np.float32)),
+    st.just(np.full((1, NUM_PARAMS), np.nan, dtype=np.float32)),
+    st.just(np.ones((1, NUM_PARAMS), dtype=np.float64)),
+    st.just(np.zeros((2, NUM_PARAMS), dtype=np.float32)),
+)
+agents = st.lists(st.integers(-2, 4), max_size=3)
 numbers = st.floats() | small_ints
 stats = st.builds(
     UpdateStats,
@@ -84,8 +91,10 @@ def _hello(signature: dict[str, str]) -> st.SearchStrategy:
     # Registered ids and indices included: an impostor must be refused, never take a slot.
     return st.builds(
         Hello,
-        agent_id=st.sampled_from(["agent-0", "agent-1", "mallory"]) | names,
-        agent_index=st.integers(-2, 4),
+        id=st.sampled_from(["agent-0", "agent-1", "mallory", "host-0-1"]) | names,
+        first=st.integers(-2, 4),
+        count=st.integers(-1, 3),
+        names_agent=st.booleans(),
         env_signature=st.just(signature) | st.dictionaries(names, names, max_size=2),
         variant_digest=names,
         profile=st.dictionaries(names, plain_values, max_size=2),
@@ -96,11 +105,19 @@ def _messages(signature: dict[str, str]) -> st.SearchStrategy:
     rounds = st.integers(-1, 100)
     return st.one_of(
         _hello(signature),
-        st.builds(Update, round=rounds, theta=arrays, stats=stats),
-        st.builds(Evaluation, round=rounds, stats=evaluation_stats),
-        st.builds(Train, round=rounds, theta=arrays),
-        st.builds(Evaluate, round=rounds, theta=arrays, episodes=small_ints),
-        st.builds(Welcome, run_id=names, agent_index=small_ints, run=st.just({})),
+        st.builds(
+            Update,
+            round=rounds,
+            agents=agents,
+            thetas=rows,
+            stats=st.lists(stats, max_size=2).map(UpdateColumns.of),
+        ),
+        st.builds(
+            Evaluation, round=rounds, agents=agents, stats=st.lists(evaluation_stats, max_size=2)
+        ),
+        st.builds(Train, round=rounds, theta=arrays, agents=agents),
+        st.builds(Evaluate, round=rounds, theta=arrays, episodes=small_ints, agents=agents),
+        st.builds(Welcome, run_id=names, first=small_ints, count=small_ints, run=st.just({})),
         st.builds(Error, code=names, reason=names),
         st.builds(Shutdown, reason=names),
         st.just(Heartbeat()),
@@ -124,7 +141,7 @@ def _mutated(draw: st.DrawFn, valid: st.SearchStrategy) -> list[bytes]:
     frames = draw(valid)
     how = draw(st.sampled_from(["flip", "cut", "shuffle", "header"]))
     if how == "header":
-        key = draw(st.sampled_from(["v", "type", "fields", "arrays", "round", "theta"]))
+        key = draw(st.sampled_from(["v", "type", "fields", "arrays", "round", "agents", "theta"]))
         return _repack_header(frames, key, draw(plain_values))
     if how == "shuffle":
         return draw(st.permutations(frames)) + draw(st.lists(st.sampled_from(frames), max_size=2))

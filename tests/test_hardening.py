@@ -23,8 +23,8 @@ from procs import BIN, QUIET, free_port, processes, start, start_federation, wai
 
 from fedhpg.common.runtime.cli import compose
 from fedhpg.common.wire.protocol import Train, Update
+from fedhpg.server.assembly import run_in_process
 from fedhpg.server.checkpoint import latest_valid_checkpoint
-from fedhpg.server.pools.inprocess import run_in_process
 
 TIMEOUT_S = 120
 RUN = [
@@ -71,7 +71,15 @@ def test_a_registered_agent_can_neither_crash_nor_poison_the_server(tmp_path: Pa
             honest = super()._train(request)
             update = honest[0]
             assert isinstance(update, Update)
-            stats = dataclasses.asdict(update.stats) | poisons[(request.round - 1) % len(poisons)]
+            poison = poisons[(request.round - 1) % len(poisons)]
+            # the one row's columns, one of them poisoned
+            columns = {
+                name: {key: [item] for key, item in value.items()}
+                if name == "algorithm"
+                else [value]
+                for name, value in poison.items()
+            }
+            stats = dataclasses.asdict(update.stats) | columns
             return [raw_frames(update, stats=stats), *honest]
 
     with processes() as started:

@@ -23,24 +23,24 @@ from procs import child_pids, free_port, processes, start, wait_until
 
 from fedhpg.common.group import make_agent_group
 from fedhpg.common.runtime.cli import compose
+from fedhpg.common.types import UpdateColumns
 from fedhpg.common.variants import range_digest, run_variants, variant_digest, variant_of
 from fedhpg.common.wire.codec import decode, encode
 from fedhpg.common.wire.protocol import (
     MAX_BATCH_ANSWERS,
     Error,
-    EvaluateBatch,
-    EvaluationBatch,
+    Evaluate,
+    Evaluation,
     Heartbeat,
-    HostHello,
-    HostWelcome,
+    Hello,
     Shutdown,
-    TrainBatch,
-    UpdateBatch,
-    UpdateColumns,
+    Train,
+    Update,
+    Welcome,
 )
 from fedhpg.common.worker import initial_theta
+from fedhpg.server.assembly import run_in_process
 from fedhpg.server.checkpoint import latest_valid_checkpoint
-from fedhpg.server.pools.inprocess import run_in_process
 
 TIMEOUT_S = 120
 RUN = [
@@ -216,8 +216,8 @@ def test_a_host_claiming_foreign_agents_or_a_huge_batch_is_refused_and_the_run_g
         )
         host.send_multipart(
             encode(
-                HostHello(
-                    host_id="host-0-1",
+                Hello(
+                    id="host-0-1",
                     first=0,
                     count=2,
                     env_signature=variants[0].signature(),
@@ -225,12 +225,12 @@ def test_a_host_claiming_foreign_agents_or_a_huge_batch_is_refused_and_the_run_g
                 )
             )
         )
-        assert isinstance(_reply(host, 30), HostWelcome)
+        assert isinstance(_reply(host, 30), Welcome)
         rival = _dealer(context, port, b"host-1-1#2")
         rival.send_multipart(
             encode(
-                HostHello(
-                    host_id="host-1-1",
+                Hello(
+                    id="host-1-1",
                     first=1,
                     count=1,
                     env_signature=variants[1].signature(),
@@ -255,24 +255,24 @@ def test_a_host_claiming_foreign_agents_or_a_huge_batch_is_refused_and_the_run_g
                 break
             if isinstance(message, Error):
                 refusals.append(message.code)
-            elif isinstance(message, TrainBatch):
+            elif isinstance(message, Train):
                 theta = torch.from_numpy(np.array(message.theta))
                 results = group.train(message.round, theta, message.agents)
                 stats = results[0].stats
                 row = results[0].theta.numpy()[None]
-                foreign = UpdateBatch(
+                foreign = Update(
                     round=message.round, agents=[5], thetas=row, stats=UpdateColumns.of([stats])
                 )
                 rows = MAX_BATCH_ANSWERS + 44
                 huge = raw_frames(
-                    UpdateBatch(
+                    Update(
                         round=message.round,
                         agents=[0] * rows,
                         thetas=np.repeat(row, rows, axis=0),
                         stats=UpdateColumns.of([stats] * rows),
                     )
                 )
-                mismatch = UpdateBatch(
+                mismatch = Update(
                     round=message.round,
                     agents=[0, 1],
                     thetas=row,
@@ -281,19 +281,19 @@ def test_a_host_claiming_foreign_agents_or_a_huge_batch_is_refused_and_the_run_g
                 for frames in (encode(foreign), huge, raw_frames(mismatch)):
                     host.send_multipart(frames)
                 agents = sorted(results)
-                honest = UpdateBatch(
+                honest = Update(
                     round=message.round,
                     agents=agents,
                     thetas=np.stack([results[k].theta.numpy() for k in agents]),
                     stats=UpdateColumns.of([results[k].stats for k in agents]),
                 )
                 host.send_multipart(encode(honest))
-            elif isinstance(message, EvaluateBatch):
+            elif isinstance(message, Evaluate):
                 theta = torch.from_numpy(np.array(message.theta))
                 evaluations = group.evaluate(message.round, theta, message.episodes, message.agents)
                 host.send_multipart(
                     encode(
-                        EvaluationBatch(
+                        Evaluation(
                             round=message.round,
                             agents=list(message.agents),
                             stats=[evaluations[k] for k in message.agents],

@@ -18,8 +18,8 @@ from fedhpg.common.config import (
 from fedhpg.common.runtime.memory import pin_malloc_mmap_threshold
 from fedhpg.common.variants import run_variants
 from fedhpg.common.worker import initial_theta
+from fedhpg.server.assembly import run_in_process
 from fedhpg.server.coordinator import RoundRecord
-from fedhpg.server.pools.inprocess import run_in_process
 
 
 def _cartpole_run(algo: str, seed: int = 0) -> RunConfig:

@@ -13,8 +13,8 @@ import torch
 from procs import alive, child_pids, processes, start, wait_until
 
 from fedhpg.common.runtime.cli import compose
+from fedhpg.server.assembly import run_in_process
 from fedhpg.server.checkpoint import latest_valid_checkpoint
-from fedhpg.server.pools.inprocess import run_in_process
 
 LONG_RUN = [
     "rounds=1000",

@@ -201,7 +201,7 @@ def test_server_start_up_at_k_10000_holds_no_k_long_list(
     (what each hello is checked against) from variants made a chunk at a time and dropped, and
     two environments are built: θ̃_0's policy and the spaces' signature each need one (and one
     more when the config is validated: agent 0's, so a missing simulator fails in one line)."""
-    from fedhpg.server.main import serve
+    from fedhpg.server.serving import serve
 
     run = compose([*SCALE, "server.port=0", "server.register_timeout_s=0.2"])
     with pytest.raises(FederationError, match="of 10000 agents registered"):

@@ -5,8 +5,8 @@ from __future__ import annotations
 import pytest
 
 from fedhpg.common.runtime.cli import compose
+from fedhpg.server.assembly import run_in_process
 from fedhpg.server.coordinator import RoundRecord
-from fedhpg.server.pools.inprocess import run_in_process
 
 THRESHOLD = 0.9
 

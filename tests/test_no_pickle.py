@@ -19,7 +19,7 @@ import numpy as np
 import pytest
 import torch
 
-from fedhpg.common.types import UpdateStats
+from fedhpg.common.types import UpdateColumns, UpdateStats
 from fedhpg.common.wire.codec import ProtocolError, decode, encode
 from fedhpg.common.wire.protocol import PROTOCOL_VERSION, Update
 from fedhpg.server.checkpoint import (
@@ -247,6 +247,8 @@ def test_wire_and_checkpoints_work_with_unpickling_disabled(
     loaded = load_checkpoint(tmp_path / "round-000003.ckpt")
     assert torch.equal(loaded.theta, theta) and loaded.config == {"seed": 1}
     stats = UpdateStats(trajectories=1, env_steps=1, compute_s=0.0, train_return=0.0)
-    update = Update(round=1, theta=theta.numpy(), stats=stats)
+    update = Update(
+        round=1, agents=[0], thetas=theta.numpy()[None], stats=UpdateColumns.of([stats])
+    )
     decoded = decode([bytes(f) for f in encode(update)])
-    assert isinstance(decoded, Update) and np.array_equal(decoded.theta, update.theta)
+    assert isinstance(decoded, Update) and np.array_equal(decoded.thetas, update.thetas)

@@ -24,9 +24,9 @@ from procs import BIN, QUIET, processes, start
 from fedhpg.common.config import ConfigError, ParticipationConfig
 from fedhpg.common.runtime.cli import compose
 from fedhpg.server import api
+from fedhpg.server.assembly import run_in_process
 from fedhpg.server.checkpoint import latest_valid_checkpoint
 from fedhpg.server.participation import Participation
-from fedhpg.server.pools.inprocess import run_in_process
 from fedhpg.server.strategies import validate_strategy
 
 EXAMPLE_TRACE = Path(__file__).parent.parent / "docs" / "availability-trace.csv"

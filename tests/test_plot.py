@@ -36,7 +36,7 @@ TINY = ["experiment=fig1_batch_size", "eval.episodes=4", "eval.every=1"]
 
 
 def _real_run(directory: Path, overrides: list[str]) -> None:
-    from fedhpg.server.pools.inprocess import run_in_process
+    from fedhpg.server.assembly import run_in_process
 
     run = compose([*TINY, *overrides])
     directory.mkdir(parents=True)

@@ -20,8 +20,8 @@ from fedhpg.common.config import ConfigError, RunConfig
 from fedhpg.common.device import device_for
 from fedhpg.common.population import population_value
 from fedhpg.common.runtime.cli import compose
+from fedhpg.server.assembly import run_in_process
 from fedhpg.server.checkpoint import latest_valid_checkpoint
-from fedhpg.server.pools.inprocess import run_in_process
 
 ROOT = Path(__file__).resolve().parents[1]
 TRACE = ROOT / "docs" / "device-trace.csv"

@@ -52,9 +52,10 @@ from fedhpg.common.config import RunConfig
 from fedhpg.common.runtime.cli import compose
 from fedhpg.common.variants import run_variants
 from fedhpg.common.worker import initial_theta
+from fedhpg.server.assembly import run_in_process
 from fedhpg.server.coordinator import RoundRecord
 from fedhpg.server.pools import FederationError
-from fedhpg.server.pools.inprocess import make_in_process_pool, run_in_process
+from fedhpg.server.pools.inprocess import make_in_process_pool
 
 MIN_MARGIN = 0.05
 """Floor of the margin, as a share of |control| (for a control that never moves)."""

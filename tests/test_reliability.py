@@ -18,13 +18,13 @@ from peers import ScriptedAgent, hello_for
 from procs import free_port, processes, start, start_federation, wait_until
 
 from fedhpg.common.runtime.cli import compose
-from fedhpg.common.types import UpdateStats
+from fedhpg.common.types import UpdateColumns, UpdateStats
 from fedhpg.common.wire.protocol import (
     Train,
     Update,
 )
+from fedhpg.server.assembly import run_in_process
 from fedhpg.server.checkpoint import latest_valid_checkpoint
-from fedhpg.server.pools.inprocess import run_in_process
 
 TIMEOUT_S = 120
 FAST_LIVENESS = ["server.heartbeat_interval_s=0.25", "server.heartbeat_liveness=4"]
@@ -120,9 +120,14 @@ def test_deadline_policy_aggregates_without_the_dead_and_the_slow(tmp_path: Path
     assert summary["agent_deaths"] >= 1
 
 
-def _update(round_index: int, theta: np.ndarray) -> Update:
+def _update(round_index: int, theta: np.ndarray, agent: int = 1) -> Update:
     stats = UpdateStats(trajectories=1, env_steps=1, compute_s=0.0, train_return=0.0)
-    return Update(round=round_index, theta=theta.astype(np.float32), stats=stats)
+    return Update(
+        round=round_index,
+        agents=[agent],
+        thetas=theta.astype(np.float32)[None],
+        stats=UpdateColumns.of([stats]),
+    )
 
 
 def test_bad_and_late_updates_of_a_registered_agent_are_never_averaged(tmp_path: Path) -> None:
@@ -193,7 +198,7 @@ def test_one_rogue_spewing_nan_cannot_end_a_buffered_run(tmp_path: Path) -> None
     rogue = ScriptedAgent(
         port,
         hello_for(compose(run_keys), 3),
-        lambda train: [_update(train.round, np.full_like(train.theta, np.nan))],
+        lambda train: [_update(train.round, np.full_like(train.theta, np.nan), agent=3)],
     )
     with processes() as started:
         server = start(started, "fedhpg-server", [*run_keys, *wire], cwd=tmp_path)

@@ -4,8 +4,8 @@
   agents train with the plan in force (their trajectories are its B_k·τ_k): a real in-process
   run on the counted clock (deterministic).
 - The same plan gives the same θ̃ in process and over the wire: one process per agent
-  (``Train.budget``) and hosts of 3 + 3 + 2 agents (``TrainBatch.budgets``), the compiled
-  backend beside the engine training an attacker.
+  (``Train.budgets``, one entry) and hosts of 3 + 3 + 2 agents (one entry per agent), the
+  compiled backend beside the engine training an attacker.
 - A resumed run re-plans exactly as the uninterrupted one (the plan's window is checkpointed).
 """
 
@@ -94,7 +94,7 @@ def test_a_plan_gives_the_same_theta_in_process_and_over_the_wire() -> None:
     # the plans change the budgets, so the comparison tests their delivery
     ran = {r["round"]: [a["trajectories"] for a in r["agents"]] for r in here.records}
     assert ran[2] == _work(plans[1]) and ran[3] == _work(plans[2]) and ran[1] != ran[2]
-    # one process per agent (Train.budget); hosts of 3 + 3 + 2 agents (TrainBatch.budgets)
+    # one process per agent (one Train.budgets entry); hosts of 3 + 3 + 2 (one per agent)
     for per_host in (1, 3):
         wire = api.run(overrides=[*WIRE_RUN, f"agents.per_host={per_host}"], distributed=True)
         assert torch.equal(here.theta, wire.theta), per_host

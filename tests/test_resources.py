@@ -33,8 +33,8 @@ from fedhpg.common.runtime.cli import compose
 from fedhpg.common.variants import run_variants
 from fedhpg.common.wire.codec import encode
 from fedhpg.common.wire.protocol import Evaluate, Heartbeat, Train
+from fedhpg.server.assembly import run_in_process
 from fedhpg.server.checkpoint import latest_valid_checkpoint
-from fedhpg.server.pools.inprocess import run_in_process
 
 ROUNDS = 150
 FUZZ_MESSAGES = 10_000

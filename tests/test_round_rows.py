@@ -12,21 +12,14 @@ import torch
 import zmq
 
 from fedhpg.common.config import ServerConfig
-from fedhpg.common.types import AgentUpdate, UpdateStats
+from fedhpg.common.types import AgentUpdate, UpdateColumns, UpdateStats
 from fedhpg.common.variants import range_digest
 from fedhpg.common.wire.codec import decode, encode
-from fedhpg.common.wire.protocol import (
-    Error,
-    HostHello,
-    HostWelcome,
-    TrainBatch,
-    UpdateBatch,
-    UpdateColumns,
-)
+from fedhpg.common.wire.protocol import Error, Hello, Train, Update, Welcome
 from fedhpg.server.pools.zmq_pool import ZmqAgentPool
 from fedhpg.server.round_rows import ALIGNMENT, RoundRows
 from fedhpg.server.strategies import stacked
-from fedhpg.server.validation import NON_FINITE, UpdateCheck
+from fedhpg.server.validation import NON_FINITE, Reject, UpdateCheck
 
 STATS = UpdateStats(trajectories=4, env_steps=80, compute_s=0.1, train_return=20.0)
 
@@ -102,8 +95,8 @@ def test_bad_rows_of_a_batch_reject_their_agents_only() -> None:
         host.setsockopt(zmq.LINGER, 0)
         host.setsockopt(zmq.IDENTITY, b"host-0-5#0")
         host.connect(f"tcp://127.0.0.1:{port}")
-        hello = HostHello(
-            host_id="host-0-5",
+        hello = Hello(
+            id="host-0-5",
             first=0,
             count=count,
             env_signature={"spaces": "x"},
@@ -111,7 +104,7 @@ def test_bad_rows_of_a_batch_reject_their_agents_only() -> None:
         )
         host.send_multipart(encode(hello))
         pool.wait_for_agents(10)
-        assert host.poll(5000) and isinstance(decode(host.recv_multipart()), HostWelcome)
+        assert host.poll(5000) and isinstance(decode(host.recv_multipart()), Welcome)
         thetas = _thetas(count, d, seed=1)
         thetas[1, 7] = np.nan
         thetas[4, -1] = -np.inf
@@ -119,7 +112,7 @@ def test_bad_rows_of_a_batch_reject_their_agents_only() -> None:
         # two batches, agents listed out of order: queued before the round collects them
         host.send_multipart(
             encode(
-                UpdateBatch(
+                Update(
                     round=1,
                     agents=[4, 0, 3],
                     thetas=thetas[[4, 0, 3]],
@@ -129,7 +122,7 @@ def test_bad_rows_of_a_batch_reject_their_agents_only() -> None:
         )
         host.send_multipart(
             encode(
-                UpdateBatch(
+                Update(
                     round=1,
                     agents=[2, 1],
                     thetas=thetas[[2, 1]],
@@ -148,8 +141,9 @@ def test_bad_rows_of_a_batch_reject_their_agents_only() -> None:
     assert [u.agent_index for u in answers.updates] == [0, 2, 3]
     for update in answers.updates:
         assert np.array_equal(update.theta.numpy(), thetas[update.agent_index])
-    assert answers.failures == {"agent-1": NON_FINITE, "agent-4": NON_FINITE}
-    assert any(isinstance(reply, TrainBatch) for reply in replies)
+    failures = {k: (r.code, r.reason) for k, r in answers.failures.items()}
+    assert failures == {k: (Reject.NON_FINITE, NON_FINITE) for k in ("agent-1", "agent-4")}
+    assert any(isinstance(reply, Train) for reply in replies)
     refusals = [(r.code, r.reason) for r in replies if isinstance(r, Error)]
     assert refusals == [
         ("bad_update", f"agent-4: {NON_FINITE}"),

@@ -13,7 +13,7 @@ from hypothesis import HealthCheck, Phase, given, settings
 from hypothesis import strategies as st
 from peers import Frames, raw_frames
 
-from fedhpg.common.types import EvaluationStats, UpdateStats
+from fedhpg.common.types import EvaluationStats, UpdateColumns, UpdateStats
 from fedhpg.common.wire.protocol import Error, Evaluation, Heartbeat, Hello, Update
 
 INTS = st.integers(-(2**63), 2**64 - 1)
@@ -48,16 +48,18 @@ def _evaluation_stats() -> st.SearchStrategy:
     )  # fmt: skip
 
 
-def _theta(num_params: int) -> st.SearchStrategy:
+def _thetas(num_params: int) -> st.SearchStrategy:
+    """An answer's [rows, d] matrix, now and then of the wrong size, dtype or layout."""
     sized = st.sampled_from([0, 1, num_params - 1, num_params, num_params + 1, 4 * num_params])
     return st.one_of(
-        sized.map(lambda n: np.random.default_rng(n).standard_normal(n).astype(np.float32)),
-        st.just(np.full(num_params, np.nan, dtype=np.float32)),
-        st.just(np.full(num_params, np.inf, dtype=np.float32)),
-        st.just(np.full(num_params, 3.4e38, dtype=np.float32)),
-        st.just(np.ones(num_params, dtype=np.float64)),
-        st.just(np.ones((num_params, 1), dtype=np.float32)),
-        st.just(np.ones(num_params, dtype=np.int64)),
+        sized.map(lambda n: np.random.default_rng(n).standard_normal((1, n)).astype(np.float32)),
+        st.just(np.full((1, num_params), np.nan, dtype=np.float32)),
+        st.just(np.full((1, num_params), np.inf, dtype=np.float32)),
+        st.just(np.full((1, num_params), 3.4e38, dtype=np.float32)),
+        st.just(np.ones((1, num_params), dtype=np.float64)),
+        st.just(np.ones(num_params, dtype=np.float32)),
+        st.just(np.ones((2, num_params), dtype=np.float32)),
+        st.just(np.ones((1, num_params), dtype=np.int64)),
     )
 
 
@@ -66,13 +68,27 @@ def messages(num_params: int, signature: dict[str, str]) -> st.SearchStrategy:
     its fields replaced by a value of the wrong type. The ``round`` of updates and evaluations
     is left for the sender to set (it must not collide with a round the server has open)."""
     rounds = st.just(-1)
+    agents = st.sampled_from([[0], [1], [0, 1], [7], []])
     built = st.one_of(
-        st.builds(Update, round=rounds, theta=_theta(num_params), stats=_stats()),
-        st.builds(Evaluation, round=rounds, stats=_evaluation_stats()),
+        st.builds(
+            Update,
+            round=rounds,
+            agents=agents,
+            thetas=_thetas(num_params),
+            stats=st.lists(_stats(), min_size=1, max_size=2).map(UpdateColumns.of),
+        ),
+        st.builds(
+            Evaluation,
+            round=rounds,
+            agents=agents,
+            stats=st.lists(_evaluation_stats(), min_size=1, max_size=2),
+        ),
         st.builds(
             Hello,
-            agent_id=TEXT,
-            agent_index=INTS,
+            id=TEXT,
+            first=INTS,
+            count=INTS,
+            names_agent=st.booleans(),
             env_signature=st.just(signature) | st.dictionaries(TEXT, TEXT, max_size=10),
             variant_digest=TEXT,
             profile=st.dictionaries(TEXT, PLAIN, max_size=20),
@@ -84,7 +100,7 @@ def messages(num_params: int, signature: dict[str, str]) -> st.SearchStrategy:
     @st.composite
     def with_overrides(draw: st.DrawFn) -> tuple[object, dict]:
         message = draw(built)
-        names = [f.name for f in dataclasses.fields(message) if f.name not in ("theta", "round")]
+        names = [f.name for f in dataclasses.fields(message) if f.name not in ("thetas", "round")]
         if names and draw(st.integers(0, 4)) == 0:
             return message, {draw(st.sampled_from(names)): draw(WRONG | PLAIN)}
         return message, {}

@@ -293,6 +293,9 @@ def _check_bool(value: Any, where: str, depth: int) -> Any:
 
 
 def _check_union(options: tuple[Any, ...], value: Any, where: str, depth: int) -> Any:
+    others = [o for o in options if o is not None and o is not type(None)]
+    if value is not None and len(others) == 1:  # an optional value: its own check says why
+        return _check(value, others[0], where, depth)
     for option in options:
         try:
             return _check(value, option, where, depth)

@@ -50,7 +50,7 @@ def batch_message_cap(configured: int, num_params: int) -> int:
 
 
 def answers_per_message(cap: int, num_params: int) -> int:
-    """Agents per ``UpdateBatch`` that keep it under ``cap`` (at least one)."""
+    """Agents per ``Update`` that keep it under ``cap`` (at least one)."""
     room = (cap - MAX_HEADER_BYTES - 4096) // (4 * max(num_params, 1))
     return max(1, min(MAX_BATCH_ANSWERS, room))
 

@@ -14,6 +14,7 @@ from typing import Protocol
 import torch
 
 from fedhpg.common.types import AgentUpdate, EvaluationStats
+from fedhpg.server.validation import Rejection
 
 
 class FederationError(RuntimeError):
@@ -26,7 +27,7 @@ class RoundAnswers:
 
     updates: list[AgentUpdate]
     """Accepted updates, in agent-index order."""
-    failures: dict[str, str] = field(default_factory=dict)
+    failures: dict[str, Rejection] = field(default_factory=dict)
     """Agent id → why its update was rejected (it answered, but is not aggregated)."""
     stragglers: list[str] = field(default_factory=list)
     """Selected agents whose update never arrived in time (late or dead)."""
@@ -37,6 +38,11 @@ class AgentPool(Protocol):
 
     @property
     def agent_ids(self) -> list[str]: ...
+
+    def counters(self) -> dict[str, int]:
+        """What went wrong so far (rejected messages, deaths, ...), for summary.json and the
+        checkpoints."""
+        ...
 
     def train(
         self,

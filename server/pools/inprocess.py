@@ -1,6 +1,7 @@
-"""FedHPG in one process: the coordinator drives one :class:`AgentGroup` of all K agents.
+"""FedHPG in one process: the pool of one :class:`AgentGroup` of all K agents.
 
-No sockets; the distributed runtime must reproduce this runner's θ bit for bit. Emulated
+No sockets; the distributed runtime must reproduce this pool's θ bit for bit
+(:func:`fedhpg.server.assembly.run_in_process` runs a federation over it). Emulated
 device time is accounted on a virtual clock (no sleeping). Agents cost memory only once asked:
 the group builds an agent's worker on first use, and its device is made then too, so a run of
 K = 10 000 agents with 1 000 per round starts with none of them built.
@@ -14,19 +15,16 @@ from collections.abc import Callable, Mapping, Sequence
 
 import torch
 
-from fedhpg.common.components import validate_run
-from fedhpg.common.config import ConfigError, RunConfig, agent_id_of
+from fedhpg.common.config import RunConfig, agent_id_of
 from fedhpg.common.device import DeviceModel, device_for, message_bytes
 from fedhpg.common.group import AgentGroup, make_agent_group
 from fedhpg.common.runtime.memory import pin_malloc_mmap_threshold, tune_malloc_for
 from fedhpg.common.types import AgentUpdate, EvaluationStats, LocalResult
-from fedhpg.common.variants import variant_of, variants_of
-from fedhpg.common.worker import IterationWork, initial_theta
+from fedhpg.common.variants import variants_of
+from fedhpg.common.worker import IterationWork
 from fedhpg.envs.base import EnvVariant
-from fedhpg.server.coordinator import Coordinator, RoundCallback, RunProgress
 from fedhpg.server.pools import RoundAnswers
-from fedhpg.server.strategies import make_strategy, validate_strategy
-from fedhpg.server.validation import UpdateCheck
+from fedhpg.server.validation import Rejection, UpdateCheck
 
 logger = logging.getLogger(__name__)
 
@@ -63,7 +61,8 @@ class InProcessPool:
     ) -> RoundAnswers:
         if while_training is not None:  # the agents train on this thread: nothing overlaps
             while_training()
-        updates, failures = [], {}
+        updates: list[AgentUpdate] = []
+        failures: dict[str, Rejection] = {}
         for update, problem in self.checked_updates(round_index, theta, agents, budgets=budgets):
             if problem is None:
                 updates.append(update)
@@ -73,7 +72,9 @@ class InProcessPool:
             return self._at_deadline(updates, failures)
         return RoundAnswers(updates=updates, failures=failures)
 
-    def _at_deadline(self, updates: list[AgentUpdate], failures: dict[str, str]) -> RoundAnswers:
+    def _at_deadline(
+        self, updates: list[AgentUpdate], failures: dict[str, Rejection]
+    ) -> RoundAnswers:
         """The deadline policy on the emulated clock (nothing here waits on the wall clock):
         the round closes at ``round_deadline_s`` emulated seconds, or later when fewer than
         ``min_agents`` updates had arrived by then, at the arrival that makes them enough;
@@ -93,7 +94,7 @@ class InProcessPool:
         agents: Sequence[int],
         *,
         budgets: Mapping[int, Mapping[str, int]] | None = None,
-    ) -> list[tuple[AgentUpdate, str | None]]:
+    ) -> list[tuple[AgentUpdate, Rejection | None]]:
         """Every selected agent's update of ``round_index`` from θ̃, in agent order, with why
         the update check rejects it (None: accepted)."""
         broadcast = theta.detach().numpy()
@@ -119,7 +120,7 @@ class InProcessPool:
         results = self.group.train(
             round_index, theta, selected, on_iteration=on_iteration, budgets=budgets
         )
-        checked: list[tuple[AgentUpdate, str | None]] = []
+        checked: list[tuple[AgentUpdate, Rejection | None]] = []
         for k in selected:
             update = self._update(k, round_index, results[k], message)
             problem = self.check.problem(update.theta.numpy(), update.stats, broadcast)
@@ -144,6 +145,10 @@ class InProcessPool:
         evaluations = self.group.evaluate(round_index, theta, episodes, self.group.indices)
         return {agent_id_of(k): stats for k, stats in evaluations.items()}
 
+    def counters(self) -> dict[str, int]:
+        """Nothing goes wrong between agents on one thread: no counters."""
+        return {}
+
     def close(self) -> None:
         self.group.close()
 
@@ -158,41 +163,3 @@ def make_in_process_pool(
     group = make_agent_group(run, list(indices), by_index)
     tune_malloc_for(group)
     return InProcessPool(run, group, num_params=group.num_params)
-
-
-def run_in_process(
-    run: RunConfig,
-    *,
-    on_round: list[RoundCallback] | None = None,
-    theta: torch.Tensor | None = None,
-    progress: RunProgress | None = None,
-) -> torch.Tensor:
-    """Run the whole federation here and return the final θ̃_T. ``theta`` and ``progress``
-    continue a run (a checkpoint's θ̃ and rounds done; the caller keeps ``progress``)."""
-    from fedhpg.server.buffered import BufferedCoordinator, validate_buffered
-
-    validate_run(run)
-    validate_strategy(run)
-    validate_buffered(run)
-    pool = make_in_process_pool(run)
-    try:
-        buffered = run.server.round_policy == "buffered"
-        resumed = progress is not None and progress.next_round > 1
-        if buffered and resumed and progress is not None and progress.schedule_state is None:
-            raise ConfigError(
-                "server.round_policy",
-                "got 'buffered', but the checkpoint was written by synchronous rounds (it "
-                "holds no in-flight updates); resume with the run's own round policy",
-            )
-        kind = BufferedCoordinator if buffered else Coordinator
-        coordinator = kind(
-            run=run,
-            pool=pool,
-            strategy=make_strategy(run.strategy, run=run),
-            theta=initial_theta(variant_of(run, 0), run) if theta is None else theta,
-            progress=progress,
-            on_round=on_round,
-        )
-        return coordinator.run_rounds()
-    finally:
-        pool.close()

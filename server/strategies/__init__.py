@@ -11,6 +11,10 @@ A strategy is one module of this package (or of a plugin) and a YAML in ``conf/s
         def aggregate(self, round_index, theta, results, failures) -> torch.Tensor: ...
 
 A rule of the θ_k alone subclasses :class:`CoordinateRule` and writes ``combine(rows)``.
+A strategy declares what it can take instead of being named in checks elsewhere:
+:attr:`Strategy.takes` (the kind of update it aggregates, matched against what the run's
+algorithm sends, :func:`sent_by`) and :attr:`Strategy.buffered` (whether it can aggregate
+buffered, asynchronous rounds' updates).
 ``results`` are the round's accepted updates in agent-index order (arrival order never
 changes a bit of θ̃); ``failures`` names the agents whose update was rejected, and why. A
 strategy with state across rounds (fedadam's moments) returns it from :meth:`Strategy.state`;
@@ -22,16 +26,23 @@ from __future__ import annotations
 import abc
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
-from typing import Any, ClassVar, Generic, TypeVar
+from typing import TYPE_CHECKING, Any, ClassVar, Generic, TypeVar
 
 import torch
 
+from fedhpg.common.components import resolve_algorithm
 from fedhpg.common.config import ConfigError, RunConfig, StrategyConfig
 from fedhpg.common.registry import Registry, import_plugins, parse_options
 from fedhpg.common.types import AgentUpdate, SavedState
 from fedhpg.server.participation import validate_participation
 
+if TYPE_CHECKING:
+    from fedhpg.common.algorithms import Algorithm
+
 P = TypeVar("P")
+
+PARAMETERS = "parameters"
+"""The update most algorithms send and most strategies take: each agent's θ_k."""
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -44,6 +55,14 @@ class Strategy(abc.ABC, Generic[P]):
 
     name: ClassVar[str]
     Params: ClassVar[type[Any]] = NoParams
+    takes: ClassVar[str] = PARAMETERS
+    """The kind of update the rule aggregates: :data:`PARAMETERS` (each agent's θ_k, what an
+    algorithm sends unless it names the one strategy its updates mean anything to,
+    ``Algorithm.strategy``), or a kind only such an algorithm sends (fedpgbr's gradients)."""
+    buffered: ClassVar[bool] = True
+    """Whether it can aggregate buffered rounds' updates (``server.round_policy=buffered``:
+    each from its own θ̃ version, weighted by staleness); False for a rule that needs every
+    agent's update at one θ̃."""
 
     def __init__(self, params: P) -> None:
         self.params = params
@@ -141,16 +160,44 @@ def make_strategy(
     return strategy
 
 
-def validate_strategy(run: RunConfig) -> None:
-    """The server-side checks of a run config (the agents never see ``strategy``)."""
+def sent_by(algorithm: Algorithm[Any, Any]) -> str:
+    """What an algorithm's updates are: what the strategy it names takes (its updates mean
+    something to that strategy alone), else :data:`PARAMETERS`."""
+    if algorithm.strategy is None:
+        return PARAMETERS
+    return STRATEGIES.get(algorithm.strategy).takes
+
+
+def check_takes(run: RunConfig, cls: type[Strategy[Any]]) -> None:
+    """ConfigError unless the run's algorithm sends what the strategy ``cls`` takes."""
+    from fedhpg.common.algorithms import ALGORITHMS
+
+    algorithm, _ = resolve_algorithm(run)
+    sent = sent_by(algorithm)
+    if sent == cls.takes:
+        return
+    senders = [name for name in ALGORITHMS.names() if sent_by(ALGORITHMS.get(name)) == cls.takes]
+    raise ConfigError(
+        "strategy",
+        f"{cls.name} aggregates {cls.takes}: it runs with an algorithm that sends them "
+        f"({', '.join(f'algo={n}' for n in senders) or 'none is registered'}), not "
+        f"algo={algorithm.name}, which sends {sent}",
+    )
+
+
+def validate_strategy(run: RunConfig) -> Strategy[Any]:
+    """The server-side checks of a run config (the agents never see ``strategy``): the
+    strategy built once, bound to the run and returned."""
     from fedhpg.server.tolerance import REMEDY, tolerance_shortfall
 
     import_plugins(run.plugins)
+    check_takes(run, STRATEGIES.get(run.strategy.name))
     strategy = make_strategy(run.strategy, run=run)
     validate_participation(run)
     shortfall = tolerance_shortfall(run, strategy)
     if shortfall is not None and run.strategy.tolerance_check == "refuse":
         raise ConfigError("strategy", f"{shortfall}: {REMEDY}")
+    return strategy
 
 
 def stacked(results: Sequence[AgentUpdate]) -> torch.Tensor:

@@ -106,6 +106,10 @@ class FedPGBR(Strategy[FedPGBRStrategyParams]):
 
     name = "fedpgbr"
     Params = FedPGBRStrategyParams
+    takes = "gradients"
+    """μ_t^(k) = θ_k − θ̃_0^t, sent as θ̃ + μ by ``algo=fedpgbr``."""
+    buffered = False
+    """The filter and the SCSG loop need every agent's gradient at one θ̃ each round."""
 
     def __init__(self, params: FedPGBRStrategyParams) -> None:
         super().__init__(params)
@@ -114,12 +118,6 @@ class FedPGBR(Strategy[FedPGBRStrategyParams]):
         self.stats: dict[str, Any] = {}
 
     def bind(self, run: RunConfig) -> None:
-        if run.algo.name != "fedpgbr":
-            raise ConfigError(
-                "strategy",
-                f"fedpgbr aggregates FedPG-BR's gradients: it runs with algo=fedpgbr, not "
-                f"algo={run.algo.name}",
-            )
         if self.params.server_env_agent >= run.agents.num_agents:
             raise ConfigError(
                 "strategy.params.server_env_agent",

@@ -13,24 +13,8 @@ from __future__ import annotations
 
 from collections.abc import Callable, Collection, Mapping
 
-from fedhpg.common.config import ConfigError, RunConfig, ServerConfig
+from fedhpg.common.config import ServerConfig
 from fedhpg.server.pools import FederationError
-
-
-def check_distributed_policy(run: RunConfig) -> None:
-    """Refuse what agent processes do not run with a policy: 'buffered' takes lone agent
-    processes only (a host's one TrainBatch cannot carry requests of different rounds)."""
-    if run.server.round_policy != "buffered":
-        return
-    from fedhpg.server.buffered import validate_buffered
-
-    validate_buffered(run)
-    if run.agents.per_host > 1:
-        raise ConfigError(
-            "agents.per_host",
-            f"got {run.agents.per_host}; server.round_policy=buffered takes one agent per "
-            "process (agent hosts are not supported with it): use agents.per_host=1",
-        )
 
 
 def request_complete(

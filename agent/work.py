@@ -1,0 +1,228 @@
+"""What an agent program computes for the server: its agents' rounds and evaluations.
+
+:class:`AgentWork` holds the learning side of the logical agents ``first`` .. ``first+count-1``
+(one :func:`~fedhpg.common.group.make_agent_group` of them all, as in every placement, so θ̃
+never depends on where an agent runs) and their emulated devices, and turns a ``Train`` or an
+``Evaluate`` into the messages that answer it.
+
+Device emulation prices the same arithmetic in one of two ways:
+
+- A lone agent whose device sleeps (``agents.virtual_clock=false``) is priced iteration by
+  iteration through its own :class:`~fedhpg.common.device.DeviceModel` while it trains, and
+  sleeps what the round owes once, before the answer leaves; a superseded request cuts the
+  sleep short. Only a process of one agent can sleep its device's time.
+- Every other range (an agent host's agents are always on the virtual clock: a host of 500
+  agents cannot sleep 500 devices' time on one thread) takes its round as columns
+  (:func:`~fedhpg.common.round_columns.train_columns`) and prices all its agents' iterations
+  at once (:class:`~fedhpg.common.device.DeviceColumns`), to the bit what each agent's own
+  ``DeviceModel`` gives.
+
+Either way the round's statistics leave as one :class:`~fedhpg.common.types.UpdateColumns`,
+cut into ceil(A / :func:`~fedhpg.common.wire.transport.answers_per_message`) ``Update``
+messages.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import threading
+import time
+from collections.abc import Mapping, Sequence
+
+import numpy as np
+import torch
+
+from fedhpg.common.config import RunConfig
+from fedhpg.common.device import DeviceColumns, DeviceModel, device_for, message_bytes
+from fedhpg.common.group import AgentGroup, make_agent_group
+from fedhpg.common.round_columns import train_columns
+from fedhpg.common.runtime import timeline
+from fedhpg.common.runtime.memory import tune_malloc_for
+from fedhpg.common.types import UpdateColumns
+from fedhpg.common.variants import range_digest, variant_digest, variants_of
+from fedhpg.common.wire.protocol import (
+    MAX_BATCH_ANSWERS,
+    Evaluate,
+    Evaluation,
+    Message,
+    Request,
+    Train,
+    Update,
+)
+from fedhpg.common.wire.transport import answers_per_message, batch_message_cap
+from fedhpg.common.worker import IterationWork
+
+
+class Cancelled(Exception):
+    """The server moved on (or went away): the job's result is no longer wanted."""
+
+
+class OutsideRange(ValueError):
+    """A request named agents this program does not serve."""
+
+
+class AgentWork:
+    """The learning side and the devices of the agents ``indices`` of one run."""
+
+    def __init__(self, run: RunConfig, indices: range, *, label: str) -> None:
+        self.indices = indices
+        self.label = label
+        self.variants = variants_of(run, indices)  # the range's rows, drawn in one go
+        # the run's spaces: the same for every agent, computed once
+        self.signature = self.variants[indices.start].signature()
+        self.digest = range_digest([variant_digest(run, self.variants[k]) for k in indices])
+        self.devices = self._devices(run)
+        self.group: AgentGroup | None = None
+        self._columns: DeviceColumns | None = None
+
+    @property
+    def sleeps(self) -> bool:
+        """Whether the round is priced as it runs, on a device that really sleeps."""
+        return not self.devices[self.indices.start].virtual_clock
+
+    def _devices(self, run: RunConfig) -> dict[int, DeviceModel]:
+        if len(self.indices) == 1:  # a lone agent's device is as the run configures it
+            return {k: device_for(run, k) for k in self.indices}
+        return {
+            k: dataclasses.replace(device_for(run, k), virtual_clock=True) for k in self.indices
+        }
+
+    def build(self, run: RunConfig) -> AgentGroup:
+        """The group and the devices of the run the server dictates (at registration)."""
+        self.close()
+        self.devices = self._devices(run)
+        # row k - first is agent k's: what a round prices
+        self._columns = (
+            None if self.sleeps else DeviceColumns([self.devices[k] for k in self.indices])
+        )
+        group = make_agent_group(run, list(self.indices), variants=self.variants)
+        group.prepare()  # every agent's constants now, not inside the rounds that select it
+        tune_malloc_for(group)
+        self.group = group
+        return group
+
+    def close(self) -> None:
+        if self.group is not None:
+            self.group.close()
+            self.group = None
+
+    # -- answering a request ----------------------------------------------------------------
+
+    def answer(self, request: Request, cancel: threading.Event, max_bytes: int) -> list[Message]:
+        """The messages that answer ``request``; raises :class:`Cancelled` once ``cancel`` is
+        set, :class:`OutsideRange` for agents this program does not serve."""
+        group = self.group
+        assert group is not None, "answer() before build()"
+        agents = sorted(set(request.agents))
+        if agents and not (self.indices.start <= agents[0] and agents[-1] < self.indices.stop):
+            raise OutsideRange(f"the server asked for agents outside {self.label}'s range")
+        if not agents:
+            return []
+        theta = torch.from_numpy(np.array(request.theta))
+        if isinstance(request, Evaluate):
+            evaluations = group.evaluate(request.round, theta, request.episodes, agents)
+            return [
+                Evaluation(round=request.round, agents=chunk, stats=[evaluations[k] for k in chunk])
+                for chunk in _chunks(agents, MAX_BATCH_ANSWERS)
+            ]
+        planned = dict(zip(request.agents, request.budgets, strict=True)) if request.budgets else {}
+        timeline.mark(self.label, "work-start", request.round)
+        started = time.perf_counter()
+        if self.sleeps:
+            thetas, stats = self._train_sleeping(group, request, theta, planned, cancel)
+        else:
+            thetas, stats = self._train_columns(group, request, theta, agents, planned, cancel)
+            # each answer leaves with the batch: the round's wall time is each agent's
+            stats = stats.replaced(local_wall_s=[time.perf_counter() - started] * len(stats))
+        timeline.mark(self.label, "trained", request.round)
+        num_params = thetas.shape[1]
+        per_message = answers_per_message(batch_message_cap(max_bytes, num_params), num_params)
+        return [
+            Update(
+                round=request.round,
+                agents=agents[start : start + per_message],
+                thetas=thetas[start : start + per_message],
+                stats=stats[start : start + per_message],
+            )
+            for start in range(0, len(agents), per_message)
+        ]
+
+    def _train_columns(
+        self,
+        group: AgentGroup,
+        request: Train,
+        theta: torch.Tensor,
+        agents: list[int],
+        planned: Mapping[int, Mapping[str, int]],
+        cancel: threading.Event,
+    ) -> tuple[np.ndarray, UpdateColumns]:
+        """The round as columns, every agent's device priced at once (the virtual clock)."""
+        assert self._columns is not None
+
+        def interrupt() -> None:
+            if cancel.is_set():
+                raise Cancelled
+
+        trained = train_columns(
+            group, request.round, theta, agents, budgets=planned, interrupt=interrupt
+        )
+        num_params = trained.thetas.shape[1]
+        rows = np.asarray(trained.agents, dtype=np.int64) - self.indices.start
+        emulated, speeds = self._columns.round(
+            rows, request.round, message_bytes(num_params), trained.iterations, num_params
+        )
+        return trained.thetas, trained.stats(emulated_s=emulated, speed=speeds)
+
+    def _train_sleeping(
+        self,
+        group: AgentGroup,
+        request: Train,
+        theta: torch.Tensor,
+        planned: Mapping[int, Mapping[str, int]],
+        cancel: threading.Event,
+    ) -> tuple[np.ndarray, UpdateColumns]:
+        """A lone agent's round on its own device, priced as it runs; the sleep it owes is
+        paid once, at the end, and cut short by ``cancel``."""
+        k = self.indices.start
+        device = self.devices[k]
+        device.sleep = lambda seconds: _sleep_unless(cancel, seconds)
+        started = time.perf_counter()
+        num_params = group.num_params
+        # The counted clock charges θ's float32 bytes plus a fixed header for the request and
+        # for the answer (not the encoded lengths), exactly what the in-process pool charges.
+        message = message_bytes(num_params)
+        device.take_emulated()
+        device.transmit(message)  # the request's one-way latency (and transfer)
+
+        def on_iteration(_: int, work: IterationWork) -> None:
+            if cancel.is_set():
+                raise Cancelled
+            device.spend(
+                work.compute_s,
+                work.env_steps,
+                request.round,
+                grad_steps=work.grad_steps,
+                num_params=num_params,
+            )
+
+        result = group.train(request.round, theta, [k], on_iteration=on_iteration, budgets=planned)[
+            k
+        ]
+        device.transmit(message)  # the answer's
+        device.settle()
+        stats = dataclasses.replace(
+            result.stats,
+            emulated_s=device.take_emulated(),
+            local_wall_s=time.perf_counter() - started,
+            speed=device.speed_at(request.round),
+        )
+        return result.theta.detach().numpy()[None], UpdateColumns.of([stats])
+
+
+def _sleep_unless(cancel: threading.Event, seconds: float) -> None:
+    if cancel.wait(seconds):
+        raise Cancelled
+
+
+def _chunks(agents: Sequence[int], size: int) -> list[list[int]]:
+    return [list(agents[i : i + size]) for i in range(0, len(agents), size)]

@@ -1,0 +1,346 @@
+"""One way to assemble a run: config → strategy, algorithm, θ̃, sinks, pool, coordinator.
+
+Every way of starting a federation comes through here, so a run is checked in one order and
+built of the same parts whatever starts it:
+
+- :func:`check_run` is every server-side check of a validated config, before anything is
+  started or written (ConfigError naming the key): the strategy, built once, against the
+  algorithm's updates (:func:`~fedhpg.server.strategies.check_takes`), participation, a
+  robust rule's tolerance, and what the round policy can take. ``fedhpg-run`` and
+  ``fedhpg-cluster`` call it before they fork or submit anything.
+- :func:`assemble` builds a checked run's parts: θ̃ and the progress (θ̃_0, or the newest
+  valid checkpoint's on resume), and with a run directory its ``config.json`` and sinks
+  (``metrics.jsonl``, checkpoints, TensorBoard) ahead of the caller's callbacks.
+  :meth:`Assembly.run_rounds` drives them over an agent pool with the coordinator the round
+  policy calls for, :meth:`Assembly.finish` writes ``summary.json``.
+- :func:`run_in_process` is the in-process runner on top of them (tests, sweeps, the API).
+
+``fedhpg-server`` (:mod:`fedhpg.server.serving`), the Python API and the in-process runner
+assemble their runs here; run-time code never imports an entry point (import-linter checks).
+"""
+
+from __future__ import annotations
+
+import functools
+import json
+import logging
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import torch
+
+from fedhpg.common.components import validate_run
+from fedhpg.common.config import ConfigError, RunConfig, fixed_difference, to_dict
+from fedhpg.common.types import EvaluationStats
+from fedhpg.common.variants import run_variants, variant_of
+from fedhpg.common.worker import initial_theta
+from fedhpg.envs.base import EnvVariant
+from fedhpg.server.buffered import BufferedCoordinator
+from fedhpg.server.checkpoint import (
+    Checkpoint,
+    latest_valid_checkpoint,
+    save_checkpoint,
+    write_atomic,
+)
+from fedhpg.server.coordinator import Coordinator, RoundCallback, RoundRecord, RunProgress
+from fedhpg.server.metrics import MetricsWriter, tensorboard_sink
+from fedhpg.server.pools import AgentPool
+from fedhpg.server.pools.inprocess import make_in_process_pool
+from fedhpg.server.run_dir import RunDirectory, RunDirectoryError
+from fedhpg.server.strategies import Strategy, validate_strategy
+
+logger = logging.getLogger(__name__)
+
+
+# --- checks -----------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class CheckedRun:
+    """A run whose config passed :func:`check_run`, with the strategy built for it."""
+
+    run: RunConfig
+    strategy: Strategy[Any]
+
+    @functools.cached_property
+    def first(self) -> EnvVariant:
+        """Agent 0's variant: the run's spaces and θ̃_0's policy."""
+        return variant_of(self.run, 0)
+
+    @functools.cached_property
+    def initial_theta(self) -> torch.Tensor:
+        """θ̃_0."""
+        return initial_theta(self.first, self.run)
+
+
+def check_run(run: RunConfig, *, distributed: bool) -> CheckedRun:
+    """Every server-side check of ``run`` (a config validated at its entry point), in one
+    order, and its strategy, built once; ``distributed``: agents in processes of their own."""
+    strategy = validate_strategy(run)
+    _check_round_policy(run, strategy, distributed=distributed)
+    return CheckedRun(run, strategy)
+
+
+def _check_round_policy(run: RunConfig, strategy: Strategy[Any], *, distributed: bool) -> None:
+    """What ``server.round_policy=buffered`` cannot combine with (config.py checks the keys'
+    own ranges)."""
+    if run.server.round_policy != "buffered":
+        return
+    if run.strategy.participation.mode != "all":
+        raise ConfigError(
+            "strategy.participation.mode",
+            f"got {run.strategy.participation.mode!r}; server.round_policy=buffered keeps every "
+            "agent busy (each restarts as soon as it is aggregated): use 'all'",
+        )
+    if not strategy.buffered:
+        raise ConfigError(
+            "server.round_policy",
+            f"got 'buffered'; strategy={strategy.name} aggregates every agent's update at one "
+            "θ̃ each round, not buffered updates of different ages: use wait_all",
+        )
+    if distributed and run.agents.per_host > 1:
+        raise ConfigError(
+            "agents.per_host",
+            f"got {run.agents.per_host}; server.round_policy=buffered takes one agent per "
+            "process (one Train to a host carries one round index): use agents.per_host=1",
+        )
+
+
+# --- checkpoints --------------------------------------------------------------------------------
+
+
+def checkpoint_callback(
+    run: RunConfig,
+    directory: Path,
+    progress: RunProgress,
+    counters: Callable[[], dict[str, int]],
+) -> RoundCallback:
+    """Write a checkpoint after every round: θ̃, the config, the progress and ``counters()``."""
+    settings = to_dict(run)
+
+    def save(record: RoundRecord, theta: torch.Tensor) -> None:
+        checkpoint = Checkpoint(
+            round=record.round,
+            theta=theta,
+            config=settings,
+            metrics_lines=record.round,
+            state={
+                "trajectories_per_agent": progress.trajectories_per_agent,
+                "elapsed_s": progress.elapsed_s,
+                "counters": counters(),
+                **({"plan": progress.plan_state} if progress.plan_state else {}),
+            },
+            strategy=progress.strategy_state,
+            schedule=progress.schedule_state,
+        )
+        try:
+            save_checkpoint(directory, checkpoint)
+        except OSError as error:
+            raise RunDirectoryError(
+                f"cannot write the checkpoint of round {record.round} in {directory}: "
+                f"{error.strerror or error}; the newest complete checkpoint is kept"
+            ) from None
+
+    return save
+
+
+def resume_point(
+    run: RunConfig, run_dir: RunDirectory, strategy: Strategy[Any]
+) -> tuple[torch.Tensor, RunProgress, dict[str, int]]:
+    """θ̃, the run's progress and its counters from the newest valid checkpoint. Everything is
+    checked first (the config, rounds, the strategy's state, metrics.jsonl up to the
+    checkpoint); only then is metrics.jsonl cut back to the checkpoint."""
+    out_dir = run_dir.path
+    checkpoint = latest_valid_checkpoint(out_dir / "checkpoints")
+    if checkpoint is None:
+        raise ConfigError("resume", f"no valid checkpoint in {out_dir / 'checkpoints'}")
+    changed = fixed_difference(checkpoint.config, to_dict(run))
+    if changed is not None:
+        message = str(changed).split(": ", 1)[1]
+        raise ConfigError(changed.key, f"{message} (the checkpoint in {out_dir})")
+    planned = int(checkpoint.config.get("rounds", checkpoint.round))
+    if run.rounds < planned:
+        raise ConfigError(
+            "rounds",
+            f"got {run.rounds}, but the run in {out_dir} has rounds={planned} (checkpointed at "
+            f"round {checkpoint.round}); a resume may keep or raise rounds, never lower them",
+        )
+    if strategy.state().scalars and not checkpoint.strategy.scalars:
+        raise ConfigError(
+            "resume",
+            f"the checkpoint holds no state of strategy {strategy.name!r}; it cannot be resumed",
+        )
+    if run.server.round_policy == "buffered" and checkpoint.schedule is None:
+        raise ConfigError(
+            "server.round_policy",
+            "got 'buffered', but the checkpoint was written by synchronous rounds (it holds no "
+            "buffered schedule); resume with the run's own round policy",
+        )
+    kept = run_dir.checked_metrics(checkpoint.metrics_lines)
+    write_atomic(run_dir.metrics, "".join(line + "\n" for line in kept).encode())
+    logger.warning("resuming %s after round %d", out_dir, checkpoint.round)
+    progress = RunProgress(
+        next_round=checkpoint.round + 1,
+        trajectories_per_agent=float(checkpoint.state.get("trajectories_per_agent", 0.0)),
+        elapsed_s=float(checkpoint.state.get("elapsed_s", 0.0)),
+        strategy_state=checkpoint.strategy,
+        plan_state=dict(checkpoint.state.get("plan", {})),
+        schedule_state=checkpoint.schedule,
+    )
+    counters = checkpoint.state.get("counters", {})
+    return checkpoint.theta, progress, {k: int(v) for k, v in dict(counters).items()}
+
+
+# --- the parts of a run -------------------------------------------------------------------------
+
+
+@dataclass
+class LastEvaluation:
+    """The last round's evaluation, as the rounds go (for summary.json and the final table)."""
+
+    round: int | None = None
+    eval: dict[str, EvaluationStats] | None = None
+
+    def __call__(self, record: RoundRecord, _: torch.Tensor) -> None:
+        if record.eval:
+            self.round, self.eval = record.round, record.eval
+
+
+@dataclass(kw_only=True)
+class Assembly:
+    """A checked run's parts, ready for an agent pool."""
+
+    checked: CheckedRun
+    theta: torch.Tensor
+    """θ̃ to start from: θ̃_0, or the checkpoint's."""
+    progress: RunProgress
+    counters: dict[str, int]
+    """The pool's counters a checkpoint kept (rejected messages, deaths, ...)."""
+    run_dir: RunDirectory | None
+    sinks: list[RoundCallback]
+    """Called after every round, in order: the run directory's, then the caller's."""
+    last: LastEvaluation = field(default_factory=LastEvaluation)
+    pool: AgentPool | None = None
+    _closers: list[Callable[[], None]] = field(default_factory=list)
+
+    @property
+    def run(self) -> RunConfig:
+        return self.checked.run
+
+    @property
+    def strategy(self) -> Strategy[Any]:
+        return self.checked.strategy
+
+    def pool_counters(self) -> dict[str, int]:
+        return self.pool.counters() if self.pool is not None else {}
+
+    def coordinator(
+        self, pool: AgentPool, *, buffered: type[BufferedCoordinator] = BufferedCoordinator
+    ) -> Coordinator:
+        """The round loop over ``pool``: ``buffered`` (the kind that reaches the pool's agents)
+        with ``server.round_policy=buffered``, else the synchronous one."""
+        self.pool = pool
+        kind = buffered if self.run.server.round_policy == "buffered" else Coordinator
+        return kind(
+            run=self.run,
+            pool=pool,
+            strategy=self.strategy,
+            theta=self.theta,
+            progress=self.progress,
+            on_round=self.sinks,
+        )
+
+    def run_rounds(
+        self, pool: AgentPool, *, buffered: type[BufferedCoordinator] = BufferedCoordinator
+    ) -> torch.Tensor:
+        """Every round left, over ``pool``; the final θ̃."""
+        self.theta = self.coordinator(pool, buffered=buffered).run_rounds()
+        return self.theta
+
+    def finish(self, agent_ids: Sequence[str], **extra: Any) -> dict[str, Any]:
+        """``summary.json`` (with a run directory): the last evaluation, the pool's counters,
+        ``extra`` and every agent's environment variant; returned as written."""
+        last = self.last
+        variants = {
+            agent: {"gamma": variant.gamma, **variant.params}
+            for agent, variant in zip(agent_ids, run_variants(self.run), strict=True)
+        }
+        summary = {
+            "rounds": self.run.rounds,
+            "final_eval_round": last.round,
+            "eval": {a: e.to_json() for a, e in last.eval.items()} if last.eval else None,
+            **self.pool_counters(),
+            **extra,
+            "variants": variants,
+        }
+        if self.run_dir is not None:
+            path = self.run_dir.path / "summary.json"
+            write_atomic(path, json.dumps(summary, indent=2).encode())
+        return summary
+
+    def close(self) -> None:
+        """Close the sinks (metrics.jsonl, TensorBoard)."""
+        while self._closers:
+            self._closers.pop()()
+
+
+def assemble(
+    checked: CheckedRun,
+    *,
+    run_dir: RunDirectory | None = None,
+    callbacks: Sequence[RoundCallback] = (),
+) -> Assembly:
+    """The parts of ``checked``'s run: θ̃ and its progress (from the newest checkpoint in
+    ``run_dir`` when the run resumes), and with ``run_dir`` its config.json, metrics.jsonl,
+    checkpoints and TensorBoard events; ``callbacks`` after those. Close it when done."""
+    run = checked.run
+    theta, progress = checked.initial_theta, RunProgress()
+    counters: dict[str, int] = {}
+    if run.resume:
+        if run_dir is None:
+            raise ConfigError("resume", "resuming needs the run directory: pass out_dir")
+        theta, progress, counters = resume_point(run, run_dir, checked.strategy)
+    assembly = Assembly(
+        checked=checked,
+        theta=theta,
+        progress=progress,
+        counters=counters,
+        run_dir=run_dir,
+        sinks=[],
+    )
+    if run_dir is not None:
+        out_dir = run_dir.path
+        write_atomic(out_dir / "config.json", json.dumps(to_dict(run), indent=2).encode())
+        metrics = MetricsWriter(run_dir.metrics)
+        assembly._closers.append(metrics.close)
+        assembly.sinks += [
+            metrics,
+            checkpoint_callback(run, out_dir / "checkpoints", progress, assembly.pool_counters),
+        ]
+        board = tensorboard_sink(
+            run.server.tensorboard,
+            out_dir,
+            first_round=progress.next_round,
+            theta=theta,
+            per_agent=run.agents.num_agents <= run.server.tensorboard_agents,
+        )
+        if board is not None:
+            assembly._closers.append(board.close)
+            assembly.sinks.append(board)
+    assembly.sinks += [assembly.last, *callbacks]
+    return assembly
+
+
+def run_in_process(run: RunConfig, *, on_round: Sequence[RoundCallback] = ()) -> torch.Tensor:
+    """Run the whole federation of ``run`` here, its K agents as one group on this thread
+    (no run directory: ``on_round`` sees every round); the final θ̃_T."""
+    validate_run(run)  # a config made in code, not composed: checked as the CLI checks it
+    assembly = assemble(check_run(run, distributed=False), callbacks=on_round)
+    pool = make_in_process_pool(run)
+    try:
+        return assembly.run_rounds(pool)
+    finally:
+        pool.close()
+        assembly.close()

@@ -1,0 +1,257 @@
+"""A request and its answers: one synchronous round's ``Train``, or an ``Evaluate``.
+
+:class:`Collector` holds the one request open at a time (a :class:`Collection`): which agents
+were asked, which answered (accepted, or rejected: a rejection counts as the agent's answer, it
+is not waited for), and, for a round, the accepted θ_k. It says what a link is still owed
+(:meth:`Collector.request_for`: the request names the link's selected agents that have not
+answered, so a link that rejoins is asked again for exactly those), files each answer's rows
+for their own agents as if each had come alone, and discards answers for a request no longer
+open with a log line. The round policy (:mod:`fedhpg.server.pools.rounds`) decides when a
+collection is complete.
+
+Every row of an ``Update`` passes the same :class:`~fedhpg.server.validation.UpdateCheck` as
+in the in-process pool, each pass over the [A, d] matrix made once for all its rows; a bad row
+rejects that agent only. Accepted θ_k are copied once, on arrival, into the round's
+:class:`~fedhpg.server.round_rows.RoundRows` (the frames are then let go); the updates the
+round returns are views of that matrix, which the strategies use without restacking.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import time
+from collections.abc import Callable, Mapping, Sequence
+from dataclasses import dataclass, field
+
+from fedhpg.common.config import ServerConfig
+from fedhpg.common.runtime import timeline
+from fedhpg.common.types import AgentUpdate, EvaluationStats
+from fedhpg.common.wire.protocol import Evaluation, Request, Train, Update
+from fedhpg.server.pools import RoundAnswers
+from fedhpg.server.pools.links import Link, Links, Outbox
+from fedhpg.server.pools.rounds import request_complete
+from fedhpg.server.round_rows import RoundRows
+from fedhpg.server.validation import Reject, Rejection, UpdateCheck
+
+
+@dataclass
+class Collection:
+    """One request sent to the selected agents and its answers."""
+
+    request: Request
+    """The request, naming no agents (each link is sent it for its own)."""
+    expected: frozenset[int]
+    """The agents asked (the strategy's selection; every agent for an evaluation)."""
+    started: float = field(default_factory=time.monotonic)
+    answers: dict[int, AgentUpdate | EvaluationStats] = field(default_factory=dict)
+    failures: dict[int, Rejection] = field(default_factory=dict)
+    """Agents whose answer was rejected (it counts as their answer: they are not waited for)."""
+    rows: RoundRows | None = None
+    """A round's accepted θ_k (None for an evaluation): ``answers`` hold views of its rows."""
+    budgets: Mapping[int, Mapping[str, int]] = field(default_factory=dict)
+    """A round's planned budgets (``agents.plan``), by agent index; empty: their own."""
+
+    @property
+    def round(self) -> int:
+        return self.request.round
+
+    @property
+    def is_train(self) -> bool:
+        return isinstance(self.request, Train)
+
+    def answered(self, index: int) -> bool:
+        return index in self.answers or index in self.failures
+
+    def awaits(self, index: int) -> bool:
+        """Whether agent ``index`` was asked and has not answered."""
+        return index in self.expected and not self.answered(index)
+
+
+class Collector:
+    """The open request, if any, and what arrives for it."""
+
+    def __init__(
+        self, *, links: Links, outbox: Outbox, check: UpdateCheck, settings: ServerConfig
+    ) -> None:
+        self.links = links
+        self.outbox = outbox
+        self.check = check
+        self.settings = settings
+        self.open: Collection | None = None
+        self.late_answers = 0
+
+    def request_for(self, link: Link, agents: Sequence[int] | None = None) -> Request | None:
+        """The open request as ``link`` gets it: naming those of ``agents`` (by default the
+        link's agents) still unanswered; None if it owes nothing."""
+        collection = self.open
+        if collection is None:
+            return None
+        candidates = link.indices if agents is None else agents
+        owed = [k for k in candidates if collection.awaits(k)]
+        if not owed:
+            return None
+        request = collection.request
+        if isinstance(request, Train):
+            planned = collection.budgets
+            budgets = [dict(planned.get(k, {})) for k in owed] if planned else []
+            return dataclasses.replace(request, agents=owed, budgets=budgets)
+        return dataclasses.replace(request, agents=owed)
+
+    def owed_by(self, indices: Sequence[int]) -> int:
+        """How many of ``indices`` the open request still waits for."""
+        collection = self.open
+        return 0 if collection is None else sum(collection.awaits(k) for k in indices)
+
+    def collect(
+        self,
+        request: Request,
+        what: str,
+        agents: Sequence[int],
+        *,
+        pump: Callable[[], None],
+        budgets: Mapping[int, Mapping[str, int]] | None = None,
+        while_waiting: Callable[[], None] | None = None,
+    ) -> Collection:
+        """Send ``request`` to the selected agents, one message per link naming its selected
+        agents, and ``pump`` the socket until the round policy says the answers are enough;
+        ``while_waiting`` is called once the requests are out, before any answer is read."""
+        expected = frozenset(agents)
+        is_train = isinstance(request, Train)
+        collection = Collection(
+            request=request,
+            expected=expected,
+            rows=RoundRows(expected, self.check.num_params) if is_train else None,
+            budgets=budgets or {},
+        )
+        self.open = collection
+        by_link: dict[bytes, tuple[Link, list[int]]] = {}
+        for index in sorted(expected):
+            peer = self.links.peers.get(index)
+            if peer is not None:
+                by_link.setdefault(peer.link.identity, (peer.link, []))[1].append(index)
+        for link, selected in by_link.values():
+            message = self.request_for(link, selected)
+            if message is not None:
+                self.links.send(link, message)
+        # the marks' names: nothing formatted per round
+        timeline.mark("server", "train-sent" if is_train else "evaluate-sent", request.round)
+        try:
+            if while_waiting is not None:
+                while_waiting()
+            while not self._complete(collection, what):
+                pump()
+        finally:
+            self.open = None
+        timeline.mark(
+            "server", "train-collected" if is_train else "evaluate-collected", request.round
+        )
+        return collection
+
+    def _complete(self, collection: Collection, what: str) -> bool:
+        now = time.monotonic()
+        return request_complete(
+            settings=self.settings,
+            what=f"{what} {collection.round}",
+            expected=collection.expected,
+            answered=collection.answers.keys() | collection.failures.keys(),
+            accepted=len(collection.answers),
+            live=self.links.peers.keys(),
+            absent_since=self.links.absent_since,
+            elapsed_s=now - collection.started,
+            now=now,
+            name=self.links.name,
+        )
+
+    def round_answers(self, collection: Collection) -> RoundAnswers:
+        """A collected round as the coordinator takes it (stragglers named in a log line)."""
+        name = self.links.name
+        stragglers = [name(k) for k in sorted(collection.expected) if not collection.answered(k)]
+        accepted = [
+            update
+            for _, update in sorted(collection.answers.items())
+            if isinstance(update, AgentUpdate)
+        ]
+        assert collection.rows is not None
+        return RoundAnswers(
+            # views of one [K, d] matrix: strategies.stacked hands it on as it is
+            updates=collection.rows.compacted(accepted),
+            failures={name(k): r for k, r in sorted(collection.failures.items())},
+            stragglers=stragglers,
+        )
+
+    # -- answers -------------------------------------------------------------------------------
+
+    def _open_for(self, index: int, round_index: int, train: bool) -> bool:
+        """Whether an answer of agent ``index`` for ``round_index`` (to a ``Train``, or an
+        ``Evaluate``) belongs to the open request; logs if not."""
+        collection = self.open
+        if (
+            collection is not None
+            and collection.is_train == train
+            and collection.round == round_index
+            and collection.awaits(index)
+        ):
+            return True
+        self.late_answers += 1
+        self.outbox.noisy.warning(
+            "discarded a late %s from %s for round %d (no longer open)",
+            "update" if train else "evaluation",
+            self.links.name(index),
+            round_index,
+        )
+        return False
+
+    def on_update(self, identity: bytes, link: Link, update: Update) -> None:
+        """A link's updates, row by row as if each had come alone, but checked and copied a
+        message at a time."""
+        timeline.mark("server", "batch", update.round)
+        collection = self.open
+        open_round = (
+            collection is not None and collection.is_train and collection.round == update.round
+        )
+        broadcast = collection.request.theta if open_round and collection else None
+        # decoded stats are within their bounds: the codec enforced them field by field
+        problems = self.check.problems(update.thetas, update.stats, broadcast, stats_bounded=True)
+        indices: list[int] = []
+        rows: list[int] = []
+        for i, index in enumerate(update.agents):
+            if not self.links.owns(link, index):
+                continue  # an agent this link lost to another (it was presumed dead)
+            problem = problems[i]
+            if problem is not None:
+                self.outbox.reject(
+                    identity, "bad_update", f"{self.links.name(index)}: {problem}", registered=True
+                )
+                if self._open_for(index, update.round, train=True):
+                    assert self.open is not None
+                    self.open.failures[index] = problem
+            elif (open_round and collection is not None and collection.awaits(index)) or (
+                self._open_for(index, update.round, train=True)  # not awaited: logged as late
+            ):
+                indices.append(index)
+                rows.append(i)
+        if not indices:
+            return
+        assert self.open is not None and self.open.rows is not None
+        records = update.stats.records()
+        views = self.open.rows.put(indices, update.thetas, rows)
+        for index, theta, i in zip(indices, views, rows, strict=True):
+            self.open.answers[index] = AgentUpdate(
+                agent_index=index, agent_id=self.links.name(index), theta=theta, stats=records[i]
+            )
+
+    def on_evaluation(self, identity: bytes, link: Link, evaluation: Evaluation) -> None:
+        """A link's evaluations, each filed for its own agent."""
+        for index, stats in zip(evaluation.agents, evaluation.stats, strict=True):
+            if not self.links.owns(link, index):
+                continue  # an agent this link lost to another (it was presumed dead)
+            problems = stats.problems()
+            if problems:
+                problem = "evaluation stats: " + "; ".join(problems)
+                self.outbox.reject(identity, "bad_evaluation", problem, registered=True)
+                if self._open_for(index, evaluation.round, train=False):
+                    assert self.open is not None
+                    self.open.failures[index] = Rejection(Reject.STATS, problem)
+            elif self._open_for(index, evaluation.round, train=False):
+                assert self.open is not None
+                self.open.answers[index] = stats

@@ -1,0 +1,255 @@
+"""The server of a distributed run: bind, wait for the K agents, run the rounds, write the run
+directory (what ``fedhpg-server`` and the server that ``fedhpg-run`` forks do).
+
+The run is checked and assembled by :mod:`fedhpg.server.assembly`; here is what only a server
+with agent processes has: its ROUTER socket (CURVE and the ZAP handler when on, the
+connection guard, the message cap that θ's size and hosts' batches need), the
+:class:`~fedhpg.server.pools.zmq_pool.ZmqAgentPool` over it, the progress bar, and the final
+table of the unified policy's evaluation.
+"""
+
+from __future__ import annotations
+
+import logging
+import sys
+import time
+import uuid
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
+from dataclasses import dataclass
+from pathlib import Path
+
+import torch
+import zmq
+
+from fedhpg.common.components import agent_profile, resolve_algorithm
+from fedhpg.common.config import ConfigError, RunConfig, dictated_settings
+from fedhpg.common.runtime.progress import Progress
+from fedhpg.common.types import EvaluationStats
+from fedhpg.common.variants import run_variants, variant_digest
+from fedhpg.common.wire.security import (
+    ServerGuard,
+    handshake_failure_logger,
+    secure_server_socket,
+)
+from fedhpg.common.wire.transport import (
+    batch_message_cap,
+    bind_endpoint,
+    configure_socket,
+    max_message_bytes,
+    single_message_bytes,
+)
+from fedhpg.server.assembly import Assembly, CheckedRun, assemble, check_run
+from fedhpg.server.buffered_zmq import ZmqBufferedCoordinator
+from fedhpg.server.connections import ConnectionGuard, connection_budget
+from fedhpg.server.coordinator import RoundRecord
+from fedhpg.server.pools.zmq_pool import ZmqAgentPool
+from fedhpg.server.report import evaluation_table
+from fedhpg.server.run_dir import claimed
+from fedhpg.server.validation import UpdateCheck
+
+logger = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True, kw_only=True)
+class ServerResult:
+    theta: torch.Tensor
+    out_dir: Path
+    last_evaluation: dict[str, EvaluationStats] | None
+
+
+def message_cap(run: RunConfig, num_params: int) -> int:
+    """The largest message this run's agents may send: a header and θ_k, or an agent host's
+    batch of θs (ZMQ_MAXMSGSIZE and the codec's cap). ``server.max_message_mb`` may lower it
+    only as far as one θ."""
+    needed = single_message_bytes(num_params)
+    configured = max_message_bytes(run.server)
+    if configured < needed:
+        raise ConfigError(
+            "server.max_message_mb",
+            f"got {run.server.max_message_mb:g}, below the {needed / 2**20:.3g} MiB this run's "
+            f"updates need (θ of {num_params} float32 and a header of up to 1 MiB)",
+        )
+    return batch_message_cap(configured, num_params)
+
+
+def run_digests(run: RunConfig) -> list[str]:
+    """Every agent's :func:`variant_digest`, what the server checks each hello against. The
+    variants are made a chunk at a time and dropped: K short strings stay (~1 MB at K=10 000)."""
+    return [variant_digest(run, variant) for variant in run_variants(run)]
+
+
+def max_connections(run: RunConfig) -> int:
+    """``server.max_connections``, or by default room for every agent twice over (a restarted
+    agent's new connection while its old one closes) and 64 more."""
+    configured = run.server.max_connections
+    return configured if configured is not None else 2 * run.agents.num_agents + 64
+
+
+def bind_error(run: RunConfig, error: zmq.ZMQError) -> str:
+    """One line for an endpoint the server cannot listen on (a port in use, a bad address):
+    exit status 1, since the setting may be right and the machine's state is what fails."""
+    key = "server.port" if run.server.transport == "tcp" else "server.ipc_path"
+    return f"{key}: cannot listen on {bind_endpoint(run.server)}: {error.strerror or error}"
+
+
+@dataclass
+class ServerSocket:
+    """The bound ROUTER socket's parts: its context, the connection guard, the ZAP thread."""
+
+    context: zmq.Context
+    socket: zmq.Socket
+    guard: ConnectionGuard
+    security: ServerGuard
+
+    def close(self) -> None:
+        self.guard.stop()
+        self.security.stop()  # the ZAP thread
+        self.socket.close(linger=200)
+        self.context.term()
+
+
+@contextmanager
+def server_socket(run: RunConfig, cap: int) -> Iterator[ServerSocket]:
+    """The ROUTER socket with every option set, not yet bound (closed at the block's end)."""
+    context = zmq.Context()
+    socket = context.socket(zmq.ROUTER)
+    configure_socket(socket, run.server)
+    socket.setsockopt(zmq.MAXMSGSIZE, cap)
+    security = secure_server_socket(socket, context, run.security)  # CURVE+ZAP, pre-bind
+    socket.setsockopt(zmq.ROUTER_MANDATORY, 1)
+    guard = ConnectionGuard(
+        socket,
+        max_inflight_bytes=2 * cap + 64 * 1024,
+        hello_timeout_s=run.server.hello_timeout_s,
+        max_connections=connection_budget(max_connections(run)),
+        on_handshake_failed=handshake_failure_logger(curve=run.security.curve),
+    ).start()  # before bind: every connection is seen
+    parts = ServerSocket(context=context, socket=socket, guard=guard, security=security)
+    try:
+        yield parts
+    finally:
+        parts.close()
+
+
+def zmq_pool(assembly: Assembly, parts: ServerSocket, cap: int) -> ZmqAgentPool:
+    """The K agents of ``assembly``'s run, reached through ``parts``' socket."""
+    run, checked = assembly.run, assembly.checked
+    pool = ZmqAgentPool(
+        socket=parts.socket,
+        num_agents=run.agents.num_agents,
+        check=UpdateCheck(
+            num_params=int(checked.initial_theta.numel()),
+            max_update_norm=run.server.max_update_norm,
+        ),
+        env_signature=checked.first.signature(),  # builds an env: once, not per agent
+        variant_digests=run_digests(run),
+        run_settings=dictated_settings(run),  # security: only dictated keys leave the server
+        run_id=uuid.uuid4().hex[:12],
+        max_bytes=cap,
+        settings=run.server,
+        guard=parts.guard,
+    )
+    pool.restore_counters(assembly.counters)
+    return pool
+
+
+def serve(
+    run: RunConfig,
+    *,
+    out_dir: Path,
+    on_bound: Callable[[str], None] | None = None,
+    show_progress: bool = True,
+) -> ServerResult:
+    """Run one federation as its server; returns the final θ̃_T."""
+    checked = check_run(run, distributed=True)
+    cap = message_cap(run, int(checked.initial_theta.numel()))
+    with claimed(out_dir, resume=bool(run.resume)) as run_dir:
+        assembly = assemble(checked, run_dir=run_dir)
+        try:
+            with server_socket(run, cap) as parts:
+                pool = zmq_pool(assembly, parts, cap)
+                theta = _serve(assembly, pool, parts, on_bound, show_progress)
+        finally:
+            assembly.close()
+        assembly.finish(pool.agent_ids, **parts.guard.counts.as_dict())
+    _print_report(checked, assembly, pool.agent_ids, out_dir)
+    return ServerResult(theta=theta, out_dir=out_dir, last_evaluation=assembly.last.eval)
+
+
+def _serve(
+    assembly: Assembly,
+    pool: ZmqAgentPool,
+    parts: ServerSocket,
+    on_bound: Callable[[str], None] | None,
+    show_progress: bool,
+) -> torch.Tensor:
+    run = assembly.run
+    bar: Progress | None = None
+    try:
+        parts.socket.bind(bind_endpoint(run.server))
+        bound = parts.socket.getsockopt_string(zmq.LAST_ENDPOINT)
+        logger.info("server listening on %s, waiting for %d agents", bound, run.agents.num_agents)
+        if on_bound is not None:
+            on_bound(bound)
+        pool.wait_for_agents(run.server.register_timeout_s)
+        if show_progress:  # timed from the first round on, not the wait for agents
+            bar = Progress(run.rounds, "rounds", done=assembly.progress.next_round - 1)
+            assembly.sinks.append(_progress_callback(bar, has_goal=assembly.checked.first.has_goal))
+        theta = assembly.run_rounds(pool, buffered=ZmqBufferedCoordinator)
+        pool.shutdown("run complete")
+        return theta
+    except BaseException as error:
+        pool.shutdown(f"the server stopped: {error or type(error).__name__}", complete=False)
+        raise
+    finally:
+        if bar is not None:
+            bar.close()
+
+
+def _progress_callback(
+    progress: Progress, *, has_goal: bool
+) -> Callable[[RoundRecord, torch.Tensor], None]:
+    def update(record: RoundRecord, _: torch.Tensor) -> None:
+        status = f"round {record.round_time_s:.2f}s"
+        if record.eval:
+            success = [e.success_rate for e in record.eval.values()]
+            returns = [e.return_mean for e in record.eval.values()]
+            mean_return = sum(returns) / len(returns)
+            status += " | eval "
+            status += f"success min {min(success):.2f}, " if has_goal else ""
+            status += f"mean return {mean_return:.3f}"
+        progress.update(1, status)
+
+    return update
+
+
+def _print_report(
+    checked: CheckedRun, assembly: Assembly, agent_ids: list[str], out_dir: Path
+) -> None:
+    """The unified policy's last evaluation per agent, then where the run directory is."""
+    run, last = checked.run, assembly.last
+    if last.eval:
+        params = {
+            agent: {"gamma": variant.gamma, **variant.params}
+            for agent, variant in zip(agent_ids, run_variants(run), strict=True)
+        }
+        # each agent's budget only for the table (~1 ms an agent where a population draws it)
+        algorithm, _ = resolve_algorithm(run)
+        compute = {}
+        for k, agent in enumerate(agent_ids):
+            profile = agent_profile(run, k)
+            compute[agent] = f"{algorithm.describe_budget(profile.budget)} speed={profile.speed:g}"
+        sys.stdout.write(
+            f"\nUnified policy after round {last.round} "
+            f"({run.eval.episodes} {'greedy' if run.eval.greedy else 'sampled'} episodes "
+            "per environment):\n"
+            + evaluation_table(last.eval, params, compute, has_goal=checked.first.has_goal)
+            + "\n"
+        )
+    sys.stdout.write(f"run directory: {out_dir.resolve()}\n")
+    sys.stdout.flush()
+
+
+def default_out_dir() -> Path:
+    return Path("runs") / time.strftime("%Y%m%d-%H%M%S")
