@@ -21,9 +21,11 @@ if TYPE_CHECKING:
 
 
 def _unsupported(run: RunConfig, policy: Policy) -> str | None:
+    from fedhpg.common.algorithms.fedhpg import FedHPG
+    from fedhpg.common.components import resolve_algorithm
     from fedhpg.common.policies import MLPCategoricalPolicy
 
-    if run.algo.name != "fedhpg":
+    if type(resolve_algorithm(run)[0]) is not FedHPG:
         return f"algorithm {run.algo.name!r} (the compiled backend runs fedhpg)"
     if run.algo.optimizer not in ("sgd", "adam"):
         return f"optimizer {run.algo.optimizer!r}"
