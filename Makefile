@@ -14,7 +14,7 @@ $(STAMP): pyproject.toml constraints.txt
 	test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
 	$(BIN)/python -m pip install --quiet --upgrade pip
 	$(BIN)/python -m pip install --quiet -c constraints.txt -e ".[envs,dev]"
-	$(BIN)/python -m fedhpg.common.batched.compiled
+	$(BIN)/python -m fedhpg.common.batched.backend
 	touch $(STAMP)
 
 demo: $(STAMP)
@@ -105,7 +105,7 @@ bench-presets: $(STAMP)
 # numba's kernel cache, filled at setup, is emptied by any edit of kernels.py: refilled first,
 # or the first case's start-up would time a compilation.
 bench-scale: $(STAMP)
-	$(BIN)/python -m fedhpg.common.batched.compiled
+	$(BIN)/python -m fedhpg.common.batched.backend
 	OMP_NUM_THREADS=1 $(BIN)/python -m benchmarks.scale
 	OMP_NUM_THREADS=1 $(BIN)/python -m benchmarks.scale_gridworld
 
@@ -114,7 +114,7 @@ bench-scale: $(STAMP)
 # One line and exit 1 where torch sees no CUDA device. DEVICE=cpu runs it on the CPU.
 DEVICE ?= cuda
 bench-device: $(STAMP)
-	$(BIN)/python -m fedhpg.common.batched.compiled
+	$(BIN)/python -m fedhpg.common.batched.backend
 	OMP_NUM_THREADS=1 $(BIN)/python -m benchmarks.scale_device --device $(DEVICE)
 
 # The Theorem 1 planner against uniform, speed-proportional and the paper's budgets at one

@@ -94,13 +94,13 @@ class AlgoConfig:
     params: dict[str, Any] = field(default_factory=dict)
     """The algorithm's own options (its ``Params`` dataclass), e.g. FedHPGVR's ``iw_mode``."""
     engine: str = "auto"
-    """How a process computes its agents' local updates. 'torch': the engine
-    (``common/engine``), every algorithm, policy and family, all of the process's agents
-    sampled and differentiated together in torch on ``algo.device``; 'auto': the same, except
-    FedHPG's honest agents with the MLP categorical policy on CartPole on the CPU, which the
-    compiled numba backend trains (``common/batched``, several times faster there). The two
-    round floats differently, so the server dictates the choice; within either an agent's θ
-    does not depend on where it runs or with whom."""
+    """Which backend supplies the engine's primitives (``common/engine``: every algorithm's
+    one loop runs on either). 'torch': all of the process's agents sampled and differentiated
+    together in torch on ``algo.device``, for every policy and family; 'auto': the same,
+    except that honest agents with the MLP categorical policy on CartPole on the CPU are
+    sampled and differentiated by the compiled numba backend (``common/batched``, several
+    times faster there). The two round floats differently, so the server dictates the
+    choice; within either an agent's θ does not depend on where it runs or with whom."""
     device: str = "cpu"
     """The torch device of the engine: 'cpu', 'cuda' or 'cuda:N'."""
     bound_estimates: bool = False

@@ -364,9 +364,10 @@ def _gaussian_mlp(
     )
 
 
+MLP_CATEGORICAL = "mlp_categorical"
 POLICIES: dict[str, PolicyFactory] = {
     "tabular": _tabular,
-    "mlp_categorical": _mlp_categorical,
+    MLP_CATEGORICAL: _mlp_categorical,
     "gaussian_mlp": _gaussian_mlp,
 }
 

@@ -231,7 +231,7 @@ def _prepare_compiled_engine(run: RunConfig) -> None:
 
     if not uses_compiled_engine(run):
         return
-    from fedhpg.common.batched.compiled import warm_up
+    from fedhpg.common.batched.backend import warm_up
 
     seconds = warm_up()
     logger.log(

@@ -134,6 +134,7 @@ def test_a_strategy_declares_the_updates_it_takes_and_whether_rounds_may_be_buff
     class SendsDeltas(ToySign):
         name = "toy_sends_deltas"
         strategy = "toy_deltas"
+        sends = "deltas"
 
     ALGORITHMS.names(), STRATEGIES.names()  # the package's own entries first
     monkeypatch.setitem(ALGORITHMS._entries, SendsDeltas.name, SendsDeltas())
