@@ -68,10 +68,9 @@ def _fedhpg_run(tmp_path: Path, keys: list[str], name: str) -> tuple[torch.Tenso
     return checkpoint.theta, json.loads((out_dir / "summary.json").read_text())
 
 
-# CartPole variants, B_k and τ_k from the population: the compiled backend trains every honest
-# FedHPG agent (hosts of 3 or 7 stack them, a lone agent is a group of one); agent 2 attacks,
-# so the engine trains it beside the backend (common/group.py's SplitGroup). FedHPGVR and
-# FedPG-BR's agents run on the engine (rows of 1, 3 or 7 agents).
+# CartPole variants, B_k and τ_k from the population: the compiled backend samples and
+# differentiates for every agent of every algorithm (rows of 1, 3 or 7 agents; a lone agent is
+# a group of one); agent 2 flips its update's sign after its local update.
 ENGINE_RUN = [
     "env=cartpole", "agents=population", "rounds=3", "seed=5", "agents.num_agents=7",
     "agents.clock=counted", "eval.every=3", "eval.episodes=2", "attack.kind=sign_flip",
@@ -93,9 +92,7 @@ def test_theta_does_not_depend_on_the_placement_of_the_agents(
 ) -> None:
     """Nor does any agent's emulated time on the counted clock: a host emulates its agents'
     devices column-wise (common/device.py's DeviceColumns), a lone agent and the in-process
-    pool one DeviceModel at a time. Agent 2 attacks, so hosts of 3 and 7 hold an engine and a
-    loop side by side (their columns gathered from per-agent results), the host of agents 3..5
-    the engine alone (its own columns)."""
+    pool one DeviceModel at a time."""
     keys_of_run = ALGORITHM_RUNS[algorithm]
     run = compose(keys_of_run)
     records: list = []

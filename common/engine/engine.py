@@ -19,12 +19,11 @@ what a row computes depends on its agent, round and θ alone.
 from __future__ import annotations
 
 import time
-from collections.abc import Iterator, Mapping, Sequence
+from collections.abc import Callable, Iterator, Mapping, Sequence
 from contextlib import contextmanager
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any
 
-import gymnasium as gym
 import torch
 
 from fedhpg.common import estimators
@@ -409,16 +408,19 @@ class Engine:
         coef = torch.zeros(tiles.obs.shape[:2], dtype=torch.float64, device=self.device)
         coef[tiles.tile, tiles.slot] = values[tiles.cell].to(torch.float64)
         out = theta_of_tile.new_empty((tiles.obs.shape[0], self.policy.num_params))
+        return self._over_tiles(tiles, out, lambda block: self.policy.score_gradients(
+            theta_of_tile[block], tiles.obs[block], tiles.act[block], coef[block]
+        ))  # fmt: skip
+
+    def _over_tiles(
+        self, tiles: _Tiles, out: torch.Tensor, compute: Callable[[slice], torch.Tensor]
+    ) -> torch.Tensor:
+        """``out[block] = compute(block)`` over the tiles, as many at once as memory allows."""
         chunked(
             tiles.obs.shape[0],
             TILE * self.policy.num_params,
             PACKED_ELEMENTS,
-            lambda block: out.__setitem__(
-                block,
-                self.policy.score_gradients(
-                    theta_of_tile[block], tiles.obs[block], tiles.act[block], coef[block]
-                ),
-            ),
+            lambda block: out.__setitem__(block, compute(block)),
         )
         return out
 
@@ -454,17 +456,9 @@ class Engine:
         """log π_θa(a_t|s_t) of every alive step under its row's θ row, [T, N] (0 elsewhere)."""
         tiles = self._tiles(batch, batch.owner)
         values = tiles.obs.new_zeros(tiles.obs.shape[:2], dtype=torch.float64)
-        chunked(
-            tiles.obs.shape[0],
-            TILE * self.policy.num_params,
-            PACKED_ELEMENTS,
-            lambda block: values.__setitem__(
-                block,
-                self.policy.log_probs(
-                    theta[tiles.tile_group[block]], tiles.obs[block], tiles.act[block]
-                ).double(),
-            ),
-        )
+        self._over_tiles(tiles, values, lambda block: self.policy.log_probs(
+            theta[tiles.tile_group[block]], tiles.obs[block], tiles.act[block]
+        ).double())  # fmt: skip
         out = torch.zeros(batch.alive.numel(), dtype=torch.float64, device=self.device)
         out[tiles.flat] = values[tiles.tile, tiles.slot]
         return out.reshape(batch.alive.shape)
