@@ -39,6 +39,7 @@ from fedhpg.common.randomness import Purpose, trajectory_keys
 from fedhpg.common.types import EvaluationStats
 from fedhpg.common.variants import discount, training_horizon
 from fedhpg.envs.base import BatchEnv, EnvVariant
+from fedhpg.envs.device import DeviceFamily, device_family
 
 if TYPE_CHECKING:
     from fedhpg.common.batched.backend import CompiledBackend
@@ -183,6 +184,11 @@ class Engine:
         self._profiles: dict[int, AgentProfile] = {}
         self._gamma: dict[int, float] = {}
         self._horizon: dict[int, int] = {}
+        self._family: DeviceFamily | None = None
+        self._family_rows: dict[int, int] | None = None
+        """Each agent's row of :attr:`_family` (None: not built yet)."""
+        self._per_row: dict[str, torch.Tensor] = {}
+        """The round's rows' constants on the device (:meth:`begin`)."""
         self.rows: Rows | None = None
         self.tally: Tally | None = None
         self._hook: Any = None
@@ -210,6 +216,17 @@ class Engine:
     def prepare(self) -> None:
         for k in self.variants:
             self.profile(k), self.gamma(k), self.horizon(k)
+        self.family()
+
+    def family(self) -> DeviceFamily | None:
+        """The torch implementation's table of every agent's variant on the device, built once
+        (None: the family has none, ``algo.envs=gymnasium``, or the compiled backend samples)."""
+        if self._family_rows is None:
+            order = sorted(self.variants)
+            self._family_rows = {k: row for row, k in enumerate(order)}
+            if self.compiled is None and self.run.algo.envs == "auto":
+                self._family = device_family([self.variants[k] for k in order], self.device)
+        return self._family
 
     def _batch_env(self, k: int, copies: int) -> BatchEnv:
         if (k, copies) not in self._envs:
@@ -244,9 +261,29 @@ class Engine:
             round_index=round_index,
         )
         self.rows, self.tally, self._hook = rows, Tally.zeros(rows.size), hook
+        self._per_row = self._row_constants(rows.agents)
         self._clock = time.thread_time()
         self._sampling_s = 0.0
         return rows
+
+    def _row_constants(self, agents: Sequence[int]) -> dict[str, torch.Tensor]:
+        """What sampling and the estimator read of each row, as [A] tensors on the device (sent
+        once a round, not at every iteration)."""
+        self.family()
+        assert self._family_rows is not None
+        kinds = [attack_of(self.run.attack, k) for k in agents]
+
+        def row(values: list[Any], dtype: torch.dtype) -> torch.Tensor:
+            return torch.tensor(values, dtype=dtype).to(self.device)
+
+        return {
+            "agent": row(list(agents), torch.int64),
+            "gamma": row([self.gamma(k) for k in agents], torch.float64),
+            "horizon": row([self.horizon(k) for k in agents], torch.int64),
+            "family_row": row([self._family_rows[k] for k in agents], torch.int64),
+            "random_actions": row([a == "random_action" for a in kinds], torch.bool),
+            "flipped_rewards": row([a == "reward_flip" for a in kinds], torch.bool),
+        }
 
     def _rows(self) -> Rows:
         assert self.rows is not None, "begin() a round first"
@@ -254,9 +291,8 @@ class Engine:
 
     def gammas(self) -> torch.Tensor:
         """γ_k of every row, [A] float64."""
-        return torch.tensor(
-            [self.gamma(k) for k in self._rows().agents], dtype=torch.float64, device=self.device
-        )
+        self._rows()
+        return self._per_row["gamma"]
 
     def sample(
         self,
@@ -270,28 +306,24 @@ class Engine:
     ) -> Trajectories:
         """``counts[a]`` trajectories of row a at θ row ``theta[a]`` (0: none)."""
         rows = self._rows()
-        counts_list = counts.tolist()
-        order = [i for i, c in enumerate(counts_list) if c > 0]
-        positions = torch.tensor(order, dtype=torch.int64, device=self.device)
-        chosen = torch.tensor(
-            [counts_list[i] for i in order], dtype=torch.int64, device=self.device
-        )
-        agents = [rows.agents[i] for i in order]
-        owner = torch.repeat_interleave(torch.arange(len(order), device=self.device), chosen)
+        per_row = self._per_row
+        wanted = counts.to(self.device)
+        positions = torch.nonzero(wanted > 0).squeeze(1)
+        chosen = wanted[positions]
+        agents = [rows.agents[i] for i in positions.tolist()]
+        owner = torch.repeat_interleave(torch.arange(len(agents), device=self.device), chosen)
         starts = torch.cumsum(chosen, 0) - chosen
         index = torch.arange(int(chosen.sum()), device=self.device) - starts[owner]
-        agent_ids = torch.tensor(agents, dtype=torch.int64, device=self.device)[owner]
+        agent_ids = per_row["agent"][positions][owner]
         keys = trajectory_keys(
             self.run.seed, agent_ids, rows.round_index, purpose, iteration, index
         )
-        limit = (
-            torch.tensor([self.horizon(k) for k in agents], dtype=torch.int64, device=self.device)
-            if horizons is None
-            else horizons.to(self.device)[positions]
-        )
+        limit = per_row["horizon"] if horizons is None else horizons.to(self.device)
         started = time.thread_time()
         try:
-            batch = self._sample_rows(theta, positions, chosen, keys, limit, agents, greedy)
+            batch = self._sample_rows(
+                theta, positions, chosen, keys, limit[positions], agents, greedy
+            )
         finally:
             self._sampling_s += time.thread_time() - started
         return batch.regrouped(positions, rows.size)
@@ -307,28 +339,24 @@ class Engine:
         greedy: bool,
     ) -> Trajectories:
         """The rows ``positions`` (their agents ``agents``) sampled by the backend."""
-        variants = [self.variants[k] for k in agents]
         if self.compiled is not None:
+            variants = [self.variants[k] for k in agents]
             return self.compiled.sample(theta[positions], chosen, keys, limit, agents, variants,
                                         greedy=greedy)  # fmt: skip
+        per_row = self._per_row
         copies = make_copies(
-            variants,
-            chosen.tolist(),
-            self.device,
+            self.family(),
+            per_row["family_row"][positions],
+            chosen,
             self._batch_env,
             agents,
+            self.device,
         )
         faults = None
-        if not greedy:
-            kinds = [attack_of(self.run.attack, k) for k in agents]
-            faults = Faults(
-                random_actions=torch.tensor(
-                    [a == "random_action" for a in kinds], device=self.device
-                ),
-                flipped_rewards=torch.tensor(
-                    [a == "reward_flip" for a in kinds], device=self.device
-                ),
-            )
+        random_actions = per_row["random_actions"][positions]
+        flipped_rewards = per_row["flipped_rewards"][positions]
+        if not greedy and bool((random_actions | flipped_rewards).any()):
+            faults = Faults(random_actions=random_actions, flipped_rewards=flipped_rewards)
         try:
             return sample(
                 self.policy,

@@ -1,9 +1,10 @@
 """Sampling: one episode in every copy of every block, all blocks stepped together.
 
 Block b holds ``counts[b]`` copies of one row's environment (its trajectories this
-iteration); every copy's randomness comes from its own trajectory key (its reset from negative
-counters, its decisions from counters t · noise_size + j), so a trajectory is the same in any
-company and any layout. Every stepped block acts in one call of the policy
+iteration); every copy's randomness comes from its own trajectory key (its reset from counters
+−1, −2, …, its decisions from counters t · noise_size + j, its environment's own draws at step
+t, where a family has them, from :data:`ENV_COUNTERS` − t · step_noise − j), so a trajectory
+is the same in any company and any layout. Every stepped block acts in one call of the policy
 (``PolicyRows.act`` on a [blocks, widest block] grid of copies); blocks whose copies have all
 ended leave the stepping, and the set of stepped blocks is narrowed when it has shrunk by a
 quarter (episode lengths vary a lot, and a batch lasts as long as its longest episode).
@@ -19,7 +20,7 @@ import torch
 from fedhpg.common.engine.copies import Copies, columns_of
 from fedhpg.common.engine.policy_rows import PolicyRows
 from fedhpg.common.engine.trajectories import Trajectories
-from fedhpg.common.randomness import uniforms
+from fedhpg.common.randomness import uniforms, uniforms64
 
 
 @dataclass(frozen=True)
@@ -34,6 +35,8 @@ class Faults:
 
 NOISE_CHUNK = 32
 """Time steps of decision draws made at once for every stepped copy."""
+ENV_COUNTERS = -(1 << 40)
+"""Where the counters of an environment's own draws start (downwards), far below a reset's."""
 
 
 class _Plan:
@@ -86,12 +89,14 @@ def sample(
     noise = torch.zeros((total, NOISE_CHUNK, k), dtype=torch.float32, device=device)
     plan = _Plan(everyone, counts, offsets, theta)
     t = 0
+    env_noise = copies.step_noise
     while t < horizon:
         live_copies = torch.zeros(num_blocks, dtype=torch.int64, device=device)
         block_running = live_copies.index_add_(0, owner, running.long()) > 0
-        if not bool(block_running.any()):
+        running_blocks = int(block_running.sum())  # the step's one wait for the device
+        if running_blocks == 0:
             break
-        if 4 * int(block_running.sum()) <= 3 * len(plan.blocks):
+        if 4 * running_blocks <= 3 * len(plan.blocks):
             plan = _Plan(torch.nonzero(block_running).squeeze(1), counts, offsets, theta)
         columns = plan.columns
         if not greedy and t % NOISE_CHUNK == 0:
@@ -104,7 +109,11 @@ def sample(
             actions = _random_actions(
                 actions, random_columns[columns], keys[columns], t, k, action_space
             )
-        step = copies.step(actions, plan.blocks, None if plan.everyone else columns)
+        env_draws = None
+        if env_noise:
+            counters = ENV_COUNTERS - t * env_noise - torch.arange(env_noise, device=device)
+            env_draws = uniforms64(keys[columns].unsqueeze(1), counters.unsqueeze(0))
+        step = copies.step(actions, plan.blocks, None if plan.everyone else columns, env_draws)
         live = running[columns]
         reward = step.reward.to(torch.float64) * live
         if flipped is not None:
