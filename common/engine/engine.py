@@ -18,10 +18,11 @@ what a row computes depends on its agent, round and θ alone.
 
 from __future__ import annotations
 
+import math
 import time
 from collections.abc import Callable, Iterator, Mapping, Sequence
 from contextlib import contextmanager
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, fields, replace
 from typing import TYPE_CHECKING, Any
 
 import torch
@@ -32,6 +33,13 @@ from fedhpg.common.components import AgentProfile, agent_profile, planned_budget
 from fedhpg.common.config import RunConfig
 from fedhpg.common.engine.copies import make_copies
 from fedhpg.common.engine.devices import check_device
+from fedhpg.common.engine.memory import (
+    RoundPlan,
+    StepBytes,
+    memory_budget,
+    packed_elements,
+    plan_round,
+)
 from fedhpg.common.engine.policy_rows import PolicyRows, chunked
 from fedhpg.common.engine.sampling import Faults, sample
 from fedhpg.common.engine.trajectories import Trajectories
@@ -62,8 +70,6 @@ def one_thread() -> Iterator[None]:
         torch.set_num_threads(threads)
 
 
-PACKED_ELEMENTS = 1 << 24
-"""Elements (tiles × tile steps × parameters) one gradient call holds at once."""
 TILE = 64
 """Steps per tile of the policy's maths. Every per-row reduction over steps is made of
 fixed-size tiles summed in order, so its floats never depend on the batch's shape (a matrix
@@ -156,6 +162,35 @@ class Tally:
             z(torch.float64),
         )
 
+    @classmethod
+    def concatenated(cls, parts: Sequence[Tally]) -> Tally:
+        """The tallies of consecutive chunks of a round's rows as one (its works' rows
+        renumbered in the whole round)."""
+        if len(parts) == 1:
+            return parts[0]
+        names = list(dict.fromkeys(name for part in parts for name in part.algorithm))
+
+        def stat(part: Tally, name: str) -> torch.Tensor:
+            values = part.algorithm.get(name)
+            return values if values is not None else torch.full_like(part.sample_s, math.nan)
+
+        starts = [0]
+        for part in parts[:-1]:
+            starts.append(starts[-1] + int(part.trajectories.shape[0]))
+        return cls(
+            **{
+                name: torch.cat([getattr(p, name) for p in parts])
+                for name in (f.name for f in fields(cls))
+                if name not in ("algorithm", "work")
+            },
+            algorithm={name: torch.cat([stat(p, name) for p in parts]) for name in names},
+            work=[
+                replace(work, rows=work.rows + start)
+                for part, start in zip(parts, starts, strict=True)
+                for work in part.work
+            ],
+        )
+
 
 class Engine:
     """The primitives for the agents ``variants`` of one run (see the module docstring)."""
@@ -163,14 +198,14 @@ class Engine:
     def __init__(
         self, run: RunConfig, variants: Mapping[int, EnvVariant], *, compiled: bool = False
     ) -> None:
-        from fedhpg.common.worker import policy_and_actions
+        from fedhpg.common.worker import policy_and_spaces
 
         self.run = run
         self.variants = dict(variants)
         check_device(run.algo.device)
         self.device = torch.device(run.algo.device)
         first = self.variants[min(self.variants)]
-        template, self.action_space = policy_and_actions(first, run)
+        template, self.observation_space, self.action_space = policy_and_spaces(first, run)
         self.compiled: CompiledBackend | None = None
         """The compiled backend's sampling and gradients (``compiled``: the caller checked it
         serves these agents, :func:`fedhpg.common.batched.compiled_agents`)."""
@@ -180,6 +215,20 @@ class Engine:
 
             self.compiled = CompiledBackend(mlp_shape(template))
         self.policy = PolicyRows(template, self.device)
+        self.tiles_per_call = max(
+            packed_elements(self.device) // (TILE * self.policy.num_params), 1
+        )
+        """Tiles one autograd call of the gradient pass takes (off the CPU, every call takes
+        exactly so many, padded with empty tiles: a GPU library may pick its kernels, and so
+        its order of additions, by a call's shape, which must then not depend on the
+        company)."""
+        self.step_bytes = StepBytes.of(
+            self.observation_space,
+            self.action_space,
+            self.policy.num_params,
+            self.policy.noise_size,
+            self.device,
+        )
         self._envs: dict[tuple[int, int], BatchEnv] = {}
         self._profiles: dict[int, AgentProfile] = {}
         self._gamma: dict[int, float] = {}
@@ -265,6 +314,15 @@ class Engine:
         self._clock = time.thread_time()
         self._sampling_s = 0.0
         return rows
+
+    def plan(
+        self, agents: Sequence[int], copies: Sequence[int], horizons: Sequence[int]
+    ) -> RoundPlan:
+        """Chunks of ``agents`` (agent i holding ``copies[i]`` trajectories of up to
+        ``horizons[i]`` steps at once) that fit ``algo.memory_gib`` on the device
+        (``common/engine/memory.py``)."""
+        budget = memory_budget(self.device, self.run.algo.memory_gib)
+        return plan_round(copies, horizons, self.step_bytes, budget)
 
     def _row_constants(self, agents: Sequence[int]) -> dict[str, torch.Tensor]:
         """What sampling and the estimator read of each row, as [A] tensors on the device (sent
@@ -414,6 +472,8 @@ class Engine:
         tile_start = torch.cumsum(tiles_per_group, 0) - tiles_per_group
         tile = tile_start[owner] + slot // TILE
         total = int(tiles_per_group.sum())
+        if self.device.type != "cpu" and total:  # whole calls only (``tiles_per_call``)
+            total = -(-total // self.tiles_per_call) * self.tiles_per_call
         flat = step * batch.alive.shape[1] + column
         cell = batch.layout.cell(step, column)
         obs_flat = batch.obs.reshape(-1, *batch.obs.shape[2:])
@@ -425,6 +485,8 @@ class Engine:
         tile_group = torch.repeat_interleave(
             torch.arange(groups, device=owner.device), tiles_per_group
         )
+        if total > tile_group.shape[0]:  # empty tiles (no coefficient) of group 0
+            tile_group = torch.cat([tile_group, tile_group.new_zeros(total - tile_group.shape[0])])
         return _Tiles(
             obs, act, tile, slot % TILE, flat, cell, tile_group, tile_start, tiles_per_group
         )
@@ -446,8 +508,8 @@ class Engine:
         """``out[block] = compute(block)`` over the tiles, as many at once as memory allows."""
         chunked(
             tiles.obs.shape[0],
-            TILE * self.policy.num_params,
-            PACKED_ELEMENTS,
+            1,
+            self.tiles_per_call,
             lambda block: out.__setitem__(block, compute(block)),
         )
         return out

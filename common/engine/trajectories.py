@@ -18,7 +18,7 @@ from functools import cached_property
 
 import torch
 
-from fedhpg.common.staircase import Staircase
+from fedhpg.common.staircase import Staircase, ordered_sums
 
 
 @dataclass(frozen=True)
@@ -187,4 +187,4 @@ class Trajectories:
 
     def per_row(self, values: torch.Tensor) -> torch.Tensor:
         """Sum of a per-trajectory [N] quantity over each row's trajectories, [A]."""
-        return values.new_zeros(self.num_rows).index_add_(0, self.owner, values)
+        return ordered_sums(self.owner, values, self.num_rows)
