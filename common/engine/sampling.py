@@ -39,22 +39,39 @@ ENV_COUNTERS = -(1 << 40)
 """Where the counters of an environment's own draws start (downwards), far below a reset's."""
 
 
+ACT_TILE = 16
+"""Copies per tile of the policy's forward pass while sampling. Every block's copies are cut
+into tiles of exactly this many (the last one padded), each tile a row of one policy call with
+its block's θ: a matrix product then has one shape whatever the company, and its floats
+cannot change with it (a BLAS picks its kernel, and its order of additions, by the shape: on
+this project's CPUs a product of fewer than 16 rows rounds differently)."""
+
+
 class _Plan:
-    """The blocks still stepped: their copies, the same as a padded [blocks, widest] grid (one
-    policy call for all of them), and their θ rows."""
+    """The blocks still stepped: their copies, the same as a padded [tiles, ACT_TILE] grid (one
+    policy call for all of them), and each tile's θ row."""
 
     def __init__(
         self, blocks: torch.Tensor, counts: torch.Tensor, offsets: torch.Tensor, theta: torch.Tensor
     ) -> None:
         self.blocks = blocks
         self.columns = columns_of(offsets, blocks)
+        device = blocks.device
         sizes = counts[blocks]
-        slots = torch.arange(int(sizes.max()), device=blocks.device)
-        self.valid = slots.unsqueeze(0) < sizes.unsqueeze(1)
-        grid = offsets[blocks].unsqueeze(1) + slots.unsqueeze(0)
-        self.grid = torch.where(self.valid, grid, offsets[blocks].unsqueeze(1))
-        self.theta = theta[blocks]
+        tiles = (sizes + ACT_TILE - 1) // ACT_TILE
+        block_of_tile = torch.repeat_interleave(torch.arange(len(blocks), device=device), tiles)
+        first_tile = torch.cumsum(tiles, 0) - tiles
+        start = (torch.arange(len(block_of_tile), device=device) - first_tile[block_of_tile]) * (
+            ACT_TILE
+        )
+        slots = start.unsqueeze(1) + torch.arange(ACT_TILE, device=device).unsqueeze(0)
+        self.valid = slots < sizes[block_of_tile].unsqueeze(1)
+        base = offsets[blocks][block_of_tile].unsqueeze(1)
+        self.grid = torch.where(self.valid, base + slots, base)
+        self.theta = theta[blocks][block_of_tile]
         self.everyone = len(blocks) == len(counts)
+        self.full = bool(self.valid.all())
+        """No padded slot: the grid's actions are the copies' in order."""
 
 
 def sample(
@@ -104,7 +121,8 @@ def sample(
             draws = uniforms(keys[columns].unsqueeze(1), counters.unsqueeze(0))
             noise[columns] = draws.reshape(-1, NOISE_CHUNK, k)
         decision = None if greedy else noise[plan.grid, t % NOISE_CHUNK]
-        actions = policy.act(plan.theta, obs[plan.grid], decision)[plan.valid]
+        acted = policy.act(plan.theta, obs[plan.grid], decision)
+        actions = acted.flatten(0, 1) if plan.full else acted[plan.valid]
         if random_columns is not None and bool(random_columns[columns].any()):
             actions = _random_actions(
                 actions, random_columns[columns], keys[columns], t, k, action_space
