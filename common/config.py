@@ -166,6 +166,11 @@ def _validate_tolerance(strategy: StrategyConfig, num_agents: int) -> None:
             f"got {strategy.tolerate}, must be < agents.num_agents={num_agents}",
         )
     _check_choice(strategy.tolerance_check, "strategy.tolerance_check", TOLERANCE_CHECKS)
+    _require(
+        isinstance(strategy.device, str) and DEVICE_PATTERN.fullmatch(strategy.device) is not None,
+        "strategy.device",
+        f"got {strategy.device!r}, allowed: cpu, cuda, cuda:N",
+    )
 
 
 def _validate_participation(participation: ParticipationConfig, num_agents: int) -> None:
@@ -209,6 +214,10 @@ class StrategyConfig:
     tolerance_check: str = "refuse"
     """What a run whose robust rule tolerates fewer than ``tolerate`` in its smallest set
     does: 'refuse' to start (one line) or 'warn' and run."""
+    device: str = "cpu"
+    """Where the rules of the θ_k (mean, weighted, median, trimmed_mean) compute on the round's
+    [K, d] matrix of updates: 'cpu', or 'cuda'/'cuda:N' for a server whose K·d is large
+    (the matrix crosses once, θ̃ comes back)."""
 
 
 @dataclass(kw_only=True)
