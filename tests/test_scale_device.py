@@ -14,10 +14,13 @@ from benchmarks import device_reference, scale_device
 
 def test_the_rehearsal_reports_engine_reference_memory_and_placement(tmp_path, capsys) -> None:
     out = tmp_path / "scale_device.json"
-    scale_device.main(["--device", "cpu", "--agents", "12,24", "--repeats", "1",
-                       "--compare-up-to", "12", "--out", str(out)])  # fmt: skip
-    result = json.loads(out.read_text())
-    rows = result["rows"]
+    with pytest.raises(SystemExit) as stop:
+        scale_device.main(["--device", "cpu", "--agents", "12,24", "--repeats", "1",
+                           "--compare-up-to", "12", "--families", "cartpole,pendulum",
+                           "--out", str(out)])  # fmt: skip
+    assert stop.value.code == 0
+    result = json.loads((tmp_path / "scale_device_report.json").read_text())
+    rows = result["parts"]["scale_device"]["rows"]
     assert [(r["agents"], r["policy"]) for r in rows] == [
         (12, "initial"), (12, "balancing"), (24, "initial"), (24, "balancing")
     ]  # fmt: skip
@@ -26,11 +29,39 @@ def test_the_rehearsal_reports_engine_reference_memory_and_placement(tmp_path, c
     assert all(r["env_steps"] < r["agents"] * 16 * 100 for r in rows if r["policy"] == "initial")
     assert [r["compiled_steps_per_s"] is not None for r in rows] == [True, True, False, False]
     assert all(0 < r["device_peak_mib"] <= r["planned_peak_mib"] for r in balancing)
-    assert [r["agents"] for r in result["reference"]] == [12, 24]
-    assert all(r["peak_mib"] is None for r in result["reference"]), "no CUDA device measured"
-    assert result["same_theta_in_any_company"] and result["same_theta_on_a_second_run"]
+    reference = result["parts"]["scale_device"]["reference"]
+    assert [r["agents"] for r in reference] == [12, 24]
+    assert all(r["peak_mib"] is None for r in reference), "no CUDA device measured"
+    placement = result["placement"]
+    assert list(placement["families"]) == ["cartpole", "pendulum"]
+    assert placement["same_theta_in_any_company"] and placement["same_theta_on_a_second_run"]
     printed = capsys.readouterr().out
     assert "| 24 | balancing | 192,000 |" in printed and "same theta in any company: yes" in printed
+
+
+def test_a_part_stopped_at_its_limit_is_reported_as_missing(tmp_path, capsys) -> None:
+    """The report of parts one of which stopped before its engine rows (the reference alone
+    written) and a federation that never ran: the rows it has, what is missing, exit 1."""
+    part = tmp_path / "k12.json"
+    scale_device.main(["--device", "cpu", "--only", "iteration", "--agents", "12",
+                       "--repeats", "1", "--out", str(part)])  # fmt: skip
+    stopped = tmp_path / "k24.json"
+    record = json.loads(part.read_text())
+    record["rows"] = []
+    record["reference"] = [{**record["reference"][0], "agents": 24}]
+    stopped.write_text(json.dumps(record))
+    parts = [str(part), str(stopped), str(tmp_path / "none.json")]
+    federation = [str(tmp_path / "no-run"), "100", "124", "0"]
+    with pytest.raises(SystemExit) as stop:
+        scale_device.main(["--report", *parts, "--out", str(tmp_path / "report.json"),
+                           "--federation", *federation])  # fmt: skip
+    assert stop.value.code == 1
+    printed = capsys.readouterr().out
+    assert "| 12 | balancing |" in printed and "no engine row" in printed
+    assert "K = [24]" in printed and "placement check: not finished" in printed
+    assert "0 of 3 rounds done, exit status 124" in printed
+    report = json.loads((tmp_path / "report.json").read_text())
+    assert report["federation"]["rounds"] == [] and report["placement"] is None
 
 
 def test_the_reference_counts_every_copy_at_every_step() -> None:
