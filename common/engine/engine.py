@@ -492,14 +492,15 @@ class Engine:
         )
 
     def _tile_gradients(
-        self, theta_of_tile: torch.Tensor, tiles: _Tiles, values: torch.Tensor
+        self, theta: torch.Tensor, row_of_tile: torch.Tensor, tiles: _Tiles, values: torch.Tensor
     ) -> torch.Tensor:
-        """Each tile's Σ coef ∇ log π under its own θ row, [tiles, d], in chunks."""
+        """Each tile's Σ coef ∇ log π under its θ row ``theta[row_of_tile]``, [tiles, d], in
+        chunks (the θ rows of one chunk's tiles at a time)."""
         coef = torch.zeros(tiles.obs.shape[:2], dtype=torch.float64, device=self.device)
         coef[tiles.tile, tiles.slot] = values[tiles.cell].to(torch.float64)
-        out = theta_of_tile.new_empty((tiles.obs.shape[0], self.policy.num_params))
+        out = theta.new_empty((tiles.obs.shape[0], self.policy.num_params))
         return self._over_tiles(tiles, out, lambda block: self.policy.score_gradients(
-            theta_of_tile[block], tiles.obs[block], tiles.act[block], coef[block]
+            theta[row_of_tile[block]], tiles.obs[block], tiles.act[block], coef[block]
         ))  # fmt: skip
 
     def _over_tiles(
@@ -532,7 +533,7 @@ class Engine:
         if self.compiled is not None:
             return self.compiled.gradients(theta, batch, coefficients)
         tiles = self._tiles(batch, batch.owner)
-        per_tile = self._tile_gradients(theta[tiles.tile_group], tiles, coefficients)
+        per_tile = self._tile_gradients(theta, tiles.tile_group, tiles, coefficients)
         return self._group_sums(tiles, per_tile, theta.shape[0])
 
     def mean_gradients(
@@ -559,7 +560,7 @@ class Engine:
         """g(τ_n | θ_{owner(n)}) of every trajectory, [N, d]."""
         columns = torch.arange(batch.alive.shape[1], device=self.device)
         tiles = self._tiles(batch, columns)
-        per_tile = self._tile_gradients(theta[batch.owner[tiles.tile_group]], tiles, coefficients)
+        per_tile = self._tile_gradients(theta, batch.owner[tiles.tile_group], tiles, coefficients)
         return self._group_sums(tiles, per_tile, len(columns))
 
     # -- bookkeeping -----------------------------------------------------------------------

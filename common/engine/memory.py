@@ -8,13 +8,14 @@ the horizon H: the worst case, every episode running to its end):
 - ``estimator``: the estimator's cells (each step's time and column, reward, alive and
   coefficient), kept through the gradient pass;
 - ``gradient``: the gradient pass's alive steps cut into 64-step tiles (their indices, a copy
-  of their observations and actions, their coefficients), each tile's θ row and its gradient
-  (d floats each per 64 steps);
+  of their observations and actions, their coefficients) and each tile's gradient (d floats
+  per 64 steps);
 
 plus, per copy, the sampler's state (keys, flags, the current observations, 32 steps of
 decision draws), and a fixed workspace: the packed tiles one autograd call differentiates at
-once (:func:`packed_elements`). The peak comes at the gradient pass, with the batch still
-held; while sampling, the record's last doubling holds one and a half of its buffers.
+once, with their θ rows (:func:`packed_elements`). The peak comes at the gradient pass, with
+the batch still held; while sampling, the record's last doubling holds one and a half of its
+buffers.
 
 :func:`plan_round` cuts a round's agents into consecutive chunks whose planned peak fits the
 budget (:func:`memory_budget`: ``algo.memory_gib``, else 80% of a CUDA device's free memory,
@@ -94,7 +95,7 @@ class StepBytes:
         return cls(
             trajectories=obs + act + 8 + 1,
             estimator=8 + 8 + 8 + 1 + 8,
-            gradient=16 + 5 * 8 + 2 * 8 + obs + act + 2 * 8 + 2 * 4 * num_params / TILE,
+            gradient=16 + 5 * 8 + 2 * 8 + obs + act + 2 * 8 + 4 * num_params / TILE,
             per_copy=PER_COPY + 2 * obs + 32 * 4 * noise_size,
             workspace=4 * packed_elements(device),
         )
