@@ -72,17 +72,15 @@ bench() {
     else
         agents=${FED_AGENTS:-65536}
         counts=${COUNTS:-1000,16000,65536}
-        TOTAL_S=${TOTAL_S:-450}
+        TOTAL_S=${TOTAL_S:-440}
         limits=(60 50 65 135 0)
         fed_limit=120
     fi
     REPORT_S=15
     deadline=$((started_at + TOTAL_S))
     failed=0
-    mkdir -p "$out"
     work=${WORK:-$(mktemp -d /tmp/bench_device.XXXXXX)}
     mkdir -p "$work"
-    exec > >(tee "$out/bench_device.log") 2>&1
     export OMP_NUM_THREADS=1 PYTHONUNBUFFERED=1
     echo "[bench-device $(date -u +%T)] $device, K = $counts, federation of $agents agents;" \
         "within $TOTAL_S s; parts in $work, results in $out"
@@ -122,10 +120,18 @@ sys.argv[0] = "fedhpg-run"; main()' env=cartpole agents.num_agents="$agents" \
     [ "$failed$report_status" = 00 ]
 }
 
+# bench with everything it prints also in OUT/bench_device.log; its exit status
+logged() {
+    local out=${OUT:-benchmarks/results/device}
+    mkdir -p "$out"
+    bench "$1" "$out" "${DEVICE:-cuda}" "${@:2}" 2>&1 | tee "$out/bench_device.log"
+    return "${PIPESTATUS[0]}"
+}
+
 started_at=$SECONDS
 case "$mode" in
 local)
-    bench "${PYTHON:-.venv/bin/python}" "${OUT:-benchmarks/results/device}" "${DEVICE:-cuda}" "$@"
+    logged "${PYTHON:-.venv/bin/python}" "$@"
     ;;
 fetch)
     mkdir -p "$WHEELS"
@@ -146,7 +152,7 @@ run)
     mkdir -p /tmp/pkg/fedhpg
     for d in agent common envs server conf; do ln -sfn "$PWD/$d" "/tmp/pkg/fedhpg/$d"; done
     export PYTHONPATH="$SITE:/tmp/pkg:$PWD"
-    bench "${PYTHON:-python3}" "${OUT:-benchmarks/results/device}" "${DEVICE:-cuda}" "$@"
+    logged "${PYTHON:-python3}" "$@"
     ;;
 *)
     echo "usage: bash benchmarks/on_device.sh local|fetch|run [scale_device arguments]" >&2
