@@ -232,8 +232,8 @@ def test_a_crashed_agent_job_is_resubmitted_and_a_dead_server_ends_all(tmp_path:
 @pytest.mark.parametrize(
     ("args", "env", "expected"),
     [
-        (["cluster.kind=pbs"], {}, "error: cluster.kind: got 'pbs', allowed: auto, slurm, local"),
-        (["cluster=pbs"], {}, "error: cluster: no such option 'pbs'; allowed: local, slurm"),
+        (["cluster.kind=pbs"], {}, "error: cluster.kind: got 'pbs', allowed: auto, slurm, local, ray"),
+        (["cluster=pbs"], {}, "error: cluster: no such option 'pbs'; allowed: local, ray, slurm"),
         ([], {"PYTHONPATH": "NO_SUBMITIT"}, "error: fedhpg-cluster needs submitit: pip install"),
     ],
 )
@@ -324,9 +324,9 @@ def test_only_fedhpg_cluster_lists_the_cluster_keys() -> None:
     from fedhpg.common.runtime.help import help_text
 
     own = help_text("fedhpg-cluster")
-    assert own.startswith("usage: fedhpg-cluster [cluster=local|slurm]")
+    assert own.startswith("usage: fedhpg-cluster [cluster=local|slurm|ray]")
     assert "cluster.kind=auto" in own and "cluster.array_parallelism=null" in own
-    assert "cluster=     local, slurm" in own
+    assert "cluster=     local, ray, slurm" in own
     for other in ("fedhpg-run", "fedhpg-server", "fedhpg-agent"):
         text = help_text(other)
         assert "cluster." not in text and "cluster=" not in text, other
