@@ -3,7 +3,7 @@
 #   cluster/ray.sh start [NODES]   starts a Ray cluster of NODES nodes (1 or 2, default 2) and
 #                                  prints what a client needs, one KEY=VALUE a line:
 #                                  RAY_ADDRESS=<head's GCS address>, NETNS=<the namespace its
-#                                  clients run in>, NODES=<node addresses>, and STARTED=<pids>
+#                                  clients run in>, NODES=<node names>, and STARTED=<pids>
 #                                  when this call started it (the caller owns it and stops it)
 #   cluster/ray.sh stop            stops what `start` started, by pid
 #
@@ -110,7 +110,7 @@ start() {
     stop >/dev/null 2>&1 || true  # what a failed start may have left
     check_machine
     install_ray
-    local ray n addresses=("$NET.1")
+    local ray n names=("$HEAD")
     ray="$(dirname "$PYTHON")/ray"
     mkdir -p "$STATE/log" "$STATE/tmp"
     : > "$STATE/pids"; : > "$STATE/namespaces"
@@ -122,11 +122,11 @@ start() {
         --temp-dir="$STATE/tmp" "${common[@]}"
     wait_for 120 "the Ray head" in_head "$ray" status --address="$NET.1:$PORT"
     for n in $(seq 1 $((nodes - 1))); do
-        addresses+=("$NET.1$n")
+        names+=("$(node_name "$n")")
         RAY_USAGE_STATS_ENABLED=0 launch "$(node_name "$n")" "$STATE/log/$(node_name "$n").log" \
             "$ray" start --address="$NET.1:$PORT" --node-ip-address="$NET.1$n" "${common[@]}"
     done
-    echo "${addresses[*]}" | tr ' ' ',' > "$STATE/nodes"
+    echo "${names[*]}" | tr ' ' ',' > "$STATE/nodes"
     wait_for 120 "the Ray nodes" in_head "$PYTHON" -c "
 import ray, sys
 ray.init(address='$NET.1:$PORT', logging_level='ERROR', log_to_driver=False)
@@ -159,6 +159,7 @@ stop() {
         done
     fi
     find "$STATE" -mindepth 1 -maxdepth 1 ! -name pip.log -exec rm -rf {} +
+    rmdir "$STATE" 2>/dev/null || true  # when nothing else is left there
 }
 
 case "${1:-}" in

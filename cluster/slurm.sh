@@ -290,6 +290,7 @@ stop() {
     fi
     # apt.log stays: it says what an install did
     find "$STATE" -mindepth 1 -maxdepth 1 ! -name apt.log -exec rm -rf {} +
+    rmdir "$STATE" /etc/netns 2>/dev/null || true  # when nothing else is left there
 }
 
 case "${1:-}" in

@@ -138,10 +138,10 @@ class RayEngine:
         for name, amount in want.items():
             if amount > have.get(name, 0):
                 key = {"CPU": "cpus_per_task", "GPU": "gpus_per_host", "memory": "mem_gb"}[name]
-                unit = 1024**3 if name == "memory" else 1
+                unit = 1024**3 if name == "memory" else 1  # memory in GiB
                 raise SubmitError(
-                    f"the Ray cluster has {have.get(name, 0) / unit:g} {name}, the "
-                    f"{agent_units + 1} tasks need {amount / unit:g} (cluster.{key})"
+                    f"the Ray cluster has {have.get(name, 0) / unit:g} {name}, the run needs "
+                    f"{amount / unit:g} at once (cluster.{key})"
                 )
 
     def _submit(self, name: str, command: list[str], endpoint: Path | None, gpus: int) -> Job:
