@@ -129,9 +129,7 @@ def submit(run: RunConfig, overrides: Sequence[str], run_dir: Path, engine: Engi
         old.unlink(missing_ok=True)
     shutil.rmtree(files.status_dir, ignore_errors=True)
     commands = agent_commands(run, overrides)
-    check_room = getattr(engine, "check_room", None)
-    if check_room is not None:
-        check_room(len(commands))
+    engine.check_room(len(commands))
     server = engine.submit_server(server_command(run, overrides, run_dir, bind_all=engine.bind_all))
     logger.info("submitted the server as job %s (%s)", server.job_id, engine.kind)
     placement = Placement(engine=engine, stop=files.stop, server=server)

@@ -65,6 +65,11 @@ class Engine(Protocol):
         """Whether the server must listen on every interface (agents on other nodes)."""
         ...
 
+    def check_room(self, agent_units: int) -> None:
+        """Raise :class:`SubmitError` where the engine could never run the server and
+        ``agent_units`` agent jobs at once (the server waits for every agent)."""
+        ...
+
     def submit_server(self, command: list[str]) -> Job: ...
 
     def submit_agents(self, commands: Sequence[list[str]]) -> list[Job]:
@@ -159,6 +164,9 @@ class SubmititEngine:
     @property
     def bind_all(self) -> bool:
         return self.kind != "local"  # agents on other nodes; loopback when all are here
+
+    def check_room(self, agent_units: int) -> None:
+        return None  # sbatch refuses what the cluster could never run (one line, exit 1)
 
     def _submit(self, command: list[str], endpoint: Path | None) -> Any:
         timeout_s = self.files.endpoint_timeout_s if endpoint is not None else 0.0

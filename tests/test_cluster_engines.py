@@ -36,6 +36,7 @@ import pytest
 import torch
 from procs import BIN, child_pids, wait_until
 
+from fedhpg.server import api
 from fedhpg.server.checkpoint import latest_valid_checkpoint
 
 ROOT = Path(__file__).parents[1]
@@ -232,10 +233,23 @@ def _job_ids(log: str) -> list[str]:
 
 
 def _slurm_jobs(cluster: Cluster, ids: list[str]) -> dict[str, tuple[str, str]]:
-    """{job id: (state, node)} from the accounting database (sacct)."""
-    out = cluster.ask("sacct", "-X", "-P", "-n", "-o", "JobID,State,NodeList", "-j", ",".join(ids))
-    rows = [line.split("|") for line in out.splitlines() if line]
-    return {job: (state, node) for job, state, node in rows}
+    """{job id: (state, node)} of ended jobs, from the accounting database (sacct), which
+    slurmctld updates a moment after a job ends."""
+    found: dict[str, tuple[str, str]] = {}
+
+    def ended() -> bool:
+        out = cluster.ask(
+            "sacct", "-X", "-P", "-n", "-o", "JobID,State,NodeList", "-j", ",".join(ids)
+        )
+        rows = [line.split("|") for line in out.splitlines() if line]
+        found.clear()
+        found.update({job: (state, node) for job, state, node in rows})
+        return set(found) >= set(ids) and not any(
+            state.split()[0] in ("PENDING", "RUNNING", "COMPLETING") for state, _ in found.values()
+        )
+
+    assert wait_until(ended, 30, interval_s=0.5), f"sacct: {found}"
+    return {job: found[job] for job in ids}
 
 
 def _unit_hosts(run_dir: Path, kind: str) -> dict[str, str]:
@@ -387,4 +401,45 @@ def test_a_request_the_cluster_cannot_meet_is_one_line_and_leaves_nothing(
     }
     assert log.strip().splitlines()[-1] == expected[cluster.kind], log[-3000:]
     assert not placed.run_dir.exists()
+    _no_job_and_no_process(cluster)
+
+
+SWEEP = [
+    "rounds=2", "agents.num_agents=2", "agents.budget.batch_size=[4]",
+    "agents.budget.local_iters=[1]", "agents.speeds=[1]", "agents.step_delays_s=[0]",
+    "eval.every=2", "eval.episodes=2", "server.tensorboard=false",
+]  # fmt: skip
+
+
+def test_a_sweep_through_hydras_slurm_launcher_runs_each_point_as_a_job(
+    cluster: Cluster, tmp_path: Path
+) -> None:
+    """``fedhpg-run -m seed=1,2 hydra/launcher=submitit_slurm``: each point a SLURM job (a whole
+    federation on its node), each ending with its seed's θ̃ (the same run in this process)."""
+    if cluster.kind != "slurm":
+        pytest.skip("Hydra's submitit launcher places sweep points on SLURM, not on Ray")
+    sweep, log = tmp_path / "sweep", tmp_path / "sweep.log"
+    command = cluster.client(
+        str(BIN / "fedhpg-run"), "-m", "seed=1,2", "hydra/launcher=submitit_slurm",
+        f"hydra.sweep.dir={sweep}", *SWEEP,
+    )  # fmt: skip
+    with log.open("w") as output:
+        result = subprocess.run(
+            [sys.executable, str(REAPER), *command], cwd=tmp_path, stdout=output, stderr=output,
+            env={**os.environ, **cluster.env}, timeout=TIMEOUT_S,
+        )  # fmt: skip
+    text = log.read_text()
+    assert result.returncode == 0 and "left behind" not in text, text[-3000:]
+    nodes = set()
+    for job, seed in ((0, 1), (1, 2)):
+        checkpoint = latest_valid_checkpoint(sweep / str(job) / "checkpoints")
+        assert checkpoint is not None and checkpoint.round == 2
+        assert torch.equal(checkpoint.theta, api.run(overrides=[*SWEEP, f"seed={seed}"]).theta)
+        logs = list((sweep / ".submitit").glob(f"*_{job}/*_log.out"))
+        assert len(logs) == 1, logs
+        job_id = logs[0].parent.name
+        state, node = _slurm_jobs(cluster, [job_id])[job_id]
+        assert state == "COMPLETED", state
+        nodes.add(node)
+    assert nodes == set(cluster.nodes), f"both points on one node: {nodes}"
     _no_job_and_no_process(cluster)
