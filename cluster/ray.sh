@@ -107,8 +107,8 @@ start() {
         echo "RAY_ADDRESS=$NET.1:$PORT"; echo "NETNS=$HEAD"; echo "NODES=$(cat "$STATE/nodes")"
         return 0
     fi
-    stop >/dev/null 2>&1 || true  # what a failed start may have left
     check_machine
+    stop >/dev/null 2>&1 || true  # what a failed start may have left
     install_ray
     local ray n names=("$HEAD")
     ray="$(dirname "$PYTHON")/ray"

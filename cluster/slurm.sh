@@ -12,8 +12,8 @@
 # holds slurmctld, slurmdbd and a MariaDB of its own (accounting, so that sacct sees every job);
 # each compute node is a namespace (fhs-n1 10.79.0.11, fhs-n2 10.79.0.12) with its own host name
 # (a UTS namespace) running one slurmd, joined to the controller by a veth pair on a bridge
-# inside fhs-ctl. Names resolve through /etc/netns/<namespace>/hosts, which `ip netns exec`
-# mounts over /etc/hosts. Every node sees this machine's filesystem: the shared filesystem of a
+# inside fhs-ctl. Names resolve through /etc/netns/<namespace>/hosts, which each daemon has
+# mounted over /etc/hosts (as `ip netns exec` does for clients). Every node sees this machine's filesystem: the shared filesystem of a
 # real cluster. munged (the munge user, a socket and key of its own) authenticates them all.
 # Clients (sbatch, squeue, sacct, fedhpg-cluster) run with `ip netns exec fhs-ctl` and
 # SLURM_CONF set. A cluster this script started that still answers is reused (no STARTED line).
@@ -223,8 +223,8 @@ start() {
         echo "SLURM_CONF=$SLURM_CONF"; echo "NETNS=$CTL"; echo "NODES=$(cat "$STATE/nodes")"
         return 0
     fi
-    stop >/dev/null 2>&1 || true  # what a failed start may have left
     check_machine
+    stop >/dev/null 2>&1 || true  # what a failed start may have left
     install_packages
     mkdir -p "$STATE/log" "$STATE/ctld" "$STATE/spool" "$STATE/db"
     : > "$STATE/pids"; : > "$STATE/namespaces"

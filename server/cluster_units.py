@@ -152,7 +152,8 @@ def run_unit(
     A Ray task, whose worker process serves other tasks too, names the job (``job_id``), and
     gets the command's output and its own lines in ``log_file``, the driver's working
     directory (``cwd``) and the variables the driver passes on (``env``)."""
-    with _unit_log(log_file) as output:
+    level = (env or {}).get("FEDHPG_LOG_LEVEL") or os.environ.get("FEDHPG_LOG_LEVEL", "INFO")
+    with _unit_log(log_file, level) as output:
         stop = Path(stop_file)
         status_dir = stop.parent / STATUS_DIR
         argv = list(command)
@@ -190,11 +191,11 @@ def run_unit(
 
 
 @contextlib.contextmanager
-def _unit_log(log_file: str | None) -> Iterator[IO[bytes] | None]:
+def _unit_log(log_file: str | None, level: str) -> Iterator[IO[bytes] | None]:
     """Where the unit's lines and its command's output go: the job's own stderr (None), or
     ``log_file``, opened for appending, with this module's lines there too."""
     if log_file is None:
-        setup_logging()
+        setup_logging(level)
         yield None
         return
     path = Path(log_file)
@@ -203,14 +204,14 @@ def _unit_log(log_file: str | None) -> Iterator[IO[bytes] | None]:
         handler = logging.FileHandler(path, encoding="utf-8")  # appends, as the command does
         handler.setFormatter(logging.Formatter(LOG_FORMAT, datefmt=LOG_DATE_FORMAT))
         logger.addHandler(handler)
-        level = logger.level
-        logger.setLevel(logging.INFO)
+        before = logger.level
+        logger.setLevel(level)
         try:
             yield output
         finally:
             logger.removeHandler(handler)
             handler.close()
-            logger.setLevel(level)
+            logger.setLevel(before)
 
 
 def _record_status(folder: Path, job_id: str | None, status: int) -> int:
