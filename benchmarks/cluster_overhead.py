@@ -116,33 +116,40 @@ def measure(engine: str, case: str, clusters: dict[str, dict[str, str]]) -> dict
     }
 
 
+def _spread(values: list[float], digits: int) -> str:
+    """The median, and the range where the values differ."""
+    low, mid, high = min(values), statistics.median(values), max(values)
+    text = f"{mid:.{digits}f}"
+    return text if low == high else f"{text} ({low:.{digits}f}–{high:.{digits}f})"
+
+
 def table(results: list[dict[str, Any]]) -> str:
-    """One line per case and engine: medians over the repeats, and the difference from
-    fedhpg-run."""
+    """One line per case and engine: medians over the repeats (their range in brackets) and
+    the difference of the medians from fedhpg-run's."""
     lines = [
-        "| run | engine | runs | start-up (s) | over fedhpg-run | per round (s) | over fedhpg-run "
-        "| end (s) | load |",
+        "| run | engine | runs | start-up (s) | over fedhpg-run | per round (s) "
+        "| over fedhpg-run | end (s) | load |",
         "|---|---|---|---|---|---|---|---|---|",
     ]
     names = {"run": "fedhpg-run (loopback)", "slurm": "cluster=slurm", "ray": "cluster=ray"}
+    keys = ("start_s", "per_round_s", "end_s", "load_1min")
     for case in CASES:
         mine = [r for r in results if r["case"] == case]
-        if not mine:
-            continue
-        median = {
-            engine: {k: statistics.median(r[k] for r in mine if r["engine"] == engine)
-                     for k in ("start_s", "per_round_s", "end_s", "load_1min")}
+        values = {
+            engine: {k: [r[k] for r in mine if r["engine"] == engine] for k in keys}
             for engine in dict.fromkeys(r["engine"] for r in mine)
-        }  # fmt: skip
+        }
+        median = {e: {k: statistics.median(v[k]) for k in keys} for e, v in values.items()}
         base = median.get("run")
+
         for engine, m in median.items():
-            runs = sum(r["engine"] == engine for r in mine)
             over_start = f"{m['start_s'] - base['start_s']:+.1f}" if base else "–"
-            over_round = f"{m['per_round_s'] - base['per_round_s']:+.3f}" if base else "–"
+            over_round = f"{m['per_round_s'] - base['per_round_s']:+.2f}" if base else "–"
             lines.append(
-                f"| {case} | {names[engine]} | {runs} | {m['start_s']:.1f} | {over_start} "
-                f"| {m['per_round_s']:.3f} | {over_round} | {m['end_s']:.1f} "
-                f"| {m['load_1min']:.1f} |"
+                f"| {case} | {names[engine]} | {len(values[engine]['start_s'])} "
+                f"| {_spread(values[engine]['start_s'], 1)} | {over_start} "
+                f"| {_spread(values[engine]['per_round_s'], 2)} | {over_round} "
+                f"| {_spread(values[engine]['end_s'], 1)} | {m['load_1min']:.1f} |"
             )
     return "\n".join(lines)
 
@@ -153,7 +160,11 @@ def main() -> None:
     parser.add_argument("--engines", default="run,slurm,ray")
     parser.add_argument("--repeats", type=int, default=2)
     parser.add_argument("--results", default=str(ROOT / "benchmarks/results/cluster_overhead.json"))
+    parser.add_argument("--table", action="store_true", help="only print the stored results")
     args = parser.parse_args()
+    if args.table:
+        print(table(json.loads(Path(args.results).read_text())["runs"]))
+        return
     cases, engines = args.cases.split(","), args.engines.split(",")
     clusters: dict[str, dict[str, str]] = {}
     started: list[str] = []
