@@ -235,6 +235,7 @@ def test_a_crashed_agent_job_is_resubmitted_and_a_dead_server_ends_all(tmp_path:
     [
         (["cluster.kind=pbs"], {}, "error: cluster.kind: got 'pbs', allowed: auto, slurm, local,"),
         (["cluster=pbs"], {}, "error: cluster: no such option 'pbs'; allowed: local, ray, slurm"),
+        (["cluster.gpus_per_host=-1"], {}, "error: cluster.gpus_per_host: got -1, must be an"),
         ([], {"PYTHONPATH": "NO_SUBMITIT"}, "error: fedhpg-cluster needs submitit: pip install"),
     ],
 )
