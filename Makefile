@@ -126,7 +126,7 @@ bench-scale: $(STAMP)
 # families, K = 1,000, 16,000, 65,536 CartPole agents' whole local iteration and peak memory
 # against a reference measured in the same run, a fedhpg-run federation of 65,536 agents on one
 # host for 3 rounds. Results in $OUT if set, else benchmarks/results/device/. DEVICE=cpu
-# rehearses it here (K = 100 and 1,000, 2,000 agents; ~3 min on 2 cores); one line and exit 1
+# rehearses it here (K = 100 and 1,000, 2,000 agents; 1–3 min on 2 cores); one line and exit 1
 # where torch sees no CUDA device. A bare GPU machine: `bash benchmarks/on_device.sh run`.
 DEVICE ?= cuda
 bench-device: $(STAMP)
