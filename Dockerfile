@@ -33,7 +33,8 @@ print(*p['dependencies'], *extras, sep='\n')" > requirements.txt; \
     python3 -m venv /opt/fedhpg; \
     /opt/fedhpg/bin/pip install --no-cache-dir --disable-pip-version-check \
         -r pip-source.txt -r requirements.txt -c constraints.txt
-COPY README.md ./
+COPY README.md LICENSE ./
+COPY fedhpg ./fedhpg
 COPY common ./common
 COPY envs ./envs
 COPY server ./server

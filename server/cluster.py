@@ -311,6 +311,7 @@ def main(argv: Sequence[str] | None = None) -> None:
     """Check everything (one-line errors, exit 2, nothing submitted), then place the run."""
     from fedhpg.common.runtime.cli import (
         HELP_FLAGS,
+        answer_version,
         compose,
         fail,
         own_overrides,
@@ -319,6 +320,7 @@ def main(argv: Sequence[str] | None = None) -> None:
     )
 
     args = list(sys.argv[1:] if argv is None else argv)
+    answer_version("fedhpg-cluster", args)
     if any(a in HELP_FLAGS for a in args):
         from fedhpg.common.runtime.help import help_text
 

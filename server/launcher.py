@@ -339,6 +339,7 @@ def main() -> None:
     from fedhpg.common.runtime.cli import (
         EXIT_USAGE,
         HELP_FLAGS,
+        answer_version,
         compose,
         compose_sweep,
         limit_threads,
@@ -350,6 +351,7 @@ def main() -> None:
     from fedhpg.common.runtime.resume import resume_value
 
     args = sys.argv[1:]
+    answer_version("fedhpg-run", args)
     if any(a in HELP_FLAGS for a in args):
         from fedhpg.common.runtime.help import help_text
 

@@ -35,6 +35,7 @@ from fedhpg.common.runtime.cli import (
     fail,
     limit_threads,
     setup_logging,
+    version_text,
 )
 from fedhpg.server.replan import round_overhead_s
 
@@ -220,6 +221,7 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument("--batch-min", type=int, default=2)
     p.add_argument("--batch-max", type=int, default=64)
     p.add_argument("--tau-max", type=int, default=8, help="largest tau_k (default 8)")
+    p.add_argument("-V", "--version", action="version", version=version_text(p.prog).strip())
     return p
 
 

@@ -29,8 +29,27 @@ EXIT_RUN_ABORTED = 3
 LOG_FORMAT = "%(asctime)s %(levelname)s %(name)s: %(message)s"
 LOG_DATE_FORMAT = "%H:%M:%S"
 HELP_FLAGS = ("-h", "--help")
+VERSION_FLAGS = ("-V", "--version")
 NO_RESUME = ("", "null", "none", "false")
 """``resume=`` values that mean no resume, in any case."""
+
+
+def version_text(prog: str) -> str:
+    """``PROG VERSION`` (``--version`` on every entry point), the installed package's version."""
+    from importlib.metadata import PackageNotFoundError, version
+
+    try:
+        number = version("fedhpg")
+    except PackageNotFoundError:
+        number = "0+unknown"
+    return f"{prog} {number}\n"
+
+
+def answer_version(prog: str, args: Sequence[str]) -> None:
+    """Print the version and exit 0 when ``args`` ask for it (before anything is imported)."""
+    if any(a in VERSION_FLAGS for a in args):
+        sys.stdout.write(version_text(prog))
+        sys.exit(0)
 
 
 def register_schema() -> None:
@@ -150,7 +169,7 @@ def _typo(key: str) -> str | None:
 
 
 HYDRA_FLAGS = (
-    "--hydra-help", "--version", "--cfg", "-c", "--resolve", "--package", "-p", "--run", "-r",
+    "--hydra-help", "--cfg", "-c", "--resolve", "--package", "-p", "--run", "-r",
     "--multirun", "-m", "--shell-completion", "-sc", "--config-path", "-cp", "--config-name",
     "-cn", "--config-dir", "-cd", "--experimental-rerun", "--info", "-i",
 )  # fmt: skip
@@ -292,10 +311,14 @@ def run_entry(
 ) -> int:
     """Compose, validate and run ``main``; user mistakes exit 2 with one line, never a trace."""
     args = list(sys.argv[1:] if argv is None else argv)
+    prog = os.path.basename(sys.argv[0])
+    if any(a in VERSION_FLAGS for a in args):
+        sys.stdout.write(version_text(prog))
+        return 0
     if any(a in HELP_FLAGS for a in args):
         from fedhpg.common.runtime.help import help_text
 
-        sys.stdout.write(help_text(os.path.basename(sys.argv[0])))
+        sys.stdout.write(help_text(prog))
         return 0
     flag = unknown_flag(args, known=())
     if flag is not None:
