@@ -62,7 +62,8 @@ TYPECHECK := build/typecheck/fedhpg
 typecheck: $(STAMP)
 	rm -rf $(TYPECHECK) && mkdir -p $(TYPECHECK)
 	for d in agent common envs server; do ln -s ../../../$$d $(TYPECHECK)/$$d; done
-	$(BIN)/mypy -p fedhpg.agent -p fedhpg.common -p fedhpg.envs -p fedhpg.server
+	ln -s ../../../fedhpg/__init__.py $(TYPECHECK)/__init__.py
+	$(BIN)/mypy -p fedhpg
 
 # Layers (pyproject.toml [tool.importlinter]): agent never imports server, common neither
 # side, envs nothing of the federation, the maths no wire, configs no torch/zmq/gymnasium.

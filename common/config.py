@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import os
 import re
 from dataclasses import dataclass, field
 from typing import Any
@@ -254,9 +255,11 @@ class AgentsConfig:
     """Counted clock: link bandwidth in Mbit/s (0 = unlimited); message bytes are charged."""
     population: PopulationConfig = field(default_factory=PopulationConfig)
     """Budgets and device profiles per agent index from a distribution or a trace file."""
-    per_host: int = 1
-    """``fedhpg-run``: logical agents per agent process. 1 = one process per agent; N > 1 =
-    ceil(K/N) agent hosts, each serving N consecutive indices over one connection."""
+    per_host: int | str = "auto"
+    """``fedhpg-run``: logical agents per agent process. 'auto': one process per agent up to
+    32 agents (or as many as this machine has cores), else one agent host per core; always
+    one per agent with buffered rounds. 1 = one process per agent; N > 1 = ceil(K/N) agent
+    hosts, each serving N consecutive indices over one connection."""
     # Re-planning budgets during a run from Theorem 1 (issue 18): the server sends them.
     plan: str = "none"
     """'none': every agent trains with its configured budget; 'theorem1': the first
@@ -802,12 +805,19 @@ def validate(config: RunConfig) -> RunConfig:
     _validate_server(config.server, config.agents.num_agents)
     _check_int(config.agent.index, "agent.index", low=0)
     _validate_host_range(config.agent, config.agents.num_agents)
-    _check_int(config.agents.per_host, "agents.per_host", low=1)
-    _require(
-        config.agents.per_host <= MAX_HOST_AGENTS,
-        "agents.per_host",
-        f"got {config.agents.per_host}, more than the {MAX_HOST_AGENTS} agents one host may serve",
-    )
+    if config.agents.per_host != AUTO:
+        per_host = config.agents.per_host
+        _require(
+            isinstance(per_host, int) and not isinstance(per_host, bool) and per_host >= 1,
+            "agents.per_host",
+            f"got {per_host!r}, must be 'auto' or an integer >= 1",
+        )
+        _require(
+            int(config.agents.per_host) <= MAX_HOST_AGENTS,
+            "agents.per_host",
+            f"got {config.agents.per_host}, more than the {MAX_HOST_AGENTS} agents one host "
+            "may serve",
+        )
     _check_number(config.agent.connect_timeout_s, "agent.connect_timeout_s", low=0.0, low_open=True)
     _check_int(config.agent.max_restarts, "agent.max_restarts", low=0)
     _require(
@@ -834,6 +844,14 @@ def _validate_cluster(cluster: ClusterConfig) -> None:
     _check_number(cluster.endpoint_timeout_s, "cluster.endpoint_timeout_s", low=0.0, low_open=True)
 
 
+def attacking_agents(run: RunConfig) -> list[int]:
+    """The indices of the agents that attack (``attack.agents`` when ``attack.kind`` is set),
+    in index order: what the log, the final table and metrics.jsonl mark."""
+    if run.attack.kind == "none":
+        return []
+    return sorted({k for k in run.attack.agents if 0 <= k < run.agents.num_agents})
+
+
 def agent_id_of(index: int, explicit: str | None = None) -> str:
     return explicit if explicit else f"agent-{index}"
 
@@ -841,6 +859,37 @@ def agent_id_of(index: int, explicit: str | None = None) -> str:
 def host_id_of(first: int, count: int, explicit: str | None = None) -> str:
     """An agent host's id (its routing identity's prefix, its CURVE key's name)."""
     return explicit if explicit else f"host-{first}-{first + count - 1}"
+
+
+AUTO = "auto"
+AUTO_PROCESS_AGENTS = 32
+"""``agents.per_host=auto`` gives every agent its own process up to this many agents (or as
+many as the machine has cores): the sleeping device emulation, per-agent restarts and
+per-agent deadlines stay as written. Beyond it, a process per agent costs more than it
+shows (a thousand processes on a few cores register slower than a server waits)."""
+
+
+def available_cores() -> int:
+    """The cores this process may run on (its affinity mask, as a container or SLURM sets it)."""
+    try:
+        return max(len(os.sched_getaffinity(0)), 1)
+    except (AttributeError, OSError):  # not Linux
+        return max(os.cpu_count() or 1, 1)
+
+
+def agents_per_host(run: RunConfig, cores: int | None = None) -> int:
+    """The logical agents each agent process serves: ``agents.per_host``, or for 'auto' one
+    per process up to :data:`AUTO_PROCESS_AGENTS` agents (or ``cores``, default this
+    machine's) and with buffered rounds (which take one agent per process), else one host
+    per core."""
+    per_host = run.agents.per_host
+    if per_host != AUTO:
+        return int(per_host)
+    cores = available_cores() if cores is None else cores
+    num_agents = run.agents.num_agents
+    if run.server.round_policy == "buffered" or num_agents <= max(AUTO_PROCESS_AGENTS, cores):
+        return 1
+    return min(-(-num_agents // cores), MAX_HOST_AGENTS)
 
 
 def host_ranges(num_agents: int, per_host: int) -> list[tuple[int, int]]:

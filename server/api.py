@@ -33,7 +33,7 @@ from fedhpg.envs.registry import register_family
 from fedhpg.server.assembly import CheckedRun, assemble, check_run
 from fedhpg.server.checkpoint import latest_valid_checkpoint
 from fedhpg.server.coordinator import RoundCallback, RoundRecord
-from fedhpg.server.metrics import METRICS_SCHEMA_VERSION, read_metrics
+from fedhpg.server.metrics import metrics_line, read_metrics, record_marks
 from fedhpg.server.pools import FederationError
 from fedhpg.server.pools.inprocess import make_in_process_pool
 from fedhpg.server.run_dir import RunDirectoryError, claimed, holds_run
@@ -153,11 +153,12 @@ def run(
 
 
 class _Records:
-    def __init__(self) -> None:
+    def __init__(self, run: RunConfig) -> None:
         self.records: list[dict[str, Any]] = []
+        self.marks = record_marks(run)
 
     def __call__(self, record: RoundRecord, _: torch.Tensor) -> None:
-        self.records.append({"schema": METRICS_SCHEMA_VERSION, **record.to_json()})
+        self.records.append(metrics_line(record, self.marks))
 
 
 def _run_in_process(
@@ -168,7 +169,7 @@ def _run_in_process(
     run_config = checked.run
     if directory is None and run_config.resume:
         raise ConfigError("resume", "resuming needs the run directory: pass out_dir")
-    records = _Records()
+    records = _Records(run_config)
     with contextlib.ExitStack() as stack:
         run_dir = None
         if directory is not None:
@@ -230,7 +231,10 @@ def _run_distributed(checked: CheckedRun, directory: Path | None) -> RunResult:
             theta=checkpoint.theta,
             records=read_metrics(where / "metrics.jsonl"),
             out_dir=directory,
-            last_evaluation={a: EvaluationStats(**e) for a, e in summary["eval"].items()}
+            last_evaluation={
+                a: EvaluationStats(**{**e, "success_rate": e["success_rate"] or 0.0})
+                for a, e in summary["eval"].items()
+            }
             if summary.get("eval")
             else None,
         )

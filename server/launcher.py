@@ -22,7 +22,15 @@ from dataclasses import replace
 from multiprocessing.connection import Connection
 from pathlib import Path
 
-from fedhpg.common.config import ConfigError, RunConfig, host_id_of, host_ranges
+from fedhpg.common.config import (
+    AUTO,
+    ConfigError,
+    RunConfig,
+    agents_per_host,
+    available_cores,
+    host_id_of,
+    host_ranges,
+)
 from fedhpg.common.runtime.cli import EXIT_RUN_ABORTED
 
 logger = logging.getLogger(__name__)
@@ -74,7 +82,7 @@ def _agent_child(run: RunConfig) -> None:
     _child_setup()
     from fedhpg.agent.main import run_agent
 
-    sys.exit(run_agent(run))
+    sys.exit(run_agent(run, forked=True))
 
 
 def _port_of(endpoint: str) -> int:
@@ -210,7 +218,19 @@ def launch(run: RunConfig, out_dir: Path) -> int:
         if run.server.transport == "tcp":
             run = replace(run, server=replace(run.server, port=_port_of(endpoint)))
         _prepare_compiled_engine(run)
-        for name, agent_run in agent_processes(run):
+        agents = agent_processes(run)
+        if run.agents.per_host == AUTO and len(agents) < run.agents.num_agents:
+            logger.info(
+                "agents.per_host=auto: %d agent hosts for %d agents on %d cores%s",
+                len(agents),
+                run.agents.num_agents,
+                available_cores(),
+                ""
+                if run.agents.virtual_clock
+                else "; a host accounts its agents' emulated device time without sleeping "
+                "(agents.per_host=1: a sleeping process per agent)",
+            )
+        for name, agent_run in agents:
             supervisor.start(_agent_child, (agent_run,), name)
         return supervisor.wait(server)
     except KeyboardInterrupt:
@@ -243,8 +263,9 @@ def _prepare_compiled_engine(run: RunConfig) -> None:
 
 def agent_processes(run: RunConfig) -> list[tuple[str, RunConfig]]:
     """(name, config) of each agent process: one per agent, or with ``agents.per_host`` = N
-    above 1, ceil(K/N) agent hosts of N consecutive indices (the last one takes the rest)."""
-    k, per_host = run.agents.num_agents, run.agents.per_host
+    above 1 (or what 'auto' makes of it), ceil(K/N) agent hosts of N consecutive indices (the
+    last one takes the rest)."""
+    k, per_host = run.agents.num_agents, agents_per_host(run)
     if per_host == 1:
         return [
             (f"agent-{i}", replace(run, agent=replace(run.agent, index=i, id=None, first=None)))

@@ -18,15 +18,16 @@ from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import torch
 import zmq
 
 from fedhpg.common.components import agent_profile, resolve_algorithm
-from fedhpg.common.config import ConfigError, RunConfig, dictated_settings
+from fedhpg.common.config import ConfigError, RunConfig, attacking_agents, dictated_settings
 from fedhpg.common.runtime.progress import Progress
 from fedhpg.common.types import EvaluationStats
-from fedhpg.common.variants import run_variants, variant_digest
+from fedhpg.common.variants import discount, run_variants, variant_digest, variant_of
 from fedhpg.common.wire.security import (
     ServerGuard,
     handshake_failure_logger,
@@ -44,7 +45,7 @@ from fedhpg.server.buffered_zmq import ZmqBufferedCoordinator
 from fedhpg.server.connections import ConnectionGuard, connection_budget
 from fedhpg.server.coordinator import RoundRecord
 from fedhpg.server.pools.zmq_pool import ZmqAgentPool
-from fedhpg.server.report import evaluation_table
+from fedhpg.server.report import evaluation_report
 from fedhpg.server.run_dir import claimed
 from fedhpg.server.validation import UpdateCheck
 
@@ -230,25 +231,41 @@ def _print_report(
     """The unified policy's last evaluation per agent, then where the run directory is."""
     run, last = checked.run, assembly.last
     if last.eval:
-        params = {
-            agent: {"gamma": variant.gamma, **variant.params}
-            for agent, variant in zip(agent_ids, run_variants(run), strict=True)
-        }
-        # each agent's budget only for the table (~1 ms an agent where a population draws it)
-        algorithm, _ = resolve_algorithm(run)
-        compute = {}
-        for k, agent in enumerate(agent_ids):
-            profile = agent_profile(run, k)
-            compute[agent] = f"{algorithm.describe_budget(profile.budget)} speed={profile.speed:g}"
         sys.stdout.write(
             f"\nUnified policy after round {last.round} "
             f"({run.eval.episodes} {'greedy' if run.eval.greedy else 'sampled'} episodes "
             "per environment):\n"
-            + evaluation_table(last.eval, params, compute, has_goal=checked.first.has_goal)
+            + final_report(run, last.eval, agent_ids, has_goal=checked.first.has_goal)
             + "\n"
         )
     sys.stdout.write(f"run directory: {out_dir.resolve()}\n")
     sys.stdout.flush()
+
+
+def final_report(
+    run: RunConfig,
+    evaluation: dict[str, EvaluationStats],
+    agent_ids: list[str],
+    *,
+    has_goal: bool,
+) -> str:
+    """The final table of ``evaluation`` (agent id → stats; ``agent_ids`` in index order): each
+    row's compute budget and environment variant are made only for the rows shown (~1 ms an
+    agent where a population draws it)."""
+    index = {agent: k for k, agent in enumerate(agent_ids)}
+    algorithm, _ = resolve_algorithm(run)
+
+    def describe(agent: str) -> tuple[str, dict[str, Any]]:
+        k = index[agent]
+        profile = agent_profile(run, k)
+        variant = variant_of(run, k)
+        compute = f"{algorithm.describe_budget(profile.budget)} speed={profile.speed:g}"
+        return compute, {"gamma": discount(run, variant), **variant.params}
+
+    attackers = [agent_ids[k] for k in attacking_agents(run) if k < len(agent_ids)]
+    return evaluation_report(
+        evaluation, describe, has_goal=has_goal, attackers=attackers, attack=run.attack.kind
+    )
 
 
 def default_out_dir() -> Path:
