@@ -143,7 +143,7 @@ def validate_env_family(run: RunConfig) -> None:
             "optional environments come with pip install 'fedhpg[envs]')",
         ) from None
     except (TypeError, ValueError) as error:
-        key = "env.options" if run.env.options else "env"
+        key = getattr(error, "key", None) or ("env.options" if run.env.options else "env")
         raise ConfigError(key, str(error).splitlines()[0] if str(error) else repr(error)) from None
 
 

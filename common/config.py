@@ -58,6 +58,10 @@ class ConfigError(ValueError):
         self.key = key
 
 
+GYM_FAMILY = "gym"
+"""The family of any registered gymnasium id (``env.id``), varied by ``env.vary``."""
+
+
 @dataclass(kw_only=True)
 class EnvConfig:
     """Which environment family, and how its K variants differ."""
@@ -74,6 +78,17 @@ class EnvConfig:
     """One discount for every agent; None keeps each variant's own γ_k."""
     options: dict[str, Any] = field(default_factory=dict)
     """Family-specific generator options (e.g. GridWorld ``size``, ``vary_goal``)."""
+    id: str | None = None
+    """``env.family=gym`` (``env=gym``): the registered gymnasium id every agent runs, e.g.
+    MountainCar-v0."""
+    kwargs: dict[str, Any] = field(default_factory=dict)
+    """``env=gym``: constructor keywords of every agent's environment (``gym.make(id,
+    **kwargs)``)."""
+    vary: dict[str, Any] = field(default_factory=dict)
+    """``env=gym``: what differs between agents, name → a seeded distribution ({choice: [...]},
+    {uniform: {low, high}}, {lognormal: {median, sigma}}) or {spread: s} (the environment's own
+    value × (1 + s·level·u), u ~ U(−1, 1)); a constructor keyword, an attribute of the
+    unwrapped environment, or ``gamma`` (the agent's discount)."""
 
 
 @dataclass(kw_only=True)
@@ -176,6 +191,14 @@ def _validate_participation(participation: ParticipationConfig, num_agents: int)
             isinstance(participation.trace, str) and bool(participation.trace.strip()),
             f"{key}.trace",
             "mode 'trace' needs trace, the path of an availability CSV",
+        )
+    # A setting its mode ignores would be silently ignored: say which mode takes it.
+    for name, mode in (("trace", "trace"), ("per_round", "uniform")):
+        value = getattr(participation, name)
+        _require(
+            value is None or participation.mode == mode,
+            f"{key}.{name}",
+            f"got {value!r}, which mode {participation.mode!r} does not use: add {key}.mode={mode}",
         )
 
 
@@ -611,6 +634,13 @@ def _validate_env(env: EnvConfig) -> None:
     if env.gamma is not None:
         _check_number(env.gamma, "env.gamma", low=0.0, low_open=True)
         _require(env.gamma <= 1.0, "env.gamma", f"got {env.gamma!r}, must be in (0, 1]")
+    if env.family != GYM_FAMILY:
+        for key in ("id", "kwargs", "vary"):
+            _require(
+                not getattr(env, key),
+                f"env.{key}",
+                f"is read by env=gym (env.family=gym) only, not env.family={env.family}",
+            )
 
 
 def _validate_algo(algo: AlgoConfig) -> None:
@@ -922,6 +952,8 @@ def from_dict(values: dict[str, Any]) -> RunConfig:
 
 FREE_DICTS = (
     "env.options",
+    "env.kwargs",
+    "env.vary",
     "algo.params",
     "strategy.params",
     "agents.budget",

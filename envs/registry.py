@@ -31,6 +31,7 @@ from typing import Any
 
 from fedhpg.envs.base import EnvVariant
 from fedhpg.envs.families import GYM_FAMILIES
+from fedhpg.envs.gym_family import gym_family
 from fedhpg.envs.lazy import LazyFamily, VariantsAt, per_index_family
 
 VariantFactory = Callable[..., list[EnvVariant]]
@@ -53,7 +54,11 @@ def _gridworld_at(
     )
 
 
-FAMILIES: dict[str, VariantFactory] = {"gridworld": LazyFamily(_gridworld_at), **GYM_FAMILIES}
+FAMILIES: dict[str, VariantFactory] = {
+    "gridworld": LazyFamily(_gridworld_at),
+    **GYM_FAMILIES,
+    "gym": gym_family,
+}
 FAMILY_ENTRY_POINTS = "fedhpg.env_families"
 """Entry-point group through which an installed package offers families by name."""
 

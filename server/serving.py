@@ -90,8 +90,16 @@ def max_connections(run: RunConfig) -> int:
 def bind_error(run: RunConfig, error: zmq.ZMQError) -> str:
     """One line for an endpoint the server cannot listen on (a port in use, a bad address):
     exit status 1, since the setting may be right and the machine's state is what fails."""
-    key = "server.port" if run.server.transport == "tcp" else "server.ipc_path"
-    return f"{key}: cannot listen on {bind_endpoint(run.server)}: {error.strerror or error}"
+    reason = zmq.strerror(error.errno) if error.errno else str(error)
+    if run.server.transport != "tcp":
+        return f"server.ipc_path: cannot listen on {bind_endpoint(run.server)}: {reason}"
+    where = f"{run.server.host}:{run.server.port}"
+    hint = (
+        " (choose another port; server.port=0 takes a free one)"
+        if error.errno == zmq.EADDRINUSE
+        else ""
+    )
+    return f"server.port: cannot listen on {where}: {reason}{hint}"
 
 
 @dataclass
@@ -162,37 +170,34 @@ def serve(
     on_bound: Callable[[str], None] | None = None,
     show_progress: bool = True,
 ) -> ServerResult:
-    """Run one federation as its server; returns the final θ̃_T."""
+    """Run one federation as its server; returns the final θ̃_T. The socket is bound before
+    the run directory is claimed: an address it cannot listen on leaves nothing behind."""
     checked = check_run(run, distributed=True)
     cap = message_cap(run, int(checked.initial_theta.numel()))
-    with claimed(out_dir, resume=bool(run.resume)) as run_dir:
-        assembly = assemble(checked, run_dir=run_dir)
-        try:
-            with server_socket(run, cap) as parts:
+    with server_socket(run, cap) as parts:
+        parts.socket.bind(bind_endpoint(run.server))
+        bound = parts.socket.getsockopt_string(zmq.LAST_ENDPOINT)
+        with claimed(out_dir, resume=bool(run.resume)) as run_dir:
+            assembly = assemble(checked, run_dir=run_dir)
+            try:
                 pool = zmq_pool(assembly, parts, cap)
-                theta = _serve(assembly, pool, parts, on_bound, show_progress)
-        finally:
-            assembly.close()
-        assembly.finish(pool.agent_ids, **parts.guard.counts.as_dict())
+                logger.info(
+                    "server listening on %s, waiting for %d agents", bound, run.agents.num_agents
+                )
+                if on_bound is not None:
+                    on_bound(bound)
+                theta = _serve(assembly, pool, show_progress)
+            finally:
+                assembly.close()
+            assembly.finish(pool.agent_ids, **parts.guard.counts.as_dict())
     _print_report(checked, assembly, pool.agent_ids, out_dir)
     return ServerResult(theta=theta, out_dir=out_dir, last_evaluation=assembly.last.eval)
 
 
-def _serve(
-    assembly: Assembly,
-    pool: ZmqAgentPool,
-    parts: ServerSocket,
-    on_bound: Callable[[str], None] | None,
-    show_progress: bool,
-) -> torch.Tensor:
+def _serve(assembly: Assembly, pool: ZmqAgentPool, show_progress: bool) -> torch.Tensor:
     run = assembly.run
     bar: Progress | None = None
     try:
-        parts.socket.bind(bind_endpoint(run.server))
-        bound = parts.socket.getsockopt_string(zmq.LAST_ENDPOINT)
-        logger.info("server listening on %s, waiting for %d agents", bound, run.agents.num_agents)
-        if on_bound is not None:
-            on_bound(bound)
         pool.wait_for_agents(run.server.register_timeout_s)
         if show_progress:  # timed from the first round on, not the wait for agents
             bar = Progress(run.rounds, "rounds", done=assembly.progress.next_round - 1)

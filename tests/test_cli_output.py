@@ -161,3 +161,24 @@ def test_a_busy_port_is_one_line_and_exit_1(tmp_path: Path) -> None:
         "(choose another port, or leave server.port unset for a free one)"
     ]
     assert list(tmp_path.iterdir()) == []
+
+
+def test_a_busy_port_leaves_no_run_directory_behind(tmp_path: Path) -> None:
+    with socket.socket() as holder:
+        holder.bind(("127.0.0.1", 0))
+        holder.listen()
+        busy = holder.getsockname()[1]
+        result = subprocess.run(
+            [str(BIN / "fedhpg-server"), *SMALL, f"server.port={busy}"],
+            cwd=tmp_path,
+            capture_output=True,
+            text=True,
+            timeout=120,
+            env={**os.environ, "FEDHPG_LOG_LEVEL": "WARNING"},
+        )
+    assert result.returncode == 1
+    assert list(tmp_path.iterdir()) == [], "no runs/<time>/ left"
+    assert result.stderr.splitlines() == [
+        f"error: server.port: cannot listen on 127.0.0.1:{busy}: Address already in use "
+        "(choose another port; server.port=0 takes a free one)"
+    ]
