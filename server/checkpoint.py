@@ -210,3 +210,20 @@ def latest_valid_checkpoint(directory: Path) -> Checkpoint | None:
         except CheckpointError as error:
             logger.warning("skipping checkpoint: %s", error)
     return None
+
+
+def completed_round(directory: Path, rounds: int) -> int | None:
+    """The round of the newest valid checkpoint in ``directory`` when it is at or past
+    ``rounds`` (the run is complete: resuming it has nothing to run), else None."""
+    if not directory.is_dir():
+        return None
+    checkpoint = latest_valid_checkpoint(directory)
+    return checkpoint.round if checkpoint is not None and checkpoint.round >= rounds else None
+
+
+def complete_message(run_dir: Path, round_number: int) -> str:
+    """What a resume of a complete run says instead of starting anything."""
+    return (
+        f"{run_dir} is complete: round {round_number} of rounds={round_number}, nothing to run "
+        f"(resume with rounds=N above {round_number} to continue it)\n"
+    )

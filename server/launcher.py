@@ -405,6 +405,13 @@ def main() -> None:
     for run in runs[:1]:
         check_endpoint(run if port else replace(run, server=replace(run.server, port=0)))
     if resume:
+        from fedhpg.server.checkpoint import complete_message, completed_round
+
+        directory = _resolve_out_dir(runs[0])
+        done = completed_round(directory / "checkpoints", runs[0].rounds)
+        if done is not None:  # nothing to run: say so rather than start agents for nothing
+            sys.stdout.write(complete_message(directory, done))
+            sys.exit(0)
         limit_threads()
         sys.exit(run_federation(runs[0], port=port))
     register_schema()

@@ -14,7 +14,7 @@ import zmq
 
 from fedhpg.common.config import RunConfig
 from fedhpg.common.runtime.cli import run_entry
-from fedhpg.server.checkpoint import write_atomic
+from fedhpg.server.checkpoint import complete_message, completed_round, write_atomic
 from fedhpg.server.pools import FederationError
 from fedhpg.server.run_dir import RunDirectoryError
 from fedhpg.server.serving import bind_error, default_out_dir, serve
@@ -26,6 +26,9 @@ def _main(run: RunConfig) -> int:
     out_dir = Path(run.server.out_dir) if run.server.out_dir else default_out_dir()
     if run.resume and run.resume.lower() != "true":
         out_dir = Path(run.resume)
+    if run.resume and (done := completed_round(out_dir / "checkpoints", run.rounds)) is not None:
+        sys.stdout.write(complete_message(out_dir, done))
+        return 0
     on_bound = None
     if run.server.endpoint_file:
         on_bound = endpoint_writer(run, Path(run.server.endpoint_file))

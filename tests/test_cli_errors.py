@@ -192,6 +192,29 @@ CASES: dict[str, tuple[str, list[str], str]] = {
     ),
     "host-negative-first": ("fedhpg-agent", ["agent.first=-1"], "agent.first: got -1"),
     "per-host-zero": ("fedhpg-run", ["agents.per_host=0"], "agents.per_host: got 0"),
+    "per-host-word": (
+        "fedhpg-run",
+        ["agents.per_host=many"],
+        "agents.per_host: got 'many', must be 'auto' or an integer >= 1",
+    ),
+    # a setting its mode ignores: it ran the default mode and exited 0 before
+    "trace-without-its-mode": (
+        "fedhpg-run",
+        ["strategy.participation.trace=bad.csv"],
+        "strategy.participation.trace: got 'bad.csv', which mode 'all' does not use: add "
+        "strategy.participation.mode=trace",
+    ),
+    "per-round-without-its-mode": (
+        "fedhpg-run",
+        ["strategy.participation.per_round=2"],
+        "strategy.participation.per_round: got 2, which mode 'all' does not use: add "
+        "strategy.participation.mode=uniform",
+    ),
+    "gym-without-an-id": (
+        "fedhpg-run",
+        ["env=gym"],
+        "env.id: env=gym needs a registered gymnasium id, e.g. env.id=MountainCar-v0",
+    ),
     "bounds-for-vr": (
         "fedhpg-run",
         ["algo=fedhpgvr", "algo.bound_estimates=true"],

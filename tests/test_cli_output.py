@@ -61,11 +61,28 @@ def test_help_comes_from_the_config_docstrings_and_starts_nothing(tmp_path: Path
         assert "T, the number of communication rounds" in text  # RunConfig.rounds' docstring
         assert "server.port=5555" in text and "rounds=60" in text  # conf/config.yaml defaults
         assert re.search(r"algo=\s+fedhpg \(default\), fedhpgvr", text)
-        # one line per key (every key is listed) plus ~30 of groups, usage and examples:
-        # nothing wraps or repeats
-        key_lines = [line for line in text.splitlines() if re.match(r"  [a-z_.]+=", line)]
-        assert len(text.splitlines()) < len(key_lines) + 40
+        assert "More: docs/configuration.md" in text
     assert list(tmp_path.iterdir()) == [], "help writes nothing"
+
+
+@pytest.mark.parametrize("columns", [60, 80, 132])
+def test_help_wraps_at_words_within_the_terminal(columns: int, tmp_path: Path) -> None:
+    from fedhpg.common.runtime.help import _key_docs, help_text
+
+    text = help_text("fedhpg-run", width=min(columns, 120))
+    lines = text.splitlines()
+    assert not [line for line in lines if line.endswith("…")], "nothing cut"
+    too_long = [
+        line for line in lines if len(line) > min(columns, 120) and not re.match(r"  \S+=\S", line)
+    ]
+    assert not too_long, too_long  # only a key=default wider than the screen may run past
+    words = " ".join(" ".join(lines).split())
+    for key, doc in _key_docs().items():
+        if key.startswith("cluster."):
+            continue
+        assert " ".join(doc.split()) in words, key
+    for referred in re.findall(r"docs/[\w.-]+\.md", text):
+        assert (Path(__file__).parents[1] / referred).is_file(), referred
 
 
 def test_progress_is_plain_log_lines_off_a_terminal(caplog: pytest.LogCaptureFixture) -> None:
@@ -182,3 +199,27 @@ def test_a_busy_port_leaves_no_run_directory_behind(tmp_path: Path) -> None:
         f"error: server.port: cannot listen on 127.0.0.1:{busy}: Address already in use "
         "(choose another port; server.port=0 takes a free one)"
     ]
+
+
+def test_resuming_a_complete_run_says_so_and_starts_nothing(tmp_path: Path) -> None:
+    from fedhpg.server import api
+
+    api.run(overrides=[*SMALL, "rounds=2"], out_dir=tmp_path / "done")
+    before = (tmp_path / "done/metrics.jsonl").read_text()
+    for script in ("fedhpg-run", "fedhpg-server"):
+        args = ["resume=done"] if script == "fedhpg-run" else ["resume=true", "server.out_dir=done"]
+        result = subprocess.run(
+            [str(BIN / script), *args],
+            cwd=tmp_path,
+            capture_output=True,
+            text=True,
+            timeout=120,
+            env={**os.environ, "FEDHPG_LOG_LEVEL": "INFO"},
+        )
+        assert result.returncode == 0, result.stderr[-2000:]
+        assert result.stdout == (
+            "done is complete: round 2 of rounds=2, nothing to run (resume with rounds=N "
+            "above 2 to continue it)\n"
+        ), script
+        assert "listening" not in result.stderr and "registered" not in result.stderr
+    assert (tmp_path / "done/metrics.jsonl").read_text() == before
