@@ -215,7 +215,7 @@ def _run_distributed(checked: CheckedRun, directory: Path | None) -> RunResult:
             run_config, server=dataclasses.replace(run_config.server, out_dir=str(where))
         )
         status = run_federation(forked)
-        if status == 130:
+        if status in (130, 143):  # SIGINT, SIGTERM
             raise KeyboardInterrupt
         if status != 0:
             raise FederationError(

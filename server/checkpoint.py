@@ -227,3 +227,14 @@ def complete_message(run_dir: Path, round_number: int) -> str:
         f"{run_dir} is complete: round {round_number} of rounds={round_number}, nothing to run "
         f"(resume with rounds=N above {round_number} to continue it)\n"
     )
+
+
+def interrupted_message(run_dir: Path, resume_command: str) -> str:
+    """Where a stopped run is and how to continue it (one line)."""
+    checkpoint = latest_valid_checkpoint(run_dir / "checkpoints") if run_dir.is_dir() else None
+    if checkpoint is None:
+        return f"interrupted before the first round was saved; nothing to resume in {run_dir}"
+    return (
+        f"interrupted after round {checkpoint.round}; run directory: {run_dir.resolve()}; "
+        f"continue it with: {resume_command}"
+    )

@@ -187,60 +187,68 @@ def check_launch(run: RunConfig) -> None:
 
 
 def launch(run: RunConfig, out_dir: Path) -> int:
-    """Run a whole federation on loopback; returns the process exit status."""
+    """Run a whole federation on loopback; returns the process exit status (128 + the
+    signal's number when SIGINT or SIGTERM stopped it, after saying how to continue)."""
+    from fedhpg.common.runtime.cli import Interrupted, stop_signals
+
     supervisor = Supervisor(max_restarts=run.agent.max_restarts)
-    previous = {sig: signal.getsignal(sig) for sig in (signal.SIGINT, signal.SIGTERM)}
-
-    def interrupt(signum: int, _frame: object) -> None:
-        raise KeyboardInterrupt
-
-    # SIGINT too, not only SIGTERM: a launcher started with SIGINT ignored (what a shell's
-    # background job or a parent that ignores it passes on) would otherwise not stop on it
-    signal.signal(signal.SIGTERM, interrupt)
-    signal.signal(signal.SIGINT, interrupt)
     try:
-        receive, send = multiprocessing.Pipe(duplex=False)
-        server = supervisor.start(_server_child, (run, str(out_dir), send), "server")
-        endpoint = None
-        while endpoint is None:
-            if receive.poll(0.05):
-                message = receive.recv_bytes()
-                if message.startswith(BIND_FAILED):
-                    server.join()
-                    sys.stderr.write(f"error: {message[len(BIND_FAILED) :].decode()}\n")
-                    return 1
-                endpoint = message.decode()
-            elif server.exitcode is not None:
-                if server.exitcode == 2:  # a configuration error, already reported in one line
-                    return 2
-                logger.error("the server exited with status %s before listening", server.exitcode)
-                return 1
-        if run.server.transport == "tcp":
-            run = replace(run, server=replace(run.server, port=_port_of(endpoint)))
-        _prepare_compiled_engine(run)
-        agents = agent_processes(run)
-        if run.agents.per_host == AUTO and len(agents) < run.agents.num_agents:
-            logger.info(
-                "agents.per_host=auto: %d agent hosts for %d agents on %d cores%s",
-                len(agents),
-                run.agents.num_agents,
-                available_cores(),
-                ""
-                if run.agents.virtual_clock
-                else "; a host accounts its agents' emulated device time without sleeping "
-                "(agents.per_host=1: a sleeping process per agent)",
-            )
-        for name, agent_run in agents:
-            supervisor.start(_agent_child, (agent_run,), name)
-        return supervisor.wait(server)
-    except KeyboardInterrupt:
+        with stop_signals():
+            return _launch(run, out_dir, supervisor)
+    except Interrupted as interrupted:
         logger.warning("interrupted: stopping the federation")
         supervisor.stop_all()
+        _say_how_to_resume(out_dir)
+        return interrupted.status
+    except KeyboardInterrupt:
+        supervisor.stop_all()
+        _say_how_to_resume(out_dir)
         return EXIT_INTERRUPTED
     finally:
         supervisor.stop_all()
-        for sig, handler in previous.items():
-            signal.signal(sig, handler)
+
+
+def _say_how_to_resume(out_dir: Path) -> None:
+    from fedhpg.server.checkpoint import interrupted_message
+
+    sys.stderr.write(interrupted_message(out_dir, f"fedhpg-run resume={out_dir}") + "\n")
+
+
+def _launch(run: RunConfig, out_dir: Path, supervisor: Supervisor) -> int:
+    receive, send = multiprocessing.Pipe(duplex=False)
+    server = supervisor.start(_server_child, (run, str(out_dir), send), "server")
+    endpoint = None
+    while endpoint is None:
+        if receive.poll(0.05):
+            message = receive.recv_bytes()
+            if message.startswith(BIND_FAILED):
+                server.join()
+                sys.stderr.write(f"error: {message[len(BIND_FAILED) :].decode()}\n")
+                return 1
+            endpoint = message.decode()
+        elif server.exitcode is not None:
+            if server.exitcode == 2:  # a configuration error, already reported in one line
+                return 2
+            logger.error("the server exited with status %s before listening", server.exitcode)
+            return 1
+    if run.server.transport == "tcp":
+        run = replace(run, server=replace(run.server, port=_port_of(endpoint)))
+    _prepare_compiled_engine(run)
+    agents = agent_processes(run)
+    if run.agents.per_host == AUTO and len(agents) < run.agents.num_agents:
+        logger.info(
+            "agents.per_host=auto: %d agent hosts for %d agents on %d cores%s",
+            len(agents),
+            run.agents.num_agents,
+            available_cores(),
+            ""
+            if run.agents.virtual_clock
+            else "; a host accounts its agents' emulated device time without sleeping "
+            "(agents.per_host=1: a sleeping process per agent)",
+        )
+    for name, agent_run in agents:
+        supervisor.start(_agent_child, (agent_run,), name)
+    return supervisor.wait(server)
 
 
 def _prepare_compiled_engine(run: RunConfig) -> None:
@@ -360,6 +368,7 @@ def main() -> None:
     from fedhpg.common.runtime.cli import (
         EXIT_USAGE,
         HELP_FLAGS,
+        PRINTING_FLAGS,
         answer_version,
         compose,
         compose_sweep,
@@ -382,7 +391,8 @@ def main() -> None:
     if flag is not None:
         sys.stderr.write(f"error: {flag}\n")
         sys.exit(EXIT_USAGE)
-    setup_logging()
+    if not any(a.split("=", 1)[0] in PRINTING_FLAGS for a in args):
+        setup_logging()  # --info and the like log through Hydra's own stdout handler
     multirun = any(a in ("-m", "--multirun") for a in args)
     # --cfg, --info, --config-dir ...: Hydra's own (it prints, or reads other configs)
     modes = ("-m", "--multirun", "-r", "--run")

@@ -14,7 +14,12 @@ import zmq
 
 from fedhpg.common.config import RunConfig
 from fedhpg.common.runtime.cli import run_entry
-from fedhpg.server.checkpoint import complete_message, completed_round, write_atomic
+from fedhpg.server.checkpoint import (
+    complete_message,
+    completed_round,
+    interrupted_message,
+    write_atomic,
+)
 from fedhpg.server.pools import FederationError
 from fedhpg.server.run_dir import RunDirectoryError
 from fedhpg.server.serving import bind_error, default_out_dir, serve
@@ -34,6 +39,10 @@ def _main(run: RunConfig) -> int:
         on_bound = endpoint_writer(run, Path(run.server.endpoint_file))
     try:
         serve(run, out_dir=out_dir, on_bound=on_bound)
+    except KeyboardInterrupt:  # SIGINT or SIGTERM (run_entry's handlers): say how to go on
+        command = f"fedhpg-server resume=true server.out_dir={out_dir}"
+        sys.stderr.write(interrupted_message(out_dir, command) + "\n")
+        raise
     except (FederationError, RunDirectoryError) as error:
         logger.error("%s", error)
         return 1

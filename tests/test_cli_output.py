@@ -223,3 +223,29 @@ def test_resuming_a_complete_run_says_so_and_starts_nothing(tmp_path: Path) -> N
         ), script
         assert "listening" not in result.stderr and "registered" not in result.stderr
     assert (tmp_path / "done/metrics.jsonl").read_text() == before
+
+
+def test_hydras_info_prints_each_line_once(tmp_path: Path) -> None:
+    result = subprocess.run(
+        [str(BIN / "fedhpg-run"), "--info"], cwd=tmp_path, capture_output=True, text=True,
+        timeout=120,
+    )  # fmt: skip
+    assert result.returncode == 0, result.stderr[-2000:]
+    both = (result.stdout + result.stderr).splitlines()
+    assert sum("Installed Hydra Plugins" in line for line in both) == 1, both[:6]
+
+
+def test_a_search_path_adds_config_groups(tmp_path: Path) -> None:
+    (tmp_path / "mine/env").mkdir(parents=True)
+    (tmp_path / "mine/env/short_cartpole.yaml").write_text(
+        "# @package _global_\nenv:\n  family: cartpole\n  level: 0.2\n  horizon: 20\n"
+    )
+    result = _run(
+        [*SMALL, "rounds=1", f"hydra.searchpath=[file://{tmp_path / 'mine'}]",
+         "env=short_cartpole", "server.out_dir=run"],
+        tmp_path,
+        level="WARNING",
+    )  # fmt: skip
+    assert result.returncode == 0, result.stderr[-2000:]
+    config = json.loads((tmp_path / "run/config.json").read_text())
+    assert (config["env"]["family"], config["env"]["horizon"]) == ("cartpole", 20)

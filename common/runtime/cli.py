@@ -168,6 +168,10 @@ def _typo(key: str) -> str | None:
     return found.split(": ", 1)[1] if found is not None else None
 
 
+PRINTING_FLAGS = (
+    "--hydra-help", "--cfg", "-c", "--info", "-i", "--shell-completion", "-sc",
+)  # fmt: skip
+"""Hydra's flags that print and exit: Hydra sets up its own logging for them."""
 HYDRA_FLAGS = (
     "--hydra-help", "--cfg", "-c", "--resolve", "--package", "-p", "--run", "-r",
     "--multirun", "-m", "--shell-completion", "-sc", "--config-path", "-cp", "--config-name",
@@ -191,9 +195,23 @@ def compose_cfg(overrides: Sequence[str]) -> Any:
         return hydra_compose(config_name=CONFIG_NAME, overrides=list(overrides))
 
 
+COMPOSING_HYDRA_KEYS = ("hydra.searchpath",)
+"""Hydra settings that change what the config composes to (more config groups): kept with
+the overrides a run is composed and checked with; every other ``hydra.*`` is Hydra's alone."""
+
+
 def own_overrides(args: Sequence[str]) -> list[str]:
-    """The config overrides among the arguments: no flags, no ``hydra.*`` settings."""
-    return [a for a in args if not a.startswith("-") and not a.lstrip("+~").startswith("hydra.")]
+    """The config overrides among the arguments: no flags, no ``hydra.*`` settings other than
+    :data:`COMPOSING_HYDRA_KEYS`."""
+    return [
+        a
+        for a in args
+        if not a.startswith("-")
+        and (
+            not a.lstrip("+~").startswith("hydra.")
+            or a.lstrip("+~").split("=", 1)[0] in COMPOSING_HYDRA_KEYS
+        )
+    ]
 
 
 def compose(overrides: Sequence[str], *, resumable: bool = False) -> RunConfig:
@@ -298,6 +316,39 @@ def limit_threads() -> None:
     torch.set_num_threads(1)
 
 
+class Interrupted(KeyboardInterrupt):
+    """Ctrl-C (SIGINT) or SIGTERM: the process ends with status 128 + the signal's number
+    (130, 143), as a shell reports a process the signal ended."""
+
+    def __init__(self, signum: int = 2) -> None:
+        super().__init__(signum)
+        self.signum = signum
+
+    @property
+    def status(self) -> int:
+        return 128 + self.signum
+
+
+@contextlib.contextmanager
+def stop_signals() -> Iterator[None]:
+    """Within the block, SIGINT and SIGTERM raise :class:`Interrupted` in the main thread
+    (SIGINT too: a process started with it ignored, as a shell's background job is, would
+    otherwise not stop on it); the handlers before are put back after."""
+    import signal
+
+    def interrupt(signum: int, _frame: object) -> None:
+        raise Interrupted(signum)
+
+    previous = {sig: signal.getsignal(sig) for sig in (signal.SIGINT, signal.SIGTERM)}
+    for sig in previous:
+        signal.signal(sig, interrupt)
+    try:
+        yield
+    finally:
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)
+
+
 def fail(error: ConfigError) -> int:
     sys.stderr.write(f"error: {error}\n")
     return EXIT_USAGE
@@ -330,9 +381,13 @@ def run_entry(
         return fail(error)
     limit_threads()
     try:
-        return main(run)
+        with stop_signals():
+            return main(run)
     except ConfigError as error:
         return fail(error)
+    except Interrupted as interrupted:
+        sys.stderr.write("interrupted\n")
+        return interrupted.status
     except KeyboardInterrupt:
         sys.stderr.write("interrupted\n")
         return 130
