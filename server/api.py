@@ -169,6 +169,9 @@ def _run_in_process(
     run_config = checked.run
     if directory is None and run_config.resume:
         raise ConfigError("resume", "resuming needs the run directory: pass out_dir")
+    from fedhpg.server.launcher import prepare_compiled_engine
+
+    prepare_compiled_engine(run_config)  # says so when numba compiles (the first run: ~20 s)
     records = _Records(run_config)
     with contextlib.ExitStack() as stack:
         run_dir = None

@@ -233,7 +233,7 @@ def _launch(run: RunConfig, out_dir: Path, supervisor: Supervisor) -> int:
             return 1
     if run.server.transport == "tcp":
         run = replace(run, server=replace(run.server, port=_port_of(endpoint)))
-    _prepare_compiled_engine(run)
+    prepare_compiled_engine(run)
     agents = agent_processes(run)
     if run.agents.per_host == AUTO and len(agents) < run.agents.num_agents:
         logger.info(
@@ -251,7 +251,7 @@ def _launch(run: RunConfig, out_dir: Path, supervisor: Supervisor) -> int:
     return supervisor.wait(server)
 
 
-def _prepare_compiled_engine(run: RunConfig) -> None:
+def prepare_compiled_engine(run: RunConfig) -> None:
     """Compile the compiled engine's kernels here, or load them from numba's cache, when the
     run's agents use it: forked after this, they inherit the machine code instead of each
     compiling it (tens of seconds on a machine whose cache is cold)."""
@@ -260,8 +260,13 @@ def _prepare_compiled_engine(run: RunConfig) -> None:
     if not uses_compiled_engine(run):
         return
     from fedhpg.common.batched.compiled import warm_up
+    from fedhpg.common.runtime.progress import announced_if_slow
 
-    seconds = warm_up()
+    with announced_if_slow(
+        "compiling the compiled engine's CartPole kernels (numba): the first run after an "
+        "install takes ~20 s, later runs load them from numba's cache"
+    ):
+        seconds = warm_up()
     logger.log(
         logging.INFO if seconds > 5 else logging.DEBUG,
         "compiled engine ready in %.1f s (numba)",
@@ -344,17 +349,30 @@ def run_federation(run: RunConfig, *, port: bool = False) -> int:
 def _hydra_task(cfg: object) -> None:
     from hydra.core.hydra_config import HydraConfig
 
-    from fedhpg.common.runtime.cli import limit_threads, setup_logging, to_run_config
+    from fedhpg.common.runtime.cli import (
+        compose_cfg,
+        limit_threads,
+        own_overrides,
+        setup_logging,
+        to_run_config,
+        with_algorithm_strategy,
+    )
 
     setup_logging()  # a sweep job may run in a fresh process (joblib's, submitit's launchers)
+    overrides = HydraConfig.get().overrides
+    task = list(overrides.task)
+    composing = own_overrides([*task, *overrides.hydra])  # with hydra.searchpath
     try:  # checked before Hydra started; again here for what only the job sees
+        fixed = with_algorithm_strategy(composing)
+        if fixed != composing:  # the algorithm's own strategy (algo=fedpgbr's)
+            cfg = compose_cfg(fixed)
         run = to_run_config(cfg)
         check_launch(run)
     except ConfigError as error:
         sys.stderr.write(f"error: {error}\n")
         sys.exit(2)
     limit_threads()
-    status = run_federation(run, port=port_named(list(HydraConfig.get().overrides.task)))
+    status = run_federation(run, port=port_named(task))
     if status != 0:
         sys.exit(status)
 

@@ -24,7 +24,13 @@ import torch
 import zmq
 
 from fedhpg.common.components import agent_profile, resolve_algorithm
-from fedhpg.common.config import ConfigError, RunConfig, attacking_agents, dictated_settings
+from fedhpg.common.config import (
+    ConfigError,
+    RunConfig,
+    agents_per_host,
+    attacking_agents,
+    dictated_settings,
+)
 from fedhpg.common.runtime.progress import Progress
 from fedhpg.common.types import EvaluationStats
 from fedhpg.common.variants import discount, run_variants, variant_digest, variant_of
@@ -57,6 +63,25 @@ class ServerResult:
     theta: torch.Tensor
     out_dir: Path
     last_evaluation: dict[str, EvaluationStats] | None
+
+
+def sleeps_to_emulate(run: RunConfig) -> bool:
+    """Whether the run's agent processes sleep to emulate their devices: the sleeping clock
+    (``agents.virtual_clock=false``), one agent per process (a host never sleeps), and some
+    slowness to emulate (a speed below 1, a step delay, a latency, or a population that
+    draws them)."""
+    agents = run.agents
+    if agents.virtual_clock or agents_per_host(run) > 1:
+        return False
+    drawn = agents.population.kind != "none" and bool(
+        {"speed", "step_delay_s", "latency_s"} & set(agents.population.draw)
+    )
+    return (
+        drawn
+        or any(speed < 1 for speed in agents.speeds)
+        or any(delay > 0 for delay in agents.step_delays_s)
+        or any(latency > 0 for latency in agents.latencies_s)
+    )
 
 
 def message_cap(run: RunConfig, num_params: int) -> int:
@@ -184,6 +209,13 @@ def serve(
                 logger.info(
                     "server listening on %s, waiting for %d agents", bound, run.agents.num_agents
                 )
+                if sleeps_to_emulate(run):
+                    logger.info(
+                        "the agents sleep to emulate slower devices (agents.speeds, "
+                        "agents.step_delays_s, agents.latencies_s): most of this run's time is "
+                        "that sleep; agents.virtual_clock=true accounts the same emulated time "
+                        "without sleeping (the same θ̃)"
+                    )
                 if on_bound is not None:
                     on_bound(bound)
                 theta = _serve(assembly, pool, show_progress)

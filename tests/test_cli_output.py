@@ -249,3 +249,60 @@ def test_a_search_path_adds_config_groups(tmp_path: Path) -> None:
     assert result.returncode == 0, result.stderr[-2000:]
     config = json.loads((tmp_path / "run/config.json").read_text())
     assert (config["env"]["family"], config["env"]["horizon"]) == ("cartpole", 20)
+
+
+def test_a_slow_wait_is_announced_and_a_quick_one_is_not(caplog: pytest.LogCaptureFixture) -> None:
+    import time
+
+    from fedhpg.common.runtime.progress import announced_if_slow
+
+    with caplog.at_level(logging.INFO, logger="fedhpg.common.runtime.progress"):
+        with announced_if_slow("quick", after_s=0.5):
+            pass
+        with announced_if_slow("compiling …", after_s=0.05):
+            time.sleep(0.3)
+        time.sleep(0.6)  # the quick one's timer would have fired by now
+    assert [r.getMessage() for r in caplog.records] == ["compiling …"]
+
+
+@pytest.mark.slow
+def test_the_first_cartpole_run_says_it_compiles(tmp_path: Path) -> None:
+    """An empty numba cache, as right after an install: the ~20 s are announced."""
+    result = subprocess.run(
+        [str(BIN / "fedhpg-run"), "env=cartpole", "rounds=1", "eval.episodes=1",
+         "agents.budget.batch_size=[2]", "server.out_dir=run"],
+        cwd=tmp_path, capture_output=True, text=True, timeout=600,
+        env={**os.environ, "NUMBA_CACHE_DIR": str(tmp_path / "numba")},
+    )  # fmt: skip
+    assert result.returncode == 0, result.stderr[-2000:]
+    assert "compiling the compiled engine's CartPole kernels (numba)" in result.stderr
+
+
+def test_the_demo_says_it_sleeps_and_a_preset_says_what_it_changed(tmp_path: Path) -> None:
+    demo = _run(["rounds=1", "eval.episodes=1", "server.out_dir=demo"], tmp_path)
+    assert demo.returncode == 0, demo.stderr[-2000:]
+    said = [line for line in demo.stderr.splitlines() if "sleep" in line]
+    assert len(said) == 1 and "agents.virtual_clock=true" in said[0], said
+    preset = _run(
+        ["env=cartpole", "rounds=1", "eval.episodes=1", "agents.budget.batch_size=[2]",
+         "server.out_dir=cartpole"],
+        tmp_path,
+    )  # fmt: skip
+    assert preset.returncode == 0, preset.stderr[-2000:]
+    assert not [line for line in preset.stderr.splitlines() if "sleep" in line]
+    (changes,) = [line for line in preset.stderr.splitlines() if "env=cartpole also sets" in line]
+    for part in ("strategy=fedadam (was mean)", "algo.step_size=1.0 (was 0.5)",
+                 "agents.virtual_clock=true (was false)", "agents.budget.local_iters=[1]"):  # fmt: skip
+        assert part in changes, changes
+    assert "batch_size" not in changes, "what the command line set is its own"
+
+
+def test_fedpgbr_brings_its_strategy_unless_one_is_named() -> None:
+    from fedhpg.common.config import ConfigError
+    from fedhpg.common.runtime.cli import compose
+
+    assert compose(["algo=fedpgbr"]).strategy.name == "fedpgbr"
+    assert compose(["env=cartpole", "algo=fedpgbr"]).strategy.name == "fedpgbr"
+    assert compose(["-m", "env=cartpole", "algo=fedpgbr"][1:]).strategy.params["step_size"] == 0.01
+    with pytest.raises(ConfigError, match="algo=fedpgbr sends what only strategy=fedpgbr"):
+        compose(["env=cartpole", "algo=fedpgbr", "strategy=median"])

@@ -214,9 +214,11 @@ def own_overrides(args: Sequence[str]) -> list[str]:
     ]
 
 
-def compose(overrides: Sequence[str], *, resumable: bool = False) -> RunConfig:
+def compose(overrides: Sequence[str], *, resumable: bool = False, report: bool = True) -> RunConfig:
     """Compose ``conf/config.yaml`` with command-line overrides, without Hydra's run dirs.
-    With ``resumable`` and a ``resume=`` override, start from the run's ``config.json``."""
+    With ``resumable`` and a ``resume=`` override, start from the run's ``config.json``.
+    ``report``: log what each config group named on the command line changed beyond its own
+    section (:func:`preset_changes`)."""
     from fedhpg.common.runtime.resume import compose_resume, resume_value, settle_auto
 
     overrides = own_overrides(overrides)
@@ -225,7 +227,117 @@ def compose(overrides: Sequence[str], *, resumable: bool = False) -> RunConfig:
     with hydra_context():
         if resumable and resume_value(overrides) is not None:
             return compose_resume(overrides)
-        return to_run_config(compose_cfg(overrides))
+        overrides = with_algorithm_strategy(overrides)
+        run = to_run_config(compose_cfg(overrides))
+        if report:
+            for line in preset_changes(overrides):
+                logger.info("%s", line)
+        return run
+
+
+def _named(overrides: Sequence[str], key: str) -> bool:
+    return any(o.split("=", 1)[0].lstrip("+~") == key for o in overrides)
+
+
+def with_algorithm_strategy(overrides: Sequence[str]) -> list[str]:
+    """The overrides, plus ``strategy=S`` when the composed algorithm names the one strategy
+    its updates mean anything to (``Algorithm.strategy``: fedpgbr's) and the command line
+    names no strategy: ``algo=fedpgbr`` brings its server also where an env preset picked
+    another (inside :func:`hydra_context`)."""
+    overrides = list(overrides)
+    if _named(overrides, "strategy") or _named(overrides, "strategy.name"):
+        return overrides
+    try:
+        cfg = compose_cfg(overrides)
+        from fedhpg.common.algorithms import ALGORITHMS
+        from fedhpg.common.registry import import_plugins
+
+        import_plugins(list(cfg.plugins))
+        wanted = ALGORITHMS.get(str(cfg.algo.name)).strategy
+    except (ConfigError, ImportError, KeyError, ValueError):
+        return overrides  # validation names what is wrong
+    if wanted is None or wanted == cfg.strategy.name:
+        return overrides
+    from hydra.core.global_hydra import GlobalHydra
+
+    groups = GlobalHydra.instance().config_loader().get_group_options("strategy")
+    return [*overrides, f"strategy={wanted}" if wanted in groups else f"strategy.name={wanted}"]
+
+
+PRESET_SECTIONS = {
+    "env": "env",
+    "algo": "algo",
+    "strategy": "strategy",
+    "attack": "attack",
+    "agents": "agents",
+    "cluster": "cluster",
+}
+"""Config groups whose settings belong to a section of their own: what they set there is
+their purpose, what they set elsewhere is reported (:func:`preset_changes`)."""
+
+
+def preset_changes(overrides: Sequence[str]) -> list[str]:
+    """For each config group named in ``overrides`` (``env=cartpole``), what choosing it
+    changed outside its own section, against the same command line without it: one line each,
+    e.g. ``env=cartpole also sets strategy=fedadam (was mean), algo.step_size=1.0 (was 0.5)``.
+    Keys the command line sets itself are left out. (Inside :func:`hydra_context`.)"""
+    from hydra.core.global_hydra import GlobalHydra
+    from omegaconf import OmegaConf
+
+    from fedhpg.common.config import flatten
+
+    loader = GlobalHydra.instance().config_loader()
+    group_names = {name for name in loader.list_groups("") if name != "hydra"}
+    chosen = [o for o in overrides if "=" in o and o.split("=", 1)[0] in group_names]
+    if not chosen:
+        return []
+    explicit = {o.split("=", 1)[0].lstrip("+~") for o in overrides if o not in chosen}
+
+    def composed(lines: list[str]) -> tuple[dict[str, Any], dict[str, str]]:
+        from hydra import compose as hydra_compose
+
+        with hydra_errors(lines):
+            cfg = hydra_compose(config_name=CONFIG_NAME, overrides=lines, return_hydra_config=True)
+        choices = {str(k): str(v) for k, v in cfg.hydra.runtime.choices.items()}
+        values = OmegaConf.to_container(cfg)
+        assert isinstance(values, dict)
+        values.pop("hydra")
+        return flatten(values), choices
+
+    with_all, choices = composed(list(overrides))
+    lines = []
+    for choice in chosen:
+        group = choice.split("=", 1)[0]
+        try:
+            without, choices_before = composed([o for o in overrides if o != choice])
+        except ConfigError:  # the rest needs the group (a key only it declares): no baseline
+            continue
+        switched = {
+            name: (choices[name], choices_before.get(name))
+            for name in group_names
+            if name != group and choices.get(name) != choices_before.get(name)
+        }
+        own = PRESET_SECTIONS.get(group)
+        quiet = [s for s in (own, *switched) if s]
+        changed = [
+            f"{key}={_shown(with_all.get(key))} (was {_shown(without.get(key))})"
+            for key in sorted(set(with_all) | set(without))
+            if with_all.get(key) != without.get(key)
+            and not any(key == s or key.startswith(f"{s}.") for s in quiet)
+            and not any(key == e or key.startswith(f"{e}.") for e in explicit)
+        ]
+        parts = [f"{name}={now} (was {before})" for name, (now, before) in switched.items()]
+        if parts or changed:
+            lines.append(f"{choice} also sets " + ", ".join(parts + changed))
+    return lines
+
+
+def _shown(value: Any) -> str:
+    if value is None:
+        return "null"
+    if isinstance(value, bool):
+        return str(value).lower()
+    return str(value)
 
 
 def sweep_points(overrides: Sequence[str]) -> list[list[str]]:
@@ -259,7 +371,7 @@ def compose_sweep(overrides: Sequence[str]) -> list[RunConfig]:
         swept = {key for key, seen in values.items() if len(seen) > 1}
         for number, point in enumerate(points, 1):
             try:
-                runs.append(to_run_config(compose_cfg(point)))
+                runs.append(to_run_config(compose_cfg(with_algorithm_strategy(point))))
             except ConfigError as error:
                 where = " ".join(p for p in point if p.split("=", 1)[0] in swept)
                 label = f"sweep point {number}/{len(points)}" + (f" ({where})" if where else "")
