@@ -407,7 +407,8 @@ class ServerConfig:
     hello_timeout_s: float = 10.0
     """A connection that has not registered within this time is closed."""
     out_dir: str | None = None
-    """Run directory for metrics and checkpoints; None = the Hydra run directory / cwd."""
+    """Run directory for metrics and checkpoints; None = a new runs/<date>-<time>-<env>-<algo>
+    (every entry point names its run directories so)."""
     tensorboard: bool = True
     """Also write TensorBoard event files to ``<out_dir>/tensorboard/`` (needs the optional
     ``tensorboard`` package; without it a warning, and metrics.jsonl alone)."""
@@ -415,6 +416,12 @@ class ServerConfig:
     """Per-agent TensorBoard scalars (``agent/<k>/…``, ``eval/<id>/…``) for runs of at most
     this many agents; larger runs write the federation's and the across-agent keys only
     (metrics.jsonl keeps every agent)."""
+    wandb: bool = False
+    """Also log every round to Weights & Biases (needs the optional ``wandb`` package: pip
+    install 'fedhpg[wandb]'); its files go to ``<out_dir>/wandb/``, and ``WANDB_MODE=offline``
+    keeps them there, to sync later."""
+    wandb_project: str = "fedhpg"
+    """The W&B project of the run (``server.wandb``); the run is named after its directory."""
     endpoint_file: str | None = None
     """Once listening, write where agents reach the server to this JSON file (host, port):
     how ``fedhpg-cluster``'s agent jobs find a server on a port it chose (shared filesystem)."""

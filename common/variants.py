@@ -41,7 +41,7 @@ def family_options(run: RunConfig) -> dict[str, Any]:
     env = run.env
     if env.family != GYM_FAMILY:
         return dict(env.options)
-    gym_keys = {"id": env.id, "kwargs": env.kwargs, "vary": env.vary}
+    gym_keys: dict[str, Any] = {"id": env.id, "kwargs": env.kwargs, "vary": env.vary}
     gym_keys["max_episode_steps"] = env.horizon
     return {**env.options, **{key: value for key, value in gym_keys.items() if value}}
 

@@ -48,8 +48,12 @@ class GymVariant(EnvVariant):
             model.body_mass[:] = model.body_mass * self.mujoco_scales.get("mass", 1.0)
 
     def make_env(self, *, render_mode: str | None = None) -> gym.Env:
-        limit = {"max_episode_steps": self.step_limit} if self.step_limit else {}
-        env = gym.make(self.env_id, render_mode=render_mode, **self.env_kwargs, **limit)
+        env = gym.make(
+            self.env_id,
+            max_episode_steps=self.step_limit or None,
+            render_mode=render_mode,
+            **self.env_kwargs,
+        )
         self.configure(env.unwrapped)
         if isinstance(env.action_space, gym.spaces.Box) or self.action_cost:
             return _ClippedActions(env, self.action_cost)

@@ -56,6 +56,7 @@ from fedhpg.server.metrics import MetricsWriter, record_marks, tensorboard_sink
 from fedhpg.server.pools import AgentPool
 from fedhpg.server.pools.inprocess import make_in_process_pool
 from fedhpg.server.run_dir import RunDirectory, RunDirectoryError
+from fedhpg.server.sinks import PROGRESS_NAME, ProgressCsv, wandb_sink
 from fedhpg.server.strategies import Strategy, validate_strategy
 
 logger = logging.getLogger(__name__)
@@ -347,16 +348,17 @@ def assemble(
             metrics,
             checkpoint_callback(run, out_dir / "checkpoints", progress, assembly.pool_counters),
         ]
-        board = tensorboard_sink(
-            run.server.tensorboard,
-            out_dir,
+        board = tensorboard_sink(run, out_dir, first_round=progress.next_round, theta=theta)
+        progress_csv = ProgressCsv(
+            out_dir / PROGRESS_NAME,
             first_round=progress.next_round,
-            theta=theta,
-            per_agent=run.agents.num_agents <= run.server.tensorboard_agents,
+            has_goal=checked.first.has_goal,
         )
-        if board is not None:
-            assembly._closers.append(board.close)
-            assembly.sinks.append(board)
+        weights_and_biases = wandb_sink(run, out_dir, theta)
+        for sink in (board, progress_csv, weights_and_biases):
+            if sink is not None:
+                assembly._closers.append(sink.close)
+                assembly.sinks.append(sink)
     assembly.sinks += [assembly.last, *callbacks]
     return assembly
 

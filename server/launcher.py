@@ -300,8 +300,10 @@ def _resolve_out_dir(run: RunConfig) -> Path:
         from hydra.core.hydra_config import HydraConfig
 
         return Path(HydraConfig.get().runtime.output_dir)
-    except ValueError:
-        return Path("runs") / time.strftime("%Y%m%d-%H%M%S")
+    except ValueError:  # not under Hydra's job machinery (a resume, the API)
+        from fedhpg.server.run_dir import new_run_dir
+
+        return new_run_dir(run)
 
 
 def port_named(overrides: list[str]) -> bool:
@@ -443,6 +445,9 @@ def main() -> None:
         limit_threads()
         sys.exit(run_federation(runs[0], port=port))
     register_schema()
+    named = [o.split("=", 1)[1] for o in overrides if o.split("=", 1)[0] == "server.out_dir"]
+    if named and not any(a.split("=", 1)[0] == "hydra.run.dir" for a in args) and not multirun:
+        sys.argv.append(f"hydra.run.dir={named[-1]}")  # Hydra's job directory is the run's
     app = hydra.main(config_path="pkg://fedhpg.conf", config_name="config", version_base=None)(
         _hydra_task
     )

@@ -21,14 +21,14 @@ from fedhpg.server.checkpoint import (
     write_atomic,
 )
 from fedhpg.server.pools import FederationError
-from fedhpg.server.run_dir import RunDirectoryError
-from fedhpg.server.serving import bind_error, default_out_dir, serve
+from fedhpg.server.run_dir import RunDirectoryError, new_run_dir
+from fedhpg.server.serving import bind_error, serve
 
 logger = logging.getLogger(__name__)
 
 
 def _main(run: RunConfig) -> int:
-    out_dir = Path(run.server.out_dir) if run.server.out_dir else default_out_dir()
+    out_dir = Path(run.server.out_dir) if run.server.out_dir else new_run_dir(run)
     if run.resume and run.resume.lower() != "true":
         out_dir = Path(run.resume)
     if run.resume and (done := completed_round(out_dir / "checkpoints", run.rounds)) is not None:

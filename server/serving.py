@@ -12,7 +12,6 @@ from __future__ import annotations
 
 import logging
 import sys
-import time
 import uuid
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
@@ -303,7 +302,3 @@ def final_report(
     return evaluation_report(
         evaluation, describe, has_goal=has_goal, attackers=attackers, attack=run.attack.kind
     )
-
-
-def default_out_dir() -> Path:
-    return Path("runs") / time.strftime("%Y%m%d-%H%M%S")

@@ -53,10 +53,16 @@ def answer_version(prog: str, args: Sequence[str]) -> None:
 
 
 def register_schema() -> None:
-    """Make ``RunConfig`` the schema that ``conf/config.yaml`` extends (Hydra ConfigStore)."""
+    """Make ``RunConfig`` the schema that ``conf/config.yaml`` extends (Hydra ConfigStore), and
+    register the resolver its ``hydra.run.dir`` names (the one run-directory convention)."""
     from hydra.core.config_store import ConfigStore
+    from omegaconf import OmegaConf
+
+    from fedhpg.common.runtime.run_files import hydra_run_dir
 
     ConfigStore.instance().store(name=SCHEMA_NAME, node=RunConfig)
+    if not OmegaConf.has_resolver("fedhpg_run_dir"):
+        OmegaConf.register_new_resolver("fedhpg_run_dir", hydra_run_dir)
 
 
 def to_run_config(cfg: object) -> RunConfig:
