@@ -18,6 +18,7 @@ from fedhpg.common.population import (
     budget_overrides,
     device_value,
     fields_of,
+    validate_population,
 )
 from fedhpg.common.registry import OptionError, import_plugins, parse_options
 
@@ -174,6 +175,7 @@ def validate_run(run: RunConfig) -> RunConfig:
     environment family and its options, the algorithm, its options and every agent's budget.
     Raises ConfigError naming the key."""
     validate(run)
+    validate_population(run.agents.population)
     import_plugins(run.plugins)
     validate_env_family(run)
     algorithm, _ = resolve_algorithm(run)

@@ -711,9 +711,7 @@ def _validate_agents(agents: AgentsConfig) -> None:
         _check_number(agents.plan_max_return, "agents.plan_max_return", low=-math.inf)
     _check_int(agents.plan_batch_max, "agents.plan_batch_max", low=2)
     _check_int(agents.plan_local_iters_max, "agents.plan_local_iters_max", low=1)
-    from fedhpg.common.population import validate_population  # it imports this module
-
-    validate_population(agents.population)
+    # agents.population: fedhpg.common.components.validate_run (its distributions are numpy's)
 
 
 def _validate_attack(attack: AttackConfig, num_agents: int) -> None:
