@@ -2,7 +2,7 @@
 # Where Docker Hub and PyPI are reachable (the defaults: the official slim Python base, CPU torch
 # from PyTorch's CPU index):
 #   docker build -t fedhpg .
-# Offline, from a base and wheels made on this machine (README "Deploy"; make image does both):
+# Offline, from a base and wheels made on this machine (docs/deploy.md; make image does both):
 #   docker/make-base.sh && docker/make-wheelhouse.sh
 #   docker build --network none --build-arg BASE_IMAGE=fedhpg-base:bookworm \
 #       --build-arg PIP_SOURCE=wheelhouse -t fedhpg .

@@ -131,14 +131,14 @@ class AlgoConfig:
     FedHPG only."""
     reward_to_go: str = "from_start"
     """GPOMDP's reward-to-go: 'from_start' (eq. 6, Σ_{h≥t} γ^h r_h; unbiased) or 'from_step'
-    (Σ_{h≥t} γ^{h−t} r_h, common practice: a departure from eq. 6, biased for ∇J; README,
-    Estimator options). 'from_step' needs estimator 'gpomdp'; FedHPGVR takes 'from_start'
-    only."""
+    (Σ_{h≥t} γ^{h−t} r_h, common practice: a departure from eq. 6, biased for ∇J;
+    docs/configuration.md, Estimator options). 'from_step' needs estimator 'gpomdp'; FedHPGVR
+    takes 'from_start' only."""
     normalize: str = "none"
     """Standardise the estimator's coefficients, (c − mean)/std over alive steps: 'none' (eq.
     5/6; unbiased), 'batch' (over the whole batch) or 'episode' (within each trajectory; GPOMDP
-    only). Both are departures from eq. 5/6, biased for ∇J (README, Estimator options);
-    FedHPGVR takes 'none' only."""
+    only). Both are departures from eq. 5/6, biased for ∇J (docs/configuration.md, Estimator
+    options); FedHPGVR takes 'none' only."""
 
 
 # --- participation: who trains each round (server/participation.py applies it) ---------------
@@ -160,7 +160,7 @@ class ParticipationConfig:
     """'uniform': C, agents per round, in [1, agents.num_agents]."""
     trace: str | None = None
     """'trace': a CSV file ``agent,offline_from,offline_to`` (one offline interval of rounds,
-    inclusive, per row; format in the README, Participation)."""
+    inclusive, per row; format in docs/strategies.md, Participation)."""
 
 
 def _validate_tolerance(strategy: StrategyConfig, num_agents: int) -> None:
@@ -229,7 +229,7 @@ class StrategyConfig:
 class PopulationConfig:
     """Per-agent budgets and device profiles drawn from seeded distributions or read from a
     trace file, resolved lazily per agent index (never a K-long list): see
-    :mod:`fedhpg.common.population` and the README, "Populations"."""
+    :mod:`fedhpg.common.population` and docs/configuration.md, "Populations"."""
 
     kind: str = "none"
     """'none' (the per-agent lists alone), 'drawn' (``draw``: one seeded distribution per

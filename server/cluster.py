@@ -82,7 +82,7 @@ def check_placement(run: RunConfig, overrides: Sequence[str]) -> Path:
         raise ConfigError(
             "resume",
             "fedhpg-cluster starts new runs; resume one with fedhpg-server resume=true "
-            "server.out_dir=DIR and its agents (README: When the server dies)",
+            "server.out_dir=DIR and its agents (docs/running.md, Resuming)",
         )
     check_run(run, distributed=True)
     check_launch_keys(run)
@@ -332,7 +332,7 @@ def main(argv: Sequence[str] | None = None) -> None:
                 ConfigError(
                     "-m",
                     "fedhpg-cluster places one federation; sweep with fedhpg-run -m ... "
-                    "hydra/launcher=submitit_slurm (see README, Sweeps and clusters)",
+                    "hydra/launcher=submitit_slurm (docs/clusters.md)",
                 )
             )
         )

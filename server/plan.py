@@ -196,7 +196,8 @@ def parser() -> argparse.ArgumentParser:
         description=(
             "Choose every agent's batch size B_k and local iterations tau_k by Theorem 1 "
             "(eq. 7) for a run's config and an emulated-time budget. The remaining arguments "
-            "are the key=value overrides fedhpg-run takes (README, Choosing budgets)."
+            "are the key=value overrides fedhpg-run takes (docs/configuration.md, Choosing "
+            "budgets)."
         ),
     )
     p.add_argument(

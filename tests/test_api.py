@@ -1,4 +1,4 @@
-"""The Python API (``fedhpg.server.api``): the README's example runs as written; a policy loaded
+"""The Python API (``fedhpg.server.api``): the guide's example runs as written; a policy loaded
 from a run directory reproduces the server's own evaluation in ``summary.json`` exactly;
 in-process and distributed runs agree; mistakes raise exceptions naming the key."""
 
@@ -16,20 +16,19 @@ from fedhpg.common.runtime.cli import compose
 from fedhpg.server import api
 from fedhpg.server.assembly import run_in_process
 
-README = Path(__file__).parent.parent / "README.md"
+GUIDE = Path(__file__).parent.parent / "docs" / "python-api.md"
 GRID = ["rounds=3", "seed=1", "eval.every=2", "eval.episodes=6"]
 
 
-def readme_example() -> str:
-    section = README.read_text().split("## Python API", 1)[1].split("\n## ", 1)[0]
-    blocks = re.findall(r"```python\n(.*?)```", section, flags=re.S)
-    assert blocks, "the README's Python API section has a python block"
+def guide_example() -> str:
+    blocks = re.findall(r"```python\n(.*?)```", GUIDE.read_text(), flags=re.S)
+    assert blocks, "the Python API guide has a python block"
     return blocks[0]
 
 
-def test_the_readme_example_runs(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+def test_the_guides_example_runs(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     monkeypatch.chdir(tmp_path)
-    exec(compile(readme_example(), str(README), "exec"), {"__name__": "readme"})
+    exec(compile(guide_example(), str(GUIDE), "exec"), {"__name__": "guide"})
     assert (tmp_path / "runs/api-example/summary.json").exists()
 
 
