@@ -115,7 +115,7 @@ bench-presets: $(STAMP)
 	nice -n 10 $(BIN)/python -m benchmarks.presets
 
 # CartPole K=10 with 3 sign-flipping agents: mean, median, trimmed mean (~10 min).
-# Thousands of agents on agent hosts (issue 17): CartPole K = 1,000 and 10,000, one process per
+# Thousands of agents on agent hosts: CartPole K = 1,000 and 10,000, one process per
 # agent for comparison, the coordination cost at 10^4 parameters, GridWorld K = 1,000. Minutes on
 # 2 cores; results in benchmarks/results/scale*.json, figures in docs/scale*.png.
 # numba's kernel cache, filled at setup, is emptied by any edit of kernels.py: refilled first,
@@ -125,7 +125,7 @@ bench-scale: $(STAMP)
 	OMP_NUM_THREADS=1 $(BIN)/python -m benchmarks.scale
 	OMP_NUM_THREADS=1 $(BIN)/python -m benchmarks.scale_gridworld
 
-# The torch engine's policy maths on a CUDA GPU (issue 17): the largest K one host trains,
+# The torch engine's policy maths on a CUDA GPU: the largest K one host trains,
 # against the numpy maths and the compiled engine on this CPU; benchmarks/results/scale_device.json.
 # One line and exit 1 where torch sees no CUDA device. DEVICE=cpu runs it on the CPU.
 DEVICE ?= cuda
@@ -134,7 +134,7 @@ bench-device: $(STAMP)
 	OMP_NUM_THREADS=1 $(BIN)/python -m benchmarks.scale_device --device $(DEVICE)
 
 # The Theorem 1 planner against uniform, speed-proportional and the paper's budgets at one
-# emulated-time budget (issue 18): GridWorld K=4 (two speed spreads), CartPole K=10 and K=100,
+# emulated-time budget: GridWorld K=4 (two speed spreads), CartPole K=10 and K=100,
 # 5 seeds, counted virtual clock (deterministic, so load does not change the figures).
 # benchmarks/results/planner.json, docs/figures/planner.png, the table on stdout.
 bench-plan: $(STAMP)

@@ -268,7 +268,7 @@ class AgentsConfig:
     """'periodic' / 'random_walk': relative amplitude (speed × (1 ± amplitude))."""
     virtual_clock: bool = False
     """Account emulated time without sleeping (fast, reproducible heterogeneity studies)."""
-    # The counted clock (issue 17): emulated time priced from the work counted.
+    # The counted clock: emulated time priced from the work counted.
     clock: str = "measured"
     """'measured': emulated compute = thread CPU time measured here / speed (follows this
     machine's load); 'counted': priced from counted env steps, gradient steps and message
@@ -286,7 +286,7 @@ class AgentsConfig:
     32 agents (or as many as this machine has cores), else one agent host per core; always
     one per agent with buffered rounds. 1 = one process per agent; N > 1 = ceil(K/N) agent
     hosts, each serving N consecutive indices over one connection."""
-    # Re-planning budgets during a run from Theorem 1 (issue 18): the server sends them.
+    # Re-planning budgets during a run from Theorem 1: the server sends them.
     plan: str = "none"
     """'none': every agent trains with its configured budget; 'theorem1': the first
     ``plan_every`` rounds use the configured budgets, then every ``plan_every`` rounds the

@@ -323,12 +323,16 @@ def latest_valid_checkpoint(directory: Path) -> Checkpoint | None:
 
 
 def completed_round(directory: Path, rounds: int) -> int | None:
-    """The round of the newest valid checkpoint in ``directory`` when it is at or past
-    ``rounds`` (the run is complete: resuming it has nothing to run), else None."""
+    """The round of the newest valid checkpoint in ``directory`` when the run is complete at
+    ``rounds`` (checkpointed at that round, and ``rounds`` not below the run's own, which a
+    resume refuses), else None."""
     if not directory.is_dir():
         return None
     checkpoint = latest_valid_checkpoint(directory)
-    return checkpoint.round if checkpoint is not None and checkpoint.round >= rounds else None
+    if checkpoint is None or checkpoint.round < rounds:
+        return None
+    planned = int(checkpoint.config.get("rounds", checkpoint.round))
+    return checkpoint.round if rounds >= planned else None
 
 
 def complete_message(run_dir: Path, round_number: int) -> str:

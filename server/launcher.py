@@ -395,6 +395,7 @@ def main() -> None:
         limit_threads,
         own_overrides,
         register_schema,
+        report_presets,
         setup_logging,
         unknown_flag,
     )
@@ -434,6 +435,8 @@ def main() -> None:
     port = port_named(overrides)
     for run in runs[:1]:
         check_endpoint(run if port else replace(run, server=replace(run.server, port=0)))
+    if runs and not multirun:
+        report_presets(overrides)
     if resume:
         from fedhpg.server.checkpoint import complete_message, completed_round
 

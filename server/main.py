@@ -76,4 +76,4 @@ def endpoint_writer(run: RunConfig, path: Path) -> Callable[[str], None]:
 
 
 def main() -> None:
-    sys.exit(run_entry(_main, resumable=True))
+    sys.exit(run_entry(_main, resumable=True, presets=True))

@@ -8,6 +8,7 @@ import json
 import logging
 import operator
 import os
+import socket
 import time
 from collections.abc import Sequence
 from pathlib import Path
@@ -209,10 +210,40 @@ def hyperparameters(run: RunConfig) -> dict[str, int | float | str | bool]:
     return flat
 
 
+class EventFile:
+    """One TensorBoard event file, its records framed by tensorboard's own ``RecordWriter``
+    and written on the caller's thread, flushed as each is written: a disk that fills up is an
+    OSError here (the run directory's one-line error), not a traceback in a writer thread."""
+
+    def __init__(self, directory: Path) -> None:
+        from tensorboard.compat.proto.event_pb2 import Event
+        from tensorboard.summary.writer.record_writer import RecordWriter
+
+        directory.mkdir(parents=True, exist_ok=True)
+        name = (
+            f"events.out.tfevents.{int(time.time()):010d}.{socket.gethostname()}."
+            f"{os.getpid()}.{next(_files_opened)}"
+        )
+        self._file = (directory / name).open("wb")
+        self._records = RecordWriter(self._file)
+        self._event = Event
+        self.add(Event(wall_time=time.time(), file_version="brain.Event:2"))
+
+    def add(self, event: Any) -> None:
+        self._records.write(event.SerializeToString())
+        self._file.flush()
+
+    def close(self) -> None:
+        self._file.close()
+
+
+_files_opened = itertools.count()
+
+
 class TensorBoardWriter:
-    """The rounds' scalars (:class:`RoundValues`) in a TensorBoard event file, written by
-    tensorboard's own ``EventFileWriter``, one event per round (one summary of many values)
-    flushed as it is written; the run's hyperparameters for the HParams dashboard first."""
+    """The rounds' scalars (:class:`RoundValues`) in a TensorBoard event file
+    (:class:`EventFile`), one event per round (one summary of many values); the run's
+    hyperparameters for the HParams dashboard first."""
 
     def __init__(
         self,
@@ -225,19 +256,15 @@ class TensorBoardWriter:
     ) -> None:
         from tensorboard.compat.proto.event_pb2 import Event, SessionLog
         from tensorboard.compat.proto.summary_pb2 import Summary
-        from tensorboard.summary.writer.event_file_writer import EventFileWriter
 
         self._event, self._summary = Event, Summary
-        self._writer = EventFileWriter(str(directory), flush_secs=5)
+        self._file = EventFile(directory)
         self._values = RoundValues(theta, per_agent=per_agent)
         if first_round > 1:
             # TensorBoard's purge: readers drop the older events of this step and later ones
-            self._writer.add_event(
-                Event(step=first_round, session_log=SessionLog(status=SessionLog.START))
-            )
+            self._file.add(Event(step=first_round, session_log=SessionLog(status=SessionLog.START)))
         for summary in _hparams_summaries(hparams):
-            self._writer.add_event(Event(wall_time=time.time(), summary=summary))
-        self._writer.flush()
+            self._file.add(Event(wall_time=time.time(), summary=summary))
 
     def __call__(self, record: RoundRecord, theta: torch.Tensor) -> None:
         summary = self._summary(
@@ -246,13 +273,17 @@ class TensorBoardWriter:
                 for key, value in self._values(record, theta).items()
             ]
         )
-        self._writer.add_event(
-            self._event(wall_time=time.time(), step=record.round, summary=summary)
-        )
-        self._writer.flush()
+        event = self._event(wall_time=time.time(), step=record.round, summary=summary)
+        try:
+            self._file.add(event)
+        except OSError as error:
+            raise RunDirectoryError(
+                f"cannot write round {record.round}'s TensorBoard event: "
+                f"{error.strerror or error}; metrics.jsonl and the checkpoints hold the rounds"
+            ) from None
 
     def close(self) -> None:
-        self._writer.close()
+        self._file.close()
 
 
 def _hparams_summaries(hparams: dict[str, int | float | str | bool]) -> list[Any]:
@@ -282,7 +313,7 @@ def tensorboard_sink(
         return None
     try:
         from tensorboard.compat.proto.event_pb2 import Event  # noqa: F401
-        from tensorboard.summary.writer.event_file_writer import EventFileWriter  # noqa: F401
+        from tensorboard.summary.writer.record_writer import RecordWriter  # noqa: F401
     except ImportError:
         logger.warning(
             "tensorboard is not installed (pip install 'fedhpg[tensorboard]'): no event "

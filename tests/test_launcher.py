@@ -150,7 +150,8 @@ def test_agents_of_a_run_the_server_aborts_are_not_restarted(tmp_path: Path) -> 
         stdout, stderr = launcher.communicate(timeout=120)
     assert launcher.returncode == 1, stderr[-2000:]
     assert "every agent's update was rejected" in stderr and "lower algo.step_size" in stderr
-    assert "the run was aborted" in stderr
+    # said once, by the server: its forked agents leave the abort to it
+    assert stderr.count("every agent's update was rejected") == 1, stderr[-2000:]
     assert "restarting it" not in stderr, stderr[-2000:]
     assert "Traceback" not in stderr + stdout
 

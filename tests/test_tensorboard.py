@@ -132,15 +132,29 @@ def test_the_runs_hyperparameters_are_in_the_hparams_dashboard(tmp_path: Path) -
     assert start.hparams["env.family"].string_value == "gridworld"
 
 
-def test_the_event_file_is_tensorboards_own_writers(tmp_path: Path) -> None:
-    """The first event names tensorboard's EventFileWriter as its writer: no framing of ours."""
+def test_the_records_are_framed_by_tensorboards_own_writer(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Every record goes through tensorboard's RecordWriter (no framing of ours), and its
+    reader takes every one back."""
     from tensorboard.backend.event_processing.event_file_loader import EventFileLoader
+    from tensorboard.summary.writer import record_writer
 
+    written = []
+    original = record_writer.RecordWriter.write
+    monkeypatch.setattr(
+        record_writer.RecordWriter,
+        "write",
+        lambda self, data: (written.append(data), original(self, data))[1],
+    )
     out_dir = tmp_path / "run"
-    api.run(overrides=[*RUN, "rounds=1"], out_dir=out_dir)
+    api.run(overrides=[*RUN, "rounds=2"], out_dir=out_dir)
     (path,) = (out_dir / "tensorboard").glob("events.out.tfevents.*")
-    first = next(iter(EventFileLoader(str(path)).Load()))
-    assert first.source_metadata.writer == "tensorboard.summary.writer.event_file_writer"
+    from tensorboard.compat.proto.event_pb2 import Event
+
+    read = [(e.wall_time, e.step) for e in EventFileLoader(str(path)).Load()]
+    assert read == [(e.wall_time, e.step) for e in map(Event.FromString, written)]
+    assert len(read) == 1 + 2 + 2, "the file version, the hparams, two rounds"
 
 
 def test_update_norms_are_each_agents_own(monkeypatch: pytest.MonkeyPatch) -> None:

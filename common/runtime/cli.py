@@ -233,12 +233,20 @@ def compose(overrides: Sequence[str], *, resumable: bool = False, report: bool =
     with hydra_context():
         if resumable and resume_value(overrides) is not None:
             return compose_resume(overrides)
-        overrides = with_algorithm_strategy(overrides)
-        run = to_run_config(compose_cfg(overrides))
-        if report:
-            for line in preset_changes(overrides):
-                logger.info("%s", line)
-        return run
+        return to_run_config(compose_cfg(with_algorithm_strategy(overrides)))
+
+
+def report_presets(overrides: Sequence[str]) -> None:
+    """Log what each config group named in ``overrides`` set outside its own section
+    (:func:`preset_changes`): for entry points that start a run, once it passed its checks."""
+    from fedhpg.common.runtime.resume import resume_value
+
+    overrides = own_overrides(overrides)
+    if resume_value(overrides) is not None:
+        return  # a resume runs its own config.json
+    with hydra_context():
+        for line in preset_changes(with_algorithm_strategy(overrides)):
+            logger.info("%s", line)
 
 
 def _named(overrides: Sequence[str], key: str) -> bool:
@@ -477,8 +485,10 @@ def run_entry(
     argv: Sequence[str] | None = None,
     *,
     resumable: bool = False,
+    presets: bool = False,
 ) -> int:
-    """Compose, validate and run ``main``; user mistakes exit 2 with one line, never a trace."""
+    """Compose, validate and run ``main``; user mistakes exit 2 with one line, never a trace.
+    ``presets``: log what the config groups named on the command line changed."""
     args = list(sys.argv[1:] if argv is None else argv)
     prog = os.path.basename(sys.argv[0])
     if any(a in VERSION_FLAGS for a in args):
@@ -495,6 +505,8 @@ def run_entry(
     setup_logging()
     try:
         run = compose(args, resumable=resumable)
+        if presets:
+            report_presets(args)
     except ConfigError as error:
         return fail(error)
     limit_threads()
