@@ -29,6 +29,8 @@ from collections import OrderedDict
 from collections.abc import Callable, Sequence
 from typing import Any
 
+import gymnasium as gym
+
 from fedhpg.envs.base import EnvVariant
 from fedhpg.envs.families import GYM_FAMILIES
 from fedhpg.envs.gym_family import gym_family
@@ -83,6 +85,11 @@ def _import_dotted(path: str) -> VariantFactory:
         factory = getattr(importlib.import_module(module_name), attribute)
     except (ImportError, AttributeError) as error:
         raise UnknownEnvFamilyError(f"cannot import environment family {path!r}: {error}") from None
+    if isinstance(factory, type) and issubclass(factory, gym.Env):
+        raise UnknownEnvFamilyError(
+            f"{path} is a gymnasium environment, not a family of variants: run it with env=gym "
+            "env.id=<its registered id> (and env.vary for what differs between agents)"
+        )
     if not callable(factory):
         raise UnknownEnvFamilyError(f"environment family {path!r} is not a function")
     return factory
@@ -113,6 +120,11 @@ def resolve_family(family: str) -> VariantFactory:
         factory = _import_dotted(family)
     if factory is None:
         factory = _from_entry_points(family)
+    if factory is None and family in gym.registry:
+        raise UnknownEnvFamilyError(
+            f"{family!r} is a gymnasium id, not an environment family: run it with env=gym "
+            f"env.id={family}"
+        )
     if factory is None:
         known = sorted({*FAMILIES, *_installed_names()})
         raise UnknownEnvFamilyError(

@@ -210,6 +210,19 @@ CASES: dict[str, tuple[str, list[str], str]] = {
         "strategy.participation.per_round: got 2, which mode 'all' does not use: add "
         "strategy.participation.mode=uniform",
     ),
+    # a gymnasium id or class where a family goes: it said "unexpected keyword argument 'seed'"
+    "gym-id-as-family": (
+        "fedhpg-run",
+        ["env.family=MountainCar-v0"],
+        "env.family: 'MountainCar-v0' is a gymnasium id, not an environment family: run it with "
+        "env=gym env.id=MountainCar-v0",
+    ),
+    "gym-class-as-family": (
+        "fedhpg-run",
+        ["env.family=gymnasium.envs.classic_control:MountainCarEnv"],
+        "env.family: gymnasium.envs.classic_control:MountainCarEnv is a gymnasium environment, "
+        "not a family of variants: run it with env=gym",
+    ),
     "gym-without-an-id": (
         "fedhpg-run",
         ["env=gym"],
