@@ -6,7 +6,7 @@ STAMP := $(VENV)/.installed
 export OMP_NUM_THREADS ?= 1
 export MKL_NUM_THREADS ?= 1
 
-.PHONY: setup demo docs test test-long image test-containers bench-containers clean-containers lint typecheck contracts bench bench-learning bench-learning-long bench-tuned bench-robustness bench-presets bench-scale bench-device bench-plan bench-async figures clean
+.PHONY: setup demo docs test test-long image test-containers test-cluster bench-cluster bench-containers clean-containers lint typecheck contracts bench bench-learning bench-learning-long bench-tuned bench-robustness bench-presets bench-scale bench-device bench-plan bench-async figures clean
 
 setup: $(STAMP)
 
@@ -14,7 +14,7 @@ $(STAMP): pyproject.toml constraints.txt
 	test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
 	$(BIN)/python -m pip install --quiet --upgrade pip
 	$(BIN)/python -m pip install --quiet -c constraints.txt -e ".[envs,dev]"
-	$(BIN)/python -m fedhpg.common.batched.compiled
+	$(BIN)/python -m fedhpg.common.batched.backend
 	touch $(STAMP)
 
 demo: $(STAMP)
@@ -54,6 +54,18 @@ image: $(STAMP)
 # tests are skipped with the reason; everything they start is removed by id when they end.
 test-containers: $(STAMP)
 	FEDHPG_CONTAINER_TESTS=1 $(BIN)/python -m pytest -q -rs tests/test_containers.py
+
+# fedhpg-cluster on a real SLURM and a real Ray (tests/test_cluster_engines.py): cluster/slurm.sh
+# and cluster/ray.sh install what they need (Debian's slurm and munge packages, the ray extra) and
+# start private two-node clusters in network namespaces where the machine allows it (root), else
+# the tests are skipped with the reason; what they start they stop, by pid (~3 min on 2 cores).
+test-cluster: $(STAMP)
+	FEDHPG_CLUSTER_TESTS=1 $(BIN)/python -m pytest -q -rs tests/test_cluster_engines.py
+
+# Start-up and per-round cost of fedhpg-cluster on SLURM and on Ray against fedhpg-run, the demo
+# and K = 1,000 on 2 hosts, on the clusters of test-cluster (BENCHMARKS.md "Clusters").
+bench-cluster: $(STAMP)
+	$(BIN)/python -m benchmarks.cluster_overhead
 
 # Timings from nothing (no base, image or build cache), the demo's 60 rounds in containers and
 # on loopback: benchmarks/results/containers.json (BENCHMARKS.md "Containers").
@@ -121,7 +133,7 @@ bench-presets: $(STAMP)
 # numba's kernel cache, filled at setup, is emptied by any edit of kernels.py: refilled first,
 # or the first case's start-up would time a compilation.
 bench-scale: $(STAMP)
-	$(BIN)/python -m fedhpg.common.batched.compiled
+	$(BIN)/python -m fedhpg.common.batched.backend
 	OMP_NUM_THREADS=1 $(BIN)/python -m benchmarks.scale
 	OMP_NUM_THREADS=1 $(BIN)/python -m benchmarks.scale_gridworld
 
@@ -130,7 +142,7 @@ bench-scale: $(STAMP)
 # One line and exit 1 where torch sees no CUDA device. DEVICE=cpu runs it on the CPU.
 DEVICE ?= cuda
 bench-device: $(STAMP)
-	$(BIN)/python -m fedhpg.common.batched.compiled
+	$(BIN)/python -m fedhpg.common.batched.backend
 	OMP_NUM_THREADS=1 $(BIN)/python -m benchmarks.scale_device --device $(DEVICE)
 
 # The Theorem 1 planner against uniform, speed-proportional and the paper's budgets at one

@@ -229,7 +229,7 @@ def host_round_us(agents: int = 1000, per_host: int = 500, rounds: int = 8) -> d
     group_s = time.perf_counter() - started
     max_bytes = max_message_bytes(run.server)
     in_kernels = [0.0]
-    originals = {name: getattr(kernels, name) for name in ("sample_iteration", "learn_iteration")}
+    originals = {name: getattr(kernels, name) for name in ("sample_rows", "row_gradients")}
 
     def timed(kernel: Any) -> Any:
         def call(*args: Any) -> None:

@@ -13,8 +13,9 @@ the same number of env copies as one host steps: (a) a bare ``gym.make_vec`` Car
 measured :data:`REF_REPEATS` times before the federation and as many after it, and the
 median is the reference (on a shared machine one measurement wanders by ±30 %; right after a
 minute of load on both cores it was once 40 % below its usual figure), the range kept beside
-it. Then :mod:`benchmarks.scale_engine` cross-checks the sampling ratio in one process,
-interleaved with (b), at θ̃_0 and at the K = 1,000 case's final θ̃.
+it. Then :mod:`benchmarks.engine_ab` compares this tree's agent groups with the last commit
+that had a copy of the algorithm per backend, rounds interleaved: FedHPG at θ̃_0 and at the
+K = 1,000 case's final θ̃, FedHPGVR at K = 1,000.
 
     python -m benchmarks.scale            # all cases, table on stdout, JSON + figure
 """
@@ -32,7 +33,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from benchmarks import scale_engine
+from benchmarks import engine_ab
 from benchmarks.runtime import _federation
 from benchmarks.scale_refs import bare_loop, cpu_description, forward_loop
 from fedhpg.common.components import agent_profile
@@ -303,6 +304,22 @@ def _load() -> tuple[list[CaseResult], str]:
     return out, stored.get("machine", "CPU not recorded")
 
 
+def against_baseline() -> list[engine_ab.Comparison]:
+    """This tree's agent groups against :data:`benchmarks.engine_ab.BASELINE`'s, one host's
+    500 agents of the K = 1,000 case at θ̃_0 and at its final θ̃, and FedHPGVR at K = 1,000
+    (:mod:`benchmarks.engine_ab`: interleaved rounds, paired ratios)."""
+    setups = [engine_ab.Setup(rounds=8)]
+    with tempfile.TemporaryDirectory() as tmp:
+        trained = FINAL_THETA.get(CASES["k1000"].name)
+        if trained is not None:
+            path = Path(tmp) / "trained.pt"
+            torch.save(trained, path)
+            label = f"θ̃ after {CASES['k1000'].rounds} rounds"
+            setups.append(engine_ab.Setup(rounds=4, theta=str(path), label=label))
+        setups.append(engine_ab.Setup(algo="fedhpgvr", agents=1000, rounds=2))
+        return [engine_ab.compare(setup) for setup in setups]
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("cases", nargs="*", choices=[[], *CASES], help="default: all")
@@ -323,11 +340,8 @@ def main() -> None:
         results += measured
         print("\n".join(table(measured).splitlines()[2:]), flush=True)
     print(table(results))
-    engine = [scale_engine.measure(scale_engine.start_theta(), "θ̃_0")]
-    trained = FINAL_THETA.get(CASES["k1000"].name)
-    if trained is not None:
-        engine.append(scale_engine.measure(trained, f"after {CASES['k1000'].rounds} rounds"))
-    print(scale_engine.table(engine))
+    engine = against_baseline()
+    print("\n".join(engine_ab.report(c) for c in engine))
     if len(args.cases) < len(CASES):
         # a subset is a spot check: the results file and the figure hold the whole table
         return
@@ -337,7 +351,7 @@ def main() -> None:
             {
                 "machine": machine,
                 "cases": [{**asdict(r), "case": asdict(r.case)} for r in results],
-                "engine_in_process": [asdict(r) for r in engine],
+                "against_baseline": [asdict(c) for c in engine],
             },
             indent=1,
         )

@@ -27,7 +27,6 @@ from pathlib import Path
 import torch
 
 from benchmarks.scale_refs import cpu_description
-from fedhpg.common.batched.compiled import CompiledFedHPG
 from fedhpg.common.config import DEVICE_PATTERN
 from fedhpg.common.engine.devices import device_problem
 from fedhpg.common.group import EngineGroup, make_agent_group
@@ -64,7 +63,8 @@ def _round(agents: int, engine: str, device: str, hidden: int) -> tuple[int, flo
                    f"algo.device={device}", f"policy.hidden=[{hidden},{hidden}]"])  # fmt: skip
     indices = list(range(agents))
     group = make_agent_group(run, indices, variants_of(run, indices))
-    assert isinstance(group, CompiledFedHPG if engine == "auto" else EngineGroup)
+    assert isinstance(group, EngineGroup)
+    assert (group.engine.compiled is not None) == (engine == "auto" and device == "cpu")
     group.prepare()
     theta = initial_theta(variants_of(run, [0])[0], run)
     started = time.perf_counter()

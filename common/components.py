@@ -152,10 +152,11 @@ def _check_plan(run: RunConfig, algorithm: Algorithm[Any, Any]) -> None:
     """``agents.plan=theorem1`` plans FedHPG's B_k, τ_k from Theorem 1's estimated constants."""
     if run.agents.plan == "none":
         return
-    if algorithm.name != "fedhpg":
+    if not algorithm.theorem1:
         raise ConfigError(
             "agents.plan",
-            f"theorem1 plans fedhpg's batch_size and local_iters, not {algorithm.name!r}'s",
+            f"theorem1 plans Algorithm 1's batch_size and local_iters (fedhpg), not "
+            f"{algorithm.name!r}'s: Theorem 1 does not hold for it",
         )
     if not run.algo.bound_estimates:
         raise ConfigError(
@@ -179,10 +180,11 @@ def validate_run(run: RunConfig) -> RunConfig:
     import_plugins(run.plugins)
     validate_env_family(run)
     algorithm, _ = resolve_algorithm(run)
-    if run.algo.bound_estimates and algorithm.name != "fedhpg":
+    if run.algo.bound_estimates and not algorithm.theorem1:
         raise ConfigError(
             "algo.bound_estimates",
-            f"Theorem 1's constants are estimated for fedhpg only, not {algorithm.name!r}",
+            f"Theorem 1's constants are estimated for Algorithm 1 (fedhpg) only, not "
+            f"{algorithm.name!r}",
         )
     if algorithm.strategy is not None and run.strategy.name != algorithm.strategy:
         raise ConfigError(

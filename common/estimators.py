@@ -33,6 +33,7 @@ from torch.func import functional_call, grad, vmap
 
 from fedhpg.common.config import ESTIMATORS
 from fedhpg.common.policies import Policy, flat_grad
+from fedhpg.common.staircase import Staircase
 
 EstimatorName = Literal["reinforce", "gpomdp"]
 BaselineName = Literal["none", "mean"]
@@ -49,54 +50,52 @@ Gamma = float | torch.Tensor
 
 
 def _leave_one_out_mean(values: torch.Tensor, groups: torch.Tensor | None) -> torch.Tensor:
-    """For each column b of [..., B], the mean of the other columns of its group (0 where
-    the group has one column). ``groups`` [B]: each column's group (one agent's batch);
-    None: every column in one group."""
+    """For each entry of [N], the mean of the other entries of its group (0 where the group
+    has one entry). ``groups`` [N]: each entry's group (one agent's batch); None: one group."""
     if groups is None:
         count = values.shape[-1]
         if count == 1:
             return torch.zeros_like(values)
         return (values.sum(dim=-1, keepdim=True) - values) / (count - 1)
     size = int(groups.max()) + 1 if groups.numel() else 0
-    totals = values.new_zeros((*values.shape[:-1], size)).index_add_(-1, groups, values)
+    totals = values.new_zeros(size).index_add_(0, groups, values)
     counts = torch.bincount(groups, minlength=size).to(values.dtype)
-    others = (counts - 1).clamp_min(1.0)[groups]
-    loo = (totals.index_select(-1, groups) - values) / others
+    loo = (totals[groups] - values) / (counts - 1).clamp_min(1.0)[groups]
     return torch.where(counts[groups] > 1, loo, torch.zeros_like(loo))
 
 
-def _discounts(gamma: Gamma, length: int, like: torch.Tensor) -> torch.Tensor:
-    """γ^t for t < length: [T], or [T, B] for per-column discounts."""
-    steps = torch.arange(length, dtype=like.dtype, device=like.device)
-    if isinstance(gamma, torch.Tensor):
-        return gamma.to(like.dtype).unsqueeze(0) ** steps.unsqueeze(1)
-    return gamma**steps
-
-
-def reinforce_coefficients(
-    rewards: torch.Tensor,
-    alive: torch.Tensor,
-    *,
-    gamma: Gamma,
-    baseline: BaselineName = "mean",
-    weights: torch.Tensor | None = None,
-    groups: torch.Tensor | None = None,
+def _less_step_baseline(
+    layout: Staircase, values: torch.Tensor, groups: torch.Tensor
 ) -> torch.Tensor:
-    """Eq. (5): coef[t, b] = w_b · (Σ_h γ^h r_{h,b} − C_b) on alive steps.
+    """values − C per cell [S], C[t, n] the mean of ``values`` at step t over the other
+    columns of n's group, every column of the group counted (a column past its end holds 0):
+    v − (S_t − v)/o = v (1 + 1/o) − S_t/o, with S_t the group's sum at step t and o its other
+    columns (a group of one column keeps v exactly: 2v − v)."""
+    size = int(groups.max()) + 1
+    group = layout.per_cell(groups)
+    key = layout.time * size + group
+    sums = values.new_zeros(layout.steps * size).index_add_(0, key, values)
+    others = (torch.bincount(groups, minlength=size) - 1).clamp_min(1).to(values.dtype)
+    shares = (sums.view(layout.steps, size) / others).reshape(-1)
+    out = values * (1.0 + 1.0 / others).index_select(0, group)
+    return out.sub_(shares.index_select(0, key))
 
-    rewards, alive: [T, B]; weights: optional [B] importance weights; ``groups``: each
-    column's agent, for a batch of several agents' trajectories (the baseline C_b is the mean
-    over the other trajectories of b's own agent).
-    """
-    discounts = _discounts(gamma, rewards.shape[0], rewards)
-    returns = (discounts.reshape(rewards.shape[0], -1) * rewards).sum(dim=0)  # [B]
-    centred = returns - _leave_one_out_mean(returns, groups) if baseline == "mean" else returns
-    if weights is not None:
-        centred = centred * weights
-    return alive.to(rewards.dtype) * centred.unsqueeze(0)
+
+def _discounts(gamma: Gamma, layout: Staircase, like: torch.Tensor) -> torch.Tensor:
+    """γ^t of every cell, [S] (each column's own γ where ``gamma`` is [N])."""
+    if not isinstance(gamma, torch.Tensor):
+        gamma = torch.full((layout.columns,), gamma, dtype=like.dtype, device=like.device)
+    return layout.step_powers(gamma.to(like.dtype))
 
 
-def gpomdp_coefficients(
+def _cell_weights(layout: Staircase, weights: torch.Tensor) -> torch.Tensor:
+    """Importance weights per cell: [N] (one per trajectory) spread over its cells, or [S]."""
+    return layout.per_cell(weights) if weights.shape[0] == layout.columns else weights
+
+
+def coefficients(
+    estimator: EstimatorName,
+    layout: Staircase,
     rewards: torch.Tensor,
     alive: torch.Tensor,
     *,
@@ -104,78 +103,86 @@ def gpomdp_coefficients(
     baseline: BaselineName = "mean",
     weights: torch.Tensor | None = None,
     reward_to_go: RewardToGoName = "from_start",
+    normalize: NormalizeName = "none",
     groups: torch.Tensor | None = None,
 ) -> torch.Tensor:
-    """Eq. (6): coef[t, b] = Σ_{h ≥ t} w_{0:h,b} · (γ^h r_{h,b} − C_{h,b}) on alive steps.
+    """coef[t, n] of every cell of ``layout`` (``rewards``, ``alive``: [S]; ``gamma``: one
+    or per column [N]; ``groups`` [N]: each column's agent, whose other trajectories make
+    its baselines; ``weights``: importance weights, [N] per trajectory or [S] per cell).
 
-    The per-step baseline C_h is applied at every step h < T, dead steps included: masking it
-    by "still alive at h" would correlate it with the earlier actions and bias the estimate.
-    weights: optional [T, B] per-decision cumulative importance weights; ``groups`` as in
-    :func:`reinforce_coefficients`.
+    REINFORCE, eq. (5): coef[t, n] = w_n · (Σ_h γ^h r_{h,n} − C_n) on alive steps, C_n the
+    mean return of the other trajectories of n's agent.
 
-    ``reward_to_go="from_step"`` (a departure, biased): Σ_{h ≥ t} w_{0:h,b} · γ^{h−t} (r_{h,b} −
-    C_{h,b}), i.e. eq. (6)'s coefficient divided by γ^t; computed by the backward recursion
-    R_t = x_t + γ R_{t+1}, so no γ^{−t} is ever formed (it would overflow on long horizons).
+    GPOMDP, eq. (6): coef[t, n] = Σ_{h ≥ t} w_{0:h,n} · (γ^h r_{h,n} − C_{h,n}) on alive
+    steps. The per-step baseline C_h is applied at every step h < T, dead steps included:
+    masking it by "still alive at h" would correlate it with the earlier actions and bias
+    the estimate. ``reward_to_go="from_step"`` (a departure, biased): Σ_{h ≥ t} w_{0:h,n} ·
+    γ^{h−t} (r_{h,n} − C_{h,n}), eq. (6)'s coefficient divided by γ^t.
+
+    Then ``normalize`` (a departure, biased): the coefficients standardised over the alive
+    cells of each agent's batch (``"batch"``) or of each trajectory (``"episode"``).
     """
-    if reward_to_go == "from_step":
-        step_values = (
-            rewards - _leave_one_out_mean(rewards, groups) if baseline == "mean" else rewards
-        )
+    if estimator not in ESTIMATORS:
+        raise ValueError(f"estimator must be one of {ESTIMATORS}, got {estimator!r}")
+    group = (
+        groups
+        if groups is not None
+        else torch.zeros(layout.columns, dtype=torch.int64, device=rewards.device)
+    )
+    mask = alive.to(rewards.dtype)
+    if estimator == "reinforce":
+        if reward_to_go != "from_start":
+            raise ValueError("reward_to_go='from_step' needs estimator 'gpomdp'")
+        totals = layout.column_totals(_discounts(gamma, layout, rewards).mul_(rewards))
+        centred = totals - _leave_one_out_mean(totals, group) if baseline == "mean" else totals
         if weights is not None:
-            step_values = step_values * weights
-        return alive.to(rewards.dtype) * _discounted_tail_sums(step_values, gamma)
-    discounts = _discounts(gamma, rewards.shape[0], rewards)
-    step_rewards = discounts.reshape(rewards.shape[0], -1) * rewards  # [T, B]
-    if baseline == "mean":
-        step_rewards = step_rewards - _leave_one_out_mean(step_rewards, groups)
-    if weights is not None:
-        step_rewards = step_rewards * weights
-    tail_sums = step_rewards.flip(0).cumsum(0).flip(0)
-    return alive.to(rewards.dtype) * tail_sums
+            if weights.shape[0] != layout.columns:
+                raise ValueError("REINFORCE takes one importance weight per trajectory")
+            centred = centred * weights
+        coef = mask * layout.per_cell(centred)
+    else:
+        discounted = reward_to_go == "from_start"
+        values = _discounts(gamma, layout, rewards).mul_(rewards) if discounted else rewards
+        if baseline == "mean":
+            values = _less_step_baseline(layout, values, group)
+        if weights is not None:
+            values = values * _cell_weights(layout, weights)
+        if discounted:
+            coef = layout.tail_sums(values).mul_(mask)
+        else:
+            factors = (
+                gamma
+                if isinstance(gamma, torch.Tensor)
+                else torch.full(
+                    (layout.columns,), gamma, dtype=rewards.dtype, device=rewards.device
+                )
+            )
+            coef = layout.tail_sums(values, factors).mul_(mask)
+    return _normalized(layout, coef, mask, normalize, group)
 
 
-def _discounted_tail_sums(values: torch.Tensor, gamma: Gamma) -> torch.Tensor:
-    """R[t] = Σ_{h ≥ t} γ^{h−t} values[h] along dim 0 (backward recursion)."""
-    out = torch.empty_like(values)
-    factor = gamma.to(values.dtype) if isinstance(gamma, torch.Tensor) else gamma
-    running = torch.zeros_like(values[0]) if values.shape[0] else values.new_zeros(())
-    for t in range(values.shape[0] - 1, -1, -1):
-        running = values[t] + factor * running
-        out[t] = running
-    return out
-
-
-def normalize_coefficients(
-    coefficients: torch.Tensor,
-    alive: torch.Tensor,
+def _normalized(
+    layout: Staircase,
+    coef: torch.Tensor,
+    mask: torch.Tensor,
     mode: NormalizeName,
-    groups: torch.Tensor | None = None,
+    groups: torch.Tensor,
 ) -> torch.Tensor:
-    """Standardise coefficients over the alive cells: of the whole batch (``"batch"``, per
-    agent where ``groups`` says whose each column is) or of each trajectory (``"episode"``):
-    (c − mean) / (std + ε), 0 on dead steps. A departure from eq. 5/6, biased for ∇J: the
-    mean and std are taken from the samples they rescale, so E[g] is neither ∇J nor a fixed
-    multiple of it (README, Estimator options)."""
+    """(c − mean) / (std + ε) over the alive cells of each group or each column, 0 on dead
+    cells (a departure from eq. 5/6, biased: the mean and std come from the samples they
+    rescale, so E[g] is neither ∇J nor a fixed multiple of it; README, Estimator options)."""
     if mode == "none":
-        return coefficients
-    mask = alive.to(coefficients.dtype)
-    if mode == "episode" or groups is None:
-        dims: tuple[int, ...] = (0, 1) if mode == "batch" else (0,)
-        count = mask.sum(dim=dims, keepdim=True).clamp_min(1.0)
-        mean = (coefficients * mask).sum(dim=dims, keepdim=True) / count
-        spread = ((coefficients - mean) ** 2 * mask).sum(dim=dims, keepdim=True) / count
-        return mask * (coefficients - mean) / (spread.sqrt() + NORMALIZE_EPS)
-    size = int(groups.max()) + 1
+        return coef
+    key = layout.column if mode == "episode" else layout.per_cell(groups)
+    size = layout.columns if mode == "episode" else int(groups.max()) + 1
 
-    def per_group(values: torch.Tensor) -> torch.Tensor:
-        column_sums = values.sum(dim=0)
-        return values.new_zeros(size).index_add_(0, groups, column_sums)
+    def sums(values: torch.Tensor) -> torch.Tensor:
+        return values.new_zeros(size).index_add_(0, key, values)
 
-    count = per_group(mask).clamp_min(1.0)
-    mean = per_group(coefficients * mask) / count
-    centred = coefficients - mean[groups]
-    spread = per_group(centred**2 * mask) / count
-    return mask * centred / (spread.sqrt()[groups] + NORMALIZE_EPS)
+    count = sums(mask).clamp_min(1.0)
+    centred = coef - (sums(coef * mask) / count).index_select(0, key)
+    spread = sums(centred**2 * mask) / count
+    return mask * centred / (spread.sqrt().index_select(0, key) + NORMALIZE_EPS)
 
 
 def estimator_coefficients(
@@ -190,29 +197,39 @@ def estimator_coefficients(
     normalize: NormalizeName = "none",
     groups: torch.Tensor | None = None,
 ) -> torch.Tensor:
-    """Dispatch to :func:`reinforce_coefficients` or :func:`gpomdp_coefficients`, then
-    :func:`normalize_coefficients`. ``reward_to_go="from_step"`` is GPOMDP's alone (REINFORCE
-    has no reward-to-go); config validation rejects the other pairings first. ``groups``:
-    each column's agent where the batch holds several agents' trajectories."""
-    if estimator == "reinforce":
-        if reward_to_go != "from_start":
-            raise ValueError("reward_to_go='from_step' needs estimator 'gpomdp'")
-        coef = reinforce_coefficients(
-            rewards, alive, gamma=gamma, baseline=baseline, weights=weights, groups=groups
-        )
-    elif estimator == "gpomdp":
-        coef = gpomdp_coefficients(
-            rewards,
-            alive,
-            gamma=gamma,
-            baseline=baseline,
-            weights=weights,
-            reward_to_go=reward_to_go,
-            groups=groups,
-        )
-    else:
-        raise ValueError(f"estimator must be one of {ESTIMATORS}, got {estimator!r}")
-    return normalize_coefficients(coef, alive, normalize, groups)
+    """:func:`coefficients` of a padded batch: ``rewards``, ``alive`` [T, B]; ``weights`` [B]
+    or [T, B]; returns [T, B] (0 on dead steps)."""
+    layout = Staircase.padded(rewards.shape[0], rewards.shape[1], rewards.device)
+    cells = coefficients(
+        estimator,
+        layout,
+        rewards.reshape(-1),
+        alive.reshape(-1),
+        gamma=gamma,
+        baseline=baseline,
+        weights=None if weights is None else weights.reshape(-1),
+        reward_to_go=reward_to_go,
+        normalize=normalize,
+        groups=groups,
+    )
+    return layout.pad(cells)
+
+
+def normalize_coefficients(
+    coefficients: torch.Tensor,
+    alive: torch.Tensor,
+    mode: NormalizeName,
+    groups: torch.Tensor | None = None,
+) -> torch.Tensor:
+    """The normalisation step of :func:`coefficients` alone, on padded [T, B] coefficients."""
+    layout = Staircase.padded(coefficients.shape[0], coefficients.shape[1], alive.device)
+    group = (
+        groups
+        if groups is not None
+        else torch.zeros(layout.columns, dtype=torch.int64, device=alive.device)
+    )
+    mask = alive.reshape(-1).to(coefficients.dtype)
+    return layout.pad(_normalized(layout, coefficients.reshape(-1), mask, mode, group))
 
 
 def estimate_gradient(

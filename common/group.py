@@ -20,7 +20,6 @@ from typing import TYPE_CHECKING, Protocol
 import numpy as np
 import torch
 
-from fedhpg.common.attacks import attack_of
 from fedhpg.common.config import RunConfig
 from fedhpg.common.types import EvaluationStats, LocalResult
 from fedhpg.common.variants import variants_of
@@ -36,6 +35,11 @@ Budgets = Mapping[int, Mapping[str, int]]
 GroupHook = Callable[[int, IterationWork], None]
 """(agent index, that agent's iteration) -> None, after each local iteration of each agent.
 It may raise to cancel the round (the agent process's cancellation does)."""
+
+
+TIMING_STATS = ("engine_sample_s", "engine_gradient_s")
+"""Algorithm statistics that are CPU times (of ``compute_s``: sampling, the rest): they vary
+from run to run like ``compute_s`` itself."""
 
 
 class AgentGroup(Protocol):
@@ -82,13 +86,15 @@ class EngineGroup:
     LARGE_TEMPORARIES = True
     """Megabytes of buffers every round (common/runtime/memory.py)."""
 
-    def __init__(self, run: RunConfig, variants: Mapping[int, EnvVariant]) -> None:
+    def __init__(
+        self, run: RunConfig, variants: Mapping[int, EnvVariant], *, compiled: bool = False
+    ) -> None:
         from fedhpg.common.components import resolve_algorithm
         from fedhpg.common.engine.engine import Engine
 
         self.run = run
         self.variants = variants
-        self.engine = Engine(run, variants)
+        self.engine = Engine(run, variants, compiled=compiled)
         self.algorithm, self.params = resolve_algorithm(run)
 
     @property
@@ -154,8 +160,13 @@ class EngineGroup:
             train_return=(tally.return_sum / trajectories).numpy(),
             grad_clipped=tally.clipped.numpy(),
             algorithm={
-                name: [None if math.isnan(v) else v for v in values.tolist()]
-                for name, values in tally.algorithm.items()
+                **{
+                    name: [None if math.isnan(v) else v for v in values.tolist()]
+                    for name, values in tally.algorithm.items()
+                },
+                # where the engine's time went, per agent (its share by env steps)
+                TIMING_STATS[0]: tally.sample_s.tolist(),
+                TIMING_STATS[1]: (tally.compute_s - tally.sample_s).tolist(),
             },
             iterations=works,
         )
@@ -268,19 +279,18 @@ class SplitGroup:
 def make_agent_group(
     run: RunConfig, indices: Sequence[int], variants: Mapping[int, EnvVariant] | None = None
 ) -> AgentGroup:
-    """The group for the run's agents ``indices``: the compiled backend for the agents it
-    covers (``algo.engine=auto``, FedHPG, the MLP categorical policy, CartPole, honest agents),
-    the engine for the others."""
+    """The group for the run's agents ``indices``: an engine on the compiled backend for the
+    agents it serves (:func:`fedhpg.common.batched.compiled_agents`), an engine on torch for
+    the others; each agent's backend follows from the agent alone, never from its company."""
     if not indices:
         raise ValueError("an agent group needs at least one agent")
     variants = variants_of(run, indices) if variants is None else variants
-    from fedhpg.common.batched import batched_group_or_none
+    from fedhpg.common.batched import compiled_agents
 
-    attackers = [k for k in indices if attack_of(run.attack, k) != "none"]
-    honest = [k for k in indices if attack_of(run.attack, k) == "none"]
-    batched = batched_group_or_none(run, {k: variants[k] for k in honest}) if honest else None
-    if batched is None:
-        return EngineGroup(run, {k: variants[k] for k in indices})
-    if not attackers:
-        return batched
-    return SplitGroup(batched, EngineGroup(run, {k: variants[k] for k in attackers}))
+    compiled = compiled_agents(run, {k: variants[k] for k in indices})
+    parts = [
+        EngineGroup(run, {k: variants[k] for k in indices if (k in compiled) == on}, compiled=on)
+        for on in (True, False)
+        if any((k in compiled) == on for k in indices)
+    ]
+    return parts[0] if len(parts) == 1 else SplitGroup(*parts)

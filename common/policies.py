@@ -133,7 +133,23 @@ def _last_linear(net: nn.Sequential) -> nn.Linear:
     return layer
 
 
-class TabularSoftmaxPolicy(Policy):
+class _Categorical(Policy):
+    """A softmax over the logits :meth:`_logits` computes from the parameters."""
+
+    @abc.abstractmethod
+    def _logits(self, params: Params, obs: torch.Tensor) -> torch.Tensor: ...
+
+    def log_prob_with(self, params: Params, obs: torch.Tensor, act: torch.Tensor) -> torch.Tensor:
+        log_pi = torch.log_softmax(self._logits(params, obs), dim=-1)
+        return log_pi.gather(-1, act.long().unsqueeze(-1)).squeeze(-1)
+
+    def act_with(
+        self, params: Params, obs: torch.Tensor, noise: torch.Tensor | None
+    ) -> torch.Tensor:
+        return categorical_act(self._logits(params, obs), noise)
+
+
+class TabularSoftmaxPolicy(_Categorical):
     """π(a|s) = softmax(θ[s])_a for discrete states; θ starts at zero (uniform policy)."""
 
     def __init__(self, *, num_states: int, num_actions: int) -> None:
@@ -147,15 +163,6 @@ class TabularSoftmaxPolicy(Policy):
         table = params["logits"]
         index = obs.long().unsqueeze(-1)
         return torch.take_along_dim(table, index, dim=-2)
-
-    def log_prob_with(self, params: Params, obs: torch.Tensor, act: torch.Tensor) -> torch.Tensor:
-        log_pi = torch.log_softmax(self._logits(params, obs), dim=-1)
-        return log_pi.gather(-1, act.long().unsqueeze(-1)).squeeze(-1)
-
-    def act_with(
-        self, params: Params, obs: torch.Tensor, noise: torch.Tensor | None
-    ) -> torch.Tensor:
-        return categorical_act(self._logits(params, obs), noise)
 
     def log_prob(self, obs: torch.Tensor, act: torch.Tensor) -> torch.Tensor:
         return self.log_prob_with(self.own_params(), obs.reshape(-1), act.reshape(-1)).reshape(
@@ -177,7 +184,7 @@ def _mlp(sizes: Sequence[int], activation: type[nn.Module] = nn.Tanh) -> nn.Sequ
     return nn.Sequential(*layers)
 
 
-class MLPCategoricalPolicy(Policy):
+class MLPCategoricalPolicy(_Categorical):
     """Box observations, discrete actions: logits = MLP(s) with tanh hidden layers."""
 
     def __init__(self, *, obs_dim: int, num_actions: int, hidden: Sequence[int] = (64, 64)) -> None:
@@ -192,15 +199,6 @@ class MLPCategoricalPolicy(Policy):
 
     def _logits(self, params: Params, obs: torch.Tensor) -> torch.Tensor:
         return mlp_with(params, "net", self.depth, obs.float())
-
-    def log_prob_with(self, params: Params, obs: torch.Tensor, act: torch.Tensor) -> torch.Tensor:
-        log_pi = torch.log_softmax(self._logits(params, obs), dim=-1)
-        return log_pi.gather(-1, act.long().unsqueeze(-1)).squeeze(-1)
-
-    def act_with(
-        self, params: Params, obs: torch.Tensor, noise: torch.Tensor | None
-    ) -> torch.Tensor:
-        return categorical_act(self._logits(params, obs), noise)
 
     def log_prob(self, obs: torch.Tensor, act: torch.Tensor) -> torch.Tensor:
         return self.log_prob_with(self.own_params(), obs, act)
@@ -364,9 +362,10 @@ def _gaussian_mlp(
     )
 
 
+MLP_CATEGORICAL = "mlp_categorical"
 POLICIES: dict[str, PolicyFactory] = {
     "tabular": _tabular,
-    "mlp_categorical": _mlp_categorical,
+    MLP_CATEGORICAL: _mlp_categorical,
     "gaussian_mlp": _gaussian_mlp,
 }
 

@@ -90,6 +90,8 @@ def trajectory_keys(
 
 def words(keys: torch.Tensor, counters: torch.Tensor | int) -> torch.Tensor:
     """hash(key, counter): 64 random bits per (key, counter), broadcast."""
+    if isinstance(counters, int):
+        return mix64(keys + signed((counters + 1) * GOLDEN))
     return mix64(keys + (counters + 1) * GOLDEN)
 
 

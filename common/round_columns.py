@@ -2,15 +2,14 @@
 their :class:`~fedhpg.common.types.UpdateStats` as one array, every local iteration's work
 (what the device emulation prices) as arrays over the agents that ran it.
 
-An agent host of 500 agents spent more time on per-agent objects than on half its kernels:
-an :class:`IterationWork` and a ``DeviceModel.spend`` call per agent and iteration, a
-``LocalTally`` and an ``UpdateStats`` per agent, then the wire's columns built back from
-them. :func:`train_columns` gives the host the round in the shape it sends, straight from an
-engine that computes columns (:meth:`CompiledFedHPG.train_columns
-<fedhpg.common.batched.compiled.CompiledFedHPG.train_columns>`), or gathered from any other
-group's per-agent results. An engine's per-agent ``train`` reads its records out of the same
-arrays (:meth:`TrainedColumns.result`), so an agent's statistics do not depend on which of
-the two a placement calls.
+An agent host of many agents would spend more time on per-agent objects than on its engine
+if it built an ``UpdateStats`` per agent and iteration and then the wire's columns back from
+them. :func:`train_columns` gives the host the round in the shape it sends, straight from a
+group that computes columns (:meth:`EngineGroup.train_columns
+<fedhpg.common.group.EngineGroup.train_columns>`), or gathered from any other group's
+per-agent results. A group's per-agent ``train`` reads its records out of the same arrays
+(:meth:`TrainedColumns.result`), so an agent's statistics do not depend on which of the two
+a placement calls.
 """
 
 from __future__ import annotations

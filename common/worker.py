@@ -1,13 +1,11 @@
-"""What every placement of an agent shares: its policy built from the run seed, θ̃_0, the
-per-(seed, agent, round) numpy streams the compiled engine reproduces, and the work record of
-one local iteration that the device emulation prices."""
+"""What every placement of an agent shares: its policy built from the run seed, θ̃_0, and the
+work record of one local iteration that the device emulation prices."""
 
 from __future__ import annotations
 
 from dataclasses import dataclass
-from enum import IntEnum
 
-import numpy as np
+import gymnasium as gym
 import torch
 
 from fedhpg.common.config import RunConfig
@@ -15,26 +13,13 @@ from fedhpg.common.policies import Policy, get_flat_params, make_policy
 from fedhpg.envs.base import EnvVariant
 
 
-class Stream(IntEnum):
-    """Purposes of the per-(seed, agent, round) random streams."""
-
-    TRAIN = 0
-    EVALUATE = 1
-    ATTACK = 2
-
-
-def random_stream(
-    seed: int, agent_index: int, round_index: int, purpose: Stream
-) -> np.random.Generator:
-    """A stream that depends only on (seed, agent, round, purpose).
-
-    A restarted agent, or the same agent in another process, redoes exactly the same work.
-    """
-    return np.random.default_rng([seed, agent_index, round_index, int(purpose)])
-
-
 def build_policy(variant: EnvVariant, run: RunConfig) -> Policy:
     """The run's policy for the variant's spaces, initialised from the run seed alone."""
+    return policy_and_actions(variant, run)[0]
+
+
+def policy_and_actions(variant: EnvVariant, run: RunConfig) -> tuple[Policy, gym.Space]:
+    """:func:`build_policy` and the variant's action space, from one environment."""
     env = variant.make_env()
     # Only the CPU generator, saved and restored by hand: torch.random.fork_rng() and
     # torch.manual_seed() also reach for every CUDA device, which initialises CUDA where torch
@@ -43,7 +28,8 @@ def build_policy(variant: EnvVariant, run: RunConfig) -> Policy:
     state = torch.default_generator.get_state()
     try:
         torch.default_generator.manual_seed(run.seed)
-        return make_policy(env.observation_space, env.action_space, run.policy)
+        policy = make_policy(env.observation_space, env.action_space, run.policy)
+        return policy, env.action_space
     finally:
         torch.default_generator.set_state(state)
         env.close()

@@ -259,7 +259,7 @@ def prepare_compiled_engine(run: RunConfig) -> None:
 
     if not uses_compiled_engine(run):
         return
-    from fedhpg.common.batched.compiled import warm_up
+    from fedhpg.common.batched.backend import warm_up
     from fedhpg.common.runtime.progress import announced_if_slow
 
     with announced_if_slow(

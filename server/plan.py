@@ -28,6 +28,7 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, NoReturn
 
+from fedhpg.common.components import resolve_algorithm
 from fedhpg.common.config import ConfigError, RunConfig
 from fedhpg.common.runtime.cli import (
     EXIT_USAGE,
@@ -251,7 +252,7 @@ def main(argv: Sequence[str] | None = None) -> int:
             raise ConfigError("--budget-s", f"must be > 0 emulated seconds, got {args.budget_s:g}")
         if args.pilot_rounds < 1:
             raise ConfigError("--pilot-rounds", f"must be ≥ 1, got {args.pilot_rounds}")
-        if run.algo.name != "fedhpg":
+        if not resolve_algorithm(run)[0].theorem1:
             raise ConfigError(
                 "algo.name",
                 f"the planner needs Theorem 1 (fedhpg); {run.algo.name}'s bound has constants "

@@ -110,16 +110,7 @@ def batch_gradient(
     weights: torch.Tensor | None = None,
 ) -> torch.Tensor:
     """(1/B) Σ_b g(τ_b | θ) with the configured estimator and baseline, by autograd."""
-    coefficients = estimator_coefficients(
-        algo.estimator,  # type: ignore[arg-type]
-        torch.from_numpy(batch.rewards),
-        torch.from_numpy(batch.alive),
-        gamma=gamma,
-        baseline=algo.baseline,  # type: ignore[arg-type]
-        weights=weights,
-        reward_to_go=algo.reward_to_go,  # type: ignore[arg-type]
-        normalize=algo.normalize,  # type: ignore[arg-type]
-    )
+    coefficients = _coefficients(batch, algo, gamma, weights)
     obs, actions = torch.from_numpy(batch.obs), torch.from_numpy(batch.actions)
     return estimate_gradient(policy, obs, actions, coefficients)
 
@@ -130,15 +121,23 @@ def bound_statistics(
     """Theorem 1's constants from the batch's per-trajectory gradients (autograd, vmap)."""
     if batch.num_trajectories < 2:
         return {}
-    coefficients = estimator_coefficients(
+    coefficients = _coefficients(batch, algo, gamma)
+    obs, actions = torch.from_numpy(batch.obs), torch.from_numpy(batch.actions)
+    rows = per_trajectory_gradients(policy, obs, actions, coefficients)
+    return bound_stats(gradient_moments(rows))
+
+
+def _coefficients(
+    batch: TrajectoryBatch, algo: AlgoConfig, gamma: float, weights: torch.Tensor | None = None
+) -> torch.Tensor:
+    """The configured estimator's coefficients of one agent's batch, [T, B]."""
+    return estimator_coefficients(
         algo.estimator,  # type: ignore[arg-type]
         torch.from_numpy(batch.rewards),
         torch.from_numpy(batch.alive),
         gamma=gamma,
         baseline=algo.baseline,  # type: ignore[arg-type]
+        weights=weights,
         reward_to_go=algo.reward_to_go,  # type: ignore[arg-type]
         normalize=algo.normalize,  # type: ignore[arg-type]
     )
-    obs, actions = torch.from_numpy(batch.obs), torch.from_numpy(batch.actions)
-    rows = per_trajectory_gradients(policy, obs, actions, coefficients)
-    return bound_stats(gradient_moments(rows))

@@ -14,6 +14,7 @@ import pytest
 import torch
 
 from fedhpg.common.config import ConfigError, ServerConfig
+from fedhpg.common.group import TIMING_STATS
 from fedhpg.common.types import AgentUpdate, UpdateStats
 from fedhpg.server import api
 from fedhpg.server.buffered import BufferedSchedule, InFlight, buffer_rows
@@ -27,7 +28,8 @@ WALL_FIELDS = ("wall_time_s", "round_time_s")
 
 
 def _agents(agents: list[dict[str, Any]]) -> list[dict[str, Any]]:
-    return [{k: v for k, v in a.items() if k != "compute_s"} for a in agents]
+    """Each agent's entry without its CPU times (``compute_s`` and the engine's split of it)."""
+    return [{k: v for k, v in a.items() if k not in ("compute_s", *TIMING_STATS)} for a in agents]
 
 
 def _figures(records: list[dict[str, Any]]) -> list[dict[str, Any]]:

@@ -91,7 +91,8 @@ CASES: dict[str, tuple[str, list[str], str]] = {
     "plan-of-fedhpgvr": (
         "fedhpg-run",
         ["algo=fedhpgvr", "agents.plan=theorem1"],
-        "agents.plan: theorem1 plans fedhpg's batch_size and local_iters, not 'fedhpgvr''s",
+        "agents.plan: theorem1 plans Algorithm 1's batch_size and local_iters (fedhpg), not "
+        "'fedhpgvr''s: Theorem 1 does not hold for it",
     ),
     "plan-every-zero": (
         "fedhpg-run",
@@ -231,7 +232,8 @@ CASES: dict[str, tuple[str, list[str], str]] = {
     "bounds-for-vr": (
         "fedhpg-run",
         ["algo=fedhpgvr", "algo.bound_estimates=true"],
-        "algo.bound_estimates: Theorem 1's constants are estimated for fedhpg only",
+        "algo.bound_estimates: Theorem 1's constants are estimated for Algorithm 1 (fedhpg) "
+        "only, not 'fedhpgvr'",
     ),
     "buffered-hosts": (
         "fedhpg-run",

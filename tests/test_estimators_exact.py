@@ -45,9 +45,7 @@ from tabular_mdp import (
 from fedhpg.common.estimators import (
     estimate_gradient,
     estimator_coefficients,
-    gpomdp_coefficients,
     per_trajectory_gradients,
-    reinforce_coefficients,
 )
 from fedhpg.common.policies import TabularSoftmaxPolicy
 
@@ -366,8 +364,8 @@ def test_batch_gradient_is_linear_in_coefficients(
 ) -> None:
     batch = _as_batch(sampled[1])
     net = _double(policy)
-    first = reinforce_coefficients(batch.rewards, batch.alive, gamma=GAMMA)
-    second = gpomdp_coefficients(batch.rewards, batch.alive, gamma=GAMMA)
+    first = estimator_coefficients("reinforce", batch.rewards, batch.alive, gamma=GAMMA)
+    second = estimator_coefficients("gpomdp", batch.rewards, batch.alive, gamma=GAMMA)
 
     def grad(coef: torch.Tensor) -> torch.Tensor:
         return estimate_gradient(net, batch.obs, batch.actions, coef)

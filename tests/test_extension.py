@@ -16,6 +16,7 @@ import torch
 from procs import processes, start
 
 from fedhpg.common.config import ConfigError
+from fedhpg.common.group import EngineGroup, make_agent_group
 from fedhpg.common.runtime.cli import compose
 from fedhpg.common.variants import run_variants
 from fedhpg.envs.registry import make_variants
@@ -80,6 +81,30 @@ def test_a_plugin_algorithm_and_strategy_run_through_fedhpg_run(tmp_path: Path) 
     assert torch.equal(checkpoint.theta, run_in_process(compose(OVERRIDES)))
 
 
+def test_a_plugin_algorithm_runs_batched_for_a_thousand_agents_on_two_hosts(
+    tmp_path: Path,
+) -> None:
+    """The plugin's algorithm, written with the engine's primitives and nothing else, trains
+    1,000 CartPole agents as two hosts of 500 rows each (one batch per host and iteration), and
+    ends with the θ̃ the in-process pool computes for the same 1,000 agents in one batch."""
+    overrides = [
+        "plugins=[fedhpg_toy_plugin]", "env=cartpole", "algo.name=toy_sign",
+        "+algo.params.scale=0.01", "++agents.budget.steps=[2]", "agents=population",
+        "agents.num_agents=1000", "agents.per_host=500", "agents.clock=counted", "rounds=2",
+        "eval.every=2", "eval.episodes=1", "server.tensorboard=false",
+    ]  # fmt: skip
+    run = compose(overrides)
+    assert isinstance(make_agent_group(run, list(range(500))), EngineGroup), "batched"
+    out_dir, _ = fedhpg_run(overrides, tmp_path)
+    records = [json.loads(line) for line in (out_dir / "metrics.jsonl").read_text().splitlines()]
+    assert [len(r["agents"]) for r in records] == [1000, 1000]
+    assert all(0.0 <= a["sign_flips"] <= 1.0 for r in records for a in r["agents"])
+    batches = {a["trajectories"] for a in records[0]["agents"]}
+    assert batches == {8, 16, 32}, "each agent's own B_k (4, 8 or 16) twice"
+    checkpoint = latest_valid_checkpoint(out_dir / "checkpoints")
+    assert checkpoint is not None and torch.equal(checkpoint.theta, run_in_process(run))
+
+
 def test_plugin_options_are_checked_by_name() -> None:
     with pytest.raises(ConfigError, match="must be > 0") as info:
         run_in_process(compose([*OVERRIDES, "algo.params.scale=-1"]))
@@ -109,6 +134,7 @@ def test_a_strategy_declares_the_updates_it_takes_and_whether_rounds_may_be_buff
     class SendsDeltas(ToySign):
         name = "toy_sends_deltas"
         strategy = "toy_deltas"
+        sends = "deltas"
 
     ALGORITHMS.names(), STRATEGIES.names()  # the package's own entries first
     monkeypatch.setitem(ALGORITHMS._entries, SendsDeltas.name, SendsDeltas())

@@ -16,6 +16,7 @@ import time
 from pathlib import Path
 
 import numpy as np
+import pytest
 import torch
 import zmq
 from peers import raw_frames
@@ -67,9 +68,9 @@ def _fedhpg_run(tmp_path: Path, keys: list[str], name: str) -> tuple[torch.Tenso
     return checkpoint.theta, json.loads((out_dir / "summary.json").read_text())
 
 
-# CartPole variants, B_k and τ_k from the population: the batched engine trains every honest
-# agent (hosts of 3 or 7 stack them, a lone agent is a group of one); agent 2 attacks, so the
-# loop trains it beside the engine (common/group.py's SplitGroup).
+# CartPole variants, B_k and τ_k from the population: the compiled backend samples and
+# differentiates for every agent of every algorithm (rows of 1, 3 or 7 agents; a lone agent is
+# a group of one); agent 2 flips its update's sign after its local update.
 ENGINE_RUN = [
     "env=cartpole", "agents=population", "rounds=3", "seed=5", "agents.num_agents=7",
     "agents.clock=counted", "eval.every=3", "eval.episodes=2", "attack.kind=sign_flip",
@@ -78,13 +79,22 @@ ENGINE_RUN = [
 ]  # fmt: skip
 
 
-def test_theta_does_not_depend_on_the_placement_of_the_agents(tmp_path: Path) -> None:
+ALGORITHM_RUNS = {
+    "fedhpg": ENGINE_RUN,
+    "fedhpgvr": [*ENGINE_RUN, "algo=fedhpgvr"],
+    "fedpgbr": [*ENGINE_RUN, "algo=fedpgbr", "strategy=fedpgbr"],
+}
+
+
+@pytest.mark.parametrize("algorithm", list(ALGORITHM_RUNS))
+def test_theta_does_not_depend_on_the_placement_of_the_agents(
+    tmp_path: Path, algorithm: str
+) -> None:
     """Nor does any agent's emulated time on the counted clock: a host emulates its agents'
     devices column-wise (common/device.py's DeviceColumns), a lone agent and the in-process
-    pool one DeviceModel at a time. Agent 2 attacks, so hosts of 3 and 7 hold an engine and a
-    loop side by side (their columns gathered from per-agent results), the host of agents 3..5
-    the engine alone (its own columns)."""
-    run = compose(ENGINE_RUN)
+    pool one DeviceModel at a time."""
+    keys_of_run = ALGORITHM_RUNS[algorithm]
+    run = compose(keys_of_run)
     records: list = []
     expected = run_in_process(run, on_round=[lambda record, _: records.append(record)])
     assert not torch.equal(expected, initial_theta(variant_of(run, 0), run))
@@ -92,7 +102,7 @@ def test_theta_does_not_depend_on_the_placement_of_the_agents(tmp_path: Path) ->
     speeds = [{a.agent_index: a.stats.speed for a in r.agents} for r in records]
     assert len({e for r in emulated for e in r.values()}) > 7, "the agents' times differ"
     for per_host in (1, 3, 7):  # 7 processes; hosts of 3 + 3 + 1; one host of 7
-        keys = [*ENGINE_RUN, f"agents.per_host={per_host}"]
+        keys = [*keys_of_run, f"agents.per_host={per_host}"]
         theta, summary = _fedhpg_run(tmp_path, keys, str(per_host))
         assert torch.equal(theta, expected), per_host
         lines = (tmp_path / str(per_host) / "metrics.jsonl").read_text().splitlines()

@@ -131,8 +131,9 @@ def test_a_killed_agent_is_restarted_and_the_run_ends_as_if_nothing_happened(
 
 
 def test_agents_of_a_run_the_server_aborts_are_not_restarted(tmp_path: Path) -> None:
-    """Every update diverges in round 1 (a step of 1e38 overflows float32): the server stops
-    the run and tells its agents, which exit 3; restarting them would mend nothing."""
+    """Every update diverges in round 1 (a step of 1e300 is inf in float32, so every
+    coordinate of every θ_k is inf or NaN whatever its gradient): the server stops the run and
+    tells its agents, which exit 3; restarting them would mend nothing."""
     with processes() as started:
         launcher = start(
             started,
@@ -141,7 +142,7 @@ def test_agents_of_a_run_the_server_aborts_are_not_restarted(tmp_path: Path) -> 
                 *LONG_RUN[1:],
                 "env.family=cartpole",
                 "rounds=3",
-                "algo.step_size=1e38",
+                "algo.step_size=1e300",
                 "agent.max_restarts=2",
                 f"server.out_dir={tmp_path / 'run'}",
             ],

@@ -34,6 +34,11 @@ if TYPE_CHECKING:
 P = TypeVar("P")
 B = TypeVar("B")
 
+PARAMETERS = "parameters"
+"""What an agent sends: its θ_k (the paper's algorithms)."""
+GRADIENTS = "gradients"
+"""What an agent sends: θ̃ + its gradient estimate at θ̃ (FedPG-BR's agents)."""
+
 
 @dataclass(frozen=True, kw_only=True)
 class NoParams:
@@ -50,6 +55,12 @@ class Algorithm(abc.ABC, Generic[P, B]):
     """Frozen dataclass of one agent's budget (``agents.budget.<field>[k]``)."""
     strategy: ClassVar[str | None] = None
     """The one server strategy the algorithm's updates mean anything to (None: any)."""
+    sends: ClassVar[str] = PARAMETERS
+    """What its updates are (:data:`PARAMETERS` or :data:`GRADIENTS`): a strategy takes one."""
+    theorem1: ClassVar[bool] = False
+    """Whether Theorem 1 (the paper's bound for Algorithm 1's updates) holds for it: then
+    ``algo.bound_estimates`` measures its constants and ``agents.plan=theorem1`` plans its
+    budgets."""
 
     @abc.abstractmethod
     def local_update(self, rows: Rows, engine: Engine, params: P) -> torch.Tensor:

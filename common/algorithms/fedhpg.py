@@ -42,6 +42,7 @@ class FedHPG(Algorithm[NoParams, FedHPGBudget]):
 
     name = "fedhpg"
     Budget = FedHPGBudget
+    theorem1 = True
 
     def local_update(self, rows: Rows, engine: Engine, params: NoParams) -> torch.Tensor:
         algo = engine.run.algo

@@ -18,7 +18,7 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from fedhpg.common.algorithms import Algorithm, register_algorithm
+from fedhpg.common.algorithms import GRADIENTS, Algorithm, register_algorithm
 from fedhpg.common.config import AlgoConfig, ConfigError
 from fedhpg.common.engine.engine import Engine, Rows
 from fedhpg.common.registry import OptionError
@@ -78,6 +78,7 @@ class FedPGBR(Algorithm[FedPGBRParams, FedPGBRBudget]):
     Params = FedPGBRParams
     Budget = FedPGBRBudget
     strategy = "fedpgbr"
+    sends = GRADIENTS
 
     def local_update(self, rows: Rows, engine: Engine, params: FedPGBRParams) -> torch.Tensor:
         size = round_schedule(engine.run.seed, rows.round_index, params).batch_size

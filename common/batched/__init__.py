@@ -1,9 +1,10 @@
-"""The compiled CartPole backend (numba): FedHPG for CartPole agents with the MLP categorical
-policy, each local iteration of all of them in two kernel calls.
+"""The compiled CartPole backend (numba): the engine's sampling and score gradients for
+agents with the MLP categorical policy on CartPole variants, on the CPU.
 
-:func:`batched_group_or_none` returns it where it applies (``algo.engine=auto``, FedHPG, the
-MLP categorical policy, CartPole variants); everything else trains on the engine
-(:mod:`fedhpg.common.engine`).
+:func:`compiled_agents` says which of a group's agents it serves (``algo.engine=auto`` on the
+CPU, the MLP categorical policy, a CartPole variant the kernels model, no attack on sampling);
+:func:`fedhpg.common.group.make_agent_group` gives them an engine on this backend and the
+others an engine on torch. Any algorithm runs on it: it supplies primitives, not a loop.
 """
 
 from __future__ import annotations
@@ -11,31 +12,14 @@ from __future__ import annotations
 from collections.abc import Mapping
 from typing import TYPE_CHECKING
 
+from fedhpg.common.attacks import SAMPLING_ATTACKS, attack_of
 from fedhpg.common.batched.mlp import MLPShape
 from fedhpg.common.config import RunConfig
+from fedhpg.common.policies import AUTO_POLICY, MLP_CATEGORICAL
 from fedhpg.envs.base import EnvVariant
 
 if TYPE_CHECKING:
-    from fedhpg.common.group import AgentGroup
     from fedhpg.common.policies import Policy
-
-
-def _unsupported(run: RunConfig, policy: Policy) -> str | None:
-    from fedhpg.common.policies import MLPCategoricalPolicy
-
-    if run.algo.name != "fedhpg":
-        return f"algorithm {run.algo.name!r} (the compiled backend runs fedhpg)"
-    if run.algo.optimizer not in ("sgd", "adam"):
-        return f"optimizer {run.algo.optimizer!r}"
-    if type(policy) is not MLPCategoricalPolicy:
-        return f"policy {type(policy).__name__} (the compiled backend runs MLPCategoricalPolicy)"
-    return None
-
-
-def _policy(run: RunConfig, variants: Mapping[int, EnvVariant]) -> Policy:
-    from fedhpg.common.worker import build_policy
-
-    return build_policy(variants[min(variants)], run)
 
 
 def mlp_shape(policy: Policy) -> MLPShape:
@@ -46,31 +30,25 @@ def mlp_shape(policy: Policy) -> MLPShape:
     return MLPShape((linear[0].in_features, *(m.out_features for m in linear)))
 
 
+def compiled_agents(run: RunConfig, variants: Mapping[int, EnvVariant]) -> set[int]:
+    """The agents of ``variants`` the compiled backend serves."""
+    if run.algo.engine != "auto" or run.algo.device != "cpu" or not variants:
+        return set()
+    from fedhpg.common.batched.backend import covers  # numba's import: only where it may run
+
+    served = {
+        k
+        for k, variant in variants.items()
+        if attack_of(run.attack, k) not in SAMPLING_ATTACKS and covers(variant)
+    }
+    # a CartPole variant's spaces (a Box of observations, Discrete actions) make 'auto' the
+    # built-in MLP categorical policy, the one the kernels compute
+    return served if run.policy.name in (AUTO_POLICY, MLP_CATEGORICAL) else set()
+
+
 def uses_compiled_engine(run: RunConfig) -> bool:
-    """Whether the run's agents train on the compiled backend (so a launcher can compile or
-    load its kernels once, before it forks them)."""
-    if run.algo.engine != "auto" or run.algo.device != "cpu":
-        return False
+    """Whether some of the run's agents train on the compiled backend (so a launcher can
+    compile or load its kernels once, before it forks them)."""
     from fedhpg.common.variants import variants_of
 
-    variants = variants_of(run, [0])
-    if _unsupported(run, _policy(run, variants)) is not None:
-        return False
-    from fedhpg.common.batched.compiled import compiled_unsupported
-
-    return compiled_unsupported(run, variants) is None
-
-
-def batched_group_or_none(run: RunConfig, variants: Mapping[int, EnvVariant]) -> AgentGroup | None:
-    """The compiled backend for these agents, or None where it does not apply."""
-    if run.algo.engine != "auto" or run.algo.device != "cpu":
-        return None
-    policy = _policy(run, variants)  # one env, for the spaces
-    if _unsupported(run, policy) is not None:
-        return None
-    # imported here: numba's import and compilation are paid only by runs that use it
-    from fedhpg.common.batched.compiled import CompiledFedHPG, compiled_unsupported
-
-    if compiled_unsupported(run, variants) is None:
-        return CompiledFedHPG(run, variants, mlp_shape(policy))
-    return None
+    return bool(compiled_agents(run, variants_of(run, [0])))

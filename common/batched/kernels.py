@@ -1,35 +1,31 @@
-"""The compiled backend's kernels (numba): sampling, FedHPG's estimators, gradients and steps of
-many agents, an agent at a time, in one call per local iteration and phase.
+"""The compiled backend's kernels (numba): sampling and score gradients of many agents' MLP
+categorical policies on CartPole, an agent at a time.
 
-Why an agent at a time: a tensor engine steps a thousand agents in lockstep to spread each
+Why an agent at a time: a tensor backend steps a thousand agents in lockstep to spread each
 call over many copies, and pays for it on a CPU: copies whose episode ended wait for their
 agent's longest, and a few long episodes carry the per-step cost of dozens of calls. Compiled,
 an agent's copies are stepped together (layer by layer over its copies still running, packed
 at the front) until its last episode ends, then the next agent's; its weights and activations
-stay in L1, and nothing an agent computes can depend on another agent: placement invariance
-by construction.
+stay in L1, and nothing an agent computes can depend on another agent.
+
+Randomness: each copy's draws are common/randomness.py's hash of its trajectory key, compiled
+(:func:`uniform24`, :func:`uniform53`): the same numbers as the torch backend's for the same
+key and counter.
 
 Numerics:
 - sampling and the dynamics are strict IEEE (no ``fastmath``: LLVM may not reassociate or
   contract, so a vectorised loop computes what the scalar one would), so an episode is the
   same on any x86-64 host given θ; ``error_model="numpy"`` everywhere (IEEE division, no zero
   check: the check stops LLVM from vectorising any loop with a division);
-- tanh by :func:`tanh32`, a rational function evaluated in float32 (a libm ``tanhf`` per
-  unit cannot be vectorised and made the whole sampler 2.5× slower). An AVX2 vector holds 8
-  float32 lanes, not float64's 4: the sampler took 0.85–0.89 and the gradient 0.79–0.82 of
-  their CPU per env step with the float64 evaluation it replaced (two runs of ``python -m
-  benchmarks.kernels_ab``). The price is accuracy: over every float32 in [2⁻³⁰, 10.5], 24 %
-  are one ulp or more off the correctly rounded tanh, 3.2 % two or more, 0.28 % three or
-  more, none more than seven (< 10⁻⁶ relative), where the float64 evaluation was within one
-  ulp (0.07 % off); numpy's float32 tanh is one ulp off for 11 %, torch's for 0.03 %.
-  Returning ±1 exactly from |x| ≈ 9.01 on, as the float64 evaluation did, took back half
-  the sampler's gain, so it is not done;
-- the estimator's coefficients in float64, as common/estimators.py; the gradient summed in
-  float32 over blocks of :data:`BLOCK` rows, the blocks in float64, rounded to float32 once,
-  with LLVM free to reorder and fuse the sums within a block (:data:`GRADIENT_FASTMATH`):
-  fixed by the compiled code, so the same in any company and placement on one CPU type, but
-  hosts of different CPU types may round the gradient differently;
-- the steps are common/optim.py's plain and Adam steps, one row.
+- tanh by :func:`tanh32`, a rational function evaluated in float32: a libm ``tanhf`` per unit
+  cannot be vectorised, and float32 fills twice the vector lanes of float64. Over every
+  float32 in [2⁻³⁰, 10.5], 24 % of its values are one ulp or more off the correctly rounded
+  tanh, none more than seven (< 10⁻⁶ relative);
+- the gradient summed in float32 over blocks of :data:`BLOCK` rows, the blocks in float64,
+  rounded to float32 once, with LLVM free to reorder and fuse the sums within a block
+  (:data:`GRADIENT_FASTMATH`): fixed by the compiled code, so the same in any company and
+  placement on one CPU type, but hosts of different CPU types may round the gradient
+  differently.
 
 Layouts. θ is torch's flat layout (each ``nn.Linear``: weight [out, in] row-major, then
 bias). Inside a kernel the weights are padded 3-D arrays indexed by loop variables only (a
@@ -49,8 +45,7 @@ from typing import Any, TypeVar, cast
 import numpy as np
 from numba import njit
 
-from fedhpg.common.batched.streams import next_double
-from fedhpg.common.estimators import NORMALIZE_EPS
+from fedhpg.common import randomness
 from fedhpg.envs.compiled import CARTPOLE_STEP_LIMIT, cartpole_step
 
 # tanh(x)/x ≈ P(x²)/Q(x²) on |x| ≤ 10: least squares on the relative error, Chebyshev nodes
@@ -85,12 +80,6 @@ LANES_FROM = 12
 """Running copies from which the sampler's forward takes them as lanes (:func:`forward_lanes`);
 below, row by row (:func:`forward`), whose cost grows with the rows where the lanes' does not."""
 
-ESTIMATORS = {"reinforce": 0, "gpomdp": 1}
-BASELINES = {"none": 0, "mean": 1}
-REWARD_TO_GO = {"from_start": 0, "from_step": 1}
-NORMALIZE = {"none": 0, "batch": 1, "episode": 2}
-OPTIMIZERS = {"sgd": 0, "adam": 1}
-
 F = TypeVar("F", bound=Callable[..., Any])
 
 
@@ -114,12 +103,11 @@ def kernel(*, inline: bool = False, fastmath: set[str] | None = None) -> Callabl
 
 GRADIENT_FASTMATH = {"reassoc", "contract"}
 """LLVM may reorder and fuse the gradient's sums (vectorised reductions over a block's rows:
-2× the speed of strict order). The order it picks depends on the compiled code alone, so a
-host's results never depend on the company an agent keeps; hosts of different CPU types
-(AVX-512 against AVX2) may round differently. Sampling and dynamics stay strict. Not ``nsz``
-nor ``arcp``: with them, the kernel called from :func:`learn_iteration` rounded differently
-when just compiled than when loaded from numba's cache (no faster either), so a process that
-compiled the kernels disagreed with one that loaded them (tests/test_compiled_engine.py)."""
+about twice the speed of strict order). The order it picks depends on the compiled code
+alone, so a host's results never depend on the company an agent keeps; hosts of different CPU
+types (AVX-512 against AVX2) may round differently. Sampling and dynamics stay strict. Not
+``nsz`` nor ``arcp``: with them a kernel may round differently when just compiled than when
+loaded from numba's cache (tests/test_compiled_engine.py checks that it does not)."""
 
 
 @kernel(inline=True)
@@ -135,6 +123,26 @@ def tanh32(value: np.float32) -> np.float32:
     p = _P32[0] + s * (_P32[1] + s * (_P32[2] + s * (_P32[3] + s * (_P32[4] + s * _P32[5]))))
     q = _Q32[0] + s * (_Q32[1] + s * (_Q32[2] + s * (_Q32[3] + s * (_Q32[4] + s * _Q32[5]))))
     return x * p / q
+
+
+_mix64 = cast(Callable[[int], int], njit(cache=True, inline="always")(randomness.mix64))
+"""common/randomness.py's hash, compiled: the same bits as the engine's torch draws."""
+_GOLDEN = randomness.GOLDEN
+_TOP24, _TOP53 = (1 << 24) - 1, (1 << 53) - 1
+
+
+@kernel(inline=True)
+def uniform24(key: int, counter: int) -> np.float32:
+    """randomness.uniforms(key, counter): a float32 uniform with 24 random bits."""
+    z = _mix64(key + (counter + 1) * _GOLDEN)
+    return np.float32((z >> 40) & _TOP24) * np.float32(1.0 / (1 << 24))
+
+
+@kernel(inline=True)
+def uniform53(key: int, counter: int) -> float:
+    """randomness.uniforms64(key, counter): a float64 uniform with 53 random bits."""
+    z = _mix64(key + (counter + 1) * _GOLDEN)
+    return float((z >> 11) & _TOP53) * (1.0 / (1 << 53))
 
 
 @kernel()
@@ -286,7 +294,7 @@ def forward_lanes(
 
 
 @kernel(inline=True)
-def draw_action(logits: np.ndarray, row: int, n_actions: int, uniform: float,
+def draw_action(logits: np.ndarray, row: int, n_actions: int, uniform: float | np.float32,
                 scratch: np.ndarray) -> int:  # fmt: skip
     """Inverse-CDF categorical draw, one row (common/policies.py's ``categorical_act``)."""
     best = 0
@@ -334,7 +342,6 @@ def rollout_workspace(sizes: np.ndarray, copies: int) -> tuple[np.ndarray, ...]:
         np.zeros(sizes[len(sizes) - 1], dtype=np.float32),  # the draw's exponentials
         np.zeros((copies, 4), dtype=np.float64),  # CartPole states
         np.zeros(copies, dtype=np.int64),  # the copies still running
-        np.zeros(copies, dtype=np.float64),  # γ^t per copy
         np.zeros((chunks, width, LANES), dtype=np.float32),  # observations as lanes
         np.zeros((chunks, width, LANES), dtype=np.float32),  # lanes, even layers
         np.zeros((chunks, width, LANES), dtype=np.float32),  # lanes, odd layers
@@ -346,46 +353,38 @@ def rollout_agent(
     theta: np.ndarray,
     sizes: np.ndarray,
     physics: np.ndarray,
+    keys: np.ndarray,
+    first_copy: int,
     copies: int,
     horizon: int,
-    stream: np.ndarray,
     greedy: bool,
-    gamma: float,
     rows_obs: np.ndarray,
     rows_action: np.ndarray,
-    rows_copy: np.ndarray,
+    rows_column: np.ndarray,
     rows_time: np.ndarray,
     first_row: int,
     lengths: np.ndarray,
-    returns: np.ndarray,
-    discounted: np.ndarray,
-    first_copy: int,
     workspace: tuple[np.ndarray, ...],
 ) -> int:
-    """One CartPole episode in each of ``copies`` copies of one agent's variant from θ.
+    """One CartPole episode in each of ``copies`` copies of one agent's variant from θ: copy c
+    is column ``first_copy + c`` with trajectory key ``keys[first_copy + c]``.
 
-    Writes the rows (observation, action, copy, step) of every alive step from ``first_row``
-    on, time-major (none when ``rows_obs`` has no rows: evaluation), and per copy (from
-    ``first_copy``) its length, return and γ-discounted return. Returns the row after the
-    last written. Randomness, all from ``stream`` (the agent's own): the initial states as
-    gymnasium's CartPole vector env draws them (``uniform(±0.05, size=(4, copies))``,
-    row-major), then per step one uniform per running copy, in copy order (none if greedy)."""
-    weights, backward_w, obs, even, odd, scratch, state, running, discount = workspace[:9]
-    obs_lanes, even_lanes, odd_lanes = workspace[9:]
+    Writes the rows (observation, action, column, step) of every alive step from ``first_row``
+    on, time-major, and each column's length. Returns the row after the last written. Every
+    draw is the copy's own (common/randomness.py's hash of its key): the start's four
+    uniforms from counters −1 … −4, the decision at step t from counter t."""
+    weights, backward_w, obs, even, odd, scratch, state, running = workspace[:8]
+    obs_lanes, even_lanes, odd_lanes = workspace[8:]
     obs_dim = sizes[0]
     n_actions = sizes[len(sizes) - 1]
     fill_weights(theta, sizes, weights, backward_w)
-    for i in range(4):
-        for c in range(copies):
-            state[c, i] = -0.05 + 0.1 * next_double(stream)
     for c in range(copies):
+        key = keys[first_copy + c]
+        for i in range(4):
+            state[c, i] = uniform53(key, -1 - i) * 0.1 - 0.05
         running[c] = c  # the copies still running, in copy order
-        discount[c] = 1.0
-        returns[first_copy + c] = 0.0
-        discounted[first_copy + c] = 0.0
     alive = copies
     limit = min(horizon, CARTPOLE_STEP_LIMIT)
-    record = rows_obs.shape[0] > 0
     row = first_row
     for t in range(limit):
         if alive >= LANES_FROM:
@@ -412,18 +411,15 @@ def rollout_agent(
             if greedy:
                 action = greedy_action(logits, slot, n_actions)
             else:
-                action = draw_action(logits, slot, n_actions, next_double(stream), scratch)
-            if record:
-                for i in range(obs_dim):
-                    rows_obs[row, i] = obs[slot, i]
-                rows_action[row] = action
-                rows_copy[row] = c
-                rows_time[row] = t
-                row += 1
+                draw = uniform24(keys[first_copy + c], t)
+                action = draw_action(logits, slot, n_actions, draw, scratch)
+            for i in range(obs_dim):
+                rows_obs[row, i] = obs[slot, i]
+            rows_action[row] = action
+            rows_column[row] = first_copy + c
+            rows_time[row] = t
+            row += 1
             terminated = cartpole_step(state, c, physics, action)
-            returns[first_copy + c] += 1.0  # CartPole: reward 1 per step, the last one too
-            discounted[first_copy + c] += discount[c]
-            discount[c] *= gamma
             if terminated or t + 1 >= limit:
                 lengths[first_copy + c] = t + 1
             else:
@@ -436,147 +432,34 @@ def rollout_agent(
 
 
 @kernel()
-def sample_iteration(
+def sample_rows(
     thetas: np.ndarray,
     sizes: np.ndarray,
     physics: np.ndarray,
-    batch: np.ndarray,
+    counts: np.ndarray,
     horizons: np.ndarray,
-    gammas: np.ndarray,
-    streams: np.ndarray,
-    agents: np.ndarray,
+    keys: np.ndarray,
+    greedy: bool,
     rows_obs: np.ndarray,
     rows_action: np.ndarray,
-    rows_copy: np.ndarray,
+    rows_column: np.ndarray,
     rows_time: np.ndarray,
-    row_span: np.ndarray,
-    copy_start: np.ndarray,
     lengths: np.ndarray,
-    returns: np.ndarray,
-) -> None:
-    """One local iteration's sampling of the agents at positions ``agents``: B_a episodes each
-    from θ_a = ``thetas[a]``, rows packed agent after agent (agent a's are ``row_span[a, 0]``
-    … ``row_span[a, 1] − 1``), per copy its length and return (agent a's copies from
-    ``copy_start[a]`` on)."""
-    discounted = np.empty(returns.shape[0], dtype=np.float64)
+) -> int:
+    """Row a's ``counts[a]`` episodes from θ_a = ``thetas[a]`` (its copies the next
+    ``counts[a]`` columns, their keys ``keys``), agent after agent; returns the rows written."""
     most = 1
-    for a in agents:
-        most = max(most, batch[a])
+    for count in counts:
+        most = max(most, count)
     workspace = rollout_workspace(sizes, most)
-    greedy = False
     row = 0
-    copy = 0
-    for a in agents:
-        row_span[a, 0] = row
-        copy_start[a] = copy
-        row = rollout_agent(thetas[a], sizes, physics[a], batch[a], horizons[a], streams[a],
-                            greedy, gammas[a], rows_obs, rows_action, rows_copy, rows_time, row,
-                            lengths, returns, discounted, copy, workspace)  # fmt: skip
-        copy += batch[a]
-        row_span[a, 1] = row
-
-
-@kernel()
-def coefficients(
-    rewards: np.ndarray,
-    alive: np.ndarray,
-    gamma: float,
-    estimator: int,
-    baseline: int,
-    reward_to_go: int,
-    normalize: int,
-    out: np.ndarray,
-) -> None:
-    """One agent's estimator coefficients coef[t, copy] (float64, 0 on dead steps) from its
-    [T, B] rewards (0 past a copy's end): common/estimators.py's maths, with sums
-    along time sequential and over copies in copy order."""
-    steps, copies = rewards.shape
-    values = np.zeros((steps, copies), dtype=np.float64)
-    if estimator == 1 and reward_to_go == 1:  # GPOMDP, Σ_{h ≥ t} γ^(h−t) r_h (biased)
-        for t in range(steps):
-            for c in range(copies):
-                values[t, c] = rewards[t, c]
-        if baseline == 1:
-            _subtract_leave_one_out(values)
-        for c in range(copies):
-            running = 0.0
-            for t in range(steps - 1, -1, -1):
-                running = values[t, c] + gamma * running
-                out[t, c] = running if alive[t, c] else 0.0
-    else:
-        for t in range(steps):
-            discount = gamma ** np.float64(t)
-            for c in range(copies):
-                values[t, c] = discount * rewards[t, c]
-        if estimator == 0:  # REINFORCE, eq. 5: the whole discounted return at every step
-            totals = np.zeros((1, copies), dtype=np.float64)
-            for c in range(copies):
-                total = 0.0
-                for t in range(steps):
-                    total += values[t, c]
-                totals[0, c] = total
-            if baseline == 1:
-                _subtract_leave_one_out(totals)
-            for t in range(steps):
-                for c in range(copies):
-                    out[t, c] = totals[0, c] if alive[t, c] else 0.0
-        else:  # GPOMDP, eq. 6: Σ_{h ≥ t} γ^h r_h, minus the per-step baseline
-            if baseline == 1:
-                _subtract_leave_one_out(values)
-            for c in range(copies):
-                tail = 0.0
-                for t in range(steps - 1, -1, -1):
-                    tail += values[t, c]
-                    out[t, c] = tail if alive[t, c] else 0.0
-    if normalize != 0:
-        _standardise(out, alive, normalize == 2)
-
-
-@kernel()
-def _subtract_leave_one_out(values: np.ndarray) -> None:
-    """values[t, c] −= the mean of values[t, c'] over the other copies c' (0 for one copy)."""
-    steps, copies = values.shape
-    if copies < 2:
-        return
-    for t in range(steps):
-        total = 0.0
-        for c in range(copies):
-            total += values[t, c]
-        for c in range(copies):
-            values[t, c] -= (total - values[t, c]) / (copies - 1)
-
-
-@kernel()
-def _standardise(coef: np.ndarray, alive: np.ndarray, per_copy: bool) -> None:
-    """(c − mean)/(std + ε) over the alive cells of the batch, or of each copy; sums along
-    time per copy first, then over the group's copies."""
-    steps, copies = coef.shape
-    for group in range(copies if per_copy else 1):
-        low, high = (group, group + 1) if per_copy else (0, copies)
-        count = 0.0
-        total = 0.0
-        for c in range(low, high):
-            alive_steps = 0.0
-            column = 0.0
-            for t in range(steps):
-                if alive[t, c]:
-                    alive_steps += 1.0
-                    column += coef[t, c]
-            count += alive_steps
-            total += column
-        count = max(count, 1.0)
-        mean = total / count
-        spread = 0.0
-        for c in range(low, high):
-            column = 0.0
-            for t in range(steps):
-                if alive[t, c]:
-                    column += (coef[t, c] - mean) ** 2
-            spread += column
-        scale = math.sqrt(spread / count) + NORMALIZE_EPS
-        for c in range(low, high):
-            for t in range(steps):
-                coef[t, c] = (coef[t, c] - mean) / scale if alive[t, c] else 0.0
+    column = 0
+    for a in range(len(counts)):
+        row = rollout_agent(thetas[a], sizes, physics[a], keys, column, counts[a], horizons[a],
+                            greedy, rows_obs, rows_action, rows_column, rows_time, row, lengths,
+                            workspace)  # fmt: skip
+        column += counts[a]
+    return row
 
 
 @kernel(inline=True)
@@ -739,179 +622,18 @@ def score_gradient(
 
 
 @kernel()
-def ascend(
-    theta: np.ndarray,
-    gradient: np.ndarray,
-    first: np.ndarray,
-    second: np.ndarray,
-    optimizer: int,
-    step_size: float,
-    steps_before: int,
-) -> None:
-    """θ += the ascent direction (float32): plain, or Adam with fresh moments each round
-    (common/optim.py's, one row)."""
-    step = np.float32(step_size)
-    if optimizer == 0:
-        for i in range(len(theta)):
-            theta[i] += step * gradient[i]
-        return
-    beta1, beta2 = 0.9, 0.999
-    correction1 = np.float32(1.0 - beta1 ** np.float64(steps_before + 1))
-    correction2 = np.float32(1.0 - beta2 ** np.float64(steps_before + 1))
-    for i in range(len(theta)):
-        g = gradient[i]
-        first[i] = first[i] * np.float32(beta1) + np.float32(1.0 - beta1) * g
-        second[i] = second[i] * np.float32(beta2) + np.float32(1.0 - beta2) * (g * g)
-        first_hat = first[i] / correction1
-        second_hat = second[i] / correction2
-        theta[i] += step * first_hat / (np.float32(math.sqrt(second_hat)) + np.float32(1e-8))
-
-
-@kernel()
-def learn_iteration(
+def row_gradients(
     thetas: np.ndarray,
-    firsts: np.ndarray,
-    seconds: np.ndarray,
     sizes: np.ndarray,
-    batch: np.ndarray,
-    gammas: np.ndarray,
-    done: np.ndarray,
-    agents: np.ndarray,
     rows_obs: np.ndarray,
     rows_action: np.ndarray,
-    rows_copy: np.ndarray,
-    rows_time: np.ndarray,
     rows_coef: np.ndarray,
-    row_span: np.ndarray,
-    copy_start: np.ndarray,
-    lengths: np.ndarray,
-    options: np.ndarray,
-    step_size: float,
-    grad_clip: float,
-    clipped: np.ndarray,
-    measure: np.ndarray,
-    per_trajectory: np.ndarray,
-    trajectory_start: np.ndarray,
-    unclipped: np.ndarray,
-) -> None:
-    """Each agent at ``agents``: the coefficients of its sampled batch, its gradient
-    (1/B_a) Σ g, clipped to norm ``grad_clip`` (≤ 0: off), and one ascent step on
-    ``thetas[a]``. ``options`` = [estimator, baseline, reward_to_go, normalize, optimizer].
-
-    ``algo.bound_estimates``: for the agents with ``measure[a]``, also each trajectory's own
-    gradient g(τ_b) (rows ``trajectory_start[a]`` … + B_a − 1 of ``per_trajectory``) and the
-    unclipped batch gradient (``unclipped[a]``); nothing else changes."""
-    gradient = np.empty(thetas.shape[1], dtype=np.float32)
-    workspace = gradient_workspace(sizes)
-    most_steps, most_copies = 1, 1
-    for a in agents:
-        most_copies = max(most_copies, batch[a])
-        for c in range(batch[a]):
-            most_steps = max(most_steps, lengths[copy_start[a] + c])
-    # [T, B] grids of the largest batch, an agent using its own corner (views, one per agent)
-    reward_grid = np.zeros((most_steps, most_copies), dtype=np.float64)
-    alive_grid = np.zeros((most_steps, most_copies), dtype=np.bool_)
-    coef_grid = np.zeros((most_steps, most_copies), dtype=np.float64)
-    for a in agents:
-        count = batch[a]
-        low, high = row_span[a, 0], row_span[a, 1]
-        steps = 0
-        for c in range(count):
-            steps = max(steps, lengths[copy_start[a] + c])
-        rewards = reward_grid[:steps, :count]
-        alive = alive_grid[:steps, :count]
-        coef = coef_grid[:steps, :count]
-        rewards[:] = 0.0
-        alive[:] = False
-        for r in range(low, high):
-            rewards[rows_time[r], rows_copy[r]] = 1.0  # CartPole: 1 per step, the last too
-            alive[rows_time[r], rows_copy[r]] = True
-        coefficients(rewards, alive, gammas[a], options[0], options[1], options[2], options[3],
-                     coef)  # fmt: skip
-        for r in range(low, high):
-            rows_coef[r] = np.float32(coef[rows_time[r], rows_copy[r]] / count)
-        score_gradient(thetas[a], sizes, rows_obs, rows_action, rows_coef, low, high, gradient,
-                       workspace)  # fmt: skip
-        if measure[a]:
-            _per_trajectory_gradients(thetas[a], sizes, rows_obs, rows_action, rows_copy,
-                                      rows_time, coef, low, high, count,
-                                      per_trajectory, trajectory_start[a], workspace)  # fmt: skip
-            unclipped[a, :] = gradient
-        clipped[a] = False
-        if grad_clip > 0.0:
-            norm = 0.0
-            for g in gradient:
-                norm += np.float64(g) * np.float64(g)
-            norm = math.sqrt(norm)
-            if norm > grad_clip:
-                scale = np.float32(grad_clip / norm)
-                for i in range(len(gradient)):
-                    gradient[i] *= scale
-                clipped[a] = True
-        ascend(thetas[a], gradient, firsts[a], seconds[a], options[4], step_size, done[a])
-
-
-@kernel()
-def _per_trajectory_gradients(
-    theta: np.ndarray,
-    sizes: np.ndarray,
-    rows_obs: np.ndarray,
-    rows_action: np.ndarray,
-    rows_copy: np.ndarray,
-    rows_time: np.ndarray,
-    coef: np.ndarray,
-    low: int,
-    high: int,
-    count: int,
+    row_start: np.ndarray,
     out: np.ndarray,
-    first: int,
-    workspace: tuple[np.ndarray, ...],
 ) -> None:
-    """out[first + b] = g(τ_b) = Σ_t coef[t, b] ∇ log π(a_t|s_t) (coef not divided by B), each
-    copy's rows gathered in time order."""
-    rows = high - low
-    per_copy = np.zeros(count + 1, dtype=np.int64)
-    for r in range(low, high):
-        per_copy[rows_copy[r] + 1] += 1
-    for c in range(count):
-        per_copy[c + 1] += per_copy[c]
-    filled = per_copy[:count].copy()
-    obs = np.empty((rows, rows_obs.shape[1]), dtype=np.float32)
-    actions = np.empty(rows, dtype=rows_action.dtype)
-    coefs = np.empty(rows, dtype=np.float32)
-    for r in range(low, high):  # rows are time-major: each copy's stay in time order
-        slot = filled[rows_copy[r]]
-        filled[rows_copy[r]] += 1
-        for i in range(rows_obs.shape[1]):
-            obs[slot, i] = rows_obs[r, i]
-        actions[slot] = rows_action[r]
-        coefs[slot] = np.float32(coef[rows_time[r], rows_copy[r]])
-    for c in range(count):
-        score_gradient(theta, sizes, obs, actions, coefs, per_copy[c], per_copy[c + 1],
-                       out[first + c], workspace)  # fmt: skip
-
-
-@kernel()
-def evaluate_agents(
-    thetas: np.ndarray,
-    sizes: np.ndarray,
-    physics: np.ndarray,
-    episodes: int,
-    horizons: np.ndarray,
-    gammas: np.ndarray,
-    streams: np.ndarray,
-    greedy: bool,
-    lengths: np.ndarray,
-    returns: np.ndarray,
-    discounted: np.ndarray,
-) -> None:
-    """``episodes`` episodes of every agent a from ``thetas[a]``, greedy or sampled; per
-    episode (agent-major, [A · episodes]) its length, return and discounted return."""
-    no_obs = np.empty((0, sizes[0]), dtype=np.float32)
-    no_ints = np.empty(0, dtype=np.int32)
-    workspace = rollout_workspace(sizes, episodes)
-    no_row = 0
+    """out[a] = Σ_{r ∈ row a's steps} coef_r · ∇_θ log π_θa(a_r|s_r), row a's steps being
+    ``row_start[a]`` … ``row_start[a + 1]`` − 1 (the engine's ``gradients`` primitive)."""
+    workspace = gradient_workspace(sizes)
     for a in range(thetas.shape[0]):
-        rollout_agent(thetas[a], sizes, physics[a], episodes, horizons[a], streams[a], greedy,
-                      gammas[a], no_obs, no_ints, no_ints, no_ints, no_row, lengths, returns,
-                      discounted, a * episodes, workspace)  # fmt: skip
+        score_gradient(thetas[a], sizes, rows_obs, rows_action, rows_coef, row_start[a],
+                       row_start[a + 1], out[a], workspace)  # fmt: skip

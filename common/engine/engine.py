@@ -19,14 +19,14 @@ what a row computes depends on its agent, round and θ alone.
 from __future__ import annotations
 
 import time
-from collections.abc import Iterator, Mapping, Sequence
+from collections.abc import Callable, Iterator, Mapping, Sequence
 from contextlib import contextmanager
 from dataclasses import dataclass, field
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
-import gymnasium as gym
 import torch
 
+from fedhpg.common import estimators
 from fedhpg.common.attacks import attack_of
 from fedhpg.common.components import AgentProfile, agent_profile, planned_budget
 from fedhpg.common.config import RunConfig
@@ -35,11 +35,13 @@ from fedhpg.common.engine.devices import check_device
 from fedhpg.common.engine.policy_rows import PolicyRows, chunked
 from fedhpg.common.engine.sampling import Faults, sample
 from fedhpg.common.engine.trajectories import Trajectories
-from fedhpg.common.estimators import estimator_coefficients
 from fedhpg.common.randomness import Purpose, trajectory_keys
 from fedhpg.common.types import EvaluationStats
 from fedhpg.common.variants import discount, training_horizon
 from fedhpg.envs.base import BatchEnv, EnvVariant
+
+if TYPE_CHECKING:
+    from fedhpg.common.batched.backend import CompiledBackend
 
 
 @contextmanager
@@ -79,7 +81,9 @@ class _Tiles:
     slot: torch.Tensor
     """Its place in the tile."""
     flat: torch.Tensor
-    """Its (t, n) cell as a flat index of [T, N]."""
+    """Its (t, n) as a flat index of [T, N]."""
+    cell: torch.Tensor
+    """Its cell of the batch's layout (where its coefficient is)."""
     tile_group: torch.Tensor
     """Each tile's group."""
     tile_start: torch.Tensor
@@ -129,6 +133,9 @@ class Tally:
     compute_s: torch.Tensor
     clipped: torch.Tensor
     iterations: torch.Tensor
+    sample_s: torch.Tensor
+    """Each row's share of the CPU time spent sampling (the rest of ``compute_s`` went to
+    its gradients and steps)."""
     algorithm: dict[str, torch.Tensor] = field(default_factory=dict)
     """Per-row algorithm statistics; NaN where a row has none."""
     work: list[RowWork] = field(default_factory=list)
@@ -145,26 +152,33 @@ class Tally:
             z(torch.float64),
             z(torch.int64),
             z(torch.int64),
+            z(torch.float64),
         )
 
 
 class Engine:
     """The primitives for the agents ``variants`` of one run (see the module docstring)."""
 
-    def __init__(self, run: RunConfig, variants: Mapping[int, EnvVariant]) -> None:
-        from fedhpg.common.worker import build_policy
+    def __init__(
+        self, run: RunConfig, variants: Mapping[int, EnvVariant], *, compiled: bool = False
+    ) -> None:
+        from fedhpg.common.worker import policy_and_actions
 
         self.run = run
         self.variants = dict(variants)
         check_device(run.algo.device)
         self.device = torch.device(run.algo.device)
         first = self.variants[min(self.variants)]
-        self.policy = PolicyRows(build_policy(first, run), self.device)
-        env = first.make_env()
-        try:
-            self.action_space: gym.Space = env.action_space
-        finally:
-            env.close()
+        template, self.action_space = policy_and_actions(first, run)
+        self.compiled: CompiledBackend | None = None
+        """The compiled backend's sampling and gradients (``compiled``: the caller checked it
+        serves these agents, :func:`fedhpg.common.batched.compiled_agents`)."""
+        if compiled:
+            from fedhpg.common.batched import mlp_shape
+            from fedhpg.common.batched.backend import CompiledBackend
+
+            self.compiled = CompiledBackend(mlp_shape(template))
+        self.policy = PolicyRows(template, self.device)
         self._envs: dict[tuple[int, int], BatchEnv] = {}
         self._profiles: dict[int, AgentProfile] = {}
         self._gamma: dict[int, float] = {}
@@ -173,6 +187,8 @@ class Engine:
         self.tally: Tally | None = None
         self._hook: Any = None
         self._clock = 0.0
+        self._sampling_s = 0.0
+        """Thread CPU seconds spent sampling since the last :meth:`finished`."""
 
     # -- per-agent constants ----------------------------------------------------------------
 
@@ -229,6 +245,7 @@ class Engine:
         )
         self.rows, self.tally, self._hook = rows, Tally.zeros(rows.size), hook
         self._clock = time.thread_time()
+        self._sampling_s = 0.0
         return rows
 
     def _rows(self) -> Rows:
@@ -272,8 +289,30 @@ class Engine:
             if horizons is None
             else horizons.to(self.device)[positions]
         )
+        started = time.thread_time()
+        try:
+            batch = self._sample_rows(theta, positions, chosen, keys, limit, agents, greedy)
+        finally:
+            self._sampling_s += time.thread_time() - started
+        return batch.regrouped(positions, rows.size)
+
+    def _sample_rows(
+        self,
+        theta: torch.Tensor,
+        positions: torch.Tensor,
+        chosen: torch.Tensor,
+        keys: torch.Tensor,
+        limit: torch.Tensor,
+        agents: list[int],
+        greedy: bool,
+    ) -> Trajectories:
+        """The rows ``positions`` (their agents ``agents``) sampled by the backend."""
+        variants = [self.variants[k] for k in agents]
+        if self.compiled is not None:
+            return self.compiled.sample(theta[positions], chosen, keys, limit, agents, variants,
+                                        greedy=greedy)  # fmt: skip
         copies = make_copies(
-            [self.variants[k] for k in agents],
+            variants,
             chosen.tolist(),
             self.device,
             self._batch_env,
@@ -291,7 +330,7 @@ class Engine:
                 ),
             )
         try:
-            batch = sample(
+            return sample(
                 self.policy,
                 copies,
                 theta.to(self.device)[positions],
@@ -304,28 +343,23 @@ class Engine:
             )
         finally:
             copies.close()
-        full = torch.zeros(rows.size, dtype=torch.int64, device=self.device)
-        full[positions] = chosen
-        return Trajectories(
-            obs=batch.obs,
-            actions=batch.actions,
-            rewards=batch.rewards,
-            alive=batch.alive,
-            success=batch.success,
-            owner=positions[batch.owner],
-            counts=full,
-        )
 
     def coefficients(
         self, batch: Trajectories, weights: torch.Tensor | None = None
     ) -> torch.Tensor:
-        """The run's estimator coefficients of ``batch``, [T, N] float64 (per-row baselines
-        and discounts; ``weights`` [N] or [T, N] importance weights)."""
+        """The run's estimator coefficients of ``batch``, one per cell of ``batch.layout``
+        [S] float64 (per-row baselines and discounts; ``weights`` [N] or [T, N] importance
+        weights)."""
         algo = self.run.algo
-        return estimator_coefficients(
+        layout = batch.layout
+        rewards, alive = batch.cells
+        if weights is not None and weights.dim() == 2:
+            weights = layout.gather(weights)
+        return estimators.coefficients(
             algo.estimator,  # type: ignore[arg-type]
-            batch.rewards,
-            batch.alive,
+            layout,
+            rewards,
+            alive,
             gamma=self.gammas()[batch.owner],
             baseline=algo.baseline,  # type: ignore[arg-type]
             weights=weights,
@@ -353,6 +387,7 @@ class Engine:
         tile = tile_start[owner] + slot // TILE
         total = int(tiles_per_group.sum())
         flat = step * batch.alive.shape[1] + column
+        cell = batch.layout.cell(step, column)
         obs_flat = batch.obs.reshape(-1, *batch.obs.shape[2:])
         act_flat = batch.actions.reshape(-1, *batch.actions.shape[2:])
         obs = obs_flat.new_zeros((total, TILE, *batch.obs.shape[2:]))
@@ -362,25 +397,30 @@ class Engine:
         tile_group = torch.repeat_interleave(
             torch.arange(groups, device=owner.device), tiles_per_group
         )
-        return _Tiles(obs, act, tile, slot % TILE, flat, tile_group, tile_start, tiles_per_group)
+        return _Tiles(
+            obs, act, tile, slot % TILE, flat, cell, tile_group, tile_start, tiles_per_group
+        )
 
     def _tile_gradients(
         self, theta_of_tile: torch.Tensor, tiles: _Tiles, values: torch.Tensor
     ) -> torch.Tensor:
         """Each tile's Σ coef ∇ log π under its own θ row, [tiles, d], in chunks."""
         coef = torch.zeros(tiles.obs.shape[:2], dtype=torch.float64, device=self.device)
-        coef[tiles.tile, tiles.slot] = values.reshape(-1)[tiles.flat].to(torch.float64)
+        coef[tiles.tile, tiles.slot] = values[tiles.cell].to(torch.float64)
         out = theta_of_tile.new_empty((tiles.obs.shape[0], self.policy.num_params))
+        return self._over_tiles(tiles, out, lambda block: self.policy.score_gradients(
+            theta_of_tile[block], tiles.obs[block], tiles.act[block], coef[block]
+        ))  # fmt: skip
+
+    def _over_tiles(
+        self, tiles: _Tiles, out: torch.Tensor, compute: Callable[[slice], torch.Tensor]
+    ) -> torch.Tensor:
+        """``out[block] = compute(block)`` over the tiles, as many at once as memory allows."""
         chunked(
             tiles.obs.shape[0],
             TILE * self.policy.num_params,
             PACKED_ELEMENTS,
-            lambda block: out.__setitem__(
-                block,
-                self.policy.score_gradients(
-                    theta_of_tile[block], tiles.obs[block], tiles.act[block], coef[block]
-                ),
-            ),
+            lambda block: out.__setitem__(block, compute(block)),
         )
         return out
 
@@ -398,7 +438,9 @@ class Engine:
         self, theta: torch.Tensor, batch: Trajectories, coefficients: torch.Tensor
     ) -> torch.Tensor:
         """Σ_n Σ_t coef[t, n] ∇ log π_θa(a_t|s_t) over each row a's trajectories n, [A, d]
-        (zero for a row without trajectories)."""
+        (zero for a row without trajectories; ``coefficients`` per cell of ``batch.layout``)."""
+        if self.compiled is not None:
+            return self.compiled.gradients(theta, batch, coefficients)
         tiles = self._tiles(batch, batch.owner)
         per_tile = self._tile_gradients(theta[tiles.tile_group], tiles, coefficients)
         return self._group_sums(tiles, per_tile, theta.shape[0])
@@ -414,17 +456,9 @@ class Engine:
         """log π_θa(a_t|s_t) of every alive step under its row's θ row, [T, N] (0 elsewhere)."""
         tiles = self._tiles(batch, batch.owner)
         values = tiles.obs.new_zeros(tiles.obs.shape[:2], dtype=torch.float64)
-        chunked(
-            tiles.obs.shape[0],
-            TILE * self.policy.num_params,
-            PACKED_ELEMENTS,
-            lambda block: values.__setitem__(
-                block,
-                self.policy.log_probs(
-                    theta[tiles.tile_group[block]], tiles.obs[block], tiles.act[block]
-                ).double(),
-            ),
-        )
+        self._over_tiles(tiles, values, lambda block: self.policy.log_probs(
+            theta[tiles.tile_group[block]], tiles.obs[block], tiles.act[block]
+        ).double())  # fmt: skip
         out = torch.zeros(batch.alive.numel(), dtype=torch.float64, device=self.device)
         out[tiles.flat] = values[tiles.tile, tiles.slot]
         return out.reshape(batch.alive.shape)
@@ -453,6 +487,7 @@ class Engine:
         assert tally is not None
         now = time.thread_time()
         elapsed, self._clock = now - self._clock, now
+        sampled, self._sampling_s = min(self._sampling_s, elapsed), 0.0
         counts = batch.counts.cpu()
         ran = torch.nonzero(counts > 0).squeeze(1)
         steps = batch.steps_per_row().cpu()
@@ -463,6 +498,7 @@ class Engine:
         tally.env_steps += steps
         tally.return_sum += returns
         tally.compute_s += compute
+        tally.sample_s += share * sampled
         if clipped is not None:
             tally.clipped += clipped.cpu().long()
         numbers = tally.iterations[ran].clone()

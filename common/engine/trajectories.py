@@ -1,56 +1,192 @@
 """The trajectories of many agents' rows in one time-major batch.
 
 Column n is one trajectory of row ``owner[n]`` (a row is one agent of the batch); every row's
-columns are contiguous. Steps are padded to the longest trajectory T: ``alive[t, n]`` says
-whether step t of trajectory n happened, and everything at a dead step is padding (reward 0).
+columns are contiguous. The torch backend records steps padded to the longest trajectory T:
+``alive[t, n]`` says whether step t of trajectory n happened, and everything at a dead step is
+padding (reward 0). The compiled backend hands over the alive steps packed row by row
+(:class:`StepRows`), and the padded tensors are built only if a primitive asks for them.
+
+The estimator computes on :attr:`Trajectories.layout`, a :class:`~fedhpg.common.staircase.Staircase`
+in which each trajectory reaches as far as its row's longest: the cells every term of an
+estimator needs, and not the padding to the batch's longest.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
+from functools import cached_property
 
 import torch
 
+from fedhpg.common.staircase import Staircase
+
 
 @dataclass(frozen=True)
-class Trajectories:
+class StepRows:
+    """The alive steps packed row after row (each row's in its backend's order)."""
+
     obs: torch.Tensor
-    """[T, N, *obs_shape]."""
+    """[R, *obs_shape]."""
     actions: torch.Tensor
-    """[T, N, *act_shape]: the raw sample the policy drew (before any clipping by the env)."""
+    """[R, *act_shape]."""
     rewards: torch.Tensor
-    """[T, N] float64."""
-    alive: torch.Tensor
-    """[T, N] bool."""
-    success: torch.Tensor
-    """[N] bool: the episode ended in the task's goal."""
-    owner: torch.Tensor
-    """[N] int64: the row each trajectory belongs to."""
-    counts: torch.Tensor
-    """[A] int64: trajectories per row (0 for a row that sampled none)."""
+    """[R] float64."""
+    time: torch.Tensor
+    """[R] each step's t."""
+    column: torch.Tensor
+    """[R] each step's trajectory (column of the batch)."""
+    rows: torch.Tensor
+    """[m] the batch row whose steps each block is."""
+    row_start: torch.Tensor
+    """[m + 1] block i is steps ``row_start[i]`` … ``row_start[i + 1]`` − 1."""
+
+
+class Trajectories:
+    """Several rows' trajectories, time-major (see the module docstring)."""
+
+    def __init__(
+        self,
+        *,
+        success: torch.Tensor,
+        owner: torch.Tensor,
+        counts: torch.Tensor,
+        lengths: torch.Tensor | None = None,
+        rewards: torch.Tensor | None = None,
+        alive: torch.Tensor | None = None,
+        obs: torch.Tensor | None = None,
+        actions: torch.Tensor | None = None,
+        steps: StepRows | None = None,
+    ) -> None:
+        padded = rewards is not None and alive is not None and obs is not None
+        if not padded and (steps is None or lengths is None):
+            raise ValueError("a batch needs its steps, padded or packed with their lengths")
+        self.success = success
+        """[N] bool: the episode ended in the task's goal."""
+        self.owner = owner
+        """[N] int64: the row each trajectory belongs to."""
+        self.counts = counts
+        """[A] int64: trajectories per row (0 for a row that sampled none)."""
+        self.steps = steps
+        self._lengths = lengths
+        self._rewards, self._alive = rewards, alive
+        self._obs, self._actions = obs, actions
+
+    # -- padded views ------------------------------------------------------------------------
+
+    def _padded(self, values: torch.Tensor) -> torch.Tensor:
+        assert self.steps is not None
+        columns = int(self.owner.shape[0])
+        out = values.new_zeros((self.longest, columns, *values.shape[1:]))
+        out[self.steps.time, self.steps.column] = values
+        return out
+
+    @property
+    def longest(self) -> int:
+        """T: the longest trajectory's steps."""
+        if self._alive is not None:
+            return int(self._alive.shape[0])
+        return int(self.lengths().max()) if self.owner.numel() else 0
+
+    @property
+    def rewards(self) -> torch.Tensor:
+        """[T, N] float64."""
+        if self._rewards is None:
+            assert self.steps is not None
+            self._rewards = self._padded(self.steps.rewards)
+        return self._rewards
+
+    @property
+    def alive(self) -> torch.Tensor:
+        """[T, N] bool."""
+        if self._alive is None:
+            assert self.steps is not None
+            self._alive = self._padded(torch.ones_like(self.steps.time, dtype=torch.bool))
+        return self._alive
+
+    @property
+    def obs(self) -> torch.Tensor:
+        """[T, N, *obs_shape]."""
+        if self._obs is None:
+            assert self.steps is not None
+            self._obs = self._padded(self.steps.obs)
+        return self._obs
+
+    @property
+    def actions(self) -> torch.Tensor:
+        """[T, N, *act_shape]: the raw sample the policy drew (before any clipping)."""
+        if self._actions is None:
+            assert self.steps is not None
+            self._actions = self._padded(self.steps.actions)
+        return self._actions
+
+    # -- the estimator's cells ----------------------------------------------------------------
+
+    @cached_property
+    def layout(self) -> Staircase:
+        """Each trajectory's cells up to its row's longest trajectory."""
+        return Staircase.of_groups(self.lengths(), self.owner)
+
+    @cached_property
+    def step_cells(self) -> torch.Tensor:
+        """The cell of each of :attr:`steps`, [R]."""
+        assert self.steps is not None
+        return self.layout.cell(self.steps.time, self.steps.column)
+
+    @cached_property
+    def cells(self) -> tuple[torch.Tensor, torch.Tensor]:
+        """(rewards, alive) of every cell of :attr:`layout`, [S] each."""
+        layout = self.layout
+        if self.steps is None:
+            return layout.gather(self.rewards), layout.gather(self.alive)
+        at = self.step_cells
+        rewards = torch.zeros(layout.size, dtype=torch.float64, device=at.device)
+        alive = torch.zeros(layout.size, dtype=torch.bool, device=at.device)
+        return rewards.index_copy_(0, at, self.steps.rewards), alive.index_fill_(0, at, True)
+
+    # -- per row and per trajectory -----------------------------------------------------------
+
+    def regrouped(self, positions: torch.Tensor, rows: int) -> Trajectories:
+        """The same trajectories with row i renamed ``positions[i]`` in a batch of ``rows``."""
+        counts = self.counts.new_zeros(rows)
+        counts[positions] = self.counts
+        steps = self.steps
+        if steps is not None:
+            steps = replace(steps, rows=positions[steps.rows])
+        out = Trajectories(success=self.success, owner=positions[self.owner], counts=counts,
+                           lengths=self._lengths, rewards=self._rewards, alive=self._alive,
+                           obs=self._obs, actions=self._actions, steps=steps)  # fmt: skip
+        for kept in ("layout", "step_cells", "cells"):  # renaming rows moves no cell
+            if kept in self.__dict__:
+                out.__dict__[kept] = self.__dict__[kept]
+        return out
 
     @property
     def num_rows(self) -> int:
         return int(self.counts.shape[0])
 
+    def lengths(self) -> torch.Tensor:
+        """Each trajectory's alive steps, [N]."""
+        if self._lengths is None:
+            self._lengths = self.alive.sum(dim=0)
+        return self._lengths
+
     def steps_per_row(self) -> torch.Tensor:
         """Alive steps of each row, [A] int64."""
-        per_column = self.alive.sum(dim=0)
-        return torch.zeros_like(self.counts).index_add_(0, self.owner, per_column)
+        return torch.zeros_like(self.counts).index_add_(0, self.owner, self.lengths())
 
     def returns(self, gammas: torch.Tensor | None = None) -> torch.Tensor:
         """Each trajectory's return Σ_t γ^t r_t, [N] float64 (undiscounted without
         ``gammas``, else each column discounted by its row's γ, ``gammas`` [A])."""
         if gammas is None:
+            if self.steps is not None and self._rewards is None:
+                total = torch.zeros(self.owner.shape[0], dtype=torch.float64,
+                                    device=self.owner.device)  # fmt: skip
+                return total.index_add_(0, self.steps.column, self.steps.rewards)
             return self.rewards.sum(dim=0)
-        steps = torch.arange(self.rewards.shape[0], dtype=torch.float64, device=gammas.device)
-        discounts = gammas.double()[self.owner].unsqueeze(0) ** steps.unsqueeze(1)
-        return (discounts * self.rewards).sum(dim=0)
+        rewards, _ = self.cells
+        discounts = self.layout.step_powers(gammas.double().index_select(0, self.owner))
+        return self.layout.column_totals(discounts * rewards)
 
     def per_row(self, values: torch.Tensor) -> torch.Tensor:
         """Sum of a per-trajectory [N] quantity over each row's trajectories, [A]."""
         return values.new_zeros(self.num_rows).index_add_(0, self.owner, values)
-
-    def lengths(self) -> torch.Tensor:
-        """Each trajectory's alive steps, [N]."""
-        return self.alive.sum(dim=0)

@@ -30,6 +30,7 @@ from typing import TYPE_CHECKING, Any, ClassVar, Generic, TypeVar
 
 import torch
 
+from fedhpg.common.algorithms import PARAMETERS
 from fedhpg.common.components import resolve_algorithm
 from fedhpg.common.config import ConfigError, RunConfig, StrategyConfig
 from fedhpg.common.registry import Registry, import_plugins, parse_options
@@ -40,9 +41,6 @@ if TYPE_CHECKING:
     from fedhpg.common.algorithms import Algorithm
 
 P = TypeVar("P")
-
-PARAMETERS = "parameters"
-"""The update most algorithms send and most strategies take: each agent's θ_k."""
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -56,9 +54,9 @@ class Strategy(abc.ABC, Generic[P]):
     name: ClassVar[str]
     Params: ClassVar[type[Any]] = NoParams
     takes: ClassVar[str] = PARAMETERS
-    """The kind of update the rule aggregates: :data:`PARAMETERS` (each agent's θ_k, what an
-    algorithm sends unless it names the one strategy its updates mean anything to,
-    ``Algorithm.strategy``), or a kind only such an algorithm sends (fedpgbr's gradients)."""
+    """The kind of update the rule aggregates, matched against ``Algorithm.sends``:
+    :data:`~fedhpg.common.algorithms.PARAMETERS` (each agent's θ_k) or
+    :data:`~fedhpg.common.algorithms.GRADIENTS` (fedpgbr's)."""
     buffered: ClassVar[bool] = True
     """Whether it can aggregate buffered rounds' updates (``server.round_policy=buffered``:
     each from its own θ̃ version, weighted by staleness); False for a rule that needs every
@@ -161,11 +159,8 @@ def make_strategy(
 
 
 def sent_by(algorithm: Algorithm[Any, Any]) -> str:
-    """What an algorithm's updates are: what the strategy it names takes (its updates mean
-    something to that strategy alone), else :data:`PARAMETERS`."""
-    if algorithm.strategy is None:
-        return PARAMETERS
-    return STRATEGIES.get(algorithm.strategy).takes
+    """What an algorithm's updates are (its ``sends``)."""
+    return algorithm.sends
 
 
 def check_takes(run: RunConfig, cls: type[Strategy[Any]]) -> None:

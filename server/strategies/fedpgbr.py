@@ -28,6 +28,7 @@ from typing import Any, Literal
 
 import torch
 
+from fedhpg.common.algorithms import GRADIENTS
 from fedhpg.common.algorithms.fedhpgvr import FedHPGVRParams, semi_stochastic_gradient
 from fedhpg.common.algorithms.fedpgbr import FedPGBRParams, round_schedule
 from fedhpg.common.byzantine_filter import byzantine_filter
@@ -106,7 +107,7 @@ class FedPGBR(Strategy[FedPGBRStrategyParams]):
 
     name = "fedpgbr"
     Params = FedPGBRStrategyParams
-    takes = "gradients"
+    takes = GRADIENTS
     """μ_t^(k) = θ_k − θ̃_0^t, sent as θ̃ + μ by ``algo=fedpgbr``."""
     buffered = False
     """The filter and the SCSG loop need every agent's gradient at one θ̃ each round."""

@@ -1,0 +1,232 @@
+"""This tree's agent groups against an earlier commit's, interleaved: what a change to the
+engine costs or saves, measured under the same machine conditions.
+
+The commit's package is taken with ``git archive`` into a cache folder (numba's cache lives
+beside it, so a second run against the same commit compiles nothing), and one process per
+side (:mod:`benchmarks.engine_ab_worker`, importing only what every revision has:
+``make_agent_group`` and the config) trains one host's agents a round at a time from the same
+θ, the two sides alternating, round after round, the order swapped every pair. Each pair is
+measured minutes apart from no other, so the paired ratio of env steps per second (this tree
+over the commit) is the figure: two runs minutes apart wander by more than the changes they
+would judge. Randomness differs between revisions, so the episodes and their work differ too;
+hence steps per second, not seconds per round.
+
+    python -m benchmarks.engine_ab --against 97553d4 [--algo fedhpgvr] [--agents 1000]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import os
+import statistics
+import subprocess
+import sys
+import tarfile
+import tempfile
+from dataclasses import asdict, dataclass, replace
+from pathlib import Path
+
+log = logging.getLogger(__name__)
+
+ROOT = Path(__file__).resolve().parents[1]
+WORKER = Path(__file__).with_name("engine_ab_worker.py")
+BASELINE = "97553d4"
+"""The last commit with a copy of the algorithm per backend (the per-agent loop, the compiled
+FedHPG); ``make bench-scale`` compares against it."""
+RESULTS = Path(__file__).parent / "results" / "engine_ab.json"
+
+
+def _git(*args: str) -> subprocess.CompletedProcess[bytes]:
+    try:
+        return subprocess.run(["git", *args], cwd=ROOT, capture_output=True)
+    except OSError as error:
+        raise SystemExit(f"engine_ab: cannot run git: {error}") from None
+
+
+def checkout(revision: str) -> Path:
+    """A folder whose ``fedhpg`` package is ``revision``'s tree."""
+    sha = _git("rev-parse", "--short=12", f"{revision}^{{commit}}")
+    if sha.returncode:
+        raise SystemExit(f"engine_ab: no commit {revision!r} in this clone "
+                         f"({sha.stderr.decode().strip() or 'git rev-parse failed'})")  # fmt: skip
+    name = sha.stdout.decode().strip()
+    folder = Path(tempfile.gettempdir()) / "fedhpg-engine-ab" / name
+    package = folder / "fedhpg"
+    if not (package / "common").is_dir():
+        archive = _git("archive", "--format=tar", name)
+        if archive.returncode:
+            raise SystemExit(f"engine_ab: git archive {name}: {archive.stderr.decode().strip()}")
+        package.mkdir(parents=True, exist_ok=True)
+        with tempfile.TemporaryFile() as raw:
+            raw.write(archive.stdout)
+            raw.seek(0)
+            with tarfile.open(fileobj=raw) as tar:
+                tar.extractall(package, filter="data")
+    return folder
+
+
+@dataclass(frozen=True)
+class Setup:
+    """What both sides run."""
+
+    against: str = BASELINE
+    algo: str = "fedhpg"
+    agents: int = 500
+    rounds: int = 10
+    """Interleaved rounds (made even: each order equally often)."""
+    theta: str | None = None
+    """A torch-saved θ to start every round from (default θ̃_0)."""
+    label: str = "θ̃_0"
+
+
+class Side:
+    """One revision's worker process."""
+
+    def __init__(self, label: str, path: Path | None, setup: Setup) -> None:
+        self.label = label
+        env = dict(os.environ, OMP_NUM_THREADS="1", PYTHONHASHSEED="0")
+        if path is not None:  # ahead of this tree's editable install
+            env["PYTHONPATH"] = os.pathsep.join([str(path), env.get("PYTHONPATH", "")])
+        command = [sys.executable, str(WORKER), "--algo", setup.algo, "--agents",
+                   str(setup.agents)]  # fmt: skip
+        if setup.theta:
+            command += ["--theta", setup.theta]
+        self.process = subprocess.Popen(command, stdin=subprocess.PIPE, stdout=subprocess.PIPE,
+                                        text=True, env=env, cwd=tempfile.gettempdir())  # fmt: skip
+        self.ready = self._answer()
+
+    def _answer(self) -> dict[str, float]:
+        assert self.process.stdout is not None
+        line = self.process.stdout.readline()
+        if not line:
+            code = self.process.wait()
+            raise SystemExit(f"engine_ab: the {self.label} worker exited ({code}) before answering")
+        return dict(json.loads(line))
+
+    def round(self, index: int) -> dict[str, float]:
+        assert self.process.stdin is not None
+        self.process.stdin.write(f"{index}\n")
+        self.process.stdin.flush()
+        return self._answer()
+
+    def close(self) -> None:
+        if self.process.stdin is not None:
+            self.process.stdin.close()
+        try:
+            self.process.wait(timeout=30)
+        except subprocess.TimeoutExpired:
+            self.process.kill()
+
+
+@dataclass(frozen=True)
+class Comparison:
+    setup: Setup
+    ratio: float
+    """Median over pairs of this tree's env steps per second / the commit's."""
+    this_steps_per_s: float
+    that_steps_per_s: float
+    steps_per_round: tuple[float, float]
+    that_group: str
+    this_group: str
+    sample_ns: tuple[float, float]
+    """CPU ns a step spent sampling, this tree's and the commit's (0: not reported)."""
+    gradient_ns: tuple[float, float]
+    """CPU ns a step for the rest of the update (estimator, gradients, steps)."""
+
+
+def compare(setup: Setup) -> Comparison:
+    """The paired comparison (module docstring)."""
+    rounds = setup.rounds + setup.rounds % 2
+    sides = {"this": Side("this tree's", None, setup),
+             "that": Side(f"{setup.against}'s", checkout(setup.against), setup)}  # fmt: skip
+    rates: dict[str, list[float]] = {"this": [], "that": []}
+    steps: dict[str, list[int]] = {"this": [], "that": []}
+    phases: dict[str, list[tuple[float, float]]] = {"this": [], "that": []}
+    try:
+        for r in range(rounds + 1):  # round 0 compiles or loads kernels, and is dropped
+            for name in ("this", "that") if r % 2 else ("that", "this"):
+                answer = sides[name].round(r + 1)
+                if r:
+                    rates[name].append(answer["steps"] / answer["seconds"])
+                    steps[name].append(int(answer["steps"]))
+                    phases[name].append(
+                        (
+                            answer.get("engine_sample_s", 0.0) / answer["steps"],
+                            answer.get("engine_gradient_s", 0.0) / answer["steps"],
+                        )
+                    )
+            log.info("%s %s, %d agents: round %d/%d", setup.algo, setup.label, setup.agents,
+                     r, rounds)  # fmt: skip
+    finally:
+        for side in sides.values():
+            side.close()
+    pairs = [a / b for a, b in zip(rates["this"], rates["that"], strict=True)]
+
+    def ns(name: str, phase: int) -> float:
+        return 1e9 * statistics.median(p[phase] for p in phases[name])
+
+    return Comparison(
+        setup=replace(setup, rounds=rounds),
+        ratio=statistics.median(pairs),
+        this_steps_per_s=statistics.median(rates["this"]),
+        that_steps_per_s=statistics.median(rates["that"]),
+        steps_per_round=(statistics.median(steps["this"]), statistics.median(steps["that"])),
+        this_group=str(sides["this"].ready["group"]),
+        that_group=str(sides["that"].ready["group"]),
+        sample_ns=(ns("this", 0), ns("that", 0)),
+        gradient_ns=(ns("this", 1), ns("that", 1)),
+    )
+
+
+def report(c: Comparison) -> str:
+    s = c.setup
+    return (
+        f"{s.algo} at {s.label}, {s.agents} CartPole agents in one group, {s.rounds} interleaved "
+        f"rounds: this tree ({c.this_group}) {c.this_steps_per_s / 1e6:.3f} M env steps/s "
+        f"against {s.against} ({c.that_group}) {c.that_steps_per_s / 1e6:.3f} M; paired ratio "
+        f"{c.ratio:.2f} ({c.steps_per_round[0]:,.0f} and {c.steps_per_round[1]:,.0f} steps a round)"
+        f"\n  CPU a step: sampling {c.sample_ns[0]:.0f} ns against {c.sample_ns[1]:.0f}, "
+        f"the rest of the update {c.gradient_ns[0]:.0f} ns against {c.gradient_ns[1]:.0f}"
+    )
+
+
+def save(comparisons: list[Comparison], path: Path = RESULTS) -> None:
+    """Add ``comparisons`` to the results file (one entry per algorithm, K and θ)."""
+    kept = json.loads(path.read_text()) if path.exists() else {}
+    for c in comparisons:
+        kept[f"{c.setup.algo}-{c.setup.agents}-{c.setup.label}"] = asdict(c)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(json.dumps(kept, indent=1, ensure_ascii=False) + "\n")
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser.add_argument("--against", default=BASELINE, help="the commit to compare with")
+    parser.add_argument("--algo", default="fedhpg", choices=["fedhpg", "fedhpgvr"])
+    parser.add_argument("--agents", type=int, default=500, help="agents in the group")
+    parser.add_argument("--rounds", type=int, default=10, help="interleaved rounds (≥ 1)")
+    parser.add_argument("--theta", help="start every round from this θ (torch-saved .pt)")
+    parser.add_argument("--results", type=Path, default=RESULTS, help="JSON to add the result to")
+    args = parser.parse_args()
+    if args.rounds < 1 or args.agents < 1:
+        parser.error("--rounds and --agents must be at least 1")
+    if args.theta and not Path(args.theta).is_file():
+        parser.error(f"--theta {args.theta}: no such file")
+    logging.basicConfig(level=logging.INFO, format="%(message)s")
+    setup = Setup(
+        against=args.against,
+        algo=args.algo,
+        agents=args.agents,
+        rounds=args.rounds,
+        theta=args.theta,
+        label=Path(args.theta).stem if args.theta else "θ̃_0",
+    )
+    comparison = compare(setup)
+    print(report(comparison))
+    save([comparison], args.results)
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,63 @@
+"""One side of :mod:`benchmarks.engine_ab`: a group of CartPole agents that trains a round
+each time a round number arrives on stdin and answers its seconds and env steps as a JSON
+line. Run as a script with whichever ``fedhpg`` is first on the path; it imports only what
+every revision of the package has (the config, ``make_agent_group``, ``initial_theta``)."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+
+import torch
+
+from fedhpg.common.group import make_agent_group
+from fedhpg.common.runtime.cli import compose
+from fedhpg.common.worker import initial_theta
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser()
+    parser.add_argument("--algo", required=True)
+    parser.add_argument("--agents", type=int, required=True)
+    parser.add_argument("--theta")
+    args = parser.parse_args()
+    torch.set_num_threads(1)
+    run = compose([
+        "env=cartpole", f"algo={args.algo}", "agents=population",
+        f"agents.num_agents={args.agents}", "agents.clock=counted", "policy.hidden=[16,16]",
+        "strategy=mean",
+    ])  # fmt: skip
+    agents = list(range(args.agents))
+    group = make_agent_group(run, agents)
+    group.prepare()
+    try:  # as an agent host tunes its allocator for its group
+        from fedhpg.common.runtime.memory import tune_malloc_for
+    except ImportError:
+        pass
+    else:
+        tune_malloc_for(group)
+    theta = torch.load(args.theta) if args.theta else initial_theta(_variant(run), run)
+    print(json.dumps({"group": type(group).__name__}), flush=True)
+    for line in sys.stdin:
+        index = int(line)
+        started = time.perf_counter()
+        results = group.train(index, theta, agents)
+        seconds = time.perf_counter() - started
+        steps = sum(r.stats.env_steps for r in results.values())
+        phases = {
+            name: sum(r.stats.algorithm.get(name) or 0.0 for r in results.values())
+            for name in ("engine_sample_s", "engine_gradient_s")
+        }  # the engine's own split of its CPU time, where the revision reports it
+        print(json.dumps({"seconds": seconds, "steps": steps, **phases}), flush=True)
+
+
+def _variant(run):  # type: ignore[no-untyped-def]
+    from fedhpg.common.variants import variants_of
+
+    return variants_of(run, [0])[0]
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,160 @@
+"""The compiled backend: the engine's two heavy primitives, sampling and score gradients, for
+CartPole agents with the MLP categorical policy, in numba on the CPU.
+
+The algorithms' loops, the estimator's coefficients, the optimizer steps and every other
+primitive are the engine's own (torch); this supplies ``sample`` and ``gradients`` an agent
+at a time inside :mod:`fedhpg.common.batched.kernels`, several times faster than torch's
+lockstep on a CPU (BENCHMARKS.md). Each copy draws from its own trajectory key with the
+engine's own hash (common/randomness.py), so an agent's trajectories depend on it alone; the
+floats differ from the torch backend's (float64 dynamics, a float32 rational tanh), so
+``algo.engine`` is dictated by the server, and between placements of one run they never
+differ.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Sequence
+
+import numpy as np
+import torch
+
+from fedhpg.common.batched import kernels
+from fedhpg.common.batched.mlp import MLPShape
+from fedhpg.common.engine.trajectories import StepRows, Trajectories
+from fedhpg.envs.base import EnvVariant
+from fedhpg.envs.compiled import CARTPOLE_DEFAULTS, CARTPOLE_STEP_LIMIT, cartpole_table
+
+
+def covers(variant: EnvVariant) -> bool:
+    """Whether the compiled CartPole models this variant."""
+    return cartpole_table([variant]) is not None
+
+
+class CompiledBackend:
+    """``sample`` and ``gradients`` of an MLP categorical policy on CartPole variants."""
+
+    def __init__(self, shape: MLPShape) -> None:
+        self.shape = shape
+        self.sizes = np.asarray(shape.sizes, dtype=np.int64)
+        self._physics: dict[int, np.ndarray] = {}
+
+    def _physics_of(self, k: int, variant: EnvVariant) -> np.ndarray:
+        if k not in self._physics:
+            table = cartpole_table([variant])
+            if table is None:
+                raise ValueError(f"agent {k}'s variant is not a CartPole the backend models")
+            self._physics[k] = table[0]
+        return self._physics[k]
+
+    def sample(
+        self,
+        theta: torch.Tensor,
+        counts: torch.Tensor,
+        keys: torch.Tensor,
+        horizons: torch.Tensor,
+        agents: Sequence[int],
+        variants: Sequence[EnvVariant],
+        *,
+        greedy: bool,
+    ) -> Trajectories:
+        """One episode per copy of every row, as the engine's ``sample`` returns them."""
+        count = counts.numpy().astype(np.int64)
+        limits = np.minimum(horizons.numpy().astype(np.int64), CARTPOLE_STEP_LIMIT)
+        physics = np.stack([self._physics_of(k, v) for k, v in zip(agents, variants, strict=True)])
+        capacity = int((count * limits).sum())
+        obs_dim = int(self.sizes[0])
+        rows_obs = np.empty((capacity, obs_dim), dtype=np.float32)
+        rows_action = np.empty(capacity, dtype=np.int64)
+        rows_column = np.empty(capacity, dtype=np.int64)
+        rows_time = np.empty(capacity, dtype=np.int64)
+        total = int(count.sum())
+        lengths = np.zeros(total, dtype=np.int64)
+        written = kernels.sample_rows(
+            np.ascontiguousarray(theta.numpy(), dtype=np.float32), self.sizes, physics, count,
+            limits, keys.numpy(), greedy, rows_obs, rows_action, rows_column, rows_time, lengths,
+        )  # fmt: skip
+        per_row = counts.new_zeros(len(count)).index_add_(
+            0, torch.repeat_interleave(torch.arange(len(count)), counts),
+            torch.from_numpy(lengths),
+        )  # fmt: skip
+        packed = StepRows(
+            obs=torch.from_numpy(rows_obs[:written]),
+            actions=torch.from_numpy(rows_action[:written]),
+            rewards=torch.ones(written, dtype=torch.float64),  # CartPole: 1 a step, the last too
+            time=torch.from_numpy(rows_time[:written]),
+            column=torch.from_numpy(rows_column[:written]),
+            rows=torch.arange(len(count)),
+            row_start=torch.cat([torch.zeros(1, dtype=torch.int64), torch.cumsum(per_row, 0)]),
+        )
+        return Trajectories(
+            success=torch.zeros(total, dtype=torch.bool),  # CartPole has no goal
+            owner=torch.repeat_interleave(torch.arange(len(count)), counts),
+            counts=counts.clone(),
+            lengths=torch.from_numpy(lengths),
+            steps=packed,
+        )
+
+    def gradients(
+        self, theta: torch.Tensor, batch: Trajectories, coefficients: torch.Tensor
+    ) -> torch.Tensor:
+        """Σ_n Σ_t coef[t, n] ∇ log π_θa(a_t|s_t) over each row a's trajectories, [A, d], from
+        the batch's packed steps (the order the sampler wrote them); ``coefficients`` per cell
+        of ``batch.layout``."""
+        if batch.steps is not None:
+            steps, at = batch.steps, batch.step_cells
+        else:
+            steps = _packed(batch)
+            at = batch.layout.cell(steps.time, steps.column)
+        out = np.zeros((theta.shape[0], theta.shape[1]), dtype=np.float32)
+        part = np.zeros((len(steps.rows), theta.shape[1]), dtype=np.float32)
+        kernels.row_gradients(
+            np.ascontiguousarray(theta[steps.rows].detach().numpy(), dtype=np.float32),
+            self.sizes,
+            steps.obs.numpy(),
+            steps.actions.numpy(),
+            coefficients.index_select(0, at).to(torch.float32).numpy(),
+            steps.row_start.numpy(),
+            part,
+        )
+        out[steps.rows.numpy()] = part
+        return torch.from_numpy(out)
+
+
+def _packed(batch: Trajectories) -> StepRows:
+    """The alive steps of a padded batch, row after row, each trajectory's in time order."""
+    cells = torch.nonzero(batch.alive.T)  # (n, t): columns grouped by row
+    column, step = cells[:, 0], cells[:, 1]
+    per_row = torch.bincount(batch.owner[column], minlength=batch.num_rows)
+    return StepRows(
+        obs=batch.obs[step, column],
+        actions=batch.actions[step, column],
+        rewards=batch.rewards[step, column],
+        time=step,
+        column=column,
+        rows=torch.arange(batch.num_rows),
+        row_start=torch.cat([torch.zeros(1, dtype=torch.int64), torch.cumsum(per_row, 0)]),
+    )
+
+
+def warm_up() -> float:
+    """Compile the kernels (or load them from numba's cache) on a toy batch of the types the
+    engine passes; returns the seconds it took. The first compilation on a machine takes tens
+    of seconds; ``make setup`` and the image build run this once so that runs load the cache,
+    and ``fedhpg-run`` runs it before it forks agents, so that they inherit the compiled code
+    instead of compiling it each."""
+    started = time.perf_counter()
+    backend = CompiledBackend(MLPShape((4, 2, 2)))
+    backend._physics = {0: np.asarray(CARTPOLE_DEFAULTS, dtype=np.float64)}
+    theta = torch.zeros((2, 16))
+    for greedy in (False, True):
+        batch = backend.sample(
+            theta, torch.tensor([1, 2]), torch.arange(3), torch.tensor([3, 3]), [0, 0],
+            [None, None], greedy=greedy,  # type: ignore[list-item]
+        )  # fmt: skip
+    backend.gradients(theta, batch, batch.cells[0])
+    return time.perf_counter() - started
+
+
+if __name__ == "__main__":  # make setup: fill numba's cache once
+    print(f"compiled backend ready ({warm_up():.1f} s)")

@@ -1,0 +1,41 @@
+"""benchmarks.engine_ab runs a commit's package beside this tree's: the folder it puts on the
+worker's path must hold that commit's files (or the comparison would measure this tree
+against itself), and a revision the clone does not have is a one-line error."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from benchmarks import engine_ab
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def _in_git_checkout() -> bool:
+    inside = subprocess.run(["git", "rev-parse", "--is-inside-work-tree"], cwd=ROOT,
+                            capture_output=True, text=True)  # fmt: skip
+    return inside.returncode == 0 and inside.stdout.strip() == "true"
+
+
+pytestmark = pytest.mark.skipif(not _in_git_checkout(), reason="needs the project's git history")
+
+
+def test_the_folder_holds_the_commits_package() -> None:
+    folder = engine_ab.checkout("HEAD")
+    for path in ("common/group.py", "common/engine/engine.py", "common/batched/kernels.py"):
+        shown = subprocess.run(["git", "show", f"HEAD:{path}"], cwd=ROOT, capture_output=True,
+                               text=True, check=True).stdout  # fmt: skip
+        assert (folder / "fedhpg" / path).read_text() == shown
+    found = "import importlib.util as u; print(u.find_spec('fedhpg.common.limits').origin)"
+    worker = subprocess.run([sys.executable, "-c", found], env={"PYTHONPATH": str(folder)},
+                            capture_output=True, text=True, cwd=folder)  # fmt: skip
+    assert worker.stdout.strip() == str(folder / "fedhpg" / "common" / "limits.py"), worker.stderr
+
+
+def test_an_unknown_revision_is_a_one_line_error() -> None:
+    with pytest.raises(SystemExit, match=r"^engine_ab: no commit 'no-such-rev' in this clone"):
+        engine_ab.checkout("no-such-rev")
