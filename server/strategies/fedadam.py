@@ -72,6 +72,9 @@ class FedAdam(Strategy[FedAdamParams]):
     def round_stats(self) -> dict[str, Any]:
         return self.inner.round_stats()
 
+    def sampled_trajectories(self) -> int:
+        return self.inner.sampled_trajectories()
+
     def aggregate(
         self,
         round_index: int,
