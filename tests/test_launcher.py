@@ -79,7 +79,8 @@ def test_a_stopped_run_leaves_no_process_and_says_how_to_continue(
         finally:
             signal.signal(signal.SIGINT, before)
         saved = tmp_path / "run" / "checkpoints"
-        assert wait_until(lambda: saved.is_dir() and any(saved.iterdir()), 60)
+        # a valid checkpoint, not the temporary file one is written to first
+        assert wait_until(lambda: saved.is_dir() and latest_valid_checkpoint(saved) is not None, 60)
         launcher.send_signal(stop)
         # communicate, not wait: the federation's processes share the launcher's pipes, and a
         # pipe nobody drains blocks the process writing to it once it is full (64 KiB)
@@ -165,7 +166,8 @@ def test_a_stopped_server_says_how_to_continue(tmp_path: Path) -> None:
         server = start(started, "fedhpg-server", keys, cwd=tmp_path)
         agent = start(started, "fedhpg-agent", [*keys, "agent.index=0"], cwd=tmp_path)
         saved = tmp_path / "run" / "checkpoints"
-        assert wait_until(lambda: saved.is_dir() and any(saved.iterdir()), 60)
+        # a valid checkpoint, not the temporary file one is written to first
+        assert wait_until(lambda: saved.is_dir() and latest_valid_checkpoint(saved) is not None, 60)
         server.send_signal(signal.SIGTERM)
         _, stderr = server.communicate(timeout=60)
         agent.communicate(timeout=60)

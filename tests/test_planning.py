@@ -267,7 +267,7 @@ def test_theorem2_shape_against_the_formula():
 
 
 def test_fedhpg_plan_prints_a_plan_that_fedhpg_run_accepts(capsys):
-    status = main(["--max-return", "1", "--pilot-rounds", "2", *COUNTED, "rounds=20"])
+    status = main(["--max-return", "1", "--pilot-rounds", "3", *COUNTED, "rounds=20"])
     out = capsys.readouterr().out
     assert status == 0
     assert "planned: bound" in out and "configured: bound" in out
