@@ -492,8 +492,8 @@ class PrivacyConfig:
     clip_rate: float = 0.2
     """Adaptive clipping: the geometric step η of C ← C·exp(−η(b̄ − quantile))."""
     count_std: float | None = None
-    """Adaptive clipping: std of the noise on the count of unclipped updates; None = the
-    expected agents per round / 20."""
+    """Adaptive clipping: std of the noise on the count of unclipped updates (above σ/2);
+    None = the expected agents per round / 20, or σ where that is more."""
     noise_seed: int | None = None
     """Seed the DP noise (reproducible experiments only: whoever knows it can remove the
     noise); None = the operating system's entropy."""

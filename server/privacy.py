@@ -80,7 +80,11 @@ class PrivateRounds:
 
     def _set_count_noise(self, run: RunConfig) -> None:
         if self.settings.adaptive_clip:
-            self.count_std = self.settings.count_std or self.sampling.expected / 20
+            # Andrew et al.'s m/20, but never below σ: a small round's count would otherwise
+            # spend most of the budget (the update's own multiplier is then 2/√3 σ at most)
+            self.count_std = self.settings.count_std or max(
+                self.sampling.expected / 20, self.noise_multiplier
+            )
         try:
             self.update_multiplier = dp.update_noise_multiplier(
                 self.noise_multiplier, self.count_std

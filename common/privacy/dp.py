@@ -74,7 +74,7 @@ def update_noise_multiplier(noise_multiplier: float, count_std: float | None) ->
     if rest <= 0:
         raise ValueError(
             f"the count's noise (std {count_std:g}) alone spends more than noise multiplier "
-            f"{noise_multiplier:g} allows; raise it above {1 / (2 * noise_multiplier):g}"
+            f"{noise_multiplier:g} allows; it must be above σ/2 = {noise_multiplier / 2:g}"
         )
     return rest**-0.5
 
