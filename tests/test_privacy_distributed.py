@@ -257,4 +257,3 @@ def test_an_agent_without_channel_keys_is_refused(tmp_path: Path) -> None:
         agent = start(started, "fedhpg-agent", [*plain, "agent.index=0"], cwd=tmp_path)
         assert agent.wait(timeout=TIMEOUT_S) == 1
         assert "sent no channel keys, and this run aggregates securely" in agent.stderr.read()
-
