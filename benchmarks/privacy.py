@@ -15,7 +15,11 @@ agent of the round takes part, none drops out (and one setting where 10 % drop a
 their input). Bytes each agent sends and receives are counted from the messages' arrays.
 Writes ``benchmarks/results/privacy_overhead.json``.
 
-``python -m benchmarks.privacy --part utility|overhead`` (each prints its table).
+``--part wire``: ``fedhpg-run`` on loopback (a server and two agent hosts; CartPole, B = 8,
+every agent in every round), plain against ``privacy=secagg``: the median round time of
+rounds 2–6 at K = 10, 100 and 1,000. Writes ``benchmarks/results/privacy_wire.json``.
+
+``python -m benchmarks.privacy --part utility|overhead|wire`` (each prints its table).
 """
 
 from __future__ import annotations
@@ -39,6 +43,7 @@ from fedhpg.server.assembly import run_in_process
 
 UTILITY = Path("benchmarks/results/privacy_utility.json")
 OVERHEAD = Path("benchmarks/results/privacy_overhead.json")
+WIRE = Path("benchmarks/results/privacy_wire.json")
 FIGURE = Path("docs/figures/privacy_utility.png")
 BASE = [
     "env=cartpole",
@@ -149,7 +154,13 @@ def _plain_round_s(agents: int) -> float:
     from fedhpg.server.pools.inprocess import make_in_process_pool
 
     run = compose(
-        ["env=cartpole", f"agents.num_agents={agents}", "agents.budget.batch_size=[8]", "rounds=5"]
+        [
+            "env=cartpole",
+            "agents=homogeneous10",
+            f"agents.num_agents={agents}",
+            "agents.budget.batch_size=[8]",
+            "rounds=5",
+        ]
     )
     checked = check_run(run, distributed=False)
     pool = make_in_process_pool(run)
@@ -266,9 +277,72 @@ def overhead_table(data: dict[str, Any]) -> str:
     return "\n".join(lines)
 
 
+# --- over the wire: fedhpg-run's round times ----------------------------------------------------
+
+WIRE_CASES = ((10, 5, None), (100, 50, None), (100, 50, 16), (1000, 500, 16))
+"""(K, agents per host, neighbours): two agent hosts, every agent in every round."""
+
+
+def wire() -> dict[str, Any]:
+    """Median ``round_time_s`` of rounds 2–6 of ``fedhpg-run`` (a server and two agent hosts
+    on loopback), plain and with ``privacy=secagg``, each agent in every round."""
+    import sys
+    import tempfile
+
+    rows = []
+    for agents, per_host, neighbours in WIRE_CASES:
+        row: dict[str, Any] = {"agents": agents, "per_host": per_host, "neighbours": neighbours}
+        for mode in ("none", "secagg"):
+            with tempfile.TemporaryDirectory() as directory:
+                out = Path(directory) / "run"
+                extra = [] if neighbours is None else [f"privacy.secagg.neighbours={neighbours}"]
+                command = [
+                    str(Path(sys.prefix) / "bin" / "fedhpg-run"),
+                    "env=cartpole",
+                    "agents=homogeneous10",
+                    f"agents.num_agents={agents}",
+                    "agents.budget.batch_size=[8]",
+                    f"agents.per_host={per_host}",
+                    "rounds=6",
+                    "eval.every=100",
+                    "eval.episodes=1",
+                    "server.tensorboard=false",
+                    f"privacy={mode}",
+                    *(extra if mode == "secagg" else []),
+                    f"server.out_dir={out}",
+                    f"hydra.run.dir={out}",
+                ]
+                subprocess.run(command, check=True, capture_output=True, cwd=directory)
+                lines = (out / "metrics.jsonl").read_text().splitlines()
+                times = [json.loads(line)["round_time_s"] for line in lines][1:]
+                row[mode] = float(np.median(times))
+        rows.append(row)
+        logging.info("%s", row)
+    return {
+        "command": "python -m benchmarks.privacy --part wire",
+        "date": date.today().isoformat(),
+        "commit": _commit(),
+        "rows": rows,
+    }
+
+
+def wire_table(data: dict[str, Any]) -> str:
+    lines = [
+        "| K | hosts × agents | neighbours | plain round s | secure round s | overhead s |",
+        "|---|---|---|---|---|---|",
+    ]
+    for r in data["rows"]:
+        k = "all" if r["neighbours"] is None else str(r["neighbours"])
+        lines.append(
+            f"| {r['agents']:,} | 2 × {r['per_host']} | {k} | {r['none']:.3f} | "
+            f"{r['secagg']:.3f} | {r['secagg'] - r['none']:.3f} |"
+        )
+    return "\n".join(lines)
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--part", choices=("utility", "overhead"), required=True)
+    parser.add_argument("--part", choices=("utility", "overhead", "wire"), required=True)
     parser.add_argument("--seeds", type=int, default=5)
     parser.add_argument("--plot-only", action="store_true", help="redraw from the stored results")
     args = parser.parse_args()
@@ -283,10 +357,14 @@ def main() -> None:
             UTILITY.write_text(json.dumps(data, indent=1))
         draw_utility(data)
         print(utility_table(data))
-    else:
+    elif args.part == "overhead":
         data = overhead()
         OVERHEAD.write_text(json.dumps(data, indent=1))
         print(overhead_table(data))
+    else:
+        data = wire()
+        WIRE.write_text(json.dumps(data, indent=1))
+        print(wire_table(data))
 
 
 if __name__ == "__main__":
