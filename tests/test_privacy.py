@@ -112,6 +112,28 @@ def test_distributed_noise_and_adaptive_clipping() -> None:
     assert noisy.records[-1]["epsilon"] > 0
 
 
+def test_privacy_on_the_torch_engine_and_its_device_cartpole() -> None:
+    # the engine that runs on a GPU with algo.device=cuda, here on the CPU: its θ_k come back
+    # as CPU arrays, where clipping, noise and masks are computed
+    overrides = [
+        "env=cartpole",
+        "strategy=mean",  # not the preset's fedadam, whose first steps magnify float rounding
+        "~strategy.params.step_size",
+        "algo.step_size=0.01",
+        "algo.engine=torch",
+        "agents=homogeneous4",
+        "agents.budget.batch_size=[2]",
+        "rounds=2",
+        "eval.every=2",
+        "eval.episodes=1",
+    ]
+    plain = api.run(overrides=overrides)
+    secure = api.run(overrides=[*overrides, "privacy=secagg"])
+    assert torch.allclose(secure.theta, plain.theta, rtol=0, atol=1e-6)
+    noisy = api.run(overrides=[*overrides, "privacy=dp_secagg", "privacy.noise_multiplier=1"])
+    assert noisy.records[-1]["privacy"]["inputs"] == 4 and noisy.records[-1]["epsilon"] > 0
+
+
 @pytest.mark.parametrize(
     ("overrides", "key", "words"),
     [

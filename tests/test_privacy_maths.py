@@ -29,7 +29,7 @@ def test_clip_rows_bounds_norms_and_keeps_directions() -> None:
 def test_distributed_noise_sums_to_the_central_std() -> None:
     # 10 agents each adding N(0, (σC)²/10): the sum's std is σC. 20,000 draws: the sample
     # std's relative standard error is 1/sqrt(2·20,000) = 0.5%, the tolerance 4 of them.
-    generator = dp.noise_generator(seed=1)
+    generator = dp.noise_generator(seed=(1,))
     total_std, agents, draws = 2.5, 10, 20_000
     each = dp.per_agent_std(total_std, agents)
     sums = sum(dp.gaussian(generator, draws, each) for _ in range(agents))
