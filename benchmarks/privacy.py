@@ -123,7 +123,9 @@ def draw_utility(data: dict[str, Any]) -> None:
     axis.set_xlabel("trajectories per agent")
     axis.set_ylabel("greedy return of θ̃ (mean over the 100 agents)")
     axis.set_title("CartPole, K = 100, 10 agents a round: DP-FedAvg at δ = 1/K^1.1")
-    legend(axis, "mean")
+    axis.set_ylim(0, 560)
+    legend(axis, "mean", loc="upper left", bbox_to_anchor=(1.02, 1.0))  # beside the curves
+    figure.set_size_inches(10, 4.5)
     save(figure, FIGURE)
 
 

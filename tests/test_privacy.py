@@ -73,6 +73,25 @@ def test_a_run_stops_before_it_would_exceed_its_budget(tmp_path: Path) -> None:
     assert len(read_metrics(out / "metrics.jsonl")) == 3
 
 
+def test_a_given_noise_multiplier_stops_at_the_round_that_would_pass_the_cap(
+    tmp_path: Path,
+) -> None:
+    # σ given and ε a cap: the run goes on while the accountant stays within it, and stops
+    # before the first round that would not (here the third: the cap is half-way between the
+    # ε of two rounds and of three)
+    sampling = accounting.Sampling(kind="fixed", population=10, sample=4)
+    two, three = (accounting.epsilon(0.9, sampling, t, 10**-1.1) for t in (2, 3))
+    cap = (two + three) / 2
+    out = tmp_path / "run"
+    dp = [*SAMPLED, "privacy=dp", "privacy.noise_multiplier=0.9", f"privacy.epsilon={cap}"]
+    with pytest.raises(BudgetExhausted, match=r"round 3 would spend ε = .*the run stops here"):
+        api.run(overrides=[*dp, "rounds=20", "eval.every=20", "eval.episodes=1"], out_dir=out)
+    records = read_metrics(out / "metrics.jsonl")
+    assert [r["round"] for r in records] == [1, 2]
+    assert records[-1]["epsilon"] == pytest.approx(two) and two <= cap
+    assert latest_valid_checkpoint(out / "checkpoints").round == 2
+
+
 def test_resume_keeps_the_accountants_state(tmp_path: Path) -> None:
     out = tmp_path / "run"
     dp = [*SAMPLED, "privacy=dp", "privacy.noise_multiplier=1.5", "eval.every=2"]
