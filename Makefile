@@ -6,7 +6,7 @@ STAMP := $(VENV)/.installed
 export OMP_NUM_THREADS ?= 1
 export MKL_NUM_THREADS ?= 1
 
-.PHONY: setup demo test test-long image test-containers bench-containers clean-containers lint typecheck contracts bench bench-learning bench-learning-long bench-tuned bench-robustness bench-presets bench-scale bench-device bench-plan bench-async bench-privacy figures clean
+.PHONY: setup demo test test-long image test-containers test-cluster bench-cluster bench-containers clean-containers lint typecheck contracts bench bench-learning bench-learning-long bench-tuned bench-robustness bench-presets bench-scale bench-device bench-plan bench-async bench-privacy figures clean
 
 setup: $(STAMP)
 
@@ -44,6 +44,18 @@ image: $(STAMP)
 # tests are skipped with the reason; everything they start is removed by id when they end.
 test-containers: $(STAMP)
 	FEDHPG_CONTAINER_TESTS=1 $(BIN)/python -m pytest -q -rs tests/test_containers.py
+
+# fedhpg-cluster on a real SLURM and a real Ray (tests/test_cluster_engines.py): cluster/slurm.sh
+# and cluster/ray.sh install what they need (Debian's slurm and munge packages, the ray extra) and
+# start private two-node clusters in network namespaces where the machine allows it (root), else
+# the tests are skipped with the reason; what they start they stop, by pid (~3 min on 2 cores).
+test-cluster: $(STAMP)
+	FEDHPG_CLUSTER_TESTS=1 $(BIN)/python -m pytest -q -rs tests/test_cluster_engines.py
+
+# Start-up and per-round cost of fedhpg-cluster on SLURM and on Ray against fedhpg-run, the demo
+# and K = 1,000 on 2 hosts, on the clusters of test-cluster (BENCHMARKS.md "Clusters").
+bench-cluster: $(STAMP)
+	$(BIN)/python -m benchmarks.cluster_overhead
 
 # Timings from nothing (no base, image or build cache), the demo's 60 rounds in containers and
 # on loopback: benchmarks/results/containers.json (BENCHMARKS.md "Containers").

@@ -40,7 +40,7 @@ ROUND_POLICIES = ("wait_all", "deadline", "buffered")
 STALENESS_WEIGHTS = ("inverse_sqrt", "constant")
 PARTICIPATION_MODES = ("all", "uniform", "trace")
 TOLERANCE_CHECKS = ("refuse", "warn")
-CLUSTER_KINDS = ("auto", "slurm", "local")
+CLUSTER_KINDS = ("auto", "slurm", "local", "ray")
 PRIVACY_MODES = ("none", "dp", "secagg", "dp_secagg")
 LOG_STDS = ("state_independent", "state_dependent")
 
@@ -548,19 +548,23 @@ def _validate_privacy(privacy: PrivacyConfig) -> None:
 
 @dataclass(kw_only=True)
 class ClusterConfig:
-    """``fedhpg-cluster``: the jobs of a federation on a cluster engine (submitit)."""
+    """``fedhpg-cluster``: the jobs of a federation on a cluster engine (submitit, Ray)."""
 
     kind: str = "auto"
-    """'slurm', 'local' or 'auto' (SLURM where sbatch is found, else local). 'local' runs the
-    same jobs as processes on this machine (submitit's LocalExecutor)."""
+    """'slurm', 'ray', 'local' or 'auto' (SLURM where sbatch is found, else local). 'local'
+    runs the same jobs as processes on this machine (submitit's LocalExecutor); 'ray' runs
+    them as tasks on a running Ray cluster."""
     partition: str | None = None
     """SLURM partition of every job; None = the cluster's default."""
     time_min: int = 60
-    """Wall-clock limit of every job, in minutes (submitit's timeout_min)."""
+    """Wall-clock limit of every job, in minutes (submitit's timeout_min; not Ray's)."""
     mem_gb: float = 4.0
-    """Memory of every job, in GB (SLURM)."""
+    """Memory of every job, in GB (SLURM; Ray's memory resource)."""
     cpus_per_task: int = 1
-    """CPU cores of every job (SLURM)."""
+    """CPU cores of every job (SLURM; Ray's num_cpus)."""
+    gpus_per_host: int = 0
+    """GPUs of every agent-side job (SLURM --gres=gpu:N, Ray num_gpus); with algo.device=cuda
+    each agent host trains on its job's GPU. The server job gets none."""
     array_parallelism: int | None = None
     """Agent-side jobs of the array running at once; None = all. Never fewer than the jobs:
     the server waits for every agent before round 1."""
@@ -569,8 +573,11 @@ class ClusterConfig:
     endpoint_timeout_s: float = 600.0
     """How long an agent job waits for the server job's endpoint file (queueing included)."""
     advertise_host: str | None = None
-    """The address agents connect to; None = the server node's hostname on SLURM (which then
-    binds every interface), loopback for 'local'."""
+    """The address agents connect to; None = the server node's hostname on SLURM, its Ray node
+    address on Ray (the server then binds every interface), loopback for 'local'."""
+    address: str | None = None
+    """Ray: the running cluster's address (host:port of its head); None = RAY_ADDRESS, else
+    the Ray cluster started on this machine (ray start)."""
 
 
 @dataclass(kw_only=True)
@@ -924,6 +931,7 @@ def _validate_cluster(cluster: ClusterConfig) -> None:
     _check_int(cluster.time_min, "cluster.time_min", low=1)
     _check_number(cluster.mem_gb, "cluster.mem_gb", low=0.0, low_open=True)
     _check_int(cluster.cpus_per_task, "cluster.cpus_per_task", low=1)
+    _check_int(cluster.gpus_per_host, "cluster.gpus_per_host", low=0)
     if cluster.array_parallelism is not None:
         _check_int(cluster.array_parallelism, "cluster.array_parallelism", low=1)
     _require(

@@ -77,7 +77,8 @@ def _less_step_baseline(
     sums = values.new_zeros(layout.steps * size).index_add_(0, key, values)
     others = (torch.bincount(groups, minlength=size) - 1).clamp_min(1).to(values.dtype)
     shares = (sums.view(layout.steps, size) / others).reshape(-1)
-    return values * (1.0 + 1.0 / others).index_select(0, group) - shares.index_select(0, key)
+    out = values * (1.0 + 1.0 / others).index_select(0, group)
+    return out.sub_(shares.index_select(0, key))
 
 
 def _discounts(gamma: Gamma, layout: Staircase, like: torch.Tensor) -> torch.Tensor:
@@ -132,7 +133,7 @@ def coefficients(
     if estimator == "reinforce":
         if reward_to_go != "from_start":
             raise ValueError("reward_to_go='from_step' needs estimator 'gpomdp'")
-        totals = layout.column_totals(_discounts(gamma, layout, rewards) * rewards)
+        totals = layout.column_totals(_discounts(gamma, layout, rewards).mul_(rewards))
         centred = totals - _leave_one_out_mean(totals, group) if baseline == "mean" else totals
         if weights is not None:
             if weights.shape[0] != layout.columns:
@@ -141,13 +142,13 @@ def coefficients(
         coef = mask * layout.per_cell(centred)
     else:
         discounted = reward_to_go == "from_start"
-        values = _discounts(gamma, layout, rewards) * rewards if discounted else rewards
+        values = _discounts(gamma, layout, rewards).mul_(rewards) if discounted else rewards
         if baseline == "mean":
             values = _less_step_baseline(layout, values, group)
         if weights is not None:
             values = values * _cell_weights(layout, weights)
         if discounted:
-            coef = mask * layout.tail_sums(values)
+            coef = layout.tail_sums(values).mul_(mask)
         else:
             factors = (
                 gamma
@@ -156,7 +157,7 @@ def coefficients(
                     (layout.columns,), gamma, dtype=rewards.dtype, device=rewards.device
                 )
             )
-            coef = mask * layout.tail_sums(values, factors)
+            coef = layout.tail_sums(values, factors).mul_(mask)
     return _normalized(layout, coef, mask, normalize, group)
 
 

@@ -1,17 +1,18 @@
-"""``fedhpg-cluster``: a federation's processes as jobs of a cluster engine, through submitit.
+"""``fedhpg-cluster``: a federation's processes as jobs of a cluster engine.
 
-The server is one job and the agent-side processes one job array (SLURM; with
-``cluster=local`` submitit's LocalExecutor runs the same jobs as processes here). Agents find
-the server through its endpoint file in the run directory, which every node must see (a shared
-filesystem, as on SLURM clusters): the server binds a free port and writes host and port there.
-This process only submits and watches: it ends with the server job's status, reports each
-failed agent job in one line, restarts a crashed agent job up to ``agent.max_restarts`` times,
-and cancels whatever is still running when the server job ends or it is interrupted.
+The server is one job and the agent-side processes one job array: on SLURM through submitit
+(``cluster=slurm``; ``cluster=local`` runs the same jobs as processes here), or as tasks on a
+running Ray cluster (``cluster=ray``). Agents find the server through its endpoint file in the
+run directory, which every node must see (a shared filesystem, as on SLURM clusters): the
+server binds a free port and writes host and port there. This process only submits and
+watches, the same way on every engine (:mod:`.cluster_engines`): it ends with the server job's
+status, reports each failed agent job in one line, restarts a crashed agent job up to
+``agent.max_restarts`` times, and stops whatever is still running when the server job ends or
+it is interrupted, waiting until the engine reports it gone.
 """
 
 from __future__ import annotations
 
-import json
 import logging
 import os
 import shutil
@@ -21,17 +22,23 @@ import time
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
 
 from fedhpg.common.config import ConfigError, RunConfig
 from fedhpg.common.runtime.cli import EXIT_RUN_ABORTED, EXIT_USAGE
+from fedhpg.server.cluster_engines import (
+    Engine,
+    Job,
+    SubmitError,
+    SubmititEngine,
+    UnitFiles,
+    one_line,
+    settle,
+)
 from fedhpg.server.cluster_units import (
     ENDPOINT_NAME,
-    STATUS_DIR,
     STOP_NAME,
     agent_commands,
     describe,
-    run_unit,
     server_command,
 )
 
@@ -42,10 +49,10 @@ FINISH_GRACE_S = 10.0
 """After the server job ends, how long agent jobs may take to exit by themselves."""
 STOP_WAIT_S = 5.0
 """How long jobs may take to end their commands once the stop file is there."""
-CANCEL_WAIT_S = 5.0
-"""How long a cancelled local job may take to be gone (submitit kills it after 1 s)."""
+CANCEL_WAIT_S = {"local": 5.0, "slurm": 60.0, "ray": 30.0}
+"""How long cancelled jobs may take to be reported gone: submitit kills a local job after 1 s;
+SLURM signals a job's processes, then kills them after its KillWait (30 s by default)."""
 EXIT_INTERRUPTED = 130
-INSTALL_HINT = "pip install 'fedhpg[cluster]'"
 
 
 @dataclass
@@ -53,7 +60,7 @@ class AgentJob:
     """One agent-side unit and its current job (a restart submits a new one)."""
 
     command: list[str]
-    job: Any
+    job: Job
     restarts: int = 0
     finished: bool = False
 
@@ -62,13 +69,12 @@ class AgentJob:
 class Placement:
     """The submitted jobs of one federation."""
 
-    executor: Any
-    endpoint: Path
+    engine: Engine
     stop: Path
-    server: Any
+    server: Job
     agents: list[AgentJob] = field(default_factory=list)
 
-    def jobs(self) -> list[Any]:
+    def jobs(self) -> list[Job]:
         return [self.server, *(a.job for a in self.agents)]
 
 
@@ -99,92 +105,52 @@ def check_placement(run: RunConfig, overrides: Sequence[str]) -> Path:
     return run_dir.resolve()
 
 
-def make_executor(run: RunConfig, run_dir: Path) -> Any:
-    """submitit's AutoExecutor for ``cluster.kind``, its files and logs under the run dir."""
-    import submitit
-
-    cluster = run.cluster
-    executor = submitit.AutoExecutor(
-        folder=run_dir / cluster.folder / "%j",
-        cluster=None if cluster.kind == "auto" else cluster.kind,
+def unit_files(run: RunConfig, run_dir: Path) -> UnitFiles:
+    return UnitFiles(
+        endpoint=run_dir / ENDPOINT_NAME,
+        stop=run_dir / run.cluster.folder / STOP_NAME,
+        endpoint_timeout_s=run.cluster.endpoint_timeout_s,
     )
-    executor.update_parameters(
-        timeout_min=cluster.time_min,
-        mem_gb=cluster.mem_gb,
-        cpus_per_task=cluster.cpus_per_task,
-        slurm_partition=cluster.partition,
-    )
-    return executor
 
 
-class SubmitError(Exception):
-    """The engine refused a job (sbatch failed, say): one line, exit 1."""
+def make_engine(run: RunConfig, run_dir: Path) -> Engine:
+    """The engine ``cluster.kind`` names, its files and logs under the run directory."""
+    if run.cluster.kind == "ray":
+        from fedhpg.server.cluster_ray import RayEngine
+
+        return RayEngine(run, run_dir, unit_files(run, run_dir))
+    return SubmititEngine(run, run_dir, unit_files(run, run_dir))
 
 
-def _one_line(error: BaseException) -> str:
-    lines = [line.strip() for line in str(error).splitlines() if line.strip()]
-    return lines[-1] if lines else type(error).__name__
-
-
-def submit(run: RunConfig, overrides: Sequence[str], run_dir: Path, executor: Any) -> Placement:
-    """The server job, then the agent array (one ``batch()``: one sbatch --array on SLURM)."""
-    bind_all = executor.cluster != "local"  # agents on other nodes; loopback when all are here
-    endpoint = run_dir / ENDPOINT_NAME
-    stop = run_dir / run.cluster.folder / STOP_NAME
-    for old in (endpoint, stop):  # this run's jobs must not read an earlier run's files
+def submit(run: RunConfig, overrides: Sequence[str], run_dir: Path, engine: Engine) -> Placement:
+    """The server job, then the agent array (one ``sbatch --array`` on SLURM)."""
+    files = unit_files(run, run_dir)
+    for old in (files.endpoint, files.stop):  # this run's jobs must not read an earlier run's
         old.unlink(missing_ok=True)
-    shutil.rmtree(stop.parent / STATUS_DIR, ignore_errors=True)
-    executor.update_parameters(name="fedhpg-server")
-    command = server_command(run, overrides, run_dir, bind_all=bind_all)
-    try:
-        server = executor.submit(run_unit, command, None, 0.0, str(stop))
-    except Exception as error:  # the engine's own error (sbatch's message), whatever its type
-        raise SubmitError(f"cannot submit the server job: {_one_line(error)}") from None
-    logger.info("submitted the server as job %s (%s)", server.job_id, executor.cluster)
-    placement = Placement(executor=executor, endpoint=endpoint, stop=stop, server=server)
+    shutil.rmtree(files.status_dir, ignore_errors=True)
     commands = agent_commands(run, overrides)
-    executor.update_parameters(
-        name="fedhpg-agent", slurm_array_parallelism=run.cluster.array_parallelism or len(commands)
-    )
+    engine.check_room(len(commands))
+    server = engine.submit_server(server_command(run, overrides, run_dir, bind_all=engine.bind_all))
+    logger.info("submitted the server as job %s (%s)", server.job_id, engine.kind)
+    placement = Placement(engine=engine, stop=files.stop, server=server)
     try:
-        with executor.batch():
-            pending = [
-                executor.submit(
-                    run_unit, c, str(endpoint), run.cluster.endpoint_timeout_s, str(stop)
-                )
-                for c in commands
-            ]
-    except Exception as error:
+        pending = engine.submit_agents(commands)
+    except SubmitError as error:
         cancel_all(placement, graceful=False)  # likely still queued: nothing to stop yet
-        raise SubmitError(
-            f"cannot submit the agent jobs: {_one_line(error)} (the server job is cancelled)"
-        ) from None
+        raise SubmitError(f"{error} (the server job is cancelled)") from None
     placement.agents = [AgentJob(c, job) for c, job in zip(commands, pending, strict=True)]
     logger.info("submitted %d agent jobs: %s", len(pending), ", ".join(j.job_id for j in pending))
     return placement
 
 
-def _status(placement: Placement, job: Any) -> tuple[int | None, str]:
-    """A finished job's exit status, from the JSON its job wrote (never submitit's result
-    pickle); None, and why, if the job ended before its command did (killed, timed out)."""
-    path = placement.stop.parent / STATUS_DIR / f"{job.job_id}.json"
-    try:
-        return int(json.loads(path.read_text(encoding="utf-8"))["status"]), ""
-    except (OSError, ValueError, KeyError, TypeError):
-        return None, f"it ended before its command did (job state {job.state})"
-
-
-def _log_of(job: Any) -> str:
-    return str(job.paths.stderr)
-
-
 def _watch_agents(run: RunConfig, placement: Placement) -> bool:
     """Restart crashed agent jobs (as fedhpg-run restarts processes); False once one has no
     restarts left."""
+    placement.engine.refresh()
     for agent in placement.agents:
         if agent.finished or not agent.job.done():
             continue
-        status, why = _status(placement, agent.job)
+        status, why = agent.job.status()
         if status in (0, EXIT_RUN_ABORTED):  # done, or the server ended the run: it tells how
             agent.finished = True
             continue
@@ -192,19 +158,12 @@ def _watch_agents(run: RunConfig, placement: Placement) -> bool:
         if agent.restarts >= run.agent.max_restarts:
             logger.error(
                 "agent job %s (%s) %s; stopping the federation (log: %s)",
-                agent.job.job_id, describe(agent.command), what, _log_of(agent.job),
+                agent.job.job_id, describe(agent.command), what, agent.job.log,
             )  # fmt: skip
             agent.finished = True
             return False
         agent.restarts += 1
-        placement.executor.update_parameters(name="fedhpg-agent")
-        agent.job = placement.executor.submit(
-            run_unit,
-            agent.command,
-            str(placement.endpoint),
-            run.cluster.endpoint_timeout_s,
-            str(placement.stop),
-        )
+        agent.job = placement.engine.submit_agent(agent.command)
         logger.warning(
             "agent job of %s %s; resubmitted as job %s (%d of %d restarts, agent.max_restarts)",
             describe(agent.command), what, agent.job.job_id, agent.restarts, run.agent.max_restarts,
@@ -218,66 +177,68 @@ def supervise(run: RunConfig, placement: Placement) -> int:
         if not _watch_agents(run, placement):
             return 1
         time.sleep(POLL_S)
-    status, why = _status(placement, placement.server)
+    status, why = placement.server.status()
     server = f"the server job {placement.server.job_id}"
     if status is None:
-        sys.stderr.write(f"error: {server} failed: {why} (log: {_log_of(placement.server)})\n")
+        sys.stderr.write(f"error: {server} failed: {why} (log: {placement.server.log})\n")
         return 1
     if status != 0:  # its agents are stopped at once: nothing is left for them to do
         sys.stderr.write(
-            f"error: {server} exited with status {status} (log: {_log_of(placement.server)})\n"
+            f"error: {server} exited with status {status} (log: {placement.server.log})\n"
         )
         return status if 0 < status < 128 else 1  # killed by a signal: negative
     deadline = time.monotonic() + FINISH_GRACE_S
     while time.monotonic() < deadline and not all(a.job.done() for a in placement.agents):
         time.sleep(POLL_S)
+        placement.engine.refresh()
     failed = 0
     for agent in placement.agents:
         if not agent.job.done():
             logger.error("agent job %s did not end after the run; cancelling it", agent.job.job_id)
             failed += 1
             continue
-        code, reason = _status(placement, agent.job)
+        code, reason = agent.job.status()
         if code not in (0, EXIT_RUN_ABORTED):
             failed += 1
             what = f"exited with status {code}" if code is not None else f"failed: {reason}"
             logger.error(
                 "agent job %s (%s) %s (log: %s)",
-                agent.job.job_id, describe(agent.command), what, _log_of(agent.job),
+                agent.job.job_id, describe(agent.command), what, agent.job.log,
             )  # fmt: skip
     return 1 if failed else 0
 
 
 def cancel_all(placement: Placement, *, graceful: bool = True) -> None:
     """Stop every job still running: first through the stop file (each job ends its command,
-    the job completes) if ``graceful``, then by cancelling what is left; local jobs are
-    waited for."""
+    the job completes) if ``graceful``, then by cancelling what is left; then wait until the
+    engine reports every one gone."""
+    engine = placement.engine
     running = [job for job in placement.jobs() if not job.done()]
     if not running:
         return
+    placement.stop.parent.mkdir(parents=True, exist_ok=True)
     placement.stop.touch()
-    deadline = time.monotonic() + (STOP_WAIT_S if graceful else 0.0)
-    while time.monotonic() < deadline and not all(job.done() for job in running):
-        time.sleep(0.05)
-    left = [job for job in running if not job.done()]
+    left = settle(engine, running, STOP_WAIT_S if graceful else 0.0)
     for job in left:
         try:
-            job.cancel(check=False)
+            job.cancel()
         except Exception as error:  # scancel missing or failing: say so, go on with the rest
             logger.error("cannot cancel job %s: %s", job.job_id, error)
-    if placement.executor.cluster == "local":
-        deadline = time.monotonic() + CANCEL_WAIT_S
-        while time.monotonic() < deadline and not all(job.done() for job in left):
-            time.sleep(0.05)
+    lingering = settle(engine, left, CANCEL_WAIT_S.get(engine.kind, 30.0))
     logger.info(
         "stopped jobs %s%s",
         ", ".join(job.job_id for job in running),
         f" (cancelled {', '.join(job.job_id for job in left)})" if left else "",
     )
+    if lingering:
+        logger.error(
+            "jobs %s still not reported ended by %s",
+            ", ".join(job.job_id for job in lingering), engine.kind,
+        )  # fmt: skip
 
 
-def place(run: RunConfig, overrides: Sequence[str], run_dir: Path, executor: Any) -> int:
-    """Submit the federation, watch it, cancel what is left; the exit status."""
+def place(run: RunConfig, overrides: Sequence[str], run_dir: Path, engine: Engine) -> int:
+    """Submit the federation, watch it, stop what is left; the exit status."""
     new = not run_dir.exists()
     run_dir.mkdir(parents=True, exist_ok=True)
     placement: Placement | None = None
@@ -288,14 +249,14 @@ def place(run: RunConfig, overrides: Sequence[str], run_dir: Path, executor: Any
 
     signal.signal(signal.SIGTERM, interrupt)
     try:
-        placement = submit(run, overrides, run_dir, executor)
+        placement = submit(run, overrides, run_dir, engine)
         status = supervise(run, placement)
         if status == 0:
             sys.stdout.write(f"run directory: {run_dir}\n")
         return status
     except SubmitError as error:
         sys.stderr.write(f"error: {error}\n")
-        if new:  # nothing ran in it: leave nothing behind
+        if new and placement is None:  # nothing ran in it: leave nothing behind
             shutil.rmtree(run_dir, ignore_errors=True)
         return 1
     except KeyboardInterrupt:
@@ -304,6 +265,7 @@ def place(run: RunConfig, overrides: Sequence[str], run_dir: Path, executor: Any
     finally:
         if placement is not None:
             cancel_all(placement)
+        engine.close()
         signal.signal(signal.SIGTERM, previous)
 
 
@@ -344,14 +306,16 @@ def main(argv: Sequence[str] | None = None) -> None:
         run_dir = check_placement(run, overrides)
     except ConfigError as error:
         sys.exit(fail(error))
-    try:
-        import submitit  # noqa: F401  (the optional dependency: checked before anything starts)
+    package = "ray" if run.cluster.kind == "ray" else "submitit"
+    try:  # the optional dependency: checked before anything starts
+        __import__(package)
     except ImportError:
-        sys.stderr.write(f"error: fedhpg-cluster needs submitit: {INSTALL_HINT}\n")
+        extra = "ray" if package == "ray" else "cluster"
+        sys.stderr.write(f"error: fedhpg-cluster needs {package}: pip install 'fedhpg[{extra}]'\n")
         sys.exit(EXIT_USAGE)
+    os.environ.setdefault("OMP_NUM_THREADS", "1")  # jobs inherit it (local; SLURM, Ray pass it)
     try:
-        executor = make_executor(run, run_dir)
-    except (RuntimeError, ValueError) as error:  # e.g. kind=slurm where SLURM is not
-        sys.exit(fail(ConfigError("cluster.kind", f"{run.cluster.kind}: {_one_line(error)}")))
-    os.environ.setdefault("OMP_NUM_THREADS", "1")  # jobs inherit it (local; SLURM exports)
-    sys.exit(place(run, overrides, run_dir, executor))
+        engine = make_engine(run, run_dir)
+    except (RuntimeError, ValueError, SubmitError) as error:  # e.g. kind=slurm where SLURM is not
+        sys.exit(fail(ConfigError("cluster.kind", f"{run.cluster.kind}: {one_line(error)}")))
+    sys.exit(place(run, overrides, run_dir, engine))

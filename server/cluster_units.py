@@ -16,16 +16,19 @@ import contextlib
 import ctypes
 import json
 import logging
+import os
 import shutil
 import signal
+import socket
 import subprocess
 import sys
 import time
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
 from pathlib import Path
+from typing import IO
 
 from fedhpg.common.config import RunConfig, host_ranges
-from fedhpg.common.runtime.cli import setup_logging
+from fedhpg.common.runtime.cli import LOG_DATE_FORMAT, LOG_FORMAT, setup_logging
 
 logger = logging.getLogger(__name__)
 
@@ -128,48 +131,97 @@ def _die_with_job() -> None:
 
 
 def run_unit(
-    command: list[str], endpoint_file: str | None, timeout_s: float, stop_file: str
+    command: list[str],
+    endpoint_file: str | None,
+    timeout_s: float,
+    stop_file: str,
+    *,
+    job_id: str | None = None,
+    log_file: str | None = None,
+    cwd: str | None = None,
+    env: dict[str, str] | None = None,
 ) -> int:
     """Run one unit in this job and return its exit status (the job's result).
 
     ``endpoint_file``: wait for the server's endpoint (at most ``timeout_s``) and connect there.
     ``stop_file``: when it appears, stop the command (SIGTERM): how ``fedhpg-cluster`` ends
     its jobs on any engine before it falls back to cancelling them. Arguments are plain
-    strings, so that what submitit stores for the job is only that."""
-    setup_logging()
-    stop = Path(stop_file)
-    argv = list(command)
-    if endpoint_file is not None:
-        record = read_endpoint(Path(endpoint_file), timeout_s, stop)
-        if record is None:
-            logger.error("no server endpoint in %s (waited up to %.0f s)", endpoint_file, timeout_s)
-            return _record_status(stop.parent, EXIT_NO_SERVER)
-        if record.get("transport") == "tcp":
-            argv += [f"server.host={record['host']}", f"server.port={record['port']}"]
-    logger.info("running %s", " ".join(argv))
-    process = subprocess.Popen([_executable(argv[0]), *argv[1:]], preexec_fn=_die_with_job)
-    try:
-        while process.poll() is None and not stop.exists():
-            time.sleep(POLL_S)
-        if process.poll() is None:
-            logger.info("stop requested (%s): stopping %s", stop, argv[0])
-    finally:  # stopped, or cancelled (SIGINT from submitit's local executor)
-        if process.poll() is None:
-            process.terminate()
-            try:
-                process.wait(STOP_GRACE_S)
-            except subprocess.TimeoutExpired:
-                process.kill()
-    return _record_status(stop.parent, process.wait())
+    strings, so that what an engine stores for the job is only that.
+
+    A submitit job passes nothing else: its id is submitit's, its output is the job's log.
+    A Ray task, whose worker process serves other tasks too, names the job (``job_id``), and
+    gets the command's output and its own lines in ``log_file``, the driver's working
+    directory (``cwd``) and the variables the driver passes on (``env``)."""
+    level = (env or {}).get("FEDHPG_LOG_LEVEL") or os.environ.get("FEDHPG_LOG_LEVEL", "INFO")
+    with _unit_log(log_file, level) as output:
+        stop = Path(stop_file)
+        status_dir = stop.parent / STATUS_DIR
+        argv = list(command)
+        if endpoint_file is not None:
+            record = read_endpoint(Path(endpoint_file), timeout_s, stop)
+            if record is None:
+                logger.error(
+                    "no server endpoint in %s (waited up to %.0f s)", endpoint_file, timeout_s
+                )
+                return _record_status(status_dir, job_id, EXIT_NO_SERVER)
+            if record.get("transport") == "tcp":
+                argv += [f"server.host={record['host']}", f"server.port={record['port']}"]
+        logger.info("running %s (on %s)", " ".join(argv), socket.gethostname())
+        process = subprocess.Popen(
+            [_executable(argv[0]), *argv[1:]],
+            preexec_fn=_die_with_job,
+            cwd=cwd,
+            env=None if env is None else {**os.environ, **env},
+            stdout=output,
+            stderr=output,
+        )
+        try:
+            while process.poll() is None and not stop.exists():
+                time.sleep(POLL_S)
+            if process.poll() is None:
+                logger.info("stop requested (%s): stopping %s", stop, argv[0])
+        finally:  # stopped, or cancelled (SIGINT from submitit's local executor; Ray's cancel)
+            if process.poll() is None:
+                process.terminate()
+                try:
+                    process.wait(STOP_GRACE_S)
+                except subprocess.TimeoutExpired:
+                    process.kill()
+        return _record_status(status_dir, job_id, process.wait())
 
 
-def _record_status(folder: Path, status: int) -> int:
+@contextlib.contextmanager
+def _unit_log(log_file: str | None, level: str) -> Iterator[IO[bytes] | None]:
+    """Where the unit's lines and its command's output go: the job's own stderr (None), or
+    ``log_file``, opened for appending, with this module's lines there too."""
+    if log_file is None:
+        setup_logging(level)
+        yield None
+        return
+    path = Path(log_file)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    with path.open("ab", buffering=0) as output:
+        handler = logging.FileHandler(path, encoding="utf-8")  # appends, as the command does
+        handler.setFormatter(logging.Formatter(LOG_FORMAT, datefmt=LOG_DATE_FORMAT))
+        logger.addHandler(handler)
+        before = logger.level
+        logger.setLevel(level)
+        try:
+            yield output
+        finally:
+            logger.removeHandler(handler)
+            handler.close()
+            logger.setLevel(before)
+
+
+def _record_status(folder: Path, job_id: str | None, status: int) -> int:
     """The command's exit status as JSON beside the job's files: fedhpg-cluster reads this,
     never submitit's result pickle."""
-    import submitit
+    if job_id is None:
+        import submitit
 
-    job_id = submitit.JobEnvironment().job_id
-    (folder / STATUS_DIR).mkdir(exist_ok=True)
-    path = folder / STATUS_DIR / f"{job_id}.json"
+        job_id = str(submitit.JobEnvironment().job_id)
+    folder.mkdir(parents=True, exist_ok=True)
+    path = folder / f"{job_id}.json"
     path.write_text(json.dumps({"status": status}), encoding="utf-8")
     return status

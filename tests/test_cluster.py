@@ -1,6 +1,7 @@
 """Past one machine: Hydra sweeps through the joblib and submitit launchers, and a federation
 placed through submitit (``fedhpg-cluster cluster=local``: submitit's LocalExecutor, the same
-jobs, files and logs as on SLURM, which cannot run here).
+jobs, files and logs as on SLURM). The real SLURM and Ray are tests/test_cluster_engines.py's
+(make test-cluster); here, in make test, SLURM's commands are stand-ins.
 
 Real processes throughout: every command runs under ``reaper.py``, a child subreaper that
 names (and kills) any process still alive after the command exits, so a job, a forked server
@@ -232,8 +233,9 @@ def test_a_crashed_agent_job_is_resubmitted_and_a_dead_server_ends_all(tmp_path:
 @pytest.mark.parametrize(
     ("args", "env", "expected"),
     [
-        (["cluster.kind=pbs"], {}, "error: cluster.kind: got 'pbs', allowed: auto, slurm, local"),
-        (["cluster=pbs"], {}, "error: cluster: no such option 'pbs'; allowed: local, slurm"),
+        (["cluster.kind=pbs"], {}, "error: cluster.kind: got 'pbs', allowed: auto, slurm, local,"),
+        (["cluster=pbs"], {}, "error: cluster: no such option 'pbs'; allowed: local, ray, slurm"),
+        (["cluster.gpus_per_host=-1"], {}, "error: cluster.gpus_per_host: got -1, must be an"),
         ([], {"PYTHONPATH": "NO_SUBMITIT"}, "error: fedhpg-cluster needs submitit: pip install"),
     ],
 )
@@ -275,21 +277,30 @@ exit 1
 """
 
 
+FAKE_SACCT = """#!/bin/sh
+# Job 42 is pending until the stand-in scancel has cancelled it.
+echo "JobID|State|NodeList"
+if [ -f "$(dirname "$0")/scancel.log" ]; then echo "42|CANCELLED by 0|"; else echo "42|PENDING|"; fi
+"""
+
+
 def test_slurm_jobs_go_through_sbatch_and_a_refusal_cancels_the_server_job(
     tmp_path: Path,
 ) -> None:
-    """SLURM cannot run here: stand-in sbatch, scancel, srun and sacct on PATH (the only
+    """Without a SLURM (make test): stand-in sbatch, scancel, srun and sacct on PATH (the only
     stand-ins in this file) take what submitit's real SLURM executor sends them. The server
-    job's script asks for what cluster.* says; the agents are one array of two; when sbatch
-    refuses the array, the accepted server job is cancelled, one line says why, exit 1, and
-    the run directory that nothing ran in is gone."""
+    job's script asks for what cluster.* says, GPUs for the agent jobs alone; the agents are
+    one array of two; when sbatch refuses the array, the accepted server job is cancelled, one
+    line says why, exit 1, and the run directory that nothing ran in is gone once sacct reports
+    the server job cancelled. tests/test_cluster_engines.py runs the same on a real SLURM (make
+    test-cluster)."""
     bin_dir = tmp_path / "slurm-bin"
     bin_dir.mkdir()
     scripts = {
         "sbatch": FAKE_SBATCH,
         "scancel": '#!/bin/sh\necho "$@" >> "$(dirname "$0")/scancel.log"\n',
         "srun": "#!/bin/sh\nexit 0\n",
-        "sacct": "#!/bin/sh\nexit 0\n",
+        "sacct": FAKE_SACCT,
     }
     for name, text in scripts.items():
         (bin_dir / name).write_text(text)
@@ -299,7 +310,7 @@ def test_slurm_jobs_go_through_sbatch_and_a_refusal_cancels_the_server_job(
         [
             str(BIN / "fedhpg-cluster"), "cluster=slurm", "cluster.partition=cpu",
             "cluster.time_min=7", "cluster.mem_gb=3", "cluster.cpus_per_task=2",
-            f"server.out_dir={run_dir}", *TINY,
+            "cluster.gpus_per_host=1", f"server.out_dir={run_dir}", *TINY,
         ],
         tmp_path,
         env={"PATH": f"{bin_dir}:{os.environ['PATH']}", "FEDHPG_LOG_LEVEL": "WARNING"},
@@ -313,6 +324,7 @@ def test_slurm_jobs_go_through_sbatch_and_a_refusal_cancels_the_server_job(
     server, agents = ((bin_dir / f"sbatch-{n}.sh").read_text() for n in (0, 1))
     for line in ("--partition=cpu", "--time=7", "--mem=3GB", "--cpus-per-task=2"):
         assert f"#SBATCH {line}\n" in server and f"#SBATCH {line}\n" in agents
+    assert "#SBATCH --gres=gpu:1\n" in agents and "--gres" not in server
     assert "#SBATCH --job-name=fedhpg-server\n" in server
     assert "#SBATCH --job-name=fedhpg-agent\n" in agents and "#SBATCH --array=0-1%2\n" in agents
     assert "-m submitit.core._submit" in server
@@ -320,13 +332,65 @@ def test_slurm_jobs_go_through_sbatch_and_a_refusal_cancels_the_server_job(
     assert not run_dir.exists()
 
 
+RAY_BLOCKER = """import os
+open(os.environ["RAY_MARKER"], "w").write("imported")
+raise ImportError("ray is not to be imported here")
+"""
+IMPORT_ALL = """import importlib, pkgutil, sys
+import fedhpg.agent, fedhpg.common, fedhpg.envs, fedhpg.server
+names = [m.name for p in (fedhpg.agent, fedhpg.common, fedhpg.envs, fedhpg.server)
+         for m in pkgutil.walk_packages(p.__path__, p.__name__ + ".")]
+for name in names:
+    if name != "fedhpg.server.cluster_ray":
+        importlib.import_module(name)
+print(len(names))
+"""
+
+
+def test_ray_is_imported_by_cluster_ray_alone(tmp_path: Path) -> None:
+    """A ``ray`` that records being imported (and fails): importing every module of the package
+    but the Ray engine, and a whole ``fedhpg-cluster cluster=local`` run, jobs included, never
+    touch it. (The import contract in pyproject.toml checks the same of the source.)"""
+    blocker = tmp_path / "blocker" / "ray"
+    blocker.mkdir(parents=True)
+    (blocker / "__init__.py").write_text(RAY_BLOCKER)
+    marker = tmp_path / "ray-imported"
+    env = {**os.environ, "PYTHONPATH": str(blocker.parent), "RAY_MARKER": str(marker)}
+    result = subprocess.run(
+        [sys.executable, "-c", IMPORT_ALL], env=env, capture_output=True, text=True, timeout=300
+    )
+    assert result.returncode == 0, result.stderr[-3000:]
+    assert int(result.stdout) > 100 and not marker.exists()
+    run_dir = tmp_path / "run"
+    process = _run(
+        [str(BIN / "fedhpg-cluster"), "cluster=local", f"server.out_dir={run_dir}", *TINY],
+        tmp_path,
+        env={"PYTHONPATH": str(blocker.parent), "RAY_MARKER": str(marker)},
+    )
+    status, _, err = _finish(process)
+    assert status == 0, err[-3000:]
+    assert not marker.exists()
+    # cluster=ray does import it; without it, one line and nothing started
+    work = tmp_path / "work"
+    work.mkdir()
+    process = _run(
+        [str(BIN / "fedhpg-cluster"), "cluster=ray", *TINY],
+        work,
+        env={"PYTHONPATH": str(blocker.parent), "RAY_MARKER": str(marker)},
+    )
+    status, _, err = _finish(process)
+    assert marker.exists()
+    assert status == 2 and err == "error: fedhpg-cluster needs ray: pip install 'fedhpg[ray]'\n"
+    assert list(work.iterdir()) == []
+
+
 def test_only_fedhpg_cluster_lists_the_cluster_keys() -> None:
     from fedhpg.common.runtime.help import help_text
 
     own = help_text("fedhpg-cluster")
-    assert own.startswith("usage: fedhpg-cluster [cluster=local|slurm]")
+    assert own.startswith("usage: fedhpg-cluster [cluster=local|slurm|ray]")
     assert "cluster.kind=auto" in own and "cluster.array_parallelism=null" in own
-    assert "cluster=     local, slurm" in own
+    assert "cluster=     local, ray, slurm" in own
     for other in ("fedhpg-run", "fedhpg-server", "fedhpg-agent"):
         text = help_text(other)
         assert "cluster." not in text and "cluster=" not in text, other

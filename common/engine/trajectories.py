@@ -141,9 +141,7 @@ class Trajectories:
         at = self.step_cells
         rewards = torch.zeros(layout.size, dtype=torch.float64, device=at.device)
         alive = torch.zeros(layout.size, dtype=torch.bool, device=at.device)
-        rewards[at] = self.steps.rewards
-        alive[at] = True
-        return rewards, alive
+        return rewards.index_copy_(0, at, self.steps.rewards), alive.index_fill_(0, at, True)
 
     # -- per row and per trajectory -----------------------------------------------------------
 

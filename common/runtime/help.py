@@ -17,13 +17,13 @@ USAGE = {
     "fedhpg-run": "[-m] [group=option ...] [key=value ...]",
     "fedhpg-server": "[key=value ...]",
     "fedhpg-agent": "agent.index=K [key=value ...]",
-    "fedhpg-cluster": "[cluster=local|slurm] [cluster.key=value ...] [key=value ...]",
+    "fedhpg-cluster": "[cluster=local|slurm|ray] [cluster.key=value ...] [key=value ...]",
 }
 WHAT = {
     "fedhpg-run": "Run a whole federation on this machine: one server and K agent processes.",
     "fedhpg-server": "Run the server of a federation: bind, wait for K agents, run the rounds.",
     "fedhpg-agent": "Run one agent of a federation: connect to the server, train when asked.",
-    "fedhpg-cluster": "Place a federation on a cluster engine (submitit): the server one job, "
+    "fedhpg-cluster": "Place a federation on a cluster engine (SLURM, Ray): the server one job, "
     "the agents a job array.",
 }
 EXAMPLES = {
@@ -42,6 +42,7 @@ EXAMPLES = {
         "fedhpg-cluster cluster=local rounds=20  # the same jobs as processes on this machine",
         "fedhpg-cluster cluster=slurm cluster.partition=cpu cluster.time_min=120 "
         "server.out_dir=/shared/runs/a",
+        "fedhpg-cluster cluster=ray cluster.address=head:6379 server.out_dir=/shared/runs/b",
     ],
 }
 OWN_SECTIONS = {"cluster": "fedhpg-cluster"}

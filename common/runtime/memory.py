@@ -6,7 +6,8 @@ import ctypes
 import functools
 import sys
 
-M_MMAP_THRESHOLD = -3  # glibc's mallopt parameter number
+M_TRIM_THRESHOLD = -1  # glibc's mallopt parameter numbers
+M_MMAP_THRESHOLD = -3
 
 
 @functools.cache
@@ -20,27 +21,42 @@ def pin_malloc_mmap_threshold(size: int = 128 * 1024) -> bool:
     Blocks ≥ ``size`` are then always mmapped and returned on free, which costs a few page
     faults per batch. Does nothing outside glibc.
     """
+    return _mallopt(M_MMAP_THRESHOLD, size)
+
+
+@functools.cache
+def keep_freed_memory(size: int) -> bool:
+    """Keep up to ``size`` bytes of freed memory at the top of the heap instead of returning
+    it (True if it was set): with the mmap threshold pinned, glibc no longer adapts its trim
+    threshold (128 KiB), so a process that frees a batch's tensors and allocates the next
+    one's gives the pages back and faults them in again, every local iteration."""
+    return _mallopt(M_TRIM_THRESHOLD, size)
+
+
+def _mallopt(parameter: int, value: int) -> bool:
     if not sys.platform.startswith("linux"):
         return False
     try:
         mallopt = ctypes.CDLL("libc.so.6").mallopt
     except (OSError, AttributeError):  # not glibc (e.g. musl)
         return False
-    return bool(mallopt(M_MMAP_THRESHOLD, size))
+    return bool(mallopt(parameter, value))
 
 
 ENGINE_MMAP_THRESHOLD = 16 * 2**20
+ENGINE_TRIM_THRESHOLD = 64 * 2**20
 
 
 def tune_malloc_for(group: object) -> None:
-    """The engines allocate temporaries of megabytes every round (trajectory buffers, packed
-    tiles and activations every local iteration; [A, d] rows of θ and the answers stacked from
-    them): mmapped and faulted in each time at glibc's 128 KiB threshold, they are paid for
-    again every round. Their processes take blocks below 16 MiB from the heap instead, where
-    they are reused."""
+    """The engines allocate temporaries of megabytes every local iteration (a batch's steps,
+    the estimator's cells, packed tiles and activations; [A, d] rows of θ and the answers
+    stacked from them): mmapped and faulted in each time at glibc's 128 KiB threshold, they
+    are paid for again every iteration. Their processes take blocks below 16 MiB from the
+    heap instead, and keep up to 64 MiB of it when freed, so the next batch reuses them."""
     from fedhpg.common.group import SplitGroup
 
     parts = group.parts if isinstance(group, SplitGroup) else (group,)
     # an attribute, not isinstance: importing the compiled engine would import numba here
     if any(getattr(part, "LARGE_TEMPORARIES", False) for part in parts):
         pin_malloc_mmap_threshold(ENGINE_MMAP_THRESHOLD)
+        keep_freed_memory(ENGINE_TRIM_THRESHOLD)

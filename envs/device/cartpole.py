@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Sequence
+from typing import TypeVar
 
 import torch
 
@@ -40,6 +41,7 @@ DEFAULTS = {
     "force_mag": 10.0,
 }
 STEP_LIMIT = 500
+Value = TypeVar("Value", float, torch.Tensor)
 
 
 def physics_of(variant: EnvVariant) -> dict[str, float] | None:
@@ -55,18 +57,27 @@ def physics_of(variant: EnvVariant) -> dict[str, float] | None:
 
 
 def cartpole_update(
-    state: tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor],
-    force: torch.Tensor,
-    p: dict[str, torch.Tensor],
-) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
-    """One Euler step of gymnasium's CartPole equations (per-copy constants ``p``)."""
-    x, x_dot, theta, theta_dot = state
-    costheta, sintheta = torch.cos(theta), torch.sin(theta)
-    temp = (force + p["polemass_length"] * theta_dot * theta_dot * sintheta) / p["total_mass"]
-    thetaacc = (p["gravity"] * sintheta - costheta * temp) / (
-        p["length"] * (4.0 / 3.0 - p["masspole"] * costheta * costheta / p["total_mass"])
+    x: Value,
+    x_dot: Value,
+    theta: Value,
+    theta_dot: Value,
+    costheta: Value,
+    sintheta: Value,
+    force: Value,
+    gravity: Value,
+    masspole: Value,
+    total_mass: Value,
+    length: Value,
+    polemass_length: Value,
+) -> tuple[Value, Value, Value, Value]:
+    """One Euler step of gymnasium's CartPole equations, in its order of operations. Plain
+    arithmetic, so the one definition steps torch tensors (every copy at once, here) and
+    numba's float64 scalars (one copy at a time, ``fedhpg.envs.compiled``)."""
+    temp = (force + polemass_length * (theta_dot * theta_dot) * sintheta) / total_mass
+    thetaacc = (gravity * sintheta - costheta * temp) / (
+        length * (4.0 / 3.0 - masspole * (costheta * costheta) / total_mass)
     )
-    xacc = temp - p["polemass_length"] * thetaacc * costheta / p["total_mass"]
+    xacc = temp - polemass_length * thetaacc * costheta / total_mass
     return (
         x + TAU * x_dot,
         x_dot + TAU * xacc,
@@ -126,7 +137,10 @@ class CartPoleCopies:
             )
         x, x_dot, theta, theta_dot = state
         force = torch.where(actions == 1, p["force_mag"], -p["force_mag"])
-        state = torch.stack(cartpole_update((x, x_dot, theta, theta_dot), force, p))
+        state = torch.stack(cartpole_update(
+            x, x_dot, theta, theta_dot, torch.cos(theta), torch.sin(theta), force,
+            p["gravity"], p["masspole"], p["total_mass"], p["length"], p["polemass_length"],
+        ))  # fmt: skip
         steps = steps_before + 1
         if columns is None:
             self.state, self.steps = state, steps
