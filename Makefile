@@ -121,13 +121,16 @@ bench-scale: $(STAMP)
 	OMP_NUM_THREADS=1 $(BIN)/python -m benchmarks.scale
 	OMP_NUM_THREADS=1 $(BIN)/python -m benchmarks.scale_gridworld
 
-# The torch engine's policy maths on a CUDA GPU (issue 17): the largest K one host trains,
-# against the numpy maths and the compiled engine on this CPU; benchmarks/results/scale_device.json.
-# One line and exit 1 where torch sees no CUDA device. DEVICE=cpu runs it on the CPU.
+# A federation on one GPU (docs/gpu.md), one script within 8 minutes (benchmarks/on_device.sh),
+# each part under its own time limit: the placement check on the device for the five torch
+# families, K = 1,000, 16,000, 65,536 CartPole agents' whole local iteration and peak memory
+# against a reference measured in the same run, a fedhpg-run federation of 65,536 agents on one
+# host for 3 rounds. Results in $OUT if set, else benchmarks/results/device/. DEVICE=cpu
+# rehearses it here (K = 100 and 1,000, 2,000 agents; 1–3 min on 2 cores); one line and exit 1
+# where torch sees no CUDA device. A bare GPU machine: `bash benchmarks/on_device.sh run`.
 DEVICE ?= cuda
 bench-device: $(STAMP)
-	$(BIN)/python -m fedhpg.common.batched.backend
-	OMP_NUM_THREADS=1 $(BIN)/python -m benchmarks.scale_device --device $(DEVICE)
+	DEVICE=$(DEVICE) PYTHON=$(BIN)/python bash benchmarks/on_device.sh local
 
 # The Theorem 1 planner against uniform, speed-proportional and the paper's budgets at one
 # emulated-time budget (issue 18): GridWorld K=4 (two speed spreads), CartPole K=10 and K=100,

@@ -1,21 +1,28 @@
 #!/usr/bin/env bash
-# make bench-device on a lent GPU machine, whose python3 holds a CUDA torch (and numpy, numba,
-# msgpack) but not the rest of fedhpg's stack, and which cannot reach an index.
+# make bench-device: one prepared script that ends within 8 minutes on a GPU machine.
 #
-#   bash benchmarks/on_device.sh fetch   # here: the missing wheels (Python 3.12) into .whl/
-#   bash benchmarks/on_device.sh run     # there (device run, carry .whl): results in $OUT
+#   bash benchmarks/on_device.sh local   # in this checkout's .venv (make bench-device)
+#   bash benchmarks/on_device.sh fetch   # here: the wheels a bare GPU machine lacks, into .whl/
+#   bash benchmarks/on_device.sh run     # on a GPU machine whose python3 holds a CUDA torch
+#                                        # (and numpy, numba, msgpack, PyYAML, rich) but not the
+#                                        # rest of the stack, and which reaches no index: the
+#                                        # wheels of .whl/ (carried there) go into SITE, and the
+#                                        # repository's folders are mapped to fedhpg.* the way
+#                                        # pyproject.toml does (links under /tmp/pkg)
 #
-# `run` installs the wheels into /tmp/site (SITE), maps the repository's folders to fedhpg.* the
-# way pyproject.toml does (links under /tmp/pkg), runs a whole federation the way
-# fedhpg-run does (server and agent hosts forked, each host's maths on the device: the path
-# the in-process benchmark does not take), then checks the placement properties and doubles
-# K (benchmarks/scale_device.py). Extra arguments go to scale_device.
-#
-# A rehearsal here, on the CPU, of everything but CUDA (a python3 holding only what the GPU
-# machine's does: torch, numpy, numba, msgpack, matplotlib, rich, tensorboard):
-#   PYVER=3.11 WHEELS=/tmp/whl311 bash benchmarks/on_device.sh fetch
-#   PYTHON=/tmp/bare/bin/python WHEELS=/tmp/whl311 SITE=/tmp/site311 OUT=/tmp/rehearsal \
-#     DEVICE=cpu bash benchmarks/on_device.sh run --start 100 --max-agents 200
+# Each part runs in its own process under its own time limit (a part that outruns it is
+# stopped and the next starts; what it measured so far is kept), all within TOTAL_S:
+#   1. placement: an agent's θ after 3 rounds alone, in four companies and on a second run,
+#      on DEVICE, for CartPole, GridWorld, Pendulum, Acrobot and MountainCar;
+#   2. K = 1,000, 16,000, 65,536 CartPole agents (16-16 MLP, B = 16): the whole local
+#      iteration's env steps/s and peak memory, and the reference (benchmarks/device_reference.py)
+#      re-measured in the same process;
+#   3. a whole fedhpg-run federation of FED_AGENTS agents (65,536 on a GPU) on one host, 3
+#      rounds, θ̃ evaluated in every agent's environment at the end;
+#   4. the report: one table, bench_device.json.
+# Results: OUT if set (bench_device.json, bench_device.log, federation.log), else
+# benchmarks/results/device/. DEVICE=cpu is the rehearsal: K = 100 and 1,000, 2,000 agents in
+# the federation (~4 min on 2 cores). The exit status is 0 when every part finished.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 WHEELS=${WHEELS:-.whl}
@@ -24,7 +31,108 @@ PLATFORMS=(--platform manylinux_2_28_x86_64 --platform manylinux_2_17_x86_64
            --platform manylinux2014_x86_64)
 mode=${1:-}
 shift || true
+
+# part NAME LIMIT_S COMMAND...: COMMAND under min(LIMIT_S, what is left before the deadline),
+# one progress line before and after; its exit status in PART_STATUS.
+part() {
+    local name=$1 limit=$2 left started
+    shift 2
+    left=$((deadline - SECONDS - REPORT_S))
+    if [ "$left" -lt "$limit" ]; then limit=$left; fi
+    if [ "$limit" -lt 10 ]; then
+        echo "[bench-device $(date -u +%T)] $name: skipped, $((deadline - SECONDS)) s left"
+        PART_STATUS=124
+        failed=1
+        return 0
+    fi
+    echo "[bench-device $(date -u +%T)] $name: started, limit $limit s"
+    started=$SECONDS
+    PART_STATUS=0
+    timeout -k 10 "$limit" "$@" || PART_STATUS=$?
+    if [ "$PART_STATUS" = 124 ] || [ "$PART_STATUS" = 137 ]; then
+        echo "[bench-device $(date -u +%T)] $name: STOPPED at its limit after $((SECONDS - started)) s"
+    else
+        echo "[bench-device $(date -u +%T)] $name: exit status $PART_STATUS after $((SECONDS - started)) s"
+    fi
+    if [ "$PART_STATUS" != 0 ]; then failed=1; fi
+    return 0
+}
+
+bench() {
+    local python=$1 out=$2 device=$3
+    shift 3
+    local agents counts work fed_limit
+    # the limits (s) of each part; their sum stays below TOTAL_S
+    if [ "$device" = cpu ]; then
+        agents=${FED_AGENTS:-2000}
+        counts=${COUNTS:-100,1000}
+        TOTAL_S=${TOTAL_S:-600}
+        limits=(120 60 200 0 0)
+        fed_limit=120
+    else
+        agents=${FED_AGENTS:-65536}
+        counts=${COUNTS:-1000,16000,65536}
+        TOTAL_S=${TOTAL_S:-440}
+        limits=(60 50 65 135 0)
+        fed_limit=120
+    fi
+    REPORT_S=15
+    deadline=$((started_at + TOTAL_S))
+    failed=0
+    work=${WORK:-$(mktemp -d /tmp/bench_device.XXXXXX)}
+    mkdir -p "$work"
+    export OMP_NUM_THREADS=1 PYTHONUNBUFFERED=1
+    echo "[bench-device $(date -u +%T)] $device, K = $counts, federation of $agents agents;" \
+        "within $TOTAL_S s; parts in $work, results in $out"
+    "$python" -c 'import sys, torch; from fedhpg.common.engine.devices import device_problem
+print("python", sys.version.split()[0], "torch", torch.__version__, "cuda", torch.cuda.is_available())
+problem = device_problem(sys.argv[1]); sys.exit(f"error: DEVICE: {problem}" if problem else 0)' \
+        "$device" || return 1
+    [ "$device" = cpu ] || nvidia-smi --query-gpu=name,memory.total,driver_version --format=csv,noheader || true
+    local scale=("$python" -m benchmarks.scale_device --device "$device")
+    part placement "${limits[0]}" "${scale[@]}" --only placement --out "$work/placement.json" "$@"
+    local i=1 k
+    for k in ${counts//,/ }; do
+        part "K=$k" "${limits[$i]:-120}" "${scale[@]}" --only iteration --agents "$k" \
+            --time-limit-s "$(( ${limits[$i]:-120} * 2 / 3 ))" --out "$work/k$k.json" "$@"
+        i=$((i + 1))
+    done
+    rm -rf "$work/federation"
+    local fed_started=$SECONDS
+    part "federation of $agents agents" "$fed_limit" "$python" -c 'import sys
+from fedhpg.server.launcher import main
+sys.argv[0] = "fedhpg-run"; main()' env=cartpole agents.num_agents="$agents" \
+        agents.per_host="$agents" agents.budget.batch_size=[16] agents.speeds=[1] \
+        agents.step_delays_s=[0] algo.engine=torch algo.device="$device" rounds=3 \
+        eval.every=3 eval.episodes=1 server.register_timeout_s=600 server.tensorboard=false \
+        hydra.run.dir="$work/federation" > "$work/federation.log" 2>&1
+    local fed_status=$PART_STATUS fed_seconds=$((SECONDS - fed_started))
+    # per-agent lines (the evaluation's table) stay in $work
+    grep -v '^agent-' "$work/federation.log" > "$out/federation.log" || true
+    tail -8 "$out/federation.log"
+    echo "[bench-device $(date -u +%T)] report"
+    local report_status=0 parts=("$work/placement.json")
+    for k in ${counts//,/ }; do parts+=("$work/k$k.json"); done
+    timeout -k 5 "$REPORT_S" "${scale[@]}" --report "${parts[@]}" --out "$out/bench_device.json" \
+        --federation "$work/federation" "$agents" "$fed_status" "$fed_seconds" || report_status=$?
+    echo "[bench-device $(date -u +%T)] done after $((SECONDS - started_at)) s;" \
+        "every part finished: $([ "$failed$report_status" = 00 ] && echo yes || echo NO)"
+    [ "$failed$report_status" = 00 ]
+}
+
+# bench with everything it prints also in OUT/bench_device.log; its exit status
+logged() {
+    local out=${OUT:-benchmarks/results/device}
+    mkdir -p "$out"
+    bench "$1" "$out" "${DEVICE:-cuda}" "${@:2}" 2>&1 | tee "$out/bench_device.log"
+    return "${PIPESTATUS[0]}"
+}
+
+started_at=$SECONDS
 case "$mode" in
+local)
+    logged "${PYTHON:-.venv/bin/python}" "$@"
+    ;;
 fetch)
     mkdir -p "$WHEELS"
     pip() { "${PYTHON:-python3}" -m pip "$@"; }
@@ -43,25 +151,11 @@ run)
         --target "$SITE" "$WHEELS"/*.whl
     mkdir -p /tmp/pkg/fedhpg
     for d in agent common envs server conf; do ln -sfn "$PWD/$d" "/tmp/pkg/fedhpg/$d"; done
-    export PYTHONPATH="$SITE:/tmp/pkg:$PWD" OMP_NUM_THREADS=1 PYTHONUNBUFFERED=1
-    out=${OUT:-benchmarks/results}
-    device=${DEVICE:-cuda}
-    mkdir -p "$out"
-    "${PYTHON:-python3}" -c 'import torch; print("torch", torch.__version__, "cuda", torch.cuda.is_available())'
-    # 1,000 agents on 4 forked hosts, 3 rounds; its log and run directory come back in $OUT
-    rm -rf "$out/federation"
-    status=0
-    "${PYTHON:-python3}" -c 'import sys; from fedhpg.server.launcher import main
-sys.argv[0] = "fedhpg-run"; main()' env=cartpole agents=population agents.num_agents=1000 \
-        agents.per_host=250 algo.engine=torch algo.device="$device" rounds=3 \
-        hydra.run.dir="$out/federation" > "$out/federation.log" 2>&1 || status=$?
-    grep -v '^agent-' "$out/federation.log" | tail -12
-    echo "federation on the device (fedhpg-run's forked path): exit status $status"
-    "${PYTHON:-python3}" -m benchmarks.scale_device --device "$device" --out "$out/scale_device.json" "$@"
-    exit "$status"
+    export PYTHONPATH="$SITE:/tmp/pkg:$PWD"
+    logged "${PYTHON:-python3}" "$@"
     ;;
 *)
-    echo "usage: bash benchmarks/on_device.sh fetch|run [scale_device arguments]" >&2
+    echo "usage: bash benchmarks/on_device.sh local|fetch|run [scale_device arguments]" >&2
     exit 2
     ;;
 esac

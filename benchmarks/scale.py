@@ -18,6 +18,8 @@ that had a copy of the algorithm per backend, rounds interleaved: FedHPG at θ̃
 K = 1,000 case's final θ̃, FedHPGVR at K = 1,000.
 
     python -m benchmarks.scale            # all cases, table on stdout, JSON + figure
+    python -m benchmarks.scale k1000 device --out FILE   # a subset, its JSON to FILE
+    python -m benchmarks.scale k1000 device --rounds 4 --skip-baseline --out FILE  # shorter
 """
 
 from __future__ import annotations
@@ -209,6 +211,15 @@ def measure(case: Case) -> list[CaseResult]:
 CASES = {
     # 30 rounds: the policy learns, episodes grow from ~20 steps to the 500-step limit
     "k1000": Case("K = 1,000, all train", agents=1000, per_host=500, rounds=30, repeats=2),
+    # the same federation with the environments in torch (envs/device/cartpole.py) and the
+    # torch engine on this CPU: the device-resident path where no GPU is at hand
+    "device": Case(
+        "K = 1,000, all train, torch CartPole on the CPU",
+        agents=1000,
+        per_host=500,
+        rounds=30,
+        extra=("algo.engine=torch",),
+    ),
     "k10000": Case(
         "K = 10,000, 1,000 per round", agents=10_000, per_host=5000, per_round=1000, repeats=3
     ),
@@ -324,7 +335,13 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("cases", nargs="*", choices=[[], *CASES], help="default: all")
     parser.add_argument("--plot-only", action="store_true", help="redraw from scale.json")
+    parser.add_argument("--out", type=Path, help="write a subset's results here (JSON)")
+    parser.add_argument("--skip-baseline", action="store_true",
+                        help="leave out the comparison with the baseline commit")  # fmt: skip
+    parser.add_argument("--rounds", type=int, help="a subset's cases run this many rounds")
     args = parser.parse_args()
+    if args.rounds is not None and (not args.cases or args.rounds < 2):
+        parser.error("--rounds: a subset of cases only, and at least 2 rounds")
     if args.plot_only:
         results, machine = _load()
         print(f"machine: {machine}")
@@ -336,14 +353,23 @@ def main() -> None:
     print(f"machine: {machine}", flush=True)
     results = []
     for name in args.cases:
-        measured = measure(CASES[name])
+        case = CASES[name]
+        if args.rounds is not None:
+            case = replace(case, name=f"{case.name} ({args.rounds} rounds)", rounds=args.rounds)
+        measured = measure(case)
         results += measured
         print("\n".join(table(measured).splitlines()[2:]), flush=True)
     print(table(results))
-    engine = against_baseline()
+    engine = [] if args.skip_baseline else against_baseline()
     print("\n".join(engine_ab.report(c) for c in engine))
     if len(args.cases) < len(CASES):
         # a subset is a spot check: the results file and the figure hold the whole table
+        if args.out is not None:
+            args.out.write_text(json.dumps({
+                "machine": machine,
+                "cases": [{**asdict(r), "case": asdict(r.case)} for r in results],
+                "against_baseline": [asdict(c) for c in engine],
+            }, indent=1) + "\n")  # fmt: skip
         return
     RESULTS.parent.mkdir(parents=True, exist_ok=True)
     RESULTS.write_text(

@@ -29,6 +29,7 @@ REWARD_TO_GO: tuple[str, ...] = ("from_start", "from_step")
 NORMALIZE: tuple[str, ...] = ("none", "batch", "episode")
 OPTIMIZERS = ("sgd", "adam")
 ENGINES = ("auto", "torch")
+ENV_PATHS = ("auto", "gymnasium")
 DEVICE_PATTERN = re.compile(r"cpu|cuda(:\d+)?")
 """``algo.device``: a torch device name the torch engine accepts."""
 ATTACKS = ("none", "zero_gradient", "random_noise", "sign_flip", "reward_flip", "random_action")
@@ -104,6 +105,18 @@ class AlgoConfig:
     choice; within either an agent's θ does not depend on where it runs or with whom."""
     device: str = "cpu"
     """The torch device of the engine: 'cpu', 'cuda' or 'cuda:N'."""
+    envs: str = "auto"
+    """Where the torch engine's environments step: 'auto' in torch on ``algo.device`` for the
+    families with a torch implementation (cartpole, acrobot, pendulum, mountaincar,
+    gridworld: ``envs/device/``), through gymnasium on the CPU for the others; 'gymnasium'
+    through gymnasium for every family (the reference the torch families are checked
+    against). Their floats differ (float32 against gymnasium's float64), so the server
+    dictates it."""
+    memory_gib: float | None = None
+    """What one process's engine may hold at once on ``algo.device``, in GiB: a round of more
+    agents than fit is trained in chunks of agents, one after another (θ does not depend on
+    it). None: 80% of the free memory of a CUDA device, 2 GiB on the CPU
+    (``common/engine/memory.py``, docs/gpu.md)."""
     bound_estimates: bool = False
     """Estimate Theorem 1's constants every round (``common/bounds.py``): each agent's σ̂², M̂
     and ‖∇J_k‖² at θ̃ from the per-trajectory gradients of its first local batch, written as
@@ -154,6 +167,11 @@ def _validate_tolerance(strategy: StrategyConfig, num_agents: int) -> None:
             f"got {strategy.tolerate}, must be < agents.num_agents={num_agents}",
         )
     _check_choice(strategy.tolerance_check, "strategy.tolerance_check", TOLERANCE_CHECKS)
+    _require(
+        isinstance(strategy.device, str) and DEVICE_PATTERN.fullmatch(strategy.device) is not None,
+        "strategy.device",
+        f"got {strategy.device!r}, allowed: cpu, cuda, cuda:N",
+    )
 
 
 def _validate_participation(participation: ParticipationConfig, num_agents: int) -> None:
@@ -197,6 +215,10 @@ class StrategyConfig:
     tolerance_check: str = "refuse"
     """What a run whose robust rule tolerates fewer than ``tolerate`` in its smallest set
     does: 'refuse' to start (one line) or 'warn' and run."""
+    device: str = "cpu"
+    """Where the rules of the θ_k (mean, weighted, median, trimmed_mean) compute on the round's
+    [K, d] matrix of updates: 'cpu', or 'cuda'/'cuda:N' for a server whose K·d is large
+    (the matrix crosses once, θ̃ comes back)."""
 
 
 @dataclass(kw_only=True)
@@ -641,7 +663,7 @@ GROUPS: dict[str, GroupRole] = {
 }
 REPLICATE_KEYS = ("seed", "env.seed")
 """Keys whose values are replicates of one experiment (plots average over them)."""
-PLACEMENT_KEYS = ("agents.per_host",)
+PLACEMENT_KEYS = ("agents.per_host", "algo.memory_gib")
 """Where agents run, not what they compute (θ̃ does not depend on it): a resume may change
 it, and runs that differ only in it are one experiment."""
 DIAGNOSTIC_KEYS = ("algo.bound_estimates",)
@@ -735,6 +757,9 @@ def _validate_algo(algo: AlgoConfig) -> None:
         )
     _check_choice(algo.optimizer, "algo.optimizer", OPTIMIZERS)
     _check_choice(algo.engine, "algo.engine", ENGINES)
+    _check_choice(algo.envs, "algo.envs", ENV_PATHS)
+    if algo.memory_gib is not None:
+        _check_number(algo.memory_gib, "algo.memory_gib", low=0.0, low_open=True)
     _require(
         isinstance(algo.device, str) and DEVICE_PATTERN.fullmatch(algo.device) is not None,
         "algo.device",

@@ -33,7 +33,7 @@ from torch.func import functional_call, grad, vmap
 
 from fedhpg.common.config import ESTIMATORS
 from fedhpg.common.policies import Policy, flat_grad
-from fedhpg.common.staircase import Staircase
+from fedhpg.common.staircase import Staircase, ordered_sums
 
 EstimatorName = Literal["reinforce", "gpomdp"]
 BaselineName = Literal["none", "mean"]
@@ -58,7 +58,7 @@ def _leave_one_out_mean(values: torch.Tensor, groups: torch.Tensor | None) -> to
             return torch.zeros_like(values)
         return (values.sum(dim=-1, keepdim=True) - values) / (count - 1)
     size = int(groups.max()) + 1 if groups.numel() else 0
-    totals = values.new_zeros(size).index_add_(0, groups, values)
+    totals = ordered_sums(groups, values, size)
     counts = torch.bincount(groups, minlength=size).to(values.dtype)
     loo = (totals[groups] - values) / (counts - 1).clamp_min(1.0)[groups]
     return torch.where(counts[groups] > 1, loo, torch.zeros_like(loo))
@@ -74,7 +74,7 @@ def _less_step_baseline(
     size = int(groups.max()) + 1
     group = layout.per_cell(groups)
     key = layout.time * size + group
-    sums = values.new_zeros(layout.steps * size).index_add_(0, key, values)
+    sums = ordered_sums(key, values, layout.steps * size)
     others = (torch.bincount(groups, minlength=size) - 1).clamp_min(1).to(values.dtype)
     shares = (sums.view(layout.steps, size) / others).reshape(-1)
     out = values * (1.0 + 1.0 / others).index_select(0, group)
@@ -177,7 +177,7 @@ def _normalized(
     size = layout.columns if mode == "episode" else int(groups.max()) + 1
 
     def sums(values: torch.Tensor) -> torch.Tensor:
-        return values.new_zeros(size).index_add_(0, key, values)
+        return ordered_sums(key, values, size)
 
     count = sums(mask).clamp_min(1.0)
     centred = coef - (sums(coef * mask) / count).index_select(0, key)

@@ -13,6 +13,7 @@ CartPole engine of :mod:`fedhpg.common.batched` trains FedHPG's honest agents wh
 
 from __future__ import annotations
 
+import logging
 import math
 from collections.abc import Callable, Mapping, Sequence
 from typing import TYPE_CHECKING, Protocol
@@ -28,7 +29,10 @@ from fedhpg.envs.base import EnvVariant
 
 if TYPE_CHECKING:
     from fedhpg.common.engine.engine import RowWork
+    from fedhpg.common.engine.memory import RoundPlan
     from fedhpg.common.round_columns import IterationColumns, TrainedColumns
+
+logger = logging.getLogger(__name__)
 
 Budgets = Mapping[int, Mapping[str, int]]
 """Agent index -> the fields of its budget the round's plan sets (``agents.plan``)."""
@@ -105,6 +109,27 @@ class EngineGroup:
     def num_params(self) -> int:
         return self.engine.policy.num_params
 
+    def plan(
+        self, agents: Sequence[int], budgets: Budgets | None = None, episodes: int | None = None
+    ) -> RoundPlan:
+        """The round's ``agents`` (ascending) in chunks that fit the device's memory: each
+        holds its budget's trajectories at once (``episodes`` each for an evaluation)."""
+        from fedhpg.common.components import planned_budget
+
+        engine = self.engine
+        if episodes is None:
+            copies = [
+                self.algorithm.held_trajectories(
+                    planned_budget(engine.profile(k).budget, (budgets or {}).get(k))
+                )
+                for k in agents
+            ]
+            horizons = [engine.horizon(k) for k in agents]
+        else:
+            copies = [episodes] * len(agents)
+            horizons = [self.run.eval.horizon or engine.horizon(k) for k in agents]
+        return engine.plan(agents, copies, horizons)
+
     def train_columns(
         self,
         round_index: int,
@@ -115,18 +140,25 @@ class EngineGroup:
         interrupt: Callable[[], None] | None = None,
         on_work: Callable[[IterationColumns], None] | None = None,
     ) -> TrainedColumns:
+        """The round of ``agents``, chunk after chunk of :meth:`plan` (an agent's numbers do
+        not depend on the chunk it is in); only the θ rows and the statistics leave the
+        device."""
         from fedhpg.common.attacks import corrupt_rows
-        from fedhpg.common.engine.engine import one_thread
+        from fedhpg.common.engine.engine import Tally, one_thread
         from fedhpg.common.round_columns import IterationColumns, TrainedColumns
 
         order = sorted(agents)
+        plan = self.plan(order, budgets)
+        if len(plan.chunks) > 1:
+            logger.debug("round %d: %s", round_index, plan.describe())
         works: list[IterationColumns] = []
+        offset = 0
 
         def hook(work: RowWork) -> None:
             if interrupt is not None:
                 interrupt()
             columns = IterationColumns(
-                positions=work.rows.numpy(),
+                positions=work.rows.numpy() + offset,
                 compute_s=work.compute_s.numpy(),
                 env_steps=work.env_steps.numpy(),
                 grad_steps=work.grad_steps.numpy(),
@@ -136,24 +168,31 @@ class EngineGroup:
                 on_work(columns)
 
         engine = self.engine
-        with one_thread():
-            rows = engine.begin(round_index, theta, order, budgets, hook)
-            honest = self.algorithm.local_update(rows, engine, self.params)
+        honest: list[torch.Tensor] = []
+        tallies: list[Tally] = []
+        for chunk in plan.chunks:
+            offset = chunk.start
+            with one_thread():
+                rows = engine.begin(
+                    round_index, theta, order[chunk.start : chunk.stop], budgets, hook
+                )
+                honest.append(self.algorithm.local_update(rows, engine, self.params).detach().cpu())
+            assert engine.tally is not None
+            tallies.append(engine.tally)
+            engine.rows = engine.tally = None
         sent = corrupt_rows(
             self.run.attack,
-            rows.theta[0],
-            honest,
+            theta.detach().to(torch.float32),
+            torch.cat(honest),
             order,
             seed=self.run.seed,
             round_index=round_index,
         )
-        tally = engine.tally
-        assert tally is not None
-        engine.rows = engine.tally = None
+        tally = Tally.concatenated(tallies)
         trajectories = tally.trajectories.clamp_min(1).double()
         return TrainedColumns(
             agents=order,
-            thetas=sent.detach().cpu().numpy().astype(np.float32, copy=False),
+            thetas=sent.detach().numpy().astype(np.float32, copy=False),
             trajectories=tally.trajectories.numpy(),
             env_steps=tally.env_steps.numpy(),
             compute_s=tally.compute_s.numpy(),
@@ -210,8 +249,16 @@ class EngineGroup:
     ) -> dict[int, EvaluationStats]:
         from fedhpg.common.engine.engine import one_thread
 
-        with one_thread():
-            return self.engine.evaluate(round_index, theta, episodes, sorted(agents))
+        order = sorted(agents)
+        stats: dict[int, EvaluationStats] = {}
+        for chunk in self.plan(order, episodes=episodes).chunks:
+            with one_thread():
+                stats.update(
+                    self.engine.evaluate(
+                        round_index, theta, episodes, order[chunk.start : chunk.stop]
+                    )
+                )
+        return stats
 
     def prepare(self) -> None:
         self.engine.prepare()

@@ -10,6 +10,8 @@ from dataclasses import dataclass
 
 import torch
 
+from fedhpg.common.staircase import ordered_sums
+
 
 def log_ratio_steps(
     snapshot_log_probs: torch.Tensor, current_log_probs: torch.Tensor, alive: torch.Tensor
@@ -62,6 +64,6 @@ def self_normalise(weights: torch.Tensor, groups: torch.Tensor | None = None) ->
         total = weights.sum(dim=-1, keepdim=True)
         return weights * weights.shape[-1] / total.clamp_min(tiny)
     size = int(groups.max()) + 1
-    totals = weights.new_zeros((*weights.shape[:-1], size)).index_add_(-1, groups, weights)
+    totals = ordered_sums(groups, weights.movedim(-1, 0), size).movedim(0, -1)
     counts = torch.bincount(groups, minlength=size).to(weights.dtype)
     return weights * counts[groups] / totals.index_select(-1, groups).clamp_min(tiny)

@@ -182,3 +182,37 @@ class Staircase:
         if self.columns == 0:
             return values.new_zeros(0)
         return self.tail_sums(values)[: self.columns].index_select(0, self.rank)
+
+
+def ordered_sums(index: torch.Tensor, values: torch.Tensor, size: int) -> torch.Tensor:
+    """out[g] = Σ values[i] over the i with index[i] = g, added in the order of i from zero
+    ([size, …] from ``values`` [N, …]): the same bits on every device and in any company.
+
+    On the CPU that is ``index_add_`` (one thread adds in index order). A GPU's ``index_add_``
+    adds with atomics in whatever order its threads arrive, so a sum there would change from
+    run to run; elsewhere the entries of each g are laid out in a [size, most] table in their
+    order and added one column at a time: the CPU's additions exactly, in ``most`` steps (the
+    largest count of one g)."""
+    out = values.new_zeros((size, *values.shape[1:]))
+    if values.device.type == "cpu":
+        return out.index_add_(0, index, values)
+    return _summed_by_columns(index, values, out)
+
+
+def _summed_by_columns(
+    index: torch.Tensor, values: torch.Tensor, out: torch.Tensor
+) -> torch.Tensor:
+    """:func:`ordered_sums` without atomics (what every device other than the CPU runs)."""
+    if index.numel() == 0:
+        return out
+    order = torch.argsort(index, stable=True)
+    grouped = index.index_select(0, order)
+    counts = torch.bincount(index, minlength=out.shape[0])
+    rank = torch.arange(index.shape[0], device=index.device) - (
+        torch.cumsum(counts, 0) - counts
+    ).index_select(0, grouped)
+    table = values.new_zeros((out.shape[0], int(counts.max()), *values.shape[1:]))
+    table[grouped, rank] = values.index_select(0, order)
+    for j in range(table.shape[1]):
+        out += table[:, j]  # a padding zero leaves a sum as it is: x + 0 = x
+    return out

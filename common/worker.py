@@ -15,11 +15,12 @@ from fedhpg.envs.base import EnvVariant
 
 def build_policy(variant: EnvVariant, run: RunConfig) -> Policy:
     """The run's policy for the variant's spaces, initialised from the run seed alone."""
-    return policy_and_actions(variant, run)[0]
+    return policy_and_spaces(variant, run)[0]
 
 
-def policy_and_actions(variant: EnvVariant, run: RunConfig) -> tuple[Policy, gym.Space]:
-    """:func:`build_policy` and the variant's action space, from one environment."""
+def policy_and_spaces(variant: EnvVariant, run: RunConfig) -> tuple[Policy, gym.Space, gym.Space]:
+    """:func:`build_policy` and the variant's observation and action spaces, from one
+    environment."""
     env = variant.make_env()
     # Only the CPU generator, saved and restored by hand: torch.random.fork_rng() and
     # torch.manual_seed() also reach for every CUDA device, which initialises CUDA where torch
@@ -29,7 +30,7 @@ def policy_and_actions(variant: EnvVariant, run: RunConfig) -> tuple[Policy, gym
     try:
         torch.default_generator.manual_seed(run.seed)
         policy = make_policy(env.observation_space, env.action_space, run.policy)
-        return policy, env.action_space
+        return policy, env.observation_space, env.action_space
     finally:
         torch.default_generator.set_state(state)
         env.close()

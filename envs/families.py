@@ -10,6 +10,7 @@ spread below. Observation and action spaces never change.
 | cartpole | pole half-length 0.5 ± 0.4 (0.1–0.9), pole and cart mass ±50%, force ±30%, g ±20% |
 | acrobot | both link lengths ±40%, both link masses ±40% |
 | pendulum | g ±30%, mass ±40%, length ±40%; action cost 0–0.01·level |
+| mountaincar | engine force ±30%, gravity ±20% |
 | lunarlander | gravity −10 ± 1.5 (in [−12, 0)), wind power 0–15, turbulence 0–1.5 |
 | lunarlander-continuous | as lunarlander; action cost 0–0.1·level |
 | halfcheetah | gravity ±30%, friction ±50%, body masses ±30%; action cost 0.1 × (1 ± 0.5·level·u) |
@@ -181,6 +182,37 @@ def _pendulum_at(
     return variants
 
 
+def _mountaincar_at(
+    indices: Sequence[int],
+    /,
+    *,
+    seed: int,
+    num_agents: int,
+    level: float,
+    gamma: float = 0.99,
+    **options: Any,
+) -> list[EnvVariant]:
+    _reject_options("mountaincar", options)
+    u = _rows(seed, 0x3C4A, indices, 3)
+    variants: list[EnvVariant] = []
+    for k, row in zip(indices, u, strict=True):
+        physics = {
+            "force": float(0.001 * (1 + 0.3 * level * row[0])),
+            "gravity": float(0.0025 * (1 + 0.2 * level * row[1])),
+        }
+        variants.append(
+            GymVariant(
+                family="mountaincar",
+                index=int(k),
+                gamma=_gamma(gamma, level, row[2]),
+                params={key: round(v, 7) for key, v in physics.items()},
+                env_id="MountainCar-v0",
+                attributes=physics,
+            )
+        )
+    return variants
+
+
 def _lunarlander_at(
     continuous: bool,
     indices: Sequence[int],
@@ -272,6 +304,7 @@ def _halfcheetah_at(
 cartpole = LazyFamily(_cartpole_at)
 acrobot = LazyFamily(_acrobot_at)
 pendulum = LazyFamily(_pendulum_at)
+mountaincar = LazyFamily(_mountaincar_at)
 lunarlander = LazyFamily(_discrete_lander_at)
 lunarlander_continuous = LazyFamily(_continuous_lander_at)
 halfcheetah = LazyFamily(_halfcheetah_at)
@@ -280,6 +313,7 @@ GYM_FAMILIES: dict[str, FamilyFactory] = {
     "cartpole": cartpole,
     "acrobot": acrobot,
     "pendulum": pendulum,
+    "mountaincar": mountaincar,
     "lunarlander": lunarlander,
     "lunarlander-continuous": lunarlander_continuous,
     "halfcheetah": halfcheetah,

@@ -1,22 +1,35 @@
-"""The torch environment families against gymnasium's own environments, step for step.
+"""The torch families against gymnasium's own environments, step for step.
 
-For variants drawn by the families (every physical constant changed), each copy is put in a
-random state, both take the same action, and the next state, reward and termination agree (to
-float32 rounding: gymnasium steps in float64). Truncation comes at the variant's step limit,
-and a copy's reset is a function of its own stream alone.
+For variants drawn by the families at level 1 (every constant changed), each copy is put in a
+random state (angles past ±π, speeds at and past their bounds, a car at the wall), both take the
+same action, and the next observation, reward and termination agree (to float32 rounding:
+gymnasium steps in float64). GridWorld's moves are checked for every variant, cell and action,
+with and without a slip, against ``GridWorldEnv`` fed the same decision; its slips' frequencies
+against the exact transition table. Truncation comes at each variant's step limit, and a copy's
+reset is a function of its own stream alone. Through the engine, the two environment paths
+(``algo.envs``) give returns of the same distribution.
 """
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
+import pytest
 import torch
 
+from fedhpg.common.engine.engine import Engine
+from fedhpg.common.randomness import Purpose, trajectory_keys, uniforms64
 from fedhpg.common.runtime.cli import compose
 from fedhpg.common.variants import variants_of
-from fedhpg.envs.device import device_copies
+from fedhpg.common.worker import initial_theta
+from fedhpg.envs.device import device_copies, device_family
 from fedhpg.envs.device.cartpole import CartPoleCopies
+from fedhpg.envs.device.tensors import TensorCopies
+from fedhpg.envs.gridworld import GridWorldEnv, GridWorldVariant
 
 CPU = torch.device("cpu")
+COPIES = 20
 
 
 class _Stream:
@@ -30,57 +43,211 @@ class _Stream:
         return [0] * len(self.values)
 
 
-def _cartpoles(count: int) -> list:
-    run = compose(["env=cartpole", "env.level=1.0", f"agents.num_agents={count}",
-                   "agents.budget.batch_size=[1]", "agents.speeds=[1]",
-                   "agents.step_delays_s=[0]"])  # fmt: skip
+def _variants(env: str, count: int, *overrides: str) -> list:
+    run = compose([f"env={env}", "env.level=1.0", "agents=population",
+                   f"agents.num_agents={count}", *overrides])  # fmt: skip
     variants = variants_of(run, list(range(count)))
     return [variants[k] for k in range(count)]
 
 
-def test_cartpole_steps_like_gymnasiums_for_every_variant() -> None:
-    variants = _cartpoles(12)
-    copies = device_copies(variants, [20] * 12, CPU)
-    assert isinstance(copies, CartPoleCopies)
+# (family, state low, state high, discrete actions or None for a torque in [−3, 3])
+CLASSIC = {
+    "cartpole": ([-2.3, -2.0, -0.2, -2.5], [2.3, 2.0, 0.2, 2.5], 2),
+    "acrobot": ([-math.pi, -math.pi, -14.0, -30.0], [math.pi, math.pi, 14.0, 30.0], 3),
+    "pendulum": ([-3 * math.pi, -8.5], [3 * math.pi, 8.5], None),
+    "mountaincar": ([-1.2, -0.07], [0.6, 0.07], 3),
+}
+TOLERANCE = {"cartpole": 1e-6, "acrobot": 1e-4, "pendulum": 1e-5, "mountaincar": 1e-6}
+"""Absolute tolerance of the observations (with rtol 1e-5): float32 against float64 rounding;
+Acrobot's RK4 compounds four evaluations on speeds up to 9π."""
+
+
+def _states(name: str, count: int, rng: np.random.Generator) -> np.ndarray:
+    low, high, _ = CLASSIC[name]
+    states = rng.uniform(low, high, size=(count, len(low)))
+    if name == "mountaincar":  # some at the left wall, moving left: stopped there
+        states[: count // 8] = [-1.19, -0.05]
+    return states
+
+
+@pytest.mark.parametrize("name", sorted(CLASSIC))
+def test_each_family_steps_like_gymnasiums_for_every_variant(name: str) -> None:
+    variants = _variants(name, 12)
+    copies = device_copies(variants, [COPIES] * 12, CPU)
+    assert isinstance(copies, TensorCopies)
     rng = np.random.default_rng(0)
-    columns = torch.arange(copies.num_copies)
-    low, high = [-2.3, -2.0, -0.2, -2.5], [2.3, 2.0, 0.2, 2.5]
-    states = rng.uniform(low, high, size=(copies.num_copies, 4))
-    actions = rng.integers(0, 2, size=copies.num_copies)
+    states = _states(name, copies.num_copies, rng)
+    discrete = CLASSIC[name][2]
+    actions = (
+        rng.integers(0, discrete, size=copies.num_copies)
+        if discrete
+        else rng.uniform(-3.0, 3.0, size=(copies.num_copies, 1)).astype(np.float32)
+    )
     copies.state[:] = torch.from_numpy(states.T).float()
     copies.steps[:] = 0
-    step = copies.step(torch.from_numpy(actions), columns)
+    step = copies.step(torch.from_numpy(actions), torch.arange(copies.num_copies), None)
+    ended = 0
     for n in range(copies.num_copies):
-        variant = variants[n // 20]
-        env = variant.make_env().unwrapped
+        env = variants[n // COPIES].make_env()  # the gymnasium path's env, wrappers included
         env.reset(seed=0)
-        env.state = states[n].astype(np.float32).astype(np.float64)  # the copy's float32 start
-        obs, reward, terminated, _, _ = env.step(int(actions[n]))
-        np.testing.assert_allclose(step.obs[n].numpy(), obs, rtol=1e-5, atol=1e-6)
-        assert float(step.reward[n]) == reward
-        assert bool(step.terminated[n]) == terminated
-    assert bool(step.terminated.any()) and not bool(step.terminated.all())
+        env.unwrapped.state = states[n].astype(np.float32).astype(np.float64)  # the copy's own
+        action = int(actions[n]) if discrete else actions[n]
+        obs, reward, terminated, truncated, _ = env.step(action)
+        np.testing.assert_allclose(step.obs[n].numpy(), obs, rtol=1e-5, atol=TOLERANCE[name])
+        assert float(step.reward[n]) == pytest.approx(reward, rel=1e-5, abs=1e-5)
+        assert bool(step.terminated[n]) == terminated, n
+        assert not bool(step.truncated[n]) and not truncated
+        ended += terminated
+    # the sampled states reach both outcomes where the family has terminal states
+    assert ended < copies.num_copies and (ended > 0 or name == "pendulum")
 
 
-def test_cartpole_truncates_at_the_step_limit_and_resets_from_its_stream() -> None:
-    variants = _cartpoles(2)
+@pytest.mark.parametrize("name", sorted(CLASSIC))
+def test_truncation_at_the_step_limit_and_a_reset_from_its_own_stream(name: str) -> None:
+    variants = _variants(name, 2)
     copies = device_copies(variants, [3, 3], CPU)
-    assert copies is not None
+    assert isinstance(copies, TensorCopies)
     columns = torch.arange(6)
     uniforms = torch.rand(6, 4, dtype=torch.float64, generator=torch.Generator().manual_seed(1))
     first = copies.reset(columns, _Stream(uniforms))
-    assert float(first.abs().max()) <= 0.05
-    torch.testing.assert_close(first, (uniforms * 0.1 - 0.05).float())
     again = copies.reset(columns[3:], _Stream(uniforms[3:]))
     assert torch.equal(again, first[3:]), "a copy's start depends on its own draws alone"
-    copies.state.zero_()  # upright and still: only the step limit can end it
-    copies.steps[:] = 499
-    step = copies.step(torch.tensor([0, 1, 0, 1, 0, 1]), columns)
+    env = variants[0].make_env()
+    assert first.shape == (6, *env.observation_space.shape)
+    assert all(env.observation_space.contains(o.numpy()) for o in first)
+    limit = variants[0].max_episode_steps
+    copies.steps[:] = limit - 1
+    actions = torch.zeros(6, 1) if CLASSIC[name][2] is None else torch.ones(6, dtype=torch.int64)
+    step = copies.step(actions, columns, None)
+    assert bool(step.truncated.all())
+
+
+def test_cartpole_starts_in_gymnasiums_interval() -> None:
+    copies = device_copies(_variants("cartpole", 2), [3, 3], CPU)
+    assert isinstance(copies, CartPoleCopies)
+    uniforms = torch.rand(6, 4, dtype=torch.float64, generator=torch.Generator().manual_seed(1))
+    first = copies.reset(torch.arange(6), _Stream(uniforms))
+    torch.testing.assert_close(first, (uniforms * 0.1 - 0.05).float())
+
+
+class _Decision:
+    """GridWorldEnv's ``np_random`` fixed to one decision: ``random()`` then ``integers(3)``."""
+
+    def __init__(self, u: float, j: int) -> None:
+        self.u, self.j = u, j
+
+    def random(self) -> float:
+        return self.u
+
+    def integers(self, n: int) -> int:
+        assert n == 3
+        return self.j
+
+
+def _gridworlds(count: int) -> list[GridWorldVariant]:
+    variants = _variants("gridworld", count)
+    assert all(isinstance(v, GridWorldVariant) for v in variants)
+    assert len({v.layout for v in variants}) > 1 and all(v.slip > 0 for v in variants)
+    return variants
+
+
+def test_gridworld_moves_like_gymnasiums_for_every_variant_cell_action_and_slip() -> None:
+    """Decision j of 4 (3: no slip; j < 3: a slip to direction (a + 1 + j) mod 4): the copy
+    takes u = (j + ½)·slip/3 (or u near 1), GridWorldEnv draws random() < slip and j."""
+    variants = _gridworlds(6)
+    cells = len(variants[0].layout) * len(variants[0].layout[0])
+    grid = [(v, s, a, j) for v in range(6) for s in range(cells) for a in range(4)
+            for j in range(4)]  # fmt: skip
+    copies = device_copies(variants, [cells * 16] * 6, CPU)
+    assert copies is not None and copies.step_noise == 1
+    slip = torch.tensor([variants[v].slip for v, *_ in grid], dtype=torch.float64)
+    j = torch.tensor([d for *_, d in grid], dtype=torch.float64)
+    u = torch.where(j < 3, (j + 0.5) * slip / 3, 0.999)
+    copies.state[0] = torch.tensor([s for _, s, _, _ in grid])
+    copies.steps[:] = 0
+    actions = torch.tensor([a for _, _, a, _ in grid])
+    step = copies.step(actions, None, u.unsqueeze(1))
+    for n, (v, s, a, d) in enumerate(grid):
+        env = GridWorldEnv(layout=variants[v].layout, slip=variants[v].slip, max_steps=50)
+        env.reset(seed=0)
+        env._state = s
+        env.np_random = _Decision(0.0 if d < 3 else 0.999, d)  # type: ignore[assignment]
+        if env.model.terminal[s]:
+            continue  # no step starts in an ended episode
+        obs, reward, terminated, truncated, info = env.step(a)
+        assert int(step.obs[n]) == int(obs), (v, s, a, d)
+        assert float(step.reward[n]) == reward
+        assert bool(step.terminated[n]) == terminated
+        assert bool(step.success[n]) == info["is_success"]
+        assert not bool(step.truncated[n]) and not truncated
+
+
+def test_gridworld_slips_as_often_as_the_exact_transition_table_says() -> None:
+    """20,000 steps from one cell and action per variant, each with its own counter-based
+    uniform: the frequencies of the next cells against P[s, a, ·] (chi-square)."""
+    variants = _gridworlds(3)
+    draws = 20_000
+    copies = device_copies(variants, [draws] * 3, CPU)
+    assert copies is not None
+    keys = trajectory_keys(0, torch.arange(3 * draws) // draws, 1, Purpose.TRAIN, 0,
+                           torch.arange(3 * draws) % draws)  # fmt: skip
+    noise = uniforms64(keys.unsqueeze(1), torch.tensor([[-(1 << 40)]]))
+    start, action = 0, 3  # the start cell, moving right
+    copies.state[0] = start
+    step = copies.step(torch.full((3 * draws,), action), None, noise)
+    for v, variant in enumerate(variants):
+        exact = GridWorldEnv(layout=variant.layout, slip=variant.slip).transition_probs()
+        expected = exact[start, action] * draws
+        observed = torch.bincount(step.obs[v * draws : (v + 1) * draws], minlength=len(expected))
+        seen = expected > 0
+        assert int(observed[~torch.from_numpy(seen)].sum()) == 0
+        statistic = float(((observed.numpy()[seen] - expected[seen]) ** 2 / expected[seen]).sum())
+        dof = torch.tensor((int(seen.sum()) - 1) / 2)
+        p_value = float(torch.special.gammaincc(dof, torch.tensor(statistic / 2)))
+        assert p_value > 1e-4, (v, observed.tolist(), expected.tolist())
+
+
+def test_gridworld_truncates_unless_terminated_and_resets_to_the_start() -> None:
+    variants = _gridworlds(2)
+    copies = device_copies(variants, [2, 2], CPU)
+    assert copies is not None
+    first = copies.reset(torch.arange(4), _Stream(torch.zeros(4, 0, dtype=torch.float64)))
+    assert first.tolist() == [0, 0, 0, 0]
+    copies.steps[:] = variants[0].max_steps - 1
+    step = copies.step(torch.tensor([0, 0, 0, 0]), None, torch.full((4, 1), 0.999))
+    assert step.obs.tolist() == [0, 0, 0, 0]  # up from the top-left corner: stays
     assert bool(step.truncated.all()) and not bool(step.terminated.any())
 
 
-def test_only_the_modelled_cartpoles_get_torch_copies() -> None:
-    run = compose(["env=acrobot", "agents.num_agents=2", "agents.budget.batch_size=[1]",
-                   "agents.speeds=[1]", "agents.step_delays_s=[0]"])  # fmt: skip
-    assert device_copies(list(variants_of(run, [0, 1]).values()), [2, 2], CPU) is None
-    assert device_copies(_cartpoles(2), [2, 2], CPU) is not None
+def test_only_the_modelled_families_get_torch_copies() -> None:
+    assert device_family(_variants("lunarlander", 2), CPU) is None
+    assert device_family(_variants("cartpole", 2), CPU) is not None
+    changed = [v.__class__(**{**vars(v), "action_cost": 0.5}) for v in _variants("acrobot", 2)]
+    assert device_family(changed, CPU) is None, "an action cost on discrete actions"
+
+
+@pytest.mark.parametrize(
+    ("name", "agents", "copies", "horizon"),
+    [("cartpole", 8, 50, 500), ("pendulum", 4, 40, 200), ("gridworld", 8, 50, 50),
+     ("mountaincar", 4, 20, 200), ("acrobot", 2, 20, 100)],
+)  # fmt: skip
+def test_both_environment_paths_give_returns_of_one_distribution(
+    name: str, agents: int, copies: int, horizon: int
+) -> None:
+    """The same θ̃ and trajectory keys through the torch copies and through gymnasium: the mean
+    returns agree within 4 standard errors of their difference."""
+    returns = {}
+    for path in ("auto", "gymnasium"):
+        run = compose([
+            f"env={name}", "agents=population", f"agents.num_agents={agents}",
+            "algo.engine=torch", f"algo.envs={path}", f"env.horizon={horizon}",
+        ])  # fmt: skip
+        engine = Engine(run, variants_of(run, range(agents)))
+        assert (engine.family() is not None) == (path == "auto")
+        rows = engine.begin(1, initial_theta(variants_of(run, [0])[0], run), list(range(agents)))
+        batch = engine.sample(rows.theta, torch.full((agents,), copies), iteration=0)
+        returns[path] = batch.returns()
+        engine.close()
+    device, gym = returns["auto"], returns["gymnasium"]
+    error = (device.var() / len(device) + gym.var() / len(gym)).sqrt().clamp_min(1e-9)
+    assert float((device.mean() - gym.mean()).abs() / error) < 4.0, (device.mean(), gym.mean())

@@ -1,53 +1,93 @@
-"""``make bench-device`` (benchmarks/scale_device.py), run on the CPU: the doubling of K, its
-stops, the same-process comparisons and the placement check."""
+"""``make bench-device`` (benchmarks/scale_device.py), rehearsed on the CPU: the rows at θ̃₀
+and at the balancing policy, the reference beside them, the memory plan, the placement check,
+and the reference module itself (every copy alive at every step)."""
 
 from __future__ import annotations
 
 import json
-from pathlib import Path
 
 import pytest
 import torch
 
-from benchmarks import scale_device
+from benchmarks import device_reference, scale_device
 
 
-def _main(tmp_path: Path, *args: str) -> dict:
+def test_the_rehearsal_reports_engine_reference_memory_and_placement(tmp_path, capsys) -> None:
     out = tmp_path / "scale_device.json"
-    scale_device.main(["--device", "cpu", "--out", str(out), *args])
-    return json.loads(out.read_text())
-
-
-def test_k_doubles_to_the_cap_with_ratios_and_the_placement_check(tmp_path, capsys) -> None:
-    result = _main(tmp_path, "--start", "15", "--max-agents", "60", "--compare-up-to", "30")
-    rows = result["rows"]
-    assert [r["agents"] for r in rows] == [15, 30, 60]
-    assert result["largest_agents"] == 60 and "--max-agents" in result["stopped"]
-    assert all(r["env_steps"] >= 8 * r["agents"] and r["round_s"] > 0 for r in rows)
-    assert [r["compiled_round_s"] is not None for r in rows] == [True, True, False]
-    assert [r["compiled_round_s"] is not None for r in rows] == [True, True, False]
-    assert all(r["device_peak_mib"] is None for r in rows), "no CUDA device measured"
-    # on the CPU, torch's products keep an agent's θ independent of its company
-    assert result["same_theta_in_any_company"] and result["same_theta_on_a_second_run"]
+    with pytest.raises(SystemExit) as stop:
+        scale_device.main(["--device", "cpu", "--agents", "12,24", "--repeats", "1",
+                           "--compare-up-to", "12", "--families", "cartpole,pendulum",
+                           "--out", str(out)])  # fmt: skip
+    assert stop.value.code == 0
+    result = json.loads((tmp_path / "scale_device_report.json").read_text())
+    rows = result["parts"]["scale_device"]["rows"]
+    assert [(r["agents"], r["policy"]) for r in rows] == [
+        (12, "initial"), (12, "balancing"), (24, "initial"), (24, "balancing")
+    ]  # fmt: skip
+    balancing = [r for r in rows if r["policy"] == "balancing"]
+    assert all(r["env_steps"] == r["agents"] * 16 * 500 for r in balancing), "every pole stays up"
+    assert all(r["env_steps"] < r["agents"] * 16 * 100 for r in rows if r["policy"] == "initial")
+    assert [r["compiled_steps_per_s"] is not None for r in rows] == [True, True, False, False]
+    assert all(0 < r["device_peak_mib"] <= r["planned_peak_mib"] for r in balancing)
+    reference = result["parts"]["scale_device"]["reference"]
+    assert [r["agents"] for r in reference] == [12, 24]
+    assert all(r["peak_mib"] is None for r in reference), "no CUDA device measured"
+    placement = result["placement"]
+    assert list(placement["families"]) == ["cartpole", "pendulum"]
+    assert placement["same_theta_in_any_company"] and placement["same_theta_on_a_second_run"]
     printed = capsys.readouterr().out
-    assert "largest K reached: 60" in printed and "| 30 |" in printed
+    assert "| 24 | balancing | 192,000 |" in printed and "same theta in any company: yes" in printed
 
 
-def test_a_slow_round_stops_the_doubling(tmp_path) -> None:
-    result = _main(tmp_path, "--start", "10", "--max-round-s", "0", "--compare-up-to", "0")
-    assert [r["agents"] for r in result["rows"]] == [10]
-    assert "> --max-round-s" in result["stopped"]
+def test_a_part_stopped_at_its_limit_is_reported_as_missing(tmp_path, capsys) -> None:
+    """The report of parts one of which stopped before its engine rows (the reference alone
+    written) and a federation that never ran: the rows it has, what is missing, exit 1."""
+    part = tmp_path / "k12.json"
+    scale_device.main(["--device", "cpu", "--only", "iteration", "--agents", "12",
+                       "--repeats", "1", "--out", str(part)])  # fmt: skip
+    stopped = tmp_path / "k24.json"
+    record = json.loads(part.read_text())
+    record["rows"] = []
+    record["reference"] = [{**record["reference"][0], "agents": 24}]
+    stopped.write_text(json.dumps(record))
+    parts = [str(part), str(stopped), str(tmp_path / "none.json")]
+    federation = [str(tmp_path / "no-run"), "100", "124", "0"]
+    with pytest.raises(SystemExit) as stop:
+        scale_device.main(["--report", *parts, "--out", str(tmp_path / "report.json"),
+                           "--federation", *federation])  # fmt: skip
+    assert stop.value.code == 1
+    printed = capsys.readouterr().out
+    assert "| 12 | balancing |" in printed and "no engine row" in printed
+    assert "K = [24]" in printed and "placement check: not finished" in printed
+    assert "0 of 3 rounds done, exit status 124" in printed
+    report = json.loads((tmp_path / "report.json").read_text())
+    assert report["federation"]["rounds"] == [] and report["placement"] is None
+
+
+def test_the_reference_counts_every_copy_at_every_step() -> None:
+    got = device_reference.measure(3, 4, torch.device("cpu"), steps=8, gradient=True, repeats=1)
+    assert got.steps_per_s == pytest.approx(3 * 4 * 8 / got.seconds)
+    reference = device_reference.Reference(2, 3, torch.device("cpu"))
+    before = [p.detach().clone() for p in reference.params]
+    observations, actions, rewards, ended = reference.rollout(50)
+    assert observations.shape == (50, 6, 4) and bool(ended.any())
+    limit = device_reference.THETA_LIMIT
+    assert float(observations[:, :, 2].abs().max()) <= limit, "reset once the pole fell"
+    reference.update(observations, actions, rewards, ended)
+    assert any(not torch.equal(a, b) for a, b in zip(before, reference.params, strict=True))
 
 
 @pytest.mark.parametrize(
     ("args", "message"),
     [
         (["--device", "tpu"], "error: --device: got 'tpu', allowed: cpu, cuda, cuda:N"),
-        (["--device", "cudax"], "error: --device: got 'cudax', allowed: cpu, cuda, cuda:N"),
-        (["--start", "0"], "error: need 1 <= --start <= --max-agents and --hidden >= 1"),
+        (["--agents", "0"], "error: need --agents as positive integers (1000,16000) and "
+         "--repeats >= 1"),
+        (["--agents", "ten"], "error: need --agents as positive integers (1000,16000) and "
+         "--repeats >= 1"),
     ],
-)
-def test_bad_arguments_are_one_line(args, message) -> None:
+)  # fmt: skip
+def test_bad_arguments_are_one_line(args: list[str], message: str) -> None:
     with pytest.raises(SystemExit) as stop:
         scale_device.main(args)
     assert stop.value.code == message

@@ -160,3 +160,54 @@ def test_bad_options_name_the_key(name: str, params: dict, key: str, hint: str) 
     with pytest.raises(ConfigError, match=hint) as info:
         make_strategy(StrategyConfig(name=name, params=params))
     assert info.value.key == key
+
+
+def test_coordinate_rules_by_columns_agree_with_the_whole_matrix() -> None:
+    """median and trimmed_mean in slices of columns (budgets of one to a few columns) equal the
+    rule on the whole [K, d] matrix (the median bit for bit; the trimmed mean's sums, whose
+    order a reduction's kernel picks by the slice's width, to float32 rounding), and leave
+    the matrix as it was; within the default budget the matrix is one slice."""
+    from fedhpg.server.strategies import by_columns
+    from fedhpg.server.strategies.median import coordinate_median
+    from fedhpg.server.strategies.trimmed_mean import trimmed_mean
+
+    rows = torch.randn(11, 37, generator=torch.Generator().manual_seed(5))
+    kept = rows.clone()
+    for budget in (1, 12 * 11 * 3, 12 * 11 * 8):
+        whole = coordinate_median(rows)
+        assert torch.equal(by_columns(rows, coordinate_median, budget), whole)
+        whole = trimmed_mean(rows, 0.2)
+        torch.testing.assert_close(
+            by_columns(rows, lambda r: trimmed_mean(r, 0.2), budget), whole, rtol=0, atol=1e-6
+        )
+    assert torch.equal(by_columns(rows, lambda r: trimmed_mean(r, 0.2)), trimmed_mean(rows, 0.2))
+    assert torch.equal(rows, kept)
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="no CUDA device on this machine")
+@pytest.mark.parametrize("name", ["mean", "weighted", "median", "trimmed_mean"])
+def test_a_rule_on_a_cuda_device_agrees_with_the_cpu(name: str) -> None:
+    updates = _updates(count=9, size=50)
+    on_cpu = make_strategy(StrategyConfig(name=name)).aggregate(1, torch.zeros(50), updates, {})
+    on_cuda = make_strategy(StrategyConfig(name=name, device="cuda")).aggregate(
+        1, torch.zeros(50), updates, {}
+    )
+    assert on_cuda.device.type == "cpu"
+    torch.testing.assert_close(on_cuda, on_cpu)
+
+
+def test_strategy_device_is_checked() -> None:
+    """strategy.device takes cpu, cuda, cuda:N (a typo is refused naming the key), and a
+    server whose torch sees no such device is refused before it starts."""
+    from fedhpg.common.config import validate
+    from fedhpg.common.runtime.cli import compose
+    from fedhpg.server.strategies import validate_strategy
+
+    with pytest.raises(ConfigError) as info:
+        validate(compose(["strategy.device=gpu"]))
+    assert info.value.key == "strategy.device"
+    run = compose(["strategy=median", "strategy.device=cuda:7"])
+    if torch.cuda.device_count() <= 7:
+        with pytest.raises(ConfigError, match="CUDA") as refused:
+            validate_strategy(run)
+        assert refused.value.key == "strategy.device"

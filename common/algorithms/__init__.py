@@ -71,6 +71,12 @@ class Algorithm(abc.ABC, Generic[P, B]):
         """Raise :class:`~fedhpg.common.registry.OptionError` for options that do not go with
         the run's settings (each option alone is already checked by ``Params``)."""
 
+    def held_trajectories(self, budget: B) -> int:
+        """The most trajectories one agent's update holds at once: what the engine plans its
+        device memory for (``common/engine/memory.py``). By default the sum of the budget's
+        counts, a bound for any loop over them; an algorithm that knows better says so."""
+        return sum(v for v in vars(budget).values() if isinstance(v, int))
+
     def describe_budget(self, budget: B) -> str:
         """A short label of a budget for tables: 'B=8 τ=2'."""
         return " ".join(f"{name}={value}" for name, value in vars(budget).items())

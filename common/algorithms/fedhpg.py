@@ -63,5 +63,8 @@ class FedHPG(Algorithm[NoParams, FedHPGBudget]):
             bounds.report(engine)
         return theta
 
+    def held_trajectories(self, budget: FedHPGBudget) -> int:
+        return budget.batch_size  # one iteration's batch at a time
+
     def describe_budget(self, budget: FedHPGBudget) -> str:
         return f"B={budget.batch_size} τ={budget.local_iters}"

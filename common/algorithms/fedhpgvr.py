@@ -205,5 +205,8 @@ class FedHPGVR(Algorithm[FedHPGVRParams, FedHPGVRBudget]):
                 "or 'auto'",
             )
 
+    def held_trajectories(self, budget: FedHPGVRBudget) -> int:
+        return budget.batch_size + budget.mini_batch_size  # the snapshot's and one inner batch
+
     def describe_budget(self, budget: FedHPGVRBudget) -> str:
         return f"B={budget.batch_size} b={budget.mini_batch_size} N={budget.inner_steps}"

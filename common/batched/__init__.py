@@ -2,7 +2,8 @@
 agents with the MLP categorical policy on CartPole variants, on the CPU.
 
 :func:`compiled_agents` says which of a group's agents it serves (``algo.engine=auto`` on the
-CPU, the MLP categorical policy, a CartPole variant the kernels model, no attack on sampling);
+CPU with ``algo.envs=auto``, the MLP categorical policy, a CartPole variant the kernels
+model, no attack on sampling);
 :func:`fedhpg.common.group.make_agent_group` gives them an engine on this backend and the
 others an engine on torch. Any algorithm runs on it: it supplies primitives, not a loop.
 """
@@ -32,7 +33,8 @@ def mlp_shape(policy: Policy) -> MLPShape:
 
 def compiled_agents(run: RunConfig, variants: Mapping[int, EnvVariant]) -> set[int]:
     """The agents of ``variants`` the compiled backend serves."""
-    if run.algo.engine != "auto" or run.algo.device != "cpu" or not variants:
+    auto = run.algo.engine == "auto" and run.algo.envs == "auto"
+    if not auto or run.algo.device != "cpu" or not variants:
         return set()
     from fedhpg.common.batched.backend import covers  # numba's import: only where it may run
 

@@ -1,9 +1,11 @@
 """Blocks of environment copies the sampler steps: one block per row, its trajectories.
 
 Two paths behind one interface. A family with a torch implementation
-(:func:`fedhpg.envs.device.device_copies`) keeps every copy in tensors on the engine's
-device. Any other family steps through its variants' gymnasium batch environments on the CPU,
-one per block, observations and actions converted at the boundary.
+(:func:`fedhpg.envs.device.device_family`, the engine's variants' constants as tables on its
+device) keeps every copy in tensors on the engine's device: nothing crosses to the host while
+it steps. Any other family (or every family, with ``algo.envs=gymnasium``) steps through its
+variants' gymnasium batch environments on the CPU, one per block, observations and actions
+converted at the boundary.
 """
 
 from __future__ import annotations
@@ -16,8 +18,8 @@ import numpy as np
 import torch
 
 from fedhpg.common.randomness import seeds, uniforms64
-from fedhpg.envs.base import BatchEnv, EnvVariant
-from fedhpg.envs.device import CopyStep, DeviceCopies, device_copies
+from fedhpg.envs.base import BatchEnv
+from fedhpg.envs.device import CopyStep, DeviceCopies, DeviceFamily
 
 
 class KeyedReset:
@@ -39,6 +41,8 @@ class Copies(Protocol):
     """Blocks of copies, block b columns ``offsets[b]:offsets[b + 1]``."""
 
     offsets: torch.Tensor
+    step_noise: int
+    """Uniforms each copy's environment draws per step (0: none)."""
 
     def reset(self, blocks: torch.Tensor, keys: torch.Tensor) -> torch.Tensor:
         """Start an episode in every copy of ``blocks``, their copies' keys ``keys``; the
@@ -46,9 +50,14 @@ class Copies(Protocol):
         ...
 
     def step(
-        self, actions: torch.Tensor, blocks: torch.Tensor, columns: torch.Tensor | None
+        self,
+        actions: torch.Tensor,
+        blocks: torch.Tensor,
+        columns: torch.Tensor | None,
+        noise: torch.Tensor | None = None,
     ) -> CopyStep:
-        """One action per copy of ``blocks`` (their ``columns``; None: every block)."""
+        """One action per copy of ``blocks`` (their ``columns``; None: every block);
+        ``noise`` [copies, step_noise] their environments' uniforms (None when none)."""
         ...
 
     def close(self) -> None: ...
@@ -68,14 +77,19 @@ class DeviceBlocks:
     def __init__(self, copies: DeviceCopies, offsets: torch.Tensor) -> None:
         self.copies = copies
         self.offsets = offsets.to(copies.device)
+        self.step_noise = int(copies.step_noise)
 
     def reset(self, blocks: torch.Tensor, keys: torch.Tensor) -> torch.Tensor:
         return self.copies.reset(columns_of(self.offsets, blocks), KeyedReset(keys))
 
     def step(
-        self, actions: torch.Tensor, blocks: torch.Tensor, columns: torch.Tensor | None
+        self,
+        actions: torch.Tensor,
+        blocks: torch.Tensor,
+        columns: torch.Tensor | None,
+        noise: torch.Tensor | None = None,
     ) -> CopyStep:
-        return self.copies.step(actions, columns)
+        return self.copies.step(actions, columns, noise)
 
     def close(self) -> None:
         pass
@@ -83,6 +97,8 @@ class DeviceBlocks:
 
 class GymBlocks:
     """Blocks over gymnasium batch environments, one per block, on the CPU."""
+
+    step_noise = 0  # gymnasium environments draw from their own generators
 
     def __init__(self, envs: Sequence[BatchEnv], device: torch.device) -> None:
         self.envs = list(envs)
@@ -103,7 +119,11 @@ class GymBlocks:
         return torch.from_numpy(np.concatenate(parts)).to(self.device)
 
     def step(
-        self, actions: torch.Tensor, blocks: torch.Tensor, columns: torch.Tensor | None
+        self,
+        actions: torch.Tensor,
+        blocks: torch.Tensor,
+        columns: torch.Tensor | None,
+        noise: torch.Tensor | None = None,
     ) -> CopyStep:
         chosen = actions.cpu().numpy()
         parts, at = [], 0
@@ -133,18 +153,18 @@ EnvSource = Callable[[int, int], BatchEnv]
 
 
 def make_copies(
-    variants: Sequence[EnvVariant],
-    counts: Sequence[int],
-    device: torch.device,
+    family: DeviceFamily | None,
+    rows: torch.Tensor,
+    counts: torch.Tensor,
     batch_env: EnvSource,
     agents: Sequence[int],
+    device: torch.device,
 ) -> Copies:
-    """Blocks of ``counts[i]`` copies of ``variants[i]``: on the device where the family has a
-    torch implementation, else through gymnasium (``batch_env`` for agent ``agents[i]``)."""
-    offsets = torch.cat(
-        [torch.zeros(1, dtype=torch.int64), torch.tensor(list(counts), dtype=torch.int64).cumsum(0)]
-    )
-    native = device_copies(variants, counts, device)
-    if native is not None:
-        return DeviceBlocks(native, offsets)
-    return GymBlocks([batch_env(k, c) for k, c in zip(agents, counts, strict=True)], device)
+    """Blocks of ``counts[i]`` copies of agent ``agents[i]``'s variant: on the device from
+    ``family`` (the variants' table; ``rows[i]``: agent i's row of it) where the family has a
+    torch implementation, else through gymnasium (``batch_env``)."""
+    offsets = torch.cat([counts.new_zeros(1), counts.cumsum(0)])
+    if family is not None:
+        return DeviceBlocks(family.copies(rows, counts), offsets)
+    sizes = counts.tolist()
+    return GymBlocks([batch_env(k, c) for k, c in zip(agents, sizes, strict=True)], device)

@@ -18,10 +18,11 @@ what a row computes depends on its agent, round and θ alone.
 
 from __future__ import annotations
 
+import math
 import time
 from collections.abc import Callable, Iterator, Mapping, Sequence
 from contextlib import contextmanager
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, fields, replace
 from typing import TYPE_CHECKING, Any
 
 import torch
@@ -32,6 +33,13 @@ from fedhpg.common.components import AgentProfile, agent_profile, planned_budget
 from fedhpg.common.config import RunConfig
 from fedhpg.common.engine.copies import make_copies
 from fedhpg.common.engine.devices import check_device
+from fedhpg.common.engine.memory import (
+    RoundPlan,
+    StepBytes,
+    memory_budget,
+    packed_elements,
+    plan_round,
+)
 from fedhpg.common.engine.policy_rows import PolicyRows, chunked
 from fedhpg.common.engine.sampling import Faults, sample
 from fedhpg.common.engine.trajectories import Trajectories
@@ -39,6 +47,7 @@ from fedhpg.common.randomness import Purpose, trajectory_keys
 from fedhpg.common.types import EvaluationStats
 from fedhpg.common.variants import discount, training_horizon
 from fedhpg.envs.base import BatchEnv, EnvVariant
+from fedhpg.envs.device import DeviceFamily, device_family
 
 if TYPE_CHECKING:
     from fedhpg.common.batched.backend import CompiledBackend
@@ -61,8 +70,6 @@ def one_thread() -> Iterator[None]:
         torch.set_num_threads(threads)
 
 
-PACKED_ELEMENTS = 1 << 24
-"""Elements (tiles × tile steps × parameters) one gradient call holds at once."""
 TILE = 64
 """Steps per tile of the policy's maths. Every per-row reduction over steps is made of
 fixed-size tiles summed in order, so its floats never depend on the batch's shape (a matrix
@@ -155,6 +162,35 @@ class Tally:
             z(torch.float64),
         )
 
+    @classmethod
+    def concatenated(cls, parts: Sequence[Tally]) -> Tally:
+        """The tallies of consecutive chunks of a round's rows as one (its works' rows
+        renumbered in the whole round)."""
+        if len(parts) == 1:
+            return parts[0]
+        names = list(dict.fromkeys(name for part in parts for name in part.algorithm))
+
+        def stat(part: Tally, name: str) -> torch.Tensor:
+            values = part.algorithm.get(name)
+            return values if values is not None else torch.full_like(part.sample_s, math.nan)
+
+        starts = [0]
+        for part in parts[:-1]:
+            starts.append(starts[-1] + int(part.trajectories.shape[0]))
+        return cls(
+            **{
+                name: torch.cat([getattr(p, name) for p in parts])
+                for name in (f.name for f in fields(cls))
+                if name not in ("algorithm", "work")
+            },
+            algorithm={name: torch.cat([stat(p, name) for p in parts]) for name in names},
+            work=[
+                replace(work, rows=work.rows + start)
+                for part, start in zip(parts, starts, strict=True)
+                for work in part.work
+            ],
+        )
+
 
 class Engine:
     """The primitives for the agents ``variants`` of one run (see the module docstring)."""
@@ -162,14 +198,14 @@ class Engine:
     def __init__(
         self, run: RunConfig, variants: Mapping[int, EnvVariant], *, compiled: bool = False
     ) -> None:
-        from fedhpg.common.worker import policy_and_actions
+        from fedhpg.common.worker import policy_and_spaces
 
         self.run = run
         self.variants = dict(variants)
         check_device(run.algo.device)
         self.device = torch.device(run.algo.device)
         first = self.variants[min(self.variants)]
-        template, self.action_space = policy_and_actions(first, run)
+        template, self.observation_space, self.action_space = policy_and_spaces(first, run)
         self.compiled: CompiledBackend | None = None
         """The compiled backend's sampling and gradients (``compiled``: the caller checked it
         serves these agents, :func:`fedhpg.common.batched.compiled_agents`)."""
@@ -179,10 +215,29 @@ class Engine:
 
             self.compiled = CompiledBackend(mlp_shape(template))
         self.policy = PolicyRows(template, self.device)
+        self.tiles_per_call = max(
+            packed_elements(self.device) // (TILE * self.policy.num_params), 1
+        )
+        """Tiles one autograd call of the gradient pass takes (off the CPU, every call takes
+        exactly so many, padded with empty tiles: a GPU library may pick its kernels, and so
+        its order of additions, by a call's shape, which must then not depend on the
+        company)."""
+        self.step_bytes = StepBytes.of(
+            self.observation_space,
+            self.action_space,
+            self.policy.num_params,
+            self.policy.noise_size,
+            self.device,
+        )
         self._envs: dict[tuple[int, int], BatchEnv] = {}
         self._profiles: dict[int, AgentProfile] = {}
         self._gamma: dict[int, float] = {}
         self._horizon: dict[int, int] = {}
+        self._family: DeviceFamily | None = None
+        self._family_rows: dict[int, int] | None = None
+        """Each agent's row of :attr:`_family` (None: not built yet)."""
+        self._per_row: dict[str, torch.Tensor] = {}
+        """The round's rows' constants on the device (:meth:`begin`)."""
         self.rows: Rows | None = None
         self.tally: Tally | None = None
         self._hook: Any = None
@@ -210,6 +265,17 @@ class Engine:
     def prepare(self) -> None:
         for k in self.variants:
             self.profile(k), self.gamma(k), self.horizon(k)
+        self.family()
+
+    def family(self) -> DeviceFamily | None:
+        """The torch implementation's table of every agent's variant on the device, built once
+        (None: the family has none, ``algo.envs=gymnasium``, or the compiled backend samples)."""
+        if self._family_rows is None:
+            order = sorted(self.variants)
+            self._family_rows = {k: row for row, k in enumerate(order)}
+            if self.compiled is None and self.run.algo.envs == "auto":
+                self._family = device_family([self.variants[k] for k in order], self.device)
+        return self._family
 
     def _batch_env(self, k: int, copies: int) -> BatchEnv:
         if (k, copies) not in self._envs:
@@ -244,9 +310,38 @@ class Engine:
             round_index=round_index,
         )
         self.rows, self.tally, self._hook = rows, Tally.zeros(rows.size), hook
+        self._per_row = self._row_constants(rows.agents)
         self._clock = time.thread_time()
         self._sampling_s = 0.0
         return rows
+
+    def plan(
+        self, agents: Sequence[int], copies: Sequence[int], horizons: Sequence[int]
+    ) -> RoundPlan:
+        """Chunks of ``agents`` (agent i holding ``copies[i]`` trajectories of up to
+        ``horizons[i]`` steps at once) that fit ``algo.memory_gib`` on the device
+        (``common/engine/memory.py``)."""
+        budget = memory_budget(self.device, self.run.algo.memory_gib)
+        return plan_round(copies, horizons, self.step_bytes, budget)
+
+    def _row_constants(self, agents: Sequence[int]) -> dict[str, torch.Tensor]:
+        """What sampling and the estimator read of each row, as [A] tensors on the device (sent
+        once a round, not at every iteration)."""
+        self.family()
+        assert self._family_rows is not None
+        kinds = [attack_of(self.run.attack, k) for k in agents]
+
+        def row(values: list[Any], dtype: torch.dtype) -> torch.Tensor:
+            return torch.tensor(values, dtype=dtype).to(self.device)
+
+        return {
+            "agent": row(list(agents), torch.int64),
+            "gamma": row([self.gamma(k) for k in agents], torch.float64),
+            "horizon": row([self.horizon(k) for k in agents], torch.int64),
+            "family_row": row([self._family_rows[k] for k in agents], torch.int64),
+            "random_actions": row([a == "random_action" for a in kinds], torch.bool),
+            "flipped_rewards": row([a == "reward_flip" for a in kinds], torch.bool),
+        }
 
     def _rows(self) -> Rows:
         assert self.rows is not None, "begin() a round first"
@@ -254,9 +349,8 @@ class Engine:
 
     def gammas(self) -> torch.Tensor:
         """γ_k of every row, [A] float64."""
-        return torch.tensor(
-            [self.gamma(k) for k in self._rows().agents], dtype=torch.float64, device=self.device
-        )
+        self._rows()
+        return self._per_row["gamma"]
 
     def sample(
         self,
@@ -270,28 +364,24 @@ class Engine:
     ) -> Trajectories:
         """``counts[a]`` trajectories of row a at θ row ``theta[a]`` (0: none)."""
         rows = self._rows()
-        counts_list = counts.tolist()
-        order = [i for i, c in enumerate(counts_list) if c > 0]
-        positions = torch.tensor(order, dtype=torch.int64, device=self.device)
-        chosen = torch.tensor(
-            [counts_list[i] for i in order], dtype=torch.int64, device=self.device
-        )
-        agents = [rows.agents[i] for i in order]
-        owner = torch.repeat_interleave(torch.arange(len(order), device=self.device), chosen)
+        per_row = self._per_row
+        wanted = counts.to(self.device)
+        positions = torch.nonzero(wanted > 0).squeeze(1)
+        chosen = wanted[positions]
+        agents = [rows.agents[i] for i in positions.tolist()]
+        owner = torch.repeat_interleave(torch.arange(len(agents), device=self.device), chosen)
         starts = torch.cumsum(chosen, 0) - chosen
         index = torch.arange(int(chosen.sum()), device=self.device) - starts[owner]
-        agent_ids = torch.tensor(agents, dtype=torch.int64, device=self.device)[owner]
+        agent_ids = per_row["agent"][positions][owner]
         keys = trajectory_keys(
             self.run.seed, agent_ids, rows.round_index, purpose, iteration, index
         )
-        limit = (
-            torch.tensor([self.horizon(k) for k in agents], dtype=torch.int64, device=self.device)
-            if horizons is None
-            else horizons.to(self.device)[positions]
-        )
+        limit = per_row["horizon"] if horizons is None else horizons.to(self.device)
         started = time.thread_time()
         try:
-            batch = self._sample_rows(theta, positions, chosen, keys, limit, agents, greedy)
+            batch = self._sample_rows(
+                theta, positions, chosen, keys, limit[positions], agents, greedy
+            )
         finally:
             self._sampling_s += time.thread_time() - started
         return batch.regrouped(positions, rows.size)
@@ -307,28 +397,24 @@ class Engine:
         greedy: bool,
     ) -> Trajectories:
         """The rows ``positions`` (their agents ``agents``) sampled by the backend."""
-        variants = [self.variants[k] for k in agents]
         if self.compiled is not None:
+            variants = [self.variants[k] for k in agents]
             return self.compiled.sample(theta[positions], chosen, keys, limit, agents, variants,
                                         greedy=greedy)  # fmt: skip
+        per_row = self._per_row
         copies = make_copies(
-            variants,
-            chosen.tolist(),
-            self.device,
+            self.family(),
+            per_row["family_row"][positions],
+            chosen,
             self._batch_env,
             agents,
+            self.device,
         )
         faults = None
-        if not greedy:
-            kinds = [attack_of(self.run.attack, k) for k in agents]
-            faults = Faults(
-                random_actions=torch.tensor(
-                    [a == "random_action" for a in kinds], device=self.device
-                ),
-                flipped_rewards=torch.tensor(
-                    [a == "reward_flip" for a in kinds], device=self.device
-                ),
-            )
+        random_actions = per_row["random_actions"][positions]
+        flipped_rewards = per_row["flipped_rewards"][positions]
+        if not greedy and bool((random_actions | flipped_rewards).any()):
+            faults = Faults(random_actions=random_actions, flipped_rewards=flipped_rewards)
         try:
             return sample(
                 self.policy,
@@ -386,6 +472,8 @@ class Engine:
         tile_start = torch.cumsum(tiles_per_group, 0) - tiles_per_group
         tile = tile_start[owner] + slot // TILE
         total = int(tiles_per_group.sum())
+        if self.device.type != "cpu" and total:  # whole calls only (``tiles_per_call``)
+            total = -(-total // self.tiles_per_call) * self.tiles_per_call
         flat = step * batch.alive.shape[1] + column
         cell = batch.layout.cell(step, column)
         obs_flat = batch.obs.reshape(-1, *batch.obs.shape[2:])
@@ -397,19 +485,22 @@ class Engine:
         tile_group = torch.repeat_interleave(
             torch.arange(groups, device=owner.device), tiles_per_group
         )
+        if total > tile_group.shape[0]:  # empty tiles (no coefficient) of group 0
+            tile_group = torch.cat([tile_group, tile_group.new_zeros(total - tile_group.shape[0])])
         return _Tiles(
             obs, act, tile, slot % TILE, flat, cell, tile_group, tile_start, tiles_per_group
         )
 
     def _tile_gradients(
-        self, theta_of_tile: torch.Tensor, tiles: _Tiles, values: torch.Tensor
+        self, theta: torch.Tensor, row_of_tile: torch.Tensor, tiles: _Tiles, values: torch.Tensor
     ) -> torch.Tensor:
-        """Each tile's Σ coef ∇ log π under its own θ row, [tiles, d], in chunks."""
+        """Each tile's Σ coef ∇ log π under its θ row ``theta[row_of_tile]``, [tiles, d], in
+        chunks (the θ rows of one chunk's tiles at a time)."""
         coef = torch.zeros(tiles.obs.shape[:2], dtype=torch.float64, device=self.device)
         coef[tiles.tile, tiles.slot] = values[tiles.cell].to(torch.float64)
-        out = theta_of_tile.new_empty((tiles.obs.shape[0], self.policy.num_params))
+        out = theta.new_empty((tiles.obs.shape[0], self.policy.num_params))
         return self._over_tiles(tiles, out, lambda block: self.policy.score_gradients(
-            theta_of_tile[block], tiles.obs[block], tiles.act[block], coef[block]
+            theta[row_of_tile[block]], tiles.obs[block], tiles.act[block], coef[block]
         ))  # fmt: skip
 
     def _over_tiles(
@@ -418,8 +509,8 @@ class Engine:
         """``out[block] = compute(block)`` over the tiles, as many at once as memory allows."""
         chunked(
             tiles.obs.shape[0],
-            TILE * self.policy.num_params,
-            PACKED_ELEMENTS,
+            1,
+            self.tiles_per_call,
             lambda block: out.__setitem__(block, compute(block)),
         )
         return out
@@ -442,7 +533,7 @@ class Engine:
         if self.compiled is not None:
             return self.compiled.gradients(theta, batch, coefficients)
         tiles = self._tiles(batch, batch.owner)
-        per_tile = self._tile_gradients(theta[tiles.tile_group], tiles, coefficients)
+        per_tile = self._tile_gradients(theta, tiles.tile_group, tiles, coefficients)
         return self._group_sums(tiles, per_tile, theta.shape[0])
 
     def mean_gradients(
@@ -469,7 +560,7 @@ class Engine:
         """g(τ_n | θ_{owner(n)}) of every trajectory, [N, d]."""
         columns = torch.arange(batch.alive.shape[1], device=self.device)
         tiles = self._tiles(batch, columns)
-        per_tile = self._tile_gradients(theta[batch.owner[tiles.tile_group]], tiles, coefficients)
+        per_tile = self._tile_gradients(theta, batch.owner[tiles.tile_group], tiles, coefficients)
         return self._group_sums(tiles, per_tile, len(columns))
 
     # -- bookkeeping -----------------------------------------------------------------------

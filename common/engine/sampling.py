@@ -1,9 +1,10 @@
 """Sampling: one episode in every copy of every block, all blocks stepped together.
 
 Block b holds ``counts[b]`` copies of one row's environment (its trajectories this
-iteration); every copy's randomness comes from its own trajectory key (its reset from negative
-counters, its decisions from counters t · noise_size + j), so a trajectory is the same in any
-company and any layout. Every stepped block acts in one call of the policy
+iteration); every copy's randomness comes from its own trajectory key (its reset from counters
+−1, −2, …, its decisions from counters t · noise_size + j, its environment's own draws at step
+t, where a family has them, from :data:`ENV_COUNTERS` − t · step_noise − j), so a trajectory
+is the same in any company and any layout. Every stepped block acts in one call of the policy
 (``PolicyRows.act`` on a [blocks, widest block] grid of copies); blocks whose copies have all
 ended leave the stepping, and the set of stepped blocks is narrowed when it has shrunk by a
 quarter (episode lengths vary a lot, and a batch lasts as long as its longest episode).
@@ -19,7 +20,7 @@ import torch
 from fedhpg.common.engine.copies import Copies, columns_of
 from fedhpg.common.engine.policy_rows import PolicyRows
 from fedhpg.common.engine.trajectories import Trajectories
-from fedhpg.common.randomness import uniforms
+from fedhpg.common.randomness import uniforms, uniforms64
 
 
 @dataclass(frozen=True)
@@ -34,24 +35,43 @@ class Faults:
 
 NOISE_CHUNK = 32
 """Time steps of decision draws made at once for every stepped copy."""
+ENV_COUNTERS = -(1 << 40)
+"""Where the counters of an environment's own draws start (downwards), far below a reset's."""
+
+
+ACT_TILE = 16
+"""Copies per tile of the policy's forward pass while sampling. Every block's copies are cut
+into tiles of exactly this many (the last one padded), each tile a row of one policy call with
+its block's θ: a matrix product then has one shape whatever the company, and its floats
+cannot change with it (a BLAS picks its kernel, and its order of additions, by the shape: on
+this project's CPUs a product of fewer than 16 rows rounds differently)."""
 
 
 class _Plan:
-    """The blocks still stepped: their copies, the same as a padded [blocks, widest] grid (one
-    policy call for all of them), and their θ rows."""
+    """The blocks still stepped: their copies, the same as a padded [tiles, ACT_TILE] grid (one
+    policy call for all of them), and each tile's θ row."""
 
     def __init__(
         self, blocks: torch.Tensor, counts: torch.Tensor, offsets: torch.Tensor, theta: torch.Tensor
     ) -> None:
         self.blocks = blocks
         self.columns = columns_of(offsets, blocks)
+        device = blocks.device
         sizes = counts[blocks]
-        slots = torch.arange(int(sizes.max()), device=blocks.device)
-        self.valid = slots.unsqueeze(0) < sizes.unsqueeze(1)
-        grid = offsets[blocks].unsqueeze(1) + slots.unsqueeze(0)
-        self.grid = torch.where(self.valid, grid, offsets[blocks].unsqueeze(1))
-        self.theta = theta[blocks]
+        tiles = (sizes + ACT_TILE - 1) // ACT_TILE
+        block_of_tile = torch.repeat_interleave(torch.arange(len(blocks), device=device), tiles)
+        first_tile = torch.cumsum(tiles, 0) - tiles
+        start = (torch.arange(len(block_of_tile), device=device) - first_tile[block_of_tile]) * (
+            ACT_TILE
+        )
+        slots = start.unsqueeze(1) + torch.arange(ACT_TILE, device=device).unsqueeze(0)
+        self.valid = slots < sizes[block_of_tile].unsqueeze(1)
+        base = offsets[blocks][block_of_tile].unsqueeze(1)
+        self.grid = torch.where(self.valid, base + slots, base)
+        self.theta = theta[blocks][block_of_tile]
         self.everyone = len(blocks) == len(counts)
+        self.full = bool(self.valid.all())
+        """No padded slot: the grid's actions are the copies' in order."""
 
 
 def sample(
@@ -86,12 +106,14 @@ def sample(
     noise = torch.zeros((total, NOISE_CHUNK, k), dtype=torch.float32, device=device)
     plan = _Plan(everyone, counts, offsets, theta)
     t = 0
+    env_noise = copies.step_noise
     while t < horizon:
         live_copies = torch.zeros(num_blocks, dtype=torch.int64, device=device)
         block_running = live_copies.index_add_(0, owner, running.long()) > 0
-        if not bool(block_running.any()):
+        running_blocks = int(block_running.sum())  # the step's one wait for the device
+        if running_blocks == 0:
             break
-        if 4 * int(block_running.sum()) <= 3 * len(plan.blocks):
+        if 4 * running_blocks <= 3 * len(plan.blocks):
             plan = _Plan(torch.nonzero(block_running).squeeze(1), counts, offsets, theta)
         columns = plan.columns
         if not greedy and t % NOISE_CHUNK == 0:
@@ -99,12 +121,17 @@ def sample(
             draws = uniforms(keys[columns].unsqueeze(1), counters.unsqueeze(0))
             noise[columns] = draws.reshape(-1, NOISE_CHUNK, k)
         decision = None if greedy else noise[plan.grid, t % NOISE_CHUNK]
-        actions = policy.act(plan.theta, obs[plan.grid], decision)[plan.valid]
+        acted = policy.act(plan.theta, obs[plan.grid], decision)
+        actions = acted.flatten(0, 1) if plan.full else acted[plan.valid]
         if random_columns is not None and bool(random_columns[columns].any()):
             actions = _random_actions(
                 actions, random_columns[columns], keys[columns], t, k, action_space
             )
-        step = copies.step(actions, plan.blocks, None if plan.everyone else columns)
+        env_draws = None
+        if env_noise:
+            counters = ENV_COUNTERS - t * env_noise - torch.arange(env_noise, device=device)
+            env_draws = uniforms64(keys[columns].unsqueeze(1), counters.unsqueeze(0))
+        step = copies.step(actions, plan.blocks, None if plan.everyone else columns, env_draws)
         live = running[columns]
         reward = step.reward.to(torch.float64) * live
         if flipped is not None:

@@ -18,7 +18,7 @@ from functools import cached_property
 
 import torch
 
-from fedhpg.common.staircase import Staircase
+from fedhpg.common.staircase import Staircase, ordered_sums
 
 
 @dataclass(frozen=True)
@@ -177,16 +177,12 @@ class Trajectories:
     def returns(self, gammas: torch.Tensor | None = None) -> torch.Tensor:
         """Each trajectory's return Σ_t γ^t r_t, [N] float64 (undiscounted without
         ``gammas``, else each column discounted by its row's γ, ``gammas`` [A])."""
-        if gammas is None:
-            if self.steps is not None and self._rewards is None:
-                total = torch.zeros(self.owner.shape[0], dtype=torch.float64,
-                                    device=self.owner.device)  # fmt: skip
-                return total.index_add_(0, self.steps.column, self.steps.rewards)
-            return self.rewards.sum(dim=0)
         rewards, _ = self.cells
+        if gammas is None:  # each column's own cells in order: the same sums in any company
+            return self.layout.column_totals(rewards)
         discounts = self.layout.step_powers(gammas.double().index_select(0, self.owner))
         return self.layout.column_totals(discounts * rewards)
 
     def per_row(self, values: torch.Tensor) -> torch.Tensor:
         """Sum of a per-trajectory [N] quantity over each row's trajectories, [A]."""
-        return values.new_zeros(self.num_rows).index_add_(0, self.owner, values)
+        return ordered_sums(self.owner, values, self.num_rows)

@@ -17,7 +17,8 @@ from typing import TypeVar
 import torch
 
 from fedhpg.envs.base import EnvVariant
-from fedhpg.envs.device import CopyStep, ResetStream
+from fedhpg.envs.device import register_device_family
+from fedhpg.envs.device.tensors import Params, TableFamily, TensorCopies
 
 TAU = 0.02
 THETA_LIMIT = 12 * 2 * math.pi / 360
@@ -86,73 +87,40 @@ def cartpole_update(
     )
 
 
-class CartPoleCopies:
-    """``counts[i]`` CartPole copies of variant i, in float32 tensors on one device."""
+class CartPoleCopies(TensorCopies):
+    """CartPole copies: state [x, ẋ, θ, θ̇] in float32, each copy's constants in ``params``."""
 
-    def __init__(
-        self,
-        physics: Sequence[dict[str, float]],
-        counts: Sequence[int],
-        limits: Sequence[int],
-        device: torch.device,
-    ) -> None:
-        self.device = device
-        repeats = torch.tensor(list(counts), dtype=torch.int64)
-        self.num_copies = int(repeats.sum())
-        self.params = {
-            name: torch.tensor([p[name] for p in physics], dtype=torch.float32)
-            .repeat_interleave(repeats)
-            .to(device)
-            for name in PHYSICS
-        }
-        self.limit = torch.tensor(list(limits)).repeat_interleave(repeats).to(device)
-        self.state = torch.zeros(4, self.num_copies, dtype=torch.float32, device=device)
-        self.steps = torch.zeros(self.num_copies, dtype=torch.int64, device=device)
+    state_size = 4
+    reset_draws = 4
 
-    @classmethod
-    def of(
-        cls, variants: Sequence[EnvVariant], counts: Sequence[int], device: torch.device
-    ) -> CartPoleCopies | None:
-        physics = [physics_of(v) for v in variants]
-        if not variants or any(p is None for p in physics):
-            return None
-        limits = [int(getattr(v, "step_limit", 0) or STEP_LIMIT) for v in variants]
-        return cls([p for p in physics if p is not None], counts, limits, device)
+    def start(self, uniforms: torch.Tensor, p: Params) -> torch.Tensor:
+        return uniforms.T * 0.1 - 0.05
 
-    def reset(self, columns: torch.Tensor, stream: ResetStream) -> torch.Tensor:
-        start = stream.uniforms(4).to(device=self.device).T * 0.1 - 0.05
-        self.state[:, columns] = start.to(torch.float32)
-        self.steps[columns] = 0
-        return self.state[:, columns].T.contiguous()
-
-    def step(self, actions: torch.Tensor, columns: torch.Tensor | None) -> CopyStep:
-        if columns is None:
-            p, state, steps_before, limit = self.params, self.state, self.steps, self.limit
-        else:
-            p = {name: values[columns] for name, values in self.params.items()}
-            state, steps_before, limit = (
-                self.state[:, columns],
-                self.steps[columns],
-                self.limit[columns],
-            )
+    def advance(
+        self, state: torch.Tensor, actions: torch.Tensor, p: Params, noise: torch.Tensor | None
+    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
         x, x_dot, theta, theta_dot = state
         force = torch.where(actions == 1, p["force_mag"], -p["force_mag"])
         state = torch.stack(cartpole_update(
             x, x_dot, theta, theta_dot, torch.cos(theta), torch.sin(theta), force,
             p["gravity"], p["masspole"], p["total_mass"], p["length"], p["polemass_length"],
         ))  # fmt: skip
-        steps = steps_before + 1
-        if columns is None:
-            self.state, self.steps = state, steps
-        else:
-            self.state[:, columns] = state
-            self.steps[columns] = steps
         terminated = (state[0].abs() > X_LIMIT) | (state[2].abs() > THETA_LIMIT)
         count = state.shape[1]
-        return CopyStep(
-            obs=state.T.contiguous(),
-            reward=torch.ones(count, dtype=torch.float64, device=self.device),
-            terminated=terminated,
-            truncated=steps >= limit,
-            success=torch.zeros(count, dtype=torch.bool, device=self.device),
-        )
+        reward = torch.ones(count, dtype=torch.float64, device=state.device)
+        return state, reward, terminated, torch.zeros_like(terminated)
+
+    def observe(self, state: torch.Tensor, p: Params) -> torch.Tensor:
+        return state.T.contiguous()
+
+
+@register_device_family
+def cartpole_family(variants: Sequence[EnvVariant], device: torch.device) -> TableFamily | None:
+    """The CartPole variants' constants on ``device`` (None unless every one is a CartPole
+    this models)."""
+    physics = [physics_of(v) for v in variants]
+    if any(p is None for p in physics):
+        return None
+    constants = {name: [p[name] for p in physics if p is not None] for name in PHYSICS}
+    limits = [int(getattr(v, "step_limit", 0) or STEP_LIMIT) for v in variants]
+    return TableFamily(CartPoleCopies, constants, limits, device)

@@ -10,7 +10,10 @@ A strategy is one module of this package (or of a plugin) and a YAML in ``conf/s
 
         def aggregate(self, round_index, theta, results, failures) -> torch.Tensor: ...
 
-A rule of the θ_k alone subclasses :class:`CoordinateRule` and writes ``combine(rows)``.
+A rule of the θ_k alone subclasses :class:`CoordinateRule` and writes ``combine(rows)`` on the
+round's [K, d] matrix of updates (on ``strategy.device``: a GPU where K·d is large), without
+a second matrix of that size: a rule that needs one per column (a sort) works through
+:func:`by_columns`.
 A strategy declares what it can take instead of being named in checks elsewhere:
 :attr:`Strategy.takes` (the kind of update it aggregates, matched against what the run's
 algorithm sends, :func:`sent_by`) and :attr:`Strategy.buffered` (whether it can aggregate
@@ -24,7 +27,7 @@ checkpoints save it and :meth:`Strategy.restore` takes it back on resume.
 from __future__ import annotations
 
 import abc
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any, ClassVar, Generic, TypeVar
 
@@ -61,6 +64,9 @@ class Strategy(abc.ABC, Generic[P]):
     """Whether it can aggregate buffered rounds' updates (``server.round_policy=buffered``:
     each from its own θ̃ version, weighted by staleness); False for a rule that needs every
     agent's update at one θ̃."""
+
+    device = torch.device("cpu")
+    """Where the rule computes (``strategy.device``)."""
 
     def __init__(self, params: P) -> None:
         self.params = params
@@ -134,11 +140,12 @@ class CoordinateRule(Strategy[P]):
         failures: Mapping[str, str],
     ) -> torch.Tensor:
         self._aggregated = len(results)
-        return self.combine(stacked(results))
+        return self.combine(stacked(results).to(self.device)).cpu()
 
     @abc.abstractmethod
     def combine(self, rows: torch.Tensor) -> torch.Tensor:
-        """θ̃ from the [K, d] matrix of updates."""
+        """θ̃ from the [K, d] matrix of updates (read it, never write it: it may be the
+        received updates' own memory)."""
 
     def round_stats(self) -> dict[str, Any]:
         """A robust rule's last aggregated set: its rows and the arbitrary rows it tolerated."""
@@ -167,6 +174,7 @@ def make_strategy(
     key when it is wrong."""
     cls = STRATEGIES.get(config.name)
     strategy = cls(parse_options(cls.Params, config.params, f"{key}.params"))
+    strategy.device = torch.device(config.device)
     if run is not None:
         strategy.bind(run)
     return strategy
@@ -197,9 +205,16 @@ def check_takes(run: RunConfig, cls: type[Strategy[Any]]) -> None:
 def validate_strategy(run: RunConfig) -> Strategy[Any]:
     """The server-side checks of a run config (the agents never see ``strategy``): the
     strategy built once, bound to the run and returned."""
+    from fedhpg.common.engine.devices import device_problem
     from fedhpg.server.tolerance import REMEDY, tolerance_shortfall
 
     import_plugins(run.plugins)
+    if run.strategy.device != "cpu":
+        # in a fresh interpreter where this process has not used CUDA: the launcher forks
+        # the server after this check
+        problem = device_problem(run.strategy.device, before_fork=not torch.cuda.is_initialized())
+        if problem is not None:
+            raise ConfigError("strategy.device", problem)
     check_takes(run, STRATEGIES.get(run.strategy.name))
     strategy = make_strategy(run.strategy, run=run)
     validate_participation(run)
@@ -207,6 +222,24 @@ def validate_strategy(run: RunConfig) -> Strategy[Any]:
     if shortfall is not None and run.strategy.tolerance_check == "refuse":
         raise ConfigError("strategy", f"{shortfall}: {REMEDY}")
     return strategy
+
+
+COLUMN_BYTES = 1 << 28
+"""What :func:`by_columns` lets a rule's temporaries of one slice of columns take."""
+
+
+def by_columns(
+    rows: torch.Tensor, rule: Callable[[torch.Tensor], torch.Tensor], budget: int = COLUMN_BYTES
+) -> torch.Tensor:
+    """θ̃[j] = rule(rows[:, j]) for slices of columns whose temporaries (a sort's values and
+    indices: 12 bytes an entry) stay within ``budget`` bytes, into one [d] vector: a rule per
+    coordinate never holds a second [K, d] matrix."""
+    count, width = rows.shape
+    step = max(budget // max(12 * count, 1), 1)
+    out = rows.new_empty(width)
+    for start in range(0, width, step):
+        out[start : start + step] = rule(rows[:, start : start + step])
+    return out
 
 
 def stacked(results: Sequence[AgentUpdate]) -> torch.Tensor:

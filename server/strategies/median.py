@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import torch
 
-from fedhpg.server.strategies import CoordinateRule, NoParams, register_strategy
+from fedhpg.server.strategies import CoordinateRule, NoParams, by_columns, register_strategy
 
 
 def coordinate_median(rows: torch.Tensor) -> torch.Tensor:
@@ -29,4 +29,4 @@ class Median(CoordinateRule[NoParams]):
         return (rows - 1) // 2
 
     def combine(self, rows: torch.Tensor) -> torch.Tensor:
-        return coordinate_median(rows)
+        return by_columns(rows, coordinate_median)

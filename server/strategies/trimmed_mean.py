@@ -9,7 +9,7 @@ from dataclasses import dataclass
 import torch
 
 from fedhpg.common.registry import OptionError
-from fedhpg.server.strategies import CoordinateRule, register_strategy
+from fedhpg.server.strategies import CoordinateRule, by_columns, register_strategy
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -44,4 +44,4 @@ class TrimmedMean(CoordinateRule[TrimmedMeanParams]):
         return math.floor(self.params.trim_fraction * rows)
 
     def combine(self, rows: torch.Tensor) -> torch.Tensor:
-        return trimmed_mean(rows, self.params.trim_fraction)
+        return by_columns(rows, lambda columns: trimmed_mean(columns, self.params.trim_fraction))

@@ -32,4 +32,4 @@ class Weighted(Strategy[NoParams]):
         if not bool(counts.sum() > 0):
             return stacked(ordered).mean(dim=0)
         weights = (counts / counts.sum()).to(torch.float32)
-        return weights @ stacked(ordered)
+        return (weights.to(self.device) @ stacked(ordered).to(self.device)).cpu()
