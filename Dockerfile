@@ -2,7 +2,7 @@
 # Where Docker Hub and PyPI are reachable (the defaults: the official slim Python base, CPU torch
 # from PyTorch's CPU index):
 #   docker build -t fedhpg .
-# Offline, from a base and wheels made on this machine (README "Deploy"; make image does both):
+# Offline, from a base and wheels made on this machine (docs/deploy.md; make image does both):
 #   docker/make-base.sh && docker/make-wheelhouse.sh
 #   docker build --network none --build-arg BASE_IMAGE=fedhpg-base:bookworm \
 #       --build-arg PIP_SOURCE=wheelhouse -t fedhpg .
@@ -33,7 +33,8 @@ print(*p['dependencies'], *extras, sep='\n')" > requirements.txt; \
     python3 -m venv /opt/fedhpg; \
     /opt/fedhpg/bin/pip install --no-cache-dir --disable-pip-version-check \
         -r pip-source.txt -r requirements.txt -c constraints.txt
-COPY README.md ./
+COPY README.md LICENSE ./
+COPY fedhpg ./fedhpg
 COPY common ./common
 COPY envs ./envs
 COPY server ./server

@@ -68,7 +68,7 @@ TASKS = {
         batch_size=32,
         overrides=[
             "env.family=lunarlander",
-            # FedPG-BR: γ=0.99 and Adam 1e-3; see BENCHMARKS.md for why these differ.
+            # FedPG-BR: γ=0.99 and Adam 1e-3; γ = 1: docs/environments.md says why.
             "env.gamma=1.0",
             "env.horizon=1000",
             "eval.horizon=1000",
@@ -86,7 +86,7 @@ TASKS = {
         batch_size=48,
         overrides=[
             "env.family=halfcheetah",
-            # FedPG-BR: γ=0.995 and Adam 8e-5; see BENCHMARKS.md for why these differ.
+            # FedPG-BR: γ=0.995 and Adam 8e-5; γ = 1: docs/environments.md says why.
             "env.gamma=1.0",
             "env.horizon=500",
             "eval.horizon=1000",

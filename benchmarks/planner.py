@@ -1,4 +1,4 @@
-"""The Theorem 1 planner against the alternatives at the same emulated-time budget (issue 18).
+"""The Theorem 1 planner against the alternatives at the same emulated-time budget.
 
 For each setting and seed: the planner's constants come from the seeded pilot ``fedhpg-plan``
 runs (``server/plan.py``), its cost per trajectory from the counted clock's full-horizon price.

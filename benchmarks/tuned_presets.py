@@ -150,7 +150,8 @@ TASKS = {
             "B=16, Adam 3e-3": Setting(HALFCHEETAH, [_batch(16)]),
             "B=8, Adam 3e-3": Setting(HALFCHEETAH, [_batch(8)]),
             "B=4, Adam 3e-3": Setting(HALFCHEETAH, [_batch(4)]),
-            # The practice option that paid on LunarLander (biased; README "Estimator options").
+            # The practice option that paid on LunarLander (biased: docs/configuration.md,
+            # "Estimator options").
             "B=16, Adam 3e-3, normalize=episode": Setting(
                 HALFCHEETAH, [_batch(16), "algo.normalize=episode"]
             ),

@@ -18,6 +18,7 @@ from fedhpg.common.population import (
     budget_overrides,
     device_value,
     fields_of,
+    validate_population,
 )
 from fedhpg.common.registry import OptionError, import_plugins, parse_options
 
@@ -143,7 +144,7 @@ def validate_env_family(run: RunConfig) -> None:
             "optional environments come with pip install 'fedhpg[envs]')",
         ) from None
     except (TypeError, ValueError) as error:
-        key = "env.options" if run.env.options else "env"
+        key = getattr(error, "key", None) or ("env.options" if run.env.options else "env")
         raise ConfigError(key, str(error).splitlines()[0] if str(error) else repr(error)) from None
 
 
@@ -175,6 +176,7 @@ def validate_run(run: RunConfig) -> RunConfig:
     environment family and its options, the algorithm, its options and every agent's budget.
     Raises ConfigError naming the key."""
     validate(run)
+    validate_population(run.agents.population)
     import_plugins(run.plugins)
     validate_env_family(run)
     algorithm, _ = resolve_algorithm(run)

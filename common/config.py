@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import os
 import re
 from dataclasses import dataclass, field
 from typing import Any
@@ -59,6 +60,10 @@ class ConfigError(ValueError):
         self.key = key
 
 
+GYM_FAMILY = "gym"
+"""The family of any registered gymnasium id (``env.id``), varied by ``env.vary``."""
+
+
 @dataclass(kw_only=True)
 class EnvConfig:
     """Which environment family, and how its K variants differ."""
@@ -75,6 +80,17 @@ class EnvConfig:
     """One discount for every agent; None keeps each variant's own γ_k."""
     options: dict[str, Any] = field(default_factory=dict)
     """Family-specific generator options (e.g. GridWorld ``size``, ``vary_goal``)."""
+    id: str | None = None
+    """``env.family=gym`` (``env=gym``): the registered gymnasium id every agent runs, e.g.
+    MountainCar-v0."""
+    kwargs: dict[str, Any] = field(default_factory=dict)
+    """``env=gym``: constructor keywords of every agent's environment (``gym.make(id,
+    **kwargs)``)."""
+    vary: dict[str, Any] = field(default_factory=dict)
+    """``env=gym``: what differs between agents, name → a seeded distribution ({choice: [...]},
+    {uniform: {low, high}}, {lognormal: {median, sigma}}) or {spread: s} (the environment's own
+    value × (1 + s·level·u), u ~ U(−1, 1)); a constructor keyword, an attribute of the
+    unwrapped environment, or ``gamma`` (the agent's discount)."""
 
 
 @dataclass(kw_only=True)
@@ -92,7 +108,10 @@ class AlgoConfig:
     optimizer: str = "sgd"
     """'sgd' (plain ascent, as in the paper) or 'adam' (state reset every round)."""
     grad_clip: float | None = None
-    """Clip each local gradient estimate to this norm (Assumption 3); None = off."""
+    """Clip each local gradient estimate to this norm; None = off (the default). Biased for
+    ∇J: a clipped estimate's mean is not the gradient (about 6 % off with the clip at 2‖∇J‖,
+    40 % at ‖∇J‖ on a small tabular MDP); Assumption 3 bounds the gradient, it does not ask
+    for a clip (docs/configuration.md, Estimator options)."""
     params: dict[str, Any] = field(default_factory=dict)
     """The algorithm's own options (its ``Params`` dataclass), e.g. FedHPGVR's ``iw_mode``."""
     engine: str = "auto"
@@ -126,14 +145,14 @@ class AlgoConfig:
     FedHPG only."""
     reward_to_go: str = "from_start"
     """GPOMDP's reward-to-go: 'from_start' (eq. 6, Σ_{h≥t} γ^h r_h; unbiased) or 'from_step'
-    (Σ_{h≥t} γ^{h−t} r_h, common practice: a departure from eq. 6, biased for ∇J; README,
-    Estimator options). 'from_step' needs estimator 'gpomdp'; FedHPGVR takes 'from_start'
-    only."""
+    (Σ_{h≥t} γ^{h−t} r_h, common practice: a departure from eq. 6, biased for ∇J;
+    docs/configuration.md, Estimator options). 'from_step' needs estimator 'gpomdp'; FedHPGVR
+    takes 'from_start' only."""
     normalize: str = "none"
     """Standardise the estimator's coefficients, (c − mean)/std over alive steps: 'none' (eq.
     5/6; unbiased), 'batch' (over the whole batch) or 'episode' (within each trajectory; GPOMDP
-    only). Both are departures from eq. 5/6, biased for ∇J (README, Estimator options);
-    FedHPGVR takes 'none' only."""
+    only). Both are departures from eq. 5/6, biased for ∇J (docs/configuration.md, Estimator
+    options); FedHPGVR takes 'none' only."""
 
 
 # --- participation: who trains each round (server/participation.py applies it) ---------------
@@ -155,7 +174,7 @@ class ParticipationConfig:
     """'uniform': C, agents per round, in [1, agents.num_agents]."""
     trace: str | None = None
     """'trace': a CSV file ``agent,offline_from,offline_to`` (one offline interval of rounds,
-    inclusive, per row; format in the README, Participation)."""
+    inclusive, per row; format in docs/strategies.md, Participation)."""
 
 
 def _validate_tolerance(strategy: StrategyConfig, num_agents: int) -> None:
@@ -195,6 +214,14 @@ def _validate_participation(participation: ParticipationConfig, num_agents: int)
             f"{key}.trace",
             "mode 'trace' needs trace, the path of an availability CSV",
         )
+    # A setting its mode ignores would be silently ignored: say which mode takes it.
+    for name, mode in (("trace", "trace"), ("per_round", "uniform")):
+        value = getattr(participation, name)
+        _require(
+            value is None or participation.mode == mode,
+            f"{key}.{name}",
+            f"got {value!r}, which mode {participation.mode!r} does not use: add {key}.mode={mode}",
+        )
 
 
 @dataclass(kw_only=True)
@@ -225,7 +252,7 @@ class StrategyConfig:
 class PopulationConfig:
     """Per-agent budgets and device profiles drawn from seeded distributions or read from a
     trace file, resolved lazily per agent index (never a K-long list): see
-    :mod:`fedhpg.common.population` and the README, "Populations"."""
+    :mod:`fedhpg.common.population` and docs/configuration.md, "Populations"."""
 
     kind: str = "none"
     """'none' (the per-agent lists alone), 'drawn' (``draw``: one seeded distribution per
@@ -264,7 +291,7 @@ class AgentsConfig:
     """'periodic' / 'random_walk': relative amplitude (speed × (1 ± amplitude))."""
     virtual_clock: bool = False
     """Account emulated time without sleeping (fast, reproducible heterogeneity studies)."""
-    # The counted clock (issue 17): emulated time priced from the work counted.
+    # The counted clock: emulated time priced from the work counted.
     clock: str = "measured"
     """'measured': emulated compute = thread CPU time measured here / speed (follows this
     machine's load); 'counted': priced from counted env steps, gradient steps and message
@@ -277,10 +304,12 @@ class AgentsConfig:
     """Counted clock: link bandwidth in Mbit/s (0 = unlimited); message bytes are charged."""
     population: PopulationConfig = field(default_factory=PopulationConfig)
     """Budgets and device profiles per agent index from a distribution or a trace file."""
-    per_host: int = 1
-    """``fedhpg-run``: logical agents per agent process. 1 = one process per agent; N > 1 =
-    ceil(K/N) agent hosts, each serving N consecutive indices over one connection."""
-    # Re-planning budgets during a run from Theorem 1 (issue 18): the server sends them.
+    per_host: int | str = "auto"
+    """``fedhpg-run``: logical agents per agent process. 'auto': one process per agent up to
+    32 agents (or as many as this machine has cores), else one agent host per core; always
+    one per agent with buffered rounds. 1 = one process per agent; N > 1 = ceil(K/N) agent
+    hosts, each serving N consecutive indices over one connection."""
+    # Re-planning budgets during a run from Theorem 1: the server sends them.
     plan: str = "none"
     """'none': every agent trains with its configured budget; 'theorem1': the first
     ``plan_every`` rounds use the configured budgets, then every ``plan_every`` rounds the
@@ -404,7 +433,8 @@ class ServerConfig:
     hello_timeout_s: float = 10.0
     """A connection that has not registered within this time is closed."""
     out_dir: str | None = None
-    """Run directory for metrics and checkpoints; None = the Hydra run directory / cwd."""
+    """Run directory for metrics and checkpoints; None = a new runs/<date>-<time>-<env>-<algo>
+    (every entry point names its run directories so)."""
     tensorboard: bool = True
     """Also write TensorBoard event files to ``<out_dir>/tensorboard/`` (needs the optional
     ``tensorboard`` package; without it a warning, and metrics.jsonl alone)."""
@@ -412,6 +442,12 @@ class ServerConfig:
     """Per-agent TensorBoard scalars (``agent/<k>/…``, ``eval/<id>/…``) for runs of at most
     this many agents; larger runs write the federation's and the across-agent keys only
     (metrics.jsonl keeps every agent)."""
+    wandb: bool = False
+    """Also log every round to Weights & Biases (needs the optional ``wandb`` package: pip
+    install 'fedhpg[wandb]'); its files go to ``<out_dir>/wandb/``, and ``WANDB_MODE=offline``
+    keeps them there, to sync later."""
+    wandb_project: str = "fedhpg"
+    """The W&B project of the run (``server.wandb``); the run is named after its directory."""
     endpoint_file: str | None = None
     """Once listening, write where agents reach the server to this JSON file (host, port):
     how ``fedhpg-cluster``'s agent jobs find a server on a port it chose (shared filesystem)."""
@@ -736,6 +772,13 @@ def _validate_env(env: EnvConfig) -> None:
     if env.gamma is not None:
         _check_number(env.gamma, "env.gamma", low=0.0, low_open=True)
         _require(env.gamma <= 1.0, "env.gamma", f"got {env.gamma!r}, must be in (0, 1]")
+    if env.family != GYM_FAMILY:
+        for key in ("id", "kwargs", "vary"):
+            _require(
+                not getattr(env, key),
+                f"env.{key}",
+                f"is read by env=gym (env.family=gym) only, not env.family={env.family}",
+            )
 
 
 def _validate_algo(algo: AlgoConfig) -> None:
@@ -802,9 +845,7 @@ def _validate_agents(agents: AgentsConfig) -> None:
         _check_number(agents.plan_max_return, "agents.plan_max_return", low=-math.inf)
     _check_int(agents.plan_batch_max, "agents.plan_batch_max", low=2)
     _check_int(agents.plan_local_iters_max, "agents.plan_local_iters_max", low=1)
-    from fedhpg.common.population import validate_population  # it imports this module
-
-    validate_population(agents.population)
+    # agents.population: fedhpg.common.components.validate_run (its distributions are numpy's)
 
 
 def _validate_attack(attack: AttackConfig, num_agents: int) -> None:
@@ -933,12 +974,19 @@ def validate(config: RunConfig) -> RunConfig:
     _validate_server(config.server, config.agents.num_agents)
     _check_int(config.agent.index, "agent.index", low=0)
     _validate_host_range(config.agent, config.agents.num_agents)
-    _check_int(config.agents.per_host, "agents.per_host", low=1)
-    _require(
-        config.agents.per_host <= MAX_HOST_AGENTS,
-        "agents.per_host",
-        f"got {config.agents.per_host}, more than the {MAX_HOST_AGENTS} agents one host may serve",
-    )
+    if config.agents.per_host != AUTO:
+        per_host = config.agents.per_host
+        _require(
+            isinstance(per_host, int) and not isinstance(per_host, bool) and per_host >= 1,
+            "agents.per_host",
+            f"got {per_host!r}, must be 'auto' or an integer >= 1",
+        )
+        _require(
+            int(config.agents.per_host) <= MAX_HOST_AGENTS,
+            "agents.per_host",
+            f"got {config.agents.per_host}, more than the {MAX_HOST_AGENTS} agents one host "
+            "may serve",
+        )
     _check_number(config.agent.connect_timeout_s, "agent.connect_timeout_s", low=0.0, low_open=True)
     _check_int(config.agent.max_restarts, "agent.max_restarts", low=0)
     _require(
@@ -967,6 +1015,14 @@ def _validate_cluster(cluster: ClusterConfig) -> None:
     _check_number(cluster.endpoint_timeout_s, "cluster.endpoint_timeout_s", low=0.0, low_open=True)
 
 
+def attacking_agents(run: RunConfig) -> list[int]:
+    """The indices of the agents that attack (``attack.agents`` when ``attack.kind`` is set),
+    in index order: what the log, the final table and metrics.jsonl mark."""
+    if run.attack.kind == "none":
+        return []
+    return sorted({k for k in run.attack.agents if 0 <= k < run.agents.num_agents})
+
+
 def agent_id_of(index: int, explicit: str | None = None) -> str:
     return explicit if explicit else f"agent-{index}"
 
@@ -974,6 +1030,37 @@ def agent_id_of(index: int, explicit: str | None = None) -> str:
 def host_id_of(first: int, count: int, explicit: str | None = None) -> str:
     """An agent host's id (its routing identity's prefix, its CURVE key's name)."""
     return explicit if explicit else f"host-{first}-{first + count - 1}"
+
+
+AUTO = "auto"
+AUTO_PROCESS_AGENTS = 32
+"""``agents.per_host=auto`` gives every agent its own process up to this many agents (or as
+many as the machine has cores): the sleeping device emulation, per-agent restarts and
+per-agent deadlines stay as written. Beyond it, a process per agent costs more than it
+shows (a thousand processes on a few cores register slower than a server waits)."""
+
+
+def available_cores() -> int:
+    """The cores this process may run on (its affinity mask, as a container or SLURM sets it)."""
+    try:
+        return max(len(os.sched_getaffinity(0)), 1)
+    except (AttributeError, OSError):  # not Linux
+        return max(os.cpu_count() or 1, 1)
+
+
+def agents_per_host(run: RunConfig, cores: int | None = None) -> int:
+    """The logical agents each agent process serves: ``agents.per_host``, or for 'auto' one
+    per process up to :data:`AUTO_PROCESS_AGENTS` agents (or ``cores``, default this
+    machine's) and with buffered rounds (which take one agent per process), else one host
+    per core."""
+    per_host = run.agents.per_host
+    if per_host != AUTO:
+        return int(per_host)
+    cores = available_cores() if cores is None else cores
+    num_agents = run.agents.num_agents
+    if run.server.round_policy == "buffered" or num_agents <= max(AUTO_PROCESS_AGENTS, cores):
+        return 1
+    return min(-(-num_agents // cores), MAX_HOST_AGENTS)
 
 
 def host_ranges(num_agents: int, per_host: int) -> list[tuple[int, int]]:
@@ -1006,6 +1093,8 @@ def from_dict(values: dict[str, Any]) -> RunConfig:
 
 FREE_DICTS = (
     "env.options",
+    "env.kwargs",
+    "env.vary",
     "algo.params",
     "strategy.params",
     "agents.budget",

@@ -21,11 +21,9 @@ Unless the virtual clock is on, the device sleeps the emulated time minus the co
 emulated time is only accounted. The sleeping is owed through the round and paid once, by
 :meth:`DeviceModel.settle` before the answer leaves, not after each iteration: compute that
 follows a sleep can run on cold caches and a clocked-down core, so sleeping between iterations
-would charge a slow device for the emulation's own disturbance. (That was the suspected cause
-when a 2-core CI machine measured a device of speed 0.25 at 5.2× the emulated time of an
-equal-work device of speed 1, not 4×. With the sleep paid once, a later CI run still measured
-4.9×, while this machine measures 3.7-4.2×. So the measured clock itself moves that much under
-parallel load; the counted clock does not move.)
+would charge a slow device for the emulation's own disturbance. The measured clock moves with
+the machine's load (two equal-work devices of speeds 1 and 0.25 measure 3.7-5.2× apart on two
+busy cores, not 4×); the counted clock does not move.
 """
 
 from __future__ import annotations

@@ -21,6 +21,7 @@ from typing import Any
 import numpy as np
 
 from fedhpg.common.config import ConfigError, PopulationConfig, RunConfig, per_agent
+from fedhpg.envs import distributions
 
 KINDS = ("none", "drawn", "trace")
 
@@ -34,7 +35,7 @@ DEVICE_FIELDS: dict[str, tuple[str, bool]] = {
 }
 """Device field → (its ``agents.*`` list, whether it must be > 0 rather than >= 0)."""
 
-DISTRIBUTIONS = ("choice", "uniform", "lognormal")
+DISTRIBUTIONS = distributions.KINDS
 _STREAM_TAG = 0x9F0B
 """Keeps the population's streams apart from the device model's (seed, index) stream."""
 
@@ -55,52 +56,10 @@ def _number(value: Any) -> bool:
 
 
 def _check_distribution(spec: Any, key: str) -> None:
-    if not isinstance(spec, Mapping):
-        raise ConfigError(key, f"got {spec!r}, must be a distribution, e.g. {{choice: [8, 16]}}")
-    kinds = [name for name in spec if name in DISTRIBUTIONS]
-    extra = sorted(set(spec) - set(DISTRIBUTIONS) - {"weights", "min", "max"})
-    if len(kinds) != 1 or extra:
-        raise ConfigError(
-            key, f"needs exactly one of {', '.join(DISTRIBUTIONS)} (and weights, min, max)"
-        )
-    kind = kinds[0]
-    if kind == "choice":
-        values = spec["choice"]
-        if not isinstance(values, list | tuple) or not values or not all(map(_number, values)):
-            raise ConfigError(f"{key}.choice", f"got {values!r}, must be a non-empty number list")
-        weights = spec.get("weights")
-        if weights is not None and (
-            not isinstance(weights, list | tuple)
-            or len(weights) != len(values)
-            or not all(_number(w) and w >= 0 for w in weights)
-            or sum(weights) <= 0
-        ):
-            raise ConfigError(
-                f"{key}.weights",
-                f"got {weights!r}, must be {len(values)} numbers >= 0 with a positive sum",
-            )
-    else:
-        if "weights" in spec:
-            raise ConfigError(f"{key}.weights", "only a choice takes weights")
-        names = ("low", "high") if kind == "uniform" else ("median", "sigma")
-        params = spec[kind]
-        if not isinstance(params, Mapping) or set(params) != set(names):
-            raise ConfigError(
-                f"{key}.{kind}", f"got {params!r}, needs exactly {' and '.join(names)}"
-            )
-        for name in names:
-            if not _number(params[name]):
-                raise ConfigError(f"{key}.{kind}.{name}", f"got {params[name]!r}, must be a number")
-        a, b = float(params[names[0]]), float(params[names[1]])
-        if kind == "uniform" and not a <= b:
-            raise ConfigError(f"{key}.uniform", f"got low={a:g} > high={b:g}")
-        if kind == "lognormal" and not (a > 0 and b >= 0):
-            raise ConfigError(f"{key}.lognormal", "median must be > 0 and sigma >= 0")
-    for bound in ("min", "max"):
-        if bound in spec and not _number(spec[bound]):
-            raise ConfigError(f"{key}.{bound}", f"got {spec[bound]!r}, must be a number")
-    if "min" in spec and "max" in spec and spec["min"] > spec["max"]:
-        raise ConfigError(f"{key}.min", f"got min={spec['min']:g} > max={spec['max']:g}")
+    try:
+        distributions.check(spec)
+    except distributions.DistributionError as error:
+        raise ConfigError(f"{key}{error.where}", str(error)) from None
 
 
 def _check_device_value(value: float, name: str, key: str) -> None:
@@ -218,19 +177,8 @@ def fields_of(population: PopulationConfig) -> tuple[str, ...]:
 def _draw(spec: Mapping[str, Any], seed: int, index: int, name: str) -> int | float:
     # crc32, not hash(): string hashing is salted per process, and every host must agree.
     sequence = np.random.SeedSequence([seed, _STREAM_TAG, index, zlib.crc32(name.encode())])
-    rng = np.random.default_rng(sequence)
-    if "choice" in spec:
-        values = spec["choice"]
-        weights = spec.get("weights")
-        p = None if weights is None else np.asarray(weights, dtype=float) / float(sum(weights))
-        value: int | float = values[int(rng.choice(len(values), p=p))]
-        return value
-    if "uniform" in spec:
-        value = float(rng.uniform(spec["uniform"]["low"], spec["uniform"]["high"]))
-    else:
-        params = spec["lognormal"]
-        value = float(params["median"]) * math.exp(float(params["sigma"]) * rng.standard_normal())
-    return min(max(value, float(spec.get("min", -math.inf))), float(spec.get("max", math.inf)))
+    value: int | float = distributions.sample(spec, np.random.default_rng(sequence))
+    return value
 
 
 def population_value(run: RunConfig, index: int, name: str) -> int | float | None:

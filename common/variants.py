@@ -9,9 +9,9 @@ from __future__ import annotations
 
 import hashlib
 from collections.abc import Iterable, Iterator, Sequence
-from typing import overload
+from typing import Any, overload
 
-from fedhpg.common.config import RunConfig
+from fedhpg.common.config import GYM_FAMILY, RunConfig
 from fedhpg.envs.base import EnvVariant
 from fedhpg.envs.registry import make_variants_at
 
@@ -29,9 +29,21 @@ def variants_of(run: RunConfig, indices: Iterable[int]) -> dict[int, EnvVariant]
         seed=run.seed if env.seed is None else env.seed,
         num_agents=run.agents.num_agents,
         level=env.level,
-        **env.options,
+        **family_options(run),
     )
     return dict(zip(wanted, made, strict=True))
+
+
+def family_options(run: RunConfig) -> dict[str, Any]:
+    """What the env family's factory takes besides (seed, K, level): ``env.options``, and for
+    the gym family ``env.id``, ``env.kwargs``, ``env.vary`` and ``env.horizon`` (its episodes'
+    step limit, which may exceed the id's registered one)."""
+    env = run.env
+    if env.family != GYM_FAMILY:
+        return dict(env.options)
+    gym_keys: dict[str, Any] = {"id": env.id, "kwargs": env.kwargs, "vary": env.vary}
+    gym_keys["max_episode_steps"] = env.horizon
+    return {**env.options, **{key: value for key, value in gym_keys.items() if value}}
 
 
 def variant_of(run: RunConfig, index: int) -> EnvVariant:

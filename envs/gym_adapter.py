@@ -110,7 +110,8 @@ class GymLoopBatchEnv:
     order-enforcing wrappers on the hot path) and merges no ``info`` dicts. Episode lengths of
     e.g. LunarLander range from ~70 to 1000 steps, so skipping finished copies saves most of
     the work. Copy i is reset with ``seed + i``, as ``SyncVectorEnv`` does, so both produce the
-    same steps for the running copies; the registered step limit still truncates episodes.
+    same steps for the running copies; ``step_limit`` (default: the registered one) truncates
+    episodes.
     A frozen copy repeats its last observation with reward 0 and its final flags.
     """
 
@@ -122,6 +123,7 @@ class GymLoopBatchEnv:
         env_kwargs: dict[str, Any] | None = None,
         configure: Callable[[Any], None] | None = None,
         action_cost: float = 0.0,
+        step_limit: int = 0,
     ) -> None:
         if num_envs < 1:
             raise ValueError(f"num_envs must be >= 1, got {num_envs}")
@@ -130,7 +132,7 @@ class GymLoopBatchEnv:
         if configure is not None:
             for env in self._envs:
                 configure(env)
-        limit = gym.spec(env_id).max_episode_steps
+        limit = step_limit or gym.spec(env_id).max_episode_steps
         self._limit = int(limit) if limit is not None else None
         self.action_cost = action_cost
         self.num_envs = num_envs

@@ -48,23 +48,35 @@ class GymVariant(EnvVariant):
             model.body_mass[:] = model.body_mass * self.mujoco_scales.get("mass", 1.0)
 
     def make_env(self, *, render_mode: str | None = None) -> gym.Env:
-        env = gym.make(self.env_id, render_mode=render_mode, **self.env_kwargs)
+        env = gym.make(
+            self.env_id,
+            max_episode_steps=self.step_limit or None,
+            render_mode=render_mode,
+            **self.env_kwargs,
+        )
         self.configure(env.unwrapped)
         if isinstance(env.action_space, gym.spaces.Box) or self.action_cost:
             return _ClippedActions(env, self.action_cost)
         return env
 
     def make_batch_env(self, num_envs: int) -> BatchEnv:
-        """The env's own vectorised implementation if it has one (CartPole), else B plain
-        copies that are stepped only while their episode runs."""
-        vectorised = gym.spec(self.env_id).vector_entry_point is not None
-        batch_class = GymVectorBatchEnv if vectorised else GymLoopBatchEnv
-        return batch_class(
+        """The env's own vectorised implementation if it has one (CartPole) and the registered
+        step limit holds, else B plain copies that are stepped only while their episode runs."""
+        if gym.spec(self.env_id).vector_entry_point is not None and not self.step_limit:
+            return GymVectorBatchEnv(
+                self.env_id,
+                num_envs,
+                env_kwargs=self.env_kwargs,
+                configure=self.configure,
+                action_cost=self.action_cost,
+            )
+        return GymLoopBatchEnv(
             self.env_id,
             num_envs,
             env_kwargs=self.env_kwargs,
             configure=self.configure,
             action_cost=self.action_cost,
+            step_limit=self.step_limit,
         )
 
     @property

@@ -29,8 +29,11 @@ from collections import OrderedDict
 from collections.abc import Callable, Sequence
 from typing import Any
 
+import gymnasium as gym
+
 from fedhpg.envs.base import EnvVariant
 from fedhpg.envs.families import GYM_FAMILIES
+from fedhpg.envs.gym_family import gym_family
 from fedhpg.envs.lazy import LazyFamily, VariantsAt, per_index_family
 
 VariantFactory = Callable[..., list[EnvVariant]]
@@ -53,7 +56,11 @@ def _gridworld_at(
     )
 
 
-FAMILIES: dict[str, VariantFactory] = {"gridworld": LazyFamily(_gridworld_at), **GYM_FAMILIES}
+FAMILIES: dict[str, VariantFactory] = {
+    "gridworld": LazyFamily(_gridworld_at),
+    **GYM_FAMILIES,
+    "gym": gym_family,
+}
 FAMILY_ENTRY_POINTS = "fedhpg.env_families"
 """Entry-point group through which an installed package offers families by name."""
 
@@ -78,6 +85,11 @@ def _import_dotted(path: str) -> VariantFactory:
         factory = getattr(importlib.import_module(module_name), attribute)
     except (ImportError, AttributeError) as error:
         raise UnknownEnvFamilyError(f"cannot import environment family {path!r}: {error}") from None
+    if isinstance(factory, type) and issubclass(factory, gym.Env):
+        raise UnknownEnvFamilyError(
+            f"{path} is a gymnasium environment, not a family of variants: run it with env=gym "
+            "env.id=<its registered id> (and env.vary for what differs between agents)"
+        )
     if not callable(factory):
         raise UnknownEnvFamilyError(f"environment family {path!r} is not a function")
     return factory
@@ -108,6 +120,11 @@ def resolve_family(family: str) -> VariantFactory:
         factory = _import_dotted(family)
     if factory is None:
         factory = _from_entry_points(family)
+    if factory is None and family in gym.registry:
+        raise UnknownEnvFamilyError(
+            f"{family!r} is a gymnasium id, not an environment family: run it with env=gym "
+            f"env.id={family}"
+        )
     if factory is None:
         known = sorted({*FAMILIES, *_installed_names()})
         raise UnknownEnvFamilyError(

@@ -12,7 +12,6 @@ from __future__ import annotations
 import contextlib
 import dataclasses
 import json
-import tempfile
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -33,10 +32,10 @@ from fedhpg.envs.registry import register_family
 from fedhpg.server.assembly import CheckedRun, assemble, check_run
 from fedhpg.server.checkpoint import latest_valid_checkpoint
 from fedhpg.server.coordinator import RoundCallback, RoundRecord
-from fedhpg.server.metrics import METRICS_SCHEMA_VERSION, read_metrics
+from fedhpg.server.metrics import metrics_line, read_metrics, record_marks
 from fedhpg.server.pools import FederationError
 from fedhpg.server.pools.inprocess import make_in_process_pool
-from fedhpg.server.run_dir import RunDirectoryError, claimed, holds_run
+from fedhpg.server.run_dir import RunDirectoryError, claimed, holds_run, new_run_dir
 
 __all__ = [
     "ConfigError",
@@ -69,8 +68,8 @@ class RunResult:
     """One dict per round, exactly the lines of ``metrics.jsonl`` (schema: docs/metrics.md),
     in both modes; a resumed run's include the rounds before the resume."""
     out_dir: Path | None
-    """The run directory written, or None (in-process without ``out_dir``; distributed
-    without one ran in a temporary directory, removed)."""
+    """The run directory written: ``out_dir``, or for a distributed run without one a new
+    ``runs/<date>-<time>-<env>-<algo>`` (kept); None in-process without ``out_dir``."""
     last_evaluation: dict[str, EvaluationStats] | None
     """Agent id → the unified policy's evaluation after the last round."""
 
@@ -153,11 +152,12 @@ def run(
 
 
 class _Records:
-    def __init__(self) -> None:
+    def __init__(self, run: RunConfig) -> None:
         self.records: list[dict[str, Any]] = []
+        self.marks = record_marks(run)
 
     def __call__(self, record: RoundRecord, _: torch.Tensor) -> None:
-        self.records.append({"schema": METRICS_SCHEMA_VERSION, **record.to_json()})
+        self.records.append(metrics_line(record, self.marks))
 
 
 def _run_in_process(
@@ -168,7 +168,10 @@ def _run_in_process(
     run_config = checked.run
     if directory is None and run_config.resume:
         raise ConfigError("resume", "resuming needs the run directory: pass out_dir")
-    records = _Records()
+    from fedhpg.server.launcher import prepare_compiled_engine
+
+    prepare_compiled_engine(run_config)  # says so when numba compiles (the first run: ~20 s)
+    records = _Records(run_config)
     with contextlib.ExitStack() as stack:
         run_dir = None
         if directory is not None:
@@ -206,34 +209,36 @@ def _run_distributed(checked: CheckedRun, directory: Path | None) -> RunResult:
     message_cap(run_config, int(checked.initial_theta.numel()))
     check_launch_keys(run_config)
     check_device_before_fork(run_config)  # the agents are forked from this process
-    with tempfile.TemporaryDirectory(prefix="fedhpg-run-") as scratch:
-        where = directory if directory is not None else Path(scratch) / "run"
-        if run_config.resume and run_config.resume.lower() != "true":
-            where = Path(run_config.resume)  # the launcher resumes that directory
-        forked = dataclasses.replace(
-            run_config, server=dataclasses.replace(run_config.server, out_dir=str(where))
+    where = directory if directory is not None else new_run_dir(run_config)
+    if run_config.resume and run_config.resume.lower() != "true":
+        where = Path(run_config.resume)  # the launcher resumes that directory
+    forked = dataclasses.replace(
+        run_config, server=dataclasses.replace(run_config.server, out_dir=str(where))
+    )
+    status = run_federation(forked)
+    if status in (130, 143):  # SIGINT, SIGTERM
+        raise KeyboardInterrupt
+    if status != 0:
+        raise FederationError(
+            f"the federation exited with status {status} (its processes' log says why); "
+            f"run directory: {where}"
         )
-        status = run_federation(forked)
-        if status == 130:
-            raise KeyboardInterrupt
-        if status != 0:
-            raise FederationError(
-                f"the federation exited with status {status} (its processes' log says why); "
-                f"run directory: {where}"
-            )
-        checkpoint = latest_valid_checkpoint(where / "checkpoints")
-        if checkpoint is None:
-            raise FederationError(f"the federation left no valid checkpoint in {where}")
-        summary = json.loads((where / "summary.json").read_text(encoding="utf-8"))
-        return RunResult(
-            config=run_config,
-            theta=checkpoint.theta,
-            records=read_metrics(where / "metrics.jsonl"),
-            out_dir=directory,
-            last_evaluation={a: EvaluationStats(**e) for a, e in summary["eval"].items()}
-            if summary.get("eval")
-            else None,
-        )
+    checkpoint = latest_valid_checkpoint(where / "checkpoints")
+    if checkpoint is None:
+        raise FederationError(f"the federation left no valid checkpoint in {where}")
+    summary = json.loads((where / "summary.json").read_text(encoding="utf-8"))
+    return RunResult(
+        config=run_config,
+        theta=checkpoint.theta,
+        records=read_metrics(where / "metrics.jsonl"),
+        out_dir=where,
+        last_evaluation={
+            a: EvaluationStats(**{**e, "success_rate": e["success_rate"] or 0.0})
+            for a, e in summary["eval"].items()
+        }
+        if summary.get("eval")
+        else None,
+    )
 
 
 # --- a trained policy ---------------------------------------------------------------------------

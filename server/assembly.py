@@ -32,9 +32,16 @@ from typing import Any
 import torch
 
 from fedhpg.common.components import validate_run
-from fedhpg.common.config import ConfigError, RunConfig, fixed_difference, to_dict
+from fedhpg.common.config import (
+    ConfigError,
+    RunConfig,
+    agents_per_host,
+    attacking_agents,
+    fixed_difference,
+    to_dict,
+)
 from fedhpg.common.types import EvaluationStats
-from fedhpg.common.variants import run_variants, variant_of
+from fedhpg.common.variants import discount, run_variants, variant_of
 from fedhpg.common.worker import initial_theta
 from fedhpg.envs.base import EnvVariant
 from fedhpg.server.buffered import BufferedCoordinator
@@ -45,11 +52,12 @@ from fedhpg.server.checkpoint import (
     write_atomic,
 )
 from fedhpg.server.coordinator import Coordinator, RoundCallback, RoundRecord, RunProgress
-from fedhpg.server.metrics import MetricsWriter, tensorboard_sink
+from fedhpg.server.metrics import MetricsWriter, record_marks, tensorboard_sink
 from fedhpg.server.pools import AgentPool
 from fedhpg.server.pools.inprocess import make_in_process_pool
 from fedhpg.server.privacy import PrivateRounds
 from fedhpg.server.run_dir import RunDirectory, RunDirectoryError
+from fedhpg.server.sinks import PROGRESS_NAME, ProgressCsv, wandb_sink
 from fedhpg.server.strategies import Strategy, validate_strategy
 
 logger = logging.getLogger(__name__)
@@ -139,7 +147,7 @@ def _check_round_policy(run: RunConfig, strategy: Strategy[Any], *, distributed:
             f"got 'buffered'; strategy={strategy.name} aggregates every agent's update at one "
             "θ̃ each round, not buffered updates of different ages: use wait_all",
         )
-    if distributed and run.agents.per_host > 1:
+    if distributed and agents_per_host(run) > 1:
         raise ConfigError(
             "agents.per_host",
             f"got {run.agents.per_host}; server.round_policy=buffered takes one agent per "
@@ -237,6 +245,15 @@ def resume_point(
 # --- the parts of a run -------------------------------------------------------------------------
 
 
+def evaluation_json(stats: EvaluationStats, *, has_goal: bool) -> dict[str, Any]:
+    """An evaluation as summary.json holds it: ``success_rate`` null where the environment has
+    no goal (a rate of 0 would read as a failed task)."""
+    values = stats.to_json()
+    if not has_goal:
+        values["success_rate"] = None
+    return values
+
+
 @dataclass
 class LastEvaluation:
     """The last round's evaluation, as the rounds go (for summary.json and the final table)."""
@@ -306,13 +323,16 @@ class Assembly:
         ``extra`` and every agent's environment variant; returned as written."""
         last = self.last
         variants = {
-            agent: {"gamma": variant.gamma, **variant.params}
+            agent: {"gamma": discount(self.run, variant), **variant.params}
             for agent, variant in zip(agent_ids, run_variants(self.run), strict=True)
         }
+        has_goal = self.checked.first.has_goal
         summary = {
             "rounds": self.run.rounds,
             "final_eval_round": last.round,
-            "eval": {a: e.to_json() for a, e in last.eval.items()} if last.eval else None,
+            "eval": {a: evaluation_json(e, has_goal=has_goal) for a, e in last.eval.items()}
+            if last.eval
+            else None,
             **self.pool_counters(),
             **extra,
             **({"privacy": self.checked.privacy.summary()} if self.checked.privacy else {}),
@@ -341,6 +361,15 @@ def assemble(
     run = checked.run
     theta, progress = checked.initial_theta, RunProgress()
     counters: dict[str, int] = {}
+    attackers = attacking_agents(run)
+    if attackers:
+        shown = ", ".join(map(str, attackers[:20])) + (" …" if len(attackers) > 20 else "")
+        logger.warning(
+            "attack=%s: agents %s attack (attack.agents); metrics.jsonl and the final table "
+            "mark them",
+            run.attack.kind,
+            shown,
+        )
     if run.resume:
         if run_dir is None:
             raise ConfigError("resume", "resuming needs the run directory: pass out_dir")
@@ -356,22 +385,23 @@ def assemble(
     if run_dir is not None:
         out_dir = run_dir.path
         write_atomic(out_dir / "config.json", json.dumps(to_dict(run), indent=2).encode())
-        metrics = MetricsWriter(run_dir.metrics)
+        metrics = MetricsWriter(run_dir.metrics, marks=record_marks(run))
         assembly._closers.append(metrics.close)
         assembly.sinks += [
             metrics,
             checkpoint_callback(run, out_dir / "checkpoints", progress, assembly.pool_counters),
         ]
-        board = tensorboard_sink(
-            run.server.tensorboard,
-            out_dir,
+        board = tensorboard_sink(run, out_dir, first_round=progress.next_round, theta=theta)
+        progress_csv = ProgressCsv(
+            out_dir / PROGRESS_NAME,
             first_round=progress.next_round,
-            theta=theta,
-            per_agent=run.agents.num_agents <= run.server.tensorboard_agents,
+            has_goal=checked.first.has_goal,
         )
-        if board is not None:
-            assembly._closers.append(board.close)
-            assembly.sinks.append(board)
+        weights_and_biases = wandb_sink(run, out_dir, theta)
+        for sink in (board, progress_csv, weights_and_biases):
+            if sink is not None:
+                assembly._closers.append(sink.close)
+                assembly.sinks.append(sink)
     assembly.sinks += [assembly.last, *callbacks]
     return assembly
 

@@ -1,18 +1,28 @@
-"""Per-round checkpoints: msgpack with raw array bytes and a checksum; atomic writes; no pickle.
+"""Per-round checkpoints in safetensors: tensors and a JSON header, a SHA-256 of both, atomic
+writes, no pickle; any torch tool reads θ̃ (``safetensors.torch.load_file(path)["theta"]``).
 
 A checkpoint holds everything a killed server needs to continue exactly: θ̃, the round, the
 strategy's state (whatever :meth:`Strategy.state` returned, e.g. fedadam's moments), the run's
 counters (``state``) and how many ``metrics.jsonl`` lines belong to it. There are no
 random-number states to keep: every random stream of a run is derived from (seed, agent,
 round, purpose) where it is used.
+
+``round-NNNNNN.safetensors`` (format version 4): the tensors ``theta``, ``strategy/<name>``
+and ``schedule/<name>``; the header's metadata holds the round, the config, the counters and
+the strategy's and schedule's scalars as JSON, and ``sha256``, the digest of everything else
+(:func:`_digest`). Files of the msgpack format before it (``round-NNNNNN.ckpt``, versions 1
+to 3) are still read, so a run checkpointed in it resumes; the newest valid file of either
+kind is the one taken.
 """
 
 from __future__ import annotations
 
 import errno
 import hashlib
+import json
 import logging
 import os
+import struct
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -29,11 +39,15 @@ logger = logging.getLogger(__name__)
 T = TypeVar("T")
 
 CHECKPOINT_FORMAT = "fedhpg-checkpoint"
-CHECKPOINT_VERSION = 3
-"""3: the strategy's state under ``strategy``; 2 kept the server optimizer's in ``state`` and
-``server_optimizer.*`` arrays (read as the strategy's state)."""
+CHECKPOINT_VERSION = 4
+"""4: safetensors. The msgpack files before it: 3 kept the strategy's state under ``strategy``;
+2 kept the server optimizer's in ``state`` and ``server_optimizer.*`` arrays (read as the
+strategy's state)."""
 READABLE_VERSIONS = (1, 2, 3)
+"""The msgpack format's versions still read."""
 KEEP_CHECKPOINTS = 2
+SUFFIX = ".safetensors"
+LEGACY_SUFFIX = ".ckpt"
 
 
 class CheckpointError(ValueError):
@@ -56,10 +70,6 @@ class Checkpoint:
     """Buffered rounds: the in-flight updates and the emulated clock (server/buffered.py)."""
 
 
-def _pack_array(array: np.ndarray) -> dict[str, Any]:
-    return {"dtype": array.dtype.str, "shape": list(array.shape), "data": array.tobytes()}
-
-
 def _unpack_array(packed: dict[str, Any]) -> np.ndarray:
     dtype = np.dtype(packed["dtype"])
     if dtype.kind not in "fiub":  # plain numbers only: an object dtype would mean pickle
@@ -68,38 +78,27 @@ def _unpack_array(packed: dict[str, Any]) -> np.ndarray:
 
 
 def checkpoint_path(directory: Path, round_number: int) -> Path:
-    return directory / f"round-{round_number:06d}.ckpt"
+    return directory / f"round-{round_number:06d}{SUFFIX}"
 
 
-def _pack_state(state: SavedState) -> dict[str, Any]:
-    return {
-        "scalars": state.scalars,
-        "arrays": {name: _pack_array(a) for name, a in state.arrays.items()},
-    }
+def _round_of(path: Path) -> int:
+    try:
+        return int(path.name.split(".", 1)[0].removeprefix("round-"))
+    except ValueError:
+        return -1
+
+
+def checkpoint_files(directory: Path) -> list[Path]:
+    """The checkpoint files in ``directory``, oldest first (the safetensors file after a
+    msgpack one of the same round)."""
+    paths = [*directory.glob(f"round-*{SUFFIX}"), *directory.glob(f"round-*{LEGACY_SUFFIX}")]
+    return sorted(paths, key=lambda p: (_round_of(p), p.suffix == SUFFIX))
 
 
 def _unpack_state(saved: dict[str, Any]) -> SavedState:
     return SavedState(
         scalars=dict(saved["scalars"]),
         arrays={name: _unpack_array(a) for name, a in saved["arrays"].items()},
-    )
-
-
-def _payload(checkpoint: Checkpoint) -> bytes:
-    extra = {} if checkpoint.schedule is None else {"schedule": _pack_state(checkpoint.schedule)}
-    return msgpack.packb(
-        {
-            **extra,
-            "format": CHECKPOINT_FORMAT,
-            "version": CHECKPOINT_VERSION,
-            "round": checkpoint.round,
-            "theta": _pack_array(checkpoint.theta.detach().cpu().numpy()),
-            "config": checkpoint.config,
-            "metrics_lines": checkpoint.metrics_lines,
-            "state": checkpoint.state,
-            "strategy": _pack_state(checkpoint.strategy),
-        },
-        use_bin_type=True,
     )
 
 
@@ -141,22 +140,135 @@ def write_atomic(path: Path, data: bytes) -> None:
         os.close(directory)
 
 
+def _digest(metadata: dict[str, str], tensors: dict[str, np.ndarray]) -> str:
+    """SHA-256 of a checkpoint's content: its metadata (but the digest) as sorted JSON, then
+    each tensor's name, dtype, shape and bytes in name order."""
+    digest = hashlib.sha256(json.dumps(metadata, sort_keys=True).encode())
+    for name in sorted(tensors):
+        array = tensors[name]
+        digest.update(f"|{name}|{array.dtype.str}|{list(array.shape)}|".encode())
+        digest.update(np.ascontiguousarray(array).tobytes())
+    return digest.hexdigest()
+
+
+def _safetensors_bytes(checkpoint: Checkpoint) -> bytes:
+    from safetensors.numpy import save
+
+    tensors = {"theta": checkpoint.theta.detach().cpu().numpy()}
+    tensors |= {f"strategy/{k}": v for k, v in checkpoint.strategy.arrays.items()}
+    metadata = {
+        "format": CHECKPOINT_FORMAT,
+        "version": str(CHECKPOINT_VERSION),
+        "round": str(checkpoint.round),
+        "metrics_lines": str(checkpoint.metrics_lines),
+        "config": json.dumps(checkpoint.config),
+        "state": json.dumps(checkpoint.state),
+        "strategy": json.dumps(checkpoint.strategy.scalars),
+    }
+    if checkpoint.schedule is not None:
+        tensors |= {f"schedule/{k}": v for k, v in checkpoint.schedule.arrays.items()}
+        metadata["schedule"] = json.dumps(checkpoint.schedule.scalars)
+    tensors = {name: np.ascontiguousarray(array) for name, array in tensors.items()}
+    metadata["sha256"] = _digest(metadata, tensors)
+    return bytes(save(tensors, metadata=metadata))
+
+
 def save_checkpoint(directory: Path, checkpoint: Checkpoint) -> Path:
     """Write this round's checkpoint atomically and prune all but the newest few."""
     directory.mkdir(parents=True, exist_ok=True)
-    body = _payload(checkpoint)
     path = checkpoint_path(directory, checkpoint.round)
-    write_atomic(path, hashlib.sha256(body).digest() + body)
-    for old in sorted(directory.glob("round-*.ckpt"))[:-KEEP_CHECKPOINTS]:
+    write_atomic(path, _safetensors_bytes(checkpoint))
+    for old in checkpoint_files(directory)[:-KEEP_CHECKPOINTS]:
         old.unlink(missing_ok=True)
     return path
 
 
+def _header(raw: bytes, path: Path) -> dict[str, Any]:
+    """A safetensors file's JSON header (8 bytes of length, then the JSON)."""
+    if len(raw) < 8:
+        raise CheckpointError(f"{path}: torn or corrupt file (shorter than its header)")
+    (length,) = struct.unpack("<Q", raw[:8])
+    if length > len(raw) - 8:
+        raise CheckpointError(f"{path}: torn or corrupt file (its header runs past its end)")
+    try:
+        header = json.loads(raw[8 : 8 + length])
+    except (UnicodeDecodeError, json.JSONDecodeError):
+        raise CheckpointError(f"{path}: torn or corrupt file (no safetensors header)") from None
+    if not isinstance(header, dict):
+        raise CheckpointError(f"{path}: not a safetensors file")
+    return header
+
+
+def _load_safetensors(path: Path, raw: bytes) -> Checkpoint:
+    from safetensors import SafetensorError
+    from safetensors.numpy import load
+
+    metadata = _header(raw, path).get("__metadata__") or {}
+    if metadata.get("format") != CHECKPOINT_FORMAT:
+        raise CheckpointError(f"{path}: not a {CHECKPOINT_FORMAT} file")
+    if metadata.get("version") != str(CHECKPOINT_VERSION):
+        raise CheckpointError(
+            f"{path}: version {metadata.get('version')!r} of the checkpoint format; this fedhpg "
+            f"reads version {CHECKPOINT_VERSION} (and the msgpack files of 1 to 3)"
+        )
+    try:
+        tensors = load(raw)
+    except (SafetensorError, ValueError) as error:
+        raise CheckpointError(f"{path}: torn or corrupt file ({error})") from None
+    unsigned = {k: v for k, v in metadata.items() if k != "sha256"}
+    if metadata.get("sha256") != _digest(unsigned, tensors):
+        raise CheckpointError(f"{path}: checksum mismatch (torn or corrupt file)")
+    try:
+        theta = tensors["theta"]
+        strategy = SavedState(
+            scalars=dict(json.loads(metadata["strategy"])),
+            arrays={k[9:]: v for k, v in tensors.items() if k.startswith("strategy/")},
+        )
+        schedule = None
+        if "schedule" in metadata:
+            schedule = SavedState(
+                scalars=dict(json.loads(metadata["schedule"])),
+                arrays={k[9:]: v for k, v in tensors.items() if k.startswith("schedule/")},
+            )
+        values = {
+            "round": int(metadata["round"]),
+            "metrics_lines": int(metadata["metrics_lines"]),
+            "config": json.loads(metadata["config"]),
+            "state": dict(json.loads(metadata["state"])),
+        }
+    except (KeyError, TypeError, ValueError) as error:
+        raise CheckpointError(f"{path}: malformed checkpoint ({error})") from None
+    return _checked(
+        path,
+        theta,
+        strategy=strategy,
+        schedule=schedule,
+        version=CHECKPOINT_VERSION,
+        **values,
+    )
+
+
+def _checked(path: Path, theta: np.ndarray, **fields: Any) -> Checkpoint:
+    if theta.dtype != np.float32 or theta.ndim != 1 or not np.isfinite(theta).all():
+        raise CheckpointError(f"{path}: θ̃ is not a finite float32 vector")
+    return Checkpoint(theta=torch.from_numpy(theta.copy()), **fields)
+
+
 def load_checkpoint(path: Path) -> Checkpoint:
+    """The checkpoint in ``path`` (safetensors, or the msgpack format before it), or
+    CheckpointError saying in one line why it cannot be used."""
     try:
         raw = path.read_bytes()
     except OSError as error:
         raise CheckpointError(f"{path}: cannot read ({error.strerror})") from None
+    if path.suffix == SUFFIX:
+        return _load_safetensors(path, raw)
+    return _load_msgpack(path, raw)
+
+
+def _load_msgpack(path: Path, raw: bytes) -> Checkpoint:
+    """A file of the msgpack format (versions 1 to 3): a SHA-256, then msgpack with raw
+    array bytes."""
     digest, body = raw[:32], raw[32:]
     if len(raw) < 32 or hashlib.sha256(body).digest() != digest:
         raise CheckpointError(f"{path}: checksum mismatch (torn or corrupt file)")
@@ -183,12 +295,10 @@ def load_checkpoint(path: Path) -> Checkpoint:
                     if name.startswith(prefix)
                 },
             )
-        theta = _unpack_array(values["theta"])
-        if theta.dtype != np.float32 or theta.ndim != 1 or not np.isfinite(theta).all():
-            raise CheckpointError(f"{path}: θ̃ is not a finite float32 vector")
-        return Checkpoint(
+        return _checked(
+            path,
+            _unpack_array(values["theta"]),
             round=int(values["round"]),
-            theta=torch.from_numpy(theta),
             config=values["config"],
             metrics_lines=int(values["metrics_lines"]),
             state=state,
@@ -204,9 +314,41 @@ def load_checkpoint(path: Path) -> Checkpoint:
 
 def latest_valid_checkpoint(directory: Path) -> Checkpoint | None:
     """The newest checkpoint that loads; corrupt newer ones are reported and skipped."""
-    for path in sorted(directory.glob("round-*.ckpt"), reverse=True):
+    for path in reversed(checkpoint_files(directory)):
         try:
             return load_checkpoint(path)
         except CheckpointError as error:
             logger.warning("skipping checkpoint: %s", error)
     return None
+
+
+def completed_round(directory: Path, rounds: int) -> int | None:
+    """The round of the newest valid checkpoint in ``directory`` when the run is complete at
+    ``rounds`` (checkpointed at that round, and ``rounds`` not below the run's own, which a
+    resume refuses), else None."""
+    if not directory.is_dir():
+        return None
+    checkpoint = latest_valid_checkpoint(directory)
+    if checkpoint is None or checkpoint.round < rounds:
+        return None
+    planned = int(checkpoint.config.get("rounds", checkpoint.round))
+    return checkpoint.round if rounds >= planned else None
+
+
+def complete_message(run_dir: Path, round_number: int) -> str:
+    """What a resume of a complete run says instead of starting anything."""
+    return (
+        f"{run_dir} is complete: round {round_number} of rounds={round_number}, nothing to run "
+        f"(resume with rounds=N above {round_number} to continue it)\n"
+    )
+
+
+def interrupted_message(run_dir: Path, resume_command: str) -> str:
+    """Where a stopped run is and how to continue it (one line)."""
+    checkpoint = latest_valid_checkpoint(run_dir / "checkpoints") if run_dir.is_dir() else None
+    if checkpoint is None:
+        return f"interrupted before the first round was saved; nothing to resume in {run_dir}"
+    return (
+        f"interrupted after round {checkpoint.round}; run directory: {run_dir.resolve()}; "
+        f"continue it with: {resume_command}"
+    )

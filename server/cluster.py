@@ -88,7 +88,7 @@ def check_placement(run: RunConfig, overrides: Sequence[str]) -> Path:
         raise ConfigError(
             "resume",
             "fedhpg-cluster starts new runs; resume one with fedhpg-server resume=true "
-            "server.out_dir=DIR and its agents (README: When the server dies)",
+            "server.out_dir=DIR and its agents (docs/running.md, Resuming)",
         )
     check_run(run, distributed=True)
     check_launch_keys(run)
@@ -273,6 +273,7 @@ def main(argv: Sequence[str] | None = None) -> None:
     """Check everything (one-line errors, exit 2, nothing submitted), then place the run."""
     from fedhpg.common.runtime.cli import (
         HELP_FLAGS,
+        answer_version,
         compose,
         fail,
         own_overrides,
@@ -281,6 +282,7 @@ def main(argv: Sequence[str] | None = None) -> None:
     )
 
     args = list(sys.argv[1:] if argv is None else argv)
+    answer_version("fedhpg-cluster", args)
     if any(a in HELP_FLAGS for a in args):
         from fedhpg.common.runtime.help import help_text
 
@@ -292,7 +294,7 @@ def main(argv: Sequence[str] | None = None) -> None:
                 ConfigError(
                     "-m",
                     "fedhpg-cluster places one federation; sweep with fedhpg-run -m ... "
-                    "hydra/launcher=submitit_slurm (see README, Sweeps and clusters)",
+                    "hydra/launcher=submitit_slurm (docs/clusters.md)",
                 )
             )
         )

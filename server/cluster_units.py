@@ -27,7 +27,7 @@ from collections.abc import Iterator, Sequence
 from pathlib import Path
 from typing import IO
 
-from fedhpg.common.config import RunConfig, host_ranges
+from fedhpg.common.config import RunConfig, agents_per_host, host_ranges
 from fedhpg.common.runtime.cli import LOG_DATE_FORMAT, LOG_FORMAT, setup_logging
 
 logger = logging.getLogger(__name__)
@@ -85,12 +85,13 @@ def agent_commands(run: RunConfig, overrides: Sequence[str]) -> list[list[str]]:
     """One command line per agent-side process; the server's host and port are added in the
     job, once known. The one place that decides how agents are grouped into processes."""
     shared = passed_overrides(overrides)
-    if run.agents.per_host == 1:
+    per_host = agents_per_host(run)
+    if per_host == 1:
         return [["fedhpg-agent", *shared, f"agent.index={k}"] for k in range(run.agents.num_agents)]
     # agent hosts, as fedhpg-run starts them: one job of the array per range
     return [
         ["fedhpg-agent", *shared, f"agent.first={first}", f"agent.count={count}"]
-        for first, count in host_ranges(run.agents.num_agents, run.agents.per_host)
+        for first, count in host_ranges(run.agents.num_agents, per_host)
     ]
 
 

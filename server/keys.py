@@ -33,6 +33,7 @@ import zmq
 import zmq.auth
 
 from fedhpg.common.config import host_id_of, host_ranges
+from fedhpg.common.runtime.cli import version_text
 from fedhpg.common.wire.security import (
     ALLOWED_DIR,
     BIND,
@@ -86,6 +87,9 @@ def _parser() -> argparse.ArgumentParser:
         ),
         epilog=WHERE_TO.format(dir="DIR"),
         formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    parser.add_argument(
+        "-V", "--version", action="version", version=version_text(parser.prog).strip()
     )
     parser.add_argument("directory", metavar="DIR", help="where to write the keys (created)")
     who = parser.add_mutually_exclusive_group()

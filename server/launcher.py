@@ -22,7 +22,15 @@ from dataclasses import replace
 from multiprocessing.connection import Connection
 from pathlib import Path
 
-from fedhpg.common.config import ConfigError, RunConfig, host_id_of, host_ranges
+from fedhpg.common.config import (
+    AUTO,
+    ConfigError,
+    RunConfig,
+    agents_per_host,
+    available_cores,
+    host_id_of,
+    host_ranges,
+)
 from fedhpg.common.runtime.cli import EXIT_RUN_ABORTED
 
 logger = logging.getLogger(__name__)
@@ -74,7 +82,7 @@ def _agent_child(run: RunConfig) -> None:
     _child_setup()
     from fedhpg.agent.main import run_agent
 
-    sys.exit(run_agent(run))
+    sys.exit(run_agent(run, forked=True))
 
 
 def _port_of(endpoint: str) -> int:
@@ -179,51 +187,71 @@ def check_launch(run: RunConfig) -> None:
 
 
 def launch(run: RunConfig, out_dir: Path) -> int:
-    """Run a whole federation on loopback; returns the process exit status."""
+    """Run a whole federation on loopback; returns the process exit status (128 + the
+    signal's number when SIGINT or SIGTERM stopped it, after saying how to continue)."""
+    from fedhpg.common.runtime.cli import Interrupted, stop_signals
+
     supervisor = Supervisor(max_restarts=run.agent.max_restarts)
-    previous = {sig: signal.getsignal(sig) for sig in (signal.SIGINT, signal.SIGTERM)}
-
-    def interrupt(signum: int, _frame: object) -> None:
-        raise KeyboardInterrupt
-
-    # SIGINT too, not only SIGTERM: a launcher started with SIGINT ignored (what a shell's
-    # background job or a parent that ignores it passes on) would otherwise not stop on it
-    signal.signal(signal.SIGTERM, interrupt)
-    signal.signal(signal.SIGINT, interrupt)
     try:
-        receive, send = multiprocessing.Pipe(duplex=False)
-        server = supervisor.start(_server_child, (run, str(out_dir), send), "server")
-        endpoint = None
-        while endpoint is None:
-            if receive.poll(0.05):
-                message = receive.recv_bytes()
-                if message.startswith(BIND_FAILED):
-                    server.join()
-                    sys.stderr.write(f"error: {message[len(BIND_FAILED) :].decode()}\n")
-                    return 1
-                endpoint = message.decode()
-            elif server.exitcode is not None:
-                if server.exitcode == 2:  # a configuration error, already reported in one line
-                    return 2
-                logger.error("the server exited with status %s before listening", server.exitcode)
-                return 1
-        if run.server.transport == "tcp":
-            run = replace(run, server=replace(run.server, port=_port_of(endpoint)))
-        _prepare_compiled_engine(run)
-        for name, agent_run in agent_processes(run):
-            supervisor.start(_agent_child, (agent_run,), name)
-        return supervisor.wait(server)
-    except KeyboardInterrupt:
+        with stop_signals():
+            return _launch(run, out_dir, supervisor)
+    except Interrupted as interrupted:
         logger.warning("interrupted: stopping the federation")
         supervisor.stop_all()
+        _say_how_to_resume(out_dir)
+        return interrupted.status
+    except KeyboardInterrupt:
+        supervisor.stop_all()
+        _say_how_to_resume(out_dir)
         return EXIT_INTERRUPTED
     finally:
         supervisor.stop_all()
-        for sig, handler in previous.items():
-            signal.signal(sig, handler)
 
 
-def _prepare_compiled_engine(run: RunConfig) -> None:
+def _say_how_to_resume(out_dir: Path) -> None:
+    from fedhpg.server.checkpoint import interrupted_message
+
+    sys.stderr.write(interrupted_message(out_dir, f"fedhpg-run resume={out_dir}") + "\n")
+
+
+def _launch(run: RunConfig, out_dir: Path, supervisor: Supervisor) -> int:
+    receive, send = multiprocessing.Pipe(duplex=False)
+    server = supervisor.start(_server_child, (run, str(out_dir), send), "server")
+    endpoint = None
+    while endpoint is None:
+        if receive.poll(0.05):
+            message = receive.recv_bytes()
+            if message.startswith(BIND_FAILED):
+                server.join()
+                sys.stderr.write(f"error: {message[len(BIND_FAILED) :].decode()}\n")
+                return 1
+            endpoint = message.decode()
+        elif server.exitcode is not None:
+            if server.exitcode == 2:  # a configuration error, already reported in one line
+                return 2
+            logger.error("the server exited with status %s before listening", server.exitcode)
+            return 1
+    if run.server.transport == "tcp":
+        run = replace(run, server=replace(run.server, port=_port_of(endpoint)))
+    prepare_compiled_engine(run)
+    agents = agent_processes(run)
+    if run.agents.per_host == AUTO and len(agents) < run.agents.num_agents:
+        logger.info(
+            "agents.per_host=auto: %d agent hosts for %d agents on %d cores%s",
+            len(agents),
+            run.agents.num_agents,
+            available_cores(),
+            ""
+            if run.agents.virtual_clock
+            else "; a host accounts its agents' emulated device time without sleeping "
+            "(agents.per_host=1: a sleeping process per agent)",
+        )
+    for name, agent_run in agents:
+        supervisor.start(_agent_child, (agent_run,), name)
+    return supervisor.wait(server)
+
+
+def prepare_compiled_engine(run: RunConfig) -> None:
     """Compile the compiled engine's kernels here, or load them from numba's cache, when the
     run's agents use it: forked after this, they inherit the machine code instead of each
     compiling it (tens of seconds on a machine whose cache is cold)."""
@@ -232,8 +260,13 @@ def _prepare_compiled_engine(run: RunConfig) -> None:
     if not uses_compiled_engine(run):
         return
     from fedhpg.common.batched.backend import warm_up
+    from fedhpg.common.runtime.progress import announced_if_slow
 
-    seconds = warm_up()
+    with announced_if_slow(
+        "compiling the compiled engine's CartPole kernels (numba): the first run after an "
+        "install takes ~20 s, later runs load them from numba's cache"
+    ):
+        seconds = warm_up()
     logger.log(
         logging.INFO if seconds > 5 else logging.DEBUG,
         "compiled engine ready in %.1f s (numba)",
@@ -243,8 +276,9 @@ def _prepare_compiled_engine(run: RunConfig) -> None:
 
 def agent_processes(run: RunConfig) -> list[tuple[str, RunConfig]]:
     """(name, config) of each agent process: one per agent, or with ``agents.per_host`` = N
-    above 1, ceil(K/N) agent hosts of N consecutive indices (the last one takes the rest)."""
-    k, per_host = run.agents.num_agents, run.agents.per_host
+    above 1 (or what 'auto' makes of it), ceil(K/N) agent hosts of N consecutive indices (the
+    last one takes the rest)."""
+    k, per_host = run.agents.num_agents, agents_per_host(run)
     if per_host == 1:
         return [
             (f"agent-{i}", replace(run, agent=replace(run.agent, index=i, id=None, first=None)))
@@ -266,8 +300,10 @@ def _resolve_out_dir(run: RunConfig) -> Path:
         from hydra.core.hydra_config import HydraConfig
 
         return Path(HydraConfig.get().runtime.output_dir)
-    except ValueError:
-        return Path("runs") / time.strftime("%Y%m%d-%H%M%S")
+    except ValueError:  # not under Hydra's job machinery (a resume, the API)
+        from fedhpg.server.run_dir import new_run_dir
+
+        return new_run_dir(run)
 
 
 def port_named(overrides: list[str]) -> bool:
@@ -315,17 +351,30 @@ def run_federation(run: RunConfig, *, port: bool = False) -> int:
 def _hydra_task(cfg: object) -> None:
     from hydra.core.hydra_config import HydraConfig
 
-    from fedhpg.common.runtime.cli import limit_threads, setup_logging, to_run_config
+    from fedhpg.common.runtime.cli import (
+        compose_cfg,
+        limit_threads,
+        own_overrides,
+        setup_logging,
+        to_run_config,
+        with_algorithm_strategy,
+    )
 
     setup_logging()  # a sweep job may run in a fresh process (joblib's, submitit's launchers)
+    overrides = HydraConfig.get().overrides
+    task = list(overrides.task)
+    composing = own_overrides([*task, *overrides.hydra])  # with hydra.searchpath
     try:  # checked before Hydra started; again here for what only the job sees
+        fixed = with_algorithm_strategy(composing)
+        if fixed != composing:  # the algorithm's own strategy (algo=fedpgbr's)
+            cfg = compose_cfg(fixed)
         run = to_run_config(cfg)
         check_launch(run)
     except ConfigError as error:
         sys.stderr.write(f"error: {error}\n")
         sys.exit(2)
     limit_threads()
-    status = run_federation(run, port=port_named(list(HydraConfig.get().overrides.task)))
+    status = run_federation(run, port=port_named(task))
     if status != 0:
         sys.exit(status)
 
@@ -339,17 +388,21 @@ def main() -> None:
     from fedhpg.common.runtime.cli import (
         EXIT_USAGE,
         HELP_FLAGS,
+        PRINTING_FLAGS,
+        answer_version,
         compose,
         compose_sweep,
         limit_threads,
         own_overrides,
         register_schema,
+        report_presets,
         setup_logging,
         unknown_flag,
     )
     from fedhpg.common.runtime.resume import resume_value
 
     args = sys.argv[1:]
+    answer_version("fedhpg-run", args)
     if any(a in HELP_FLAGS for a in args):
         from fedhpg.common.runtime.help import help_text
 
@@ -359,7 +412,8 @@ def main() -> None:
     if flag is not None:
         sys.stderr.write(f"error: {flag}\n")
         sys.exit(EXIT_USAGE)
-    setup_logging()
+    if not any(a.split("=", 1)[0] in PRINTING_FLAGS for a in args):
+        setup_logging()  # --info and the like log through Hydra's own stdout handler
     multirun = any(a in ("-m", "--multirun") for a in args)
     # --cfg, --info, --config-dir ...: Hydra's own (it prints, or reads other configs)
     modes = ("-m", "--multirun", "-r", "--run")
@@ -381,10 +435,22 @@ def main() -> None:
     port = port_named(overrides)
     for run in runs[:1]:
         check_endpoint(run if port else replace(run, server=replace(run.server, port=0)))
+    if runs and not multirun:
+        report_presets(overrides)
     if resume:
+        from fedhpg.server.checkpoint import complete_message, completed_round
+
+        directory = _resolve_out_dir(runs[0])
+        done = completed_round(directory / "checkpoints", runs[0].rounds)
+        if done is not None:  # nothing to run: say so rather than start agents for nothing
+            sys.stdout.write(complete_message(directory, done))
+            sys.exit(0)
         limit_threads()
         sys.exit(run_federation(runs[0], port=port))
     register_schema()
+    named = [o.split("=", 1)[1] for o in overrides if o.split("=", 1)[0] == "server.out_dir"]
+    if named and not any(a.split("=", 1)[0] == "hydra.run.dir" for a in args) and not multirun:
+        sys.argv.append(f"hydra.run.dir={named[-1]}")  # Hydra's job directory is the run's
     app = hydra.main(config_path="pkg://fedhpg.conf", config_name="config", version_base=None)(
         _hydra_task
     )

@@ -14,23 +14,35 @@ import zmq
 
 from fedhpg.common.config import RunConfig
 from fedhpg.common.runtime.cli import run_entry
-from fedhpg.server.checkpoint import write_atomic
+from fedhpg.server.checkpoint import (
+    complete_message,
+    completed_round,
+    interrupted_message,
+    write_atomic,
+)
 from fedhpg.server.pools import FederationError
-from fedhpg.server.run_dir import RunDirectoryError
-from fedhpg.server.serving import bind_error, default_out_dir, serve
+from fedhpg.server.run_dir import RunDirectoryError, new_run_dir
+from fedhpg.server.serving import bind_error, serve
 
 logger = logging.getLogger(__name__)
 
 
 def _main(run: RunConfig) -> int:
-    out_dir = Path(run.server.out_dir) if run.server.out_dir else default_out_dir()
+    out_dir = Path(run.server.out_dir) if run.server.out_dir else new_run_dir(run)
     if run.resume and run.resume.lower() != "true":
         out_dir = Path(run.resume)
+    if run.resume and (done := completed_round(out_dir / "checkpoints", run.rounds)) is not None:
+        sys.stdout.write(complete_message(out_dir, done))
+        return 0
     on_bound = None
     if run.server.endpoint_file:
         on_bound = endpoint_writer(run, Path(run.server.endpoint_file))
     try:
         serve(run, out_dir=out_dir, on_bound=on_bound)
+    except KeyboardInterrupt:  # SIGINT or SIGTERM (run_entry's handlers): say how to go on
+        command = f"fedhpg-server resume=true server.out_dir={out_dir}"
+        sys.stderr.write(interrupted_message(out_dir, command) + "\n")
+        raise
     except (FederationError, RunDirectoryError) as error:
         logger.error("%s", error)
         return 1
@@ -64,4 +76,4 @@ def endpoint_writer(run: RunConfig, path: Path) -> Callable[[str], None]:
 
 
 def main() -> None:
-    sys.exit(run_entry(_main, resumable=True))
+    sys.exit(run_entry(_main, resumable=True, presets=True))

@@ -9,16 +9,16 @@ import logging
 import operator
 import os
 import socket
-import struct
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Sequence
 from pathlib import Path
-from typing import Any, BinaryIO, cast
+from typing import Any
 
 import numpy as np
 import orjson
 import torch
 
+from fedhpg.common.config import RunConfig, attacking_agents
 from fedhpg.common.types import ALWAYS_FIELDS, AgentUpdate
 from fedhpg.server.coordinator import RoundRecord
 from fedhpg.server.run_dir import RunDirectoryError
@@ -30,16 +30,30 @@ METRICS_SCHEMA_VERSION = 1
 SECURE_MODES = ("secagg", "dp_secagg")
 
 
+def record_marks(run: RunConfig) -> dict[str, Any]:
+    """What every line of a run's metrics.jsonl carries besides its round: the attacking
+    agents (``attack``: kind and indices) when some attack."""
+    attackers = attacking_agents(run)
+    return {"attack": {"kind": run.attack.kind, "agents": attackers}} if attackers else {}
+
+
+def metrics_line(record: RoundRecord, marks: dict[str, Any] | None = None) -> dict[str, Any]:
+    """A round's metrics.jsonl object (schema: docs/metrics.md)."""
+    return {"schema": METRICS_SCHEMA_VERSION, **record.to_json(), **(marks or {})}
+
+
 class MetricsWriter:
     """Appends a line per round and flushes it to disk, so a crash loses at most one round."""
 
-    def __init__(self, path: Path) -> None:
+    def __init__(self, path: Path, *, marks: dict[str, Any] | None = None) -> None:
         self.path = path
+        self.marks = marks or {}
+        """Keys every line carries (:func:`record_marks`)."""
         path.parent.mkdir(parents=True, exist_ok=True)
         self._file = path.open("a", encoding="utf-8")
 
     def __call__(self, record: RoundRecord, theta: torch.Tensor) -> None:
-        line: dict[str, Any] = {"schema": METRICS_SCHEMA_VERSION, **record.to_json()}
+        line = metrics_line(record, self.marks)
         try:
             # orjson: ~15x the speed of json.dumps on a round of 1,000 agents' rows (6 against
             # 0.4 ms), time the next round waits for; the same JSON values, written compactly
@@ -61,69 +75,9 @@ def read_metrics(path: Path) -> list[dict[str, Any]]:
         return [json.loads(line) for line in handle if line.strip()]
 
 
-# --- TensorBoard: a view of the same records (metrics.jsonl stays the source of truth) ------
+# --- TensorBoard, CSV, W&B: views of the same records (metrics.jsonl stays the truth) -----
 
 TENSORBOARD_DIR = "tensorboard"
-_files_opened = itertools.count()
-
-
-def _crc32c() -> Callable[[bytes], int]:
-    """CRC-32C in C (google-crc32c) when installed: tensorboard's own, without TensorFlow, is
-    a Python loop over the bytes (48 ms for the 280 kB of one round of 1,000 agents' scalars,
-    against 0.07 ms)."""
-    try:
-        import google_crc32c  # type: ignore[import-not-found,unused-ignore]
-    except ImportError:
-        from tensorboard.compat.tensorflow_stub.pywrap_tensorflow import crc32c
-
-        return cast(Callable[[bytes], int], crc32c)
-    return cast(Callable[[bytes], int], google_crc32c.value)
-
-
-class RecordWriter:
-    """TFRecord framing, as tensorboard's ``RecordWriter`` writes it (length, masked CRC-32C
-    of the length, data, masked CRC-32C of the data), with a C CRC where one is installed."""
-
-    def __init__(self, file: BinaryIO) -> None:
-        self._file = file
-        self._crc = _crc32c()
-
-    def _masked(self, data: bytes) -> bytes:
-        crc = self._crc(data)
-        return struct.pack("<I", (((crc >> 15) | (crc << 17)) + 0xA282EAD8) & 0xFFFFFFFF)
-
-    def write(self, data: bytes) -> None:
-        header = struct.pack("<Q", len(data))
-        self._file.write(header + self._masked(header) + data + self._masked(data))
-
-
-class EventFile:
-    """One TensorBoard event file, written on the caller's thread.
-
-    TensorBoard's own writers queue events to a thread of theirs; the server already runs
-    ZeroMQ's and the connection guard's threads and is forked, so it writes here, one record
-    per round (microseconds), flushed to the OS at once."""
-
-    def __init__(self, directory: Path, event: Any, record_writer: Any) -> None:
-        directory.mkdir(parents=True, exist_ok=True)
-        name = (
-            f"events.out.tfevents.{int(time.time()):010d}.{socket.gethostname()}."
-            f"{os.getpid()}.{next(_files_opened):04d}"
-        )
-        self._file = (directory / name).open("wb")
-        self._records = record_writer(self._file)
-        self._event = event
-        self.add_event(event(wall_time=time.time(), file_version="brain.Event:2"))
-
-    def add_event(self, event: Any) -> None:
-        self._records.write(event.SerializeToString())
-        self._file.flush()
-
-    def add_summary(self, summary: Any, step: int) -> None:
-        self.add_event(self._event(wall_time=time.time(), step=step, summary=summary))
-
-    def close(self) -> None:
-        self._file.close()
 
 
 NORM_ROWS = 256
@@ -171,24 +125,25 @@ _NOT_SCALARS = frozenset({"id", "index"})
 """Keys of an ``agents[]`` row that name the agent rather than measure its update."""
 
 
-class TensorBoardWriter:
-    """Scalars of each round, step = round: ``fed/…`` for the federation, ``agent/<k>/…`` for
-    agent k's update, ``eval/<id>/…`` (and ``eval/mean/…``) for the unified policy's evaluation.
-    Keys: docs/metrics.md. A round's scalars go out as one event (one summary of many values),
-    not one event per scalar: a fraction of the cost."""
+class RoundValues:
+    """The scalars of each round under grouped keys, step = round: ``fed/…`` for the
+    federation, ``agent/<k>/…`` for agent k's update, ``agents/<stat>/{mean,min,max}`` for their
+    spread, ``eval/<id>/…`` (and ``eval/mean/…``) for the unified policy's evaluation. Keys:
+    docs/metrics.md. TensorBoard and W&B show the same values."""
 
-    def __init__(
-        self, file_writer: Any, summary: Any, theta: torch.Tensor, *, per_agent: bool = True
-    ) -> None:
-        self._file_writer = file_writer
-        self._summary = summary
-        """tensorboard's ``Summary`` message class."""
+    def __init__(self, theta: torch.Tensor, *, per_agent: bool = True) -> None:
         self._previous = theta.detach().numpy().astype(np.float64)
         """θ̃ before the round: the update norms are measured from it."""
         self._per_agent = per_agent
         """Write ``agent/<k>/…`` and ``eval/<id>/…`` (``server.tensorboard_agents``): at 1,000
-        agents they are 14,000 values a round, ~45 ms of the server's time between rounds,
-        and more curves than anyone reads."""
+        agents they are 14,000 values a round, and more curves than anyone reads."""
+
+    def __call__(self, record: RoundRecord, theta: torch.Tensor) -> dict[str, float]:
+        """The round's values (finite ones only: NaN/Inf never reach metrics.jsonl either)."""
+        after = theta.detach().numpy().astype(np.float64)
+        values = self._values(record, after)
+        self._previous = after
+        return {key: float(value) for key, value in values.items() if np.isfinite(value)}
 
     def _values(self, record: RoundRecord, after: np.ndarray) -> dict[str, float]:
         before = self._previous
@@ -243,47 +198,141 @@ class TensorBoardWriter:
             values["eval/min/return"] = min(e.return_mean for e in evaluations)
         return values
 
-    def __call__(self, record: RoundRecord, theta: torch.Tensor) -> None:
-        after = theta.detach().numpy().astype(np.float64)
-        summary = self._summary(
-            value=[
-                self._summary.Value(tag=key, simple_value=float(value))
-                for key, value in self._values(record, after).items()
-                if np.isfinite(value)  # NaN/Inf never reach metrics.jsonl either
-            ]
+
+HPARAM_METRICS = ("eval/mean/return", "eval/min/return", "fed/trajectories_per_agent")
+"""The scalars TensorBoard's HParams dashboard compares runs by."""
+
+
+def hyperparameters(run: RunConfig) -> dict[str, int | float | str | bool]:
+    """What tells runs apart, for TensorBoard's HParams dashboard and W&B's config: every key
+    of the groups plots compare runs by, and the seed (lists and dicts as text)."""
+    from fedhpg.common.config import flatten, groups, to_dict
+
+    values = to_dict(run)
+    chosen = {key: values[key] for key in (*groups("compared"), "seed", "rounds")}
+    flat: dict[str, int | float | str | bool] = {}
+    for key, value in flatten(chosen).items():
+        if isinstance(value, bool | int | float | str):
+            flat[key] = value
+        elif value is not None and value != {} and value != []:
+            flat[key] = json.dumps(value)
+    return flat
+
+
+class EventFile:
+    """One TensorBoard event file, its records framed by tensorboard's own ``RecordWriter``
+    and written on the caller's thread, flushed as each is written: a disk that fills up is an
+    OSError here (the run directory's one-line error), not a traceback in a writer thread."""
+
+    def __init__(self, directory: Path) -> None:
+        from tensorboard.compat.proto.event_pb2 import Event
+        from tensorboard.summary.writer.record_writer import RecordWriter
+
+        directory.mkdir(parents=True, exist_ok=True)
+        name = (
+            f"events.out.tfevents.{int(time.time()):010d}.{socket.gethostname()}."
+            f"{os.getpid()}.{next(_files_opened)}"
         )
-        self._file_writer.add_summary(summary, record.round)
-        self._previous = after
+        self._file = (directory / name).open("wb")
+        self._records = RecordWriter(self._file)
+        self._event = Event
+        self.add(Event(wall_time=time.time(), file_version="brain.Event:2"))
+
+    def add(self, event: Any) -> None:
+        self._records.write(event.SerializeToString())
+        self._file.flush()
 
     def close(self) -> None:
-        self._file_writer.close()
+        self._file.close()
+
+
+_files_opened = itertools.count()
+
+
+class TensorBoardWriter:
+    """The rounds' scalars (:class:`RoundValues`) in a TensorBoard event file
+    (:class:`EventFile`), one event per round (one summary of many values); the run's
+    hyperparameters for the HParams dashboard first."""
+
+    def __init__(
+        self,
+        directory: Path,
+        theta: torch.Tensor,
+        *,
+        hparams: dict[str, int | float | str | bool],
+        first_round: int = 1,
+        per_agent: bool = True,
+    ) -> None:
+        from tensorboard.compat.proto.event_pb2 import Event, SessionLog
+        from tensorboard.compat.proto.summary_pb2 import Summary
+
+        self._event, self._summary = Event, Summary
+        self._file = EventFile(directory)
+        self._values = RoundValues(theta, per_agent=per_agent)
+        if first_round > 1:
+            # TensorBoard's purge: readers drop the older events of this step and later ones
+            self._file.add(Event(step=first_round, session_log=SessionLog(status=SessionLog.START)))
+        for summary in _hparams_summaries(hparams):
+            self._file.add(Event(wall_time=time.time(), summary=summary))
+
+    def __call__(self, record: RoundRecord, theta: torch.Tensor) -> None:
+        summary = self._summary(
+            value=[
+                self._summary.Value(tag=key, simple_value=value)
+                for key, value in self._values(record, theta).items()
+            ]
+        )
+        event = self._event(wall_time=time.time(), step=record.round, summary=summary)
+        try:
+            self._file.add(event)
+        except OSError as error:
+            raise RunDirectoryError(
+                f"cannot write round {record.round}'s TensorBoard event: "
+                f"{error.strerror or error}; metrics.jsonl and the checkpoints hold the rounds"
+            ) from None
+
+    def close(self) -> None:
+        self._file.close()
+
+
+def _hparams_summaries(hparams: dict[str, int | float | str | bool]) -> list[Any]:
+    """The HParams plugin's experiment and session-start summaries for one run."""
+    from tensorboard.plugins.hparams import summary_v2
+
+    metrics = [summary_v2.Metric(tag) for tag in HPARAM_METRICS]
+    experiment = summary_v2.hparams_config_pb(
+        hparams=[summary_v2.HParam(name) for name in hparams], metrics=metrics
+    )
+    session = summary_v2.hparams_pb(hparams, start_time_secs=int(time.time()))
+    return [experiment, session]
 
 
 def tensorboard_sink(
-    enabled: bool,
+    run: RunConfig,
     out_dir: Path,
     *,
     first_round: int,
     theta: torch.Tensor,
-    per_agent: bool = True,
 ) -> TensorBoardWriter | None:
     """A TensorBoard writer for ``out_dir/tensorboard``, or None when off or not installed.
 
     A resumed run (``first_round`` > 1) purges the steps from ``first_round`` on that an
     earlier process wrote, so no round is shown twice."""
-    if not enabled:
+    if not run.server.tensorboard:
         return None
     try:
-        from tensorboard.compat.proto.event_pb2 import Event, SessionLog
-        from tensorboard.compat.proto.summary_pb2 import Summary
+        from tensorboard.compat.proto.event_pb2 import Event  # noqa: F401
+        from tensorboard.summary.writer.record_writer import RecordWriter  # noqa: F401
     except ImportError:
         logger.warning(
             "tensorboard is not installed (pip install 'fedhpg[tensorboard]'): no event "
             "files, metrics.jsonl only (server.tensorboard=false silences this)"
         )
         return None
-    events = EventFile(out_dir / TENSORBOARD_DIR, Event, RecordWriter)
-    if first_round > 1:
-        # What TensorBoard's purge_step writes: readers drop older events of later steps.
-        events.add_event(Event(step=first_round, session_log=SessionLog(status=SessionLog.START)))
-    return TensorBoardWriter(events, Summary, theta, per_agent=per_agent)
+    return TensorBoardWriter(
+        out_dir / TENSORBOARD_DIR,
+        theta,
+        hparams=hyperparameters(run),
+        first_round=first_round,
+        per_agent=run.agents.num_agents <= run.server.tensorboard_agents,
+    )

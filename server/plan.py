@@ -36,6 +36,7 @@ from fedhpg.common.runtime.cli import (
     fail,
     limit_threads,
     setup_logging,
+    version_text,
 )
 from fedhpg.server.replan import round_overhead_s
 
@@ -196,7 +197,8 @@ def parser() -> argparse.ArgumentParser:
         description=(
             "Choose every agent's batch size B_k and local iterations tau_k by Theorem 1 "
             "(eq. 7) for a run's config and an emulated-time budget. The remaining arguments "
-            "are the key=value overrides fedhpg-run takes (README, Choosing budgets)."
+            "are the key=value overrides fedhpg-run takes (docs/configuration.md, Choosing "
+            "budgets)."
         ),
     )
     p.add_argument(
@@ -221,6 +223,7 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument("--batch-min", type=int, default=2)
     p.add_argument("--batch-max", type=int, default=64)
     p.add_argument("--tau-max", type=int, default=8, help="largest tau_k (default 8)")
+    p.add_argument("-V", "--version", action="version", version=version_text(p.prog).strip())
     return p
 
 

@@ -22,6 +22,7 @@ from typing import TYPE_CHECKING, Any, NoReturn
 import numpy as np
 
 from fedhpg.common.config import DIAGNOSTIC_KEYS, GROUPS, PLACEMENT_KEYS, REPLICATE_KEYS
+from fedhpg.common.runtime.cli import version_text
 from fedhpg.server.plot_stats import STATS, Band, band_over_seeds, caption
 
 if TYPE_CHECKING:
@@ -299,11 +300,13 @@ def draw_band(
     return line, band
 
 
-def legend(axis: Axes, stat: str, **options: Any) -> None:
-    """The legend, titled with what the curves and bands are."""
-    options.setdefault("loc", "best")
+def legend(axis: Axes, stat: str, *, seeds: int = 2, **options: Any) -> None:
+    """The legend, titled with what the curves and bands are (``seeds``: the most any curve
+    has). Without a ``loc`` it sits to the right of the axes, never over the data."""
+    if "loc" not in options:
+        options.update(loc="upper left", bbox_to_anchor=(1.02, 1.0), borderaxespad=0.0)
     options.setdefault("fontsize", "small")
-    axis.legend(title=caption(stat), title_fontsize="small", **options)
+    axis.legend(title=caption(stat, seeds=seeds), title_fontsize="small", **options)
 
 
 def save(figure: Figure, out: Path) -> None:
@@ -311,10 +314,10 @@ def save(figure: Figure, out: Path) -> None:
     import matplotlib.pyplot as plt
 
     figure.tight_layout()
-    try:
-        figure.savefig(out, dpi=120)
+    try:  # "tight": a legend beside the axes is inside the image
+        figure.savefig(out, dpi=120, bbox_inches="tight")
         # No date in the SVG: a redrawn figure whose data did not change stays the same file.
-        figure.savefig(out.with_suffix(".svg"), metadata={"Date": None})
+        figure.savefig(out.with_suffix(".svg"), metadata={"Date": None}, bbox_inches="tight")
     except OSError as error:
         raise PlotError(f"--out: cannot write {out}: {error.strerror or error}") from None
     finally:
@@ -389,24 +392,59 @@ def curves_of(
     return drawn
 
 
+def default_title(groups: dict[str, list[Run]]) -> str:
+    """What every run drawn shares: the environment family, K, the algorithm and strategy
+    (a value the runs differ in is left out: the legend says it)."""
+    configs = [run.config for runs in groups.values() for run in runs]
+
+    def shared(path: str) -> Any:
+        values = set()
+        for config in configs:
+            node: Any = config
+            for part in path.split("."):
+                node = node.get(part) if isinstance(node, dict) else None
+            values.add(json.dumps(node, sort_keys=True))
+        return json.loads(values.pop()) if len(values) == 1 else None
+
+    parts = []
+    family = shared("env.family")
+    if family is not None:
+        identifier = shared("env.options.id") if family == "gym" else None
+        parts.append(str(identifier or family))
+    if (agents := shared("agents.num_agents")) is not None:
+        parts.append(f"K={agents}")
+    if (algorithm := shared("algo.name")) is not None:
+        parts.append(NAMES.get(str(algorithm), str(algorithm)))
+    if (strategy := shared("strategy.name")) is not None:
+        parts.append(f"strategy {strategy}")
+    return ", ".join(parts) or "fedhpg learning curves"
+
+
 def draw(
     groups: dict[str, list[Run]],
     *,
     x_axis: str,
     metric: str,
-    title: str,
+    title: str | None = None,
     per_agent: bool = False,
     stat: str = "mean",
 ) -> Figure:
-    """The figure of every group's curve (not saved: :func:`plot` does that)."""
+    """The figure of every group's curve (not saved: :func:`plot` does that). ``title``:
+    by default what the runs share (:func:`default_title`)."""
+    from matplotlib.ticker import MaxNLocator
+
     drawn = curves_of(groups, x_axis=x_axis, metric=metric, per_agent=per_agent)
     figure, axis = figure_and_axis()
+    seeds = 0
     for label, curves in drawn:
-        draw_band(axis, label, curves, stat=stat)
+        _, band = draw_band(axis, label, curves, stat=stat)
+        seeds = max(seeds, band.seeds)
+    if x_axis == "rounds":
+        axis.xaxis.set_major_locator(MaxNLocator(integer=True))
     axis.set_xlabel(X_AXES[x_axis])
     axis.set_ylabel(METRICS[metric][1 if per_agent else 0])
-    axis.set_title(title)
-    legend(axis, stat)
+    axis.set_title(default_title(groups) if title is None else title)
+    legend(axis, stat, seeds=seeds)
     return figure
 
 
@@ -451,7 +489,12 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument(
         "--out", type=Path, default=Path("curves.png"), help="PNG (an .svg is written beside)"
     )
-    parser.add_argument("--title", default="fedhpg learning curves")
+    parser.add_argument(
+        "--title", help="the figure's title (default: what the runs share: env, K, algorithm)"
+    )
+    parser.add_argument(
+        "-V", "--version", action="version", version=version_text(parser.prog).strip()
+    )
     parser.add_argument(
         "--per-agent", action="store_true", help="one curve per agent (its own environment)"
     )

@@ -115,8 +115,11 @@ def band_over_seeds(
     return Band(grid, centre, low, high, len(curves))
 
 
-def caption(stat: str, level: float = LEVEL) -> str:
-    """What a curve and its band are, for the figure's legend title."""
+def caption(stat: str, level: float = LEVEL, *, seeds: int = 2) -> str:
+    """What a curve and its band are, for the figure's legend title; ``seeds``: the most any
+    curve has (one seed: a run's own curve, no band)."""
+    if seeds <= 1:
+        return "one seed per curve: no band"
     return (
         f"{STAT_NAMES[stat]} over seeds; band: {level:.0%} percentile-bootstrap CI "
         f"({RESAMPLES:,} resamples)"

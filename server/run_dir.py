@@ -17,10 +17,22 @@ from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
 
-from fedhpg.common.config import ConfigError
-from fedhpg.common.runtime.run_files import METRICS_NAME, holds_run
+from fedhpg.common.config import ConfigError, RunConfig
+from fedhpg.common.runtime.run_files import (
+    METRICS_NAME,
+    RUNS_ROOT,
+    holds_run,
+    new_run_path,
+    run_label,
+)
 
 LOCK_NAME = ".lock"
+
+
+def new_run_dir(run: RunConfig, *, root: Path = RUNS_ROOT, now: float | None = None) -> Path:
+    """A new run directory for ``run``: ``runs/<YYYYmmdd>-<HHMMSS>-<env>-<algo>``
+    (:func:`~fedhpg.common.runtime.run_files.new_run_path`), as every entry point names one."""
+    return new_run_path(run_label(run.env.family, run.env.id, run.algo.name), root=root, now=now)
 
 
 class RunDirectoryError(RuntimeError):

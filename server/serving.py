@@ -12,21 +12,27 @@ from __future__ import annotations
 
 import logging
 import sys
-import time
 import uuid
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import torch
 import zmq
 
 from fedhpg.common.components import agent_profile, resolve_algorithm
-from fedhpg.common.config import ConfigError, RunConfig, dictated_settings
+from fedhpg.common.config import (
+    ConfigError,
+    RunConfig,
+    agents_per_host,
+    attacking_agents,
+    dictated_settings,
+)
 from fedhpg.common.runtime.progress import Progress
 from fedhpg.common.types import EvaluationStats
-from fedhpg.common.variants import run_variants, variant_digest
+from fedhpg.common.variants import discount, run_variants, variant_digest, variant_of
 from fedhpg.common.wire.codec import MAX_HEADER_BYTES
 from fedhpg.common.wire.security import (
     ServerGuard,
@@ -46,7 +52,7 @@ from fedhpg.server.connections import ConnectionGuard, connection_budget
 from fedhpg.server.coordinator import RoundRecord
 from fedhpg.server.pools.secure import SecureExchange, neighbour_count, row_bytes
 from fedhpg.server.pools.zmq_pool import ZmqAgentPool
-from fedhpg.server.report import evaluation_table
+from fedhpg.server.report import evaluation_report
 from fedhpg.server.run_dir import claimed
 from fedhpg.server.validation import UpdateCheck
 
@@ -58,6 +64,25 @@ class ServerResult:
     theta: torch.Tensor
     out_dir: Path
     last_evaluation: dict[str, EvaluationStats] | None
+
+
+def sleeps_to_emulate(run: RunConfig) -> bool:
+    """Whether the run's agent processes sleep to emulate their devices: the sleeping clock
+    (``agents.virtual_clock=false``), one agent per process (a host never sleeps), and some
+    slowness to emulate (a speed below 1, a step delay, a latency, or a population that
+    draws them)."""
+    agents = run.agents
+    if agents.virtual_clock or agents_per_host(run) > 1:
+        return False
+    drawn = agents.population.kind != "none" and bool(
+        {"speed", "step_delay_s", "latency_s"} & set(agents.population.draw)
+    )
+    return (
+        drawn
+        or any(speed < 1 for speed in agents.speeds)
+        or any(delay > 0 for delay in agents.step_delays_s)
+        or any(latency > 0 for latency in agents.latencies_s)
+    )
 
 
 def message_cap(run: RunConfig, num_params: int) -> int:
@@ -101,8 +126,16 @@ def max_connections(run: RunConfig) -> int:
 def bind_error(run: RunConfig, error: zmq.ZMQError) -> str:
     """One line for an endpoint the server cannot listen on (a port in use, a bad address):
     exit status 1, since the setting may be right and the machine's state is what fails."""
-    key = "server.port" if run.server.transport == "tcp" else "server.ipc_path"
-    return f"{key}: cannot listen on {bind_endpoint(run.server)}: {error.strerror or error}"
+    reason = zmq.strerror(error.errno) if error.errno else str(error)
+    if run.server.transport != "tcp":
+        return f"server.ipc_path: cannot listen on {bind_endpoint(run.server)}: {reason}"
+    where = f"{run.server.host}:{run.server.port}"
+    hint = (
+        " (choose another port; server.port=0 takes a free one)"
+        if error.errno == zmq.EADDRINUSE
+        else ""
+    )
+    return f"server.port: cannot listen on {where}: {reason}{hint}"
 
 
 @dataclass
@@ -176,37 +209,41 @@ def serve(
     on_bound: Callable[[str], None] | None = None,
     show_progress: bool = True,
 ) -> ServerResult:
-    """Run one federation as its server; returns the final θ̃_T."""
+    """Run one federation as its server; returns the final θ̃_T. The socket is bound before
+    the run directory is claimed: an address it cannot listen on leaves nothing behind."""
     checked = check_run(run, distributed=True)
     cap = message_cap(run, int(checked.initial_theta.numel()))
-    with claimed(out_dir, resume=bool(run.resume)) as run_dir:
-        assembly = assemble(checked, run_dir=run_dir)
-        try:
-            with server_socket(run, cap) as parts:
+    with server_socket(run, cap) as parts:
+        parts.socket.bind(bind_endpoint(run.server))
+        bound = parts.socket.getsockopt_string(zmq.LAST_ENDPOINT)
+        with claimed(out_dir, resume=bool(run.resume)) as run_dir:
+            assembly = assemble(checked, run_dir=run_dir)
+            try:
                 pool = zmq_pool(assembly, parts, cap)
-                theta = _serve(assembly, pool, parts, on_bound, show_progress)
-        finally:
-            assembly.close()
-        assembly.finish(pool.agent_ids, **parts.guard.counts.as_dict())
+                logger.info(
+                    "server listening on %s, waiting for %d agents", bound, run.agents.num_agents
+                )
+                if sleeps_to_emulate(run):
+                    logger.info(
+                        "the agents sleep to emulate slower devices (agents.speeds, "
+                        "agents.step_delays_s, agents.latencies_s): most of this run's time is "
+                        "that sleep; agents.virtual_clock=true accounts the same emulated time "
+                        "without sleeping (the same θ̃)"
+                    )
+                if on_bound is not None:
+                    on_bound(bound)
+                theta = _serve(assembly, pool, show_progress)
+            finally:
+                assembly.close()
+            assembly.finish(pool.agent_ids, **parts.guard.counts.as_dict())
     _print_report(checked, assembly, pool.agent_ids, out_dir)
     return ServerResult(theta=theta, out_dir=out_dir, last_evaluation=assembly.last.eval)
 
 
-def _serve(
-    assembly: Assembly,
-    pool: ZmqAgentPool,
-    parts: ServerSocket,
-    on_bound: Callable[[str], None] | None,
-    show_progress: bool,
-) -> torch.Tensor:
+def _serve(assembly: Assembly, pool: ZmqAgentPool, show_progress: bool) -> torch.Tensor:
     run = assembly.run
     bar: Progress | None = None
     try:
-        parts.socket.bind(bind_endpoint(run.server))
-        bound = parts.socket.getsockopt_string(zmq.LAST_ENDPOINT)
-        logger.info("server listening on %s, waiting for %d agents", bound, run.agents.num_agents)
-        if on_bound is not None:
-            on_bound(bound)
         pool.wait_for_agents(run.server.register_timeout_s)
         if show_progress:  # timed from the first round on, not the wait for agents
             bar = Progress(run.rounds, "rounds", done=assembly.progress.next_round - 1)
@@ -245,26 +282,38 @@ def _print_report(
     """The unified policy's last evaluation per agent, then where the run directory is."""
     run, last = checked.run, assembly.last
     if last.eval:
-        params = {
-            agent: {"gamma": variant.gamma, **variant.params}
-            for agent, variant in zip(agent_ids, run_variants(run), strict=True)
-        }
-        # each agent's budget only for the table (~1 ms an agent where a population draws it)
-        algorithm, _ = resolve_algorithm(run)
-        compute = {}
-        for k, agent in enumerate(agent_ids):
-            profile = agent_profile(run, k)
-            compute[agent] = f"{algorithm.describe_budget(profile.budget)} speed={profile.speed:g}"
         sys.stdout.write(
             f"\nUnified policy after round {last.round} "
             f"({run.eval.episodes} {'greedy' if run.eval.greedy else 'sampled'} episodes "
             "per environment):\n"
-            + evaluation_table(last.eval, params, compute, has_goal=checked.first.has_goal)
+            + final_report(run, last.eval, agent_ids, has_goal=checked.first.has_goal)
             + "\n"
         )
     sys.stdout.write(f"run directory: {out_dir.resolve()}\n")
     sys.stdout.flush()
 
 
-def default_out_dir() -> Path:
-    return Path("runs") / time.strftime("%Y%m%d-%H%M%S")
+def final_report(
+    run: RunConfig,
+    evaluation: dict[str, EvaluationStats],
+    agent_ids: list[str],
+    *,
+    has_goal: bool,
+) -> str:
+    """The final table of ``evaluation`` (agent id → stats; ``agent_ids`` in index order): each
+    row's compute budget and environment variant are made only for the rows shown (~1 ms an
+    agent where a population draws it)."""
+    index = {agent: k for k, agent in enumerate(agent_ids)}
+    algorithm, _ = resolve_algorithm(run)
+
+    def describe(agent: str) -> tuple[str, dict[str, Any]]:
+        k = index[agent]
+        profile = agent_profile(run, k)
+        variant = variant_of(run, k)
+        compute = f"{algorithm.describe_budget(profile.budget)} speed={profile.speed:g}"
+        return compute, {"gamma": discount(run, variant), **variant.params}
+
+    attackers = [agent_ids[k] for k in attacking_agents(run) if k < len(agent_ids)]
+    return evaluation_report(
+        evaluation, describe, has_goal=has_goal, attackers=attackers, attack=run.attack.kind
+    )

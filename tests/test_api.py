@@ -1,11 +1,10 @@
-"""The Python API (``fedhpg.server.api``): the README's example runs as written; a policy loaded
-from a run directory reproduces the server's own evaluation in ``summary.json`` exactly;
-in-process and distributed runs agree; mistakes raise exceptions naming the key."""
+"""The Python API (``fedhpg.server.api``; its guide's examples run in tests/test_docs.py): a
+policy loaded from a run directory reproduces the server's own evaluation in ``summary.json``
+exactly; in-process and distributed runs agree; mistakes raise exceptions naming the key."""
 
 from __future__ import annotations
 
 import json
-import re
 from pathlib import Path
 
 import numpy as np
@@ -16,21 +15,7 @@ from fedhpg.common.runtime.cli import compose
 from fedhpg.server import api
 from fedhpg.server.assembly import run_in_process
 
-README = Path(__file__).parent.parent / "README.md"
 GRID = ["rounds=3", "seed=1", "eval.every=2", "eval.episodes=6"]
-
-
-def readme_example() -> str:
-    section = README.read_text().split("## Python API", 1)[1].split("\n## ", 1)[0]
-    blocks = re.findall(r"```python\n(.*?)```", section, flags=re.S)
-    assert blocks, "the README's Python API section has a python block"
-    return blocks[0]
-
-
-def test_the_readme_example_runs(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
-    monkeypatch.chdir(tmp_path)
-    exec(compile(readme_example(), str(README), "exec"), {"__name__": "readme"})
-    assert (tmp_path / "runs/api-example/summary.json").exists()
 
 
 def test_a_loaded_policy_reproduces_a_distributed_runs_summary(tmp_path: Path) -> None:

@@ -58,9 +58,9 @@ def test_round_trip_keeps_every_field(tmp_path: Path) -> None:
 def test_only_the_newest_checkpoints_are_kept(tmp_path: Path) -> None:
     for round_number in range(1, 6):
         save_checkpoint(tmp_path, _checkpoint(round_number))
-    assert sorted(p.name for p in tmp_path.glob("round-*.ckpt")) == [
-        "round-000004.ckpt",
-        "round-000005.ckpt",
+    assert sorted(p.name for p in tmp_path.glob("round-*")) == [
+        "round-000004.safetensors",
+        "round-000005.safetensors",
     ]
 
 
@@ -82,11 +82,13 @@ def test_a_damaged_newest_checkpoint_falls_back_to_the_previous(
         loaded = latest_valid_checkpoint(tmp_path)
     assert loaded is not None and loaded.round == 1
     assert f"skipping checkpoint: {newest}" in caplog.text
-    assert "checksum mismatch" in caplog.text
+    assert "torn or corrupt file" in caplog.text
 
 
 def _sealed(path: Path, body: bytes) -> Path:
-    """A file with a correct checksum around any body: only the format check can refuse it."""
+    """A file of the msgpack format (``.ckpt``) with a correct checksum around any body: only
+    the format check can refuse it."""
+    path = path.with_suffix(".ckpt")
     write_atomic(path, hashlib.sha256(body).digest() + body)
     return path
 
@@ -200,3 +202,84 @@ def test_version_2_files_give_their_server_optimizer_state_to_the_strategy(tmp_p
     assert loaded.version == 2 and loaded.state == {"trajectories_per_agent": 5.0}
     assert loaded.strategy.scalars == {"steps": 7}
     assert sorted(loaded.strategy.arrays) == ["first", "second"]
+
+
+def test_a_checkpoint_is_safetensors_that_torch_tools_read(tmp_path: Path) -> None:
+    from safetensors.torch import load_file
+
+    path = save_checkpoint(tmp_path, _checkpoint(4))
+    assert path.suffix == ".safetensors"
+    tensors = load_file(str(path))  # no fedhpg involved
+    assert torch.equal(tensors["theta"], _checkpoint(4).theta)
+    assert torch.equal(tensors["strategy/first"], torch.full((6,), 0.5))
+
+
+def test_a_changed_header_fails_the_checksum(tmp_path: Path) -> None:
+    path = save_checkpoint(tmp_path, _checkpoint(2))
+    raw = path.read_bytes()
+    forged = raw.replace(b'{\\"seed\\": 1}', b'{\\"seed\\": 7}')  # the config, in the header
+    assert forged != raw and len(forged) == len(raw)
+    path.write_bytes(forged)
+    with pytest.raises(CheckpointError, match="checksum mismatch"):
+        load_checkpoint(path)
+
+
+def _version_3_file(directory: Path, checkpoint: Checkpoint) -> Path:
+    """A checkpoint as fedhpg wrote them before safetensors: SHA-256, then msgpack."""
+
+    def packed(array: np.ndarray) -> dict:
+        return {"dtype": array.dtype.str, "shape": list(array.shape), "data": array.tobytes()}
+
+    body = msgpack.packb(
+        {
+            "format": "fedhpg-checkpoint", "version": 3, "round": checkpoint.round,
+            "theta": packed(checkpoint.theta.numpy()), "config": checkpoint.config,
+            "metrics_lines": checkpoint.metrics_lines, "state": checkpoint.state,
+            "strategy": {
+                "scalars": checkpoint.strategy.scalars,
+                "arrays": {k: packed(v) for k, v in checkpoint.strategy.arrays.items()},
+            },
+        },
+        use_bin_type=True,
+    )  # fmt: skip
+    path = directory / f"round-{checkpoint.round:06d}.ckpt"
+    directory.mkdir(parents=True, exist_ok=True)
+    write_atomic(path, hashlib.sha256(body).digest() + body)
+    return path
+
+
+def test_a_run_checkpointed_in_the_previous_format_resumes_exactly(tmp_path: Path) -> None:
+    """A run whose newest checkpoint is a version-3 msgpack file continues from it, bit for
+    bit, and its next checkpoints are safetensors."""
+    from fedhpg.server import api
+
+    keys = ["rounds=4", "seed=2", "agents=homogeneous4", "eval.every=4", "eval.episodes=2",
+            "strategy=fedadam"]  # fmt: skip
+    straight = api.run(overrides=keys)
+    out_dir = tmp_path / "run"
+    api.run(overrides=[*keys[1:], "rounds=2"], out_dir=out_dir)
+    (newest,) = [p for p in (out_dir / "checkpoints").iterdir() if "000002" in p.name]
+    current = load_checkpoint(newest)
+    for path in (out_dir / "checkpoints").iterdir():
+        path.unlink()
+    _version_3_file(out_dir / "checkpoints", current)  # as the previous fedhpg left it
+    resumed = api.run(overrides=[*keys, "resume=true"], out_dir=out_dir)
+    assert torch.equal(resumed.theta, straight.theta)
+    names = sorted(p.name for p in (out_dir / "checkpoints").iterdir())
+    assert names == ["round-000003.safetensors", "round-000004.safetensors"], names
+
+
+def test_a_checkpoint_of_an_unknown_format_version_is_refused_in_one_line(tmp_path: Path) -> None:
+    from safetensors.numpy import save
+
+    path = tmp_path / "round-000001.safetensors"
+    path.write_bytes(
+        save(
+            {"theta": np.zeros(3, np.float32)},
+            metadata={"format": "fedhpg-checkpoint", "version": "9"},
+        )
+    )
+    with pytest.raises(CheckpointError) as caught:
+        load_checkpoint(path)
+    assert "version '9' of the checkpoint format; this fedhpg reads version 4" in str(caught.value)
+    assert "\n" not in str(caught.value)

@@ -193,6 +193,42 @@ CASES: dict[str, tuple[str, list[str], str]] = {
     ),
     "host-negative-first": ("fedhpg-agent", ["agent.first=-1"], "agent.first: got -1"),
     "per-host-zero": ("fedhpg-run", ["agents.per_host=0"], "agents.per_host: got 0"),
+    "per-host-word": (
+        "fedhpg-run",
+        ["agents.per_host=many"],
+        "agents.per_host: got 'many', must be 'auto' or an integer >= 1",
+    ),
+    # a setting its mode ignores: it ran the default mode and exited 0 before
+    "trace-without-its-mode": (
+        "fedhpg-run",
+        ["strategy.participation.trace=bad.csv"],
+        "strategy.participation.trace: got 'bad.csv', which mode 'all' does not use: add "
+        "strategy.participation.mode=trace",
+    ),
+    "per-round-without-its-mode": (
+        "fedhpg-run",
+        ["strategy.participation.per_round=2"],
+        "strategy.participation.per_round: got 2, which mode 'all' does not use: add "
+        "strategy.participation.mode=uniform",
+    ),
+    # a gymnasium id or class where a family goes: it said "unexpected keyword argument 'seed'"
+    "gym-id-as-family": (
+        "fedhpg-run",
+        ["env.family=MountainCar-v0"],
+        "env.family: 'MountainCar-v0' is a gymnasium id, not an environment family: run it with "
+        "env=gym env.id=MountainCar-v0",
+    ),
+    "gym-class-as-family": (
+        "fedhpg-run",
+        ["env.family=gymnasium.envs.classic_control:MountainCarEnv"],
+        "env.family: gymnasium.envs.classic_control:MountainCarEnv is a gymnasium environment, "
+        "not a family of variants: run it with env=gym",
+    ),
+    "gym-without-an-id": (
+        "fedhpg-run",
+        ["env=gym"],
+        "env.id: env=gym needs a registered gymnasium id, e.g. env.id=MountainCar-v0",
+    ),
     "bounds-for-vr": (
         "fedhpg-run",
         ["algo=fedhpgvr", "algo.bound_estimates=true"],

@@ -61,11 +61,28 @@ def test_help_comes_from_the_config_docstrings_and_starts_nothing(tmp_path: Path
         assert "T, the number of communication rounds" in text  # RunConfig.rounds' docstring
         assert "server.port=5555" in text and "rounds=60" in text  # conf/config.yaml defaults
         assert re.search(r"algo=\s+fedhpg \(default\), fedhpgvr", text)
-        # one line per key (every key is listed) plus ~30 of groups, usage and examples:
-        # nothing wraps or repeats
-        key_lines = [line for line in text.splitlines() if re.match(r"  [a-z_.]+=", line)]
-        assert len(text.splitlines()) < len(key_lines) + 40
+        assert "More: docs/configuration.md" in text
     assert list(tmp_path.iterdir()) == [], "help writes nothing"
+
+
+@pytest.mark.parametrize("columns", [60, 80, 132])
+def test_help_wraps_at_words_within_the_terminal(columns: int, tmp_path: Path) -> None:
+    from fedhpg.common.runtime.help import _key_docs, help_text
+
+    text = help_text("fedhpg-run", width=min(columns, 120))
+    lines = text.splitlines()
+    assert not [line for line in lines if line.endswith("…")], "nothing cut"
+    too_long = [
+        line for line in lines if len(line) > min(columns, 120) and not re.match(r"  \S+=\S", line)
+    ]
+    assert not too_long, too_long  # only a key=default wider than the screen may run past
+    words = " ".join(" ".join(lines).split())
+    for key, doc in _key_docs().items():
+        if key.startswith("cluster."):
+            continue
+        assert " ".join(doc.split()) in words, key
+    for referred in re.findall(r"docs/[\w.-]+\.md", text):
+        assert (Path(__file__).parents[1] / referred).is_file(), referred
 
 
 def test_progress_is_plain_log_lines_off_a_terminal(caplog: pytest.LogCaptureFixture) -> None:
@@ -161,3 +178,132 @@ def test_a_busy_port_is_one_line_and_exit_1(tmp_path: Path) -> None:
         "(choose another port, or leave server.port unset for a free one)"
     ]
     assert list(tmp_path.iterdir()) == []
+
+
+def test_a_busy_port_leaves_no_run_directory_behind(tmp_path: Path) -> None:
+    with socket.socket() as holder:
+        holder.bind(("127.0.0.1", 0))
+        holder.listen()
+        busy = holder.getsockname()[1]
+        result = subprocess.run(
+            [str(BIN / "fedhpg-server"), *SMALL, f"server.port={busy}"],
+            cwd=tmp_path,
+            capture_output=True,
+            text=True,
+            timeout=120,
+            env={**os.environ, "FEDHPG_LOG_LEVEL": "WARNING"},
+        )
+    assert result.returncode == 1
+    assert list(tmp_path.iterdir()) == [], "no runs/<time>/ left"
+    assert result.stderr.splitlines() == [
+        f"error: server.port: cannot listen on 127.0.0.1:{busy}: Address already in use "
+        "(choose another port; server.port=0 takes a free one)"
+    ]
+
+
+def test_resuming_a_complete_run_says_so_and_starts_nothing(tmp_path: Path) -> None:
+    from fedhpg.server import api
+
+    api.run(overrides=[*SMALL, "rounds=2"], out_dir=tmp_path / "done")
+    before = (tmp_path / "done/metrics.jsonl").read_text()
+    for script in ("fedhpg-run", "fedhpg-server"):
+        args = ["resume=done"] if script == "fedhpg-run" else ["resume=true", "server.out_dir=done"]
+        result = subprocess.run(
+            [str(BIN / script), *args],
+            cwd=tmp_path,
+            capture_output=True,
+            text=True,
+            timeout=120,
+            env={**os.environ, "FEDHPG_LOG_LEVEL": "INFO"},
+        )
+        assert result.returncode == 0, result.stderr[-2000:]
+        assert result.stdout == (
+            "done is complete: round 2 of rounds=2, nothing to run (resume with rounds=N "
+            "above 2 to continue it)\n"
+        ), script
+        assert "listening" not in result.stderr and "registered" not in result.stderr
+    assert (tmp_path / "done/metrics.jsonl").read_text() == before
+
+
+def test_hydras_info_prints_each_line_once(tmp_path: Path) -> None:
+    result = subprocess.run(
+        [str(BIN / "fedhpg-run"), "--info"], cwd=tmp_path, capture_output=True, text=True,
+        timeout=120,
+    )  # fmt: skip
+    assert result.returncode == 0, result.stderr[-2000:]
+    both = (result.stdout + result.stderr).splitlines()
+    assert sum("Installed Hydra Plugins" in line for line in both) == 1, both[:6]
+
+
+def test_a_search_path_adds_config_groups(tmp_path: Path) -> None:
+    (tmp_path / "mine/env").mkdir(parents=True)
+    (tmp_path / "mine/env/short_cartpole.yaml").write_text(
+        "# @package _global_\nenv:\n  family: cartpole\n  level: 0.2\n  horizon: 20\n"
+    )
+    result = _run(
+        [*SMALL, "rounds=1", f"hydra.searchpath=[file://{tmp_path / 'mine'}]",
+         "env=short_cartpole", "server.out_dir=run"],
+        tmp_path,
+        level="WARNING",
+    )  # fmt: skip
+    assert result.returncode == 0, result.stderr[-2000:]
+    config = json.loads((tmp_path / "run/config.json").read_text())
+    assert (config["env"]["family"], config["env"]["horizon"]) == ("cartpole", 20)
+
+
+def test_a_slow_wait_is_announced_and_a_quick_one_is_not(caplog: pytest.LogCaptureFixture) -> None:
+    import time
+
+    from fedhpg.common.runtime.progress import announced_if_slow
+
+    with caplog.at_level(logging.INFO, logger="fedhpg.common.runtime.progress"):
+        with announced_if_slow("quick", after_s=0.5):
+            pass
+        with announced_if_slow("compiling …", after_s=0.05):
+            time.sleep(0.3)
+        time.sleep(0.6)  # the quick one's timer would have fired by now
+    assert [r.getMessage() for r in caplog.records] == ["compiling …"]
+
+
+@pytest.mark.slow
+def test_the_first_cartpole_run_says_it_compiles(tmp_path: Path) -> None:
+    """An empty numba cache, as right after an install: the ~20 s are announced."""
+    result = subprocess.run(
+        [str(BIN / "fedhpg-run"), "env=cartpole", "rounds=1", "eval.episodes=1",
+         "agents.budget.batch_size=[2]", "server.out_dir=run"],
+        cwd=tmp_path, capture_output=True, text=True, timeout=600,
+        env={**os.environ, "NUMBA_CACHE_DIR": str(tmp_path / "numba")},
+    )  # fmt: skip
+    assert result.returncode == 0, result.stderr[-2000:]
+    assert "compiling the compiled engine's CartPole kernels (numba)" in result.stderr
+
+
+def test_the_demo_says_it_sleeps_and_a_preset_says_what_it_changed(tmp_path: Path) -> None:
+    demo = _run(["rounds=1", "eval.episodes=1", "server.out_dir=demo"], tmp_path)
+    assert demo.returncode == 0, demo.stderr[-2000:]
+    said = [line for line in demo.stderr.splitlines() if "sleep" in line]
+    assert len(said) == 1 and "agents.virtual_clock=true" in said[0], said
+    preset = _run(
+        ["env=cartpole", "rounds=1", "eval.episodes=1", "agents.budget.batch_size=[2]",
+         "server.out_dir=cartpole"],
+        tmp_path,
+    )  # fmt: skip
+    assert preset.returncode == 0, preset.stderr[-2000:]
+    assert not [line for line in preset.stderr.splitlines() if "sleep" in line]
+    (changes,) = [line for line in preset.stderr.splitlines() if "env=cartpole also sets" in line]
+    parts = ["strategy=fedadam (was mean)", "algo.step_size=1.0 (was 0.5)",
+             "agents.virtual_clock=true (was false)", "agents.budget.local_iters=[1]"]  # fmt: skip
+    for part in parts:
+        assert part in changes, changes
+    assert "batch_size" not in changes, "what the command line set is its own"
+
+
+def test_fedpgbr_brings_its_strategy_unless_one_is_named() -> None:
+    from fedhpg.common.config import ConfigError
+    from fedhpg.common.runtime.cli import compose
+
+    assert compose(["algo=fedpgbr"]).strategy.name == "fedpgbr"
+    assert compose(["env=cartpole", "algo=fedpgbr"]).strategy.name == "fedpgbr"
+    assert compose(["-m", "env=cartpole", "algo=fedpgbr"][1:]).strategy.params["step_size"] == 0.01
+    with pytest.raises(ConfigError, match="algo=fedpgbr sends what only strategy=fedpgbr"):
+        compose(["env=cartpole", "algo=fedpgbr", "strategy=median"])

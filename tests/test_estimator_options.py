@@ -1,13 +1,14 @@
 """The estimator options used in practice (``algo.reward_to_go``, ``algo.normalize``): each
 departure from eq. 5/6 is shown to be *biased* for ∇J on the tabular MDP, by how much (the
-figures of README, Estimator options), and the batched engine computes them as the loop does.
+figures of docs/configuration.md, Estimator options), and the batched engine computes them as
+the loop does.
 
 Exact where the option keeps each trajectory's estimate a function of that trajectory alone
 (reward-to-go from the step; per-episode standardisation without baseline): E[g] is then the
 probability-weighted sum over every trajectory. Batch standardisation couples the trajectories
 of a batch, so its E[g] is a Monte-Carlo mean over G batches with its standard error.
 
-``python -m pytest tests/test_estimator_options.py -k figures -s`` prints the README table.
+``python -m pytest tests/test_estimator_options.py -k figures -s`` prints the guide's table.
 """
 
 from __future__ import annotations
@@ -186,7 +187,7 @@ def test_standardised_coefficients_have_zero_mean_and_unit_spread(batches: list[
     ).all()
 
 
-# -- every departure is biased for ∇J, by the README's figures ---------------------------------
+# -- every departure is biased for ∇J, by the guide's figures ---------------------------------
 
 
 def test_reward_to_go_from_step_is_biased_exactly(
@@ -239,8 +240,8 @@ BIASED: dict[str, dict[str, str]] = {
 
 def test_bias_figures(estimates: Callable[..., torch.Tensor], exact: torch.Tensor) -> None:
     """Monte-Carlo figures of every biased option with the mean baseline (B = 8, as trained),
-    printed for README, Estimator options; each is far from ∇J (per coordinate, in standard
-    errors of the mean; the ± is the norm of those standard errors over ‖∇J‖). Batch
+    printed for docs/configuration.md, Estimator options; each is far from ∇J (per coordinate,
+    in standard errors of the mean; the ± is the norm of those standard errors over ‖∇J‖). Batch
     standardisation comes out mostly a shorter ∇J here (cos ≈ 0.999): its direction bias is
     too small to resolve with 5·10⁴ trajectories, so only the length is claimed."""
     print(f"\n| option (mean baseline, B={BATCH_SIZE}) | ‖E g − ∇J‖/‖∇J‖ | cos(E g, ∇J) |")

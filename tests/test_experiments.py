@@ -34,7 +34,8 @@ def test_every_preset_composes_and_validates(preset: str) -> None:
 
 @pytest.mark.parametrize(("group", "option"), [(g, o) for g, opts in GROUPS.items() for o in opts])
 def test_every_group_option_composes(group: str, option: str) -> None:
-    compose([f"{group}={option}"])
+    needs = {("env", "gym"): ["env.id=CartPole-v1"]}  # env=gym runs the id it is given
+    compose([f"{group}={option}", *needs.get((group, option), [])])
 
 
 @pytest.mark.parametrize(

@@ -178,7 +178,16 @@ def test_missing_agents_are_named_after_the_timeout(tmp_path: Path) -> None:
         _, stderr = server.communicate(timeout=TIMEOUT_S)
     assert server.returncode == 1
     assert "only 1 of 3 agents registered" in stderr
-    assert "missing agent indices [0, 2]" in stderr and "agent-0, agent-2" in stderr
+    assert "missing: agents 0, 2 (2 in all)" in stderr
+
+
+def test_missing_agents_take_one_short_line_at_any_k() -> None:
+    from fedhpg.server.pools.zmq_pool import index_ranges
+
+    missing = [*range(832, 1000), 5]
+    assert index_ranges(missing) == "agents 5, 832-999 (169 in all)"
+    scattered = index_ranges(range(0, 2000, 2))
+    assert len(scattered) < 80 and scattered.endswith(", … (1000 in all)")
 
 
 def test_agent_gives_up_clearly_without_a_server(tmp_path: Path) -> None:
@@ -200,3 +209,6 @@ def test_agent_gives_up_clearly_without_a_server(tmp_path: Path) -> None:
     )
     assert result.returncode == 1
     assert "no answer from the server" in result.stderr and "Traceback" not in result.stderr
+    (last,) = [line for line in result.stderr.splitlines() if "no answer" in line]
+    assert last.startswith("error: agent 0: no answer from the server at tcp://"), last
+    assert " ERROR " not in result.stderr

@@ -1,4 +1,4 @@
-"""Hostile peers and unlucky operators against real processes on loopback (issue 15): no
+"""Hostile peers and unlucky operators against real processes on loopback: no
 registered agent can crash or poison the server, no operator mistake loses data or ends in a
 traceback. Every process is killed at the end, pass or fail; every wait is bounded."""
 

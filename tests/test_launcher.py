@@ -56,8 +56,18 @@ def test_a_crashed_agent_without_restarts_left_stops_the_federation(tmp_path: Pa
     assert wait_until(lambda: not any(alive(pid) for pid in children), 10)
 
 
-@pytest.mark.parametrize("inherited", ["default", "ignored"])
-def test_ctrl_c_leaves_no_process_behind(tmp_path: Path, inherited: str) -> None:
+@pytest.mark.parametrize(
+    ("stop", "inherited", "status"),
+    [
+        (signal.SIGINT, "default", 130),
+        (signal.SIGINT, "ignored", 130),
+        (signal.SIGTERM, "default", 143),  # 128 + 15, as a shell reports it (130 before)
+    ],
+    ids=["ctrl-c", "ctrl-c-ignored", "sigterm"],
+)
+def test_a_stopped_run_leaves_no_process_and_says_how_to_continue(
+    tmp_path: Path, stop: int, inherited: str, status: int
+) -> None:
     """'ignored': the launcher starts with SIGINT ignored, as a shell's background job does
     (and as a test process may pass on), and must still stop on it."""
     before = signal.getsignal(signal.SIGINT)
@@ -68,12 +78,18 @@ def test_ctrl_c_leaves_no_process_behind(tmp_path: Path, inherited: str) -> None
             launcher, children = _running_federation(started, tmp_path)
         finally:
             signal.signal(signal.SIGINT, before)
-        launcher.send_signal(signal.SIGINT)
+        saved = tmp_path / "run" / "checkpoints"
+        assert wait_until(lambda: saved.is_dir() and any(saved.iterdir()), 60)
+        launcher.send_signal(stop)
         # communicate, not wait: the federation's processes share the launcher's pipes, and a
         # pipe nobody drains blocks the process writing to it once it is full (64 KiB)
-        launcher.communicate(timeout=60)
-    assert launcher.returncode == 130
+        _, stderr = launcher.communicate(timeout=60)
+    assert launcher.returncode == status
     assert wait_until(lambda: not any(alive(pid) for pid in children), 10)
+    last = stderr.strip().splitlines()[-1]
+    assert last.startswith("interrupted after round "), stderr[-2000:]
+    assert f"run directory: {tmp_path / 'run'}" in last
+    assert last.endswith(f"continue it with: fedhpg-run resume={tmp_path / 'run'}")
 
 
 def test_children_die_with_a_killed_launcher(tmp_path: Path) -> None:
@@ -135,6 +151,26 @@ def test_agents_of_a_run_the_server_aborts_are_not_restarted(tmp_path: Path) -> 
         stdout, stderr = launcher.communicate(timeout=120)
     assert launcher.returncode == 1, stderr[-2000:]
     assert "every agent's update was rejected" in stderr and "lower algo.step_size" in stderr
-    assert "the run was aborted" in stderr
+    # said once, by the server: its forked agents leave the abort to it
+    assert stderr.count("every agent's update was rejected") == 1, stderr[-2000:]
     assert "restarting it" not in stderr, stderr[-2000:]
     assert "Traceback" not in stderr + stdout
+
+
+def test_a_stopped_server_says_how_to_continue(tmp_path: Path) -> None:
+    from procs import free_port
+
+    keys = [*LONG_RUN, "agents.num_agents=1", f"server.port={free_port()}", "server.out_dir=run"]
+    with processes() as started:
+        server = start(started, "fedhpg-server", keys, cwd=tmp_path)
+        agent = start(started, "fedhpg-agent", [*keys, "agent.index=0"], cwd=tmp_path)
+        saved = tmp_path / "run" / "checkpoints"
+        assert wait_until(lambda: saved.is_dir() and any(saved.iterdir()), 60)
+        server.send_signal(signal.SIGTERM)
+        _, stderr = server.communicate(timeout=60)
+        agent.communicate(timeout=60)
+    assert server.returncode == 143, stderr[-2000:]
+    lines = stderr.strip().splitlines()
+    assert lines[-1] == "interrupted"
+    assert lines[-2].endswith("continue it with: fedhpg-server resume=true server.out_dir=run")
+    assert agent.returncode == 3, "the agent is told the run was stopped"

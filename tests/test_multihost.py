@@ -1,6 +1,6 @@
 """Several hosts on one machine: the server and each agent in their own Linux network
 namespace, joined by veth pairs. A federation completes across them. When one agent's link is
-cut mid-run the server behaves as the README's "Deploy" section says: it presumes the silent
+cut mid-run the server behaves as docs/deploy.md says: it presumes the silent
 agent dead after the heartbeat liveness window, waits ``server.rejoin_timeout_s`` for it, and
 then fails, naming the agent it lost; when the link comes back in time, the agent notices the
 silence, reconnects by itself, rejoins at the current round and the run finishes.

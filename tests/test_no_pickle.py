@@ -213,6 +213,7 @@ def test_a_pickle_as_a_checkpoint_is_refused_unopened(tmp_path: Path) -> None:
         }
     )
     cases = {
+        "round-000001.safetensors": payload,
         "raw.ckpt": payload,
         "checksummed.ckpt": hashlib.sha256(payload).digest() + payload,
         "object-dtype.ckpt": hashlib.sha256(object_array).digest() + object_array,
@@ -240,11 +241,11 @@ def test_wire_and_checkpoints_work_with_unpickling_disabled(
     ]:
         monkeypatch.setattr(owner, name, forbidden)
     theta = torch.arange(12, dtype=torch.float32)
-    save_checkpoint(
+    path = save_checkpoint(
         tmp_path,
         Checkpoint(round=3, theta=theta, config={"seed": 1}, metrics_lines=3, state={}),
     )
-    loaded = load_checkpoint(tmp_path / "round-000003.ckpt")
+    loaded = load_checkpoint(path)
     assert torch.equal(loaded.theta, theta) and loaded.config == {"seed": 1}
     stats = UpdateStats(trajectories=1, env_steps=1, compute_s=0.0, train_return=0.0)
     update = Update(

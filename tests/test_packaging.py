@@ -16,9 +16,9 @@ ROOT = Path(__file__).parents[1]
 def _source_copy(dest: Path) -> Path:
     """What the Dockerfile copies, so the build's scratch files stay out of the checkout."""
     dest.mkdir()
-    for name in ("pyproject.toml", "README.md"):
+    for name in ("pyproject.toml", "README.md", "LICENSE"):
         shutil.copy(ROOT / name, dest / name)
-    for package in ("common", "envs", "server", "agent", "conf"):
+    for package in ("fedhpg", "common", "envs", "server", "agent", "conf"):
         shutil.copytree(
             ROOT / package, dest / package, ignore=shutil.ignore_patterns("__pycache__")
         )

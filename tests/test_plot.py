@@ -269,3 +269,38 @@ def test_plot_writes_png_and_svg(sweep: Path, tmp_path: Path) -> None:
     out = tmp_path / "curves.png"
     assert main([str(sweep), "--x", "trajectories", "--stat", "median", "--out", str(out)]) == 0
     assert out.stat().st_size > 1000 and out.with_suffix(".svg").stat().st_size > 1000
+
+
+def _overlap(a: object, b: object) -> bool:
+    return bool(a.overlaps(b))  # type: ignore[attr-defined]
+
+
+def test_round_ticks_are_whole_rounds_and_the_legend_leaves_the_data_alone(sweep: Path) -> None:
+    groups = group_runs(find_runs([sweep]))
+    figure = draw(groups, x_axis="rounds", metric="eval_return")
+    axis = figure.axes[0]
+    figure.canvas.draw()
+    ticks = [t for t in axis.get_xticks() if axis.get_xlim()[0] <= t <= axis.get_xlim()[1]]
+    assert ticks and all(float(t).is_integer() for t in ticks), ticks
+    renderer = figure.canvas.get_renderer()  # type: ignore[attr-defined]
+    legend_box = axis.get_legend().get_window_extent(renderer)
+    assert not _overlap(legend_box, axis.get_window_extent(renderer)), "legend over the data"
+    plt.close(figure)
+
+
+def test_the_title_says_what_ran_unless_given(sweep: Path) -> None:
+    groups = group_runs(find_runs([sweep]))
+    figure = draw(groups, x_axis="rounds", metric="eval_return")
+    title = figure.axes[0].get_title()
+    assert "gridworld" in title and "K=4" in title and title != "fedhpg learning curves"
+    plt.close(figure)
+    figure = draw(groups, x_axis="rounds", metric="eval_return", title="mine")
+    assert figure.axes[0].get_title() == "mine"
+    plt.close(figure)
+
+
+def test_one_seed_is_not_called_a_mean_over_seeds(single_point: Path) -> None:
+    figure = draw(group_runs(find_runs([single_point])), x_axis="rounds", metric="eval_return")
+    title = figure.axes[0].get_legend().get_title().get_text()
+    assert "over seeds" not in title and "one seed" in title, title
+    plt.close(figure)

@@ -247,7 +247,7 @@ def test_plaintext_and_curve_do_not_mix(tmp_path: Path, started: list, curve_sid
     server = start(started, "fedhpg-server", server_args, cwd=tmp_path)
     stderr, elapsed = _refused(started, agent_args, tmp_path)
     assert elapsed < REFUSAL_BOUND_S, f"took {elapsed:.1f} s: waited for the connect timeout?"
-    lines = [line for line in stderr.splitlines() if "ERROR" in line]
+    lines = [line for line in stderr.splitlines() if line.startswith("error:")]
     assert len(lines) == 1, stderr
     # Which side notices first is a race: the agent hears "mismatch" or, when the server hangs
     # up first, sees three failed handshakes; both lines name CURVE as the likely cause. (The

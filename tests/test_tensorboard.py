@@ -110,21 +110,51 @@ def test_without_tensorboard_installed_a_warning_and_the_run_goes_on(
     assert len(warnings) == 1
 
 
-def test_event_records_are_framed_as_tensorboards_own_writer_frames_them() -> None:
-    """Our RecordWriter (C CRC-32C) writes the bytes tensorboard's RecordWriter writes."""
-    import io
+def test_the_runs_hyperparameters_are_in_the_hparams_dashboard(tmp_path: Path) -> None:
+    from tensorboard.plugins.hparams import metadata, plugin_data_pb2
 
-    from tensorboard.summary.writer.record_writer import RecordWriter as Reference
+    out_dir = tmp_path / "run"
+    api.run(overrides=[*RUN, "rounds=2", "algo.step_size=0.25"], out_dir=out_dir)
+    events = EventAccumulator(str(out_dir / "tensorboard"))
+    events.Reload()
+    content = events.PluginTagToContent(metadata.PLUGIN_NAME)
+    experiment = plugin_data_pb2.HParamsPluginData.FromString(
+        content[metadata.EXPERIMENT_TAG]
+    ).experiment
+    assert {"algo.step_size", "env.family", "seed", "agents.num_agents"} <= {
+        h.name for h in experiment.hparam_infos
+    }
+    assert {m.name.tag for m in experiment.metric_infos} >= {"eval/mean/return"}
+    start = plugin_data_pb2.HParamsPluginData.FromString(
+        content[metadata.SESSION_START_INFO_TAG]
+    ).session_start_info
+    assert start.hparams["algo.step_size"].number_value == 0.25
+    assert start.hparams["env.family"].string_value == "gridworld"
 
-    from fedhpg.server.metrics import RecordWriter
 
-    rng = np.random.default_rng(0)
-    for size in (0, 1, 7, 1000, 70_000):
-        data = rng.integers(0, 256, size, dtype=np.uint8).tobytes()
-        ours, theirs = io.BytesIO(), io.BytesIO()
-        RecordWriter(ours).write(data)
-        Reference(theirs).write(data)
-        assert ours.getvalue() == theirs.getvalue(), size
+def test_the_records_are_framed_by_tensorboards_own_writer(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Every record goes through tensorboard's RecordWriter (no framing of ours), and its
+    reader takes every one back."""
+    from tensorboard.backend.event_processing.event_file_loader import EventFileLoader
+    from tensorboard.summary.writer import record_writer
+
+    written = []
+    original = record_writer.RecordWriter.write
+    monkeypatch.setattr(
+        record_writer.RecordWriter,
+        "write",
+        lambda self, data: (written.append(data), original(self, data))[1],
+    )
+    out_dir = tmp_path / "run"
+    api.run(overrides=[*RUN, "rounds=2"], out_dir=out_dir)
+    (path,) = (out_dir / "tensorboard").glob("events.out.tfevents.*")
+    from tensorboard.compat.proto.event_pb2 import Event
+
+    read = [(e.wall_time, e.step) for e in EventFileLoader(str(path)).Load()]
+    assert read == [(e.wall_time, e.step) for e in map(Event.FromString, written)]
+    assert len(read) == 1 + 2 + 2, "the file version, the hparams, two rounds"
 
 
 def test_update_norms_are_each_agents_own(monkeypatch: pytest.MonkeyPatch) -> None:

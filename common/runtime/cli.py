@@ -29,15 +29,40 @@ EXIT_RUN_ABORTED = 3
 LOG_FORMAT = "%(asctime)s %(levelname)s %(name)s: %(message)s"
 LOG_DATE_FORMAT = "%H:%M:%S"
 HELP_FLAGS = ("-h", "--help")
+VERSION_FLAGS = ("-V", "--version")
 NO_RESUME = ("", "null", "none", "false")
 """``resume=`` values that mean no resume, in any case."""
 
 
+def version_text(prog: str) -> str:
+    """``PROG VERSION`` (``--version`` on every entry point), the installed package's version."""
+    from importlib.metadata import PackageNotFoundError, version
+
+    try:
+        number = version("fedhpg")
+    except PackageNotFoundError:
+        number = "0+unknown"
+    return f"{prog} {number}\n"
+
+
+def answer_version(prog: str, args: Sequence[str]) -> None:
+    """Print the version and exit 0 when ``args`` ask for it (before anything is imported)."""
+    if any(a in VERSION_FLAGS for a in args):
+        sys.stdout.write(version_text(prog))
+        sys.exit(0)
+
+
 def register_schema() -> None:
-    """Make ``RunConfig`` the schema that ``conf/config.yaml`` extends (Hydra ConfigStore)."""
+    """Make ``RunConfig`` the schema that ``conf/config.yaml`` extends (Hydra ConfigStore), and
+    register the resolver its ``hydra.run.dir`` names (the one run-directory convention)."""
     from hydra.core.config_store import ConfigStore
+    from omegaconf import OmegaConf
+
+    from fedhpg.common.runtime.run_files import hydra_run_dir
 
     ConfigStore.instance().store(name=SCHEMA_NAME, node=RunConfig)
+    if not OmegaConf.has_resolver("fedhpg_run_dir"):
+        OmegaConf.register_new_resolver("fedhpg_run_dir", hydra_run_dir)
 
 
 def to_run_config(cfg: object) -> RunConfig:
@@ -149,8 +174,12 @@ def _typo(key: str) -> str | None:
     return found.split(": ", 1)[1] if found is not None else None
 
 
+PRINTING_FLAGS = (
+    "--hydra-help", "--cfg", "-c", "--info", "-i", "--shell-completion", "-sc",
+)  # fmt: skip
+"""Hydra's flags that print and exit: Hydra sets up its own logging for them."""
 HYDRA_FLAGS = (
-    "--hydra-help", "--version", "--cfg", "-c", "--resolve", "--package", "-p", "--run", "-r",
+    "--hydra-help", "--cfg", "-c", "--resolve", "--package", "-p", "--run", "-r",
     "--multirun", "-m", "--shell-completion", "-sc", "--config-path", "-cp", "--config-name",
     "-cn", "--config-dir", "-cd", "--experimental-rerun", "--info", "-i",
 )  # fmt: skip
@@ -172,14 +201,30 @@ def compose_cfg(overrides: Sequence[str]) -> Any:
         return hydra_compose(config_name=CONFIG_NAME, overrides=list(overrides))
 
 
+COMPOSING_HYDRA_KEYS = ("hydra.searchpath",)
+"""Hydra settings that change what the config composes to (more config groups): kept with
+the overrides a run is composed and checked with; every other ``hydra.*`` is Hydra's alone."""
+
+
 def own_overrides(args: Sequence[str]) -> list[str]:
-    """The config overrides among the arguments: no flags, no ``hydra.*`` settings."""
-    return [a for a in args if not a.startswith("-") and not a.lstrip("+~").startswith("hydra.")]
+    """The config overrides among the arguments: no flags, no ``hydra.*`` settings other than
+    :data:`COMPOSING_HYDRA_KEYS`."""
+    return [
+        a
+        for a in args
+        if not a.startswith("-")
+        and (
+            not a.lstrip("+~").startswith("hydra.")
+            or a.lstrip("+~").split("=", 1)[0] in COMPOSING_HYDRA_KEYS
+        )
+    ]
 
 
-def compose(overrides: Sequence[str], *, resumable: bool = False) -> RunConfig:
+def compose(overrides: Sequence[str], *, resumable: bool = False, report: bool = True) -> RunConfig:
     """Compose ``conf/config.yaml`` with command-line overrides, without Hydra's run dirs.
-    With ``resumable`` and a ``resume=`` override, start from the run's ``config.json``."""
+    With ``resumable`` and a ``resume=`` override, start from the run's ``config.json``.
+    ``report``: log what each config group named on the command line changed beyond its own
+    section (:func:`preset_changes`)."""
     from fedhpg.common.runtime.resume import compose_resume, resume_value, settle_auto
 
     overrides = own_overrides(overrides)
@@ -188,7 +233,125 @@ def compose(overrides: Sequence[str], *, resumable: bool = False) -> RunConfig:
     with hydra_context():
         if resumable and resume_value(overrides) is not None:
             return compose_resume(overrides)
-        return to_run_config(compose_cfg(overrides))
+        return to_run_config(compose_cfg(with_algorithm_strategy(overrides)))
+
+
+def report_presets(overrides: Sequence[str]) -> None:
+    """Log what each config group named in ``overrides`` set outside its own section
+    (:func:`preset_changes`): for entry points that start a run, once it passed its checks."""
+    from fedhpg.common.runtime.resume import resume_value
+
+    overrides = own_overrides(overrides)
+    if resume_value(overrides) is not None:
+        return  # a resume runs its own config.json
+    with hydra_context():
+        for line in preset_changes(with_algorithm_strategy(overrides)):
+            logger.info("%s", line)
+
+
+def _named(overrides: Sequence[str], key: str) -> bool:
+    return any(o.split("=", 1)[0].lstrip("+~") == key for o in overrides)
+
+
+def with_algorithm_strategy(overrides: Sequence[str]) -> list[str]:
+    """The overrides, plus ``strategy=S`` when the composed algorithm names the one strategy
+    its updates mean anything to (``Algorithm.strategy``: fedpgbr's) and the command line
+    names no strategy: ``algo=fedpgbr`` brings its server also where an env preset picked
+    another (inside :func:`hydra_context`)."""
+    overrides = list(overrides)
+    if _named(overrides, "strategy") or _named(overrides, "strategy.name"):
+        return overrides
+    try:
+        cfg = compose_cfg(overrides)
+        from fedhpg.common.algorithms import ALGORITHMS
+        from fedhpg.common.registry import import_plugins
+
+        import_plugins(list(cfg.plugins))
+        wanted = ALGORITHMS.get(str(cfg.algo.name)).strategy
+    except (ConfigError, ImportError, KeyError, ValueError):
+        return overrides  # validation names what is wrong
+    if wanted is None or wanted == cfg.strategy.name:
+        return overrides
+    from hydra.core.global_hydra import GlobalHydra
+
+    groups = GlobalHydra.instance().config_loader().get_group_options("strategy")
+    return [*overrides, f"strategy={wanted}" if wanted in groups else f"strategy.name={wanted}"]
+
+
+PRESET_SECTIONS = {
+    "env": "env",
+    "algo": "algo",
+    "strategy": "strategy",
+    "attack": "attack",
+    "agents": "agents",
+    "cluster": "cluster",
+}
+"""Config groups whose settings belong to a section of their own: what they set there is
+their purpose, what they set elsewhere is reported (:func:`preset_changes`)."""
+
+
+def preset_changes(overrides: Sequence[str]) -> list[str]:
+    """For each config group named in ``overrides`` (``env=cartpole``), what choosing it
+    changed outside its own section, against the same command line without it: one line each,
+    e.g. ``env=cartpole also sets strategy=fedadam (was mean), algo.step_size=1.0 (was 0.5)``.
+    Keys the command line sets itself are left out. (Inside :func:`hydra_context`.)"""
+    from hydra.core.global_hydra import GlobalHydra
+    from omegaconf import OmegaConf
+
+    from fedhpg.common.config import flatten
+
+    loader = GlobalHydra.instance().config_loader()
+    group_names = {name for name in loader.list_groups("") if name != "hydra"}
+    chosen = [o for o in overrides if "=" in o and o.split("=", 1)[0] in group_names]
+    if not chosen:
+        return []
+    explicit = {o.split("=", 1)[0].lstrip("+~") for o in overrides if o not in chosen}
+
+    def composed(lines: list[str]) -> tuple[dict[str, Any], dict[str, str]]:
+        from hydra import compose as hydra_compose
+
+        with hydra_errors(lines):
+            cfg = hydra_compose(config_name=CONFIG_NAME, overrides=lines, return_hydra_config=True)
+        choices = {str(k): str(v) for k, v in cfg.hydra.runtime.choices.items()}
+        values = OmegaConf.to_container(cfg)
+        assert isinstance(values, dict)
+        values.pop("hydra")
+        return flatten(values), choices
+
+    with_all, choices = composed(list(overrides))
+    lines = []
+    for choice in chosen:
+        group = choice.split("=", 1)[0]
+        try:
+            without, choices_before = composed([o for o in overrides if o != choice])
+        except ConfigError:  # the rest needs the group (a key only it declares): no baseline
+            continue
+        switched = {
+            name: (choices[name], choices_before.get(name))
+            for name in group_names
+            if name != group and choices.get(name) != choices_before.get(name)
+        }
+        own = PRESET_SECTIONS.get(group)
+        quiet = [s for s in (own, *switched) if s]
+        changed = [
+            f"{key}={_shown(with_all.get(key))} (was {_shown(without.get(key))})"
+            for key in sorted(set(with_all) | set(without))
+            if with_all.get(key) != without.get(key)
+            and not any(key == s or key.startswith(f"{s}.") for s in quiet)
+            and not any(key == e or key.startswith(f"{e}.") for e in explicit)
+        ]
+        parts = [f"{name}={now} (was {before})" for name, (now, before) in switched.items()]
+        if parts or changed:
+            lines.append(f"{choice} also sets " + ", ".join(parts + changed))
+    return lines
+
+
+def _shown(value: Any) -> str:
+    if value is None:
+        return "null"
+    if isinstance(value, bool):
+        return str(value).lower()
+    return str(value)
 
 
 def sweep_points(overrides: Sequence[str]) -> list[list[str]]:
@@ -222,7 +385,7 @@ def compose_sweep(overrides: Sequence[str]) -> list[RunConfig]:
         swept = {key for key, seen in values.items() if len(seen) > 1}
         for number, point in enumerate(points, 1):
             try:
-                runs.append(to_run_config(compose_cfg(point)))
+                runs.append(to_run_config(compose_cfg(with_algorithm_strategy(point))))
             except ConfigError as error:
                 where = " ".join(p for p in point if p.split("=", 1)[0] in swept)
                 label = f"sweep point {number}/{len(points)}" + (f" ({where})" if where else "")
@@ -279,6 +442,39 @@ def limit_threads() -> None:
     torch.set_num_threads(1)
 
 
+class Interrupted(KeyboardInterrupt):
+    """Ctrl-C (SIGINT) or SIGTERM: the process ends with status 128 + the signal's number
+    (130, 143), as a shell reports a process the signal ended."""
+
+    def __init__(self, signum: int = 2) -> None:
+        super().__init__(signum)
+        self.signum = signum
+
+    @property
+    def status(self) -> int:
+        return 128 + self.signum
+
+
+@contextlib.contextmanager
+def stop_signals() -> Iterator[None]:
+    """Within the block, SIGINT and SIGTERM raise :class:`Interrupted` in the main thread
+    (SIGINT too: a process started with it ignored, as a shell's background job is, would
+    otherwise not stop on it); the handlers before are put back after."""
+    import signal
+
+    def interrupt(signum: int, _frame: object) -> None:
+        raise Interrupted(signum)
+
+    previous = {sig: signal.getsignal(sig) for sig in (signal.SIGINT, signal.SIGTERM)}
+    for sig in previous:
+        signal.signal(sig, interrupt)
+    try:
+        yield
+    finally:
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)
+
+
 def fail(error: ConfigError) -> int:
     sys.stderr.write(f"error: {error}\n")
     return EXIT_USAGE
@@ -289,13 +485,19 @@ def run_entry(
     argv: Sequence[str] | None = None,
     *,
     resumable: bool = False,
+    presets: bool = False,
 ) -> int:
-    """Compose, validate and run ``main``; user mistakes exit 2 with one line, never a trace."""
+    """Compose, validate and run ``main``; user mistakes exit 2 with one line, never a trace.
+    ``presets``: log what the config groups named on the command line changed."""
     args = list(sys.argv[1:] if argv is None else argv)
+    prog = os.path.basename(sys.argv[0])
+    if any(a in VERSION_FLAGS for a in args):
+        sys.stdout.write(version_text(prog))
+        return 0
     if any(a in HELP_FLAGS for a in args):
         from fedhpg.common.runtime.help import help_text
 
-        sys.stdout.write(help_text(os.path.basename(sys.argv[0])))
+        sys.stdout.write(help_text(prog))
         return 0
     flag = unknown_flag(args, known=())
     if flag is not None:
@@ -303,13 +505,19 @@ def run_entry(
     setup_logging()
     try:
         run = compose(args, resumable=resumable)
+        if presets:
+            report_presets(args)
     except ConfigError as error:
         return fail(error)
     limit_threads()
     try:
-        return main(run)
+        with stop_signals():
+            return main(run)
     except ConfigError as error:
         return fail(error)
+    except Interrupted as interrupted:
+        sys.stderr.write("interrupted\n")
+        return interrupted.status
     except KeyboardInterrupt:
         sys.stderr.write("interrupted\n")
         return 130

@@ -30,8 +30,9 @@ EXAMPLES = {
     "fedhpg-run": [
         "fedhpg-run rounds=20 seed=3 algo=fedhpgvr",
         "fedhpg-run env=cartpole agents=homogeneous4 server.port=5601",
-        "fedhpg-run -m seed=0,1,2 algo.step_size=0.5,1.0  # a sweep: every point checked first",
-        "fedhpg-run resume=outputs/2026-01-01/12-00-00 rounds=80  # continue, with its own config",
+        "fedhpg-run -m seed=0,1,2 algo.step_size=0.5,1.0  # a sweep",
+        "fedhpg-run env=gym env.id=MountainCar-v0 '+env.vary.force={spread: 0.5}'",
+        "fedhpg-run resume=runs/DIR rounds=80  # continue a run",
     ],
     "fedhpg-server": [
         "fedhpg-server server.port=5555 server.out_dir=runs/manual",
@@ -47,8 +48,36 @@ EXAMPLES = {
 }
 OWN_SECTIONS = {"cluster": "fedhpg-cluster"}
 """Config sections that only one program reads: listed in its help alone."""
-LINE_WIDTH = 110
 KEY_COLUMN = 40
+WIDTHS = (60, 120)
+"""The narrowest and widest help: the terminal's width (``COLUMNS``) within these."""
+MORE = (
+    "More: docs/configuration.md (every key and group), docs/running.md (running, resuming, "
+    "what a run writes); the documentation site: make docs."
+)
+
+
+def line_width() -> int:
+    """The terminal's width (``COLUMNS`` where set), within :data:`WIDTHS`."""
+    import shutil
+
+    columns = shutil.get_terminal_size((100, 24)).columns
+    return min(max(columns, WIDTHS[0]), WIDTHS[1])
+
+
+def _entry(left: str, doc: str, width: int) -> list[str]:
+    """A key and its description, wrapped at words into a column beside it (below it when the
+    key is wider than the column): nothing is cut."""
+    import textwrap
+
+    column = KEY_COLUMN if width - KEY_COLUMN >= 30 else 8
+    if not doc:
+        return [left]
+    lines = textwrap.wrap(doc, width - column - 2, break_long_words=False, break_on_hyphens=False)
+    pad = " " * (column + 2)
+    if len(left) > column:
+        return [left, *(pad + line for line in lines)]
+    return [f"{left:<{column}}  {lines[0]}", *(pad + line for line in lines[1:])]
 
 
 def field_docs() -> dict[str, dict[str, str]]:
@@ -120,14 +149,22 @@ def _defaults() -> tuple[dict[str, Any], dict[str, list[str]], dict[str, str]]:
     return flatten(values), groups, chosen
 
 
-def help_text(program: str) -> str:
+def help_text(program: str, width: int | None = None) -> str:
+    """The help of ``program``, at most ``width`` columns (default: :func:`line_width`); only a
+    key's default longer than that runs past it."""
+    width = line_width() if width is None else width
+    import textwrap
+
     values, groups, chosen = _defaults()
+    about = (
+        f"{WHAT.get(program, '')} Settings are Hydra overrides of conf/config.yaml, typed by "
+        "fedhpg.common.config. A bad value is one line on stderr and exit status 2; nothing "
+        "is started."
+    )
     lines = [
         f"usage: {program} {USAGE.get(program, '[key=value ...]')}",
         "",
-        WHAT.get(program, ""),
-        "Settings are Hydra overrides of conf/config.yaml, typed by fedhpg.common.config.",
-        "A bad value is one line on stderr and exit status 2; nothing is started.",
+        *textwrap.wrap(about, width, break_long_words=False, break_on_hyphens=False),
         "",
         "config groups (group=option):",
     ]
@@ -135,7 +172,7 @@ def help_text(program: str) -> str:
         if OWN_SECTIONS.get(name, program) != program:
             continue
         marked = [f"{o} (default)" if o == chosen.get(name) else o for o in options]
-        lines.append(f"  {name + '=':<12} {', '.join(marked)}")
+        lines += _group_entry(name, marked, width)
     lines += ["", "keys (key=value; default, then what it is):"]
     section = ""
     for key, doc in _key_docs().items():
@@ -144,13 +181,32 @@ def help_text(program: str) -> str:
         if "." in key and key.split(".")[0] != section:
             section = key.split(".")[0]
             lines.append(f" {section}.*")
-        left = f"  {key}={_short(_value(values, key))}"
-        room = LINE_WIDTH - max(len(left), KEY_COLUMN) - 2
-        doc = doc if len(doc) <= room else doc[: room - 1] + "…"
-        lines.append(f"{left:<{KEY_COLUMN}}  {doc}".rstrip())
-    lines += ["", "examples:"] + [f"  {example}" for example in EXAMPLES.get(program, [])]
-    lines += ["", "More: README.md (Running a federation, Configuration, resume)."]
+        lines += _entry(f"  {key}={_short(_value(values, key))}", doc, width)
+    lines += ["", "examples:"]
+    for example in EXAMPLES.get(program, []):
+        lines += textwrap.wrap(
+            example,
+            width,
+            initial_indent="  ",
+            subsequent_indent="      ",
+            break_long_words=False,
+            break_on_hyphens=False,
+        )
+    lines += ["", *textwrap.wrap(MORE, width, break_long_words=False, break_on_hyphens=False)]
     return "\n".join(lines) + "\n"
+
+
+def _group_entry(name: str, options: list[str], width: int) -> list[str]:
+    import textwrap
+
+    head = f"  {name + '=':<12} "
+    wrapped = textwrap.wrap(
+        ", ".join(options),
+        width - len(head),
+        break_long_words=False,
+        break_on_hyphens=False,
+    )
+    return [head + wrapped[0], *(" " * len(head) + line for line in wrapped[1:])]
 
 
 def _value(leaves: dict[str, Any], key: str) -> Any:

@@ -3,9 +3,12 @@ pipe, a CI log), so a redirected log stays readable line by line."""
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import sys
+import threading
 import time
+from collections.abc import Iterator
 from typing import Any, TextIO
 
 logger = logging.getLogger(__name__)
@@ -95,3 +98,17 @@ def _live_bar(stream: TextIO, total: int, done: int, unit: str) -> tuple[Any, An
     task = bar.add_task(unit, total=total, completed=done, status="")
     bar.start()
     return bar, task
+
+
+@contextlib.contextmanager
+def announced_if_slow(message: str, after_s: float = 1.0) -> Iterator[None]:
+    """Log ``message`` (INFO) if the block is still running after ``after_s`` seconds: a
+    wait that is usually instant (numba loading its compiled kernels) but sometimes long (the
+    first compilation on a machine) is then never silent, and otherwise never mentioned."""
+    timer = threading.Timer(after_s, logger.info, args=(message,))
+    timer.daemon = True
+    timer.start()
+    try:
+        yield
+    finally:
+        timer.cancel()

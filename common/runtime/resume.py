@@ -85,7 +85,12 @@ def compose_resume(overrides: list[str]) -> RunConfig:
                 for key, value in chosen.items():
                     if defaults.get(key) != value:
                         OmegaConf.update(cfg, key, value, merge=False, force_add=True)
-        keys = [o for o in parsed if o.key_or_group.split("/")[0] not in group_names]
+        keys = [
+            o
+            for o in parsed
+            if o.key_or_group.split("/")[0] not in group_names
+            and not o.key_or_group.startswith("hydra.")
+        ]
         ConfigLoaderImpl._apply_overrides_to_config(keys, cfg)
     run = to_run_config(cfg)
     changed = fixed_difference(before, to_dict(run))

@@ -44,6 +44,7 @@ from fedhpg.common.config import (
     RunConfig,
     SecurityConfig,
     agent_id_of,
+    agents_per_host,
     host_id_of,
     host_ranges,
 )
@@ -294,10 +295,11 @@ def check_launch_keys(run: RunConfig) -> None:
             "fedhpg-run starts every agent, each with its own key: use security.keys_dir",
         )
     server = server_keys(security)
-    if run.agents.per_host > 1:  # each host has one connection, one key, named by its id
+    per_host = agents_per_host(run)
+    if per_host > 1:  # each host has one connection, one key, named by its id
         wanted = [
             KeyBinding(host_id_of(f, c), range(f, f + c))
-            for f, c in host_ranges(run.agents.num_agents, run.agents.per_host)
+            for f, c in host_ranges(run.agents.num_agents, per_host)
         ]
     else:
         wanted = [KeyBinding(agent_id_of(k), range(k, k + 1)) for k in range(run.agents.num_agents)]

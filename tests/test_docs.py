@@ -1,0 +1,152 @@
+"""Every code block of the README and the guides (docs/*.md) runs as printed.
+
+A page's blocks run in order in one fresh working directory (with the repository's ``docs/``
+linked in, for the example traces) and the virtual environment's commands first on PATH:
+``bash`` blocks as a script that stops at the first failing command, ``python`` blocks in a
+fresh interpreter, ``yaml`` and ``toml`` blocks parsed. A ``python`` block right after
+``<!-- file: NAME -->`` is written to NAME instead (a plugin module the next blocks use). A
+block that cannot run here is marked right before it, ``<!-- not run: why -->``, and the
+reason must be given. ``text`` blocks are output, and the README's quickstart output is
+checked against what the demo prints.
+"""
+
+from __future__ import annotations
+
+import os
+import re
+import subprocess
+import sys
+import tomllib
+from dataclasses import dataclass
+from pathlib import Path
+
+import pytest
+import yaml
+from procs import BIN
+
+ROOT = Path(__file__).parents[1]
+PAGES = [ROOT / "README.md", *sorted((ROOT / "docs").glob("*.md"))]
+FENCE = re.compile(
+    r"^```(?P<lang>[\w-]*)[^\n]*\n(?P<body>.*?)^```[ \t]*$", re.MULTILINE | re.DOTALL
+)
+MARK = re.compile(r"<!--\s*(?P<kind>not run|file):\s*(?P<value>.*?)\s*-->\s*$")
+RUN = {"bash", "python"}
+PARSED = {"yaml", "toml"}
+OUTPUT = {"text"}
+BLOCK_TIMEOUT_S = 300
+
+
+@dataclass(frozen=True)
+class Block:
+    page: Path
+    line: int
+    language: str
+    body: str
+    mark: tuple[str, str] | None
+    """("not run", why) or ("file", name) from the comment right before the block."""
+
+    def where(self) -> str:
+        return f"{self.page.relative_to(ROOT)}:{self.line}"
+
+
+def blocks(page: Path) -> list[Block]:
+    text = page.read_text(encoding="utf-8")
+    found = []
+    for match in FENCE.finditer(text):
+        before = [line for line in text[: match.start()].splitlines() if line.strip()]
+        mark = MARK.search(before[-1]) if before else None
+        found.append(
+            Block(
+                page=page,
+                line=text.count("\n", 0, match.start()) + 1,
+                language=match["lang"],
+                body=match["body"],
+                mark=(mark["kind"], mark["value"]) if mark else None,
+            )
+        )
+    return found
+
+
+def test_every_block_is_run_parsed_or_says_why_not() -> None:
+    unknown, unexplained = [], []
+    for page in PAGES:
+        for block in blocks(page):
+            if block.language not in RUN | PARSED | OUTPUT:
+                unknown.append(f"{block.where()}: ```{block.language}")
+            if block.mark and block.mark[0] == "not run" and len(block.mark[1]) < 10:
+                unexplained.append(block.where())
+    assert not unknown, f"a block of a language nothing runs: {unknown}"
+    assert not unexplained, f"'not run' needs its reason: {unexplained}"
+
+
+def _workdir(tmp_path: Path) -> Path:
+    (tmp_path / "docs").symlink_to(ROOT / "docs")
+    return tmp_path
+
+
+def _environment() -> dict[str, str]:
+    return {
+        **os.environ,
+        "PATH": f"{BIN}{os.pathsep}{os.environ.get('PATH', '')}",
+        "FEDHPG_LOG_LEVEL": "WARNING",
+        "WANDB_MODE": "offline",
+        "WANDB_SILENT": "true",
+    }
+
+
+def _run(block: Block, cwd: Path) -> None:
+    if block.language == "bash":
+        command = ["bash", "-euo", "pipefail", "-c", block.body]
+    else:
+        command = [sys.executable, "-c", block.body]
+    result = subprocess.run(
+        command,
+        cwd=cwd,
+        env=_environment(),
+        capture_output=True,
+        text=True,
+        timeout=BLOCK_TIMEOUT_S,
+    )
+    assert result.returncode == 0, (
+        f"{block.where()} exited {result.returncode}:\n{block.body}\n"
+        f"--- stdout\n{result.stdout[-3000:]}\n--- stderr\n{result.stderr[-3000:]}"
+    )
+
+
+@pytest.mark.parametrize("page", PAGES, ids=[p.name for p in PAGES])
+def test_the_pages_code_runs_as_printed(page: Path, tmp_path: Path) -> None:
+    cwd = _workdir(tmp_path)
+    for block in blocks(page):
+        if block.mark and block.mark[0] == "not run":
+            continue
+        if block.mark and block.mark[0] == "file":
+            (cwd / block.mark[1]).write_text(block.body, encoding="utf-8")
+        elif block.language in RUN:
+            _run(block, cwd)
+        elif block.language == "yaml":
+            yaml.safe_load(block.body)
+        elif block.language == "toml":
+            tomllib.loads(block.body)
+
+
+def _table(text: str) -> list[str]:
+    return [
+        line.rstrip() for line in text.splitlines() if line.startswith(("agent-", "environment"))
+    ]
+
+
+def test_the_readmes_quickstart_output_is_what_the_demo_prints(tmp_path: Path) -> None:
+    """The demo (make demo: fedhpg-run with the defaults) sleeps to emulate its devices; the
+    virtual clock computes the same θ̃ without sleeping, so the same table."""
+    readme = ROOT / "README.md"
+    shown = next(b for b in blocks(readme) if b.language == "text" and "agent-3" in b.body)
+    result = subprocess.run(
+        [str(BIN / "fedhpg-run"), "agents.virtual_clock=true"],
+        cwd=tmp_path,
+        env=_environment(),
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
+    assert result.returncode == 0, result.stderr[-3000:]
+    assert _table(result.stdout) == _table(shown.body), result.stdout
