@@ -1,19 +1,36 @@
-"""Trajectories to the first and to a sustained greedy return ≥ 475 on CartPole-v1, K=10, in
-FedPG-BR's set-up (B=16, H=500, γ=0.999, MLP 16-16, 10 greedy episodes per agent every 2
-rounds): FedHPG, FedHPGVR and fedhpg's FedPG-BR at server step sizes 1e-3 and 1e-2, beside
-the figures FedPG-BR's own code gave on this machine.
+"""Trajectories per agent to a solved CartPole-v1, K = 10, in FedPG-BR's set-up (H = 500,
+γ = 0.999, MLP 16-16, server Adam at 1e-3 and 1e-2): FedPG-BR's own code beside fedhpg's
+FedPG-BR, FedHPG with B = 16 and the CartPole presets, every row counted one way.
 
-"Sustained" is 5 consecutive evaluations ≥ 475; its count is the trajectories at the first of
-them. The trajectories are per agent, as FedPG-BR counts them: the agent's own, plus for
-FedPG-BR the b·N_t the server samples in its inner loop (FedPG-BR's code adds B_t + b·N_t a
-round). Runs are in process (the agents compute exactly what their processes would) on the
-counted clock, so every count is deterministic and may be measured under load; a run stops
-once sustained, or at the trajectory budget.
+**Counting.** Trajectories sampled per agent: what the K agents sampled, plus what the server
+sampled itself (FedPG-BR's inner loop, b·N_t a round, every batch it drew, those of an inner
+step it then aborted included), divided by K. fedhpg's ``trajectories_per_agent`` counts so.
+FedPG-BR's code prints another counter, adding round((K·B_t + b·N_t)/(K + 1)) a round without
+the aborted step's batch: :func:`counter_step`; :func:`from_counter` converts it.
+Evaluation episodes are counted apart, never as trajectories.
 
-``python -m benchmarks.thresholds [--seeds 5] [--server-lr 0.001 0.01] [--algos ...]`` prints
-the table and keeps every curve in ``benchmarks/results/thresholds.json`` (``--table-only``
-prints the table from it, ``--resume`` keeps its curves and runs the missing ones);
-``make bench-learning`` runs it after the learning curves.
+**Evaluation.** The greedy return, mean of 10 episodes (one per agent, as FedPG-BR's code
+validates 10), after the rounds at which the trajectories per agent cross a multiple of
+``INTERVAL`` = 16, the same for every row: every 16/B rounds for a fixed B; every round, then
+those rounds kept (:func:`on_grid`), where a round's size varies (FedPG-BR).
+
+**Solved** at t: the greedy return ≥ 475 at every evaluation from t to t + 256 trajectories
+per agent (the run must reach t + 256). Beside it: the fraction of evaluations ≥ 475 from
+the first one ≥ 475 to the end of the budget (1,000 trajectories per agent), and the last
+return. Every run goes to the budget.
+
+fedhpg's rows run in process (``api.run``) on the counted clock, so every count is a
+function of the seed. FedPG-BR's own code runs through :mod:`benchmarks.fedpgbr_code` (a
+scratch copy, its server's environment seeded), in its own environment.
+
+``python -m benchmarks.thresholds`` runs fedhpg's rows (``--rows``, ``--seeds``,
+``--server-lr``; a stored run is kept unless ``--rerun``) and prints the tables from
+``benchmarks/results/solved_cartpole.json`` and FedPG-BR's logs in
+``benchmarks/results/fedpgbr_code/``. ``--wall --fedpgbr-python P --fedpgbr-code DIR`` runs the
+stable preset, fedhpg's FedPG-BR and FedPG-BR's code back to back, seed after seed, each in a
+fresh process (the wall-time comparison, and FedPG-BR's code's rows). ``--search`` runs the
+preset search on seeds of its own. ``--table-only`` prints the tables and draws
+``docs/figures/solved_cartpole.png`` from what is stored.
 """
 
 from __future__ import annotations
@@ -21,219 +38,564 @@ from __future__ import annotations
 import argparse
 import contextlib
 import json
+import math
+import os
 import statistics
+import subprocess
+import sys
+import tempfile
+import time
+import warnings
 from collections.abc import Sequence
 from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any
 
 TARGET = 475.0
-SUSTAINED = 5
-RESULTS = Path("benchmarks/results/thresholds.json")
-BUDGET = 3000
-"""Trajectories per agent before a run that never sustains 475 is stopped."""
-SETUP = [
-    "env.family=cartpole",
-    "env.level=0",
-    "env.gamma=0.999",
-    "agents=homogeneous10",
-    "policy.hidden=[16,16]",
-    "algo.estimator=gpomdp",
-    "eval.every=2",
-    "eval.episodes=10",
-    "agents.clock=counted",
-    "agents.virtual_clock=true",
-    "agents.step_delays_s=[0]",
-]
-ALGOS: dict[str, list[str]] = {
-    # plain steps of size 1 (θ_k − θ̃ = the agent's gradient), Adam on the server's average
-    "fedhpg": ["algo=fedhpg", "algo.optimizer=sgd", "algo.step_size=1.0", "strategy=fedadam"],
-    "fedhpgvr": ["algo=fedhpgvr", "algo.optimizer=sgd", "algo.step_size=1.0", "strategy=fedadam"],
-    "fedpgbr": ["algo=fedpgbr", "strategy=fedpgbr"],
+HOLD = 256.0
+"""Trajectories per agent over which every evaluation must be ≥ ``TARGET``."""
+INTERVAL = 16
+"""Trajectories per agent between evaluations, every row."""
+BUDGET = 1000
+"""Trajectories per agent every run goes to."""
+AGENTS = 10
+MINI_BATCH = 4
+"""b, the trajectories of one of FedPG-BR's server inner steps (its code's and fedhpg's)."""
+EVAL_EPISODES = 10
+"""Greedy episodes per evaluation: one per agent (FedPG-BR's code validates 10)."""
+STEPS = (0.001, 0.01)
+SEEDS = (0, 1, 2, 3, 4)
+RESULTS = Path("benchmarks/results/solved_cartpole.json")
+CODE_LOGS = Path("benchmarks/results/fedpgbr_code")
+FIGURE = Path("docs/figures/solved_cartpole.png")
+COMMON = ("agents.clock=counted", "agents.step_delays_s=[0]", "eval.episodes=1")
+SEARCH_SEEDS = (100, 101, 102, 103, 104)
+"""The seeds the stable preset was chosen on (``--search``), none of the table's."""
+SEARCH_RESULTS = Path("benchmarks/results/solved_cartpole_search.json")
+SEARCH_FIGURE = Path("docs/figures/solved_cartpole_search.png")
+
+
+@dataclass(frozen=True)
+class Row:
+    label: str
+    overrides: tuple[str, ...]
+    """fedhpg's overrides (none for FedPG-BR's own code)."""
+    per_round: int | None
+    """Trajectories per agent a round, where fixed (None: a round's size varies)."""
+
+
+ROWS: dict[str, Row] = {
+    "fedpgbr_code": Row("FedPG-BR, its own code", (), None),
+    "fedpgbr": Row(
+        "FedPG-BR (fedhpg's)",
+        ("experiment=k10_cartpole", "algo=fedpgbr", "strategy=fedpgbr"),
+        None,
+    ),
+    "fedhpg": Row("FedHPG, B = 16 (`k10_cartpole`)", ("experiment=k10_cartpole",), 16),
+    "tuned": Row("B = 1 (`k10_cartpole_tuned`)", ("experiment=k10_cartpole_tuned",), 1),
+    "stable": Row("B = 2 (`k10_cartpole_stable`)", ("experiment=k10_cartpole_stable",), 2),
+    "b4": Row("B = 4", ("experiment=k10_cartpole", "agents.budget.batch_size=[4]"), 4),
 }
-LABELS = {"fedhpg": "FedHPG", "fedhpgvr": "FedHPGVR", "fedpgbr": "FedPG-BR (fedhpg's)"}
-PUBLISHED = {
-    # FedPG-BR's own code on this machine, seeds 0 and 1: (first, sustained) per seed
-    0.001: [(1068, 1196), (599, 1186)],
-    0.01: [(221, 950), (225, 225)],
-}
-PRESET_RESULTS = Path("benchmarks/results/estimator_options.json")
-"""The tuning runs of ``python -m benchmarks.estimator_options`` (the same set-up and rules)."""
-BEST_PRESET = "paper, B=1 (baseline 0)"
-"""Those runs' label of ``experiment=k10_cartpole_tuned``: the fewest trajectories found."""
+TABLE_ROWS = ("fedpgbr_code", "fedpgbr", "fedhpg", "tuned", "stable")
+SEARCH_ROWS = ("tuned", "stable", "b4")
+
+
+# --- FedPG-BR's counter ---------------------------------------------------------------------
+
+
+def counter_step(
+    batch_size: int, inner_steps: int, agents: int = AGENTS, mini_batch: int = MINI_BATCH
+) -> int:
+    """What FedPG-BR's code adds to the counter it prints after a round (K > 1): B_t for each
+    of the K agents and b·N_t for its server, N_t the inner steps it took (an aborted step's
+    batch left out), spread over K + 1 and rounded (Python's round, half to even)."""
+    return round((agents * batch_size + mini_batch * inner_steps) / (agents + 1))
+
+
+def sampled_per_agent(
+    batch_size: int, inner_batches: int, agents: int = AGENTS, mini_batch: int = MINI_BATCH
+) -> float:
+    """Trajectories per agent a FedPG-BR round sampled: B_t, plus the server's b per batch it
+    drew (an aborted step's included) divided by K."""
+    return batch_size + mini_batch * inner_batches / agents
+
+
+def from_counter(counter: float, agents: int = AGENTS) -> float:
+    """Trajectories per agent from FedPG-BR's printed counter alone: counter · (K + 1)/K.
+    Low by b/K for every aborted inner step, and off by its rounding, at most (K + 1)/(2K) a
+    round (tests/test_thresholds.py checks both against a logged run)."""
+    return counter * (agents + 1) / agents
+
+
+# --- curves ---------------------------------------------------------------------------------
 
 
 @dataclass(frozen=True)
 class Curve:
-    algo: str
+    """Every evaluation of one run, in order."""
+
+    row: str
     server_lr: float
     seed: int
     trajectories: list[float]
+    """Trajectories per agent when evaluated."""
     returns: list[float]
+    rounds: list[int]
+    wall_s: list[float]
+    """Seconds since the run was started (its set-up included) when evaluated."""
 
-    def first(self) -> float | None:
-        return next(
-            (t for t, r in zip(self.trajectories, self.returns, strict=True) if r >= TARGET), None
-        )
 
-    def sustained(self) -> float | None:
-        for i in range(len(self.returns) - SUSTAINED + 1):
-            if all(r >= TARGET for r in self.returns[i : i + SUSTAINED]):
-                return self.trajectories[i]
-        return None
+@dataclass(frozen=True)
+class Outcome:
+    """What the rules make of one curve."""
+
+    first: float | None
+    solved: float | None
+    held: float | None
+    """Fraction of evaluations ≥ TARGET from the first one ≥ TARGET on."""
+    last: float
+    rounds: int | None
+    """Rounds to solved."""
+    episodes: int | None
+    """Evaluation episodes the run had spent when solved (every evaluation it made)."""
+    wall_s: float | None
+    """Seconds to solved."""
+    first_wall_s: float | None
+    """Seconds to the first evaluation ≥ TARGET."""
+    end_wall_s: float
+    """Seconds to the end of the budget."""
+
+
+def on_grid(curve: Curve, interval: float = INTERVAL) -> list[int]:
+    """Indices of the evaluations after which the trajectories per agent crossed a multiple of
+    ``interval`` since the evaluation before (all of them for a fixed B at interval/B rounds)."""
+    kept, before = [], 0.0
+    for i, t in enumerate(curve.trajectories):
+        if math.floor(t / interval + 1e-9) > math.floor(before / interval + 1e-9):
+            kept.append(i)
+        before = t
+    return kept
+
+
+def outcome(curve: Curve, interval: float = INTERVAL, hold: float = HOLD) -> Outcome:
+    grid = on_grid(curve, interval)
+    t = [curve.trajectories[i] for i in grid]
+    r = [curve.returns[i] for i in grid]
+    first = next((j for j, value in enumerate(r) if value >= TARGET), None)
+    solved = None
+    for j in range(len(r)):
+        if t[j] + hold > curve.trajectories[-1]:
+            break  # the run ends before the hold would
+        window = [value for time_, value in zip(t[j:], r[j:], strict=True) if time_ <= t[j] + hold]
+        if all(value >= TARGET for value in window):
+            solved = j
+            break
+    held = None if first is None else sum(v >= TARGET for v in r[first:]) / len(r[first:])
+    at = None if solved is None else grid[solved]
+    return Outcome(
+        first=None if first is None else t[first],
+        solved=None if solved is None else t[solved],
+        held=held,
+        last=curve.returns[-1],
+        rounds=None if at is None else curve.rounds[at],
+        episodes=None if at is None else (at + 1) * EVAL_EPISODES,
+        wall_s=None if at is None else curve.wall_s[at],
+        first_wall_s=None if first is None else curve.wall_s[grid[first]],
+        end_wall_s=curve.wall_s[-1],
+    )
 
 
 class _Stop(Exception):
-    """Raised from the round callback to end a run: its return held, or its budget is spent."""
+    """Raised from the round callback once the budget is spent."""
 
 
-def run_curve(
-    algo: str,
-    server_lr: float,
-    seed: int,
-    budget: int = BUDGET,
-    extra: Sequence[str] = (),
-    engine: str = "auto",
-) -> Curve:
-    """One run of ``ALGOS[algo]`` (then the ``extra`` overrides) until sustained or
-    ``budget`` trajectories per agent."""
+def run_curve(row: str, server_lr: float, seed: int, budget: int = BUDGET) -> Curve:
+    """One of fedhpg's rows to ``budget`` trajectories per agent."""
     from fedhpg.server import api
 
+    spec = ROWS[row]
     trajectories: list[float] = []
     returns: list[float] = []
-    spent = 0.0
+    rounds: list[int] = []
+    wall: list[float] = []
+    started = time.perf_counter()
 
     def watch(record: Any, theta: Any) -> None:
-        nonlocal spent
-        line = record.to_json()
-        spent += sum(a["trajectories"] for a in line["agents"]) / len(line["agents"])
-        spent += line.get("strategy", {}).get("trajectories", 0)
-        if "eval" in line:
-            trajectories.append(spent)
-            returns.append(statistics.mean(e["return_mean"] for e in line["eval"].values()))
-            if len(returns) >= SUSTAINED and min(returns[-SUSTAINED:]) >= TARGET:
+        if record.eval is not None:
+            trajectories.append(record.trajectories_per_agent)
+            returns.append(statistics.mean(e.return_mean for e in record.eval.values()))
+            rounds.append(record.round)
+            wall.append(time.perf_counter() - started)
+            if record.trajectories_per_agent >= budget:
                 raise _Stop
-        if spent >= budget:
-            raise _Stop  # the budget is spent: the curve ends here
 
-    # a round spends ≥ 16 trajectories per agent: enough rounds for the budget
+    if spec.per_round is None:  # evaluated every round, kept on the grid (on_grid)
+        schedule = ["eval.every=1", f"rounds={budget}"]
+    else:
+        every = INTERVAL // spec.per_round
+        schedule = [f"eval.every={every}", f"rounds={math.ceil(budget / spec.per_round)}"]
     overrides = [
-        *SETUP,
-        *ALGOS[algo],
+        *spec.overrides,
+        *COMMON,
+        *schedule,
         f"strategy.params.step_size={server_lr}",
         f"seed={seed}",
-        f"rounds={budget // 16}",
-        f"algo.engine={engine}",  # FedHPG's engine; FedHPGVR and FedPG-BR use the loop
-        *extra,
     ]
     with contextlib.suppress(_Stop):
         api.run(overrides=overrides, callbacks=[watch])
-    return Curve(algo, server_lr, seed, trajectories, returns)
+    return Curve(row, server_lr, seed, trajectories, returns, rounds, wall)
 
 
-def _spread(values: Sequence[float | None]) -> str:
-    hits = [v for v in values if v is not None]
-    if not hits:
-        return "never"  # within the budget
-    text = f"{statistics.median(hits):,.0f} ({min(hits):,.0f}–{max(hits):,.0f})"
-    missed = len(values) - len(hits)
-    return text + (f", {missed} never" if missed else "")
+def code_curve(log: Path) -> Curve:
+    """FedPG-BR's code's run from its :mod:`benchmarks.fedpgbr_code` log, counted here."""
+    lines = [json.loads(line) for line in log.read_text().splitlines() if line.strip()]
+    header, rounds = lines[0], lines[1:]
+    agents, mini_batch = header["K"], header["b"]
+    per_agent, trajectories = 0.0, []
+    for line in rounds:
+        per_agent += sampled_per_agent(
+            line["batch_size"], line["inner_batches"], agents, mini_batch
+        )
+        trajectories.append(per_agent)
+    return Curve(
+        "fedpgbr_code",
+        header["server_lr"],
+        header["seed"],
+        trajectories,
+        [line["return"] for line in rounds],
+        [line["round"] for line in rounds],
+        [line["wall_s"] for line in rounds],
+    )
 
 
-def table(curves: list[Curve], preset_results: Path = PRESET_RESULTS) -> str:
-    lines = [
-        f"| run | server step | seeds | trajectories/agent to first ≥ {TARGET:g}, median "
-        f"(range) | to sustained ({SUSTAINED} evaluations) | source |",
-        "|---|---|---|---|---|---|",
-    ]
-    for lr in sorted({c.server_lr for c in curves}):
-        for algo in ALGOS:
-            group = [c for c in curves if (c.algo, c.server_lr) == (algo, lr)]
-            if group:
-                first = _spread([c.first() for c in group])
-                held = _spread([c.sustained() for c in group])
-                lines.append(
-                    f"| {LABELS[algo]} | {lr:g} | {len(group)} | {first} | {held} "
-                    "| this benchmark |"
-                )
-        preset = [c for c in preset_curves(preset_results) if c.server_lr == lr]
-        if preset:
-            lines.append(
-                f"| best preset (`experiment=k10_cartpole_tuned`: eq. 6, B=1) | {lr:g} | "
-                f"{len(preset)} | {_spread([c.first() for c in preset])} | "
-                f"{_spread([c.sustained() for c in preset])} | {preset_results} |"
-            )
-        if lr in PUBLISHED:
-            firsts = [float(f) for f, _ in PUBLISHED[lr]]
-            held = [float(s) for _, s in PUBLISHED[lr]]
-            lines.append(
-                f"| FedPG-BR, its own code | {lr:g} | 2 | {_spread(firsts)} | {_spread(held)} "
-                "| published figures, seeds 0 and 1 |"
-            )
-    return "\n".join(lines)
+def code_log(server_lr: float, seed: int, folder: Path = CODE_LOGS) -> Path:
+    return folder / f"lr{server_lr:g}_seed{seed}.jsonl"
 
 
-def preset_curves(path: Path = PRESET_RESULTS) -> list[Curve]:
-    """The tuned preset's curves from the estimator-options runs, counted by this module's
-    first and sustained rules."""
-    if not path.exists():
-        return []
-    return [
-        Curve("preset", run["server_lr"], run["seed"], run["trajectories"], run["returns"])
-        for run in json.loads(path.read_text())
-        if run["options"] == BEST_PRESET
-    ]
-
-
-def load(path: Path = RESULTS) -> list[Curve]:
-    return [Curve(**c) for c in json.loads(path.read_text())] if path.exists() else []
+def load(path: Path = RESULTS, folder: Path | None = CODE_LOGS) -> list[Curve]:
+    """fedhpg's stored curves, and FedPG-BR's code's from its logs in ``folder``."""
+    curves = [Curve(**c) for c in json.loads(path.read_text())] if path.exists() else []
+    logs = sorted(folder.glob("*.jsonl")) if folder is not None else []
+    return curves + [code_curve(log) for log in logs]
 
 
 def save(curves: list[Curve], path: Path = RESULTS) -> None:
     path.parent.mkdir(parents=True, exist_ok=True)
-    path.write_text(json.dumps([asdict(c) for c in curves], indent=1))
+    ours = [asdict(c) for c in curves if c.row != "fedpgbr_code"]
+    path.write_text(json.dumps(ours, indent=0) + "\n")
+
+
+def replace(curves: list[Curve], new: Curve) -> list[Curve]:
+    key = (new.row, new.server_lr, new.seed)
+    return [c for c in curves if (c.row, c.server_lr, c.seed) != key] + [new]
+
+
+# --- tables and figure ----------------------------------------------------------------------
+
+
+def _spread(values: Sequence[float | None], digits: int = 0) -> str:
+    hits = [v for v in values if v is not None]
+    if not hits:
+        return "never"
+    text = (
+        f"{statistics.median(hits):,.{digits}f} ({min(hits):,.{digits}f}–{max(hits):,.{digits}f})"
+    )
+    missed = len(values) - len(hits)
+    return text + (f", {missed} of {len(values)} never" if missed else "")
+
+
+def _percent(values: Sequence[float | None]) -> str:
+    hits = [v for v in values if v is not None]
+    if not hits:
+        return "—"
+    return f"{100 * statistics.median(hits):.0f} % (lowest {100 * min(hits):.0f} %)"
+
+
+def table(curves: list[Curve], rows: Sequence[str] = TABLE_ROWS) -> str:
+    lines = [
+        "| run | server step | seeds solved | trajectories/agent to solved, median (range) "
+        f"| to the first ≥ {TARGET:g} | evaluations ≥ {TARGET:g} after the first, median "
+        f"(lowest) | last return, median (lowest) | rounds to solved (messages) | evaluation "
+        "episodes to solved |",
+        "|---|---|---|---|---|---|---|---|---|",
+    ]
+    for lr in sorted({c.server_lr for c in curves}):
+        for row in rows:
+            group = sorted(
+                (c for c in curves if (c.row, c.server_lr) == (row, lr)), key=lambda c: c.seed
+            )
+            if not group:
+                continue
+            found = [outcome(c) for c in group]
+            solved = [o.solved for o in found]
+            rounds = [o.rounds for o in found if o.rounds is not None]
+            messages = (
+                f"{statistics.median(rounds):,.0f} ({2 * AGENTS * statistics.median(rounds):,.0f})"
+                if rounds
+                else "—"
+            )
+            lasts = [o.last for o in found]
+            lines.append(
+                f"| {ROWS[row].label} | {lr:g} | {len(rounds)}/{len(group)} | {_spread(solved)} "
+                f"| {_spread([o.first for o in found])} | {_percent([o.held for o in found])} "
+                f"| {statistics.median(lasts):.0f} ({min(lasts):.0f}) | {messages} "
+                f"| {_spread([o.episodes for o in found])} |"
+            )
+    return "\n".join(lines)
+
+
+def per_seed(curves: list[Curve], rows: Sequence[str] = TABLE_ROWS) -> str:
+    lines = [
+        "| run | server step | per seed: solved at / evaluations ≥ 475 after the first / last "
+        "return |",
+        "|---|---|---|",
+    ]
+    for lr in sorted({c.server_lr for c in curves}):
+        for row in rows:
+            group = sorted(
+                (c for c in curves if (c.row, c.server_lr) == (row, lr)), key=lambda c: c.seed
+            )
+            if not group:
+                continue
+            cells = []
+            for c in group:
+                o = outcome(c)
+                solved = "never" if o.solved is None else f"{o.solved:,.0f}"
+                held = "—" if o.held is None else f"{100 * o.held:.0f} %"
+                cells.append(f"{c.seed}: {solved} / {held} / {o.last:.0f}")
+            lines.append(f"| {ROWS[row].label} | {lr:g} | {'; '.join(cells)} |")
+    return "\n".join(lines)
+
+
+def _seconds(value: float | None) -> str:
+    return "never" if value is None else f"{value:.1f}"
+
+
+def _ratio(theirs: float | None, ours: float | None) -> str:
+    return "—" if theirs is None or ours is None else f"{theirs / ours:.0f}×"
+
+
+def wall_table(curves: list[Curve]) -> str:
+    """Seconds to solved and to the budget of the runs timed back to back (``--wall``)."""
+    lines = [
+        "| server step | seed | B = 2 preset: first ≥ 475 / solved / whole run (s) "
+        "| fedhpg's FedPG-BR | FedPG-BR's code | FedPG-BR's code over the preset: to the first "
+        "≥ 475 / to solved / whole run |",
+        "|---|---|---|---|---|---|",
+    ]
+    timed = ("stable", "fedpgbr", "fedpgbr_code")
+    for lr in sorted({c.server_lr for c in curves}):
+        for seed in sorted({c.seed for c in curves if c.row == "fedpgbr_code"}):
+            found = {}
+            for row in timed:
+                match = [c for c in curves if (c.row, c.server_lr, c.seed) == (row, lr, seed)]
+                if match:
+                    found[row] = outcome(match[0])
+            if len(found) < len(timed):
+                continue
+            cells = [
+                f"{_seconds(o.first_wall_s)} / {_seconds(o.wall_s)} / {o.end_wall_s:.1f}"
+                for o in (found[row] for row in timed)
+            ]
+            ours, theirs = found["stable"], found["fedpgbr_code"]
+            ratios = [
+                _ratio(theirs.first_wall_s, ours.first_wall_s),
+                _ratio(theirs.wall_s, ours.wall_s),
+                _ratio(theirs.end_wall_s, ours.end_wall_s),
+            ]
+            lines.append(f"| {lr:g} | {seed} | {' | '.join(cells)} | {' / '.join(ratios)} |")
+    return "\n".join(lines)
+
+
+def conversion_table(folder: Path = CODE_LOGS) -> str:
+    """FedPG-BR's printed counter at each run's end beside the trajectories per agent counted
+    from its log, and :func:`from_counter`'s reading of it."""
+    lines = [
+        "| server step | seed | rounds | rounds with an aborted inner step | printed counter "
+        "| counter · 11/10 | trajectories per agent sampled |",
+        "|---|---|---|---|---|---|---|",
+    ]
+    for log in sorted(folder.glob("*.jsonl")):
+        rows = [json.loads(line) for line in log.read_text().splitlines() if line.strip()]
+        header, rounds = rows[0], rows[1:]
+        aborted = sum(r["inner_batches"] > r["inner_steps"] for r in rounds)
+        counter = rounds[-1]["counter"]
+        lines.append(
+            f"| {header['server_lr']:g} | {header['seed']} | {len(rounds)} | {aborted} "
+            f"| {counter:,} | {from_counter(counter, header['K']):,.1f} "
+            f"| {code_curve(log).trajectories[-1]:,.1f} |"
+        )
+    return "\n".join(lines)
+
+
+def plot(curves: list[Curve], path: Path = FIGURE, rows: Sequence[str] = TABLE_ROWS) -> None:
+    """One panel per row and server step: every seed's evaluations (thin) and their mean
+    (thick), each seed's curve read at the grid as its last evaluation at or before it."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    import numpy as np
+
+    from fedhpg.server.plot import save as save_figure
+
+    steps = sorted({c.server_lr for c in curves})
+    figure, axes = plt.subplots(
+        len(rows), len(steps), figsize=(4.2 * len(steps), 1.9 * len(rows)), sharex=True,
+        sharey=True, squeeze=False,
+    )  # fmt: skip
+    grid = np.arange(INTERVAL, BUDGET + 1, INTERVAL, dtype=float)
+    for i, row in enumerate(rows):
+        for j, lr in enumerate(steps):
+            axis = axes[i][j]
+            group = [c for c in curves if (c.row, c.server_lr) == (row, lr)]
+            sampled = []
+            for c in group:
+                kept = on_grid(c)
+                x = np.array([c.trajectories[k] for k in kept])
+                y = np.array([c.returns[k] for k in kept])
+                axis.plot(x, y, linewidth=0.7, alpha=0.55)
+                at = np.searchsorted(x, grid + 1e-9, side="right") - 1
+                sampled.append(np.where(at >= 0, y[np.clip(at, 0, None)], np.nan))
+            if sampled:
+                with warnings.catch_warnings():  # the grid's points before a run's first
+                    warnings.simplefilter("ignore", RuntimeWarning)
+                    mean = np.nanmean(sampled, axis=0)
+                axis.plot(grid, mean, color="black", linewidth=1.8)
+            axis.axhline(TARGET, color="grey", linestyle="--", linewidth=0.8)
+            axis.set_xlim(0, BUDGET)
+            axis.set_ylim(0, 520)
+            if i == 0:
+                axis.set_title(f"server Adam step {lr:g}", fontsize="medium")
+            if j == 0:
+                axis.set_ylabel(ROWS[row].label.replace(" (`", "\n(`").replace("`", ""),
+                                fontsize="small")  # fmt: skip
+            if i == len(rows) - 1:
+                axis.set_xlabel("trajectories per agent")
+    figure.suptitle(
+        "CartPole-v1, K = 10: greedy return (10 episodes), each seed (thin) and their mean",
+        fontsize="medium",
+    )
+    path.parent.mkdir(parents=True, exist_ok=True)
+    save_figure(figure, path)
+
+
+# --- back to back: wall time ----------------------------------------------------------------
+
+
+def _timed(command: list[str], out: Path, environment: dict[str, str] | None = None) -> None:
+    result = subprocess.run(command, env=environment, capture_output=True, text=True)
+    if result.returncode != 0:
+        raise RuntimeError(f"{' '.join(command)} failed:\n{result.stderr[-3000:]}")
+    if not out.exists():
+        raise RuntimeError(f"{' '.join(command)} wrote no {out}")
+
+
+def wall(
+    seeds: Sequence[int],
+    steps: Sequence[float],
+    python: Path,
+    code: Path,
+    curves: list[Curve],
+    results: Path,
+    folder: Path,
+) -> list[Curve]:
+    """The stable preset, fedhpg's FedPG-BR and FedPG-BR's code, seed after seed, each in a
+    fresh process at this process's priority; FedPG-BR's logs are kept in ``folder``."""
+    folder.mkdir(parents=True, exist_ok=True)
+    for lr in steps:
+        for seed in seeds:
+            for row in ("stable", "fedpgbr"):
+                with tempfile.TemporaryDirectory() as scratch:
+                    out = Path(scratch) / "curve.json"
+                    _timed(
+                        [sys.executable, "-m", "benchmarks.thresholds", "--one", row,
+                         "--seeds", str(seed), "--server-lr", str(lr), "--out", str(out)],
+                        out,
+                    )  # fmt: skip
+                    curve = Curve(**json.loads(out.read_text()))
+                curves = replace(curves, curve)
+                save(curves, results)
+                print(f"{row} lr={lr:g} seed {seed}: {outcome(curve)}", flush=True)
+            log = code_log(lr, seed, folder)
+            _timed(
+                [str(python), "-m", "benchmarks.fedpgbr_code", "--code", str(code),
+                 "--seed", str(seed), "--server-lr", str(lr), "--budget", str(BUDGET),
+                 "--log", str(log)],
+                log,
+                {**os.environ, "PYTHONPATH": str(Path.cwd())},
+            )  # fmt: skip
+            print(f"FedPG-BR's code lr={lr:g} seed {seed}: {outcome(code_curve(log))}", flush=True)
+    return curves
 
 
 def main(argv: Sequence[str] | None = None) -> None:
-    parser = argparse.ArgumentParser(description=__doc__)
-    parser.add_argument("--seeds", type=int, default=5)
-    parser.add_argument("--server-lr", type=float, nargs="+", default=[0.001, 0.01])
-    parser.add_argument("--algos", nargs="+", choices=list(ALGOS), default=list(ALGOS))
-    parser.add_argument("--table-only", action="store_true", help=f"the table from {RESULTS}")
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--seeds", type=int, nargs="+", default=list(SEEDS))
+    parser.add_argument("--server-lr", type=float, nargs="+", default=list(STEPS))
+    fedhpg_rows = [r for r in ROWS if r != "fedpgbr_code"]
+    parser.add_argument("--rows", nargs="+", choices=fedhpg_rows, default=fedhpg_rows[:-1])
+    parser.add_argument("--rerun", action="store_true", help="rerun the stored runs asked for")
+    parser.add_argument("--table-only", action="store_true", help="tables and figure only")
+    parser.add_argument("--results", type=Path, default=RESULTS)
+    parser.add_argument("--code-logs", type=Path, default=CODE_LOGS)
+    parser.add_argument("--figure", type=Path, default=FIGURE)
+    parser.add_argument("--wall", action="store_true", help="the back-to-back timing")
+    parser.add_argument("--fedpgbr-python", type=Path, help="--wall: its environment's python")
+    parser.add_argument("--fedpgbr-code", type=Path, help="--wall: the scratch copy's codes/")
     parser.add_argument(
-        "--resume", action="store_true", help=f"keep the curves already in {RESULTS}"
+        "--search",
+        action="store_true",
+        help=f"the preset search: rows {', '.join(SEARCH_ROWS)} on seeds "
+        f"{SEARCH_SEEDS[0]}-{SEARCH_SEEDS[-1]}, kept in {SEARCH_RESULTS}, drawn in {SEARCH_FIGURE}",
     )
-    parser.add_argument("--results", type=Path, default=RESULTS, help="where the curves are kept")
-    parser.add_argument(
-        "--engine",
-        choices=["auto", "numpy"],
-        default="auto",
-        help="algo.engine (FedHPG's curves differ by engine: give each its own --results)",
-    )
-    parser.add_argument(
-        "--preset-results",
-        type=Path,
-        default=PRESET_RESULTS,
-        help="the estimator-options runs the best preset's row is read from",
-    )
+    parser.add_argument("--one", choices=fedhpg_rows, help=argparse.SUPPRESS)
+    parser.add_argument("--out", type=Path, help=argparse.SUPPRESS)
     args = parser.parse_args(argv)
-    curves = load(args.results) if args.resume or args.table_only else []
-    if not args.table_only:
-        done = {(c.algo, c.server_lr, c.seed) for c in curves}
+    if args.one is not None:  # one run for --wall, in its own process
+        curve = run_curve(args.one, args.server_lr[0], args.seeds[0])
+        args.out.write_text(json.dumps(asdict(curve)))
+        return
+    if args.search:
+        args.rows, args.seeds = list(SEARCH_ROWS), list(SEARCH_SEEDS)
+        args.results, args.figure, args.code_logs = SEARCH_RESULTS, SEARCH_FIGURE, None
+    curves = [c for c in load(args.results, args.code_logs) if c.row != "fedpgbr_code"]
+    if args.wall:
+        if args.fedpgbr_python is None or args.fedpgbr_code is None:
+            parser.error("--wall needs --fedpgbr-python and --fedpgbr-code")
+        curves = wall(
+            args.seeds,
+            args.server_lr,
+            args.fedpgbr_python,
+            args.fedpgbr_code,
+            curves,
+            args.results,
+            args.code_logs or CODE_LOGS,
+        )
+    elif not args.table_only:
+        done = set() if args.rerun else {(c.row, c.server_lr, c.seed) for c in curves}
         for lr in args.server_lr:
-            for algo in args.algos:
-                for seed in range(args.seeds):
-                    if (algo, lr, seed) in done:  # kept from an earlier, interrupted run
+            for row in args.rows:
+                for seed in args.seeds:
+                    if (row, lr, seed) in done:
                         continue
-                    curve = run_curve(algo, lr, seed, engine=args.engine)
-                    print(
-                        f"{algo} lr={lr:g} seed {seed}: first {curve.first()}, sustained "
-                        f"{curve.sustained()}",
-                        flush=True,
-                    )
-                    curves.append(curve)
+                    curve = run_curve(row, lr, seed)
+                    print(f"{row} lr={lr:g} seed {seed}: {outcome(curve)}", flush=True)
+                    curves = replace(curves, curve)
                     save(curves, args.results)
-    print(table(curves, args.preset_results))
+    curves = load(args.results, args.code_logs)
+    rows = [r for r in TABLE_ROWS if any(c.row == r for c in curves)]
+    rows += [r for r in ROWS if r not in rows and any(c.row == r for c in curves)]
+    print(table(curves, rows))
+    print()
+    print(per_seed(curves, rows))
+    if any(c.row == "fedpgbr_code" for c in curves):
+        print()
+        print(wall_table(curves))
+        print()
+        print(conversion_table(args.code_logs))
+    plot(curves, args.figure, rows)
+    print(f"\nfigure: {args.figure}")
 
 
 if __name__ == "__main__":

@@ -4,10 +4,10 @@ B=48; both γ=1, server Adam 3e-3, greedy evaluation of one episode per agent, 1
 
 For each setting and seed: the trajectories per agent to the first greedy evaluation ≥ the
 task's threshold (LunarLander 200, the task's "solved"; HalfCheetah 2,500, FedPG-BR's published
-final level) and to a *sustained* one, the first of 5 consecutive evaluations ≥ it (the rules of
-:mod:`benchmarks.thresholds`). Every setting is evaluated at the paper-faithful runs' cadence in
-trajectories per agent (LunarLander every 128, HalfCheetah every 192: ``eval.every`` = that / B
-rounds), so "5 consecutive evaluations" spans the same trajectories whatever B is. The
+final level) and to a *sustained* one, the first of 5 consecutive evaluations ≥ it. Every
+setting is evaluated at the paper-faithful runs' cadence in trajectories per agent (LunarLander
+every 128, HalfCheetah every 192: ``eval.every`` = that / B rounds), so "5 consecutive
+evaluations" spans the same trajectories whatever B is. The
 paper-faithful counts are read from the stored 10,000-trajectory curves
 (``benchmarks/results/<task>.json``), not re-run.
 

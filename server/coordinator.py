@@ -42,7 +42,8 @@ class RoundRecord:
     agents: list[AgentUpdate]
     """The aggregated updates, in agent-index order."""
     trajectories_per_agent: float = 0.0
-    """Cumulative trajectories sampled so far, divided by K (the x-axis of published curves)."""
+    """Cumulative trajectories sampled so far, the agents' and the strategy's own (fedpgbr's
+    server), divided by K (the x-axis of published curves)."""
     eval: dict[str, EvaluationStats] | None = None
     eval_time_s: float | None = None
     """Wall time of this round's evaluation, where there was one (in ``wall_time_s``, not in
@@ -260,9 +261,9 @@ class Coordinator:
         wall_time = time.perf_counter() - started
         progress = self.progress
         progress.next_round = round_number + 1
-        progress.trajectories_per_agent += (
-            sum(u.stats.trajectories for u in answers.updates) / self.run.agents.num_agents
-        )
+        sampled = sum(u.stats.trajectories for u in answers.updates)
+        sampled += self.strategy.sampled_trajectories()  # the server's own (fedpgbr's)
+        progress.trajectories_per_agent += sampled / self.run.agents.num_agents
         progress.elapsed_s = wall_time
         progress.strategy_state = self.strategy.state()
         if self.privacy is not None:

@@ -320,7 +320,8 @@ def test_unsupported_combinations_name_their_key(overrides: list[str], key: str)
 
 
 @pytest.mark.parametrize(
-    ("experiment", "batch_size"), [("k10_cartpole", 16), ("k10_cartpole_tuned", 1)]
+    ("experiment", "batch_size"),
+    [("k10_cartpole", 16), ("k10_cartpole_tuned", 1), ("k10_cartpole_stable", 2)],
 )
 def test_cartpole_presets_are_fedpgbrs_set_up(experiment: str, batch_size: int) -> None:
     """The keys benchmarks/estimator_options.py sets (BENCHMARKS.md's figures), composed."""

@@ -181,11 +181,15 @@ def test_fedpgbr_learns_under_attack_where_the_mean_does_not() -> None:
     attackers = sum(k < 3 for k in kept) / (3 * rounds)
     honest = sum(k >= 3 for k in kept) / (7 * rounds)
     assert attackers <= 0.4 and honest >= 0.9, (attackers, honest)
-    # agents and server drew the same B_t: every agent sampled what the filter assumed
+    # agents and server drew the same B_t: every agent sampled what the filter assumed; the
+    # count per agent is B_t plus the server's b·N_t shared among the K = 10
+    counted = 0.0
     for record in fedpgbr.records:
         plan = record["strategy"]
         assert {a["trajectories"] for a in record["agents"]} == {plan["batch_size"]}
         assert plan["trajectories"] == 4 * plan["inner_steps"]
+        counted += plan["batch_size"] + plan["trajectories"] / 10
+        assert record["trajectories_per_agent"] == pytest.approx(counted)
 
 
 def test_a_resumed_fedpgbr_run_matches_a_straight_one(tmp_path: Path) -> None:

@@ -118,6 +118,12 @@ class Strategy(abc.ABC, Generic[P]):
         ``strategy``; nothing, for most rules)."""
         return {}
 
+    def sampled_trajectories(self) -> int:
+        """Trajectories the strategy sampled itself in the last :meth:`aggregate` (fedpgbr's
+        inner loop, b·N_t); ``trajectories_per_agent`` counts them beside the agents' own,
+        divided by K like theirs. 0 for a rule that only aggregates."""
+        return 0
+
     def state(self) -> SavedState:
         """What a checkpoint must keep to continue exactly (nothing, for stateless rules)."""
         return SavedState()

@@ -80,6 +80,9 @@ class FedAdam(Strategy[FedAdamParams]):
     ) -> torch.Tensor:
         return theta + self.adam.direction(average - theta)
 
+    def sampled_trajectories(self) -> int:
+        return self.inner.sampled_trajectories()
+
     def aggregate(
         self,
         round_index: int,

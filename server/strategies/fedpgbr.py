@@ -203,6 +203,9 @@ class FedPGBR(Strategy[FedPGBRStrategyParams]):
     def round_stats(self) -> dict[str, Any]:
         return dict(self.stats)
 
+    def sampled_trajectories(self) -> int:
+        return int(self.stats.get("trajectories", 0))
+
     def state(self) -> SavedState:
         return self.adam.state()
 
