@@ -6,7 +6,7 @@ STAMP := $(VENV)/.installed
 export OMP_NUM_THREADS ?= 1
 export MKL_NUM_THREADS ?= 1
 
-.PHONY: setup demo docs test test-long image test-containers test-cluster bench-cluster bench-containers clean-containers lint typecheck contracts bench bench-learning bench-learning-long bench-tuned bench-robustness bench-presets bench-scale bench-device bench-plan bench-async figures clean
+.PHONY: setup demo docs test test-long image test-containers test-cluster bench-cluster bench-containers clean-containers lint typecheck contracts bench bench-learning bench-learning-long bench-tuned bench-robustness bench-presets bench-scale bench-device bench-plan bench-async bench-privacy figures clean
 
 setup: $(STAMP)
 
@@ -163,6 +163,15 @@ bench-async: $(STAMP)
 	nice -n 10 $(BIN)/python -m benchmarks.async_rounds --setups cartpole-k100 --seeds 5 \
 		--results benchmarks/results/async_rounds_k100.json \
 		--figure docs/figures/async_rounds_k100.png
+
+# Privacy (docs/privacy.md): CartPole K = 100 at ε = 1, 4, 8 against the non-private run,
+# 5 seeds (a few minutes); secure aggregation's cost per round, the protocol alone and
+# fedhpg-run on loopback at K = 10, 100, 1,000. BENCHMARKS.md "Privacy";
+# benchmarks/results/privacy_*.json, docs/figures/privacy_utility.png.
+bench-privacy: $(STAMP)
+	nice -n 10 $(BIN)/python -m benchmarks.privacy --part utility
+	nice -n 10 $(BIN)/python -m benchmarks.privacy --part overhead
+	nice -n 10 $(BIN)/python -m benchmarks.privacy --part wire
 
 bench-robustness: $(STAMP)
 	$(BIN)/python -m benchmarks.robustness

@@ -48,10 +48,15 @@ from fedhpg.common.wire.protocol import (
     Evaluation,
     Heartbeat,
     Hello,
+    KeyShares,
+    MaskedUpdate,
+    MaskRequest,
     Message,
     Request,
     Shutdown,
     Train,
+    Unmasking,
+    UnmaskRequest,
     Update,
     Welcome,
 )
@@ -99,13 +104,12 @@ class Job:
 def same_request(a: Request, b: Request) -> bool:
     """Whether ``b`` asks for nothing that ``a`` does not: the same round and θ̃, for a subset
     of a's agents (as when a host is asked again, after rejoining, for the answers lost)."""
-    return (
-        type(a) is type(b)
-        and set(b.agents) <= set(a.agents)
-        and a.round == b.round
-        and a.theta.shape == b.theta.shape
-        and bool(np.array_equal(a.theta, b.theta))
-    )
+    if type(a) is not type(b) or not set(b.agents) <= set(a.agents) or a.round != b.round:
+        return False
+    if isinstance(a, MaskRequest | UnmaskRequest):  # one of each per round
+        return True
+    assert isinstance(b, Train | Evaluate) and isinstance(a, Train | Evaluate)
+    return a.theta.shape == b.theta.shape and bool(np.array_equal(a.theta, b.theta))
 
 
 def served_range(run: RunConfig) -> tuple[range, bool]:
@@ -232,6 +236,7 @@ class AgentHost:
             env_signature=self.work.signature,
             variant_digest=self.work.digest,
             profile=profile,
+            channel_keys=self.work.channel_keys(),
         )
 
     def _is_welcome(self, message: Message | None) -> bool:
@@ -414,7 +419,7 @@ class AgentHost:
 
     def _dispatch(self, message: Message) -> bool:
         """Act on one message from the server; False when the run is over."""
-        if isinstance(message, Train | Evaluate):
+        if isinstance(message, Train | Evaluate | MaskRequest | UnmaskRequest):
             self._on_request(message)
         elif isinstance(message, Shutdown):
             logger.debug("%s: shutdown (%s)", self.agent_id, message.reason)
@@ -481,6 +486,10 @@ def _resend(answers: list[Message], request: Request) -> list[Message]:
     wanted = set(request.agents)
     again: list[Message] = []
     for answer in answers:
+        if isinstance(answer, KeyShares | MaskedUpdate | Unmasking):
+            if wanted & set(answer.agents):  # the server files the rows it still awaits
+                again.append(answer)
+            continue
         if not isinstance(answer, Update | Evaluation):
             continue
         rows = [i for i, k in enumerate(answer.agents) if k in wanted]

@@ -25,6 +25,7 @@ messages.
 from __future__ import annotations
 
 import dataclasses
+import logging
 import threading
 import time
 from collections.abc import Mapping, Sequence
@@ -35,22 +36,33 @@ import torch
 from fedhpg.common.config import RunConfig
 from fedhpg.common.device import DeviceColumns, DeviceModel, device_for, message_bytes
 from fedhpg.common.group import AgentGroup, make_agent_group
+from fedhpg.common.privacy.contribution import EXTRA, contribution
 from fedhpg.common.round_columns import train_columns
 from fedhpg.common.runtime import timeline
 from fedhpg.common.runtime.memory import tune_malloc_for
-from fedhpg.common.types import UpdateColumns
+from fedhpg.common.types import UpdateColumns, UpdateStats
 from fedhpg.common.variants import range_digest, variant_digest, variants_of
 from fedhpg.common.wire.protocol import (
+    KEY_BYTES,
     MAX_BATCH_ANSWERS,
     Evaluate,
     Evaluation,
+    KeyShares,
+    MaskedUpdate,
+    MaskRequest,
     Message,
     Request,
     Train,
+    Unmasking,
+    UnmaskRequest,
     Update,
+    no_keys,
 )
 from fedhpg.common.wire.transport import answers_per_message, batch_message_cap
 from fedhpg.common.worker import IterationWork
+
+logger = logging.getLogger(__name__)
+SECURE_MODES = ("secagg", "dp_secagg")
 
 
 class Cancelled(Exception):
@@ -74,6 +86,17 @@ class AgentWork:
         self.devices = self._devices(run)
         self.group: AgentGroup | None = None
         self._columns: DeviceColumns | None = None
+        self.private = run.privacy.mode != "none"
+        self.secure: SecureAgents | None = None
+        if run.privacy.mode in SECURE_MODES:  # channel keys go in the hello
+            self.secure = SecureAgents(run)
+            self.secure.keys.channel_keys(indices)
+
+    def channel_keys(self) -> np.ndarray:
+        """The hello's channel public keys of this range (none without secure aggregation)."""
+        if self.secure is None:
+            return no_keys()
+        return self.secure.keys.channel_keys(self.indices)
 
     @property
     def sleeps(self) -> bool:
@@ -90,6 +113,9 @@ class AgentWork:
     def build(self, run: RunConfig) -> AgentGroup:
         """The group and the devices of the run the server dictates (at registration)."""
         self.close()
+        self.private = run.privacy.mode != "none"
+        if self.secure is not None:
+            self.secure.keys.settings = run.privacy
         self.devices = self._devices(run)
         # row k - first is agent k's: what a round prices
         self._columns = (
@@ -118,6 +144,12 @@ class AgentWork:
             raise OutsideRange(f"the server asked for agents outside {self.label}'s range")
         if not agents:
             return []
+        if isinstance(request, MaskRequest | UnmaskRequest):
+            if self.secure is None:
+                raise OutsideRange(f"{self.label} was asked to mask without channel keys")
+            if isinstance(request, MaskRequest):
+                return self.secure.mask(request, max_bytes)
+            return self.secure.reveal(request, max_bytes)
         theta = torch.from_numpy(np.array(request.theta))
         if isinstance(request, Evaluate):
             evaluations = group.evaluate(request.round, theta, request.episodes, agents)
@@ -135,6 +167,12 @@ class AgentWork:
             # each answer leaves with the batch: the round's wall time is each agent's
             stats = stats.replaced(local_wall_s=[time.perf_counter() - started] * len(stats))
         timeline.mark(self.label, "trained", request.round)
+        if self.private:  # what the agents' data decides directly stays here
+            stats = stats.replaced(train_return=[0.0] * len(stats), algorithm={})
+        if request.private is not None:
+            if self.secure is None:
+                raise OutsideRange(f"{self.label} was asked to mask without channel keys")
+            return self.secure.share(request, agents, theta, thetas, stats, max_bytes)
         num_params = thetas.shape[1]
         per_message = answers_per_message(batch_message_cap(max_bytes, num_params), num_params)
         return [
@@ -217,6 +255,155 @@ class AgentWork:
             speed=device.speed_at(request.round),
         )
         return result.theta.detach().numpy()[None], UpdateColumns.of([stats])
+
+
+class SecureAgents:
+    """The agents' side of secure aggregation for this program's range: each round's
+    contributions, masked and unmasked as the server's exchanges ask (server/pools/secure.py).
+    A row the protocol refuses (a round this program has no keys for, after a restart) is
+    left out of the answer: the server then counts that agent as dropped out."""
+
+    def __init__(self, run: RunConfig) -> None:
+        from fedhpg.common.privacy.session import LocalSecAgg
+
+        self.keys = LocalSecAgg(run)
+        self._inputs: dict[int, np.ndarray] = {}
+        self._stats: dict[int, UpdateStats] = {}
+        self._round = -1
+        self._num_params = 1
+
+    def share(
+        self,
+        request: Train,
+        agents: list[int],
+        theta: torch.Tensor,
+        thetas: np.ndarray,
+        stats: UpdateColumns,
+        max_bytes: int,
+    ) -> list[Message]:
+        """After training: each agent's contribution kept, its key shares sent."""
+        from fedhpg.common.privacy import fixedpoint
+        from fedhpg.common.privacy.secagg import SEALED_BYTES
+
+        private = request.private
+        assert private is not None
+        participants = list(request.participants)
+        keys = {k: bytes(row) for k, row in zip(participants, request.channel_keys, strict=True)}
+        setup = self.keys.setup(request.round, participants, thetas.shape[1] + EXTRA, keys)
+        bound = max(private.bound, 1.0)
+        scale = fixedpoint.scale_for(len(participants), bound)
+        records = stats.records()
+        self._round, self._inputs, self._stats = request.round, {}, {}
+        self._num_params = thetas.shape[1]
+        width = max(len(setup.graph.get(k, ())) for k in agents)
+        mask_keys = np.zeros((len(agents), KEY_BYTES), dtype=np.uint8)
+        recipients = np.full((len(agents), width), -1, dtype=np.int64)
+        sealed = np.zeros((len(agents), width, SEALED_BYTES), dtype=np.uint8)
+        for i, k in enumerate(agents):
+            row = contribution(
+                torch.from_numpy(thetas[i]) - theta,
+                records[i].trajectories,
+                private,
+                self.keys.noise(request.round, k),
+            )
+            self._inputs[k] = fixedpoint.encode(row, scale, bound)
+            self._stats[k] = records[i]
+            shares = self.keys.agent(k).share_keys(setup)
+            mask_keys[i] = np.frombuffer(shares.mask_key, dtype=np.uint8)
+            for j, (v, box) in enumerate(sorted(shares.sealed.items())):
+                recipients[i, j] = v
+                sealed[i, j] = np.frombuffer(box, dtype=np.uint8)
+        per = _rows_per_message(max_bytes, self._num_params, KEY_BYTES + width * (8 + SEALED_BYTES))
+        return [
+            KeyShares(
+                round=request.round,
+                agents=agents[s : s + per],
+                mask_keys=mask_keys[s : s + per],
+                recipients=recipients[s : s + per],
+                sealed=sealed[s : s + per],
+            )
+            for s in range(0, len(agents), per)
+        ]
+
+    def mask(self, request: MaskRequest, max_bytes: int) -> list[Message]:
+        """Each agent's contribution, masked with its neighbours that shared keys."""
+        from fedhpg.common.privacy.secagg import SecAggError
+
+        done, rows = [], []
+        for i, k in enumerate(request.agents):
+            if request.round != self._round or k not in self._inputs:
+                logger.warning("round %d: no input of agent %d to mask", request.round, k)
+                continue
+            senders = [int(v) for v in request.senders[i] if v >= 0]
+            keys = {v: bytes(request.mask_keys[i, j]) for j, v in enumerate(senders)}
+            sealed = {v: bytes(request.sealed[i, j]) for j, v in enumerate(senders)}
+            try:
+                masked = self.keys.agent(k).mask(request.round, self._inputs[k], keys, sealed)
+            except SecAggError as error:
+                logger.warning("round %d: agent %d drops out: %s", request.round, k, error)
+                continue
+            done.append(k)
+            rows.append(masked.view(np.int64))
+        if not done:
+            return []
+        masked_rows = np.stack(rows)
+        stats = UpdateColumns.of([self._stats[k] for k in done])
+        per = _rows_per_message(max_bytes, self._num_params, 8 * masked_rows.shape[1] + 3 * 1024)
+        return [
+            MaskedUpdate(
+                round=request.round,
+                agents=done[s : s + per],
+                masked=masked_rows[s : s + per],
+                stats=stats[s : s + per],
+            )
+            for s in range(0, len(done), per)
+        ]
+
+    def reveal(self, request: UnmaskRequest, max_bytes: int) -> list[Message]:
+        """Each agent's shares of its dropped neighbours' mask keys and of its included
+        neighbours' self-mask seeds."""
+        from fedhpg.common.privacy.secagg import SecAggError
+        from fedhpg.common.privacy.shamir import SHARE_BYTES
+
+        answers: dict[int, dict] = {}
+        for k in request.agents:
+            try:
+                answers[k] = self.keys.agent(k).reveal(
+                    request.round, request.dropped, request.included
+                )
+            except SecAggError as error:
+                logger.warning("round %d: agent %d reveals nothing: %s", request.round, k, error)
+        if not answers:
+            return []
+        done = sorted(answers)
+        width = max(len(a) for a in answers.values())
+        owners = np.full((len(done), width), -1, dtype=np.int64)
+        kinds = np.zeros((len(done), width), dtype=np.uint8)
+        shares = np.zeros((len(done), width, SHARE_BYTES), dtype=np.uint8)
+        for i, k in enumerate(done):
+            for j, (owner, (kind, share)) in enumerate(sorted(answers[k].items())):
+                owners[i, j], kinds[i, j] = owner, int(kind)
+                shares[i, j] = np.frombuffer(share, dtype=np.uint8)
+        per = _rows_per_message(max_bytes, self._num_params, width * (9 + SHARE_BYTES))
+        return [
+            Unmasking(
+                round=request.round,
+                agents=done[s : s + per],
+                owners=owners[s : s + per],
+                kinds=kinds[s : s + per],
+                shares=shares[s : s + per],
+            )
+            for s in range(0, len(done), per)
+        ]
+
+
+def _rows_per_message(max_bytes: int, num_params: int, row_bytes: int) -> int:
+    """Rows of ``row_bytes`` each that fit one message of a run of ``num_params`` parameters
+    (the cap the server computes alike), one at least and at most ``MAX_BATCH_ANSWERS``."""
+    from fedhpg.common.wire.codec import MAX_HEADER_BYTES
+
+    room = batch_message_cap(max_bytes, num_params) - MAX_HEADER_BYTES - 4096
+    return max(1, min(MAX_BATCH_ANSWERS, room // max(row_bytes, 1)))
 
 
 def _sleep_unless(cancel: threading.Event, seconds: float) -> None:

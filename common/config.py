@@ -43,6 +43,7 @@ STALENESS_WEIGHTS = ("inverse_sqrt", "constant")
 PARTICIPATION_MODES = ("all", "uniform", "trace")
 TOLERANCE_CHECKS = ("refuse", "warn")
 CLUSTER_KINDS = ("auto", "slurm", "local", "ray")
+PRIVACY_MODES = ("none", "dp", "secagg", "dp_secagg")
 LOG_STDS = ("state_independent", "state_dependent")
 
 # Liveness, part of the protocol: a peer silent for HEARTBEAT_LIVENESS intervals is presumed
@@ -508,6 +509,102 @@ class SecurityConfig:
 
 
 @dataclass(kw_only=True)
+class SecAggConfig:
+    """Secure aggregation: agents mask their encoded updates so that the server learns only
+    the sum (docs/privacy.md)."""
+
+    threshold: float = 0.5
+    """t = ⌊threshold · k⌋ + 1 of an agent's k neighbours rebuild its secrets when it drops
+    out; the round fails when fewer remain. In (0, 1); above 0.5, no server can be handed
+    both secrets of one agent."""
+    neighbours: int | None = None
+    """k, the agents each one masks with and shares its secrets with (SecAgg+); None = every
+    other agent of the round (SecAgg). Cost per agent grows with k, not with the round."""
+    range: float = 1.0e4
+    """Each coordinate of an update is clipped to [−range, range] before its fixed-point
+    encoding (resolution about n · range / 2⁶², n the round's agents)."""
+
+
+@dataclass(kw_only=True)
+class PrivacyConfig:
+    """Agent-level differential privacy and secure aggregation (docs/privacy.md)."""
+
+    mode: str = "none"
+    """'none'; 'dp' (each update clipped, Gaussian noise added by the server, ε accounted);
+    'secagg' (the server sees only the sum of masked updates); 'dp_secagg' (both: each agent
+    adds its share of the noise to its clipped update before masking)."""
+    epsilon: float | None = None
+    """The run's budget ε: without ``noise_multiplier``, σ is chosen so that ``rounds`` rounds
+    spend exactly this; with it, the run stops before a round would exceed it."""
+    delta: float | None = None
+    """δ of the guarantee; None = 1/K^1.1 (K = agents.num_agents)."""
+    noise_multiplier: float | None = None
+    """σ: the noise's std over the clip C; None = calibrated from ``epsilon``."""
+    clip: float = 1.0
+    """C, the L2 bound of each agent's update θ_k − θ̃ (the first round's, with adaptive
+    clipping)."""
+    adaptive_clip: bool = False
+    """Follow a quantile of the update norms (Andrew et al. 2021) instead of a fixed C."""
+    target_quantile: float = 0.5
+    """Adaptive clipping: the fraction of updates C should leave unclipped."""
+    clip_rate: float = 0.2
+    """Adaptive clipping: the geometric step η of C ← C·exp(−η(b̄ − quantile))."""
+    count_std: float | None = None
+    """Adaptive clipping: std of the noise on the count of unclipped updates (above σ/2);
+    None = the expected agents per round / 20, or σ where that is more."""
+    noise_seed: int | None = None
+    """Seed the DP noise (reproducible experiments only: whoever knows it can remove the
+    noise); None = the operating system's entropy."""
+    secagg: SecAggConfig = field(default_factory=SecAggConfig)
+    """Secure aggregation's settings ('secagg', 'dp_secagg')."""
+
+
+def _validate_privacy(privacy: PrivacyConfig) -> None:
+    _check_choice(privacy.mode, "privacy.mode", PRIVACY_MODES)
+    if privacy.epsilon is not None:
+        _check_number(privacy.epsilon, "privacy.epsilon", low=0.0, low_open=True)
+    if privacy.delta is not None:
+        _check_number(privacy.delta, "privacy.delta", low=0.0, low_open=True)
+        _require(privacy.delta < 1, "privacy.delta", f"got {privacy.delta!r}, must be in (0, 1)")
+    if privacy.noise_multiplier is not None:
+        _check_number(privacy.noise_multiplier, "privacy.noise_multiplier", low=0.0, low_open=True)
+    if privacy.mode in ("dp", "dp_secagg"):
+        _require(
+            privacy.epsilon is not None or privacy.noise_multiplier is not None,
+            "privacy.epsilon",
+            f"privacy.mode={privacy.mode} needs a budget ε (privacy.epsilon) or a noise "
+            "multiplier (privacy.noise_multiplier)",
+        )
+    _check_number(privacy.clip, "privacy.clip", low=0.0, low_open=True)
+    _require(
+        isinstance(privacy.adaptive_clip, bool),
+        "privacy.adaptive_clip",
+        f"got {privacy.adaptive_clip!r}, must be true or false",
+    )
+    _check_number(privacy.target_quantile, "privacy.target_quantile", low=0.0)
+    _require(
+        privacy.target_quantile <= 1,
+        "privacy.target_quantile",
+        f"got {privacy.target_quantile!r}, must be in [0, 1]",
+    )
+    _check_number(privacy.clip_rate, "privacy.clip_rate", low=0.0, low_open=True)
+    if privacy.count_std is not None:
+        _check_number(privacy.count_std, "privacy.count_std", low=0.0, low_open=True)
+    if privacy.noise_seed is not None:
+        _check_int(privacy.noise_seed, "privacy.noise_seed", low=0)
+    secagg = privacy.secagg
+    _check_number(secagg.threshold, "privacy.secagg.threshold", low=0.0, low_open=True)
+    _require(
+        secagg.threshold < 1,
+        "privacy.secagg.threshold",
+        f"got {secagg.threshold!r}, must be in (0, 1)",
+    )
+    if secagg.neighbours is not None:
+        _check_int(secagg.neighbours, "privacy.secagg.neighbours", low=2)
+    _check_number(secagg.range, "privacy.secagg.range", low=0.0, low_open=True)
+
+
+@dataclass(kw_only=True)
 class ClusterConfig:
     """``fedhpg-cluster``: the jobs of a federation on a cluster engine (submitit, Ray)."""
 
@@ -561,6 +658,7 @@ class RunConfig:
     server: ServerConfig = field(default_factory=ServerConfig)
     agent: AgentConfig = field(default_factory=AgentConfig)
     security: SecurityConfig = field(default_factory=SecurityConfig)
+    privacy: PrivacyConfig = field(default_factory=PrivacyConfig)
     cluster: ClusterConfig = field(default_factory=ClusterConfig)
     resume: str | None = None
     """Continue a killed run: 'true' resumes ``server.out_dir``; a path resumes that run
@@ -595,6 +693,7 @@ GROUPS: dict[str, GroupRole] = {
     "server": GroupRole(dictated=False, fixed=False, compared=False),
     "agent": GroupRole(dictated=False, fixed=False, compared=False),
     "security": GroupRole(dictated=False, fixed=False, compared=False),  # paths stay on host
+    "privacy": GroupRole(dictated=True, fixed=True, compared=True),  # agents clip, noise, mask
     "cluster": GroupRole(dictated=False, fixed=False, compared=False),  # fedhpg-cluster's jobs
     "resume": GroupRole(dictated=False, fixed=False, compared=False),
 }
@@ -895,6 +994,7 @@ def validate(config: RunConfig) -> RunConfig:
         "security.curve",
         f"got {config.security.curve!r}, must be true or false",
     )
+    _validate_privacy(config.privacy)
     _validate_cluster(config.cluster)
     return config
 

@@ -55,6 +55,7 @@ from fedhpg.server.coordinator import Coordinator, RoundCallback, RoundRecord, R
 from fedhpg.server.metrics import MetricsWriter, record_marks, tensorboard_sink
 from fedhpg.server.pools import AgentPool
 from fedhpg.server.pools.inprocess import make_in_process_pool
+from fedhpg.server.privacy import PrivateRounds
 from fedhpg.server.run_dir import RunDirectory, RunDirectoryError
 from fedhpg.server.sinks import PROGRESS_NAME, ProgressCsv, wandb_sink
 from fedhpg.server.strategies import Strategy, validate_strategy
@@ -71,6 +72,8 @@ class CheckedRun:
 
     run: RunConfig
     strategy: Strategy[Any]
+    privacy: PrivateRounds | None = None
+    """``privacy.mode`` ≠ none: clipping, noise, accounting (σ already calibrated)."""
 
     @functools.cached_property
     def first(self) -> EnvVariant:
@@ -88,7 +91,43 @@ def check_run(run: RunConfig, *, distributed: bool) -> CheckedRun:
     order, and its strategy, built once; ``distributed``: agents in processes of their own."""
     strategy = validate_strategy(run)
     _check_round_policy(run, strategy, distributed=distributed)
-    return CheckedRun(run, strategy)
+    return CheckedRun(run, strategy, _check_privacy(run, strategy))
+
+
+def _check_privacy(run: RunConfig, strategy: Strategy[Any]) -> PrivateRounds | None:
+    """What ``privacy.mode`` cannot combine with (config.py checks its keys' own ranges), and
+    the run's private rounds, σ calibrated to its budget."""
+    mode = run.privacy.mode
+    if mode == "none":
+        return None
+    try:
+        import cryptography  # noqa: F401
+        import dp_accounting  # noqa: F401
+    except ImportError:
+        raise ConfigError(
+            "privacy.mode",
+            f"privacy.mode={mode} needs the optional packages: pip install 'fedhpg[privacy]'",
+        ) from None
+    averaging = strategy.averaging()
+    if averaging is None:
+        raise ConfigError(
+            "privacy.mode",
+            f"got {mode!r}; strategy={strategy.name} needs each agent's update alone, which "
+            "privacy hides or changes: use strategy=mean, weighted, or fedadam over either",
+        )
+    if averaging == "weighted" and mode in ("dp", "dp_secagg"):
+        raise ConfigError(
+            "privacy.mode",
+            f"got {mode!r} with weights by trajectories: one agent's weight would be unbounded "
+            "in the sum DP protects; use strategy=mean (or fedadam over it)",
+        )
+    if run.server.round_policy == "buffered":
+        raise ConfigError(
+            "server.round_policy",
+            f"got 'buffered'; privacy.mode={mode} accounts and masks synchronous rounds: use "
+            "wait_all or deadline",
+        )
+    return PrivateRounds(run, weighted=averaging == "weighted")
 
 
 def _check_round_policy(run: RunConfig, strategy: Strategy[Any], *, distributed: bool) -> None:
@@ -139,6 +178,7 @@ def checkpoint_callback(
                 "elapsed_s": progress.elapsed_s,
                 "counters": counters(),
                 **({"plan": progress.plan_state} if progress.plan_state else {}),
+                **({"privacy": progress.privacy_state} if progress.privacy_state else {}),
             },
             strategy=progress.strategy_state,
             schedule=progress.schedule_state,
@@ -195,6 +235,7 @@ def resume_point(
         elapsed_s=float(checkpoint.state.get("elapsed_s", 0.0)),
         strategy_state=checkpoint.strategy,
         plan_state=dict(checkpoint.state.get("plan", {})),
+        privacy_state=dict(checkpoint.state.get("privacy", {})),
         schedule_state=checkpoint.schedule,
     )
     counters = checkpoint.state.get("counters", {})
@@ -267,6 +308,7 @@ class Assembly:
             theta=self.theta,
             progress=self.progress,
             on_round=self.sinks,
+            privacy=self.checked.privacy,
         )
 
     def run_rounds(
@@ -293,6 +335,7 @@ class Assembly:
             else None,
             **self.pool_counters(),
             **extra,
+            **({"privacy": self.checked.privacy.summary()} if self.checked.privacy else {}),
             "variants": variants,
         }
         if self.run_dir is not None:

@@ -61,7 +61,7 @@ from fedhpg.server.coordinator import (
     diverged_message,
     should_evaluate,
 )
-from fedhpg.server.pools import FederationError
+from fedhpg.server.pools import FederationError, RoundAnswers
 from fedhpg.server.validation import Rejection, diverged, reasons
 
 logger = logging.getLogger(__name__)
@@ -394,7 +394,7 @@ class BufferedCoordinator(Coordinator):
             round_started = time.perf_counter()
             buffer, stale, failures = self._fill_buffer(version)
             rows = self._rows(buffer, version - 1)
-            self._aggregate(version, rows, failures)
+            self._aggregate(version, RoundAnswers(updates=rows, failures=failures), len(rows))
             restarted, self.parked = sorted([i.agent for i in buffer] + self.parked), []
             self._restart(version, restarted)
             round_time = time.perf_counter() - round_started

@@ -10,7 +10,7 @@ from __future__ import annotations
 import functools
 import logging
 import time
-from collections.abc import Callable, Mapping
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -22,11 +22,12 @@ from fedhpg.common.runtime import timeline
 from fedhpg.common.types import AgentUpdate, EvaluationStats, SavedState
 from fedhpg.server.bound_report import round_bound
 from fedhpg.server.participation import make_participation
-from fedhpg.server.pools import AgentPool, FederationError
+from fedhpg.server.pools import AgentPool, FederationError, RoundAnswers
+from fedhpg.server.privacy import PrivateRounds
 from fedhpg.server.replan import make_replanner
 from fedhpg.server.strategies import Strategy
 from fedhpg.server.tolerance import tolerance_shortfall
-from fedhpg.server.validation import Rejection, diverged, reasons
+from fedhpg.server.validation import diverged, reasons
 
 logger = logging.getLogger(__name__)
 
@@ -63,6 +64,8 @@ class RoundRecord:
     """Buffered rounds: agent id → staleness of the updates dropped past the bound."""
     strategy: dict[str, Any] = field(default_factory=dict)
     """What the strategy reports of its aggregation (:meth:`Strategy.round_stats`)."""
+    privacy: dict[str, Any] | None = None
+    """``privacy.mode`` ≠ none: ε and δ so far, σ, the clip, the inputs aggregated."""
 
     @functools.cached_property
     def agent_rows(self) -> list[dict[str, Any]]:
@@ -100,6 +103,11 @@ class RoundRecord:
             record["stale"] = dict(self.stale)
         if self.strategy:
             record["strategy"] = dict(self.strategy)
+        if self.privacy is not None:
+            rest = dict(self.privacy)
+            if "epsilon" in rest:
+                record["epsilon"], record["delta"] = rest.pop("epsilon"), rest.pop("delta")
+            record["privacy"] = rest
         return record
 
 
@@ -143,6 +151,8 @@ class RunProgress:
     """``agents.plan``: the plan in force and the window it is re-made from."""
     schedule_state: SavedState | None = None
     """Buffered rounds: the in-flight updates and the emulated clock (server/buffered.py)."""
+    privacy_state: dict[str, Any] = field(default_factory=dict)
+    """``privacy.mode`` ≠ none: the rounds accounted, σ and the clip (server/privacy.py)."""
 
 
 class Coordinator:
@@ -157,8 +167,10 @@ class Coordinator:
         theta: torch.Tensor,
         progress: RunProgress | None = None,
         on_round: list[RoundCallback] | None = None,
+        privacy: PrivateRounds | None = None,
     ) -> None:
         self.run = run
+        self.privacy = privacy
         self.pool = pool
         self.strategy = strategy
         self.theta = theta
@@ -173,19 +185,24 @@ class Coordinator:
             logger.warning("%s", shortfall)
         if self.progress.next_round > 1:
             strategy.restore(self.progress.strategy_state)
+            if privacy is not None:
+                privacy.restore(self.progress.privacy_state, run)
 
-    def _aggregate(
-        self, round_number: int, updates: list[AgentUpdate], failures: Mapping[str, Rejection]
-    ) -> None:
+    def _aggregate(self, round_number: int, answers: RoundAnswers, selected: int) -> None:
+        updates, failures = answers.updates, answers.failures
         if not updates:
             if diverged(failures):
                 raise FederationError(diverged_message(self.run, round_number))
             raise FederationError(
                 f"round {round_number}: no update to aggregate (rejected: {reasons(failures)})"
             )
-        theta = self.strategy.aggregate(
-            round_number, self.theta, updates, reasons(failures)
-        ).detach()
+        if self.privacy is not None:
+            average = self.privacy.aggregate(round_number, self.theta, answers, selected)
+            theta = self.strategy.from_average(round_number, self.theta, average).detach()
+        else:
+            theta = self.strategy.aggregate(
+                round_number, self.theta, updates, reasons(failures)
+            ).detach()
         fits = theta.shape == self.theta.shape and theta.dtype == self.theta.dtype
         # numpy's isfinite: torch's allocates a bool tensor and costs ~14x as much per round
         if not fits or not bool(np.isfinite(theta.numpy()).all()):
@@ -218,12 +235,22 @@ class Coordinator:
         participating = self.participation.select(round_number)
         selected = self.strategy.select(round_number, participating)
         budgets = self.replanner.budgets() if self.replanner is not None else None
+        private = None
+        if self.privacy is not None:
+            self.privacy.check_budget(round_number)
+            if self.privacy.secure:
+                private = self.privacy.round_privacy(len(selected))
         answers = self.pool.train(
-            round_number, self.theta, selected, budgets=budgets, while_training=self._write_record
+            round_number,
+            self.theta,
+            selected,
+            budgets=budgets,
+            while_training=self._write_record,
+            private=private,
         )
         self._write_record()  # where the pool did not call it
         timeline.mark("server", "answers-in", round_number)
-        self._aggregate(round_number, answers.updates, answers.failures)
+        self._aggregate(round_number, answers, len(selected))
         round_time = time.perf_counter() - round_started
         timeline.mark("server", "aggregated", round_number)
         evaluation, eval_time = None, None
@@ -239,6 +266,8 @@ class Coordinator:
         progress.trajectories_per_agent += sampled / self.run.agents.num_agents
         progress.elapsed_s = wall_time
         progress.strategy_state = self.strategy.state()
+        if self.privacy is not None:
+            progress.privacy_state = self.privacy.state()
         plan = None
         if self.replanner is not None:
             plan = self.replanner.observe(round_number, answers.updates)
@@ -259,6 +288,7 @@ class Coordinator:
             else None,
             plan=plan,
             strategy=self.strategy.round_stats(),
+            privacy=self.privacy.round_stats() if self.privacy is not None else None,
         )
         self._unwritten = (record, self.theta)
 

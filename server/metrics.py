@@ -27,6 +27,7 @@ from fedhpg.server.strategies import stacked
 logger = logging.getLogger(__name__)
 
 METRICS_SCHEMA_VERSION = 1
+SECURE_MODES = ("secagg", "dp_secagg")
 
 
 def record_marks(run: RunConfig) -> dict[str, Any]:
@@ -161,15 +162,23 @@ class RoundValues:
             # The round's emulated duration is its slowest agent's emulated time.
             values["fed/emulated_round_s"] = max(s.emulated_s for s in stats)
             values["fed/trajectories"] = sum(s.trajectories for s in stats)
-        norms = _update_norms(record.agents, before)
+        if record.privacy is not None:
+            for key in ("epsilon", "delta", "noise_multiplier", "clip", "inputs"):
+                if key in record.privacy:
+                    values[f"privacy/{key}"] = record.privacy[key]
+        # under secure aggregation the server holds no θ_k: there are no update norms
+        secure = record.privacy is not None and record.privacy["mode"] in SECURE_MODES
+        norms = {} if secure else _update_norms(record.agents, before)
         rows = record.agent_rows
         across = _columns(record.agents, rows)
-        across["update_norm"] = [norms[row["index"]] for row in rows]
+        if not secure:
+            across["update_norm"] = [norms[row["index"]] for row in rows]
         across = {name: column for name, column in across.items() if len(column)}
         if self._per_agent:
             for row in rows:
                 index = row["index"]
-                for name, value in itertools.chain(row.items(), (("update_norm", norms[index]),)):
+                norm = () if secure else (("update_norm", norms[index]),)
+                for name, value in itertools.chain(row.items(), norm):
                     if value is not None and name not in _NOT_SCALARS:
                         values[f"agent/{index}/{name}"] = value
         for name, column in across.items():  # the spread over the round's agents

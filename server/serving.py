@@ -33,6 +33,7 @@ from fedhpg.common.config import (
 from fedhpg.common.runtime.progress import Progress
 from fedhpg.common.types import EvaluationStats
 from fedhpg.common.variants import discount, run_variants, variant_digest, variant_of
+from fedhpg.common.wire.codec import MAX_HEADER_BYTES
 from fedhpg.common.wire.security import (
     ServerGuard,
     handshake_failure_logger,
@@ -49,6 +50,7 @@ from fedhpg.server.assembly import Assembly, CheckedRun, assemble, check_run
 from fedhpg.server.buffered_zmq import ZmqBufferedCoordinator
 from fedhpg.server.connections import ConnectionGuard, connection_budget
 from fedhpg.server.coordinator import RoundRecord
+from fedhpg.server.pools.secure import SecureExchange, neighbour_count, row_bytes
 from fedhpg.server.pools.zmq_pool import ZmqAgentPool
 from fedhpg.server.report import evaluation_report
 from fedhpg.server.run_dir import claimed
@@ -88,6 +90,8 @@ def message_cap(run: RunConfig, num_params: int) -> int:
     batch of θs (ZMQ_MAXMSGSIZE and the codec's cap). ``server.max_message_mb`` may lower it
     only as far as one θ."""
     needed = single_message_bytes(num_params)
+    if run.privacy.mode in ("secagg", "dp_secagg"):  # a secure round's rows, one at least
+        needed = max(needed, MAX_HEADER_BYTES + 4096 + row_bytes(run, num_params))
     configured = max_message_bytes(run.server)
     if configured < needed:
         raise ConfigError(
@@ -95,7 +99,15 @@ def message_cap(run: RunConfig, num_params: int) -> int:
             f"got {run.server.max_message_mb:g}, below the {needed / 2**20:.3g} MiB this run's "
             f"updates need (θ of {num_params} float32 and a header of up to 1 MiB)",
         )
-    return batch_message_cap(configured, num_params)
+    cap = batch_message_cap(configured, num_params)
+    if needed > cap:
+        raise ConfigError(
+            "privacy.secagg.neighbours",
+            f"one agent's secret shares for its {neighbour_count(run, run.agents.num_agents)} "
+            f"neighbours take {needed / 2**20:.3g} MiB, more than a message of this run may "
+            f"({cap / 2**20:.3g} MiB): set privacy.secagg.neighbours (e.g. 32)",
+        )
+    return cap
 
 
 def run_digests(run: RunConfig) -> list[str]:
@@ -182,6 +194,9 @@ def zmq_pool(assembly: Assembly, parts: ServerSocket, cap: int) -> ZmqAgentPool:
         max_bytes=cap,
         settings=run.server,
         guard=parts.guard,
+        secure=SecureExchange(run, int(checked.initial_theta.numel()))
+        if checked.privacy is not None and checked.privacy.secure
+        else None,
     )
     pool.restore_counters(assembly.counters)
     return pool

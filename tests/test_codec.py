@@ -20,6 +20,9 @@ from hypothesis.extra import numpy as hnp
 
 from fedhpg.common import limits
 from fedhpg.common.columns import Columns, columns_of
+from fedhpg.common.privacy.contribution import RoundPrivacy
+from fedhpg.common.privacy.secagg import SEALED_BYTES
+from fedhpg.common.privacy.shamir import SHARE_BYTES
 from fedhpg.common.types import EvaluationStats, UpdateColumns, UpdateStats
 from fedhpg.common.wire import codec, protocol
 from fedhpg.common.wire.codec import ProtocolError, decode, encode
@@ -34,8 +37,13 @@ from fedhpg.common.wire.protocol import (
     Evaluation,
     Heartbeat,
     Hello,
+    KeyShares,
+    MaskedUpdate,
+    MaskRequest,
     Shutdown,
     Train,
+    Unmasking,
+    UnmaskRequest,
     Update,
     Welcome,
 )
@@ -128,6 +136,51 @@ SAMPLES = [
     Heartbeat(),
     Shutdown(reason="run complete"),
     Error(code="bad_update", reason="parameters contain NaN or Inf"),
+    # secure aggregation (common/privacy/secagg.py): keys, its three exchanges
+    Hello(
+        id="host-0-1",
+        first=0,
+        count=2,
+        env_signature=SIGNATURE,
+        variant_digest="0123456789abcdef",
+        channel_keys=np.arange(64, dtype=np.uint8).reshape(2, 32),
+    ),
+    Train(
+        round=7,
+        theta=THETA,
+        agents=[0, 1],
+        private=RoundPrivacy(clip=1.5, noise_std=0.25, count_std=0.5, bound=100.0),
+        participants=[0, 1, 4],
+        channel_keys=np.ones((3, 32), dtype=np.uint8),
+    ),
+    KeyShares(
+        round=7,
+        agents=[0, 1],
+        mask_keys=np.full((2, 32), 7, dtype=np.uint8),
+        recipients=np.array([[1, 4], [0, 4]], dtype=np.int64),
+        sealed=np.full((2, 2, SEALED_BYTES), 9, dtype=np.uint8),
+    ),
+    MaskRequest(
+        round=7,
+        agents=[0],
+        senders=np.array([[1, -1]], dtype=np.int64),
+        mask_keys=np.zeros((1, 2, 32), dtype=np.uint8),
+        sealed=np.zeros((1, 2, SEALED_BYTES), dtype=np.uint8),
+    ),
+    MaskedUpdate(
+        round=7,
+        agents=[0, 1],
+        masked=np.array([[1, -2, 3], [2**62, -(2**63), 0]], dtype=np.int64),
+        stats=UpdateColumns.of([STATS, STATS]),
+    ),
+    UnmaskRequest(round=7, agents=[0, 1], dropped=[4], included=[0, 1]),
+    Unmasking(
+        round=7,
+        agents=[1],
+        owners=np.array([[0, 4]], dtype=np.int64),
+        kinds=np.array([[2, 1]], dtype=np.uint8),
+        shares=np.full((1, 2, SHARE_BYTES), 3, dtype=np.uint8),
+    ),
 ]
 WIRE_DTYPES = ["float32", "float64", "int32", "int64", "uint8", "bool"]
 
@@ -230,7 +283,7 @@ def test_encode_and_decode_do_not_copy_arrays() -> None:
     frames = encode(Train(round=1, theta=THETA, agents=[0]))
     assert np.shares_memory(np.frombuffer(frames[1], np.uint8), THETA)
     payload = bytearray(THETA.tobytes())  # writable, like a zmq.Frame
-    theta = decode([frames[0], payload]).theta  # type: ignore[union-attr]
+    theta = decode([frames[0], payload, *frames[2:]]).theta  # type: ignore[union-attr]
     assert np.shares_memory(theta, np.frombuffer(payload, np.uint8))
     assert not theta.flags.writeable  # read-only even though the frame is writable
 
@@ -468,7 +521,7 @@ def test_random_messages_round_trip(message: object) -> None:
 def _header(**overrides: object) -> bytes:
     header: dict[str, object] = {
         "v": PROTOCOL_VERSION,
-        "type": "train",
+        "type": "evaluate",
         "fields": _fields(),
         "arrays": [{"field": "theta", "dtype": "<f4", "shape": [2]}],
     }
@@ -477,8 +530,8 @@ def _header(**overrides: object) -> bytes:
 
 
 def _fields(**overrides: object) -> dict[str, object]:
-    """A Train's header fields, with ``overrides``."""
-    return {"round": 1, "agents": [0], "budgets": []} | overrides
+    """An Evaluate's header fields (one array, θ), with ``overrides``."""
+    return {"round": 1, "episodes": 1, "agents": [0]} | overrides
 
 
 def _descriptor(**overrides: object) -> bytes:
@@ -519,7 +572,8 @@ REJECTIONS: list[tuple[str, list[Any], str]] = [
     ("too deep", [b"\x91" * 5000 + b"\xc0"], "malformed"),
     # envelope
     ("no version", [_header(v=_DROP), GOOD_ARRAY], "malformed"),
-    ("version 8", [_header(v=8), GOOD_ARRAY], "version"),
+    ("version 9", [_header(v=9), GOOD_ARRAY], "version"),
+    ("version 7", [_header(v=7), GOOD_ARRAY], "version"),
     ("version 6", [_header(v=6), GOOD_ARRAY], "version"),
     ("version 5", [_header(v=5), GOOD_ARRAY], "version"),
     ("version 4", [_header(v=4), GOOD_ARRAY], "version"),
@@ -533,8 +587,8 @@ REJECTIONS: list[tuple[str, list[Any], str]] = [
     ("missing key", [_header(arrays=_DROP), GOOD_ARRAY], "malformed"),
     ("extra key", [_header(extra=1), GOOD_ARRAY], "malformed"),
     ("unknown type", [_header(type="nope"), GOOD_ARRAY], "unknown_type"),
-    ("type is upper case", [_header(type="TRAIN"), GOOD_ARRAY], "unknown_type"),
-    ("type not str", [_header(type=["train"]), GOOD_ARRAY], "unknown_type"),
+    ("type is upper case", [_header(type="EVALUATE"), GOOD_ARRAY], "unknown_type"),
+    ("type not str", [_header(type=["evaluate"]), GOOD_ARRAY], "unknown_type"),
     ("fields not map", [_header(fields=[1]), GOOD_ARRAY], "malformed"),
     ("arrays not list", [_header(arrays={}), GOOD_ARRAY], "malformed"),
     # header fields
@@ -542,7 +596,7 @@ REJECTIONS: list[tuple[str, list[Any], str]] = [
     ("unknown field", [_header(fields=_fields(extra=2)), GOOD_ARRAY], "bad_fields"),
     (
         "bytes field key",
-        [_header(fields={b"round": 1, "agents": [0], "budgets": []}), GOOD_ARRAY],
+        [_header(fields={b"round": 1, "episodes": 1, "agents": [0]}), GOOD_ARRAY],
         "bad_fields",
     ),
     ("str for int", [_header(fields=_fields(round="1")), GOOD_ARRAY], "bad_fields"),
@@ -610,7 +664,7 @@ def test_rejections_carry_a_code(frames: list[Any], code: str) -> None:
 
 
 def test_version_error_names_both_versions() -> None:
-    with pytest.raises(ProtocolError, match=r"received protocol version 3, expected 7"):
+    with pytest.raises(ProtocolError, match=r"received protocol version 3, expected 8"):
         decode([_header(v=3), GOOD_ARRAY])
 
 

@@ -29,9 +29,10 @@ from fedhpg.common.limits import (
     Round,
     Text,
 )
+from fedhpg.common.privacy.contribution import RoundPrivacy
 from fedhpg.common.types import EvaluationStats, UpdateColumns
 
-PROTOCOL_VERSION = 7
+PROTOCOL_VERSION = 8
 """Bumped whenever a message changes; a peer of another version is refused with a reason."""
 
 KIB = 1024
@@ -40,6 +41,8 @@ BATCH_THETA_BYTES = 16 << 20
 most this much, so a batch of small policies still goes in one message)."""
 
 AgentList = Annotated[list[AgentIndex], Bound(max_len=MAX_HOST_AGENTS)]
+MAX_ROUND_AGENTS = 1 << 20
+"""Most agents one securely aggregated round may name."""
 AnswerList = Annotated[list[AgentIndex], Bound(max_len=MAX_BATCH_ANSWERS)]
 AgentCount = Annotated[int, Bound(low=1, high=MAX_HOST_AGENTS)]
 MAX_BUDGET = 1 << 20
@@ -55,6 +58,11 @@ class MsgType(StrEnum):
     WELCOME = "welcome"
     TRAIN = "train"
     UPDATE = "update"
+    KEY_SHARES = "key_shares"
+    MASK_REQUEST = "mask_request"
+    MASKED_UPDATE = "masked_update"
+    UNMASK_REQUEST = "unmask_request"
+    UNMASKING = "unmasking"
     EVALUATE = "evaluate"
     EVALUATION = "evaluation"
     HEARTBEAT = "heartbeat"
@@ -83,6 +91,17 @@ class Hello:
     variant_digest: Name
     profile: Annotated[dict[str, Any], Bound(max_len=16, key_len=64)] = field(default_factory=dict)
     """What the agent says of its compute (logged at registration)."""
+    channel_keys: np.ndarray = field(default_factory=lambda: no_keys())
+    """Secure aggregation: each agent's channel public key (X25519), a [count, 32] uint8 row
+    per agent of the range; [0, 32] where the program cannot aggregate securely."""
+
+
+KEY_BYTES = 32
+
+
+def no_keys(rows: int = 0) -> np.ndarray:
+    """An empty (or all-zero) [rows, 32] uint8 array of public keys."""
+    return np.zeros((rows, KEY_BYTES), dtype=np.uint8)
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -109,6 +128,15 @@ class Train:
     )
     """Empty (every agent its own budget) or the server's plan for each entry of ``agents``
     (``agents.plan``)."""
+    private: RoundPrivacy | None = None
+    """Secure aggregation: how each agent contributes (clip, its share of the noise, the
+    fixed-point range); the agents answer with :class:`KeyShares`, not an :class:`Update`."""
+    participants: Annotated[list[AgentIndex], Bound(max_len=MAX_ROUND_AGENTS)] = field(
+        default_factory=list
+    )
+    """Secure aggregation: every agent of the round (all connections'), ascending."""
+    channel_keys: np.ndarray = field(default_factory=lambda: no_keys())
+    """Secure aggregation: the participants' channel public keys, [len(participants), 32]."""
 
     def __post_init__(self) -> None:
         if self.budgets and len(self.budgets) != len(self.agents):
@@ -126,6 +154,78 @@ class Update:
     agents: AnswerList
     thetas: np.ndarray
     stats: UpdateColumns
+
+
+# --- secure aggregation: the three exchanges after a private Train (common/privacy/secagg.py) --
+
+
+@dataclass(frozen=True, kw_only=True, eq=False)
+class KeyShares:
+    """Agent → server, after training a private round: row i is agent ``agents[i]``'s round
+    mask public key, and its secret shares sealed for each neighbour ``recipients[i, j]``
+    (−1: an unused slot)."""
+
+    round: Round
+    agents: AnswerList
+    mask_keys: np.ndarray
+    """[A, 32] uint8."""
+    recipients: np.ndarray
+    """[A, k] int64."""
+    sealed: np.ndarray
+    """[A, k, SEALED_BYTES] uint8."""
+
+
+@dataclass(frozen=True, kw_only=True, eq=False)
+class MaskRequest:
+    """Server → agent: for each of ``agents`` (row i), its neighbours ``senders[i, j]`` that
+    shared keys (−1: none), their mask public keys and the shares they sealed for it."""
+
+    round: Round
+    agents: AgentList
+    senders: np.ndarray
+    """[A, k] int64."""
+    mask_keys: np.ndarray
+    """[A, k, 32] uint8."""
+    sealed: np.ndarray
+    """[A, k, SEALED_BYTES] uint8."""
+
+
+@dataclass(frozen=True, kw_only=True, eq=False)
+class MaskedUpdate:
+    """Agent → server: row i of ``masked`` is agent ``agents[i]``'s contribution, fixed point
+    and masked ([A, d + 2] uint64 words, carried as int64), ``stats[i]`` what it cost."""
+
+    round: Round
+    agents: AnswerList
+    masked: np.ndarray
+    stats: UpdateColumns
+
+
+@dataclass(frozen=True, kw_only=True)
+class UnmaskRequest:
+    """Server → agent: who shared keys but sent no input (``dropped``) and whose inputs are in
+    the sum (``included``): each of ``agents`` reveals its shares accordingly."""
+
+    round: Round
+    agents: AgentList
+    dropped: Annotated[list[AgentIndex], Bound(max_len=MAX_ROUND_AGENTS)]
+    included: Annotated[list[AgentIndex], Bound(max_len=MAX_ROUND_AGENTS)]
+
+
+@dataclass(frozen=True, kw_only=True, eq=False)
+class Unmasking:
+    """Agent → server: row i holds agent ``agents[i]``'s revealed shares: of agent
+    ``owners[i, j]``'s secret of kind ``kinds[i, j]`` (1: mask key, 2: self-mask seed; 0 and
+    owner −1: an unused slot)."""
+
+    round: Round
+    agents: AnswerList
+    owners: np.ndarray
+    """[A, k] int64."""
+    kinds: np.ndarray
+    """[A, k] uint8."""
+    shares: np.ndarray
+    """[A, k, SHARE_BYTES] uint8."""
 
 
 @dataclass(frozen=True, kw_only=True, eq=False)
@@ -170,15 +270,37 @@ class Error:
     reason: Text
 
 
-Message = Hello | Welcome | Train | Update | Evaluate | Evaluation | Heartbeat | Shutdown | Error
-Request = Train | Evaluate
+Message = (
+    Hello
+    | Welcome
+    | Train
+    | Update
+    | KeyShares
+    | MaskRequest
+    | MaskedUpdate
+    | UnmaskRequest
+    | Unmasking
+    | Evaluate
+    | Evaluation
+    | Heartbeat
+    | Shutdown
+    | Error
+)
+Request = Train | MaskRequest | UnmaskRequest | Evaluate
 """What the server asks of an agent; a newer request supersedes the one in flight."""
+SecureAnswer = KeyShares | MaskedUpdate | Unmasking
+"""An agent's answers in a securely aggregated round."""
 
 PAYLOAD_TYPES: dict[str, type] = {  # keyed by MsgType, a str: decode looks up plain str
     MsgType.HELLO: Hello,
     MsgType.WELCOME: Welcome,
     MsgType.TRAIN: Train,
     MsgType.UPDATE: Update,
+    MsgType.KEY_SHARES: KeyShares,
+    MsgType.MASK_REQUEST: MaskRequest,
+    MsgType.MASKED_UPDATE: MaskedUpdate,
+    MsgType.UNMASK_REQUEST: UnmaskRequest,
+    MsgType.UNMASKING: Unmasking,
     MsgType.EVALUATE: Evaluate,
     MsgType.EVALUATION: Evaluation,
     MsgType.HEARTBEAT: Heartbeat,
@@ -188,6 +310,9 @@ PAYLOAD_TYPES: dict[str, type] = {  # keyed by MsgType, a str: decode looks up p
 HEADER_LIMITS: dict[type, int] = {
     Hello: 64 * KIB,
     Update: 4 * KIB + MAX_BATCH_ANSWERS * 3 * KIB,
+    MaskedUpdate: 4 * KIB + MAX_BATCH_ANSWERS * 3 * KIB,
+    KeyShares: 4 * KIB + MAX_BATCH_ANSWERS * 16,
+    Unmasking: 4 * KIB + MAX_BATCH_ANSWERS * 16,
     Evaluation: 1 * KIB + MAX_BATCH_ANSWERS * 1 * KIB,
     Heartbeat: 1 * KIB,
     Shutdown: 16 * KIB,
@@ -197,6 +322,7 @@ HEADER_LIMITS: dict[type, int] = {
 server sends): a peer cannot make a small message big."""
 HEADER_PER_AGENT: dict[type, tuple[str, int, int]] = {
     Update: ("agents", 4 * KIB, 3 * KIB),
+    MaskedUpdate: ("agents", 4 * KIB, 3 * KIB),
     Evaluation: ("agents", 1 * KIB, 1 * KIB),
 }
 """Answers: (list field, base, bytes per agent). After decoding, a header may be at most

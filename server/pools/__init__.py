@@ -11,8 +11,10 @@ from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Protocol
 
+import numpy as np
 import torch
 
+from fedhpg.common.privacy.contribution import RoundPrivacy
 from fedhpg.common.types import AgentUpdate, EvaluationStats
 from fedhpg.server.validation import Rejection
 
@@ -31,6 +33,19 @@ class RoundAnswers:
     """Agent id → why its update was rejected (it answered, but is not aggregated)."""
     stragglers: list[str] = field(default_factory=list)
     """Selected agents whose update never arrived in time (late or dead)."""
+    secure: SecureSum | None = None
+    """Secure aggregation: the round's sum (``updates`` then carry statistics, θ̃ as θ)."""
+
+
+@dataclass(frozen=True, kw_only=True)
+class SecureSum:
+    """A securely aggregated round's result: the sum of the included agents' contributions
+    (float64, d + 2: the weighted updates, the weights, the unclipped count;
+    :mod:`fedhpg.common.privacy.contribution`), no one of which the server saw."""
+
+    total: np.ndarray
+    inputs: int
+    """How many agents' contributions the sum holds."""
 
 
 class AgentPool(Protocol):
@@ -52,8 +67,10 @@ class AgentPool(Protocol):
         *,
         budgets: Mapping[int, Mapping[str, int]] | None = None,
         while_training: Callable[[], None] | None = None,
+        private: RoundPrivacy | None = None,
     ) -> RoundAnswers:
         """The local updates of ``round_index`` from θ̃ of the selected agent indices;
+        ``private``: aggregate them securely, each agent contributing with these settings;
         ``budgets``: the round's planned budget fields per agent (``agents.plan``);
         ``while_training``: the server's own work, called once, while the agents train where
         they train elsewhere (after the requests went out), else before they train."""

@@ -22,11 +22,23 @@ import dataclasses
 import time
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
+from typing import Any
 
 from fedhpg.common.config import ServerConfig
 from fedhpg.common.runtime import timeline
-from fedhpg.common.types import AgentUpdate, EvaluationStats
-from fedhpg.common.wire.protocol import Evaluation, Request, Train, Update
+from fedhpg.common.types import AgentUpdate
+from fedhpg.common.wire.protocol import (
+    Evaluation,
+    KeyShares,
+    MaskedUpdate,
+    MaskRequest,
+    Request,
+    SecureAnswer,
+    Train,
+    Unmasking,
+    UnmaskRequest,
+    Update,
+)
 from fedhpg.server.pools import RoundAnswers
 from fedhpg.server.pools.links import Link, Links, Outbox
 from fedhpg.server.pools.rounds import request_complete
@@ -43,13 +55,29 @@ class Collection:
     expected: frozenset[int]
     """The agents asked (the strategy's selection; every agent for an evaluation)."""
     started: float = field(default_factory=time.monotonic)
-    answers: dict[int, AgentUpdate | EvaluationStats] = field(default_factory=dict)
+    answers: dict[int, Any] = field(default_factory=dict)
+    """Agent index → its answer: an ``AgentUpdate`` (a round), ``EvaluationStats``, or one
+    row of a secure aggregation's answer (:data:`SECURE_ANSWER`)."""
     failures: dict[int, Rejection] = field(default_factory=dict)
     """Agents whose answer was rejected (it counts as their answer: they are not waited for)."""
     rows: RoundRows | None = None
     """A round's accepted θ_k (None for an evaluation): ``answers`` hold views of its rows."""
     budgets: Mapping[int, Mapping[str, int]] = field(default_factory=dict)
     """A round's planned budgets (``agents.plan``), by agent index; empty: their own."""
+    rows_for: Callable[[list[int]], Request] | None = None
+    """A request whose content differs per agent (secure aggregation's routed shares): the
+    message for the given agents; None: the request, naming them."""
+    phase: bool = False
+    """A secure aggregation's exchange after training: closed once every live agent asked
+    answered, or after ``server.round_deadline_s`` (the others drop out of the round)."""
+
+    @property
+    def answer_type(self) -> type:
+        """What answers this request."""
+        request = self.request
+        if isinstance(request, Train):
+            return KeyShares if request.private is not None else Update
+        return SECURE_ANSWER.get(type(request), Evaluation)
 
     @property
     def round(self) -> int:
@@ -65,6 +93,10 @@ class Collection:
     def awaits(self, index: int) -> bool:
         """Whether agent ``index`` was asked and has not answered."""
         return index in self.expected and not self.answered(index)
+
+
+SECURE_ANSWER: dict[type, type] = {MaskRequest: MaskedUpdate, UnmaskRequest: Unmasking}
+"""The answer to each request of a secure aggregation's exchanges after training."""
 
 
 class Collector:
@@ -90,6 +122,8 @@ class Collector:
         owed = [k for k in candidates if collection.awaits(k)]
         if not owed:
             return None
+        if collection.rows_for is not None:
+            return collection.rows_for(owed)
         request = collection.request
         if isinstance(request, Train):
             planned = collection.budgets
@@ -111,17 +145,23 @@ class Collector:
         pump: Callable[[], None],
         budgets: Mapping[int, Mapping[str, int]] | None = None,
         while_waiting: Callable[[], None] | None = None,
+        rows_for: Callable[[list[int]], Request] | None = None,
+        phase: bool = False,
     ) -> Collection:
         """Send ``request`` to the selected agents, one message per link naming its selected
         agents, and ``pump`` the socket until the round policy says the answers are enough;
-        ``while_waiting`` is called once the requests are out, before any answer is read."""
+        ``while_waiting`` is called once the requests are out, before any answer is read.
+        ``rows_for`` and ``phase``: a secure aggregation's exchange (:class:`Collection`)."""
         expected = frozenset(agents)
         is_train = isinstance(request, Train)
+        plain = is_train and request.private is None  # type: ignore[union-attr]
         collection = Collection(
             request=request,
             expected=expected,
-            rows=RoundRows(expected, self.check.num_params) if is_train else None,
+            rows=RoundRows(expected, self.check.num_params) if plain else None,
             budgets=budgets or {},
+            rows_for=rows_for,
+            phase=phase,
         )
         self.open = collection
         by_link: dict[bytes, tuple[Link, list[int]]] = {}
@@ -149,6 +189,11 @@ class Collector:
 
     def _complete(self, collection: Collection, what: str) -> bool:
         now = time.monotonic()
+        if collection.phase:
+            live = self.links.peers
+            waiting = [k for k in collection.expected if collection.awaits(k) and k in live]
+            elapsed = now - collection.started
+            return not waiting or elapsed > self.settings.round_deadline_s
         return request_complete(
             settings=self.settings,
             what=f"{what} {collection.round}",
@@ -209,7 +254,8 @@ class Collector:
         open_round = (
             collection is not None and collection.is_train and collection.round == update.round
         )
-        broadcast = collection.request.theta if open_round and collection else None
+        request = collection.request if open_round and collection else None
+        broadcast = request.theta if isinstance(request, Train) else None
         # decoded stats are within their bounds: the codec enforced them field by field
         problems = self.check.problems(update.thetas, update.stats, broadcast, stats_bounded=True)
         indices: list[int] = []
@@ -239,6 +285,27 @@ class Collector:
             self.open.answers[index] = AgentUpdate(
                 agent_index=index, agent_id=self.links.name(index), theta=theta, stats=records[i]
             )
+
+    def on_secure(self, link: Link, answer: SecureAnswer) -> None:
+        """A secure aggregation's answer: each row filed for its own agent (the values are
+        checked where they are used, by the protocol)."""
+        collection = self.open
+        if (
+            collection is None
+            or not isinstance(answer, collection.answer_type)
+            or collection.round != answer.round
+        ):
+            self.late_answers += 1
+            self.outbox.noisy.warning(
+                "discarded a late %s from %s for round %d (no longer open)",
+                type(answer).__name__,
+                link.describe(),
+                answer.round,
+            )
+            return
+        for row, index in enumerate(answer.agents):
+            if self.links.owns(link, index) and collection.awaits(index):
+                collection.answers[index] = (answer, row)
 
     def on_evaluation(self, identity: bytes, link: Link, evaluation: Evaluation) -> None:
         """A link's evaluations, each filed for its own agent."""

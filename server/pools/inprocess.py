@@ -18,12 +18,16 @@ import torch
 from fedhpg.common.config import RunConfig, agent_id_of
 from fedhpg.common.device import DeviceModel, device_for, message_bytes
 from fedhpg.common.group import AgentGroup, make_agent_group
+from fedhpg.common.privacy import fixedpoint
+from fedhpg.common.privacy.contribution import EXTRA, RoundPrivacy, contribution, redacted
+from fedhpg.common.privacy.secagg import SecAggError, SecAggRound
+from fedhpg.common.privacy.session import LocalSecAgg
 from fedhpg.common.runtime.memory import pin_malloc_mmap_threshold, tune_malloc_for
 from fedhpg.common.types import AgentUpdate, EvaluationStats, LocalResult
 from fedhpg.common.variants import variants_of
 from fedhpg.common.worker import IterationWork
 from fedhpg.envs.base import EnvVariant
-from fedhpg.server.pools import RoundAnswers
+from fedhpg.server.pools import FederationError, RoundAnswers, SecureSum
 from fedhpg.server.validation import Rejection, UpdateCheck
 
 logger = logging.getLogger(__name__)
@@ -38,6 +42,7 @@ class InProcessPool:
         self.num_params = num_params
         self.check = UpdateCheck(num_params=num_params, max_update_norm=run.server.max_update_norm)
         self._devices: dict[int, DeviceModel] = {}
+        self.secure = LocalSecAgg(run)
 
     @property
     def agent_ids(self) -> list[str]:
@@ -58,6 +63,7 @@ class InProcessPool:
         *,
         budgets: Mapping[int, Mapping[str, int]] | None = None,
         while_training: Callable[[], None] | None = None,
+        private: RoundPrivacy | None = None,
     ) -> RoundAnswers:
         if while_training is not None:  # the agents train on this thread: nothing overlaps
             while_training()
@@ -68,9 +74,61 @@ class InProcessPool:
                 updates.append(update)
             else:
                 failures[update.agent_id] = problem
+        answers = RoundAnswers(updates=updates, failures=failures)
         if self.run.server.round_policy == "deadline":
-            return self._at_deadline(updates, failures)
-        return RoundAnswers(updates=updates, failures=failures)
+            answers = self._at_deadline(updates, failures)
+        if self.run.privacy.mode != "none":
+            answers = dataclasses.replace(
+                answers,
+                updates=[dataclasses.replace(u, stats=redacted(u.stats)) for u in answers.updates],
+            )
+        if private is not None:
+            return self._securely(round_index, theta, answers, sorted(agents), private)
+        return answers
+
+    def _securely(
+        self,
+        round_index: int,
+        theta: torch.Tensor,
+        answers: RoundAnswers,
+        selected: list[int],
+        private: RoundPrivacy,
+    ) -> RoundAnswers:
+        """The round's accepted updates summed by secure aggregation, as agent processes would
+        (each agent's keys, shares, masked input and unmasking, here on one thread): the
+        server's side sees the sum only. A rejected update or a straggler takes part in the
+        key exchange and drops out before its input, as over the wire."""
+        contributing = {u.agent_index: u for u in answers.updates}
+        length = theta.numel() + EXTRA
+        setup = self.secure.setup(round_index, selected, length)
+        server = SecAggRound(setup)
+        for k in selected:
+            server.add_keys(k, self.secure.agent(k).share_keys(setup))
+        scale = fixedpoint.scale_for(len(selected), max(private.bound, 1.0))
+        noise = self.secure.noise
+        for k in selected:
+            if k not in contributing:
+                continue
+            update = contributing[k]
+            row = contribution(
+                update.theta - theta,
+                update.stats.trajectories,
+                private,
+                noise(round_index, k),
+            )
+            words = fixedpoint.encode(row, scale, max(private.bound, 1.0))
+            server.add_masked(k, self.secure.agent(k).mask(round_index, words, *server.routed(k)))
+        dropped, included = server.unmask_request()
+        for k in included:
+            server.add_reveal(k, self.secure.agent(k).reveal(round_index, dropped, included))
+        try:
+            total = fixedpoint.decode(server.total(), scale)
+        except SecAggError as error:
+            raise FederationError(str(error)) from None
+        stripped = [dataclasses.replace(u, theta=theta) for u in answers.updates]
+        return dataclasses.replace(
+            answers, updates=stripped, secure=SecureSum(total=total, inputs=len(included))
+        )
 
     def _at_deadline(
         self, updates: list[AgentUpdate], failures: dict[str, Rejection]

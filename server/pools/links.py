@@ -32,7 +32,7 @@ import zmq
 
 from fedhpg.common.config import ServerConfig, agent_id_of
 from fedhpg.common.variants import range_digest
-from fedhpg.common.wire.protocol import Error, Heartbeat, Hello, Message, Welcome
+from fedhpg.common.wire.protocol import KEY_BYTES, Error, Heartbeat, Hello, Message, Welcome
 from fedhpg.common.wire.transport import send_message
 from fedhpg.server.connections import ConnectionGuard
 
@@ -63,6 +63,8 @@ class Link:
     fd: int = -1
     """The connection's descriptor (``ZMQ_SRCFD``), for the connection guard."""
     last_seen: float = field(default_factory=time.monotonic)
+    channel_keys: dict[int, bytes] = field(default_factory=dict)
+    """Secure aggregation: each of its agents' channel public key (from its hello)."""
 
     @property
     def host(self) -> bool:
@@ -203,8 +205,11 @@ class Links:
         settings: ServerConfig,
         answer_bytes: int,
         guard: ConnectionGuard | None = None,
+        secure: bool = False,
     ) -> None:
         self.outbox = outbox
+        self.secure = secure
+        """Secure aggregation: every hello must carry its agents' channel keys."""
         self.num_agents = num_agents
         self.env_signature = env_signature
         self.variant_digests = variant_digests
@@ -267,6 +272,10 @@ class Links:
         for holder in holders.values():
             self.drop(holder, "a new connection claims its place")
         link = Link(identity=identity, label=hello.id, indices=indices, fd=fd)
+        if self.secure:
+            link.channel_keys = {
+                k: bytes(row) for k, row in zip(indices, hello.channel_keys, strict=True)
+            }
         names = [hello.id] if hello.names_agent else [agent_id_of(k) for k in indices]
         return self._register(link, names, hello.profile)
 
@@ -276,6 +285,11 @@ class Links:
             return (
                 "bad_fields",
                 f"{hello.id!r} names its agent by its id, but claims {len(indices)}",
+            )
+        if self.secure and hello.channel_keys.shape != (len(indices), KEY_BYTES):
+            return "unsupported", (
+                f"{_claim(hello)} sent no channel keys, and this run aggregates securely "
+                "(privacy.mode): the agent program needs pip install 'fedhpg[privacy]'"
             )
         if indices.stop > self.num_agents:
             return "bad_index", (

@@ -27,6 +27,7 @@ import torch
 import zmq
 
 from fedhpg.common.config import ServerConfig
+from fedhpg.common.privacy.contribution import RoundPrivacy
 from fedhpg.common.types import EvaluationStats
 from fedhpg.common.wire.codec import ProtocolError
 from fedhpg.common.wire.protocol import (
@@ -35,8 +36,11 @@ from fedhpg.common.wire.protocol import (
     Evaluation,
     Heartbeat,
     Hello,
+    KeyShares,
+    MaskedUpdate,
     Shutdown,
     Train,
+    Unmasking,
     Update,
     Welcome,
 )
@@ -54,6 +58,7 @@ from fedhpg.server.pools.links import (
     Outbox,
     identity_label,
 )
+from fedhpg.server.pools.secure import SecureExchange
 from fedhpg.server.validation import UpdateCheck
 
 logger = logging.getLogger(__name__)
@@ -107,8 +112,11 @@ class ZmqAgentPool:
         max_bytes: int,
         settings: ServerConfig,
         guard: ConnectionGuard | None = None,
+        secure: SecureExchange | None = None,
     ) -> None:
         self.socket = socket
+        self.secure = secure
+        """Secure aggregation (``privacy.mode``): the exchanges after a private Train."""
         self.num_agents = num_agents
         self.run_settings = run_settings
         self.run_id = run_id
@@ -124,8 +132,10 @@ class ZmqAgentPool:
             variant_digests=variant_digests,
             welcome=self._welcome,
             settings=settings,
-            answer_bytes=4 * check.num_params + ANSWER_OVERHEAD_BYTES,
+            answer_bytes=max(4 * check.num_params, secure.answer_bytes if secure is not None else 0)
+            + ANSWER_OVERHEAD_BYTES,
             guard=guard,
+            secure=secure is not None,
         )
         self.links.on_lost = self._on_lost
         self.collector = Collector(
@@ -209,6 +219,13 @@ class ZmqAgentPool:
             self._on_hello(identity, decoded, fd)
         elif isinstance(decoded, Update | Evaluation):
             self._on_answer(identity, link, decoded)
+        elif isinstance(decoded, KeyShares | MaskedUpdate | Unmasking):
+            if link is None:
+                self._reject(identity, "not_registered", "answers from an unregistered peer")
+            elif any(k not in link.indices for k in decoded.agents):
+                self._reject(identity, "bad_index", f"{link.describe()} answered for others")
+            else:
+                self.collector.on_secure(link, decoded)
         elif isinstance(decoded, Heartbeat):
             if link is None:
                 self._reject(identity, "not_registered", "heartbeat from an unregistered peer")
@@ -329,6 +346,8 @@ class ZmqAgentPool:
             return
         if isinstance(answer, Evaluation):
             self.collector.on_evaluation(identity, link, answer)
+        elif self.secure is not None:
+            self._reject(identity, "unexpected_type", "this run aggregates masked updates only")
         elif self.buffered:
             self.arrivals.on_update(identity, link, answer)
         else:
@@ -357,7 +376,21 @@ class ZmqAgentPool:
         *,
         budgets: Mapping[int, Mapping[str, int]] | None = None,
         while_training: Callable[[], None] | None = None,
+        private: RoundPrivacy | None = None,
     ) -> RoundAnswers:
+        if private is not None:
+            assert self.secure is not None
+            return self.secure.round(
+                self.collector,
+                self.links,
+                self.pump,
+                round_index,
+                theta,
+                agents,
+                private,
+                budgets=budgets,
+                while_training=while_training,
+            )
         request = Train(round=round_index, theta=theta.detach().numpy(), agents=[])
         collection = self.collector.collect(
             request,

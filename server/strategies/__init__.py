@@ -91,6 +91,20 @@ class Strategy(abc.ABC, Generic[P]):
         the run than its own options (fedpgbr's environment); ConfigError for a run it cannot
         serve."""
 
+    def averaging(self) -> str | None:
+        """Whether θ̃ comes from an average of the updates, which privacy can replace by a
+        clipped, noisy or securely summed one: 'uniform' (each update counts once), 'weighted'
+        (by the trajectories it sampled), or None for a rule that needs each update alone
+        (median, trimmed mean, a filter)."""
+        return None
+
+    def from_average(
+        self, round_index: int, theta: torch.Tensor, average: torch.Tensor
+    ) -> torch.Tensor:
+        """θ̃_{t+1} from θ̃_t and the round's average θ̄ (privacy's, in place of
+        :meth:`aggregate`): θ̄ itself, for the averages."""
+        return average
+
     def tolerance(self, rows: int) -> int | None:
         """How many of ``rows`` aggregated updates may be arbitrary (Byzantine) while each
         coordinate of θ̃ stays within the range of the honest rows' values; None: the rule

@@ -72,6 +72,14 @@ class FedAdam(Strategy[FedAdamParams]):
     def round_stats(self) -> dict[str, Any]:
         return self.inner.round_stats()
 
+    def averaging(self) -> str | None:
+        return self.inner.averaging()
+
+    def from_average(
+        self, round_index: int, theta: torch.Tensor, average: torch.Tensor
+    ) -> torch.Tensor:
+        return theta + self.adam.direction(average - theta)
+
     def sampled_trajectories(self) -> int:
         return self.inner.sampled_trajectories()
 
@@ -83,7 +91,7 @@ class FedAdam(Strategy[FedAdamParams]):
         failures: Mapping[str, str],
     ) -> torch.Tensor:
         target = self.inner.aggregate(round_index, theta, results, failures)
-        return theta + self.adam.direction(target - theta)
+        return self.from_average(round_index, theta, target)
 
     def state(self) -> SavedState:
         own, inner = self.adam.state(), self.inner.state()

@@ -13,5 +13,8 @@ class Mean(CoordinateRule[NoParams]):
 
     name = "mean"
 
+    def averaging(self) -> str:
+        return "uniform"
+
     def combine(self, rows: torch.Tensor) -> torch.Tensor:
         return rows.mean(dim=0)

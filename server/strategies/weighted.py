@@ -16,6 +16,9 @@ class Weighted(Strategy[NoParams]):
 
     name = "weighted"
 
+    def averaging(self) -> str:
+        return "weighted"
+
     def aggregate(
         self,
         round_index: int,
