@@ -32,7 +32,7 @@ from fedhpg.common.attacks import attack_of
 from fedhpg.common.components import AgentProfile, agent_profile, planned_budget
 from fedhpg.common.config import RunConfig
 from fedhpg.common.engine.copies import make_copies
-from fedhpg.common.engine.devices import check_device
+from fedhpg.common.engine.devices import check_device, deterministic_off_cpu
 from fedhpg.common.engine.memory import (
     RoundPlan,
     StepBytes,
@@ -68,6 +68,16 @@ def one_thread() -> Iterator[None]:
         yield
     finally:
         torch.set_num_threads(threads)
+
+
+@contextmanager
+def engine_settings(device: torch.device) -> Iterator[None]:
+    """What every use of the engine runs under: one CPU thread (:func:`one_thread`) and, off
+    the CPU, torch's deterministic algorithms (:func:`deterministic_off_cpu`), so that an
+    agent's floats depend neither on the process nor on its company; the caller's settings
+    come back after."""
+    with one_thread(), deterministic_off_cpu(device):
+        yield
 
 
 TILE = 64
