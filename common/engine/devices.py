@@ -114,9 +114,16 @@ def deterministic_off_cpu(device: torch.device) -> Iterator[None]:
     if device.type == "cpu" or torch.are_deterministic_algorithms_enabled():
         yield
         return
+    import torch.utils.deterministic
+
     warn_only = torch.is_deterministic_algorithms_warn_only_enabled()
+    # deterministic mode would also fill every new tensor (NaN), a pass over memory per
+    # allocation: the engine writes what it allocates before reading it
+    fill = torch.utils.deterministic.fill_uninitialized_memory
     torch.use_deterministic_algorithms(True, warn_only=True)
+    torch.utils.deterministic.fill_uninitialized_memory = False
     try:
         yield
     finally:
         torch.use_deterministic_algorithms(False, warn_only=warn_only)
+        torch.utils.deterministic.fill_uninitialized_memory = fill
