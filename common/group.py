@@ -144,7 +144,7 @@ class EngineGroup:
         not depend on the chunk it is in); only the θ rows and the statistics leave the
         device."""
         from fedhpg.common.attacks import corrupt_rows
-        from fedhpg.common.engine.engine import Tally, one_thread
+        from fedhpg.common.engine.engine import Tally, engine_settings
         from fedhpg.common.round_columns import IterationColumns, TrainedColumns
 
         order = sorted(agents)
@@ -172,7 +172,7 @@ class EngineGroup:
         tallies: list[Tally] = []
         for chunk in plan.chunks:
             offset = chunk.start
-            with one_thread():
+            with engine_settings(engine.device):
                 rows = engine.begin(
                     round_index, theta, order[chunk.start : chunk.stop], budgets, hook
                 )
@@ -247,12 +247,12 @@ class EngineGroup:
     def evaluate(
         self, round_index: int, theta: torch.Tensor, episodes: int, agents: Sequence[int]
     ) -> dict[int, EvaluationStats]:
-        from fedhpg.common.engine.engine import one_thread
+        from fedhpg.common.engine.engine import engine_settings
 
         order = sorted(agents)
         stats: dict[int, EvaluationStats] = {}
         for chunk in self.plan(order, episodes=episodes).chunks:
-            with one_thread():
+            with engine_settings(self.engine.device):
                 stats.update(
                     self.engine.evaluate(
                         round_index, theta, episodes, order[chunk.start : chunk.stop]

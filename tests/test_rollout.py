@@ -11,6 +11,7 @@ from engine_mdp import mdp_engine
 
 from fedhpg.common.engine.engine import Engine
 from fedhpg.common.engine.policy_rows import PolicyRows
+from fedhpg.common.engine.sampling import ACT_TILE
 from fedhpg.common.randomness import Purpose
 from fedhpg.envs.base import BatchStep
 
@@ -95,7 +96,7 @@ def test_one_policy_call_per_time_step_for_every_agent(monkeypatch: pytest.Monke
     monkeypatch.setattr(PolicyRows, "act", counting)
     batch = _sample(engine, [4, 2, 3])
     assert len(calls) == batch.obs.shape[0], "one call per time step"
-    assert calls[0] == (3, 4), "all three agents' copies in one call (a [rows, widest] grid)"
+    assert calls[0] == (3, ACT_TILE), "all three agents' copies in one call (a tile each)"
 
 
 def test_the_same_keys_give_the_same_batch_and_others_another() -> None:

@@ -10,8 +10,14 @@ from __future__ import annotations
 import functools
 import subprocess
 import sys
+from collections.abc import Iterator
+from contextlib import contextmanager
+from typing import TYPE_CHECKING
 
 from fedhpg.common.config import ConfigError, RunConfig
+
+if TYPE_CHECKING:
+    import torch
 
 
 class DeviceUnavailable(ConfigError):
@@ -94,3 +100,30 @@ def check_device(device: str) -> None:
     problem = device_problem(device)
     if problem is not None:
         raise DeviceUnavailable(problem)
+
+
+@contextmanager
+def deterministic_off_cpu(device: torch.device) -> Iterator[None]:
+    """Torch's deterministic algorithms (warn_only) inside, where ``device`` is not the CPU:
+    a GPU's scatter-adds (the backward of a gather, as the tabular policy's) add with
+    atomics, in an order that changes from run to run and with the company. The caller's
+    setting is restored after (a notebook is not left changed); on the CPU, or where the caller
+    has already turned them on, nothing changes."""
+    import torch
+
+    if device.type == "cpu" or torch.are_deterministic_algorithms_enabled():
+        yield
+        return
+    import torch.utils.deterministic
+
+    warn_only = torch.is_deterministic_algorithms_warn_only_enabled()
+    # deterministic mode would also fill every new tensor (NaN), a pass over memory per
+    # allocation: the engine writes what it allocates before reading it
+    fill = torch.utils.deterministic.fill_uninitialized_memory
+    torch.use_deterministic_algorithms(True, warn_only=True)
+    torch.utils.deterministic.fill_uninitialized_memory = False
+    try:
+        yield
+    finally:
+        torch.use_deterministic_algorithms(False, warn_only=warn_only)
+        torch.utils.deterministic.fill_uninitialized_memory = fill

@@ -32,7 +32,7 @@ from fedhpg.common.attacks import attack_of
 from fedhpg.common.components import AgentProfile, agent_profile, planned_budget
 from fedhpg.common.config import RunConfig
 from fedhpg.common.engine.copies import make_copies
-from fedhpg.common.engine.devices import check_device
+from fedhpg.common.engine.devices import check_device, deterministic_off_cpu
 from fedhpg.common.engine.memory import (
     RoundPlan,
     StepBytes,
@@ -41,7 +41,7 @@ from fedhpg.common.engine.memory import (
     plan_round,
 )
 from fedhpg.common.engine.policy_rows import PolicyRows, chunked
-from fedhpg.common.engine.sampling import Faults, sample
+from fedhpg.common.engine.sampling import ACT_TILE, Faults, sample
 from fedhpg.common.engine.trajectories import Trajectories
 from fedhpg.common.randomness import Purpose, trajectory_keys
 from fedhpg.common.types import EvaluationStats
@@ -68,6 +68,16 @@ def one_thread() -> Iterator[None]:
         yield
     finally:
         torch.set_num_threads(threads)
+
+
+@contextmanager
+def engine_settings(device: torch.device) -> Iterator[None]:
+    """What every use of the engine runs under: one CPU thread (:func:`one_thread`) and, off
+    the CPU, torch's deterministic algorithms (:func:`deterministic_off_cpu`), so that an
+    agent's floats depend neither on the process nor on its company; the caller's settings
+    come back after."""
+    with one_thread(), deterministic_off_cpu(device):
+        yield
 
 
 TILE = 64
@@ -222,6 +232,13 @@ class Engine:
         exactly so many, padded with empty tiles: a GPU library may pick its kernels, and so
         its order of additions, by a call's shape, which must then not depend on the
         company)."""
+        self.act_tiles_per_call = (
+            None
+            if self.device.type == "cpu"
+            else max(packed_elements(self.device) // (ACT_TILE * self.policy.num_params), 1)
+        )
+        """Tiles of :data:`ACT_TILE` copies one policy call takes while sampling: off the CPU
+        exactly so many (padded), for the same reason; None on the CPU (one call a step)."""
         self.step_bytes = StepBytes.of(
             self.observation_space,
             self.action_space,
@@ -426,6 +443,7 @@ class Engine:
                 greedy=greedy,
                 faults=faults,
                 action_space=self.action_space,
+                tiles_per_call=self.act_tiles_per_call,
             )
         finally:
             copies.close()

@@ -49,10 +49,16 @@ this project's CPUs a product of fewer than 16 rows rounds differently)."""
 
 class _Plan:
     """The blocks still stepped: their copies, the same as a padded [tiles, ACT_TILE] grid (one
-    policy call for all of them), and each tile's θ row."""
+    policy call for all of them, or calls of exactly ``tiles_per_call`` tiles, the grid then
+    padded with empty tiles to whole calls), and each tile's θ row."""
 
     def __init__(
-        self, blocks: torch.Tensor, counts: torch.Tensor, offsets: torch.Tensor, theta: torch.Tensor
+        self,
+        blocks: torch.Tensor,
+        counts: torch.Tensor,
+        offsets: torch.Tensor,
+        theta: torch.Tensor,
+        tiles_per_call: int | None = None,
     ) -> None:
         self.blocks = blocks
         self.columns = columns_of(offsets, blocks)
@@ -69,9 +75,29 @@ class _Plan:
         base = offsets[blocks][block_of_tile].unsqueeze(1)
         self.grid = torch.where(self.valid, base + slots, base)
         self.theta = theta[blocks][block_of_tile]
+        self.tiles_per_call = tiles_per_call
+        if tiles_per_call is not None:  # empty tiles (copy 0, the first block's θ) to whole calls
+            extra = -len(block_of_tile) % tiles_per_call
+            self.valid = torch.cat([self.valid, self.valid.new_zeros((extra, ACT_TILE))])
+            self.grid = torch.cat([self.grid, self.grid.new_zeros((extra, ACT_TILE))])
+            self.theta = torch.cat([self.theta, self.theta[:1].expand(extra, -1)])
         self.everyone = len(blocks) == len(counts)
         self.full = bool(self.valid.all())
         """No padded slot: the grid's actions are the copies' in order."""
+
+    def act(
+        self, policy: PolicyRows, obs: torch.Tensor, noise: torch.Tensor | None
+    ) -> torch.Tensor:
+        """The grid's actions [tiles, ACT_TILE, ...] from every copy's ``obs`` and decision draws
+        ``noise`` [N, k] (None: greedy): one policy call, or calls of ``tiles_per_call`` tiles
+        each."""
+        per_call = self.tiles_per_call or self.grid.shape[0]
+        calls = []
+        for start in range(0, self.grid.shape[0], per_call):
+            grid = self.grid[start : start + per_call]
+            theta = self.theta[start : start + per_call]
+            calls.append(policy.act(theta, obs[grid], None if noise is None else noise[grid]))
+        return calls[0] if len(calls) == 1 else torch.cat(calls)
 
 
 def sample(
@@ -85,9 +111,15 @@ def sample(
     greedy: bool = False,
     faults: Faults | None = None,
     action_space: gym.Space | None = None,
+    tiles_per_call: int | None = None,
 ) -> Trajectories:
     """One episode in each copy: block b is row b (θ row ``theta[b]``, ``counts[b]`` ≥ 1
-    copies, at most ``horizons[b]`` steps); ``keys`` [N] are the copies' trajectory keys."""
+    copies, at most ``horizons[b]`` steps); ``keys`` [N] are the copies' trajectory keys.
+
+    ``tiles_per_call``: None, one policy call per step for every stepped copy (the CPU); else
+    calls of exactly so many tiles of :data:`ACT_TILE` copies (a GPU library may pick its
+    kernel, and so its rounding, by a call's shape, which must then not depend on the
+    company)."""
     device = theta.device
     num_blocks = int(counts.shape[0])
     offsets = copies.offsets
@@ -104,7 +136,7 @@ def sample(
     random_columns = faults.random_actions[owner] if faults is not None and not greedy else None
     k = policy.noise_size
     noise = torch.zeros((total, NOISE_CHUNK, k), dtype=torch.float32, device=device)
-    plan = _Plan(everyone, counts, offsets, theta)
+    plan = _Plan(everyone, counts, offsets, theta, tiles_per_call)
     t = 0
     env_noise = copies.step_noise
     while t < horizon:
@@ -114,14 +146,14 @@ def sample(
         if running_blocks == 0:
             break
         if 4 * running_blocks <= 3 * len(plan.blocks):
-            plan = _Plan(torch.nonzero(block_running).squeeze(1), counts, offsets, theta)
+            stepped = torch.nonzero(block_running).squeeze(1)
+            plan = _Plan(stepped, counts, offsets, theta, tiles_per_call)
         columns = plan.columns
         if not greedy and t % NOISE_CHUNK == 0:
             counters = t * k + torch.arange(NOISE_CHUNK * k, device=device)
             draws = uniforms(keys[columns].unsqueeze(1), counters.unsqueeze(0))
             noise[columns] = draws.reshape(-1, NOISE_CHUNK, k)
-        decision = None if greedy else noise[plan.grid, t % NOISE_CHUNK]
-        acted = policy.act(plan.theta, obs[plan.grid], decision)
+        acted = plan.act(policy, obs, None if greedy else noise[:, t % NOISE_CHUNK])
         actions = acted.flatten(0, 1) if plan.full else acted[plan.valid]
         if random_columns is not None and bool(random_columns[columns].any()):
             actions = _random_actions(

@@ -33,7 +33,7 @@ from fedhpg.common.algorithms.fedhpgvr import FedHPGVRParams, semi_stochastic_gr
 from fedhpg.common.algorithms.fedpgbr import FedPGBRParams, round_schedule
 from fedhpg.common.byzantine_filter import byzantine_filter
 from fedhpg.common.config import ConfigError, RunConfig
-from fedhpg.common.engine.engine import Engine, one_thread
+from fedhpg.common.engine.engine import Engine, engine_settings
 from fedhpg.common.optim import AdamAscent
 from fedhpg.common.randomness import Purpose
 from fedhpg.common.registry import OptionError, parse_options
@@ -159,7 +159,7 @@ class FedPGBR(Strategy[FedPGBRStrategyParams]):
         if not kept:
             logger.warning("round %d: the Byzantine filter kept no gradient", round_index)
         mu = gradients[found.kept].mean(dim=0) if kept else None
-        with one_thread():
+        with engine_settings(side.engine.device):
             theta_n = self._inner_loop(round_index, theta, mu, plan.inner_steps, side)
         self.stats = {
             "batch_size": plan.batch_size,

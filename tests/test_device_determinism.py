@@ -1,0 +1,86 @@
+"""What the engine does off the CPU for determinism, exercised on the CPU.
+
+A GPU may pick a kernel, and so its rounding, by a call's shape, and adds a scatter's values
+with atomics: off the CPU the sampler's policy calls take a fixed number of tiles
+(``Engine.act_tiles_per_call``) and the engine runs under torch's deterministic algorithms
+(``deterministic_off_cpu``). Neither shows a GPU's rounding here; these tests check that the
+fixed-shape calls, forced on, give the CPU's θ bit for bit in any company, and that the
+deterministic setting is the caller's again afterwards.
+"""
+
+from __future__ import annotations
+
+import pytest
+import torch
+
+from fedhpg.common.engine.devices import deterministic_off_cpu
+from fedhpg.common.engine.policy_rows import PolicyRows
+from fedhpg.common.group import EngineGroup
+from fedhpg.common.runtime.cli import compose
+from fedhpg.common.variants import variants_of
+from fedhpg.common.worker import initial_theta
+
+FAMILIES = {
+    "pendulum": ["env=pendulum", "policy.hidden=[16,16]", "env.horizon=40"],
+    "gridworld": ["env=gridworld"],
+}
+
+
+@pytest.mark.parametrize("family", sorted(FAMILIES))
+def test_fixed_shape_policy_calls_give_the_same_theta_in_any_company(
+    family: str, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    run = compose([*FAMILIES[family], "agents=population", "agents.num_agents=9",
+                   "algo.engine=torch", "algo.device=cpu"])  # fmt: skip
+    theta = initial_theta(variants_of(run, [0])[0], run)
+    plain = EngineGroup(run, variants_of(run, [4])).train(3, theta, [4])[4].theta
+    calls: list[int] = []
+    act = PolicyRows.act
+
+    def recorded(
+        self: PolicyRows, theta: torch.Tensor, obs: torch.Tensor, noise: torch.Tensor | None
+    ) -> torch.Tensor:
+        calls.append(theta.shape[0])
+        return act(self, theta, obs, noise)
+
+    monkeypatch.setattr(PolicyRows, "act", recorded)
+    for company in ([4], list(range(9)), [8, 4, 1]):
+        group = EngineGroup(run, variants_of(run, company))
+        group.engine.act_tiles_per_call = 3  # what a GPU gets, forced on
+        assert torch.equal(group.train(3, theta, company)[4].theta, plain)
+    assert calls and set(calls) == {3}, "every policy call takes exactly 3 tiles"
+
+
+CUDA = torch.device("cuda")  # only its type is read: no CUDA device is needed
+
+
+def _setting() -> tuple[bool, bool]:
+    return (
+        torch.are_deterministic_algorithms_enabled(),
+        torch.is_deterministic_algorithms_warn_only_enabled(),
+    )
+
+
+def test_deterministic_algorithms_off_the_cpu_and_the_callers_setting_back() -> None:
+    before = _setting()
+    assert before == (False, False)
+    with deterministic_off_cpu(CUDA):
+        assert _setting() == (True, True)
+    assert _setting() == before
+    with pytest.raises(RuntimeError), deterministic_off_cpu(CUDA):
+        raise RuntimeError("a failure inside")
+    assert _setting() == before
+    with deterministic_off_cpu(torch.device("cpu")):
+        assert _setting() == before  # the CPU is left alone
+
+
+@pytest.mark.parametrize("warn_only", [False, True])
+def test_a_callers_own_deterministic_setting_is_kept(warn_only: bool) -> None:
+    before = _setting()
+    torch.use_deterministic_algorithms(True, warn_only=warn_only)
+    try:
+        with deterministic_off_cpu(CUDA):
+            assert _setting() == (True, warn_only)
+        assert _setting() == (True, warn_only)
+    finally:
+        torch.use_deterministic_algorithms(*before[:1], warn_only=before[1])
