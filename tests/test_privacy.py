@@ -198,3 +198,33 @@ def test_the_command_line_refuses_in_one_line(tmp_path: Path) -> None:
         "which privacy hides or changes: use strategy=mean, weighted, or fedadam over either"
     ]
     assert list(tmp_path.iterdir()) == []
+
+
+BLOCK_PRIVACY_EXTRA = """
+import importlib.abc, sys
+class Missing(importlib.abc.MetaPathFinder):
+    def find_spec(self, name, path, target=None):
+        if name.split(".")[0] in ("cryptography", "dp_accounting"):
+            raise ImportError(f"No module named {name!r}")
+sys.meta_path.insert(0, Missing())
+import fedhpg.agent.main, fedhpg.server.launcher, fedhpg.server.main
+from fedhpg.common.config import ConfigError
+from fedhpg.common.runtime.cli import compose
+from fedhpg.server.strategies import validate_strategy
+from fedhpg.server.assembly import _check_privacy
+run = compose(["privacy=secagg"])
+try:
+    _check_privacy(run, validate_strategy(run))
+except ConfigError as error:
+    print(error)
+"""
+
+
+def test_without_the_privacy_extra_runs_start_and_privacy_is_one_line() -> None:
+    """The privacy extra (cryptography, dp-accounting) is optional: every entry point imports
+    without it, and a run that asks for privacy says what to install."""
+    done = subprocess.run(
+        [sys.executable, "-c", BLOCK_PRIVACY_EXTRA], capture_output=True, text=True, timeout=120
+    )
+    assert done.returncode == 0, done.stderr[-2000:]
+    assert "pip install 'fedhpg[privacy]'" in done.stdout, done.stdout
