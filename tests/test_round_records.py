@@ -9,6 +9,7 @@ from typing import Any
 import pytest
 import torch
 
+from fedhpg.common.privacy.contribution import RoundPrivacy
 from fedhpg.common.runtime.cli import compose
 from fedhpg.common.variants import variant_of
 from fedhpg.common.worker import initial_theta
@@ -41,13 +42,14 @@ class RemoteLikePool:
         *,
         budgets: Mapping[int, Mapping[str, int]] | None = None,
         while_training: Callable[[], None] | None = None,
+        private: RoundPrivacy | None = None,
     ) -> RoundAnswers:
         if round_index == self.fail_in:
             raise FederationError(f"round {round_index}: every agent is gone")
         self.log.append(f"requests {round_index}")
         if while_training is not None:
             while_training()
-        answers = self.inner.train(round_index, theta, agents, budgets=budgets)
+        answers = self.inner.train(round_index, theta, agents, budgets=budgets, private=private)
         self.log.append(f"answers {round_index}")
         return answers
 
