@@ -1,6 +1,6 @@
 """CURVE encryption and key-based agent authentication, with real processes on loopback and keys
 made by the real ``fedhpg-keys``: allowed keys register and finish a run; an unknown key, a
-plaintext agent and a key lent to another agent id are refused quickly, in one clear line, and
+plaintext agent and a key given to another agent id are refused quickly, in one clear line, and
 logged by the server, which keeps serving. Also ``fedhpg-keys`` itself and the config checks."""
 
 from __future__ import annotations

@@ -18,7 +18,7 @@ import torch
 
 from fedhpg.envs.base import EnvVariant
 from fedhpg.envs.device import register_device_family
-from fedhpg.envs.device.tensors import Params, TableFamily, TensorCopies
+from fedhpg.envs.device.tensors import Params, TableFamily, TensorCopies, physics_family
 
 DT = 0.2
 GRAVITY = 9.8
@@ -127,9 +127,4 @@ class AcrobotCopies(TensorCopies):
 def acrobot_family(variants: Sequence[EnvVariant], device: torch.device) -> TableFamily | None:
     """The Acrobot variants' constants on ``device`` (None unless every one is an Acrobot this
     models)."""
-    physics = [physics_of(v) for v in variants]
-    if any(p is None for p in physics):
-        return None
-    constants = {name: [p[name] for p in physics if p is not None] for name in PHYSICS}
-    limits = [int(getattr(v, "step_limit", 0) or STEP_LIMIT) for v in variants]
-    return TableFamily(AcrobotCopies, constants, limits, device)
+    return physics_family(AcrobotCopies, variants, physics_of, PHYSICS, STEP_LIMIT, device)

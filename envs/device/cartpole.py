@@ -18,7 +18,7 @@ import torch
 
 from fedhpg.envs.base import EnvVariant
 from fedhpg.envs.device import register_device_family
-from fedhpg.envs.device.tensors import Params, TableFamily, TensorCopies
+from fedhpg.envs.device.tensors import Params, TableFamily, TensorCopies, physics_family
 
 TAU = 0.02
 THETA_LIMIT = 12 * 2 * math.pi / 360
@@ -118,9 +118,4 @@ class CartPoleCopies(TensorCopies):
 def cartpole_family(variants: Sequence[EnvVariant], device: torch.device) -> TableFamily | None:
     """The CartPole variants' constants on ``device`` (None unless every one is a CartPole
     this models)."""
-    physics = [physics_of(v) for v in variants]
-    if any(p is None for p in physics):
-        return None
-    constants = {name: [p[name] for p in physics if p is not None] for name in PHYSICS}
-    limits = [int(getattr(v, "step_limit", 0) or STEP_LIMIT) for v in variants]
-    return TableFamily(CartPoleCopies, constants, limits, device)
+    return physics_family(CartPoleCopies, variants, physics_of, PHYSICS, STEP_LIMIT, device)

@@ -15,7 +15,7 @@ import torch
 
 from fedhpg.envs.base import EnvVariant
 from fedhpg.envs.device import register_device_family
-from fedhpg.envs.device.tensors import Params, TableFamily, TensorCopies
+from fedhpg.envs.device.tensors import Params, TableFamily, TensorCopies, physics_family
 
 MIN_POSITION = -1.2
 MAX_POSITION = 0.6
@@ -71,9 +71,4 @@ class MountainCarCopies(TensorCopies):
 def mountaincar_family(variants: Sequence[EnvVariant], device: torch.device) -> TableFamily | None:
     """The MountainCar variants' constants on ``device`` (None unless every one is a
     MountainCar this models)."""
-    physics = [physics_of(v) for v in variants]
-    if any(p is None for p in physics):
-        return None
-    constants = {name: [p[name] for p in physics if p is not None] for name in PHYSICS}
-    limits = [int(getattr(v, "step_limit", 0) or STEP_LIMIT) for v in variants]
-    return TableFamily(MountainCarCopies, constants, limits, device)
+    return physics_family(MountainCarCopies, variants, physics_of, PHYSICS, STEP_LIMIT, device)

@@ -18,7 +18,7 @@ import torch
 
 from fedhpg.envs.base import EnvVariant
 from fedhpg.envs.device import register_device_family
-from fedhpg.envs.device.tensors import Params, TableFamily, TensorCopies
+from fedhpg.envs.device.tensors import Params, TableFamily, TensorCopies, physics_family
 
 DT = 0.05
 MAX_SPEED = 8.0
@@ -84,10 +84,6 @@ class PendulumCopies(TensorCopies):
 def pendulum_family(variants: Sequence[EnvVariant], device: torch.device) -> TableFamily | None:
     """The Pendulum variants' constants on ``device`` (None unless every one is a Pendulum this
     models)."""
-    physics = [physics_of(v) for v in variants]
-    if any(p is None for p in physics):
-        return None
-    names = (*PHYSICS, "action_cost")
-    constants = {name: [p[name] for p in physics if p is not None] for name in names}
-    limits = [int(getattr(v, "step_limit", 0) or STEP_LIMIT) for v in variants]
-    return TableFamily(PendulumCopies, constants, limits, device)
+    return physics_family(
+        PendulumCopies, variants, physics_of, (*PHYSICS, "action_cost"), STEP_LIMIT, device
+    )

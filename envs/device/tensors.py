@@ -10,8 +10,8 @@ a call touches, step counts, truncation at each copy's step limit.
 from __future__ import annotations
 
 import abc
-from collections.abc import Mapping, Sequence
-from typing import ClassVar
+from collections.abc import Callable, Mapping, Sequence
+from typing import Any, ClassVar
 
 import torch
 
@@ -135,3 +135,22 @@ class TableFamily:
             self.limits[each],
             self.tables,
         )
+
+
+def physics_family(
+    copies_class: type[TensorCopies],
+    variants: Sequence[Any],
+    physics_of: Callable[[Any], Mapping[str, float] | None],
+    names: Sequence[str],
+    step_limit: int,
+    device: torch.device,
+) -> TableFamily | None:
+    """The family of variants that each carry the constants ``names`` (``physics_of(v)``; None
+    where a variant is not one ``copies_class`` models, and then None for all), each with its
+    step limit (``step_limit`` where the variant names none)."""
+    physics = [physics_of(v) for v in variants]
+    if any(p is None for p in physics):
+        return None
+    constants = {name: [p[name] for p in physics if p is not None] for name in names}
+    limits = [int(getattr(v, "step_limit", 0) or step_limit) for v in variants]
+    return TableFamily(copies_class, constants, limits, device)

@@ -342,7 +342,7 @@ class Links:
             self.drop(link, "its connection is gone")
 
     def keep_alive(self) -> None:
-        """Purge the links silent too long, then heartbeat the others when due."""
+        """Purge the links quiet for too long, then heartbeat the others when due."""
         now = time.monotonic()
         self.outbox.noisy.flush(now)
         for link in list(self.by_identity.values()):  # per connection, not per logical agent
