@@ -18,10 +18,24 @@ depend on which columns share the batch.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from functools import cached_property
+from typing import Protocol
 
+import numpy as np
 import torch
+
+
+class Scans(Protocol):
+    """Another implementation of the staircase's two scans along time, the same recurrence
+    in the same order (so the same bits), for the cells it can take; None: the staircase's
+    own loop runs (a backend's, e.g. ``common/batched/scans.py``)."""
+
+    def tail_sums(
+        self, layout: Staircase, values: torch.Tensor, scale: torch.Tensor | None
+    ) -> torch.Tensor | None: ...
+
+    def step_powers(self, layout: Staircase, bases: torch.Tensor) -> torch.Tensor | None: ...
 
 
 @dataclass(frozen=True)
@@ -33,6 +47,8 @@ class Staircase:
     dense: bool = False
     """Every column has the same extent, in column order: the cells are a padded [T, N]
     tensor's memory, row-major."""
+    scans: Scans | None = field(default=None, compare=False)
+    """A backend's implementation of :meth:`tail_sums` and :meth:`step_powers`."""
 
     @classmethod
     def padded(cls, steps: int, columns: int, device: torch.device | str = "cpu") -> Staircase:
@@ -40,14 +56,16 @@ class Staircase:
         return cls(torch.full((columns,), steps, dtype=torch.int64, device=device), dense=True)
 
     @classmethod
-    def of_groups(cls, lengths: torch.Tensor, groups: torch.Tensor) -> Staircase:
+    def of_groups(
+        cls, lengths: torch.Tensor, groups: torch.Tensor, scans: Scans | None = None
+    ) -> Staircase:
         """Each column extended to the longest trajectory of its group (``groups`` [N]: each
         column's agent): past that, an estimator's every term is zero."""
         if lengths.numel() == 0:
-            return cls(lengths.clone())
+            return cls(lengths.clone(), scans=scans)
         size = int(groups.max()) + 1
         longest = lengths.new_zeros(size).scatter_reduce(0, groups, lengths, "amax")
-        return cls(longest[groups])
+        return cls(longest[groups], scans=scans)
 
     @property
     def columns(self) -> int:
@@ -89,6 +107,16 @@ class Staircase:
             total += width
         return out
 
+    @cached_property
+    def width_array(self) -> np.ndarray:
+        """:attr:`widths` as an int64 array (for compiled scans)."""
+        return np.asarray(self.widths, dtype=np.int64)
+
+    @cached_property
+    def start_array(self) -> np.ndarray:
+        """:attr:`starts` as an int64 array."""
+        return np.asarray(self.starts, dtype=np.int64)
+
     @property
     def steps(self) -> int:
         """T: the longest extent."""
@@ -115,13 +143,14 @@ class Staircase:
         ``widths[t]`` positions: one copy of each prefix)."""
         if self.columns == 0:
             return values[:0]
-        by_position = values if self.dense else values.index_select(0, self.order)
-        return torch.cat([by_position[:width] for width in self.widths])
+        return values.index_select(0, self.column)
 
     @cached_property
     def column(self) -> torch.Tensor:
-        """[S]: each cell's column."""
-        return self.per_cell(torch.arange(self.columns, device=self.extents.device))
+        """[S]: each cell's column (step t's cells: the first ``widths[t]`` positions)."""
+        cells = torch.arange(self.size, device=self.extents.device)
+        position = cells - self._step_start.index_select(0, self.time)
+        return position if self.dense else self.order.index_select(0, position)
 
     def cell(self, time: torch.Tensor, column: torch.Tensor) -> torch.Tensor:
         """The cell of step ``time`` of column ``column`` (inside its extent)."""
@@ -148,8 +177,12 @@ class Staircase:
         """R[t, n] = values[t, n] + f_n R[t + 1, n] over each column's cells, from its last
         (``factors`` [N], f = 1 without): Σ_{h ≥ t} values[h] or, with γ, Σ_{h ≥ t} γ^{h−t}
         values[h], one step at a time so no γ^{−t} is formed."""
-        out = torch.empty_like(values)
         scale = None if factors is None else factors.to(values.dtype)[self.order]
+        if self.scans is not None:
+            done = self.scans.tail_sums(self, values, scale)
+            if done is not None:
+                return done
+        out = torch.empty_like(values)
         later: torch.Tensor | None = None
         for t in range(self.steps - 1, -1, -1):
             width, start = self.widths[t], self.starts[t]
@@ -164,8 +197,12 @@ class Staircase:
     def step_powers(self, bases: torch.Tensor) -> torch.Tensor:
         """b_n^t at every cell (``bases`` [N]), each column's powers by repeated products
         along its own cells, so no cell's value depends on the batch's shape."""
-        out = bases.new_empty(self.size)
         by_position = bases if self.dense else bases.index_select(0, self.order)
+        if self.scans is not None:
+            done = self.scans.step_powers(self, by_position)
+            if done is not None:
+                return done
+        out = bases.new_empty(self.size)
         earlier: torch.Tensor | None = None
         for t in range(self.steps):
             width, start = self.widths[t], self.starts[t]

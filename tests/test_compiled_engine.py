@@ -267,6 +267,36 @@ def test_every_algorithm_runs_on_the_backend() -> None:
         assert all(torch.isfinite(results[a].theta).all() for a in (0, 2)), algo
 
 
+@pytest.mark.parametrize("shape", ["ragged", "dense"])
+def test_the_compiled_scans_give_the_staircases_own_bits(shape: str) -> None:
+    """The backend's scans (tail sums with and without factors, step powers) against the
+    staircase's torch loop on a ragged and a padded layout, equal to the bit (float32 cells
+    are left to the loop)."""
+    from fedhpg.common.batched.scans import SCANS
+    from fedhpg.common.staircase import Staircase
+
+    generator = torch.Generator().manual_seed(5)
+    if shape == "ragged":
+        groups = torch.repeat_interleave(torch.arange(6), torch.tensor([4, 1, 7, 2, 3, 5]))
+        lengths = torch.randint(1, 60, (len(groups),), generator=generator)
+        plain = Staircase.of_groups(lengths, groups)
+        compiled = Staircase.of_groups(lengths, groups, SCANS)
+    else:
+        plain = Staircase.padded(37, 9)
+        compiled = Staircase(plain.extents, dense=True, scans=SCANS)
+    values = torch.randn(plain.size, generator=generator, dtype=torch.float64)
+    values *= torch.exp(6 * torch.rand(plain.size, generator=generator, dtype=torch.float64))
+    factors = 0.9 + 0.1 * torch.rand(plain.columns, generator=generator, dtype=torch.float64)
+    for expected, got in [
+        (plain.tail_sums(values), compiled.tail_sums(values)),
+        (plain.tail_sums(values, factors), compiled.tail_sums(values, factors)),
+        (plain.step_powers(factors), compiled.step_powers(factors)),
+        (plain.column_totals(values), compiled.column_totals(values)),
+    ]:
+        assert torch.equal(got, expected) and torch.equal(got.signbit(), expected.signbit())
+    assert compiled.tail_sums(values.float()).dtype == torch.float32  # the loop takes float32
+
+
 def test_episode_statistics_match_the_torch_engine() -> None:
     """The same θ̃_0 and population, 300 agents: the compiled backend's and the torch engine's
     mean training episode length agree within four standard errors (their floats differ,

@@ -13,6 +13,7 @@ differ.
 
 from __future__ import annotations
 
+import sys
 import time
 from collections.abc import Sequence
 
@@ -21,6 +22,7 @@ import torch
 
 from fedhpg.common.batched import kernels
 from fedhpg.common.batched.mlp import MLPShape
+from fedhpg.common.batched.scans import SCANS
 from fedhpg.common.engine.trajectories import StepRows, Trajectories
 from fedhpg.envs.base import EnvVariant
 from fedhpg.envs.compiled import CARTPOLE_DEFAULTS, CARTPOLE_STEP_LIMIT, cartpole_table
@@ -38,6 +40,8 @@ class CompiledBackend:
         self.shape = shape
         self.sizes = np.asarray(shape.sizes, dtype=np.int64)
         self._physics: dict[int, np.ndarray] = {}
+        self._stacked: tuple[tuple[int, ...], np.ndarray] | None = None
+        self._buffers = _RowBuffers()
 
     def _physics_of(self, k: int, variant: EnvVariant) -> np.ndarray:
         if k not in self._physics:
@@ -46,6 +50,15 @@ class CompiledBackend:
                 raise ValueError(f"agent {k}'s variant is not a CartPole the backend models")
             self._physics[k] = table[0]
         return self._physics[k]
+
+    def _physics_rows(self, agents: Sequence[int], variants: Sequence[EnvVariant]) -> np.ndarray:
+        """The rows' physics tables stacked (the last call's kept: an agent group samples
+        the same agents at every iteration of a round)."""
+        key = tuple(agents)
+        if self._stacked is None or self._stacked[0] != key:
+            pairs = zip(agents, variants, strict=True)
+            self._stacked = (key, np.stack([self._physics_of(k, v) for k, v in pairs]))
+        return self._stacked[1]
 
     def sample(
         self,
@@ -61,13 +74,10 @@ class CompiledBackend:
         """One episode per copy of every row, as the engine's ``sample`` returns them."""
         count = counts.numpy().astype(np.int64)
         limits = np.minimum(horizons.numpy().astype(np.int64), CARTPOLE_STEP_LIMIT)
-        physics = np.stack([self._physics_of(k, v) for k, v in zip(agents, variants, strict=True)])
-        capacity = int((count * limits).sum())
-        obs_dim = int(self.sizes[0])
-        rows_obs = np.empty((capacity, obs_dim), dtype=np.float32)
-        rows_action = np.empty(capacity, dtype=np.int64)
-        rows_column = np.empty(capacity, dtype=np.int64)
-        rows_time = np.empty(capacity, dtype=np.int64)
+        physics = self._physics_rows(agents, variants)
+        rows_obs, rows_action, rows_column, rows_time = self._buffers.take(
+            int((count * limits).sum()), int(self.sizes[0])
+        )
         total = int(count.sum())
         lengths = np.zeros(total, dtype=np.int64)
         written = kernels.sample_rows(
@@ -93,6 +103,7 @@ class CompiledBackend:
             counts=counts.clone(),
             lengths=torch.from_numpy(lengths),
             steps=packed,
+            scans=SCANS,
         )
 
     def gradients(
@@ -119,6 +130,46 @@ class CompiledBackend:
         )
         out[steps.rows.numpy()] = part
         return torch.from_numpy(out)
+
+
+class _RowBuffers:
+    """The sampler's output arrays, kept for the next call once no batch holds them.
+
+    A call's arrays are sized for every copy running to its horizon (millions of rows for a
+    host's agents), and the kernel writes its rows into them: allocated afresh at every call,
+    their pages would be faulted in (and zeroed by the kernel) again each time. A batch's
+    tensors are views of these arrays, so a set is reused only when nothing refers to it any
+    more (its reference count); while the previous iteration's batch is alive the next call
+    takes a second set."""
+
+    def __init__(self) -> None:
+        self.sets: list[tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]] = []
+
+    def take(
+        self, capacity: int, obs_dim: int
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        for i, arrays in enumerate(self.sets):
+            if max(_holders(arrays)) == _UNREFERENCED:
+                if arrays[0].shape[0] >= capacity and arrays[0].shape[1] == obs_dim:
+                    return arrays
+                del self.sets[i]  # free, but too small: replaced by a larger set
+                break
+        arrays = (
+            np.empty((capacity, obs_dim), dtype=np.float32),
+            np.empty(capacity, dtype=np.int64),
+            np.empty(capacity, dtype=np.int64),
+            np.empty(capacity, dtype=np.int64),
+        )
+        self.sets.append(arrays)
+        return arrays
+
+
+def _holders(arrays: tuple[np.ndarray, ...]) -> list[int]:
+    return [sys.getrefcount(array) for array in arrays]
+
+
+_UNREFERENCED = _holders((np.empty(0),))[0]
+"""What :func:`_holders` counts for an array that only its tuple holds."""
 
 
 def _packed(batch: Trajectories) -> StepRows:

@@ -18,7 +18,7 @@ from functools import cached_property
 
 import torch
 
-from fedhpg.common.staircase import Staircase, ordered_sums
+from fedhpg.common.staircase import Scans, Staircase, ordered_sums
 
 
 @dataclass(frozen=True)
@@ -56,6 +56,7 @@ class Trajectories:
         obs: torch.Tensor | None = None,
         actions: torch.Tensor | None = None,
         steps: StepRows | None = None,
+        scans: Scans | None = None,
     ) -> None:
         padded = rewards is not None and alive is not None and obs is not None
         if not padded and (steps is None or lengths is None):
@@ -67,6 +68,8 @@ class Trajectories:
         self.counts = counts
         """[A] int64: trajectories per row (0 for a row that sampled none)."""
         self.steps = steps
+        self.scans = scans
+        """The backend's scans for :attr:`layout` (None: the staircase's own)."""
         self._lengths = lengths
         self._rewards, self._alive = rewards, alive
         self._obs, self._actions = obs, actions
@@ -124,7 +127,7 @@ class Trajectories:
     @cached_property
     def layout(self) -> Staircase:
         """Each trajectory's cells up to its row's longest trajectory."""
-        return Staircase.of_groups(self.lengths(), self.owner)
+        return Staircase.of_groups(self.lengths(), self.owner, self.scans)
 
     @cached_property
     def step_cells(self) -> torch.Tensor:
@@ -154,7 +157,8 @@ class Trajectories:
             steps = replace(steps, rows=positions[steps.rows])
         out = Trajectories(success=self.success, owner=positions[self.owner], counts=counts,
                            lengths=self._lengths, rewards=self._rewards, alive=self._alive,
-                           obs=self._obs, actions=self._actions, steps=steps)  # fmt: skip
+                           obs=self._obs, actions=self._actions, steps=steps,
+                           scans=self.scans)  # fmt: skip
         for kept in ("layout", "step_cells", "cells"):  # renaming rows moves no cell
             if kept in self.__dict__:
                 out.__dict__[kept] = self.__dict__[kept]

@@ -1,0 +1,76 @@
+"""The staircase's two scans compiled (numba), for the compiled backend's batches on the CPU.
+
+:class:`~fedhpg.common.staircase.Staircase` runs its scans along time (reward-to-go tail
+sums, powers γ^t) one step at a time, a few torch calls a step: on a GPU each call is wide,
+on a CPU a batch of short episodes pays the calls' overhead at every step of its longest
+episode. These kernels run the same recurrence in the same order (step by step, the cells of
+a step in position order, no fused multiply-add: LLVM may not contract without ``fastmath``),
+so they give the torch loop's bits; ``tests/test_compiled_engine.py`` checks that they do.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import torch
+from numba import njit
+
+from fedhpg.common.staircase import Staircase
+
+
+@njit(cache=True, error_model="numpy")
+def _tail_sums(
+    values: np.ndarray, widths: np.ndarray, starts: np.ndarray, scale: np.ndarray, out: np.ndarray
+) -> None:
+    scaled = scale.shape[0] > 0
+    for t in range(widths.shape[0] - 1, -1, -1):
+        start, width = starts[t], widths[t]
+        carried = widths[t + 1] if t + 1 < widths.shape[0] else 0
+        later = starts[t + 1] if t + 1 < widths.shape[0] else 0
+        for p in range(carried):
+            term = scale[p] * out[later + p] if scaled else out[later + p]
+            out[start + p] = values[start + p] + term
+        for p in range(carried, width):
+            out[start + p] = values[start + p]
+
+
+@njit(cache=True, error_model="numpy")
+def _step_powers(
+    bases: np.ndarray, widths: np.ndarray, starts: np.ndarray, out: np.ndarray
+) -> None:
+    for p in range(widths[0] if widths.shape[0] else 0):
+        out[p] = 1.0
+    for t in range(1, widths.shape[0]):
+        start, earlier = starts[t], starts[t - 1]
+        for p in range(widths[t]):
+            out[start + p] = out[earlier + p] * bases[p]
+
+
+class CompiledScans:
+    """:class:`~fedhpg.common.staircase.Scans` in numba, for float64 cells on the CPU (None
+    elsewhere: the staircase's own loop runs)."""
+
+    @staticmethod
+    def _fits(layout: Staircase, values: torch.Tensor) -> bool:
+        return values.device.type == "cpu" and values.dtype == torch.float64 and values.dim() == 1
+
+    def tail_sums(
+        self, layout: Staircase, values: torch.Tensor, scale: torch.Tensor | None
+    ) -> torch.Tensor | None:
+        if not self._fits(layout, values):
+            return None
+        out = torch.empty_like(values)
+        factors = np.empty(0) if scale is None else scale.numpy()
+        _tail_sums(values.contiguous().numpy(), layout.width_array, layout.start_array,
+                   factors, out.numpy())  # fmt: skip
+        return out
+
+    def step_powers(self, layout: Staircase, bases: torch.Tensor) -> torch.Tensor | None:
+        if not self._fits(layout, bases):
+            return None
+        out = bases.new_empty(layout.size)
+        _step_powers(bases.contiguous().numpy(), layout.width_array, layout.start_array,
+                     out.numpy())  # fmt: skip
+        return out
+
+
+SCANS = CompiledScans()
