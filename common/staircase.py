@@ -27,9 +27,12 @@ import torch
 
 
 class Scans(Protocol):
-    """Another implementation of the staircase's two scans along time, the same recurrence
-    in the same order (so the same bits), for the cells it can take; None: the staircase's
-    own loop runs (a backend's, e.g. ``common/batched/scans.py``)."""
+    """Another implementation of the staircase's two scans along time (the same recurrence
+    in the same order, so the same bits) and of its cells' (step, column) indices, for the
+    layouts it can take; None: the staircase's own torch code runs (a backend's, e.g.
+    ``common/batched/scans.py``)."""
+
+    def cells(self, layout: Staircase) -> tuple[torch.Tensor, torch.Tensor] | None: ...
 
     def tail_sums(
         self, layout: Staircase, values: torch.Tensor, scale: torch.Tensor | None
@@ -128,8 +131,14 @@ class Staircase:
         return sum(self.widths)
 
     @cached_property
+    def _indexed(self) -> tuple[torch.Tensor, torch.Tensor] | None:
+        return None if self.scans is None else self.scans.cells(self)
+
+    @cached_property
     def time(self) -> torch.Tensor:
         """[S]: each cell's step."""
+        if self._indexed is not None:
+            return self._indexed[0]
         device = self.extents.device
         widths = torch.tensor(self.widths, dtype=torch.int64, device=device)
         return torch.repeat_interleave(torch.arange(self.steps, device=device), widths)
@@ -148,6 +157,8 @@ class Staircase:
     @cached_property
     def column(self) -> torch.Tensor:
         """[S]: each cell's column (step t's cells: the first ``widths[t]`` positions)."""
+        if self._indexed is not None:
+            return self._indexed[1]
         cells = torch.arange(self.size, device=self.extents.device)
         position = cells - self._step_start.index_select(0, self.time)
         return position if self.dense else self.order.index_select(0, position)

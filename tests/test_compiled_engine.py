@@ -269,9 +269,9 @@ def test_every_algorithm_runs_on_the_backend() -> None:
 
 @pytest.mark.parametrize("shape", ["ragged", "dense"])
 def test_the_compiled_scans_give_the_staircases_own_bits(shape: str) -> None:
-    """The backend's scans (tail sums with and without factors, step powers) against the
-    staircase's torch loop on a ragged and a padded layout, equal to the bit (float32 cells
-    are left to the loop)."""
+    """The backend's scans (tail sums with and without factors, step powers) and cell indices
+    against the staircase's torch code on a ragged and a padded layout, equal to the bit
+    (float32 cells are left to the loop)."""
     from fedhpg.common.batched.scans import SCANS
     from fedhpg.common.staircase import Staircase
 
@@ -294,6 +294,7 @@ def test_the_compiled_scans_give_the_staircases_own_bits(shape: str) -> None:
         (plain.column_totals(values), compiled.column_totals(values)),
     ]:
         assert torch.equal(got, expected) and torch.equal(got.signbit(), expected.signbit())
+    assert torch.equal(compiled.time, plain.time) and torch.equal(compiled.column, plain.column)
     assert compiled.tail_sums(values.float()).dtype == torch.float32  # the loop takes float32
 
 

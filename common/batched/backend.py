@@ -39,26 +39,24 @@ class CompiledBackend:
     def __init__(self, shape: MLPShape) -> None:
         self.shape = shape
         self.sizes = np.asarray(shape.sizes, dtype=np.int64)
-        self._physics: dict[int, np.ndarray] = {}
-        self._stacked: tuple[tuple[int, ...], np.ndarray] | None = None
+        self._row_of: dict[int, int] = {}
+        self._tables: list[np.ndarray] = []
+        self._table: np.ndarray | None = None
         self._buffers = _RowBuffers()
 
-    def _physics_of(self, k: int, variant: EnvVariant) -> np.ndarray:
-        if k not in self._physics:
-            table = cartpole_table([variant])
-            if table is None:
-                raise ValueError(f"agent {k}'s variant is not a CartPole the backend models")
-            self._physics[k] = table[0]
-        return self._physics[k]
-
     def _physics_rows(self, agents: Sequence[int], variants: Sequence[EnvVariant]) -> np.ndarray:
-        """The rows' physics tables stacked (the last call's kept: an agent group samples
-        the same agents at every iteration of a round)."""
-        key = tuple(agents)
-        if self._stacked is None or self._stacked[0] != key:
-            pairs = zip(agents, variants, strict=True)
-            self._stacked = (key, np.stack([self._physics_of(k, v) for k, v in pairs]))
-        return self._stacked[1]
+        """The rows' physics tables, [A, P] (each agent's built once, kept in one array)."""
+        for k, variant in zip(agents, variants, strict=True):
+            if k not in self._row_of:
+                table = cartpole_table([variant])
+                if table is None:
+                    raise ValueError(f"agent {k}'s variant is not a CartPole the backend models")
+                self._row_of[k] = len(self._row_of)
+                self._tables.append(table[0])
+                self._table = None
+        if self._table is None:
+            self._table = np.stack(self._tables)
+        return self._table[[self._row_of[k] for k in agents]]
 
     def sample(
         self,
@@ -196,7 +194,7 @@ def warm_up() -> float:
     instead of compiling it each."""
     started = time.perf_counter()
     backend = CompiledBackend(MLPShape((4, 2, 2)))
-    backend._physics = {0: np.asarray(CARTPOLE_DEFAULTS, dtype=np.float64)}
+    backend._row_of, backend._tables = {0: 0}, [np.asarray(CARTPOLE_DEFAULTS, dtype=np.float64)]
     theta = torch.zeros((2, 16))
     for greedy in (False, True):
         batch = backend.sample(

@@ -1,4 +1,5 @@
-"""The staircase's two scans compiled (numba), for the compiled backend's batches on the CPU.
+"""The staircase's scans and cell indices compiled (numba), for the compiled backend's batches
+on the CPU.
 
 :class:`~fedhpg.common.staircase.Staircase` runs its scans along time (reward-to-go tail
 sums, powers γ^t) one step at a time, a few torch calls a step: on a GPU each call is wide,
@@ -45,9 +46,20 @@ def _step_powers(
             out[start + p] = out[earlier + p] * bases[p]
 
 
+@njit(cache=True, error_model="numpy")
+def _cells(
+    widths: np.ndarray, starts: np.ndarray, order: np.ndarray, time: np.ndarray, column: np.ndarray
+) -> None:
+    for t in range(widths.shape[0]):
+        start = starts[t]
+        for p in range(widths[t]):
+            time[start + p] = t
+            column[start + p] = order[p]
+
+
 class CompiledScans:
     """:class:`~fedhpg.common.staircase.Scans` in numba, for float64 cells on the CPU (None
-    elsewhere: the staircase's own loop runs)."""
+    elsewhere: the staircase's own torch code runs)."""
 
     @staticmethod
     def _fits(layout: Staircase, values: torch.Tensor) -> bool:
@@ -63,6 +75,15 @@ class CompiledScans:
         _tail_sums(values.contiguous().numpy(), layout.width_array, layout.start_array,
                    factors, out.numpy())  # fmt: skip
         return out
+
+    def cells(self, layout: Staircase) -> tuple[torch.Tensor, torch.Tensor] | None:
+        if layout.extents.device.type != "cpu":
+            return None
+        time = torch.empty(layout.size, dtype=torch.int64)
+        column = torch.empty(layout.size, dtype=torch.int64)
+        _cells(layout.width_array, layout.start_array, layout.order.numpy(), time.numpy(),
+               column.numpy())  # fmt: skip
+        return time, column
 
     def step_powers(self, layout: Staircase, bases: torch.Tensor) -> torch.Tensor | None:
         if not self._fits(layout, bases):

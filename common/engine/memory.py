@@ -155,6 +155,12 @@ def plan_round(
     """Consecutive chunks of agents (agent i: ``copies[i]`` trajectories at once, of up to
     ``horizons[i]`` steps) whose planned peak fits ``budget`` bytes; an agent too large alone
     is a chunk of its own (a plan cannot split it)."""
+    if copies:  # the usual round: all of it fits, and so would every chunk of it (a peak
+        # grows with copies and horizon), so the loop below would make one chunk
+        total, widest = sum(copies), max(horizons)
+        peak = step.peak(total, widest)
+        if peak <= budget:
+            return RoundPlan([range(len(copies))], peak, budget, step.parts(total, widest))
     chunks: list[range] = []
     start, held, longest = 0, 0, 0
     largest: tuple[int, int, int] = (0, 0, 0)  # (peak, copies, horizon) of the largest chunk
