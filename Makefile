@@ -36,8 +36,9 @@ test: $(STAMP) typecheck contracts docs
 	$(BIN)/ruff check .
 	$(BIN)/python -m pytest -q -m "not slow" -n 2 --dist loadscope
 
-# The long tier (marked slow): every shipped env preset learns, the resource attacks and the
-# 10,000-frame fuzz of a live server (~4 min on 2 cores). .ci/run runs it after make test.
+# The long tier (marked slow): every shipped env preset learns, every docs page's code runs as
+# printed, the longest integration runs, the resource attacks and the 10,000-frame fuzz of a
+# live server (~15 min on 2 cores). .ci/run runs it after make test.
 test-long: $(STAMP)
 	$(BIN)/python -m pytest -q -m slow
 

@@ -11,7 +11,8 @@ over the commit) is the figure: two runs minutes apart wander by more than the c
 would judge. Randomness differs between revisions, so the episodes and their work differ too;
 hence steps per second, not seconds per round.
 
-    python -m benchmarks.engine_ab --against 97553d4 [--algo fedhpgvr] [--agents 1000]
+    python -m benchmarks.engine_ab --against 97553d4 [--algo fedhpgvr] [--agents 1000] \
+        [--theta balancing]
 """
 
 from __future__ import annotations
@@ -201,19 +202,43 @@ def save(comparisons: list[Comparison], path: Path = RESULTS) -> None:
     path.write_text(json.dumps(kept, indent=1, ensure_ascii=False) + "\n")
 
 
+def _balancing_theta(agents: int) -> str:
+    """The balancing policy of the 16-16 MLP, saved where the workers can load it."""
+    import torch
+
+    from benchmarks.scale_device import balancing_theta
+    from fedhpg.common.runtime.cli import compose
+
+    run = compose(["env=cartpole", "agents=population", f"agents.num_agents={agents}",
+                   "policy.hidden=[16,16]"])  # fmt: skip
+    path = Path(tempfile.gettempdir()) / "fedhpg-engine-ab" / "balancing.pt"
+    path.parent.mkdir(parents=True, exist_ok=True)
+    torch.save(balancing_theta(run), path)
+    return str(path)
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--against", default=BASELINE, help="the commit to compare with")
     parser.add_argument("--algo", default="fedhpg", choices=["fedhpg", "fedhpgvr"])
     parser.add_argument("--agents", type=int, default=500, help="agents in the group")
     parser.add_argument("--rounds", type=int, default=10, help="interleaved rounds (≥ 1)")
-    parser.add_argument("--theta", help="start every round from this θ (torch-saved .pt)")
+    parser.add_argument(
+        "--theta",
+        help="start every round from this θ (torch-saved .pt), or 'balancing': a policy that "
+        "keeps the pole up for the whole horizon (benchmarks.scale_device.balancing_theta)",
+    )
     parser.add_argument("--results", type=Path, default=RESULTS, help="JSON to add the result to")
     args = parser.parse_args()
     if args.rounds < 1 or args.agents < 1:
         parser.error("--rounds and --agents must be at least 1")
-    if args.theta and not Path(args.theta).is_file():
-        parser.error(f"--theta {args.theta}: no such file")
+    label = "θ̃_0"
+    if args.theta == "balancing":
+        args.theta, label = _balancing_theta(args.agents), "balancing"
+    elif args.theta:
+        if not Path(args.theta).is_file():
+            parser.error(f"--theta {args.theta}: no such file")
+        label = Path(args.theta).stem
     logging.basicConfig(level=logging.INFO, format="%(message)s")
     setup = Setup(
         against=args.against,
@@ -221,7 +246,7 @@ def main() -> None:
         agents=args.agents,
         rounds=args.rounds,
         theta=args.theta,
-        label=Path(args.theta).stem if args.theta else "θ̃_0",
+        label=label,
     )
     comparison = compare(setup)
     print(report(comparison))

@@ -133,6 +133,7 @@ def test_a_two_seed_sweep_runs_both_seeds_side_by_side(tmp_path: Path, launcher:
     print(f"{launcher} sweep: {elapsed:.1f} s")
 
 
+@pytest.mark.slow
 def test_a_federation_placed_through_submitit_equals_the_same_run_here(tmp_path: Path) -> None:
     run_dir = tmp_path / "run"
     started = time.monotonic()
@@ -158,6 +159,7 @@ def test_a_federation_placed_through_submitit_equals_the_same_run_here(tmp_path:
     assert all("Job completed successfully" in t for t in texts)
 
 
+@pytest.mark.slow
 def test_agent_hosts_placed_through_submitit_equal_the_same_run_here(tmp_path: Path) -> None:
     """With agents.per_host the job array holds the hosts: agents 0..1 and agent 2."""
     run_dir = tmp_path / "run"
@@ -194,6 +196,7 @@ def _rounds(run_dir: Path) -> int:
     return len(metrics.read_text().splitlines()) if metrics.exists() else 0
 
 
+@pytest.mark.slow
 def test_a_crashed_agent_job_is_resubmitted_and_a_dead_server_ends_all(tmp_path: Path) -> None:
     """Agent 1's process is killed mid-run: its job is resubmitted and the run goes on. Then
     the server process is killed: one line naming its job, exit 1, and the agent jobs (which
@@ -347,6 +350,7 @@ print(len(names))
 """
 
 
+@pytest.mark.slow
 def test_ray_is_imported_by_cluster_ray_alone(tmp_path: Path) -> None:
     """A ``ray`` that records being imported (and fails): importing every module of the package
     but the Ray engine, and a whole ``fedhpg-cluster cluster=local`` run, jobs included, never

@@ -342,6 +342,7 @@ print(hashlib.sha256(out.tobytes()).hexdigest())
 """
 
 
+@pytest.mark.slow
 def test_a_gradient_just_compiled_is_the_one_loaded_from_the_cache(tmp_path) -> None:
     """A process that compiles the kernels and one that loads them from numba's cache must
     round the gradient alike, or θ̃ would depend on which process compiled (placement, resume).

@@ -75,6 +75,7 @@ def test_docker_compose_accepts_the_files() -> None:
         assert result.returncode == 0, f"{files}: {result.stderr}"
 
 
+@pytest.mark.slow
 def test_the_compose_commands_run_a_federation(tmp_path: Path) -> None:
     env = {
         "FEDHPG_PORT": str(free_port()),

@@ -7,7 +7,8 @@ fresh interpreter, ``yaml`` and ``toml`` blocks parsed. A ``python`` block right
 ``<!-- file: NAME -->`` is written to NAME instead (a plugin module the next blocks use). A
 block that cannot run here is marked right before it, ``<!-- not run: why -->``, and the
 reason must be given. ``text`` blocks are output, and the README's quickstart output is
-checked against what the demo prints.
+checked against what the demo prints. Running the pages takes minutes, so it is in the long
+tier (``make test-long``); that every block runs or says why not is checked in ``make test``.
 """
 
 from __future__ import annotations
@@ -113,6 +114,7 @@ def _run(block: Block, cwd: Path) -> None:
     )
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("page", PAGES, ids=[p.name for p in PAGES])
 def test_the_pages_code_runs_as_printed(page: Path, tmp_path: Path) -> None:
     cwd = _workdir(tmp_path)

@@ -8,6 +8,7 @@ from pathlib import Path
 
 import msgpack
 import numpy as np
+import pytest
 import torch
 import zmq
 from procs import BIN, free_port, processes, start, wait_until
@@ -71,6 +72,7 @@ def _update(theta: np.ndarray) -> list:
     return encode(Update(round=1, agents=[0], thetas=theta[None], stats=UpdateColumns.of([stats])))
 
 
+@pytest.mark.slow
 def test_server_survives_bad_input_and_finishes_right(tmp_path: Path) -> None:
     port = free_port()
     out_dir = tmp_path / "run"

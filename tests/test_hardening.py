@@ -17,6 +17,7 @@ import threading
 import time
 from pathlib import Path
 
+import pytest
 import torch
 from peers import HonestAgent, raw_frames
 from procs import BIN, QUIET, free_port, processes, start, start_federation, wait_until
@@ -160,6 +161,7 @@ def test_operator_mistakes_end_in_one_line_and_touch_nothing(tmp_path: Path) -> 
         metrics.write_bytes(original)
 
 
+@pytest.mark.slow
 def test_a_second_server_cannot_take_a_live_run_directory(tmp_path: Path) -> None:
     out_dir = tmp_path / "run"
     port = free_port()
@@ -217,6 +219,7 @@ def test_a_full_disk_stops_the_run_cleanly_and_the_agents_say_so(tmp_path: Path)
         assert agent.returncode == 3 and "the run was aborted" in err, err[-1000:]
 
 
+@pytest.mark.slow
 def test_counters_survive_a_resume(tmp_path: Path) -> None:
     import zmq
 

@@ -145,6 +145,7 @@ def test_cut_link_fails_the_run_naming_the_agent(hosts: dict[str, str], tmp_path
     assert rounds == list(range(1, len(rounds) + 1)), "every completed round was recorded"
 
 
+@pytest.mark.slow
 def test_healed_link_rejoins_and_the_run_finishes(hosts: dict[str, str], tmp_path: Path) -> None:
     rounds = 40
     with processes() as started:

@@ -13,6 +13,7 @@ import time
 from pathlib import Path
 
 import numpy as np
+import pytest
 import torch
 from peers import ScriptedAgent, hello_for
 from procs import free_port, processes, start, start_federation, wait_until
@@ -78,6 +79,7 @@ def test_agent_killed_mid_round_rejoins_and_theta_is_unchanged(tmp_path: Path) -
     assert torch.equal(checkpoint.theta, run_in_process(compose(run_keys)))
 
 
+@pytest.mark.slow
 def test_deadline_policy_aggregates_without_the_dead_and_the_slow(tmp_path: Path) -> None:
     """deadline: agent-1 is too slow for the round deadline and agent-2 is killed mid-run and
     never comes back; every round still completes, from the updates that arrived, and the

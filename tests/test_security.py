@@ -434,6 +434,7 @@ def _container(root: Path, keys: Path, service: dict) -> list[str]:
     return [arg.replace("=/keys", f"={root / 'keys'}") for arg in service["command"]]
 
 
+@pytest.mark.slow
 @pytest.mark.timeout(TIMEOUT_S + 60)
 def test_compose_with_keys_runs_a_curve_federation(tmp_path: Path, started: list) -> None:
     keys = _keys(tmp_path, "keys", "--agents", "4")
