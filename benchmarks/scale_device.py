@@ -38,6 +38,7 @@ import logging
 import resource
 import statistics
 import sys
+import threading
 import time
 from collections.abc import Callable
 from dataclasses import asdict, dataclass
@@ -125,14 +126,32 @@ def _sync(device: str) -> None:
         torch.cuda.synchronize(device)
 
 
-def _peak_rss() -> int:
-    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024
-
-
 def _rss() -> int:
     """This process's resident memory now."""
     pages = int(Path("/proc/self/statm").read_text().split()[1])
     return pages * resource.getpagesize()
+
+
+class _PeakRss:
+    """The largest resident size of this process while the block runs, read every 2 ms (the
+    kernel's ru_maxrss is the process's lifetime high-water mark, which earlier work in the
+    same process, a smaller K's or another test's, may already have set higher)."""
+
+    def __enter__(self) -> _PeakRss:
+        self.peak = _rss()
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._watch, daemon=True)
+        self._thread.start()
+        return self
+
+    def _watch(self) -> None:
+        while not self._stop.wait(0.002):
+            self.peak = max(self.peak, _rss())
+
+    def __exit__(self, *exc: object) -> None:
+        self._stop.set()
+        self._thread.join()
+        self.peak = max(self.peak, _rss())
 
 
 @dataclass(frozen=True)
@@ -155,6 +174,22 @@ def iterations(group: EngineGroup, theta: torch.Tensor, agents: list[int], devic
     before = _rss()  # the unmeasured round's peak counts too: it is the same round
     if cuda:
         torch.cuda.reset_peak_memory_stats(device)
+    with _PeakRss() as resident:
+        times, steps, repeats = _rounds(group, theta, agents, device, repeats, deadline)
+    peak = torch.cuda.max_memory_allocated(device) if cuda else resident.peak - before
+    middle = sorted(range(len(times)), key=times.__getitem__)[len(times) // 2]
+    return Measured(steps[middle], times[middle], peak / MIB, max(repeats, 0))
+
+
+def _rounds(
+    group: EngineGroup,
+    theta: torch.Tensor,
+    agents: list[int],
+    device: str,
+    repeats: int,
+    deadline: float | None,
+) -> tuple[list[float], list[int], int]:
+    """:func:`iterations`' rounds: their seconds, env steps, and how many were measured."""
     _sync(device)
     started = time.perf_counter()
     results = group.train(1, theta, agents)
@@ -172,9 +207,7 @@ def iterations(group: EngineGroup, theta: torch.Tensor, agents: list[int], devic
         _sync(device)
         times.append(time.perf_counter() - started)
         steps.append(sum(r.stats.env_steps for r in results.values()))
-    peak = torch.cuda.max_memory_allocated(device) if cuda else _peak_rss() - before
-    middle = sorted(range(len(times)), key=times.__getitem__)[len(times) // 2]
-    return Measured(steps[middle], times[middle], peak / MIB, max(repeats, 0))
+    return times, steps, repeats
 
 
 def measure_engine(agents: int, device: str, repeats: int, compare: bool,
