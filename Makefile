@@ -38,7 +38,7 @@ test: $(STAMP) typecheck contracts docs
 
 # The long tier (marked slow): every shipped env preset learns, every docs page's code runs as
 # printed, the longest integration runs, the resource attacks and the 10,000-frame fuzz of a
-# live server (~15 min on 2 cores). .ci/run runs it after make test.
+# live server (~9 min on 2 cores). .ci/run runs it after make test.
 test-long: $(STAMP)
 	$(BIN)/python -m pytest -q -m slow
 
