@@ -51,7 +51,8 @@ class Staircase:
     """Every column has the same extent, in column order: the cells are a padded [T, N]
     tensor's memory, row-major."""
     scans: Scans | None = field(default=None, compare=False)
-    """A backend's implementation of :meth:`tail_sums` and :meth:`step_powers`."""
+    """A backend's implementation of :meth:`tail_sums`, :meth:`step_powers` and the cells'
+    (:attr:`time`, :attr:`column`) indices."""
 
     @classmethod
     def padded(cls, steps: int, columns: int, device: torch.device | str = "cpu") -> Staircase:

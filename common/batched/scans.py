@@ -62,13 +62,13 @@ class CompiledScans:
     elsewhere: the staircase's own torch code runs)."""
 
     @staticmethod
-    def _fits(layout: Staircase, values: torch.Tensor) -> bool:
+    def _fits(values: torch.Tensor) -> bool:
         return values.device.type == "cpu" and values.dtype == torch.float64 and values.dim() == 1
 
     def tail_sums(
         self, layout: Staircase, values: torch.Tensor, scale: torch.Tensor | None
     ) -> torch.Tensor | None:
-        if not self._fits(layout, values):
+        if not self._fits(values):
             return None
         out = torch.empty_like(values)
         factors = np.empty(0) if scale is None else scale.numpy()
@@ -86,7 +86,7 @@ class CompiledScans:
         return time, column
 
     def step_powers(self, layout: Staircase, bases: torch.Tensor) -> torch.Tensor | None:
-        if not self._fits(layout, bases):
+        if not self._fits(bases):
             return None
         out = bases.new_empty(layout.size)
         _step_powers(bases.contiguous().numpy(), layout.width_array, layout.start_array,
