@@ -230,7 +230,7 @@ class EventFile:
 
         directory.mkdir(parents=True, exist_ok=True)
         name = (
-            f"events.out.tfevents.{int(time.time()):010d}.{socket.gethostname()}."
+            f"events.out.tfevents.{_sorting_stamp(directory):010d}.{socket.gethostname()}."
             f"{os.getpid()}.{next(_files_opened)}"
         )
         self._file = (directory / name).open("wb")
@@ -247,6 +247,21 @@ class EventFile:
 
 
 _files_opened = itertools.count()
+
+
+def _sorting_stamp(directory: Path) -> int:
+    """The seconds field of a new event file's name: now, or one past the newest file already
+    in ``directory`` when that one is not older. TensorBoard reads a run's files in the order
+    of their names and a later file's purge applies only to what it read before, so a resumed
+    run's file must sort last even when it opens within the second of the one before (the
+    host, pid and counter fields after the seconds do not sort in opening order)."""
+    now = int(time.time())
+    stamps = []
+    for path in directory.glob("events.out.tfevents.*"):
+        field = path.name.split(".")[3]
+        if field.isdigit():
+            stamps.append(int(field))
+    return max([now, *(stamp + 1 for stamp in stamps)])
 
 
 class TensorBoardWriter:

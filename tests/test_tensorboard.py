@@ -91,6 +91,34 @@ def test_a_resumed_run_shows_no_round_twice(tmp_path: Path) -> None:
     assert dict(after)[1] == before[1]
 
 
+def test_a_new_event_file_sorts_after_the_ones_before_it(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """TensorBoard reads a run's files in name order: a file opened later sorts later, whether
+    the one before came from this process within the same second (its counter at 9, the new
+    one's at 10) or from another process whose name sorts high (a later second on its clock)."""
+    import itertools
+    import time
+
+    from fedhpg.server import metrics
+
+    monkeypatch.setattr(metrics, "_files_opened", itertools.count(9))
+    monkeypatch.setattr(time, "time", lambda: 1_700_000_000.5)
+    directory = tmp_path / "tensorboard"
+    opened: list[str] = []
+    for _ in range(2):
+        metrics.EventFile(directory).close()
+        (new,) = {p.name for p in directory.iterdir()} - set(opened)
+        opened.append(new)
+    stranger = directory / "events.out.tfevents.1700000007.other-host.99999.0"
+    stranger.write_bytes(b"")
+    metrics.EventFile(directory).close()
+    names = sorted(p.name for p in directory.iterdir())
+    assert len(set(names)) == 4
+    assert names[:2] == opened and names[2] == stranger.name
+    assert names[3].split(".")[3] == "1700000008"
+
+
 def test_the_sink_can_be_turned_off(tmp_path: Path) -> None:
     out_dir = tmp_path / "run"
     api.run(overrides=[*RUN, "rounds=1", "server.tensorboard=false"], out_dir=out_dir)
