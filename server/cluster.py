@@ -16,7 +16,6 @@ from __future__ import annotations
 import logging
 import os
 import shutil
-import signal
 import sys
 import time
 from collections.abc import Sequence
@@ -24,7 +23,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from fedhpg.common.config import ConfigError, RunConfig
-from fedhpg.common.runtime.cli import EXIT_RUN_ABORTED, EXIT_USAGE
+from fedhpg.common.runtime.cli import EXIT_RUN_ABORTED, EXIT_USAGE, Interrupted, stop_signals
 from fedhpg.server.cluster_engines import (
     Engine,
     Job,
@@ -52,7 +51,6 @@ STOP_WAIT_S = 5.0
 CANCEL_WAIT_S = {"local": 5.0, "slurm": 60.0, "ray": 30.0}
 """How long cancelled jobs may take to be reported gone: submitit kills a local job after 1 s;
 SLURM signals a job's processes, then kills them after its KillWait (30 s by default)."""
-EXIT_INTERRUPTED = 130
 
 
 @dataclass
@@ -238,35 +236,31 @@ def cancel_all(placement: Placement, *, graceful: bool = True) -> None:
 
 
 def place(run: RunConfig, overrides: Sequence[str], run_dir: Path, engine: Engine) -> int:
-    """Submit the federation, watch it, stop what is left; the exit status."""
+    """Submit the federation, watch it, stop what is left; the exit status (128 + the
+    signal's number when SIGINT or SIGTERM stopped it, even one started with SIGINT ignored,
+    as a shell's background job is)."""
     new = not run_dir.exists()
     run_dir.mkdir(parents=True, exist_ok=True)
     placement: Placement | None = None
-    previous = signal.getsignal(signal.SIGTERM)
-
-    def interrupt(signum: int, _frame: object) -> None:
-        raise KeyboardInterrupt
-
-    signal.signal(signal.SIGTERM, interrupt)
-    try:
-        placement = submit(run, overrides, run_dir, engine)
-        status = supervise(run, placement)
-        if status == 0:
-            sys.stdout.write(f"run directory: {run_dir}\n")
-        return status
-    except SubmitError as error:
-        sys.stderr.write(f"error: {error}\n")
-        if new and placement is None:  # nothing ran in it: leave nothing behind
-            shutil.rmtree(run_dir, ignore_errors=True)
-        return 1
-    except KeyboardInterrupt:
-        logger.warning("interrupted: cancelling the federation's jobs")
-        return EXIT_INTERRUPTED
-    finally:
-        if placement is not None:
-            cancel_all(placement)
-        engine.close()
-        signal.signal(signal.SIGTERM, previous)
+    with stop_signals():
+        try:
+            placement = submit(run, overrides, run_dir, engine)
+            status = supervise(run, placement)
+            if status == 0:
+                sys.stdout.write(f"run directory: {run_dir}\n")
+            return status
+        except SubmitError as error:
+            sys.stderr.write(f"error: {error}\n")
+            if new and placement is None:  # nothing ran in it: leave nothing behind
+                shutil.rmtree(run_dir, ignore_errors=True)
+            return 1
+        except Interrupted as interrupted:
+            logger.warning("interrupted: cancelling the federation's jobs")
+            return interrupted.status
+        finally:
+            if placement is not None:
+                cancel_all(placement)
+            engine.close()
 
 
 def main(argv: Sequence[str] | None = None) -> None:

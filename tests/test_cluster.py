@@ -22,7 +22,7 @@ from pathlib import Path
 
 import pytest
 import torch
-from procs import BIN, wait_until
+from procs import BIN, child_pids, wait_until
 
 from fedhpg.common.config import ConfigError
 from fedhpg.common.runtime.cli import compose
@@ -231,6 +231,36 @@ def test_a_crashed_agent_job_is_resubmitted_and_a_dead_server_ends_all(tmp_path:
     assert lines[1].startswith("error: the server job ") and "exited with status -9" in lines[1]
     assert "log: " in lines[1]
     assert len([d for d in (run_dir / "submitit").iterdir() if d.name.isdigit()]) == 4
+
+
+@pytest.mark.slow
+def test_ctrl_c_stops_the_jobs_of_a_driver_started_with_sigint_ignored(tmp_path: Path) -> None:
+    """fedhpg-cluster started as a shell's background job is (SIGINT ignored, inherited at
+    exec) still stops on SIGINT: it says so, ends every job (the reaper names any process left)
+    and exits 130."""
+    run_dir = tmp_path / "run"
+    before = signal.signal(signal.SIGINT, signal.SIG_IGN)
+    try:
+        process = _run(
+            [
+                str(BIN / "fedhpg-cluster"), "cluster=local", f"server.out_dir={run_dir}",
+                *TINY, "rounds=1000000", "eval.every=1000000",
+            ],
+            tmp_path,
+        )  # fmt: skip
+    finally:
+        signal.signal(signal.SIGINT, before)
+    try:
+        assert wait_until(lambda: _rounds(run_dir) > 0, TIMEOUT_S), "no round completed"
+        assert wait_until(lambda: bool(child_pids(process.pid)), 30)
+        os.kill(child_pids(process.pid)[0], signal.SIGINT)  # the reaper's child: fedhpg-cluster
+    except BaseException:
+        _end_group(process)
+        raise
+    status, _, err = _finish(process)
+    assert status == 130, err[-3000:]
+    assert "interrupted: cancelling the federation's jobs" in err
+    assert "stopped jobs " in err
 
 
 @pytest.mark.parametrize(
