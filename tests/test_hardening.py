@@ -129,6 +129,7 @@ def _server(tmp_path: Path, *args: str) -> subprocess.CompletedProcess:
     )  # fmt: skip
 
 
+@pytest.mark.slow
 def test_operator_mistakes_end_in_one_line_and_touch_nothing(tmp_path: Path) -> None:
     out_dir = _finished_run(tmp_path)
     before = _digests(out_dir)
@@ -259,6 +260,7 @@ def test_counters_survive_a_resume(tmp_path: Path) -> None:
     assert json.loads((out_dir / "summary.json").read_text())["rejected_messages"] >= before
 
 
+@pytest.mark.slow
 def test_an_agent_pointed_at_no_fedhpg_server_says_so_quickly(tmp_path: Path) -> None:
     """A port where something accepts TCP but never speaks ZMTP: one line, long before
     agent.connect_timeout_s (60 s)."""

@@ -86,7 +86,14 @@ ALGORITHM_RUNS = {
 }
 
 
-@pytest.mark.parametrize("algorithm", list(ALGORITHM_RUNS))
+@pytest.mark.parametrize(
+    "algorithm",
+    [
+        "fedhpg",
+        "fedhpgvr",
+        pytest.param("fedpgbr", marks=pytest.mark.slow),  # the longest (~14 s): make test-long
+    ],
+)
 def test_theta_does_not_depend_on_the_placement_of_the_agents(
     tmp_path: Path, algorithm: str
 ) -> None:

@@ -128,6 +128,7 @@ def _rounds(metrics: Path) -> list[int]:
     return [json.loads(line)["round"] for line in metrics.read_text().splitlines()]
 
 
+@pytest.mark.slow
 def test_cut_link_fails_the_run_naming_the_agent(hosts: dict[str, str], tmp_path: Path) -> None:
     with processes() as started:
         server, _, metrics = _federation(hosts, tmp_path, 1000, started)
