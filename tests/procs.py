@@ -31,6 +31,19 @@ def child_pids(pid: int) -> list[int]:
         return []
 
 
+@contextmanager
+def sigint_ignored(ignored: bool = True) -> Iterator[None]:
+    """Within the block, SIGINT is ignored (when ``ignored``), so a process started there
+    inherits it ignored at exec, as a shell's background job does; put back after."""
+    before = signal.getsignal(signal.SIGINT)
+    if ignored:
+        signal.signal(signal.SIGINT, signal.SIG_IGN)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGINT, before)
+
+
 def alive(pid: int) -> bool:
     try:
         with open(f"/proc/{pid}/stat") as handle:

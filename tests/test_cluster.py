@@ -22,7 +22,7 @@ from pathlib import Path
 
 import pytest
 import torch
-from procs import BIN, child_pids, wait_until
+from procs import BIN, child_pids, sigint_ignored, wait_until
 
 from fedhpg.common.config import ConfigError
 from fedhpg.common.runtime.cli import compose
@@ -239,8 +239,7 @@ def test_ctrl_c_stops_the_jobs_of_a_driver_started_with_sigint_ignored(tmp_path:
     exec) still stops on SIGINT: it says so, ends every job (the reaper names any process left)
     and exits 130."""
     run_dir = tmp_path / "run"
-    before = signal.signal(signal.SIGINT, signal.SIG_IGN)
-    try:
+    with sigint_ignored():
         process = _run(
             [
                 str(BIN / "fedhpg-cluster"), "cluster=local", f"server.out_dir={run_dir}",
@@ -248,8 +247,6 @@ def test_ctrl_c_stops_the_jobs_of_a_driver_started_with_sigint_ignored(tmp_path:
             ],
             tmp_path,
         )  # fmt: skip
-    finally:
-        signal.signal(signal.SIGINT, before)
     try:
         assert wait_until(lambda: _rounds(run_dir) > 0, TIMEOUT_S), "no round completed"
         assert wait_until(lambda: bool(child_pids(process.pid)), 30)

@@ -34,7 +34,7 @@ from pathlib import Path
 
 import pytest
 import torch
-from procs import BIN, child_pids, wait_until
+from procs import BIN, child_pids, sigint_ignored, wait_until
 
 from fedhpg.server import api
 from fedhpg.server.checkpoint import latest_valid_checkpoint
@@ -370,11 +370,8 @@ def test_killed_agent_jobs_are_restarted_and_the_run_ends_with_the_same_theta(
 def test_ctrl_c_leaves_no_job_and_no_process(cluster: Cluster, tmp_path: Path) -> None:
     """fedhpg-cluster starts with SIGINT ignored, as a shell's background job does (and as a
     test runner started in the background passes on), and must still stop on it."""
-    before = signal.signal(signal.SIGINT, signal.SIG_IGN)  # inherited by the driver at exec
-    try:
+    with sigint_ignored():  # inherited by the driver at exec
         placed = _place(cluster, tmp_path, "rounds=1000000", "eval.every=1000000")
-    finally:
-        signal.signal(signal.SIGINT, before)
     try:
         assert wait_until(lambda: placed.rounds() >= 1, TIMEOUT_S), "no round completed"
         assert cluster.busy(), "no job running"

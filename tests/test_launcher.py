@@ -10,7 +10,7 @@ from pathlib import Path
 
 import pytest
 import torch
-from procs import alive, child_pids, processes, start, wait_until
+from procs import alive, child_pids, processes, sigint_ignored, start, wait_until
 
 from fedhpg.common.runtime.cli import compose
 from fedhpg.server.assembly import run_in_process
@@ -70,14 +70,9 @@ def test_a_stopped_run_leaves_no_process_and_says_how_to_continue(
 ) -> None:
     """'ignored': the launcher starts with SIGINT ignored, as a shell's background job does
     (and as a test process may pass on), and must still stop on it."""
-    before = signal.getsignal(signal.SIGINT)
-    if inherited == "ignored":
-        signal.signal(signal.SIGINT, signal.SIG_IGN)  # inherited by the launcher at exec
     with processes() as started:
-        try:
+        with sigint_ignored(inherited == "ignored"):  # inherited by the launcher at exec
             launcher, children = _running_federation(started, tmp_path)
-        finally:
-            signal.signal(signal.SIGINT, before)
         saved = tmp_path / "run" / "checkpoints"
         # a valid checkpoint, not the temporary file one is written to first
         assert wait_until(lambda: saved.is_dir() and latest_valid_checkpoint(saved) is not None, 60)
