@@ -65,20 +65,62 @@ def _leave_one_out_mean(values: torch.Tensor, groups: torch.Tensor | None) -> to
 
 
 def _less_step_baseline(
-    layout: Staircase, values: torch.Tensor, groups: torch.Tensor
+    layout: Staircase,
+    values: torch.Tensor,
+    groups: torch.Tensor,
+    factors: torch.Tensor | None,
+    weighted: bool = False,
 ) -> torch.Tensor:
-    """values − C per cell [S], C[t, n] the mean of ``values`` at step t over the other
-    columns of n's group, every column of the group counted (a column past its end holds 0):
-    v − (S_t − v)/o = v (1 + 1/o) − S_t/o, with S_t the group's sum at step t and o its other
-    columns (a group of one column keeps v exactly: 2v − v)."""
+    """x = values − C per cell [S], ready for :meth:`Staircase.tail_sums` (``factors`` [N] its
+    discounts, or None), with C[t, n] the mean of ``values`` at step t over the other columns
+    of n's group, every column of the group counted (a column past its end holds 0):
+    x = v − (S_t − v)/o = v (1 + 1/o) − S_t/o, S_t the group's sum at step t, o its other
+    columns (a group of one column keeps v exactly: 2v − v).
+
+    Past a column's end, up to its group's longest, x = −S_t/o is the same for every column
+    of the group. Where ``layout`` stops a column before that (its last step, not its group's
+    longest), that dead tail's sum D is computed once per group, by the same recurrence, and
+    carried into the column's last cell: x + f·D there is what the tail sum over the dead
+    cells would have added, bit for bit."""
     size = int(groups.max()) + 1
-    group = layout.per_cell(groups)
-    key = layout.time * size + group
-    sums = ordered_sums(key, values, layout.steps * size)
     others = (torch.bincount(groups, minlength=size) - 1).clamp_min(1).to(values.dtype)
-    shares = (sums.view(layout.steps, size) / others).reshape(-1)
-    out = values * (1.0 + 1.0 / others).index_select(0, group)
-    return out.sub_(shares.index_select(0, key))
+    extents = layout.extents
+    longest = extents.new_zeros(size).scatter_reduce(0, groups, extents, "amax")
+    table = Staircase(longest, scans=layout.scans)  # (t, g) for each group's steps
+    shares = layout.step_group_sums(values, groups, table) / table.per_cell(others)
+    out = values * layout.per_cell((1.0 + 1.0 / others).index_select(0, groups))
+    out.sub_(layout.per_step_group(shares, groups, table))
+    short = torch.nonzero(extents < longest.index_select(0, groups)).squeeze(1)
+    if short.numel():
+        if weighted:  # weights make each column's dead tail its own
+            raise ValueError("importance weights need every column to its group's longest")
+        _carry_dead_tails(layout, table, out, shares, groups, short, factors)
+    return out
+
+
+def _carry_dead_tails(
+    layout: Staircase,
+    table: Staircase,
+    out: torch.Tensor,
+    shares: torch.Tensor,
+    groups: torch.Tensor,
+    short: torch.Tensor,
+    factors: torch.Tensor | None,
+) -> None:
+    """Add to the last cell of each column of ``short`` (columns that stop before their
+    group's longest) f·D, D its group's Σ_{h ≥ end} f^{h−end} (−S_h/o): the tail sum of the
+    cells past its end, by the same recurrence (``shares``: S/o on the cells of ``table``)."""
+    size = table.columns
+    group_factors = None
+    if factors is not None:  # a group's columns share its agent's γ
+        group_factors = factors.new_zeros(size).index_copy_(0, groups, factors)
+    tails = table.tail_sums(shares.neg(), group_factors)
+    ends, owners = layout.extents.index_select(0, short), groups.index_select(0, short)
+    carried = tails.index_select(0, table.cell(ends, owners))
+    if factors is not None:
+        carried = factors.index_select(0, short) * carried
+    last = layout.cell(ends - 1, short)
+    out.index_copy_(0, last, out.index_select(0, last) + carried)
 
 
 def _discounts(gamma: Gamma, layout: Staircase, like: torch.Tensor) -> torch.Tensor:
@@ -97,7 +139,7 @@ def coefficients(
     estimator: EstimatorName,
     layout: Staircase,
     rewards: torch.Tensor,
-    alive: torch.Tensor,
+    alive: torch.Tensor | None,
     *,
     gamma: Gamma,
     baseline: BaselineName = "mean",
@@ -106,9 +148,14 @@ def coefficients(
     normalize: NormalizeName = "none",
     groups: torch.Tensor | None = None,
 ) -> torch.Tensor:
-    """coef[t, n] of every cell of ``layout`` (``rewards``, ``alive``: [S]; ``gamma``: one
-    or per column [N]; ``groups`` [N]: each column's agent, whose other trajectories make
-    its baselines; ``weights``: importance weights, [N] per trajectory or [S] per cell).
+    """coef[t, n] of every cell of ``layout`` (``rewards``, ``alive``: [S], ``alive`` None
+    where every cell is a step that happened; ``gamma``: one or per column [N]; ``groups``
+    [N]: each column's agent, whose other trajectories make its baselines; ``weights``:
+    importance weights, [N] per trajectory or [S] per cell).
+
+    ``layout`` may extend each column to its group's longest (:meth:`Staircase.of_groups`)
+    or stop it at its own last step: the coefficients of the steps that happened are the
+    same bits (with ``weights`` and a mean baseline, only the former).
 
     REINFORCE, eq. (5): coef[t, n] = w_n · (Σ_h γ^h r_{h,n} − C_n) on alive steps, C_n the
     mean return of the other trajectories of n's agent.
@@ -129,7 +176,7 @@ def coefficients(
         if groups is not None
         else torch.zeros(layout.columns, dtype=torch.int64, device=rewards.device)
     )
-    mask = alive.to(rewards.dtype)
+    mask = None if alive is None else alive.to(rewards.dtype)
     if estimator == "reinforce":
         if reward_to_go != "from_start":
             raise ValueError("reward_to_go='from_step' needs estimator 'gpomdp'")
@@ -139,32 +186,35 @@ def coefficients(
             if weights.shape[0] != layout.columns:
                 raise ValueError("REINFORCE takes one importance weight per trajectory")
             centred = centred * weights
-        coef = mask * layout.per_cell(centred)
+        coef = layout.per_cell(centred)
+        if mask is not None:
+            coef = mask * coef
     else:
         discounted = reward_to_go == "from_start"
         values = _discounts(gamma, layout, rewards).mul_(rewards) if discounted else rewards
-        if baseline == "mean":
-            values = _less_step_baseline(layout, values, group)
-        if weights is not None:
-            values = values * _cell_weights(layout, weights)
-        if discounted:
-            coef = layout.tail_sums(values).mul_(mask)
-        else:
+        factors = None
+        if not discounted:
             factors = (
-                gamma
+                gamma.to(rewards.dtype)
                 if isinstance(gamma, torch.Tensor)
                 else torch.full(
                     (layout.columns,), gamma, dtype=rewards.dtype, device=rewards.device
                 )
             )
-            coef = layout.tail_sums(values, factors).mul_(mask)
+        if baseline == "mean":
+            values = _less_step_baseline(layout, values, group, factors, weights is not None)
+        if weights is not None:
+            values = values * _cell_weights(layout, weights)
+        coef = layout.tail_sums(values, factors)
+        if mask is not None:
+            coef.mul_(mask)
     return _normalized(layout, coef, mask, normalize, group)
 
 
 def _normalized(
     layout: Staircase,
     coef: torch.Tensor,
-    mask: torch.Tensor,
+    mask: torch.Tensor | None,
     mode: NormalizeName,
     groups: torch.Tensor,
 ) -> torch.Tensor:
@@ -173,6 +223,8 @@ def _normalized(
     rescale, so E[g] is neither ∇J nor a fixed multiple of it; README, Estimator options)."""
     if mode == "none":
         return coef
+    if mask is None:
+        mask = torch.ones_like(coef)
     key = layout.column if mode == "episode" else layout.per_cell(groups)
     size = layout.columns if mode == "episode" else int(groups.max()) + 1
 

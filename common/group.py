@@ -100,6 +100,9 @@ class EngineGroup:
         self.variants = variants
         self.engine = Engine(run, variants, compiled=compiled)
         self.algorithm, self.params = resolve_algorithm(run)
+        self._held: tuple[tuple[int, ...], tuple[list[int], list[int]]] | None = None
+        """The last round's agents, what each holds at once and its horizon (while they run
+        their own budgets, the next round's are the same)."""
 
     @property
     def indices(self) -> Sequence[int]:
@@ -118,13 +121,19 @@ class EngineGroup:
 
         engine = self.engine
         if episodes is None:
-            copies = [
-                self.algorithm.held_trajectories(
-                    planned_budget(engine.profile(k).budget, (budgets or {}).get(k))
-                )
-                for k in agents
-            ]
-            horizons = [engine.horizon(k) for k in agents]
+            key = tuple(agents)
+            own = not any((budgets or {}).get(k) for k in agents)
+            if own and self._held is not None and self._held[0] == key:
+                copies, horizons = self._held[1]
+            else:
+                copies = [
+                    self.algorithm.held_trajectories(
+                        planned_budget(engine.profile(k).budget, (budgets or {}).get(k))
+                    )
+                    for k in agents
+                ]
+                horizons = [engine.horizon(k) for k in agents]
+                self._held = (key, (copies, horizons)) if own else None
         else:
             copies = [episodes] * len(agents)
             horizons = [self.run.eval.horizon or engine.horizon(k) for k in agents]

@@ -40,6 +40,18 @@ class Scans(Protocol):
 
     def step_powers(self, layout: Staircase, bases: torch.Tensor) -> torch.Tensor | None: ...
 
+    def cell(
+        self, layout: Staircase, time: torch.Tensor, column: torch.Tensor
+    ) -> torch.Tensor | None: ...
+
+    def step_group_sums(
+        self, layout: Staircase, values: torch.Tensor, groups: torch.Tensor, table: Staircase
+    ) -> torch.Tensor | None: ...
+
+    def per_step_group(
+        self, layout: Staircase, values: torch.Tensor, groups: torch.Tensor, table: Staircase
+    ) -> torch.Tensor | None: ...
+
 
 @dataclass(frozen=True)
 class Staircase:
@@ -51,13 +63,22 @@ class Staircase:
     """Every column has the same extent, in column order: the cells are a padded [T, N]
     tensor's memory, row-major."""
     scans: Scans | None = field(default=None, compare=False)
-    """A backend's implementation of :meth:`tail_sums`, :meth:`step_powers` and the cells'
-    (:attr:`time`, :attr:`column`) indices."""
+    """A backend's implementation of the scans, sums and indices below (None: torch's)."""
+    grouped: bool = False
+    """Every column has the extent of its group's longest (:meth:`of_groups`): at each step a
+    group's cells are adjacent, in column order."""
 
     @classmethod
-    def padded(cls, steps: int, columns: int, device: torch.device | str = "cpu") -> Staircase:
+    def padded(
+        cls,
+        steps: int,
+        columns: int,
+        device: torch.device | str = "cpu",
+        scans: Scans | None = None,
+    ) -> Staircase:
         """The layout of a padded [steps, columns] batch."""
-        return cls(torch.full((columns,), steps, dtype=torch.int64, device=device), dense=True)
+        full = torch.full((columns,), steps, dtype=torch.int64, device=device)
+        return cls(full, dense=True, scans=scans)
 
     @classmethod
     def of_groups(
@@ -69,7 +90,7 @@ class Staircase:
             return cls(lengths.clone(), scans=scans)
         size = int(groups.max()) + 1
         longest = lengths.new_zeros(size).scatter_reduce(0, groups, lengths, "amax")
-        return cls(longest[groups], scans=scans)
+        return cls(longest[groups], scans=scans, grouped=True)
 
     @property
     def columns(self) -> int:
@@ -168,6 +189,10 @@ class Staircase:
         """The cell of step ``time`` of column ``column`` (inside its extent)."""
         if self.dense:
             return time * self.columns + column
+        if self.scans is not None:
+            done = self.scans.cell(self, time, column)
+            if done is not None:
+                return done
         return self._step_start.index_select(0, time) + self.rank.index_select(0, column)
 
     def gather(self, padded: torch.Tensor) -> torch.Tensor:
@@ -225,6 +250,36 @@ class Staircase:
                 torch.mul(earlier[:width], by_position[:width], out=now)
             earlier = now
         return out
+
+    def step_group_sums(
+        self, values: torch.Tensor, groups: torch.Tensor, table: Staircase
+    ) -> torch.Tensor:
+        """Σ values[t, n] over the columns n of each group g (``groups`` [N]) that have a cell
+        at step t, added in column order, at cell (t, g) of ``table`` (a layout with a column
+        per group, each as long as its longest column here). A column past its extent adds
+        nothing, so a layout that stops each column early gives the same bits as one that
+        pads it with zeros."""
+        if self.scans is not None:
+            done = self.scans.step_group_sums(self, values, groups, table)
+            if done is not None:
+                return done
+        time = self.time
+        key = table.cell(time, self.per_cell(groups))
+        if not (self.dense or self.grouped):  # visit the cells column by column
+            by_column = torch.argsort(self.column * max(self.steps, 1) + time)
+            key, values = key.index_select(0, by_column), values.index_select(0, by_column)
+        return ordered_sums(key, values, table.size)
+
+    def per_step_group(
+        self, values: torch.Tensor, groups: torch.Tensor, table: Staircase
+    ) -> torch.Tensor:
+        """Each cell's entry (its step, its column's group) of ``values`` on the cells of
+        ``table`` (as :meth:`step_group_sums` gives them), [S]."""
+        if self.scans is not None:
+            done = self.scans.per_step_group(self, values, groups, table)
+            if done is not None:
+                return done
+        return values.index_select(0, table.cell(self.time, self.per_cell(groups)))
 
     def column_totals(self, values: torch.Tensor) -> torch.Tensor:
         """Σ_t values[t, n] of each column, [N] (a column's cells added from its last)."""

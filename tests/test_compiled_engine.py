@@ -282,6 +282,7 @@ def test_the_compiled_scans_give_the_staircases_own_bits(shape: str) -> None:
         plain = Staircase.of_groups(lengths, groups)
         compiled = Staircase.of_groups(lengths, groups, SCANS)
     else:
+        groups = torch.repeat_interleave(torch.arange(3), torch.tensor([2, 1, 6]))
         plain = Staircase.padded(37, 9)
         compiled = Staircase(plain.extents, dense=True, scans=SCANS)
     values = torch.randn(plain.size, generator=generator, dtype=torch.float64)
@@ -296,6 +297,19 @@ def test_the_compiled_scans_give_the_staircases_own_bits(shape: str) -> None:
         assert torch.equal(got, expected) and torch.equal(got.signbit(), expected.signbit())
     assert torch.equal(compiled.time, plain.time) and torch.equal(compiled.column, plain.column)
     assert compiled.tail_sums(values.float()).dtype == torch.float32  # the loop takes float32
+    # the indices of cells, each group's sums at each step and their spread back to the cells
+    time, column = plain.time.flip(0), plain.column.flip(0)
+    assert torch.equal(compiled.cell(time, column), plain.cell(time, column))
+    size = int(groups.max()) + 1
+    longest = plain.extents.new_zeros(size).scatter_reduce(0, groups, plain.extents, "amax")
+    table = Staircase(longest)
+    sums = plain.step_group_sums(values, groups, table)
+    got = compiled.step_group_sums(values, groups, Staircase(longest, scans=SCANS))
+    assert torch.equal(got, sums) and torch.equal(got.signbit(), sums.signbit())
+    assert torch.equal(
+        compiled.per_step_group(sums, groups, Staircase(longest, scans=SCANS)),
+        plain.per_step_group(sums, groups, table),
+    )
 
 
 def test_episode_statistics_match_the_torch_engine() -> None:

@@ -57,6 +57,48 @@ def _cells(
             column[start + p] = order[p]
 
 
+@njit(cache=True, error_model="numpy")
+def _cell(
+    starts: np.ndarray, rank: np.ndarray, time: np.ndarray, column: np.ndarray, out: np.ndarray
+) -> None:
+    for i in range(time.shape[0]):
+        out[i] = starts[time[i]] + rank[column[i]]
+
+
+@njit(cache=True, error_model="numpy")
+def _step_group_sums(
+    extents: np.ndarray,
+    starts: np.ndarray,
+    rank: np.ndarray,
+    groups: np.ndarray,
+    table_starts: np.ndarray,
+    table_rank: np.ndarray,
+    values: np.ndarray,
+    out: np.ndarray,
+) -> None:
+    for n in range(extents.shape[0]):  # column by column: each sum in column order
+        place, row = rank[n], table_rank[groups[n]]
+        for t in range(extents[n]):
+            out[table_starts[t] + row] += values[starts[t] + place]
+
+
+@njit(cache=True, error_model="numpy")
+def _per_step_group(
+    widths: np.ndarray,
+    starts: np.ndarray,
+    order: np.ndarray,
+    groups: np.ndarray,
+    table_starts: np.ndarray,
+    table_rank: np.ndarray,
+    values: np.ndarray,
+    out: np.ndarray,
+) -> None:
+    for t in range(widths.shape[0]):
+        start, row_start = starts[t], table_starts[t]
+        for p in range(widths[t]):
+            out[start + p] = values[row_start + table_rank[groups[order[p]]]]
+
+
 class CompiledScans:
     """:class:`~fedhpg.common.staircase.Scans` in numba, for float64 cells on the CPU (None
     elsewhere: the staircase's own torch code runs)."""
@@ -91,6 +133,38 @@ class CompiledScans:
         out = bases.new_empty(layout.size)
         _step_powers(bases.contiguous().numpy(), layout.width_array, layout.start_array,
                      out.numpy())  # fmt: skip
+        return out
+
+    def cell(
+        self, layout: Staircase, time: torch.Tensor, column: torch.Tensor
+    ) -> torch.Tensor | None:
+        if time.device.type != "cpu":
+            return None
+        out = torch.empty(time.shape[0], dtype=torch.int64)
+        _cell(layout.start_array, layout.rank.numpy(), time.contiguous().numpy(),
+              column.contiguous().numpy(), out.numpy())  # fmt: skip
+        return out
+
+    def step_group_sums(
+        self, layout: Staircase, values: torch.Tensor, groups: torch.Tensor, table: Staircase
+    ) -> torch.Tensor | None:
+        if not self._fits(values):
+            return None
+        out = torch.zeros(table.size, dtype=values.dtype)
+        _step_group_sums(layout.extents.numpy(), layout.start_array, layout.rank.numpy(),
+                         groups.contiguous().numpy(), table.start_array, table.rank.numpy(),
+                         values.contiguous().numpy(), out.numpy())  # fmt: skip
+        return out
+
+    def per_step_group(
+        self, layout: Staircase, values: torch.Tensor, groups: torch.Tensor, table: Staircase
+    ) -> torch.Tensor | None:
+        if not self._fits(values):
+            return None
+        out = torch.empty(layout.size, dtype=values.dtype)
+        _per_step_group(layout.width_array, layout.start_array, layout.order.numpy(),
+                        groups.contiguous().numpy(), table.start_array, table.rank.numpy(),
+                        values.contiguous().numpy(), out.numpy())  # fmt: skip
         return out
 
 

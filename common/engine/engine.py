@@ -255,6 +255,9 @@ class Engine:
         """Each agent's row of :attr:`_family` (None: not built yet)."""
         self._per_row: dict[str, torch.Tensor] = {}
         """The round's rows' constants on the device (:meth:`begin`)."""
+        self._last_rows: (
+            tuple[tuple[int, ...], tuple[dict[str, torch.Tensor], dict[str, torch.Tensor]]] | None
+        ) = None
         self.rows: Rows | None = None
         self.tally: Tally | None = None
         self._hook: Any = None
@@ -315,19 +318,14 @@ class Engine:
         hook: Any = None,
     ) -> Rows:
         """The rows of ``agents`` for a round from θ̃ (their budgets planned or their own)."""
-        chosen = [planned_budget(self.profile(k).budget, (budgets or {}).get(k)) for k in agents]
-        names = list(vars(chosen[0])) if chosen else []
+        budget_rows, self._per_row = self._rows_of(tuple(agents), budgets)
         rows = Rows(
             agents=list(agents),
             theta=theta.detach().to(self.device, torch.float32).unsqueeze(0).repeat(len(agents), 1),
-            budgets={
-                name: torch.tensor([int(getattr(b, name)) for b in chosen], dtype=torch.int64)
-                for name in names
-            },
+            budgets={name: values.clone() for name, values in budget_rows.items()},
             round_index=round_index,
         )
         self.rows, self.tally, self._hook = rows, Tally.zeros(rows.size), hook
-        self._per_row = self._row_constants(rows.agents)
         self._clock = time.thread_time()
         self._sampling_s = 0.0
         return rows
@@ -340,6 +338,26 @@ class Engine:
         (``common/engine/memory.py``)."""
         budget = memory_budget(self.device, self.run.algo.memory_gib)
         return plan_round(copies, horizons, self.step_bytes, budget)
+
+    def _rows_of(
+        self, agents: tuple[int, ...], budgets: Mapping[int, Mapping[str, int]] | None
+    ) -> tuple[dict[str, torch.Tensor], dict[str, torch.Tensor]]:
+        """The budgets of ``agents`` ([A] per field) and their :meth:`_row_constants`; kept
+        for the next round while the agents are the same and run their own budgets."""
+        own = not any((budgets or {}).get(k) for k in agents)
+        if own and self._last_rows is not None and self._last_rows[0] == agents:
+            return self._last_rows[1]
+        chosen = [planned_budget(self.profile(k).budget, (budgets or {}).get(k)) for k in agents]
+        names = list(vars(chosen[0])) if chosen else []
+        made = (
+            {
+                name: torch.tensor([int(getattr(b, name)) for b in chosen], dtype=torch.int64)
+                for name in names
+            },
+            self._row_constants(agents),
+        )
+        self._last_rows = (agents, made) if own else None
+        return made
 
     def _row_constants(self, agents: Sequence[int]) -> dict[str, torch.Tensor]:
         """What sampling and the estimator read of each row, as [A] tensors on the device (sent
@@ -455,11 +473,17 @@ class Engine:
         [S] float64 (per-row baselines and discounts; ``weights`` [N] or [T, N] importance
         weights)."""
         algo = self.run.algo
-        layout = batch.layout
-        rewards, alive = batch.cells
+        # weights past a trajectory's end, and a batch's standardisation in its cells' order,
+        # need every cell the terms reach
+        layout = (
+            batch.grouped_layout
+            if weights is not None or algo.normalize == "batch"
+            else batch.layout
+        )
+        rewards, alive = batch.cells if layout is batch.layout else batch.cells_on(layout)
         if weights is not None and weights.dim() == 2:
             weights = layout.gather(weights)
-        return estimators.coefficients(
+        coefficients = estimators.coefficients(
             algo.estimator,  # type: ignore[arg-type]
             layout,
             rewards,
@@ -471,6 +495,9 @@ class Engine:
             normalize=algo.normalize,  # type: ignore[arg-type]
             groups=batch.owner,
         )
+        if layout is batch.layout:
+            return coefficients
+        return coefficients.index_select(0, layout.cell(batch.layout.time, batch.layout.column))
 
     # -- the policy's maths per row ----------------------------------------------------------
 

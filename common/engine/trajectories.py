@@ -125,26 +125,48 @@ class Trajectories:
     # -- the estimator's cells ----------------------------------------------------------------
 
     @cached_property
-    def layout(self) -> Staircase:
-        """Each trajectory's cells up to its row's longest trajectory."""
+    def grouped_layout(self) -> Staircase:
+        """Each trajectory's cells up to its row's longest trajectory: every cell an
+        estimator's terms reach."""
         return Staircase.of_groups(self.lengths(), self.owner, self.scans)
 
     @cached_property
+    def layout(self) -> Staircase:
+        """The cells the batch's coefficients are on: with a backend's scans, each trajectory's
+        own steps (the estimator carries what lies past them); else :attr:`grouped_layout`."""
+        if self.scans is None:
+            return self.grouped_layout
+        return Staircase(self.lengths(), scans=self.scans)
+
+    @cached_property
     def step_cells(self) -> torch.Tensor:
-        """The cell of each of :attr:`steps`, [R]."""
+        """The cell of each of :attr:`steps` in :attr:`layout`, [R]."""
         assert self.steps is not None
         return self.layout.cell(self.steps.time, self.steps.column)
 
     @cached_property
-    def cells(self) -> tuple[torch.Tensor, torch.Tensor]:
-        """(rewards, alive) of every cell of :attr:`layout`, [S] each."""
-        layout = self.layout
+    def cells(self) -> tuple[torch.Tensor, torch.Tensor | None]:
+        """(rewards, alive) of every cell of :attr:`layout`, [S] each (alive None: every cell
+        is a step)."""
+        return self.cells_on(self.layout)
+
+    def cells_on(self, layout: Staircase) -> tuple[torch.Tensor, torch.Tensor | None]:
+        """(rewards, alive) of every cell of ``layout`` (:attr:`layout` or
+        :attr:`grouped_layout`)."""
         if self.steps is None:
             return layout.gather(self.rewards), layout.gather(self.alive)
-        at = self.step_cells
+        every_step = layout is self.layout and not layout.grouped
+        at = (
+            self.step_cells
+            if layout is self.layout
+            else layout.cell(self.steps.time, self.steps.column)
+        )
         rewards = torch.zeros(layout.size, dtype=torch.float64, device=at.device)
+        rewards.index_copy_(0, at, self.steps.rewards)
+        if every_step:
+            return rewards, None
         alive = torch.zeros(layout.size, dtype=torch.bool, device=at.device)
-        return rewards.index_copy_(0, at, self.steps.rewards), alive.index_fill_(0, at, True)
+        return rewards, alive.index_fill_(0, at, True)
 
     # -- per row and per trajectory -----------------------------------------------------------
 
@@ -159,7 +181,8 @@ class Trajectories:
                            lengths=self._lengths, rewards=self._rewards, alive=self._alive,
                            obs=self._obs, actions=self._actions, steps=steps,
                            scans=self.scans)  # fmt: skip
-        for kept in ("layout", "step_cells", "cells"):  # renaming rows moves no cell
+        # renaming rows moves no cell
+        for kept in ("grouped_layout", "layout", "step_cells", "cells"):
             if kept in self.__dict__:
                 out.__dict__[kept] = self.__dict__[kept]
         return out
