@@ -74,14 +74,17 @@ class AdamAscent:
             else active
         )
         self.row_steps = self.row_steps + stepping.long()
+        every = bool(stepping.all())  # then no row keeps its moments or sits the step out
         keep = stepping.unsqueeze(-1)
-        self.first = torch.where(keep, beta1 * self.first + (1 - beta1) * gradient, self.first)
+        first = beta1 * self.first + (1 - beta1) * gradient
+        self.first = first if every else torch.where(keep, first, self.first)
         second = beta2 * self.second + (1 - beta2) * gradient * gradient
-        self.second = torch.where(keep, second, self.second)
+        self.second = second if every else torch.where(keep, second, self.second)
         steps = self.row_steps.clamp_min(1).double().unsqueeze(-1)
         first_hat = self.first / (1 - beta1**steps).to(gradient.dtype)
         second_hat = self.second / (1 - beta2**steps).to(gradient.dtype)
-        return _masked(self.step_size * first_hat / (second_hat.sqrt() + self.eps), stepping)
+        step = self.step_size * first_hat / (second_hat.sqrt() + self.eps)
+        return step if every else _masked(step, stepping)
 
     def state(self) -> SavedState:
         """The step count and both moments: what :meth:`restore` takes back."""

@@ -44,6 +44,14 @@ class Scans(Protocol):
         self, layout: Staircase, time: torch.Tensor, column: torch.Tensor
     ) -> torch.Tensor | None: ...
 
+    def arrangement(
+        self, layout: Staircase
+    ) -> tuple[torch.Tensor, torch.Tensor, np.ndarray, np.ndarray] | None:
+        """(:attr:`~Staircase.order`, :attr:`~Staircase.rank`, widths, starts)."""
+        ...
+
+    def per_cell(self, layout: Staircase, values: torch.Tensor) -> torch.Tensor | None: ...
+
     def step_group_sums(
         self, layout: Staircase, values: torch.Tensor, groups: torch.Tensor, table: Staircase
     ) -> torch.Tensor | None: ...
@@ -97,10 +105,18 @@ class Staircase:
         return int(self.extents.shape[0])
 
     @cached_property
+    def _arranged(self) -> tuple[torch.Tensor, torch.Tensor, np.ndarray, np.ndarray] | None:
+        if self.scans is None or self.dense:
+            return None
+        return self.scans.arrangement(self)
+
+    @cached_property
     def order(self) -> torch.Tensor:
         """[N]: the column at each position (longest first, ties in column order)."""
         if self.dense:
             return torch.arange(self.columns, device=self.extents.device)
+        if self._arranged is not None:
+            return self._arranged[0]
         return torch.argsort(self.extents, descending=True, stable=True)
 
     @cached_property
@@ -108,6 +124,8 @@ class Staircase:
         """[N]: each column's position."""
         if self.dense:
             return self.order
+        if self._arranged is not None:
+            return self._arranged[1]
         return torch.empty_like(self.order).scatter_(
             0, self.order, torch.arange(self.columns, device=self.order.device)
         )
@@ -117,6 +135,8 @@ class Staircase:
         """Cells at each step t (the columns whose extent passes t)."""
         if self.columns == 0:
             return []
+        if self._arranged is not None:
+            return self._arranged[2].tolist()
         steps = int(self.extents.max())
         if self.dense:
             return [self.columns] * steps
@@ -135,21 +155,30 @@ class Staircase:
     @cached_property
     def width_array(self) -> np.ndarray:
         """:attr:`widths` as an int64 array (for compiled scans)."""
+        if self._arranged is not None:
+            return self._arranged[2]
         return np.asarray(self.widths, dtype=np.int64)
 
     @cached_property
     def start_array(self) -> np.ndarray:
         """:attr:`starts` as an int64 array."""
+        if self._arranged is not None:
+            return self._arranged[3]
         return np.asarray(self.starts, dtype=np.int64)
 
-    @property
+    @cached_property
     def steps(self) -> int:
         """T: the longest extent."""
+        if self._arranged is not None:
+            return int(self._arranged[2].shape[0])
         return len(self.widths)
 
-    @property
+    @cached_property
     def size(self) -> int:
         """S: the number of cells."""
+        if self._arranged is not None:
+            widths = self._arranged[2]
+            return int(widths.sum())
         return sum(self.widths)
 
     @cached_property
@@ -174,6 +203,10 @@ class Staircase:
         ``widths[t]`` positions: one copy of each prefix)."""
         if self.columns == 0:
             return values[:0]
+        if self.scans is not None and "column" not in self.__dict__:
+            done = self.scans.per_cell(self, values)
+            if done is not None:
+                return done
         return values.index_select(0, self.column)
 
     @cached_property

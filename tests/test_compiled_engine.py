@@ -295,6 +295,11 @@ def test_the_compiled_scans_give_the_staircases_own_bits(shape: str) -> None:
         (plain.column_totals(values), compiled.column_totals(values)),
     ]:
         assert torch.equal(got, expected) and torch.equal(got.signbit(), expected.signbit())
+    per_column = torch.randn(plain.columns, generator=generator, dtype=torch.float64)
+    assert torch.equal(compiled.per_cell(per_column), plain.per_cell(per_column))
+    assert torch.equal(compiled.order, plain.order) and torch.equal(compiled.rank, plain.rank)
+    assert compiled.widths == plain.widths and compiled.starts == plain.starts
+    assert (compiled.steps, compiled.size) == (plain.steps, plain.size)
     assert torch.equal(compiled.time, plain.time) and torch.equal(compiled.column, plain.column)
     assert compiled.tail_sums(values.float()).dtype == torch.float32  # the loop takes float32
     # the indices of cells, each group's sums at each step and their spread back to the cells
@@ -339,8 +344,8 @@ from fedhpg.common.batched import kernels
 
 @njit(cache=True, error_model="numpy")
 def call(theta, sizes, obs, action, coef, out):  # a caller without fastmath, as row_gradients
-    kernels.score_gradient(theta, sizes, obs, action, coef, 0, len(coef), out,
-                           kernels.gradient_workspace(sizes))
+    kernels.score_gradient(theta, sizes, obs, action, coef, np.arange(len(coef)), 0, len(coef),
+                           out, kernels.gradient_workspace(sizes))
 
 
 sizes = np.array([4, 16, 16, 2], dtype=np.int64)

@@ -42,6 +42,7 @@ class CompiledBackend:
         self._row_of: dict[int, int] = {}
         self._tables: list[np.ndarray] = []
         self._table: np.ndarray | None = None
+        self._last: tuple[tuple[int, ...], np.ndarray] | None = None
         self._buffers = _RowBuffers()
 
     def _physics_rows(self, agents: Sequence[int], variants: Sequence[EnvVariant]) -> np.ndarray:
@@ -56,7 +57,11 @@ class CompiledBackend:
                 self._table = None
         if self._table is None:
             self._table = np.stack(self._tables)
-        return self._table[[self._row_of[k] for k in agents]]
+            self._last = None
+        key = tuple(agents)
+        if self._last is None or self._last[0] != key:  # an iteration's rows, kept for the next
+            self._last = (key, self._table[[self._row_of[k] for k in agents]])
+        return self._last[1]
 
     def sample(
         self,
@@ -115,17 +120,23 @@ class CompiledBackend:
         else:
             steps = _packed(batch)
             at = batch.layout.cell(steps.time, steps.column)
-        out = np.zeros((theta.shape[0], theta.shape[1]), dtype=np.float32)
+        every_row = len(steps.rows) == theta.shape[0]  # then the rows are 0 … A − 1 in order
         part = np.zeros((len(steps.rows), theta.shape[1]), dtype=np.float32)
         kernels.row_gradients(
-            np.ascontiguousarray(theta[steps.rows].detach().numpy(), dtype=np.float32),
+            np.ascontiguousarray(
+                (theta if every_row else theta[steps.rows]).detach().numpy(), dtype=np.float32
+            ),
             self.sizes,
             steps.obs.numpy(),
             steps.actions.numpy(),
-            coefficients.index_select(0, at).to(torch.float32).numpy(),
+            coefficients.contiguous().numpy(),
+            at.contiguous().numpy(),
             steps.row_start.numpy(),
             part,
         )
+        if every_row:
+            return torch.from_numpy(part)
+        out = np.zeros((theta.shape[0], theta.shape[1]), dtype=np.float32)
         out[steps.rows.numpy()] = part
         return torch.from_numpy(out)
 

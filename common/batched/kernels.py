@@ -500,12 +500,14 @@ def score_gradient(
     rows_obs: np.ndarray,
     rows_action: np.ndarray,
     rows_coef: np.ndarray,
+    rows_cell: np.ndarray,
     low: int,
     high: int,
     out: np.ndarray,
     workspace: tuple[np.ndarray, ...],
 ) -> None:
-    """out (float32, flat θ layout) = Σ_{r ∈ [low, high)} coef_r · ∇_θ log π(a_r|s_r).
+    """out (float32, flat θ layout) = Σ_{r ∈ [low, high)} coef_r · ∇_θ log π(a_r|s_r), row
+    r's coefficient ``rows_coef[rows_cell[r]]`` rounded to float32.
 
     Blocks of :data:`BLOCK` rows, feature-major (a layer's activations are [unit, row], so
     every loop runs along the block's rows: long and contiguous, where row-major loops along
@@ -529,7 +531,7 @@ def score_gradient(
             for r in range(rows, BLOCK):
                 acts[0, i, r] = 0.0
         for r in range(rows):
-            coef[r] = rows_coef[start + r]
+            coef[r] = np.float32(rows_coef[rows_cell[start + r]])
             action[r] = np.float32(rows_action[start + r])
         for r in range(rows, BLOCK):
             coef[r] = 0.0
@@ -628,12 +630,14 @@ def row_gradients(
     rows_obs: np.ndarray,
     rows_action: np.ndarray,
     rows_coef: np.ndarray,
+    rows_cell: np.ndarray,
     row_start: np.ndarray,
     out: np.ndarray,
 ) -> None:
     """out[a] = Σ_{r ∈ row a's steps} coef_r · ∇_θ log π_θa(a_r|s_r), row a's steps being
-    ``row_start[a]`` … ``row_start[a + 1]`` − 1 (the engine's ``gradients`` primitive)."""
+    ``row_start[a]`` … ``row_start[a + 1]`` − 1 and step r's coefficient
+    ``rows_coef[rows_cell[r]]`` (the engine's ``gradients`` primitive)."""
     workspace = gradient_workspace(sizes)
     for a in range(thetas.shape[0]):
-        score_gradient(thetas[a], sizes, rows_obs, rows_action, rows_coef, row_start[a],
-                       row_start[a + 1], out[a], workspace)  # fmt: skip
+        score_gradient(thetas[a], sizes, rows_obs, rows_action, rows_coef, rows_cell,
+                       row_start[a], row_start[a + 1], out[a], workspace)  # fmt: skip

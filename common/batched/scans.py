@@ -99,6 +99,39 @@ def _per_step_group(
             out[start + p] = values[row_start + table_rank[groups[order[p]]]]
 
 
+@njit(cache=True, error_model="numpy")
+def _arrangement(
+    extents: np.ndarray, order: np.ndarray, rank: np.ndarray, widths: np.ndarray
+) -> None:
+    """A counting sort by extent, longest first, ties in column order."""
+    steps = widths.shape[0]
+    ending = np.zeros(steps + 1, dtype=np.int64)  # columns of each extent
+    for n in range(extents.shape[0]):
+        ending[extents[n]] += 1
+    next_place = np.zeros(steps + 1, dtype=np.int64)
+    placed = 0
+    for extent in range(steps, -1, -1):
+        next_place[extent] = placed
+        placed += ending[extent]
+    for n in range(extents.shape[0]):
+        place = next_place[extents[n]]
+        next_place[extents[n]] = place + 1
+        order[place], rank[n] = n, place
+    alive = extents.shape[0]
+    for t in range(steps):
+        alive -= ending[t]
+        widths[t] = alive
+
+
+@njit(cache=True, error_model="numpy")
+def _per_cell(widths: np.ndarray, starts: np.ndarray, order: np.ndarray, values: np.ndarray,
+              out: np.ndarray) -> None:  # fmt: skip
+    for t in range(widths.shape[0]):
+        start = starts[t]
+        for p in range(widths[t]):
+            out[start + p] = values[order[p]]
+
+
 class CompiledScans:
     """:class:`~fedhpg.common.staircase.Scans` in numba, for float64 cells on the CPU (None
     elsewhere: the staircase's own torch code runs)."""
@@ -133,6 +166,28 @@ class CompiledScans:
         out = bases.new_empty(layout.size)
         _step_powers(bases.contiguous().numpy(), layout.width_array, layout.start_array,
                      out.numpy())  # fmt: skip
+        return out
+
+    def arrangement(
+        self, layout: Staircase
+    ) -> tuple[torch.Tensor, torch.Tensor, np.ndarray, np.ndarray] | None:
+        extents = layout.extents
+        if extents.device.type != "cpu" or extents.numel() == 0:
+            return None
+        order = torch.empty_like(extents)
+        rank = torch.empty_like(extents)
+        widths = np.empty(int(extents.max()), dtype=np.int64)
+        _arrangement(extents.contiguous().numpy(), order.numpy(), rank.numpy(), widths)
+        starts = np.zeros_like(widths)
+        np.cumsum(widths[:-1], out=starts[1:])
+        return order, rank, widths, starts
+
+    def per_cell(self, layout: Staircase, values: torch.Tensor) -> torch.Tensor | None:
+        if not self._fits(values):
+            return None
+        out = torch.empty(layout.size, dtype=values.dtype)
+        _per_cell(layout.width_array, layout.start_array, layout.order.numpy(),
+                  values.contiguous().numpy(), out.numpy())  # fmt: skip
         return out
 
     def cell(
