@@ -14,7 +14,7 @@ from fedhpg.common.types import SavedState
 
 
 def _masked(direction: torch.Tensor, active: torch.Tensor | None) -> torch.Tensor:
-    if active is None:
+    if active is None or bool(active.all()):
         return direction
     return torch.where(active.unsqueeze(-1), direction, torch.zeros_like(direction))
 
@@ -83,8 +83,7 @@ class AdamAscent:
         steps = self.row_steps.clamp_min(1).double().unsqueeze(-1)
         first_hat = self.first / (1 - beta1**steps).to(gradient.dtype)
         second_hat = self.second / (1 - beta2**steps).to(gradient.dtype)
-        step = self.step_size * first_hat / (second_hat.sqrt() + self.eps)
-        return step if every else _masked(step, stepping)
+        return _masked(self.step_size * first_hat / (second_hat.sqrt() + self.eps), stepping)
 
     def state(self) -> SavedState:
         """The step count and both moments: what :meth:`restore` takes back."""

@@ -52,6 +52,12 @@ class Scans(Protocol):
 
     def per_cell(self, layout: Staircase, values: torch.Tensor) -> torch.Tensor | None: ...
 
+    def placed(
+        self, layout: Staircase, cells: torch.Tensor, values: torch.Tensor
+    ) -> torch.Tensor | None: ...
+
+    def column_totals(self, layout: Staircase, values: torch.Tensor) -> torch.Tensor | None: ...
+
     def step_group_sums(
         self, layout: Staircase, values: torch.Tensor, groups: torch.Tensor, table: Staircase
     ) -> torch.Tensor | None: ...
@@ -228,6 +234,15 @@ class Staircase:
                 return done
         return self._step_start.index_select(0, time) + self.rank.index_select(0, column)
 
+    def placed(self, cells: torch.Tensor, values: torch.Tensor) -> torch.Tensor:
+        """``values`` [R] at ``cells`` [R] (distinct cells), zero in every other cell: [S]."""
+        if self.scans is not None:
+            done = self.scans.placed(self, cells, values)
+            if done is not None:
+                return done
+        out = values.new_zeros((self.size, *values.shape[1:]))
+        return out.index_copy_(0, cells, values)
+
     def gather(self, padded: torch.Tensor) -> torch.Tensor:
         """The cells of a padded [T', N, …] tensor (T' ≥ T), [S, …]."""
         flat = padded.reshape(-1, *padded.shape[2:])
@@ -318,6 +333,10 @@ class Staircase:
         """Σ_t values[t, n] of each column, [N] (a column's cells added from its last)."""
         if self.columns == 0:
             return values.new_zeros(0)
+        if self.scans is not None:
+            done = self.scans.column_totals(self, values)
+            if done is not None:
+                return done
         return self.tail_sums(values)[: self.columns].index_select(0, self.rank)
 
 

@@ -300,6 +300,10 @@ def test_the_compiled_scans_give_the_staircases_own_bits(shape: str) -> None:
     assert torch.equal(compiled.order, plain.order) and torch.equal(compiled.rank, plain.rank)
     assert compiled.widths == plain.widths and compiled.starts == plain.starts
     assert (compiled.steps, compiled.size) == (plain.steps, plain.size)
+    for cells in (torch.randperm(plain.size, generator=generator), torch.arange(0, plain.size, 3)):
+        assert torch.equal(
+            compiled.placed(cells, values[: len(cells)]), plain.placed(cells, values[: len(cells)])
+        )
     assert torch.equal(compiled.time, plain.time) and torch.equal(compiled.column, plain.column)
     assert compiled.tail_sums(values.float()).dtype == torch.float32  # the loop takes float32
     # the indices of cells, each group's sums at each step and their spread back to the cells

@@ -132,6 +132,27 @@ def _per_cell(widths: np.ndarray, starts: np.ndarray, order: np.ndarray, values:
             out[start + p] = values[order[p]]
 
 
+@njit(cache=True, error_model="numpy")
+def _placed(cells: np.ndarray, values: np.ndarray, out: np.ndarray) -> None:
+    for i in range(cells.shape[0]):
+        out[cells[i]] = values[i]
+
+
+@njit(cache=True, error_model="numpy")
+def _column_totals(
+    extents: np.ndarray, starts: np.ndarray, rank: np.ndarray, values: np.ndarray, out: np.ndarray
+) -> None:
+    for n in range(extents.shape[0]):  # the tail sums' recurrence, from the last cell
+        place, last = rank[n], extents[n] - 1
+        if last < 0:
+            out[n] = 0.0
+            continue
+        total = values[starts[last] + place]
+        for t in range(last - 1, -1, -1):
+            total = values[starts[t] + place] + total
+        out[n] = total
+
+
 class CompiledScans:
     """:class:`~fedhpg.common.staircase.Scans` in numba, for float64 cells on the CPU (None
     elsewhere: the staircase's own torch code runs)."""
@@ -188,6 +209,26 @@ class CompiledScans:
         out = torch.empty(layout.size, dtype=values.dtype)
         _per_cell(layout.width_array, layout.start_array, layout.order.numpy(),
                   values.contiguous().numpy(), out.numpy())  # fmt: skip
+        return out
+
+    def column_totals(self, layout: Staircase, values: torch.Tensor) -> torch.Tensor | None:
+        if not self._fits(values):
+            return None
+        out = torch.empty(layout.columns, dtype=values.dtype)
+        _column_totals(layout.extents.contiguous().numpy(), layout.start_array,
+                       layout.rank.numpy(), values.contiguous().numpy(), out.numpy())  # fmt: skip
+        return out
+
+    def placed(
+        self, layout: Staircase, cells: torch.Tensor, values: torch.Tensor
+    ) -> torch.Tensor | None:
+        if not (self._fits(values) and cells.device.type == "cpu"):
+            return None
+        size = layout.size
+        # every cell written (each step's own layout): nothing to clear first
+        every = len(cells) == size
+        out = (torch.empty if every else torch.zeros)(size, dtype=values.dtype)
+        _placed(cells.contiguous().numpy(), values.contiguous().numpy(), out.numpy())
         return out
 
     def cell(

@@ -161,8 +161,7 @@ class Trajectories:
             if layout is self.layout
             else layout.cell(self.steps.time, self.steps.column)
         )
-        rewards = torch.zeros(layout.size, dtype=torch.float64, device=at.device)
-        rewards.index_copy_(0, at, self.steps.rewards)
+        rewards = layout.placed(at, self.steps.rewards)
         if every_step:
             return rewards, None
         alive = torch.zeros(layout.size, dtype=torch.bool, device=at.device)
