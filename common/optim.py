@@ -14,9 +14,19 @@ from fedhpg.common.types import SavedState
 
 
 def _masked(direction: torch.Tensor, active: torch.Tensor | None) -> torch.Tensor:
-    if active is None or bool(active.all()):
+    """``direction`` (a fresh tensor: written in place) with the rows not ``active`` zero."""
+    if active is None:
         return direction
-    return torch.where(active.unsqueeze(-1), direction, torch.zeros_like(direction))
+    return _rows_from(direction, torch.zeros_like(direction[:1]).expand_as(direction), active)
+
+
+def _rows_from(new: torch.Tensor, old: torch.Tensor, taken: torch.Tensor) -> torch.Tensor:
+    """``new`` (written in place) with the rows not ``taken`` from ``old``: where(taken, new,
+    old) row by row, writing only the rows that differ."""
+    left = torch.nonzero(~taken).squeeze(1)
+    if left.numel():
+        new[left] = old[left]
+    return new
 
 
 class PlainAscent:
@@ -74,12 +84,10 @@ class AdamAscent:
             else active
         )
         self.row_steps = self.row_steps + stepping.long()
-        every = bool(stepping.all())  # then no row keeps its moments or sits the step out
-        keep = stepping.unsqueeze(-1)
         first = beta1 * self.first + (1 - beta1) * gradient
-        self.first = first if every else torch.where(keep, first, self.first)
+        self.first = _rows_from(first, self.first, stepping)
         second = beta2 * self.second + (1 - beta2) * gradient * gradient
-        self.second = second if every else torch.where(keep, second, self.second)
+        self.second = _rows_from(second, self.second, stepping)
         steps = self.row_steps.clamp_min(1).double().unsqueeze(-1)
         first_hat = self.first / (1 - beta1**steps).to(gradient.dtype)
         second_hat = self.second / (1 - beta2**steps).to(gradient.dtype)

@@ -46,7 +46,11 @@ class CompiledBackend:
         self._buffers = _RowBuffers()
 
     def _physics_rows(self, agents: Sequence[int], variants: Sequence[EnvVariant]) -> np.ndarray:
-        """The rows' physics tables, [A, P] (each agent's built once, kept in one array)."""
+        """The rows' physics tables, [A, P] (each agent's built once, kept in one array; the
+        last call's rows kept for the next iteration's)."""
+        key = tuple(agents)
+        if self._last is not None and self._last[0] == key:
+            return self._last[1]
         for k, variant in zip(agents, variants, strict=True):
             if k not in self._row_of:
                 table = cartpole_table([variant])
@@ -57,10 +61,7 @@ class CompiledBackend:
                 self._table = None
         if self._table is None:
             self._table = np.stack(self._tables)
-            self._last = None
-        key = tuple(agents)
-        if self._last is None or self._last[0] != key:  # an iteration's rows, kept for the next
-            self._last = (key, self._table[[self._row_of[k] for k in agents]])
+        self._last = (key, self._table[[self._row_of[k] for k in agents]])
         return self._last[1]
 
     def sample(
