@@ -28,6 +28,10 @@ from fedhpg.envs.base import EnvVariant
 from fedhpg.envs.compiled import CARTPOLE_DEFAULTS, CARTPOLE_STEP_LIMIT, cartpole_table
 
 
+RECENT_ROWS = 8
+"""Sets of rows :meth:`CompiledBackend._physics_rows` keeps (a round's local iterations)."""
+
+
 def covers(variant: EnvVariant) -> bool:
     """Whether the compiled CartPole models this variant."""
     return cartpole_table([variant]) is not None
@@ -42,15 +46,16 @@ class CompiledBackend:
         self._row_of: dict[int, int] = {}
         self._tables: list[np.ndarray] = []
         self._table: np.ndarray | None = None
-        self._last: tuple[tuple[int, ...], np.ndarray] | None = None
+        self._recent: dict[tuple[int, ...], np.ndarray] = {}
+        """The physics rows of recent calls' agents (a round's iterations repeat them)."""
         self._buffers = _RowBuffers()
 
     def _physics_rows(self, agents: Sequence[int], variants: Sequence[EnvVariant]) -> np.ndarray:
         """The rows' physics tables, [A, P] (each agent's built once, kept in one array; the
-        last call's rows kept for the next iteration's)."""
+        rows of recent calls kept for the next round's same iterations)."""
         key = tuple(agents)
-        if self._last is not None and self._last[0] == key:
-            return self._last[1]
+        if key in self._recent:
+            return self._recent[key]
         for k, variant in zip(agents, variants, strict=True):
             if k not in self._row_of:
                 table = cartpole_table([variant])
@@ -61,8 +66,11 @@ class CompiledBackend:
                 self._table = None
         if self._table is None:
             self._table = np.stack(self._tables)
-        self._last = (key, self._table[[self._row_of[k] for k in agents]])
-        return self._last[1]
+            self._recent.clear()
+        if len(self._recent) >= RECENT_ROWS:
+            self._recent.clear()
+        self._recent[key] = self._table[[self._row_of[k] for k in agents]]
+        return self._recent[key]
 
     def sample(
         self,
@@ -88,10 +96,8 @@ class CompiledBackend:
             np.ascontiguousarray(theta.numpy(), dtype=np.float32), self.sizes, physics, count,
             limits, keys.numpy(), greedy, rows_obs, rows_action, rows_column, rows_time, lengths,
         )  # fmt: skip
-        per_row = counts.new_zeros(len(count)).index_add_(
-            0, torch.repeat_interleave(torch.arange(len(count)), counts),
-            torch.from_numpy(lengths),
-        )  # fmt: skip
+        owner = torch.repeat_interleave(torch.arange(len(count)), counts)
+        per_row = counts.new_zeros(len(count)).index_add_(0, owner, torch.from_numpy(lengths))
         packed = StepRows(
             obs=torch.from_numpy(rows_obs[:written]),
             actions=torch.from_numpy(rows_action[:written]),
@@ -103,7 +109,7 @@ class CompiledBackend:
         )
         return Trajectories(
             success=torch.zeros(total, dtype=torch.bool),  # CartPole has no goal
-            owner=torch.repeat_interleave(torch.arange(len(count)), counts),
+            owner=owner,
             counts=counts.clone(),
             lengths=torch.from_numpy(lengths),
             steps=packed,

@@ -434,8 +434,8 @@ class Engine:
         """The rows ``positions`` (their agents ``agents``) sampled by the backend."""
         if self.compiled is not None:
             variants = [self.variants[k] for k in agents]
-            return self.compiled.sample(theta[positions], chosen, keys, limit, agents, variants,
-                                        greedy=greedy)  # fmt: skip
+            rows = theta if len(positions) == theta.shape[0] else theta[positions]  # all, in order
+            return self.compiled.sample(rows, chosen, keys, limit, agents, variants, greedy=greedy)
         per_row = self._per_row
         copies = make_copies(
             self.family(),
