@@ -78,14 +78,16 @@ def trajectory_keys(
     purpose: Purpose,
     iteration: int,
     trajectories: torch.Tensor,
+    owner: torch.Tensor | None = None,
 ) -> torch.Tensor:
     """The key of trajectory ``trajectories[i]`` of agent ``agents[i]`` (int64 tensors of one
-    shape) in local iteration ``iteration`` of round ``round_index``."""
+    shape) in local iteration ``iteration`` of round ``round_index``; with ``owner``, of agent
+    ``agents[owner[i]]`` (the agents' part of the key is then hashed once per agent)."""
     base = key_of(seed, int(purpose))
     state = absorb(torch.full_like(agents, base), agents)
     state = absorb(state, torch.full_like(agents, signed(round_index)))
     state = absorb(state, torch.full_like(agents, signed(iteration)))
-    return absorb(state, trajectories)
+    return absorb(state if owner is None else state[owner], trajectories)
 
 
 def words(keys: torch.Tensor, counters: torch.Tensor | int) -> torch.Tensor:

@@ -27,7 +27,6 @@ from fedhpg.common.engine.trajectories import StepRows, Trajectories
 from fedhpg.envs.base import EnvVariant
 from fedhpg.envs.compiled import CARTPOLE_DEFAULTS, CARTPOLE_STEP_LIMIT, cartpole_table
 
-
 RECENT_ROWS = 8
 """Sets of rows :meth:`CompiledBackend._physics_rows` keeps (a round's local iterations)."""
 

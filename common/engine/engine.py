@@ -407,10 +407,8 @@ class Engine:
         owner = torch.repeat_interleave(torch.arange(len(agents), device=self.device), chosen)
         starts = torch.cumsum(chosen, 0) - chosen
         index = torch.arange(int(chosen.sum()), device=self.device) - starts[owner]
-        agent_ids = per_row["agent"][positions][owner]
-        keys = trajectory_keys(
-            self.run.seed, agent_ids, rows.round_index, purpose, iteration, index
-        )
+        keys = trajectory_keys(self.run.seed, per_row["agent"][positions], rows.round_index,
+                               purpose, iteration, index, owner)  # fmt: skip
         limit = per_row["horizon"] if horizons is None else horizons.to(self.device)
         started = time.thread_time()
         try:
