@@ -162,6 +162,22 @@ def test_sampling_draws_from_each_copys_key_in_the_documented_order() -> None:
         assert int(batch.alive[:, n].sum()) == t
 
 
+def test_the_backends_returns_are_the_sums_of_its_rewards() -> None:
+    """The returns the backend hands over with a batch (a reward of 1 a step) are the bits
+    the batch's own sums give, undiscounted and discounted."""
+    run = _run(agents=3)
+    _, theta = _away_from_the_start(run)
+    engine = _engine(run, [0, 1, 2])
+    rows = engine.begin(4, theta, [0, 1, 2])
+    batch = engine.sample(rows.theta, torch.tensor([3, 1, 4]), iteration=1)
+    assert batch._returns is not None
+    rewards, _ = batch.cells
+    summed = batch.layout.column_totals(rewards)
+    assert torch.equal(batch.returns(), summed) and bool((summed > 1).any())
+    assert torch.equal(summed, batch.rewards.sum(dim=0))
+    assert not torch.equal(batch.returns(engine.gammas()), summed)  # discounted: summed here
+
+
 def test_the_kernels_forward_is_torchs_policy() -> None:
     run = _run(agents=1)
     policy, theta = _away_from_the_start(run)

@@ -113,6 +113,7 @@ class CompiledBackend:
             lengths=torch.from_numpy(lengths),
             steps=packed,
             scans=SCANS,
+            returns=torch.from_numpy(lengths).double(),  # a reward of 1 a step, summed exactly
         )
 
     def gradients(

@@ -57,6 +57,7 @@ class Trajectories:
         actions: torch.Tensor | None = None,
         steps: StepRows | None = None,
         scans: Scans | None = None,
+        returns: torch.Tensor | None = None,
     ) -> None:
         padded = rewards is not None and alive is not None and obs is not None
         if not padded and (steps is None or lengths is None):
@@ -71,6 +72,9 @@ class Trajectories:
         self.scans = scans
         """The backend's scans for :attr:`layout` (None: the staircase's own)."""
         self._lengths = lengths
+        self._returns = returns
+        """Each trajectory's undiscounted return, where the backend knows it as it samples
+        (the sum :meth:`returns` would add, to the bit)."""
         self._rewards, self._alive = rewards, alive
         self._obs, self._actions = obs, actions
 
@@ -170,7 +174,10 @@ class Trajectories:
     # -- per row and per trajectory -----------------------------------------------------------
 
     def regrouped(self, positions: torch.Tensor, rows: int) -> Trajectories:
-        """The same trajectories with row i renamed ``positions[i]`` in a batch of ``rows``."""
+        """The same trajectories with row i renamed ``positions[i]`` in a batch of ``rows``
+        (``positions`` ascending: all ``rows`` of them leave every name as it is)."""
+        if len(positions) == rows:
+            return self
         counts = self.counts.new_zeros(rows)
         counts[positions] = self.counts
         steps = self.steps
@@ -179,7 +186,7 @@ class Trajectories:
         out = Trajectories(success=self.success, owner=positions[self.owner], counts=counts,
                            lengths=self._lengths, rewards=self._rewards, alive=self._alive,
                            obs=self._obs, actions=self._actions, steps=steps,
-                           scans=self.scans)  # fmt: skip
+                           scans=self.scans, returns=self._returns)  # fmt: skip
         # renaming rows moves no cell
         for kept in ("grouped_layout", "layout", "step_cells", "cells"):
             if kept in self.__dict__:
@@ -203,6 +210,8 @@ class Trajectories:
     def returns(self, gammas: torch.Tensor | None = None) -> torch.Tensor:
         """Each trajectory's return Σ_t γ^t r_t, [N] float64 (undiscounted without
         ``gammas``, else each column discounted by its row's γ, ``gammas`` [A])."""
+        if gammas is None and self._returns is not None:
+            return self._returns
         rewards, _ = self.cells
         if gammas is None:  # each column's own cells in order: the same sums in any company
             return self.layout.column_totals(rewards)
