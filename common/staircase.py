@@ -1,8 +1,9 @@
 """Trajectories of different lengths, time-major, without the padding that outlasts them.
 
-Column n of a batch holds cells t = 0 … ``extent[n]`` − 1 of trajectory n (its steps, then
-the dead steps an estimator still needs: a per-step baseline reaches past a trajectory's end
-for as long as another trajectory of its agent runs). Sorted by extent, longest first and
+Column n of a batch holds cells t = 0 … ``extent[n]`` − 1 of trajectory n: its steps, and
+either the dead steps a per-step baseline reaches (past a trajectory's end for as long as
+another trajectory of its agent runs: :meth:`Staircase.of_groups`) or none (the estimator
+then sums that tail once per agent). Sorted by extent, longest first and
 ties in column order, the columns that still have a cell at step t are always a prefix of
 that order, so step t is one contiguous run of ``widths[t]`` cells: a staircase.
 

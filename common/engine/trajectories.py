@@ -7,8 +7,11 @@ padding (reward 0). The compiled backend hands over the alive steps packed row b
 (:class:`StepRows`), and the padded tensors are built only if a primitive asks for them.
 
 The estimator computes on :attr:`Trajectories.layout`, a :class:`~fedhpg.common.staircase.Staircase`
-in which each trajectory reaches as far as its row's longest: the cells every term of an
-estimator needs, and not the padding to the batch's longest.
+without the padding to the batch's longest: on the torch backend each trajectory reaches as
+far as its row's longest (every cell an estimator's terms reach), on the compiled backend it
+stops at its own last step (the estimator carries the rest once per row: the same bits, on
+fewer cells). Importance weights and a batch's standardisation take the longer layout,
+:attr:`Trajectories.grouped_layout`, on either.
 """
 
 from __future__ import annotations
