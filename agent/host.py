@@ -40,7 +40,7 @@ from fedhpg.common.components import agent_profile, validate_run
 from fedhpg.common.config import ConfigError, RunConfig, adopt_settings, agent_id_of, host_id_of
 from fedhpg.common.engine.devices import DeviceUnavailable
 from fedhpg.common.runtime import timeline
-from fedhpg.common.runtime.memory import pin_malloc_mmap_threshold
+from fedhpg.common.runtime.memory import freeze_setup, pin_malloc_mmap_threshold
 from fedhpg.common.wire.codec import MAX_HEADER_BYTES, ProtocolError
 from fedhpg.common.wire.protocol import (
     Error,
@@ -304,6 +304,7 @@ class AgentHost:
             group = self.work.build(run)
         except DeviceUnavailable as error:
             raise AgentFailure(str(error)) from None
+        freeze_setup()  # the program's setup is done: the rounds' collections skip it
         needed = MAX_HEADER_BYTES + 4 * group.num_params
         if self.max_bytes < needed:
             raise AgentFailure(

@@ -38,6 +38,12 @@ def main() -> None:
         pass
     else:
         tune_malloc_for(group)
+    try:  # and leaves its setup out of the garbage collector's scans, where it does
+        from fedhpg.common.runtime.memory import freeze_setup  # type: ignore[attr-defined]
+    except ImportError:
+        pass
+    else:
+        freeze_setup()
     theta = torch.load(args.theta) if args.theta else initial_theta(_variant(run), run)
     print(json.dumps({"group": type(group).__name__}), flush=True)
     for line in sys.stdin:
