@@ -28,10 +28,11 @@ import torch
 
 
 class Scans(Protocol):
-    """Another implementation of the staircase's two scans along time (the same recurrence
-    in the same order, so the same bits) and of its cells' (step, column) indices, for the
-    layouts it can take; None: the staircase's own torch code runs (a backend's, e.g.
-    ``common/batched/scans.py``)."""
+    """Another implementation of the staircase's primitives: its scans along time and sums
+    over an agent's columns (the same additions in the same order, so the same bits), its
+    arrangement, cell indices and spreads of values to cells, for the layouts it can take.
+    A method that answers None leaves it to the staircase's own torch code (a backend's,
+    e.g. ``common/batched/scans.py``)."""
 
     def cells(self, layout: Staircase) -> tuple[torch.Tensor, torch.Tensor] | None: ...
 

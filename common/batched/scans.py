@@ -1,12 +1,14 @@
-"""The staircase's scans and cell indices compiled (numba), for the compiled backend's batches
-on the CPU.
+"""The staircase's primitives compiled (numba), for the compiled backend's batches on the CPU.
 
 :class:`~fedhpg.common.staircase.Staircase` runs its scans along time (reward-to-go tail
 sums, powers γ^t) one step at a time, a few torch calls a step: on a GPU each call is wide,
 on a CPU a batch of short episodes pays the calls' overhead at every step of its longest
-episode. These kernels run the same recurrence in the same order (step by step, the cells of
-a step in position order, no fused multiply-add: LLVM may not contract without ``fastmath``),
-so they give the torch loop's bits; ``tests/test_compiled_engine.py`` checks that they do.
+episode; its index arithmetic (sorting columns by extent, a cell's place, each agent's sums
+at each step) is a handful of passes over every cell in torch, one here. These kernels run
+the same recurrences in the same order (step by step, the cells of a step in position order,
+an agent's columns in column order, no fused multiply-add: LLVM may not contract without
+``fastmath``), so they give the torch code's bits; ``tests/test_compiled_engine.py`` checks
+that they do.
 """
 
 from __future__ import annotations
