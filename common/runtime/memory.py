@@ -68,6 +68,7 @@ def freeze_setup() -> None:
     the config, the group's constants: some 300,000 objects) out of the garbage collector's
     scans. A round creates thousands of short-lived objects, and every so often the collector
     scans the whole heap for cycles: over the setup's objects, a tenth of a second, as long as
-    a round of a hundred CartPole agents. What the rounds create is still collected."""
-    gc.collect()
+    a round of a hundred CartPole agents. What the rounds create is still collected. (No
+    collection first: in a hundred one-agent processes on two cores, one each would add
+    seconds to the start.)"""
     gc.freeze()
