@@ -210,6 +210,9 @@ def warm_up() -> float:
     of seconds; ``make setup`` and the image build run this once so that runs load the cache,
     and ``fedhpg-run`` runs it before it forks agents, so that they inherit the compiled code
     instead of compiling it each."""
+    from fedhpg.common.estimators import RewardToGoName, coefficients
+    from fedhpg.common.staircase import Staircase
+
     started = time.perf_counter()
     backend = CompiledBackend(MLPShape((4, 2, 2)))
     backend._row_of, backend._tables = {0: 0}, [np.asarray(CARTPOLE_DEFAULTS, dtype=np.float64)]
@@ -219,6 +222,19 @@ def warm_up() -> float:
             theta, torch.tensor([1, 2]), torch.arange(3), torch.tensor([3, 3]), [0, 0],
             [None, None], greedy=greedy,  # type: ignore[list-item]
         )  # fmt: skip
+    # the estimator on the batch's layouts: the scans, sums and indices it calls compiled
+    layouts: list[tuple[Staircase, RewardToGoName]] = [
+        (batch.layout, "from_start"),
+        (batch.grouped_layout, "from_step"),
+    ]
+    for layout, to_go in layouts:
+        rewards, alive = batch.cells_on(layout)
+        coefficients(
+            "gpomdp", layout, rewards, alive, gamma=torch.full((3,), 0.99, dtype=torch.float64),
+            reward_to_go=to_go, groups=batch.owner,
+        )  # fmt: skip
+    batch.returns(torch.full((2,), 0.99))
+    assert batch.layout.time.numel()  # the cells' indices (a weighted estimate translates by them)
     backend.gradients(theta, batch, batch.cells[0])
     return time.perf_counter() - started
 
