@@ -215,3 +215,19 @@ def test_an_agents_theta_does_not_depend_on_its_company(overrides: list[str]) ->
     for other in others:
         assert torch.equal(first[0], other[0])
         assert other[1] == first[1]
+
+
+@pytest.mark.parametrize("agents", [1, 3, 8, 9, 40])
+def test_trajectory_keys_are_the_same_hashed_per_agent_or_per_trajectory(agents: int) -> None:
+    """The keys of an agent's trajectories, its part hashed once (one by one in Python for a
+    few agents, as tensors for more) or with every trajectory: the same words."""
+    from fedhpg.common.randomness import Purpose, trajectory_keys
+
+    ids = torch.arange(agents) * 37 + 5
+    owner = torch.repeat_interleave(torch.arange(agents), 3)
+    index = torch.arange(3 * agents) % 3
+    for round_index, iteration, purpose in ((0, 0, Purpose.TRAIN), (2**40, 7, Purpose.EVALUATE)):
+        spread = trajectory_keys(11, ids, round_index, purpose, iteration, index, owner)
+        each = trajectory_keys(11, ids[owner], round_index, purpose, iteration, index)
+        assert torch.equal(spread, each)
+        assert len(set(each.tolist())) == len(each)  # distinct keys: the check can tell
