@@ -100,9 +100,6 @@ class EngineGroup:
         self.variants = variants
         self.engine = Engine(run, variants, compiled=compiled)
         self.algorithm, self.params = resolve_algorithm(run)
-        self._held: tuple[tuple[int, ...], tuple[list[int], list[int]]] | None = None
-        """The last round's agents, what each holds at once and its horizon (while they run
-        their own budgets, the next round's are the same)."""
 
     @property
     def indices(self) -> Sequence[int]:
@@ -117,23 +114,11 @@ class EngineGroup:
     ) -> RoundPlan:
         """The round's ``agents`` (ascending) in chunks that fit the device's memory: each
         holds its budget's trajectories at once (``episodes`` each for an evaluation)."""
-        from fedhpg.common.components import planned_budget
-
         engine = self.engine
         if episodes is None:
-            key = tuple(agents)
-            own = not any((budgets or {}).get(k) for k in agents)
-            if own and self._held is not None and self._held[0] == key:
-                copies, horizons = self._held[1]
-            else:
-                copies = [
-                    self.algorithm.held_trajectories(
-                        planned_budget(engine.profile(k).budget, (budgets or {}).get(k))
-                    )
-                    for k in agents
-                ]
-                horizons = [engine.horizon(k) for k in agents]
-                self._held = (key, (copies, horizons)) if own else None
+            chosen = engine.round_budgets(agents, budgets)
+            copies = [self.algorithm.held_trajectories(budget) for budget in chosen]
+            horizons = [engine.horizon(k) for k in agents]
         else:
             copies = [episodes] * len(agents)
             horizons = [self.run.eval.horizon or engine.horizon(k) for k in agents]

@@ -15,17 +15,15 @@ from fedhpg.common.types import SavedState
 
 def _masked(direction: torch.Tensor, active: torch.Tensor | None) -> torch.Tensor:
     """``direction`` (a fresh tensor: written in place) with the rows not ``active`` zero."""
-    if active is None:
-        return direction
-    return _rows_from(direction, torch.zeros_like(direction[:1]).expand_as(direction), active)
+    return direction if active is None else _rows_from(direction, 0.0, active)
 
 
-def _rows_from(new: torch.Tensor, old: torch.Tensor, taken: torch.Tensor) -> torch.Tensor:
-    """``new`` (written in place) with the rows not ``taken`` from ``old``: where(taken, new,
-    old) row by row, writing only the rows that differ."""
+def _rows_from(new: torch.Tensor, old: torch.Tensor | float, taken: torch.Tensor) -> torch.Tensor:
+    """``new`` (written in place) with the rows not ``taken`` from ``old`` (rows, or one
+    value): where(taken, new, old), writing only the rows that differ."""
     left = torch.nonzero(~taken).squeeze(1)
     if left.numel():
-        new[left] = old[left]
+        new[left] = old[left] if isinstance(old, torch.Tensor) else old
     return new
 
 

@@ -83,21 +83,11 @@ def trajectory_keys(
     """The key of trajectory ``trajectories[i]`` of agent ``agents[i]`` (int64 tensors of one
     shape) in local iteration ``iteration`` of round ``round_index``; with ``owner``, of agent
     ``agents[owner[i]]`` (the agents' part of the key is then hashed once per agent)."""
-    if owner is not None and agents.numel() <= FEW_AGENTS:  # a few words: Python's integers
-        fields = (int(purpose), round_index, iteration)
-        own = [key_of(seed, fields[0], k, *fields[1:]) for k in agents.tolist()]
-        state = torch.tensor(own, dtype=torch.int64, device=agents.device)
-    else:
-        base = key_of(seed, int(purpose))
-        state = absorb(torch.full_like(agents, base), agents)
-        state = absorb(state, torch.full_like(agents, signed(round_index)))
-        state = absorb(state, torch.full_like(agents, signed(iteration)))
+    base = key_of(seed, int(purpose))
+    state = absorb(torch.full_like(agents, base), agents)
+    state = absorb(state, torch.full_like(agents, signed(round_index)))
+    state = absorb(state, torch.full_like(agents, signed(iteration)))
     return absorb(state if owner is None else state[owner], trajectories)
-
-
-FEW_AGENTS = 8
-"""Up to so many agents, :func:`trajectory_keys` hashes their part of the keys one by one
-(:func:`key_of`, the same words): a few tensor operations cost more than that."""
 
 
 def words(keys: torch.Tensor, counters: torch.Tensor | int) -> torch.Tensor:

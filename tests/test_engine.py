@@ -219,8 +219,8 @@ def test_an_agents_theta_does_not_depend_on_its_company(overrides: list[str]) ->
 
 @pytest.mark.parametrize("agents", [1, 3, 8, 9, 40])
 def test_trajectory_keys_are_the_same_hashed_per_agent_or_per_trajectory(agents: int) -> None:
-    """The keys of an agent's trajectories, its part hashed once (one by one in Python for a
-    few agents, as tensors for more) or with every trajectory: the same words."""
+    """The keys of an agent's trajectories, its part hashed once per agent or with every
+    trajectory: the same words."""
     from fedhpg.common.randomness import Purpose, trajectory_keys
 
     ids = torch.arange(agents) * 37 + 5

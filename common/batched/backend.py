@@ -234,7 +234,7 @@ def warm_up() -> float:
             reward_to_go=to_go, groups=batch.owner,
         )  # fmt: skip
     batch.returns(torch.full((2,), 0.99))
-    assert batch.layout.time.numel()  # the cells' indices (a weighted estimate translates by them)
+    SCANS.cells(batch.layout)  # the cells' indices (a weighted estimate translates by them)
     backend.gradients(theta, batch, batch.cells[0])
     return time.perf_counter() - started
 

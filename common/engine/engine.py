@@ -255,9 +255,12 @@ class Engine:
         """Each agent's row of :attr:`_family` (None: not built yet)."""
         self._per_row: dict[str, torch.Tensor] = {}
         """The round's rows' constants on the device (:meth:`begin`)."""
-        self._last_rows: (
-            tuple[tuple[int, ...], tuple[dict[str, torch.Tensor], dict[str, torch.Tensor]]] | None
+        self._own_budgets: tuple[tuple[int, ...], list[Any]] | None = None
+        """The last :meth:`round_budgets` of agents running their own budgets."""
+        self._budget_rows: (
+            tuple[list[Any], dict[str, torch.Tensor], dict[str, torch.Tensor]] | None
         ) = None
+        """For the last list of budgets: its fields as rows and the rows' constants."""
         self.rows: Rows | None = None
         self.tally: Tally | None = None
         self._hook: Any = None
@@ -318,7 +321,15 @@ class Engine:
         hook: Any = None,
     ) -> Rows:
         """The rows of ``agents`` for a round from θ̃ (their budgets planned or their own)."""
-        budget_rows, self._per_row = self._rows_of(tuple(agents), budgets)
+        chosen = self.round_budgets(agents, budgets)
+        if self._budget_rows is None or self._budget_rows[0] is not chosen:  # a new list
+            names = list(vars(chosen[0])) if chosen else []
+            as_rows = {
+                name: torch.tensor([int(getattr(b, name)) for b in chosen], dtype=torch.int64)
+                for name in names
+            }
+            self._budget_rows = (chosen, as_rows, self._row_constants(agents))
+        _, budget_rows, self._per_row = self._budget_rows
         rows = Rows(
             agents=list(agents),
             theta=theta.detach().to(self.device, torch.float32).unsqueeze(0).repeat(len(agents), 1),
@@ -339,25 +350,18 @@ class Engine:
         budget = memory_budget(self.device, self.run.algo.memory_gib)
         return plan_round(copies, horizons, self.step_bytes, budget)
 
-    def _rows_of(
-        self, agents: tuple[int, ...], budgets: Mapping[int, Mapping[str, int]] | None
-    ) -> tuple[dict[str, torch.Tensor], dict[str, torch.Tensor]]:
-        """The budgets of ``agents`` ([A] per field) and their :meth:`_row_constants`; kept
-        for the next round while the agents are the same and run their own budgets."""
-        own = not any((budgets or {}).get(k) for k in agents)
-        if own and self._last_rows is not None and self._last_rows[0] == agents:
-            return self._last_rows[1]
-        chosen = [planned_budget(self.profile(k).budget, (budgets or {}).get(k)) for k in agents]
-        names = list(vars(chosen[0])) if chosen else []
-        made = (
-            {
-                name: torch.tensor([int(getattr(b, name)) for b in chosen], dtype=torch.int64)
-                for name in names
-            },
-            self._row_constants(agents),
-        )
-        self._last_rows = (agents, made) if own else None
-        return made
+    def round_budgets(
+        self, agents: Sequence[int], budgets: Mapping[int, Mapping[str, int]] | None = None
+    ) -> list[Any]:
+        """Each agent's budget for the round: its own, or with the server's plan put in. The
+        list is kept, the same object, while the agents repeat and run their own budgets."""
+        key = tuple(agents)
+        own = not any((budgets or {}).get(k) for k in key)
+        if own and self._own_budgets is not None and self._own_budgets[0] == key:
+            return self._own_budgets[1]
+        chosen = [planned_budget(self.profile(k).budget, (budgets or {}).get(k)) for k in key]
+        self._own_budgets = (key, chosen) if own else None
+        return chosen
 
     def _row_constants(self, agents: Sequence[int]) -> dict[str, torch.Tensor]:
         """What sampling and the estimator read of each row, as [A] tensors on the device (sent
