@@ -141,10 +141,11 @@ bench-scale: $(STAMP)
 # A federation on one GPU (docs/gpu.md), one script within 8 minutes (benchmarks/on_device.sh),
 # each part under its own time limit: the placement check on the device for the five torch
 # families, K = 1,000, 16,000, 65,536 CartPole agents' whole local iteration and peak memory
-# against a reference measured in the same run, a fedhpg-run federation of 65,536 agents on one
+# against a reference measured in the same run, where one iteration's time goes (engine sections
+# and torch's busiest operators, 16,000 agents), a fedhpg-run federation of 65,536 agents on one
 # host for 3 rounds. Results in $OUT if set, else benchmarks/results/device/. DEVICE=cpu
-# rehearses it here (K = 100 and 1,000, 2,000 agents; 1–3 min on 2 cores); one line and exit 1
-# where torch sees no CUDA device. A bare GPU machine: `bash benchmarks/on_device.sh run`.
+# rehearses it here (K = 100 and 1,000, a profile of 200, 2,000 agents; 1–3 min on 2 cores);
+# one line and exit 1 where torch sees no CUDA device. A bare GPU machine: `bash benchmarks/on_device.sh run`.
 DEVICE ?= cuda
 bench-device: $(STAMP)
 	DEVICE=$(DEVICE) PYTHON=$(BIN)/python bash benchmarks/on_device.sh local

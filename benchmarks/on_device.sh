@@ -17,12 +17,15 @@
 #   2. K = 1,000, 16,000, 65,536 CartPole agents (16-16 MLP, B = 16): the whole local
 #      iteration's env steps/s and peak memory, and the reference (benchmarks/device_reference.py)
 #      re-measured in the same process;
-#   3. a whole fedhpg-run federation of FED_AGENTS agents (65,536 on a GPU) on one host, 3
+#   3. where the time of one iteration goes (benchmarks/device_profile.py) at PROFILE_AGENTS
+#      agents (16,000 on a GPU): by section of the engine, and torch's top operators;
+#   4. a whole fedhpg-run federation of FED_AGENTS agents (65,536 on a GPU) on one host, 3
 #      rounds, θ̃ evaluated in every agent's environment at the end;
-#   4. the report: one table, bench_device.json.
-# Results: OUT if set (bench_device.json, bench_device.log, federation.log), else
-# benchmarks/results/device/. DEVICE=cpu is the rehearsal: K = 100 and 1,000, 2,000 agents in
-# the federation (~4 min on 2 cores). The exit status is 0 when every part finished.
+#   5. the report: one table, bench_device.json.
+# Results: OUT if set (bench_device.json, device_profile.json, bench_device.log,
+# federation.log), else benchmarks/results/device/. DEVICE=cpu is the rehearsal: K = 100 and
+# 1,000, a profile of 200 agents, 2,000 agents in the federation (~5 min on 2 cores). The exit
+# status is 0 when every part finished.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 WHEELS=${WHEELS:-.whl}
@@ -61,20 +64,24 @@ part() {
 bench() {
     local python=$1 out=$2 device=$3
     shift 3
-    local agents counts work fed_limit
+    local agents counts work fed_limit profile_agents profile_limit
     # the limits (s) of each part; their sum stays below TOTAL_S
     if [ "$device" = cpu ]; then
         agents=${FED_AGENTS:-2000}
         counts=${COUNTS:-100,1000}
         TOTAL_S=${TOTAL_S:-600}
         limits=(120 60 200 0 0)
+        profile_agents=${PROFILE_AGENTS:-200}
+        profile_limit=90
         fed_limit=120
     else
         agents=${FED_AGENTS:-65536}
         counts=${COUNTS:-1000,16000,65536}
-        TOTAL_S=${TOTAL_S:-440}
-        limits=(60 50 65 135 0)
-        fed_limit=120
+        TOTAL_S=${TOTAL_S:-460}
+        limits=(60 50 65 110 0)
+        profile_agents=${PROFILE_AGENTS:-16000}
+        profile_limit=60
+        fed_limit=110
     fi
     REPORT_S=15
     deadline=$((started_at + TOTAL_S))
@@ -97,6 +104,8 @@ problem = device_problem(sys.argv[1]); sys.exit(f"error: DEVICE: {problem}" if p
             --time-limit-s "$(( ${limits[$i]:-120} * 2 / 3 ))" --out "$work/k$k.json" "$@"
         i=$((i + 1))
     done
+    part "profile of $profile_agents agents" "$profile_limit" "$python" -m benchmarks.device_profile \
+        --device "$device" --agents "$profile_agents" --out "$out/device_profile.json"
     rm -rf "$work/federation"
     local fed_started=$SECONDS
     part "federation of $agents agents" "$fed_limit" "$python" -c 'import sys

@@ -181,6 +181,18 @@ def iterations(group: EngineGroup, theta: torch.Tensor, agents: list[int], devic
     return Measured(steps[middle], times[middle], peak / MIB, max(repeats, 0))
 
 
+def timed_round(
+    group: EngineGroup, theta: torch.Tensor, agents: list[int], device: str, index: int
+) -> tuple[float, int]:
+    """Round ``index`` of ``agents`` from ``theta``, between device synchronisations: its
+    seconds and env steps."""
+    _sync(device)
+    started = time.perf_counter()
+    results = group.train(index, theta, agents)
+    _sync(device)
+    return time.perf_counter() - started, sum(r.stats.env_steps for r in results.values())
+
+
 def _rounds(
     group: EngineGroup,
     theta: torch.Tensor,
@@ -190,23 +202,16 @@ def _rounds(
     deadline: float | None,
 ) -> tuple[list[float], list[int], int]:
     """:func:`iterations`' rounds: their seconds, env steps, and how many were measured."""
-    _sync(device)
-    started = time.perf_counter()
-    results = group.train(1, theta, agents)
-    _sync(device)
-    first = time.perf_counter() - started
-    times, steps = [first], [sum(r.stats.env_steps for r in results.values())]
+    first, first_steps = timed_round(group, theta, agents, device, 1)
+    times, steps = [first], [first_steps]
     if deadline is not None:
         repeats = min(repeats, int((deadline - time.perf_counter()) / (1.2 * first)))
     if repeats > 0:
         times, steps = [], []
     for repeat in range(repeats):
-        _sync(device)
-        started = time.perf_counter()
-        results = group.train(2 + repeat, theta, agents)
-        _sync(device)
-        times.append(time.perf_counter() - started)
-        steps.append(sum(r.stats.env_steps for r in results.values()))
+        seconds, taken = timed_round(group, theta, agents, device, 2 + repeat)
+        times.append(seconds)
+        steps.append(taken)
     return times, steps, repeats
 
 
@@ -525,11 +530,7 @@ def main(argv: list[str] | None = None) -> None:
     unknown = sorted(set(families) - set(PLACEMENT_FAMILIES))
     if unknown:
         sys.exit(f"error: --families: unknown {unknown}, allowed: {', '.join(PLACEMENT_FAMILIES)}")
-    if DEVICE_PATTERN.fullmatch(args.device) is None:
-        sys.exit(f"error: --device: got {args.device!r}, allowed: cpu, cuda, cuda:N")
-    problem = device_problem(args.device)
-    if problem is not None:
-        sys.exit(f"error: --device: {problem}")
+    check_device_argument(args.device)
     torch.set_num_threads(1)
     pin_malloc_mmap_threshold()  # large blocks returned on free: resident memory is live memory
     if args.only == "placement":
@@ -543,6 +544,15 @@ def main(argv: list[str] | None = None) -> None:
     run_iteration(args, counts)
     sys.exit(report([placement_out, args.out], args.out.with_name(args.out.stem + "_report.json"),
                     None))  # fmt: skip
+
+
+def check_device_argument(device: str) -> None:
+    """Exit with one line unless ``--device`` names a device torch can use here."""
+    if DEVICE_PATTERN.fullmatch(device) is None:
+        sys.exit(f"error: --device: got {device!r}, allowed: cpu, cuda, cuda:N")
+    problem = device_problem(device)
+    if problem is not None:
+        sys.exit(f"error: --device: {problem}")
 
 
 def _run_warm_up(device: str, compiled: bool) -> None:

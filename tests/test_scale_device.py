@@ -4,6 +4,8 @@ and the reference module itself (every copy alive at every step)."""
 
 from __future__ import annotations
 
+import importlib
+import inspect
 import json
 import subprocess
 import sys
@@ -101,7 +103,37 @@ def test_bad_arguments_are_one_line(args: list[str], message: str) -> None:
 
 
 @pytest.mark.skipif(torch.cuda.is_available(), reason="this machine has a CUDA device")
-def test_no_cuda_device_is_one_line() -> None:
+@pytest.mark.parametrize("module", ["scale_device", "device_profile"])
+def test_no_cuda_device_is_one_line(module: str) -> None:
+    main = importlib.import_module(f"benchmarks.{module}").main
     with pytest.raises(SystemExit) as stop:
-        scale_device.main(["--device", "cuda:0"])
+        main(["--device", "cuda:0"])
     assert stop.value.code == "error: --device: 'cuda:0': torch sees no CUDA device on this machine"
+
+
+def test_the_profile_splits_a_round_into_sections_and_operators(tmp_path) -> None:
+    """device_profile times each engine section of a real round (each > 0, together no more
+    than the round), names torch's busiest operators, and leaves the engine as it was."""
+    from benchmarks import device_profile
+    from fedhpg.common.engine.engine import Engine
+
+    before = {
+        name: inspect.getattr_static(Engine, name) for name in device_profile.SECTIONS.values()
+    }
+    out = tmp_path / "profile.json"
+    device_profile.main(["--device", "cpu", "--agents", "2", "--policies", "balancing",
+                         "--out", str(out)])  # fmt: skip
+    (entry,) = json.loads(out.read_text())["rounds"]
+    assert entry["env_steps"] == 2 * scale_device.BATCH * 500  # every pole up to the horizon
+    sections = entry["sections_s"]
+    assert set(sections) == {*device_profile.SECTIONS, "the rest"}
+    assert all(sections[name] > 0 for name in device_profile.SECTIONS)
+    timed = sum(sections[name] for name in device_profile.SECTIONS)
+    assert timed <= entry["sectioned_iteration_s"]  # sections inside the round, none twice
+    operators = [op["operator"] for op in entry["top_operators"]]
+    assert entry["operators_ranked_by"] == "cpu"
+    assert "aten::bmm" in operators  # the policy's per-row matrix products
+    after = {
+        name: inspect.getattr_static(Engine, name) for name in device_profile.SECTIONS.values()
+    }
+    assert after == before
