@@ -283,6 +283,26 @@ def test_every_algorithm_runs_on_the_backend() -> None:
         assert all(torch.isfinite(results[a].theta).all() for a in (0, 2)), algo
 
 
+@pytest.mark.parametrize(
+    "algo",
+    [
+        ["algo=fedhpg", "agents.budget.local_iters=[3]"],
+        ["algo=fedhpgvr", "agents.budget.inner_steps=[3]"],
+    ],
+)
+def test_an_algorithm_holds_one_batch_at_a_time(algo: list[str]) -> None:
+    """The memory plan counts one batch per agent at a time: each algorithm lets its batch
+    go before it samples the next, so the sampler reuses one set of row buffers for a whole
+    round of several iterations instead of holding two."""
+    run = _run(*algo, agents=3)
+    group = make_agent_group(run, [0, 1, 2])
+    assert isinstance(group, EngineGroup) and group.engine.compiled is not None
+    theta = initial_theta(variants_of(run, [0])[0], run)
+    for round_index in (1, 2):
+        group.train(round_index, theta, [0, 1, 2])
+    assert len(group.engine.compiled._buffers.sets) == 1
+
+
 @pytest.mark.parametrize("shape", ["ragged", "dense"])
 def test_the_compiled_scans_give_the_staircases_own_bits(shape: str) -> None:
     """The backend's scans (tail sums with and without factors, step powers) and cell indices

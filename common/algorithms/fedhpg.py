@@ -59,6 +59,7 @@ class FedHPG(Algorithm[NoParams, FedHPGBudget]):
             gradient, clipped = clip_rows(gradient, algo.grad_clip)
             theta += ascent.direction(gradient, active.to(theta.device))
             engine.finished(batch, clipped=clipped)
+            del batch  # its memory goes back to the sampler (one batch held at a time)
         if bounds is not None:
             bounds.report(engine)
         return theta

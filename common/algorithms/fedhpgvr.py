@@ -155,6 +155,7 @@ class FedHPGVR(Algorithm[FedHPGVRParams, FedHPGVRBudget]):
         snapshot = engine.sample(theta_0, rows.budget("batch_size"), iteration=0)
         mu = engine.mean_gradients(theta_0, snapshot)
         engine.finished(snapshot)
+        del snapshot  # its memory goes back to the sampler (one batch held at a time)
         theta = theta_0.clone()
         ascent = make_optimizer(algo)
         inner_steps, mini_batch = rows.budget("inner_steps"), rows.budget("mini_batch_size")
@@ -178,6 +179,7 @@ class FedHPGVR(Algorithm[FedHPGVRParams, FedHPGVRBudget]):
                 ),
             )
             clipped_sum += weights.clipped.cpu()
+            del batch, weights  # back to the sampler before the next step's batch
         trajectories = (inner_steps * mini_batch).double()
         engine.report("iw_mean", weight_sum / trajectories)
         engine.report("iw_max", weight_max)
