@@ -43,6 +43,8 @@ class Copies(Protocol):
     offsets: torch.Tensor
     step_noise: int
     """Uniforms each copy's environment draws per step (0: none)."""
+    any_copies: bool
+    """Whether :meth:`step` takes any subset of the copies (else whole blocks only)."""
 
     def reset(self, blocks: torch.Tensor, keys: torch.Tensor) -> torch.Tensor:
         """Start an episode in every copy of ``blocks``, their copies' keys ``keys``; the
@@ -56,8 +58,9 @@ class Copies(Protocol):
         columns: torch.Tensor | None,
         noise: torch.Tensor | None = None,
     ) -> CopyStep:
-        """One action per copy of ``blocks`` (their ``columns``; None: every block);
-        ``noise`` [copies, step_noise] their environments' uniforms (None when none)."""
+        """One action per copy in ``columns`` (None: every copy), ``blocks`` the blocks they
+        belong to (whole blocks unless :attr:`any_copies`); ``noise`` [copies, step_noise]
+        their environments' uniforms (None when none)."""
         ...
 
     def close(self) -> None: ...
@@ -78,6 +81,7 @@ class DeviceBlocks:
         self.copies = copies
         self.offsets = offsets.to(copies.device)
         self.step_noise = int(copies.step_noise)
+        self.any_copies = True
 
     def reset(self, blocks: torch.Tensor, keys: torch.Tensor) -> torch.Tensor:
         return self.copies.reset(columns_of(self.offsets, blocks), KeyedReset(keys))
@@ -99,6 +103,7 @@ class GymBlocks:
     """Blocks over gymnasium batch environments, one per block, on the CPU."""
 
     step_noise = 0  # gymnasium environments draw from their own generators
+    any_copies = False  # a batch environment steps all its copies
 
     def __init__(self, envs: Sequence[BatchEnv], device: torch.device) -> None:
         self.envs = list(envs)

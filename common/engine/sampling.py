@@ -4,10 +4,12 @@ Block b holds ``counts[b]`` copies of one row's environment (its trajectories th
 iteration); every copy's randomness comes from its own trajectory key (its reset from counters
 −1, −2, …, its decisions from counters t · noise_size + j, its environment's own draws at step
 t, where a family has them, from :data:`ENV_COUNTERS` − t · step_noise − j), so a trajectory
-is the same in any company and any layout. Every stepped block acts in one call of the policy
-(``PolicyRows.act`` on a [blocks, widest block] grid of copies); blocks whose copies have all
-ended leave the stepping, and the set of stepped blocks is narrowed when it has shrunk by a
-quarter (episode lengths vary a lot, and a batch lasts as long as its longest episode).
+is the same in any company and any layout. Every stepped copy acts in one call of the policy
+(``PolicyRows.act`` on a grid of tiles, each of one block's copies under its θ row). Episode
+lengths vary a lot and a batch lasts as long as its longest episode, so copies that have
+ended leave the stepping: once the running copies are three quarters of those stepped or
+fewer, only they are stepped from then on (whole blocks, where the environments step a block
+at once: gymnasium's batch environments).
 """
 
 from __future__ import annotations
@@ -48,22 +50,24 @@ this project's CPUs a product of fewer than 16 rows rounds differently)."""
 
 
 class _Plan:
-    """The blocks still stepped: their copies, the same as a padded [tiles, ACT_TILE] grid (one
-    policy call for all of them, or calls of exactly ``tiles_per_call`` tiles, the grid then
-    padded with empty tiles to whole calls), and each tile's θ row."""
+    """The copies still stepped (``columns``, increasing, so each block's are adjacent), the
+    same as a padded [tiles, ACT_TILE] grid: each stepped block's copies cut into tiles of
+    exactly :data:`ACT_TILE` (its last one padded with its first copy), one policy call for
+    all of them, or calls of exactly ``tiles_per_call`` tiles (the grid then padded with empty
+    tiles to whole calls), and each tile's θ row. A copy's action depends on its own
+    observation, draws and θ row alone: which copies share its tile does not change it."""
 
     def __init__(
         self,
-        blocks: torch.Tensor,
-        counts: torch.Tensor,
-        offsets: torch.Tensor,
+        columns: torch.Tensor,
+        owner: torch.Tensor,
         theta: torch.Tensor,
         tiles_per_call: int | None = None,
     ) -> None:
+        self.columns = columns
+        device = columns.device
+        blocks, sizes = torch.unique_consecutive(owner[columns], return_counts=True)
         self.blocks = blocks
-        self.columns = columns_of(offsets, blocks)
-        device = blocks.device
-        sizes = counts[blocks]
         tiles = (sizes + ACT_TILE - 1) // ACT_TILE
         block_of_tile = torch.repeat_interleave(torch.arange(len(blocks), device=device), tiles)
         first_tile = torch.cumsum(tiles, 0) - tiles
@@ -72,8 +76,8 @@ class _Plan:
         )
         slots = start.unsqueeze(1) + torch.arange(ACT_TILE, device=device).unsqueeze(0)
         self.valid = slots < sizes[block_of_tile].unsqueeze(1)
-        base = offsets[blocks][block_of_tile].unsqueeze(1)
-        self.grid = torch.where(self.valid, base + slots, base)
+        base = (torch.cumsum(sizes, 0) - sizes)[block_of_tile].unsqueeze(1)
+        self.grid = columns[torch.where(self.valid, base + slots, base)]
         self.theta = theta[blocks][block_of_tile]
         self.tiles_per_call = tiles_per_call
         if tiles_per_call is not None:  # empty tiles (copy 0, the first block's θ) to whole calls
@@ -81,7 +85,7 @@ class _Plan:
             self.valid = torch.cat([self.valid, self.valid.new_zeros((extra, ACT_TILE))])
             self.grid = torch.cat([self.grid, self.grid.new_zeros((extra, ACT_TILE))])
             self.theta = torch.cat([self.theta, self.theta[:1].expand(extra, -1)])
-        self.everyone = len(blocks) == len(counts)
+        self.everyone = len(columns) == len(owner)
         self.full = bool(self.valid.all())
         """No padded slot: the grid's actions are the copies' in order."""
 
@@ -136,18 +140,15 @@ def sample(
     random_columns = faults.random_actions[owner] if faults is not None and not greedy else None
     k = policy.noise_size
     noise = torch.zeros((total, NOISE_CHUNK, k), dtype=torch.float32, device=device)
-    plan = _Plan(everyone, counts, offsets, theta, tiles_per_call)
+    plan = _Plan(torch.arange(total, device=device), owner, theta, tiles_per_call)
     t = 0
     env_noise = copies.step_noise
     while t < horizon:
-        live_copies = torch.zeros(num_blocks, dtype=torch.int64, device=device)
-        block_running = live_copies.index_add_(0, owner, running.long()) > 0
-        running_blocks = int(block_running.sum())  # the step's one wait for the device
-        if running_blocks == 0:
+        narrowed = _narrowed(plan, running, owner, offsets, copies.any_copies)
+        if narrowed is None:
             break
-        if 4 * running_blocks <= 3 * len(plan.blocks):
-            stepped = torch.nonzero(block_running).squeeze(1)
-            plan = _Plan(stepped, counts, offsets, theta, tiles_per_call)
+        if isinstance(narrowed, torch.Tensor):
+            plan = _Plan(narrowed, owner, theta, tiles_per_call)
         columns = plan.columns
         if not greedy and t % NOISE_CHUNK == 0:
             counters = t * k + torch.arange(NOISE_CHUNK * k, device=device)
@@ -186,22 +187,52 @@ def sample(
     )
 
 
+def _narrowed(
+    plan: _Plan,
+    running: torch.Tensor,
+    owner: torch.Tensor,
+    offsets: torch.Tensor,
+    any_copies: bool,
+) -> torch.Tensor | _Plan | None:
+    """The copies the next step steps: ``plan`` itself while it still holds enough running
+    copies (or blocks), the running ones once they have shrunk to three quarters of it, None
+    when none runs. Copies that step one by one (``any_copies``) are narrowed to the running
+    copies; blocks stepped whole (gymnasium's batch environments), to the running blocks."""
+    if any_copies:
+        live = int(running.sum())  # the step's one wait for the device
+        if live == 0:
+            return None
+        if 4 * live > 3 * len(plan.columns):
+            return plan
+        return torch.nonzero(running).squeeze(1)
+    live_copies = torch.zeros(len(offsets) - 1, dtype=torch.int64, device=running.device)
+    block_running = live_copies.index_add_(0, owner, running.long()) > 0
+    live = int(block_running.sum())
+    if live == 0:
+        return None
+    if 4 * live > 3 * len(plan.blocks):
+        return plan
+    return columns_of(offsets, torch.nonzero(block_running).squeeze(1))
+
+
 class _Record:
     """The steps taken so far, time-major, in buffers that double as episodes grow (a batch
-    of short episodes never holds a horizon's worth of memory)."""
+    of short episodes never holds a horizon's worth of memory). Each step's row is written
+    whole when the step comes (zeros where no copy was stepped), so the buffers are never
+    filled beforehand."""
 
     START = 64
 
     def __init__(self, total: int, obs: torch.Tensor, device: torch.device) -> None:
         self.total, self.device = total, device
-        self.obs = torch.zeros((self.START, *obs.shape), dtype=obs.dtype, device=device)
+        self.obs = torch.empty((self.START, *obs.shape), dtype=obs.dtype, device=device)
         self.actions: torch.Tensor | None = None
-        self.rewards = torch.zeros((self.START, total), dtype=torch.float64, device=device)
-        self.alive = torch.zeros((self.START, total), dtype=torch.bool, device=device)
+        self.rewards = torch.empty((self.START, total), dtype=torch.float64, device=device)
+        self.alive = torch.empty((self.START, total), dtype=torch.bool, device=device)
 
     def _grow(self, steps: int) -> None:
         def grown(buffer: torch.Tensor) -> torch.Tensor:
-            bigger = buffer.new_zeros((steps, *buffer.shape[1:]))
+            bigger = buffer.new_empty((steps, *buffer.shape[1:]))
             bigger[: buffer.shape[0]] = buffer
             return bigger
 
@@ -221,7 +252,7 @@ class _Record:
         if t >= self.obs.shape[0]:
             self._grow(2 * self.obs.shape[0])
         if self.actions is None:
-            self.actions = torch.zeros(
+            self.actions = torch.empty(
                 (self.obs.shape[0], self.total, *actions.shape[1:]),
                 dtype=actions.dtype,
                 device=self.device,
@@ -229,6 +260,8 @@ class _Record:
         if columns is None:
             self.obs[t], self.actions[t], self.rewards[t] = obs, actions, reward
         else:
+            for row in (self.obs[t], self.actions[t], self.rewards[t]):
+                row.zero_()
             self.obs[t, columns] = obs[columns]
             self.actions[t, columns] = actions
             self.rewards[t, columns] = reward
