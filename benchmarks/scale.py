@@ -271,7 +271,7 @@ def figure(results: list[CaseResult], machine: str) -> None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    fig, (left, right) = plt.subplots(1, 2, figsize=(11, 4.2), width_ratios=[3, 2])
+    fig, (left, right) = plt.subplots(1, 2, figsize=(11, 4.8), width_ratios=[3, 2])
     names = [r.case.name for r in results]
     y = np.arange(len(results))
     hosted = [r.case.per_host > 1 for r in results]
@@ -289,7 +289,7 @@ def figure(results: list[CaseResult], machine: str) -> None:
         left.axvline(target, color=bars.patches[0].get_facecolor(), linestyle="--", lw=1)
     left.set_yticks(y, names, fontsize=8)
     left.set_xlabel("env steps per second ÷ reference (b)")
-    left.legend(fontsize=7, loc="lower right")
+    left.legend(fontsize=7, loc="upper center", bbox_to_anchor=(0.5, -0.16), ncol=2)
     right.barh(y, [r.peak_pss_mib for r in results])
     right.axvline(2048, color="k", linestyle="--", label="2 GB target")
     right.set_yticks(y, [""] * len(y))
