@@ -360,17 +360,23 @@ def ordered_sums(index: torch.Tensor, values: torch.Tensor, size: int) -> torch.
 def _summed_by_columns(
     index: torch.Tensor, values: torch.Tensor, out: torch.Tensor
 ) -> torch.Tensor:
-    """:func:`ordered_sums` without atomics (what every device other than the CPU runs)."""
+    """:func:`ordered_sums` without atomics (what every device other than the CPU runs): the
+    entries of each g, in their order (a stable sort of ``index``, skipped where it is sorted
+    already, as a staircase's cells are), added one rank at a time; only gathers, no indexed
+    write (which deterministic algorithms would sort again)."""
     if index.numel() == 0:
         return out
-    order = torch.argsort(index, stable=True)
-    grouped = index.index_select(0, order)
-    counts = torch.bincount(index, minlength=out.shape[0])
-    rank = torch.arange(index.shape[0], device=index.device) - (
-        torch.cumsum(counts, 0) - counts
-    ).index_select(0, grouped)
-    table = values.new_zeros((out.shape[0], int(counts.max()), *values.shape[1:]))
-    table[grouped, rank] = values.index_select(0, order)
-    for j in range(table.shape[1]):
-        out += table[:, j]  # a padding zero leaves a sum as it is: x + 0 = x
+    if bool((index[1:] >= index[:-1]).all()):
+        grouped, ordered = index, values
+    else:
+        order = torch.argsort(index, stable=True)
+        grouped, ordered = index.index_select(0, order), values.index_select(0, order)
+    counts = torch.bincount(grouped, minlength=out.shape[0])
+    first = torch.cumsum(counts, 0) - counts
+    last = index.shape[0] - 1
+    trailing = (1,) * (values.dim() - 1)
+    for j in range(int(counts.max())):
+        having = (counts > j).reshape(-1, *trailing)
+        entry = ordered.index_select(0, (first + j).clamp_max(last))
+        out += torch.where(having, entry, torch.zeros_like(entry))  # x + 0 = x: no change
     return out

@@ -19,6 +19,7 @@ from fedhpg.common.group import EngineGroup
 from fedhpg.common.runtime.cli import compose
 from fedhpg.common.variants import variants_of
 from fedhpg.common.worker import initial_theta
+from fedhpg.envs.device import put_distinct
 
 FAMILIES = {
     "pendulum": ["env=pendulum", "policy.hidden=[16,16]", "env.horizon=40"],
@@ -84,3 +85,24 @@ def test_a_callers_own_deterministic_setting_is_kept(warn_only: bool) -> None:
         assert _setting() == (True, warn_only)
     finally:
         torch.use_deterministic_algorithms(*before[:1], warn_only=before[1])
+
+
+def test_a_write_to_distinct_positions_keeps_the_deterministic_setting() -> None:
+    """``put_distinct`` leaves deterministic mode for its one write (off the CPU, where the mode
+    would sort the indices) and puts the caller's setting back: exercised on torch's meta
+    device, which is not the CPU."""
+    before = _setting()
+    for warn_only in (False, True):
+        torch.use_deterministic_algorithms(True, warn_only=warn_only)
+        try:
+            target = torch.zeros(6, 3, device="meta")
+            put_distinct(
+                target, (torch.tensor([4, 1], device="meta"),), torch.ones(2, 3, device="meta")
+            )
+            assert _setting() == (True, warn_only)
+        finally:
+            torch.use_deterministic_algorithms(*before[:1], warn_only=before[1])
+    cpu = torch.zeros(5)
+    put_distinct(cpu, torch.tensor([3, 0]), torch.tensor([2.0, 7.0]))
+    assert cpu.tolist() == [7.0, 0.0, 0.0, 2.0, 0.0]
+    assert _setting() == before

@@ -42,6 +42,17 @@ def test_sums_by_columns_are_index_adds_bits(shape: tuple[int, ...]) -> None:
     )
 
 
+def test_a_sorted_index_is_summed_without_a_sort(monkeypatch: pytest.MonkeyPatch) -> None:
+    values, index = _values(4000, 3), _index(4000, 37).sort().values  # a staircase's order
+    expected = values.new_zeros((37, 3)).index_add_(0, index, values)
+
+    def refused(*args: object, **kwargs: object) -> torch.Tensor:
+        raise AssertionError("sorted an index that was sorted already")
+
+    monkeypatch.setattr(torch, "argsort", refused)
+    assert torch.equal(_summed_by_columns(index, values, values.new_zeros((37, 3))), expected)
+
+
 def test_a_sum_in_another_order_differs_in_its_bits() -> None:
     values, index = _values(4000), _index(4000, 37)
     expected = values.new_zeros(37).index_add_(0, index, values)

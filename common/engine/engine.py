@@ -47,7 +47,7 @@ from fedhpg.common.randomness import Purpose, trajectory_keys
 from fedhpg.common.types import EvaluationStats
 from fedhpg.common.variants import discount, training_horizon
 from fedhpg.envs.base import BatchEnv, EnvVariant
-from fedhpg.envs.device import DeviceFamily, device_family
+from fedhpg.envs.device import DeviceFamily, device_family, put_distinct
 
 if TYPE_CHECKING:
     from fedhpg.common.batched.backend import CompiledBackend
@@ -527,8 +527,8 @@ class Engine:
         act_flat = batch.actions.reshape(-1, *batch.actions.shape[2:])
         obs = obs_flat.new_zeros((total, TILE, *batch.obs.shape[2:]))
         act = act_flat.new_zeros((total, TILE, *batch.actions.shape[2:]))
-        obs[tile, slot % TILE] = obs_flat[flat]
-        act[tile, slot % TILE] = act_flat[flat]
+        put_distinct(obs, (tile, slot % TILE), obs_flat[flat])
+        put_distinct(act, (tile, slot % TILE), act_flat[flat])
         tile_group = torch.repeat_interleave(
             torch.arange(groups, device=owner.device), tiles_per_group
         )
@@ -544,7 +544,7 @@ class Engine:
         """Each tile's Σ coef ∇ log π under its θ row ``theta[row_of_tile]``, [tiles, d], in
         chunks (the θ rows of one chunk's tiles at a time)."""
         coef = torch.zeros(tiles.obs.shape[:2], dtype=torch.float64, device=self.device)
-        coef[tiles.tile, tiles.slot] = values[tiles.cell].to(torch.float64)
+        put_distinct(coef, (tiles.tile, tiles.slot), values[tiles.cell].to(torch.float64))
         out = theta.new_empty((tiles.obs.shape[0], self.policy.num_params))
         return self._over_tiles(tiles, out, lambda block: self.policy.score_gradients(
             theta[row_of_tile[block]], tiles.obs[block], tiles.act[block], coef[block]
@@ -598,7 +598,7 @@ class Engine:
             theta[tiles.tile_group[block]], tiles.obs[block], tiles.act[block]
         ).double())  # fmt: skip
         out = torch.zeros(batch.alive.numel(), dtype=torch.float64, device=self.device)
-        out[tiles.flat] = values[tiles.tile, tiles.slot]
+        put_distinct(out, tiles.flat, values[tiles.tile, tiles.slot])
         return out.reshape(batch.alive.shape)
 
     def trajectory_gradients(

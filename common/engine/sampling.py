@@ -23,6 +23,7 @@ from fedhpg.common.engine.copies import Copies, columns_of
 from fedhpg.common.engine.policy_rows import PolicyRows
 from fedhpg.common.engine.trajectories import Trajectories
 from fedhpg.common.randomness import uniforms, uniforms64
+from fedhpg.envs.device import put_distinct
 
 
 @dataclass(frozen=True)
@@ -153,7 +154,11 @@ def sample(
         if not greedy and t % NOISE_CHUNK == 0:
             counters = t * k + torch.arange(NOISE_CHUNK * k, device=device)
             draws = uniforms(keys[columns].unsqueeze(1), counters.unsqueeze(0))
-            noise[columns] = draws.reshape(-1, NOISE_CHUNK, k)
+            drawn = draws.reshape(-1, NOISE_CHUNK, k)
+            if plan.everyone:
+                noise = drawn
+            else:
+                put_distinct(noise, columns, drawn)
         acted = plan.act(policy, obs, None if greedy else noise[:, t % NOISE_CHUNK])
         actions = acted.flatten(0, 1) if plan.full else acted[plan.valid]
         if random_columns is not None and bool(random_columns[columns].any()):
@@ -165,16 +170,22 @@ def sample(
             counters = ENV_COUNTERS - t * env_noise - torch.arange(env_noise, device=device)
             env_draws = uniforms64(keys[columns].unsqueeze(1), counters.unsqueeze(0))
         step = copies.step(actions, plan.blocks, None if plan.everyone else columns, env_draws)
-        live = running[columns]
+        live = running if plan.everyone else running[columns]
         reward = step.reward.to(torch.float64) * live
         if flipped is not None:
             reward = torch.where(flipped[columns], -reward, reward)
         record.add(t, None if plan.everyone else columns, obs, actions, reward, running)
-        success[columns] |= live & step.success
-        running[columns] = live & ~(step.terminated | step.truncated)
+        going = live & ~(step.terminated | step.truncated)
+        if plan.everyone:  # whole tensors: no indexed write
+            success |= live & step.success
+            running = going
+            obs.copy_(step.obs)
+        else:
+            put_distinct(success, columns, success[columns] | (live & step.success))
+            put_distinct(running, columns, going)
+            put_distinct(obs, columns, step.obs.to(obs.dtype))
         t += 1
         running &= stop_at > t
-        obs[columns] = step.obs.to(obs.dtype)
     obs_seen, actions_taken, rewards, alive = record.taken(t)
     return Trajectories(
         obs=obs_seen,
@@ -262,9 +273,9 @@ class _Record:
         else:
             for row in (self.obs[t], self.actions[t], self.rewards[t]):
                 row.zero_()
-            self.obs[t, columns] = obs[columns]
-            self.actions[t, columns] = actions
-            self.rewards[t, columns] = reward
+            put_distinct(self.obs[t], columns, obs[columns])
+            put_distinct(self.actions[t], columns, actions)
+            put_distinct(self.rewards[t], columns, reward)
         self.alive[t] = running
 
     def taken(self, steps: int) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:

@@ -15,7 +15,7 @@ from typing import Any, ClassVar
 
 import torch
 
-from fedhpg.envs.device import CopyStep, ResetStream
+from fedhpg.envs.device import CopyStep, ResetStream, put_distinct
 
 Params = dict[str, torch.Tensor]
 
@@ -74,8 +74,8 @@ class TensorCopies(abc.ABC):
             else torch.zeros((count, 0), dtype=torch.float64, device=self.device)
         )
         state = self.start(draws, p).to(self.state_dtype)
-        self.state[:, columns] = state
-        self.steps[columns] = 0
+        put_distinct(self.state, (slice(None), columns), state)
+        put_distinct(self.steps, columns, 0)
         return self.observe(state, p)
 
     def step(
@@ -91,8 +91,8 @@ class TensorCopies(abc.ABC):
         if columns is None:
             self.state, self.steps = state, steps
         else:
-            self.state[:, columns] = state
-            self.steps[columns] = steps
+            put_distinct(self.state, (slice(None), columns), state)
+            put_distinct(self.steps, columns, steps)
         truncated = steps >= limit
         if not self.truncate_terminated:
             truncated &= ~terminated
