@@ -83,11 +83,20 @@ def trajectory_keys(
     """The key of trajectory ``trajectories[i]`` of agent ``agents[i]`` (int64 tensors of one
     shape) in local iteration ``iteration`` of round ``round_index``; with ``owner``, of agent
     ``agents[owner[i]]`` (the agents' part of the key is then hashed once per agent)."""
-    base = key_of(seed, int(purpose))
-    state = absorb(torch.full_like(agents, base), agents)
-    state = absorb(state, torch.full_like(agents, signed(round_index)))
-    state = absorb(state, torch.full_like(agents, signed(iteration)))
+    state = agent_key(
+        torch.full_like(agents, key_of(seed, int(purpose))),
+        agents,
+        torch.full_like(agents, signed(round_index)),
+        torch.full_like(agents, signed(iteration)),
+    )
     return absorb(state if owner is None else state[owner], trajectories)
+
+
+def agent_key(base: Word, agent: Word, round_index: Word, iteration: Word) -> Word:
+    """The key of one agent's local iteration in a round, from ``base`` (seed and purpose,
+    :func:`key_of`); its trajectory t's key is ``absorb(agent_key(...), t)``. Operators
+    alone, so numba compiles this same definition (``common/batched/kernels.py``)."""
+    return absorb(absorb(absorb(base, agent), round_index), iteration)
 
 
 def words(keys: torch.Tensor, counters: torch.Tensor | int) -> torch.Tensor:

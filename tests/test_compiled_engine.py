@@ -58,6 +58,24 @@ def test_the_kernels_draw_the_engines_numbers() -> None:
         assert np.array_equal(ours53, uniforms64(keys, counter).numpy()), counter
 
 
+def test_the_compiled_keys_are_the_engines_words() -> None:
+    generator = torch.Generator().manual_seed(3)
+    agents = torch.randint(0, 10**6, (40,), generator=generator)
+    counts = torch.randint(0, 9, (40,), generator=generator)  # a row of none included
+    owner = torch.repeat_interleave(torch.arange(40), counts)
+    index = torch.arange(int(counts.sum())) - (torch.cumsum(counts, 0) - counts)[owner]
+    settings = [(0, 0, 0, Purpose.TRAIN), (2**40 + 7, 10**6, 9, Purpose.EVALUATE),
+                (5, 3, 1, Purpose.SERVER)]  # fmt: skip
+    for seed, round_index, iteration, purpose in settings:
+        expected = trajectory_keys(seed, agents, round_index, purpose, iteration, index, owner)
+        got = CompiledBackend.trajectory_keys(seed, agents, counts, round_index, purpose, iteration)
+        assert torch.equal(got, expected)
+    assert not torch.equal(
+        CompiledBackend.trajectory_keys(0, agents, counts, 0, Purpose.TRAIN, 1),
+        CompiledBackend.trajectory_keys(0, agents, counts, 0, Purpose.TRAIN, 0),
+    ), "an iteration's keys are its own"
+
+
 def test_tanh32_is_within_seven_ulps_of_tanh() -> None:
     """The float32 rational function (common/batched/kernels.py's docstring: every float32
     in [2⁻³⁰, 10.5] measured, at most 7 ulps off, 0.28 % three or more); a fixed sample of

@@ -20,10 +20,12 @@ from collections.abc import Sequence
 import numpy as np
 import torch
 
+from fedhpg.common import randomness
 from fedhpg.common.batched import kernels
 from fedhpg.common.batched.mlp import MLPShape
 from fedhpg.common.batched.scans import SCANS
 from fedhpg.common.engine.trajectories import StepRows, Trajectories
+from fedhpg.common.randomness import Purpose
 from fedhpg.envs.base import EnvVariant
 from fedhpg.envs.compiled import CARTPOLE_DEFAULTS, CARTPOLE_STEP_LIMIT, cartpole_table
 
@@ -70,6 +72,24 @@ class CompiledBackend:
             self._recent.clear()
         self._recent[key] = self._table[[self._row_of[k] for k in agents]]
         return self._recent[key]
+
+    @staticmethod
+    def trajectory_keys(
+        seed: int,
+        agents: torch.Tensor,
+        counts: torch.Tensor,
+        round_index: int,
+        purpose: Purpose,
+        iteration: int,
+    ) -> torch.Tensor:
+        """:func:`~fedhpg.common.randomness.trajectory_keys` of trajectories 0 … ``counts[a]``
+        − 1 of every agent ``agents[a]``, row after row: the same words, in one compiled call."""
+        out = np.empty(int(counts.sum()), dtype=np.int64)
+        kernels.trajectory_keys(
+            randomness.key_of(seed, int(purpose)), agents.numpy(), counts.numpy(),
+            randomness.signed(round_index), randomness.signed(iteration), out,
+        )  # fmt: skip
+        return torch.from_numpy(out)
 
     def sample(
         self,
@@ -217,6 +237,7 @@ def warm_up() -> float:
     backend = CompiledBackend(MLPShape((4, 2, 2)))
     backend._row_of, backend._tables = {0: 0}, [np.asarray(CARTPOLE_DEFAULTS, dtype=np.float64)]
     theta = torch.zeros((2, 16))
+    backend.trajectory_keys(0, torch.tensor([0, 1]), torch.tensor([1, 2]), 0, Purpose.TRAIN, 0)
     for greedy in (False, True):
         batch = backend.sample(
             theta, torch.tensor([1, 2]), torch.arange(3), torch.tensor([3, 3]), [0, 0],

@@ -44,6 +44,7 @@ from typing import Any, TypeVar, cast
 
 import numpy as np
 from numba import njit
+from numba.extending import register_jitable
 
 from fedhpg.common import randomness
 from fedhpg.envs.compiled import CARTPOLE_STEP_LIMIT, cartpole_step
@@ -127,6 +128,12 @@ def tanh32(value: np.float32) -> np.float32:
 
 _mix64 = cast(Callable[[int], int], njit(cache=True, inline="always")(randomness.mix64))
 """common/randomness.py's hash, compiled: the same bits as the engine's torch draws."""
+register_jitable(randomness.mix64)  # compiled code calling these compiles the same definitions
+register_jitable(randomness.absorb)
+_absorb = cast(Callable[[int, int], int], njit(cache=True, inline="always")(randomness.absorb))
+_agent_key = cast(
+    Callable[[int, int, int, int], int], njit(cache=True, inline="always")(randomness.agent_key)
+)
 _GOLDEN = randomness.GOLDEN
 _TOP24, _TOP53 = (1 << 24) - 1, (1 << 53) - 1
 
@@ -143,6 +150,25 @@ def uniform53(key: int, counter: int) -> float:
     """randomness.uniforms64(key, counter): a float64 uniform with 53 random bits."""
     z = _mix64(key + (counter + 1) * _GOLDEN)
     return float((z >> 11) & _TOP53) * (1.0 / (1 << 53))
+
+
+@kernel()
+def trajectory_keys(
+    base: int,
+    agents: np.ndarray,
+    counts: np.ndarray,
+    round_index: int,
+    iteration: int,
+    out: np.ndarray,
+) -> None:
+    """randomness.trajectory_keys of ``counts[a]`` trajectories of each agent ``agents[a]``,
+    row after row into ``out``."""
+    n = 0
+    for a in range(agents.shape[0]):
+        state = _agent_key(base, agents[a], round_index, iteration)
+        for trajectory in range(counts[a]):
+            out[n] = _absorb(state, trajectory)
+            n += 1
 
 
 @kernel()

@@ -408,11 +408,7 @@ class Engine:
         positions = torch.nonzero(wanted > 0).squeeze(1)
         chosen = wanted[positions]
         agents = [rows.agents[i] for i in positions.tolist()]
-        owner = torch.repeat_interleave(torch.arange(len(agents), device=self.device), chosen)
-        starts = torch.cumsum(chosen, 0) - chosen
-        index = torch.arange(int(chosen.sum()), device=self.device) - starts[owner]
-        keys = trajectory_keys(self.run.seed, per_row["agent"][positions], rows.round_index,
-                               purpose, iteration, index, owner)  # fmt: skip
+        keys = self._keys(per_row["agent"][positions], chosen, rows.round_index, purpose, iteration)
         limit = per_row["horizon"] if horizons is None else horizons.to(self.device)
         started = time.thread_time()
         try:
@@ -422,6 +418,25 @@ class Engine:
         finally:
             self._sampling_s += time.thread_time() - started
         return batch.regrouped(positions, rows.size)
+
+    def _keys(
+        self,
+        agents: torch.Tensor,
+        counts: torch.Tensor,
+        round_index: int,
+        purpose: Purpose,
+        iteration: int,
+    ) -> torch.Tensor:
+        """The keys of trajectories 0 … ``counts[a]`` − 1 of each agent ``agents[a]``, row
+        after row (:func:`~fedhpg.common.randomness.trajectory_keys`)."""
+        if self.compiled is not None:
+            return self.compiled.trajectory_keys(
+                self.run.seed, agents, counts, round_index, purpose, iteration
+            )
+        owner = torch.repeat_interleave(torch.arange(len(counts), device=self.device), counts)
+        starts = torch.cumsum(counts, 0) - counts
+        index = torch.arange(int(counts.sum()), device=self.device) - starts[owner]
+        return trajectory_keys(self.run.seed, agents, round_index, purpose, iteration, index, owner)
 
     def _sample_rows(
         self,
@@ -569,7 +584,7 @@ class Engine:
         count = tiles.tiles_per_group
         for j in range(int(count.max()) if len(count) else 0):
             having = torch.nonzero(count > j).squeeze(1)
-            out[having] += per_tile[tiles.tile_start[having] + j]
+            put_distinct(out, having, out[having] + per_tile[tiles.tile_start[having] + j])
         return out
 
     def gradients(
