@@ -28,6 +28,7 @@ import tarfile
 import tempfile
 from dataclasses import asdict, dataclass, replace
 from pathlib import Path
+from typing import Any
 
 log = logging.getLogger(__name__)
 
@@ -88,8 +89,9 @@ class Side:
     def __init__(self, label: str, path: Path | None, setup: Setup) -> None:
         self.label = label
         env = dict(os.environ, OMP_NUM_THREADS="1", PYTHONHASHSEED="0")
-        if path is not None:  # ahead of this tree's editable install
-            env["PYTHONPATH"] = os.pathsep.join([str(path), env.get("PYTHONPATH", "")])
+        if path is not None:  # the commit's package alone: a folder on the caller's path that
+            # holds this tree's ``fedhpg/__init__.py`` would make the worker import this tree
+            env["PYTHONPATH"] = str(path)
         command = [sys.executable, str(WORKER), "--algo", setup.algo, "--agents",
                    str(setup.agents)]  # fmt: skip
         if setup.theta:
@@ -97,8 +99,13 @@ class Side:
         self.process = subprocess.Popen(command, stdin=subprocess.PIPE, stdout=subprocess.PIPE,
                                         text=True, env=env, cwd=tempfile.gettempdir())  # fmt: skip
         self.ready = self._answer()
+        package = Path(str(self.ready.get("package", "")))
+        if path is not None and "package" in self.ready and path not in package.parents:
+            self.close()
+            raise SystemExit(f"engine_ab: the {label} worker imported {package}, not the "
+                             f"commit's package under {path}")  # fmt: skip
 
-    def _answer(self) -> dict[str, float]:
+    def _answer(self) -> dict[str, Any]:
         assert self.process.stdout is not None
         line = self.process.stdout.readline()
         if not line:
@@ -106,7 +113,7 @@ class Side:
             raise SystemExit(f"engine_ab: the {self.label} worker exited ({code}) before answering")
         return dict(json.loads(line))
 
-    def round(self, index: int) -> dict[str, float]:
+    def round(self, index: int) -> dict[str, Any]:
         assert self.process.stdin is not None
         self.process.stdin.write(f"{index}\n")
         self.process.stdin.flush()

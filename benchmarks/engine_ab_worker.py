@@ -7,11 +7,13 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import sys
 import time
 
 import torch
 
+import fedhpg.common
 from fedhpg.common.group import make_agent_group
 from fedhpg.common.runtime.cli import compose
 from fedhpg.common.worker import initial_theta
@@ -45,7 +47,8 @@ def main() -> None:
     else:
         freeze_setup()
     theta = torch.load(args.theta) if args.theta else initial_theta(_variant(run), run)
-    print(json.dumps({"group": type(group).__name__}), flush=True)
+    package = os.path.dirname(os.path.dirname(os.path.abspath(fedhpg.common.__file__)))
+    print(json.dumps({"group": type(group).__name__, "package": package}), flush=True)
     for line in sys.stdin:
         index = int(line)
         started = time.perf_counter()

@@ -39,3 +39,20 @@ def test_the_folder_holds_the_commits_package() -> None:
 def test_an_unknown_revision_is_a_one_line_error() -> None:
     with pytest.raises(SystemExit, match=r"^engine_ab: no commit 'no-such-rev' in this clone"):
         engine_ab.checkout("no-such-rev")
+
+
+def test_the_commits_worker_imports_the_commits_package(monkeypatch: pytest.MonkeyPatch) -> None:
+    """A caller whose path holds this repository (its ``fedhpg/__init__.py`` a regular
+    package) must not make the commit's worker import this tree."""
+    folder = engine_ab.checkout("HEAD")
+    monkeypatch.setenv("PYTHONPATH", str(ROOT))
+    side = engine_ab.Side("HEAD's", folder, engine_ab.Setup(agents=1))
+    try:
+        assert Path(side.ready["package"]).parents[0] == folder
+    finally:
+        side.close()
+
+
+def test_a_worker_that_imports_another_package_is_a_one_line_error(tmp_path: Path) -> None:
+    with pytest.raises(SystemExit, match=r"^engine_ab: the empty's worker imported .*, not the "):
+        engine_ab.Side("empty's", tmp_path, engine_ab.Setup(agents=1))
