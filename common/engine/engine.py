@@ -159,18 +159,9 @@ class Tally:
 
     @classmethod
     def zeros(cls, rows: int) -> Tally:
-        def z(dtype: torch.dtype) -> torch.Tensor:
-            return torch.zeros(rows, dtype=dtype)
-
-        return cls(
-            z(torch.int64),
-            z(torch.int64),
-            z(torch.float64),
-            z(torch.float64),
-            z(torch.int64),
-            z(torch.int64),
-            z(torch.float64),
-        )
+        trajectories, env_steps, clipped, iterations = torch.zeros((4, rows), dtype=torch.int64)
+        return_sum, compute_s, sample_s = torch.zeros((3, rows), dtype=torch.float64)
+        return cls(trajectories, env_steps, return_sum, compute_s, clipped, iterations, sample_s)
 
     @classmethod
     def concatenated(cls, parts: Sequence[Tally]) -> Tally:
@@ -332,7 +323,7 @@ class Engine:
         _, budget_rows, self._per_row = self._budget_rows
         rows = Rows(
             agents=list(agents),
-            theta=theta.detach().to(self.device, torch.float32).unsqueeze(0).repeat(len(agents), 1),
+            theta=theta.detach().to(self.device, torch.float32).expand(len(agents), -1).clone(),
             budgets={name: values.clone() for name, values in budget_rows.items()},
             round_index=round_index,
         )
@@ -406,15 +397,17 @@ class Engine:
         per_row = self._per_row
         wanted = counts.to(self.device)
         positions = torch.nonzero(wanted > 0).squeeze(1)
-        chosen = wanted[positions]
-        agents = [rows.agents[i] for i in positions.tolist()]
-        keys = self._keys(per_row["agent"][positions], chosen, rows.round_index, purpose, iteration)
         limit = per_row["horizon"] if horizons is None else horizons.to(self.device)
+        if len(positions) == len(wanted):  # every row samples: no row to leave out
+            chosen, agents, agent_ids = wanted, rows.agents, per_row["agent"]
+        else:
+            chosen, limit = wanted[positions], limit[positions]
+            agents = [rows.agents[i] for i in positions.tolist()]
+            agent_ids = per_row["agent"][positions]
+        keys = self._keys(agent_ids, chosen, rows.round_index, purpose, iteration)
         started = time.thread_time()
         try:
-            batch = self._sample_rows(
-                theta, positions, chosen, keys, limit[positions], agents, greedy
-            )
+            batch = self._sample_rows(theta, positions, chosen, keys, limit, agents, greedy)
         finally:
             self._sampling_s += time.thread_time() - started
         return batch.regrouped(positions, rows.size)
@@ -654,15 +647,15 @@ class Engine:
         tally.sample_s += share * sampled
         if clipped is not None:
             tally.clipped += clipped.cpu().long()
-        numbers = tally.iterations[ran].clone()
-        tally.iterations[ran] += 1
-        work = RowWork(
-            rows=ran,
-            iterations=numbers,
-            compute_s=compute[ran],
-            env_steps=steps[ran],
-            grad_steps=(steps if grad_steps is None else grad_steps.cpu())[ran],
-        )
+        grads = steps if grad_steps is None else grad_steps.cpu().clone()
+        if len(ran) == len(counts):  # every row ran: whole tensors, no indexing
+            numbers = tally.iterations.clone()
+            tally.iterations += 1
+            work = RowWork(ran, numbers, compute, steps, grads)
+        else:
+            numbers = tally.iterations[ran].clone()
+            tally.iterations[ran] += 1
+            work = RowWork(ran, numbers, compute[ran], steps[ran], grads[ran])
         tally.work.append(work)
         if self._hook is not None:
             self._hook(work)
