@@ -89,6 +89,9 @@ class _Plan:
         self.everyone = len(columns) == len(owner)
         self.full = bool(self.valid.all())
         """No padded slot: the grid's actions are the copies' in order."""
+        self.slots = None if self.full else torch.nonzero(self.valid.flatten()).squeeze(1)
+        """Else the grid's slots that hold a copy, in order (found once per plan: selecting
+        by a mask at every step would wait for the device to count it)."""
 
     def act(
         self, policy: PolicyRows, obs: torch.Tensor, noise: torch.Tensor | None
@@ -160,7 +163,9 @@ def sample(
             else:
                 put_distinct(noise, columns, drawn)
         acted = plan.act(policy, obs, None if greedy else noise[:, t % NOISE_CHUNK])
-        actions = acted.flatten(0, 1) if plan.full else acted[plan.valid]
+        actions = acted.flatten(0, 1)
+        if plan.slots is not None:
+            actions = actions.index_select(0, plan.slots)
         if random_columns is not None and bool(random_columns[columns].any()):
             actions = _random_actions(
                 actions, random_columns[columns], keys[columns], t, k, action_space
