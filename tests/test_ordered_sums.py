@@ -15,8 +15,12 @@ import pytest
 import torch
 
 from fedhpg.common import estimators, importance, staircase
-from fedhpg.common.engine import trajectories
+from fedhpg.common.engine import engine, trajectories
+from fedhpg.common.group import EngineGroup
+from fedhpg.common.runtime.cli import compose
 from fedhpg.common.staircase import Staircase, _summed_by_columns, ordered_sums
+from fedhpg.common.variants import variants_of
+from fedhpg.common.worker import initial_theta
 
 
 def _values(count: int, *shape: int, seed: int = 0) -> torch.Tensor:
@@ -66,7 +70,7 @@ def _columns_everywhere(monkeypatch: pytest.MonkeyPatch) -> None:
     def by_columns(index: torch.Tensor, values: torch.Tensor, size: int) -> torch.Tensor:
         return _summed_by_columns(index, values, values.new_zeros((size, *values.shape[1:])))
 
-    for module in (estimators, importance, staircase, trajectories):
+    for module in (estimators, importance, staircase, trajectories, engine):
         monkeypatch.setattr(module, "ordered_sums", by_columns)
 
 
@@ -102,6 +106,25 @@ def test_every_estimator_option_gives_the_cpus_bits_without_atomics(
     _columns_everywhere(monkeypatch)
     got = coefficients(), importance.self_normalise(weights.T, groups)
     assert torch.equal(got[0], expected[0]) and torch.equal(got[1], expected[1])
+
+
+def test_the_engines_gradients_give_the_cpus_bits_without_atomics(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """The torch engine's per-agent sums of its tiles' gradients, too."""
+    run = compose(["env=cartpole", "agents=population", "agents.num_agents=5",
+                   "algo.engine=torch", "policy.hidden=[16,16]"])  # fmt: skip
+    agents = list(range(5))
+    theta = initial_theta(variants_of(run, [0])[0], run)
+
+    def thetas() -> list[torch.Tensor]:
+        trained = EngineGroup(run, variants_of(run, agents)).train(1, theta, agents)
+        return [trained[k].theta for k in agents]
+
+    expected = thetas()
+    _columns_everywhere(monkeypatch)
+    assert all(torch.equal(a, b) for a, b in zip(thetas(), expected, strict=True))
+    assert not all(torch.equal(a, theta) for a in expected), "the agents moved"
 
 
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="no CUDA device on this machine")

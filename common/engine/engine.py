@@ -44,6 +44,7 @@ from fedhpg.common.engine.policy_rows import PolicyRows, chunked
 from fedhpg.common.engine.sampling import ACT_TILE, Faults, sample
 from fedhpg.common.engine.trajectories import Trajectories
 from fedhpg.common.randomness import Purpose, trajectory_keys
+from fedhpg.common.staircase import ordered_sums
 from fedhpg.common.types import EvaluationStats
 from fedhpg.common.variants import discount, training_horizon
 from fedhpg.envs.base import BatchEnv, EnvVariant
@@ -572,13 +573,10 @@ class Engine:
 
     @staticmethod
     def _group_sums(tiles: _Tiles, per_tile: torch.Tensor, groups: int) -> torch.Tensor:
-        """Each group's tile gradients summed in tile order (the same sums in any company)."""
-        out = per_tile.new_zeros((groups, per_tile.shape[1]))
-        count = tiles.tiles_per_group
-        for j in range(int(count.max()) if len(count) else 0):
-            having = torch.nonzero(count > j).squeeze(1)
-            put_distinct(out, having, out[having] + per_tile[tiles.tile_start[having] + j])
-        return out
+        """Each group's tile gradients summed in tile order (the same sums in any company);
+        the empty tiles that pad a GPU's last call are left out."""
+        real = int(tiles.tiles_per_group.sum())
+        return ordered_sums(tiles.tile_group[:real], per_tile[:real], groups)
 
     def gradients(
         self, theta: torch.Tensor, batch: Trajectories, coefficients: torch.Tensor

@@ -143,7 +143,7 @@ def sample(
     flipped = faults.flipped_rewards[owner] if faults is not None else None
     random_columns = faults.random_actions[owner] if faults is not None and not greedy else None
     k = policy.noise_size
-    noise = torch.zeros((total, NOISE_CHUNK, k), dtype=torch.float32, device=device)
+    noise: torch.Tensor | None = None  # [N, NOISE_CHUNK, k], from the first chunk's draws
     plan = _Plan(torch.arange(total, device=device), owner, theta, tiles_per_call)
     t = 0
     env_noise = copies.step_noise
@@ -160,9 +160,10 @@ def sample(
             drawn = draws.reshape(-1, NOISE_CHUNK, k)
             if plan.everyone:
                 noise = drawn
-            else:
+            else:  # the first chunk stepped every copy, so the buffer is whole
+                assert noise is not None
                 put_distinct(noise, columns, drawn)
-        acted = plan.act(policy, obs, None if greedy else noise[:, t % NOISE_CHUNK])
+        acted = plan.act(policy, obs, None if noise is None else noise[:, t % NOISE_CHUNK])
         actions = acted.flatten(0, 1)
         if plan.slots is not None:
             actions = actions.index_select(0, plan.slots)
