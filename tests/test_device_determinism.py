@@ -14,7 +14,9 @@ import pytest
 import torch
 
 from fedhpg.common.engine.devices import deterministic_off_cpu
+from fedhpg.common.engine.memory import packed_elements
 from fedhpg.common.engine.policy_rows import PolicyRows
+from fedhpg.common.engine.sampling import ACT_TILE, act_tiles_per_call
 from fedhpg.common.group import EngineGroup
 from fedhpg.common.runtime.cli import compose
 from fedhpg.common.variants import variants_of
@@ -53,6 +55,19 @@ def test_fixed_shape_policy_calls_give_the_same_theta_in_any_company(
 
 
 CUDA = torch.device("cuda")  # only its type is read: no CUDA device is needed
+
+
+def test_a_gpus_policy_calls_are_sized_by_the_run_and_split_evenly() -> None:
+    mlp = 386  # CartPole's 16-16 MLP
+    largest = packed_elements(CUDA) // (ACT_TILE * mlp)
+    assert largest == 21_732
+    assert act_tiles_per_call(torch.device("cpu"), mlp, 1000) is None  # one call a step
+    assert act_tiles_per_call(CUDA, mlp, 1) == 1
+    assert act_tiles_per_call(CUDA, mlp, 1000) == 1000  # not padded to 21,732 tiles
+    assert act_tiles_per_call(CUDA, mlp, largest) == largest
+    assert act_tiles_per_call(CUDA, mlp, largest + 1) == (largest + 2) // 2  # two even calls
+    assert act_tiles_per_call(CUDA, mlp, 65_536) == 16_384  # four calls, none mostly empty
+    assert act_tiles_per_call(CUDA, 10**9, 10) == 1  # a policy too large for one tile a call
 
 
 def _setting() -> tuple[bool, bool]:

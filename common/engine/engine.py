@@ -41,7 +41,7 @@ from fedhpg.common.engine.memory import (
     plan_round,
 )
 from fedhpg.common.engine.policy_rows import PolicyRows, chunked
-from fedhpg.common.engine.sampling import ACT_TILE, Faults, sample
+from fedhpg.common.engine.sampling import Faults, act_tiles_per_call, sample
 from fedhpg.common.engine.trajectories import Trajectories
 from fedhpg.common.randomness import Purpose, trajectory_keys
 from fedhpg.common.staircase import ordered_sums
@@ -224,10 +224,8 @@ class Engine:
         exactly so many, padded with empty tiles: a GPU library may pick its kernels, and so
         its order of additions, by a call's shape, which must then not depend on the
         company)."""
-        self.act_tiles_per_call = (
-            None
-            if self.device.type == "cpu"
-            else max(packed_elements(self.device) // (ACT_TILE * self.policy.num_params), 1)
+        self.act_tiles_per_call = act_tiles_per_call(
+            self.device, self.policy.num_params, run.agents.num_agents
         )
         """Tiles of :data:`ACT_TILE` copies one policy call takes while sampling: off the CPU
         exactly so many (padded), for the same reason; None on the CPU (one call a step)."""

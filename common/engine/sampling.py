@@ -20,6 +20,7 @@ import gymnasium as gym
 import torch
 
 from fedhpg.common.engine.copies import Copies, columns_of
+from fedhpg.common.engine.memory import packed_elements
 from fedhpg.common.engine.policy_rows import PolicyRows
 from fedhpg.common.engine.trajectories import Trajectories
 from fedhpg.common.randomness import uniforms, uniforms64
@@ -48,6 +49,20 @@ into tiles of exactly this many (the last one padded), each tile a row of one po
 its block's θ: a matrix product then has one shape whatever the company, and its floats
 cannot change with it (a BLAS picks its kernel, and its order of additions, by the shape: on
 this project's CPUs a product of fewer than 16 rows rounds differently)."""
+
+
+def act_tiles_per_call(device: torch.device, num_params: int, agents: int) -> int | None:
+    """Tiles one policy call takes while sampling: None on the CPU (one call a step, of any
+    size); elsewhere one count for the whole run, every call padded to it, since a GPU library
+    may pick its kernel, and so its rounding, by a call's shape. The count is the run's
+    ``agents`` (a tile each: a round's first 16 copies of every agent fill its calls), split
+    evenly into calls of at most :func:`packed_elements` parameters' worth: a small run does
+    not pad to a large call, and a large one is not left with a mostly empty last call."""
+    if device.type == "cpu":
+        return None
+    largest = max(packed_elements(device) // (ACT_TILE * max(num_params, 1)), 1)
+    calls = -(-max(agents, 1) // largest)
+    return -(-max(agents, 1) // calls)
 
 
 class _Plan:
