@@ -60,9 +60,9 @@ def act_tiles_per_call(device: torch.device, num_params: int, agents: int) -> in
     not pad to a large call, and a large one is not left with a mostly empty last call."""
     if device.type == "cpu":
         return None
-    largest = max(packed_elements(device) // (ACT_TILE * max(num_params, 1)), 1)
-    calls = -(-max(agents, 1) // largest)
-    return -(-max(agents, 1) // calls)
+    largest = max(packed_elements(device) // (ACT_TILE * num_params), 1)
+    calls = -(-agents // largest)
+    return -(-agents // calls)
 
 
 class _Plan:
@@ -102,11 +102,10 @@ class _Plan:
             self.grid = torch.cat([self.grid, self.grid.new_zeros((extra, ACT_TILE))])
             self.theta = torch.cat([self.theta, self.theta[:1].expand(extra, -1)])
         self.everyone = len(columns) == len(owner)
-        self.full = bool(self.valid.all())
-        """No padded slot: the grid's actions are the copies' in order."""
-        self.slots = None if self.full else torch.nonzero(self.valid.flatten()).squeeze(1)
-        """Else the grid's slots that hold a copy, in order (found once per plan: selecting
-        by a mask at every step would wait for the device to count it)."""
+        self.slots = None if bool(self.valid.all()) else torch.nonzero(self.valid.flatten())[:, 0]
+        """The grid's slots that hold a copy, in order; None when none is padding (the grid's
+        actions are then the copies'). Found once per plan: selecting by a mask at every step
+        would wait for the device to count it."""
 
     def act(
         self, policy: PolicyRows, obs: torch.Tensor, noise: torch.Tensor | None
