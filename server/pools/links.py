@@ -15,6 +15,9 @@ by index. :class:`Links` keeps them:
   agents with it, in one log line (the pool's ``on_lost`` composes it).
 - **The connection guard's bookkeeping**: which descriptors belong to registered links, and
   how much a registered link may have queued (a round's answers, twice over).
+- **The answer allowance**: every request sent to a link lets it send one more message per
+  agent the request names past the loop's per-peer cap (:attr:`Link.allowance`), so that a
+  host's answers split one agent per message are never dropped as a flood.
 
 :class:`Outbox` sends without ever blocking the server and answers bad input with an
 ``Error``: always to a registered link, to a stranger only within a small token bucket, and
@@ -32,7 +35,18 @@ import zmq
 
 from fedhpg.common.config import ServerConfig, agent_id_of
 from fedhpg.common.variants import range_digest
-from fedhpg.common.wire.protocol import KEY_BYTES, Error, Heartbeat, Hello, Message, Welcome
+from fedhpg.common.wire.protocol import (
+    KEY_BYTES,
+    Error,
+    Evaluate,
+    Heartbeat,
+    Hello,
+    MaskRequest,
+    Message,
+    Train,
+    UnmaskRequest,
+    Welcome,
+)
 from fedhpg.common.wire.transport import send_message
 from fedhpg.server.connections import ConnectionGuard
 
@@ -65,6 +79,15 @@ class Link:
     last_seen: float = field(default_factory=time.monotonic)
     channel_keys: dict[int, bytes] = field(default_factory=dict)
     """Secure aggregation: each of its agents' channel public key (from its hello)."""
+    allowance: int = 0
+    """Messages the link may still have handled past the loop's per-peer cap of a turn: one
+    per agent named by the requests it was sent (whatever the split, an answer message
+    carries one agent's answer at least), banked up to two requests' worth of its agents (an
+    answer to the previous request may still be on its way), spent message by message."""
+
+    def allow(self, agents: int) -> None:
+        """A request naming ``agents`` of its agents went out: room for their answers."""
+        self.allowance = min(self.allowance + agents, 2 * len(self.indices))
 
     @property
     def host(self) -> bool:
@@ -337,8 +360,12 @@ class Links:
         )
 
     def send(self, link: Link, message: Message) -> None:
-        """Send to a link; a link whose connection is gone is presumed dead."""
-        if not self.outbox.send(link.identity, message) and not self.outbox.routable(link.identity):
+        """Send to a link; a link whose connection is gone is presumed dead. A request gives
+        the link room for its answers past the per-peer cap (:meth:`Link.allow`)."""
+        if self.outbox.send(link.identity, message):
+            if isinstance(message, Train | Evaluate | MaskRequest | UnmaskRequest):
+                link.allow(len(message.agents))
+        elif not self.outbox.routable(link.identity):
             self.drop(link, "its connection is gone")
 
     def keep_alive(self) -> None:

@@ -10,6 +10,14 @@ purge dead peers, send heartbeats. It only routes; each job is a module of its o
   by the round policy (:mod:`fedhpg.server.pools.rounds`);
 - :mod:`.arrivals`: buffered rounds' per-agent requests and their answers in arrival order.
 
+A turn of the loop handles at most ``PEER_TURN_MESSAGES`` messages of one identity and drops
+the rest unread, so that a flooding peer cannot starve the others. A host's answers are exempt:
+past the cap, a registered link's messages are still handled while an open request waits for
+one of its agents, up to one message per agent it was asked for (:attr:`Link.allowance`: an
+answer message carries one agent's answer at least, whatever ``server.max_message_mb`` makes
+of the split). Unsolicited answers, duplicates beyond that allowance, heartbeat floods and junk
+stay capped.
+
 Bad input (malformed frames, unknown types, wrong versions, bad shapes, dtypes, non-finite or
 too-large updates, answers for agents the connection does not serve, duplicate ids, space or
 variant mismatches) is logged and answered with an ``Error``; the run goes on. With CURVE, a
@@ -71,7 +79,8 @@ TURN_S = 0.05
 heartbeats and checks the round: a flooding peer cannot starve the others."""
 PEER_TURN_MESSAGES = 64
 """Messages of one identity handled per turn; the rest of its turn is dropped unread (libzmq
-fair-queues peers, so the others' messages still come through)."""
+fair-queues peers, so the others' messages still come through), except a registered link's
+answers to an open request, within its allowance (see the module's docstring)."""
 
 
 def _source_fd(frame: zmq.Frame) -> int:
@@ -169,6 +178,7 @@ class ZmqAgentPool:
         if ready:
             turn_end = time.monotonic() + TURN_S
             per_peer: dict[bytes, int] = {}
+            owing: dict[bytes, bool] = {}
             for _ in range(TURN_MESSAGES):
                 try:
                     frames = self.socket.recv_multipart(copy=False, flags=zmq.NOBLOCK)
@@ -178,7 +188,7 @@ class ZmqAgentPool:
                     break
                 identity = frames[0].bytes
                 seen = per_peer[identity] = per_peer.get(identity, 0) + 1
-                if seen > PEER_TURN_MESSAGES:
+                if seen > PEER_TURN_MESSAGES and not self._past_cap(identity, owing):
                     self.dropped += 1
                     if guard is not None:  # a whole message, though not handled
                         guard.delivered(_source_fd(frames[1]))
@@ -187,6 +197,33 @@ class ZmqAgentPool:
                 if time.monotonic() >= turn_end:
                     break
         self.links.keep_alive()
+
+    def _past_cap(self, identity: bytes, owing: dict[bytes, bool]) -> bool:
+        """Whether a message of ``identity`` past this turn's per-peer cap is handled all the
+        same (one of the link's allowance spent): the identity is a registered link and an
+        open request still waits for one of its agents (asked once per turn, in ``owing``; a
+        link that owes nothing loses what is left of its allowance)."""
+        link = self.links.get(identity)
+        if link is None:
+            return False
+        owes = owing.get(identity)
+        if owes is None:
+            owes = owing[identity] = self._owes(link)
+            if not owes:
+                link.allowance = 0
+        if not owes or link.allowance <= 0:
+            return False
+        link.allowance -= 1
+        return True
+
+    def _owes(self, link: Link) -> bool:
+        """Whether an open request (a round's, an evaluation's, a secure exchange's, or a
+        buffered round's own) still waits for an answer of one of ``link``'s agents."""
+        collection = self.collector.open
+        if collection is not None and any(collection.awaits(k) for k in link.indices):
+            return True
+        trains = self.arrivals.trains
+        return any((train := trains.get(k)) is not None and train.sent for k in link.indices)
 
     def _handle(self, frames: list[zmq.Frame]) -> None:
         if len(frames) < 2:
