@@ -44,6 +44,7 @@ PARTICIPATION_MODES = ("all", "uniform", "trace")
 TOLERANCE_CHECKS = ("refuse", "warn")
 CLUSTER_KINDS = ("auto", "slurm", "local", "ray")
 PRIVACY_MODES = ("none", "dp", "secagg", "dp_secagg")
+BUDGET_PARTIES = ("model", "server")
 LOG_STDS = ("state_independent", "state_dependent")
 
 # Liveness, part of the protocol: a peer silent for HEARTBEAT_LIVENESS intervals is presumed
@@ -535,9 +536,15 @@ class PrivacyConfig:
     adds its share of the noise to its clipped update before masking)."""
     epsilon: float | None = None
     """The run's budget ε: without ``noise_multiplier``, σ is chosen so that ``rounds`` rounds
-    spend exactly this; with it, the run stops before a round would exceed it."""
+    spend exactly this; with it, the run stops before a round would exceed it. Which party's ε
+    it caps: ``budget_against``."""
+    budget_against: str = "model"
+    """'model': ``epsilon`` caps ε against readers of the released model (and, with 'dp', of
+    the run directory); 'server': with 'dp_secagg', it caps ε against the server, which picks
+    and sees each round's sample (no amplification by sampling; σ calibrated as if one agent
+    took part in every round)."""
     delta: float | None = None
-    """δ of the guarantee; None = 1/K^1.1 (K = agents.num_agents)."""
+    """δ of the guarantee; None = min(1/(10·K), 10⁻⁵) (K = agents.num_agents)."""
     noise_multiplier: float | None = None
     """σ: the noise's std over the clip C; None = calibrated from ``epsilon``."""
     clip: float = 1.0
@@ -553,10 +560,20 @@ class PrivacyConfig:
     """Adaptive clipping: std of the noise on the count of unclipped updates (above σ/2);
     None = the expected agents per round / 20, or σ where that is more."""
     noise_seed: int | None = None
-    """Seed the DP noise (reproducible experiments only: whoever knows it can remove the
-    noise); None = the operating system's entropy."""
+    """Seed the DP noise, and the sample of a sampled DP run (reproducible experiments only:
+    whoever knows it can remove the noise and knows the sample, so it protects nothing);
+    None = the operating system's entropy."""
+    secure_noise: bool | None = None
+    """Unseeded DP noise from the operating system's CSPRNG, each draw a sum of four Gaussians
+    (the floating-point mitigation of Opacus's secure mode); false: numpy's PCG64 seeded from
+    the operating system. None = on unless ``noise_seed`` is set."""
     secagg: SecAggConfig = field(default_factory=SecAggConfig)
     """Secure aggregation's settings ('secagg', 'dp_secagg')."""
+
+    @property
+    def secure_noise_on(self) -> bool:
+        """Whether unseeded noise is drawn as :class:`~fedhpg.common.privacy.dp.SecureNoise`."""
+        return self.secure_noise if self.secure_noise is not None else self.noise_seed is None
 
 
 def _validate_privacy(privacy: PrivacyConfig) -> None:
@@ -592,6 +609,20 @@ def _validate_privacy(privacy: PrivacyConfig) -> None:
         _check_number(privacy.count_std, "privacy.count_std", low=0.0, low_open=True)
     if privacy.noise_seed is not None:
         _check_int(privacy.noise_seed, "privacy.noise_seed", low=0)
+    _require(
+        not (privacy.secure_noise and privacy.noise_seed is not None),
+        "privacy.secure_noise",
+        f"got true with privacy.noise_seed={privacy.noise_seed}: seeded noise is numpy's, "
+        "reproducible and known to whoever knows the seed; drop one of them",
+    )
+    _check_choice(privacy.budget_against, "privacy.budget_against", BUDGET_PARTIES)
+    _require(
+        privacy.budget_against == "model" or privacy.mode == "dp_secagg",
+        "privacy.budget_against",
+        f"got 'server' with privacy.mode={privacy.mode}: only dp_secagg's noise holds against "
+        "the server (with 'dp' it is trusted: it sees every update); use 'model', or "
+        "privacy=dp_secagg",
+    )
     secagg = privacy.secagg
     _check_number(secagg.threshold, "privacy.secagg.threshold", low=0.0, low_open=True)
     _require(

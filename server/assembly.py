@@ -384,6 +384,8 @@ def assemble(
     )
     if run_dir is not None:
         out_dir = run_dir.path
+        if checked.privacy is not None:  # each round accounted here before θ̃ leaves
+            checked.privacy.keep_journal(out_dir / "checkpoints", resuming=bool(run.resume))
         write_atomic(out_dir / "config.json", json.dumps(to_dict(run), indent=2).encode())
         metrics = MetricsWriter(run_dir.metrics, marks=record_marks(run))
         assembly._closers.append(metrics.close)

@@ -7,6 +7,8 @@ recorded; every E rounds the unified policy is evaluated. Nothing else lives her
 
 from __future__ import annotations
 
+import contextlib
+import dataclasses
 import functools
 import logging
 import time
@@ -66,6 +68,14 @@ class RoundRecord:
     """What the strategy reports of its aggregation (:meth:`Strategy.round_stats`)."""
     privacy: dict[str, Any] | None = None
     """``privacy.mode`` ≠ none: ε and δ so far, σ, the clip, the inputs aggregated."""
+    aggregated: int | None = None
+    """Where the sample is secret (``privacy=dp`` sampled: ``agents``, ``selected``,
+    ``failures`` and ``stragglers`` left empty), the number of updates aggregated."""
+
+    @property
+    def update_count(self) -> int:
+        """How many updates the round aggregated."""
+        return len(self.agents) if self.aggregated is None else self.aggregated
 
     @functools.cached_property
     def agent_rows(self) -> list[dict[str, Any]]:
@@ -79,14 +89,14 @@ class RoundRecord:
             "wall_time_s": self.wall_time_s,
             "round_time_s": self.round_time_s,
             "trajectories_per_agent": self.trajectories_per_agent,
-            "selected": list(self.selected),
+            **({"selected": list(self.selected)} if self.aggregated is None else {}),
             "agents": self.agent_rows,
         }
         if self.eval is not None:
             record["eval"] = {agent: stats.to_json() for agent, stats in self.eval.items()}
         if self.eval_time_s is not None:
             record["eval_time_s"] = self.eval_time_s
-        record["updates"] = len(self.agents)
+        record["updates"] = self.update_count
         if self.failures:
             record["failures"] = dict(self.failures)
         if self.stragglers:
@@ -107,6 +117,8 @@ class RoundRecord:
             rest = dict(self.privacy)
             if "epsilon" in rest:
                 record["epsilon"], record["delta"] = rest.pop("epsilon"), rest.pop("delta")
+            if "epsilon_server" in rest:
+                record["epsilon_server"] = rest.pop("epsilon_server")
             record["privacy"] = rest
         return record
 
@@ -219,9 +231,15 @@ class Coordinator:
         not between the rounds, where the agents would wait for it; always before anything
         else of the next round is recorded, and before this returns or raises."""
         started = time.perf_counter() - self.progress.elapsed_s
+        hiding = (
+            self.privacy.hiding_names(self.pool.agent_ids)
+            if self.privacy is not None
+            else contextlib.nullcontext()
+        )
         try:
-            for round_number in range(self.progress.next_round, self.run.rounds + 1):
-                self._round(round_number, started)
+            with hiding:
+                for round_number in range(self.progress.next_round, self.run.rounds + 1):
+                    self._round(round_number, started)
         finally:
             self._write_record()
         return self.theta
@@ -237,7 +255,7 @@ class Coordinator:
         budgets = self.replanner.budgets() if self.replanner is not None else None
         private = None
         if self.privacy is not None:
-            self.privacy.check_budget(round_number)
+            self.privacy.check_budget(round_number, selected)
             if self.privacy.secure:
                 private = self.privacy.round_privacy(len(selected))
         answers = self.pool.train(
@@ -290,6 +308,17 @@ class Coordinator:
             strategy=self.strategy.round_stats(),
             privacy=self.privacy.round_stats() if self.privacy is not None else None,
         )
+        if self.privacy is not None and self.privacy.hides_sample:
+            # the accounted ε is amplified by a sample nobody else may learn: no record of it
+            record = dataclasses.replace(
+                record,
+                agents=[],
+                failures={},
+                stragglers=[],
+                selected=[],
+                bound=None,
+                aggregated=len(answers.updates),
+            )
         self._unwritten = (record, self.theta)
 
     def _write_record(self) -> None:

@@ -151,7 +151,7 @@ class RoundValues:
             "fed/round_time_s": record.round_time_s,
             "fed/wall_time_s": record.wall_time_s,
             "fed/trajectories_per_agent": record.trajectories_per_agent,
-            "fed/updates": len(record.agents),
+            "fed/updates": record.update_count,
             "fed/failures": len(record.failures),
             "fed/stragglers": len(record.stragglers),
             "fed/theta_norm": float(np.linalg.norm(after)),
@@ -163,7 +163,7 @@ class RoundValues:
             values["fed/emulated_round_s"] = max(s.emulated_s for s in stats)
             values["fed/trajectories"] = sum(s.trajectories for s in stats)
         if record.privacy is not None:
-            for key in ("epsilon", "delta", "noise_multiplier", "clip", "inputs"):
+            for key in ("epsilon", "epsilon_server", "delta", "noise_multiplier", "clip", "inputs"):
                 if key in record.privacy:
                     values[f"privacy/{key}"] = record.privacy[key]
         # under secure aggregation the server holds no θ_k: there are no update norms

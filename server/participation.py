@@ -6,7 +6,11 @@ included, gets it: the strategy chooses among the participating agents.
 - ``all``: every agent, every round (the paper).
 - ``uniform``: ``per_round`` distinct agents drawn uniformly from a generator seeded by
   (run seed, round) alone. Nothing is kept between rounds, so a resumed run, or the
-  in-process and the distributed runtimes, select exactly the same agents.
+  in-process and the distributed runtimes, select exactly the same agents. A DP run
+  (``privacy=dp`` or ``dp_secagg``) is accounted with amplification by this sampling, which
+  holds only while the sample is secret: its sample is drawn from the operating system's
+  CSPRNG and written nowhere (a resumed run draws afresh), or, with ``privacy.noise_seed``,
+  from (noise seed, round): reproducible, and known to whoever knows the seed.
 - ``trace``: the agents a CSV file does not mark offline in that round. A round in which
   every agent is offline is a configuration error, reported before the run starts.
 
@@ -18,6 +22,7 @@ always available, and lines starting with ``#`` are comments.
 from __future__ import annotations
 
 import csv
+import secrets
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -87,7 +92,8 @@ def read_trace(path: str, num_agents: int) -> list[OfflineInterval]:
 
 
 class Participation:
-    """Who is asked to train in a round; a function of the round alone (no state)."""
+    """Who is asked to train in a round; a function of the round alone (no state), unless the
+    draw is ``secret``."""
 
     def __init__(
         self,
@@ -96,17 +102,24 @@ class Participation:
         seed: int,
         num_agents: int,
         offline: Sequence[OfflineInterval] = (),
+        secret: bool = False,
     ) -> None:
         self.config = config
         self.seed = seed
+        """The draw's seed: the run's, or for a secret draw ``privacy.noise_seed``'s."""
         self.num_agents = num_agents
         self.offline = list(offline)
+        self.secret = secret
+        """``uniform``: draw from the operating system's CSPRNG, not from ``seed``."""
 
     def select(self, round_number: int) -> list[int]:
         """The participating agent indices of ``round_number``, in increasing order."""
         agents = range(self.num_agents)
         if self.config.mode == "uniform":
             assert self.config.per_round is not None  # validated
+            if self.secret:
+                chosen = secrets.SystemRandom().sample(agents, self.config.per_round)
+                return sorted(chosen)
             rng = np.random.default_rng([self.seed, round_number, SELECTION_STREAM])
             drawn = rng.choice(self.num_agents, size=self.config.per_round, replace=False)
             return sorted(int(k) for k in drawn)
@@ -117,14 +130,19 @@ class Participation:
 
 
 def make_participation(run: RunConfig) -> Participation:
-    """The run's participation rule (reads the trace file of mode 'trace')."""
+    """The run's participation rule (reads the trace file of mode 'trace'); a DP run's uniform
+    draw is secret, or seeded by ``privacy.noise_seed`` where set."""
     config = run.strategy.participation
     num_agents = run.agents.num_agents
     offline: list[OfflineInterval] = []
     if config.mode == "trace":
         assert config.trace is not None  # validated
         offline = read_trace(config.trace, num_agents)
-    return Participation(config, seed=run.seed, num_agents=num_agents, offline=offline)
+    seed, secret = run.seed, False
+    if run.privacy.mode in ("dp", "dp_secagg"):
+        noise_seed = run.privacy.noise_seed
+        seed, secret = (run.seed, True) if noise_seed is None else (noise_seed, False)
+    return Participation(config, seed=seed, num_agents=num_agents, offline=offline, secret=secret)
 
 
 def smallest_participation(run: RunConfig) -> tuple[int, str]:

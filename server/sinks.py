@@ -69,7 +69,7 @@ class ProgressCsv:
             "round_time_s": record.round_time_s,
             "emulated_round_s": max((s.emulated_s for s in stats), default=None),
             "trajectories_per_agent": record.trajectories_per_agent,
-            "updates": len(record.agents),
+            "updates": record.update_count,
             "train_return_mean": _mean([s.train_return for s in stats]),
         }
         if record.eval:

@@ -14,6 +14,14 @@ relation the guarantee is stated for:
 - each agent independently with probability q (:class:`Sampling` ``poisson``): Poisson
   subsampling, adding or removing one agent (DP-SGD's and DP-FedAvg's analyses).
 
+Amplification by sampling holds only against a party that does not know the sample: the
+sample must be drawn secretly and never written where that party reads
+(:mod:`fedhpg.server.participation`). Against a party that knows it (``known=True``: the
+server of ``dp_secagg``, which picks it), a round is the plain Gaussian mechanism for the agents
+it drew and nothing for the others: an agent's guarantee composes only the rounds it took part
+in, and the run reports the worst agent's (the same neighbouring relation: replacing one agent
+moves a round's sum by 2C, multiplier σ/2; adding or removing one, by C).
+
 The accountant is the library's RDP accountant (Mironov 2017, with its default orders) or its
 privacy-loss-distribution accountant (``pld``; for the Gaussian and Poisson-subsampled cases).
 Nothing here keeps state: a run's accounting is a function of (σ, the sampling, rounds so far),
@@ -66,9 +74,16 @@ def _library() -> Any:
     return dp_accounting
 
 
-def round_event(noise_multiplier: float, sampling: Sampling) -> Any:
-    """One round as a ``dp_accounting.DpEvent``."""
+def round_event(noise_multiplier: float, sampling: Sampling, *, known: bool = False) -> Any:
+    """One round as a ``dp_accounting.DpEvent`` (``known``: against a party that knows the
+    sample, for an agent in it)."""
     dp = _library()
+    if known:
+        # the sample is a public input: the Gaussian mechanism on the sum, whose sensitivity
+        # is 2C to replacing one agent (multiplier σC / 2C), C to adding or removing one
+        return dp.GaussianDpEvent(
+            noise_multiplier / 2 if sampling.kind == "fixed" else noise_multiplier
+        )
     if sampling.kind == "fixed":
         # replacing one agent moves the clipped sum by up to 2C: multiplier σC / 2C
         return dp.SampledWithoutReplacementDpEvent(
@@ -80,18 +95,19 @@ def round_event(noise_multiplier: float, sampling: Sampling) -> Any:
     return gaussian
 
 
-def make_accountant(kind: str, sampling: Sampling) -> Any:
-    """A fresh accountant of the library for ``sampling``'s neighbouring relation."""
+def make_accountant(kind: str, sampling: Sampling, *, known: bool = False) -> Any:
+    """A fresh accountant of the library for ``sampling``'s neighbouring relation (``known``:
+    a plain Gaussian per round, whose sensitivity :func:`round_event` scales for the relation)."""
     dp = _library()
     relation = (
         dp.NeighboringRelation.REPLACE_ONE
-        if sampling.kind == "fixed"
+        if sampling.kind == "fixed" and not known
         else dp.NeighboringRelation.ADD_OR_REMOVE_ONE
     )
     if kind == "rdp":
         return dp.rdp.RdpAccountant(neighboring_relation=relation)
     if kind == "pld":
-        if sampling.kind == "fixed":
+        if sampling.kind == "fixed" and not known:
             raise AccountingError(
                 "the PLD accountant has no sampling without replacement: use accountant 'rdp' "
                 "for strategy.participation.mode=uniform"
@@ -101,53 +117,75 @@ def make_accountant(kind: str, sampling: Sampling) -> Any:
 
 
 @functools.lru_cache(maxsize=256)
-def _round_rdp(noise_multiplier: float, sampling: Sampling) -> tuple[Any, Any]:
+def _round_rdp(noise_multiplier: float, sampling: Sampling, known: bool) -> tuple[Any, Any]:
     """The RDP orders and one round's RDP at each, as the library's accountant composes them:
     composition adds RDP, so t rounds are t times this (what the library's
     ``SelfComposedDpEvent`` computes, without recomputing the round's RDP for every t)."""
-    accountant = make_accountant("rdp", sampling)
-    accountant.compose(round_event(noise_multiplier, sampling))
+    accountant = make_accountant("rdp", sampling, known=known)
+    accountant.compose(round_event(noise_multiplier, sampling, known=known))
     return accountant._orders, accountant._rdp.copy()  # checked against compose() in tests
 
 
 def epsilon(
-    noise_multiplier: float, sampling: Sampling, rounds: int, delta: float, kind: str = "rdp"
+    noise_multiplier: float,
+    sampling: Sampling,
+    rounds: int,
+    delta: float,
+    kind: str = "rdp",
+    *,
+    known: bool = False,
 ) -> float:
-    """ε after ``rounds`` rounds at ``delta`` (0 rounds: 0; σ = 0: infinite)."""
+    """ε after ``rounds`` rounds at ``delta`` (0 rounds: 0; σ = 0: infinite); ``known``:
+    against a party that knows every round's sample, ``rounds`` being those the agent took
+    part in (no amplification)."""
     if rounds <= 0:
         return 0.0
     if noise_multiplier <= 0:
         return float("inf")
     dp = _library()
     if kind == "rdp":
-        orders, rdp = _round_rdp(noise_multiplier, sampling)
+        orders, rdp = _round_rdp(noise_multiplier, sampling, known)
         return float(dp.rdp.rdp_privacy_accountant.compute_epsilon(orders, rounds * rdp, delta)[0])
-    accountant = make_accountant(kind, sampling)
-    accountant.compose(dp.SelfComposedDpEvent(round_event(noise_multiplier, sampling), rounds))
+    accountant = make_accountant(kind, sampling, known=known)
+    event = round_event(noise_multiplier, sampling, known=known)
+    accountant.compose(dp.SelfComposedDpEvent(event, rounds))
     return float(accountant.get_epsilon(delta))
 
 
 @functools.lru_cache(maxsize=64)
 def calibrate(
-    target_epsilon: float, sampling: Sampling, rounds: int, delta: float, kind: str = "rdp"
+    target_epsilon: float,
+    sampling: Sampling,
+    rounds: int,
+    delta: float,
+    kind: str = "rdp",
+    *,
+    known: bool = False,
 ) -> float:
     """The smallest noise multiplier σ (to 1e-4 relative) whose ``rounds`` rounds spend at most
-    ``target_epsilon`` at ``delta``: the library's own calibration (Brent's method)."""
+    ``target_epsilon`` at ``delta`` (``known``: against a party that knows the sample, for an
+    agent drawn in every round): the library's own calibration (Brent's method)."""
     dp = _library()
     sigma = dp.calibrate_dp_mechanism(
-        lambda: make_accountant(kind, sampling),
-        lambda s: dp.SelfComposedDpEvent(round_event(s, sampling), rounds),
+        lambda: make_accountant(kind, sampling, known=known),
+        lambda s: dp.SelfComposedDpEvent(round_event(s, sampling, known=known), rounds),
         target_epsilon,
         delta,
         bracket_interval=dp.LowerEndpointAndGuess(0.3 if kind == "pld" else 0.05, 1.0),
         tol=1e-5,
     )
     # Brent's tolerance may land just below the boundary: never report a σ over budget
-    while epsilon(sigma, sampling, rounds, delta, kind) > target_epsilon:
+    while epsilon(sigma, sampling, rounds, delta, kind, known=known) > target_epsilon:
         sigma *= 1 + 1e-4
     return float(sigma)
 
 
+DELTA_CAP = 1e-5
+"""The largest default δ, whatever the population."""
+
+
 def default_delta(population: int) -> float:
-    """δ = 1/K^1.1 (DP-FedAvg's choice: below 1/K, the chance of a blatant leak of one agent)."""
-    return float(population**-1.1)
+    """δ = min(1/(10·K), 10⁻⁵): well below 1/K (a mechanism that published one random agent's
+    data whole would meet δ = 1/K), and never above 10⁻⁵, the usual ceiling, for a small
+    federation (1/K^1.1, DP-FedAvg's choice, is 0.22 for four agents)."""
+    return min(1.0 / (10 * population), DELTA_CAP)

@@ -2,9 +2,10 @@
 computed: by the server from θ_k (central noise), or by the agent before masking.
 
 A contribution is a vector of d + 2 numbers: w·x (the update, clipped, with the agent's share
-of the noise where the agents add it), w (the agent's weight in the average) and b (1 when the
-update was not clipped, for adaptive clipping, with its share of that count's noise). The
-round's sum of contributions gives the average and the clip's next value (:func:`average`).
+of the noise where the agents add it), w (the agent's weight in the average) and b − ½ (b = 1
+when the update was not clipped, for adaptive clipping, with its share of that count's noise;
+centred, so that one agent more or less moves the count by ½: :mod:`.dp`). The round's sum of
+contributions gives the average and the clip's next value (:func:`average`).
 """
 
 from __future__ import annotations
@@ -22,7 +23,9 @@ WEIGHT_UNIT = float(1 << 20)
 """Weighted averages: an agent's weight is its trajectories over this (so w ≤ 1 for any
 budget a request may set), which keeps every coordinate within the fixed-point range."""
 EXTRA = 2
-"""Words after the update's d: the weight and the unclipped count."""
+"""Words after the update's d: the weight and the centred unclipped count."""
+CENTRE = 0.5
+"""Subtracted from each agent's unclipped indicator b ∈ {0, 1} (added back in the average)."""
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -45,7 +48,7 @@ def contribution(
     delta: torch.Tensor,
     trajectories: int,
     settings: RoundPrivacy,
-    generator: np.random.Generator | None = None,
+    generator: dp.NoiseSource | None = None,
 ) -> np.ndarray:
     """One agent's d + 2 numbers (float64) for Δ_k = θ_k − θ̃ (``generator``: the agent's
     noise, where it adds a share)."""
@@ -57,7 +60,7 @@ def contribution(
     weight = trajectories / WEIGHT_UNIT if settings.weighted else 1.0
     row = np.empty(update.size + EXTRA)
     row[:-EXTRA] = np.clip(update, -settings.bound, settings.bound) * weight
-    row[-2], row[-1] = weight, unclipped
+    row[-2], row[-1] = weight, unclipped - CENTRE
     if generator is not None and settings.noise_std > 0:
         row[:-EXTRA] += dp.gaussian(generator, update.size, settings.noise_std)
         row[-1] += dp.gaussian(generator, 1, settings.count_std)[0]
@@ -66,12 +69,14 @@ def contribution(
 
 def average(total: np.ndarray, denominator: float | None) -> tuple[np.ndarray, float]:
     """From a round's summed contributions: the average update Σ w·x / D (D = ``denominator``,
-    the expected weight under DP, else the sum of the weights) and the fraction unclipped."""
+    the expected weight under DP, else the sum of the weights) and the fraction unclipped,
+    Σ(b − ½)/D + ½ (noisy under DP), clamped to [0, 1]."""
     weights = float(total[-2])
     divide = denominator if denominator is not None else weights
     if not divide > 0:
         return np.zeros(total.size - EXTRA), 0.0
-    return total[:-EXTRA] / divide, float(total[-1]) / divide
+    fraction = float(total[-1]) / divide + CENTRE
+    return total[:-EXTRA] / divide, min(max(fraction, 0.0), 1.0)
 
 
 def redacted(stats: UpdateStats) -> UpdateStats:

@@ -56,6 +56,8 @@ class LocalSecAgg:
             neighbours=self.settings.secagg.neighbours,
         )
 
-    def noise(self, round_index: int, agent: int) -> np.random.Generator:
+    def noise(self, round_index: int, agent: int) -> dp.NoiseSource:
         """Agent ``agent``'s share of the DP noise in a round."""
-        return dp.noise_stream(self.settings.noise_seed, round_index, agent)
+        return dp.noise_stream(
+            self.settings.noise_seed, round_index, agent, secure=self.settings.secure_noise_on
+        )
