@@ -237,11 +237,11 @@ class PrivateRounds:
         clip_used = self.clip
         if self.dp:
             self.accounted += 1
-            if self.settings.adaptive_clip:
-                self.clip = dp.next_clip(
             if self.participations is not None:
                 self.participations[self._sample] += 1
             self._write_journal(round_number)  # before θ̃ leaves: evaluation, the next round
+            if self.settings.adaptive_clip:
+                self.clip = dp.next_clip(
                     self.clip, unclipped, self.settings.target_quantile, self.settings.clip_rate
                 )
         self._last = {"inputs": inputs, **({"clip": clip_used} if self.dp else {})}
@@ -273,34 +273,34 @@ class PrivateRounds:
                 noise_multiplier=self.noise_multiplier,
                 rounds_accounted=self.accounted,
             )
-        return stats
-
             if self.participations is not None:
                 stats["epsilon_server"] = self.epsilon_server()
             if self.hides_sample:
                 stats["sample"] = "hidden"
+        return stats
+
     def summary(self) -> dict[str, Any]:
         """summary.json's ``privacy``."""
         stats = {"mode": self.mode, "secure_aggregation": self.secure}
         if self.dp:
             stats.update(
                 epsilon=self.epsilon(),
-                delta=self.delta,
-                epsilon_budget=self.target,
                 **(
                     {"epsilon_server": self.epsilon_server()}
                     if self.participations is not None
                     else {}
                 ),
+                delta=self.delta,
+                epsilon_budget=self.target,
+                budget_against=self.settings.budget_against,
                 noise_multiplier=self.noise_multiplier,
                 rounds_accounted=self.accounted,
-                budget_against=self.settings.budget_against,
                 clip=self.clip,
                 neighbouring=self.sampling.relation,
-            )
-        return stats
                 secure_noise=self.settings.secure_noise_on and self._seed is None,
                 **({"sample": "hidden"} if self.hides_sample else {}),
+            )
+        return stats
 
     def state(self) -> dict[str, Any]:
         state: dict[str, Any] = {
@@ -321,8 +321,6 @@ class PrivateRounds:
             return
         self.accounted = int(state["accounted"])
         self.clip = float(state["clip"])
-        if self.dp:
-            self.noise_multiplier = float(state["sigma"])
         if self.participations is not None and "participations" in state:
             self.participations[:] = state["participations"]
         journaled = int(self._journaled.get("rounds_accounted", 0))
@@ -336,6 +334,8 @@ class PrivateRounds:
             self.accounted = journaled
             if self.participations is not None and "participations" in self._journaled:
                 self.participations[:] = self._journaled["participations"]
+        if self.dp:
+            self.noise_multiplier = float(state["sigma"])
             self._set_count_noise(run)
 
     def keep_journal(self, directory: Path, *, resuming: bool) -> None:
