@@ -260,8 +260,14 @@ class AgentWork:
 class SecureAgents:
     """The agents' side of secure aggregation for this program's range: each round's
     contributions, masked and unmasked as the server's exchanges ask (server/pools/secure.py).
-    A row the protocol refuses (a round this program has no keys for, after a restart) is
-    left out of the answer: the server then counts that agent as dropped out."""
+
+    Every request is read with its fields checked
+    (:mod:`~fedhpg.common.privacy.secure_messages`). A row the protocol refuses (a round this
+    program has no keys for, after a restart; a request that does not fit the round) is left
+    out of the answer: the server then counts that agent as dropped out. A neighbour whose
+    sealed shares do not open (altered, replayed, or not shares at all) is that neighbour's
+    drop-out as far as this agent's shares go: the agent answers for itself, logs it once,
+    and never exits over another party's data."""
 
     def __init__(self, run: RunConfig) -> None:
         from fedhpg.common.privacy.session import LocalSecAgg
@@ -282,20 +288,35 @@ class SecureAgents:
         max_bytes: int,
     ) -> list[Message]:
         """After training: each agent's contribution kept, its key shares sent."""
-        from fedhpg.common.privacy import fixedpoint
-        from fedhpg.common.privacy.secagg import SEALED_BYTES
+        from fedhpg.common.privacy import fixedpoint, secure_messages
+        from fedhpg.common.privacy.secagg import SEALED_BYTES, SecAggError
 
         private = request.private
         assert private is not None
-        participants = list(request.participants)
-        keys = {k: bytes(row) for k, row in zip(participants, request.channel_keys, strict=True)}
+        try:
+            keys = secure_messages.train_participants(request)
+        except secure_messages.RowError as error:
+            logger.warning("round %d: no agent takes part: %s", request.round, error)
+            return []
+        participants = sorted(keys)
         setup = self.keys.setup(request.round, participants, thetas.shape[1] + EXTRA, keys)
         bound = max(private.bound, 1.0)
         scale = fixedpoint.scale_for(len(participants), bound)
         records = stats.records()
         self._round, self._inputs, self._stats = request.round, {}, {}
         self._num_params = thetas.shape[1]
-        width = max(len(setup.graph.get(k, ())) for k in agents)
+        shared = {}
+        for k in agents:
+            try:
+                shared[k] = self.keys.agent(k).share_keys(setup)
+            except SecAggError as error:
+                logger.warning("round %d: agent %d takes no part: %s", request.round, k, error)
+        if not shared:
+            return []
+        keep = [i for i, k in enumerate(agents) if k in shared]
+        agents, records = [agents[i] for i in keep], [records[i] for i in keep]
+        thetas = thetas[keep]
+        width = max(len(shares.sealed) for shares in shared.values())
         mask_keys = np.zeros((len(agents), KEY_BYTES), dtype=np.uint8)
         recipients = np.full((len(agents), width), -1, dtype=np.int64)
         sealed = np.zeros((len(agents), width, SEALED_BYTES), dtype=np.uint8)
@@ -308,7 +329,7 @@ class SecureAgents:
             )
             self._inputs[k] = fixedpoint.encode(row, scale, bound)
             self._stats[k] = records[i]
-            shares = self.keys.agent(k).share_keys(setup)
+            shares = shared[k]
             mask_keys[i] = np.frombuffer(shares.mask_key, dtype=np.uint8)
             for j, (v, box) in enumerate(sorted(shares.sealed.items())):
                 recipients[i, j] = v
@@ -327,6 +348,7 @@ class SecureAgents:
 
     def mask(self, request: MaskRequest, max_bytes: int) -> list[Message]:
         """Each agent's contribution, masked with its neighbours that shared keys."""
+        from fedhpg.common.privacy import secure_messages
         from fedhpg.common.privacy.secagg import SecAggError
 
         done, rows = [], []
@@ -334,14 +356,22 @@ class SecureAgents:
             if request.round != self._round or k not in self._inputs:
                 logger.warning("round %d: no input of agent %d to mask", request.round, k)
                 continue
-            senders = [int(v) for v in request.senders[i] if v >= 0]
-            keys = {v: bytes(request.mask_keys[i, j]) for j, v in enumerate(senders)}
-            sealed = {v: bytes(request.sealed[i, j]) for j, v in enumerate(senders)}
+            agent = self.keys.agent(k)
             try:
-                masked = self.keys.agent(k).mask(request.round, self._inputs[k], keys, sealed)
-            except SecAggError as error:
+                keys, sealed = secure_messages.mask_request(request, i)
+                masked = agent.mask(request.round, self._inputs[k], keys, sealed)
+            except (secure_messages.RowError, SecAggError) as error:
                 logger.warning("round %d: agent %d drops out: %s", request.round, k, error)
                 continue
+            unreadable = agent.unreadable(request.round)
+            if unreadable:
+                logger.warning(
+                    "round %d: the shares agent(s) %s sealed for agent %d do not open: they "
+                    "count as dropped out for its shares",
+                    request.round,
+                    ", ".join(map(str, sorted(unreadable))),
+                    k,
+                )
             done.append(k)
             rows.append(masked.view(np.int64))
         if not done:
@@ -362,6 +392,7 @@ class SecureAgents:
     def reveal(self, request: UnmaskRequest, max_bytes: int) -> list[Message]:
         """Each agent's shares of its dropped neighbours' mask keys and of its included
         neighbours' self-mask seeds."""
+        from fedhpg.common.privacy.masks import PeerDataError
         from fedhpg.common.privacy.secagg import SecAggError
         from fedhpg.common.privacy.shamir import SHARE_BYTES
 
@@ -371,7 +402,7 @@ class SecureAgents:
                 answers[k] = self.keys.agent(k).reveal(
                     request.round, request.dropped, request.included
                 )
-            except SecAggError as error:
+            except (SecAggError, PeerDataError) as error:
                 logger.warning("round %d: agent %d reveals nothing: %s", request.round, k, error)
         if not answers:
             return []

@@ -222,6 +222,8 @@ class PrivateRounds:
         if self.secure:
             if answers.secure is None:
                 raise FederationError(f"round {round_number}: no secure sum came back")
+            if answers.secure.failed is not None:
+                raise FederationError(f"round {round_number}: {answers.secure.failed}")
             total, inputs = answers.secure.total, answers.secure.inputs
             fewest = self.min_inputs(selected)
             if inputs < fewest:

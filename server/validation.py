@@ -32,6 +32,8 @@ class Reject(StrEnum):
     """The statistics break their bounds."""
     TOO_FAR = "too_far"
     """θ_k is farther from θ̃ than ``server.max_update_norm``."""
+    PROTOCOL = "protocol"
+    """A secure round's message the protocol refused: its agent dropped out of the round."""
     UNKNOWN = "unknown"
     """Read back from a checkpoint that kept only the reason."""
 

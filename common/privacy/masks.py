@@ -35,8 +35,17 @@ NONCE_BYTES = 12
 TAG_BYTES = 16
 
 
-class ChannelError(ValueError):
+class PeerDataError(ValueError):
+    """A peer's value the cryptography cannot use: the peer's fault, never the receiver's."""
+
+
+class ChannelError(PeerDataError):
     """A ciphertext that does not decrypt under its pair's key (altered, or misaddressed)."""
+
+
+class BadPublicKey(PeerDataError):
+    """A public key that is not 32 bytes, or a low-order point (all zeros among them): no
+    secret can be agreed with it."""
 
 
 def new_private_key() -> bytes:
@@ -52,11 +61,27 @@ def public_key(private: bytes) -> bytes:
 
 def agree(private: bytes, peer_public: bytes, purpose: bytes) -> bytes:
     """A 32-byte key that ``private``'s owner and ``peer_public``'s owner both derive:
-    HKDF-SHA256 of their X25519 secret, bound to ``purpose``."""
-    shared = X25519PrivateKey.from_private_bytes(private).exchange(
-        X25519PublicKey.from_public_bytes(peer_public)
-    )
+    HKDF-SHA256 of their X25519 secret, bound to ``purpose``; BadPublicKey for a peer key
+    that agrees on nothing."""
+    if len(peer_public) != KEY_BYTES:
+        raise BadPublicKey(f"a public key is {KEY_BYTES} bytes, got {len(peer_public)}")
+    try:
+        shared = X25519PrivateKey.from_private_bytes(private).exchange(
+            X25519PublicKey.from_public_bytes(peer_public)
+        )
+    except ValueError:  # a low-order point: the shared secret would be all zeros
+        raise BadPublicKey("a public key of low order agrees on no secret") from None
     return HKDF(algorithm=hashes.SHA256(), length=KEY_BYTES, salt=None, info=purpose).derive(shared)
+
+
+def usable_public_key(key: bytes) -> bool:
+    """Whether ``key`` is a public key a secret can be agreed with (32 bytes, not of low
+    order: the X25519 exchange with any private key refuses those)."""
+    try:
+        agree(new_private_key(), key, b"fedhpg secagg key check")
+    except BadPublicKey:
+        return False
+    return True
 
 
 def mask_purpose(round_index: int, first: int, second: int) -> bytes:
@@ -85,6 +110,8 @@ def seal(key: bytes, plaintext: bytes, associated: bytes) -> bytes:
 
 def open_sealed(key: bytes, sealed: bytes, associated: bytes) -> bytes:
     """The plaintext of :func:`seal`'s output; ChannelError if it does not authenticate."""
+    if len(sealed) < NONCE_BYTES + TAG_BYTES:
+        raise ChannelError("a share's ciphertext is too short")
     try:
         return AESGCM(key).decrypt(sealed[:NONCE_BYTES], sealed[NONCE_BYTES:], associated)
     except (InvalidTag, ValueError):

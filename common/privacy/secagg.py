@@ -36,7 +36,7 @@ import hashlib
 import math
 import os
 import struct
-from collections.abc import Collection, Mapping
+from collections.abc import Callable, Collection, Mapping
 from dataclasses import dataclass, field
 from enum import IntEnum
 
@@ -53,6 +53,15 @@ class SecAggError(RuntimeError):
     """A round that cannot go on: too few agents or shares, or a value that does not fit."""
 
 
+def fewest_inputs(mode: str, threshold: float, participants: int) -> int:
+    """The fewest inputs a round of ``participants`` may unmask: with distributed noise
+    (``dp_secagg``), each agent adds 1/t of the noise's variance, so t = ⌊threshold · n⌋ + 1
+    of them (at most n) reach σC; otherwise one."""
+    if mode != "dp_secagg":
+        return 1
+    return min(math.floor(threshold * participants) + 1, participants)
+
+
 class Revealed(IntEnum):
     """What a revealed share is a share of."""
 
@@ -60,6 +69,10 @@ class Revealed(IntEnum):
     """A dropped agent's mask private key: its pairwise masks are rebuilt."""
     SELF_SEED = 2
     """An included agent's self-mask seed b_u: its self mask is removed."""
+    PAIR_KEY = 3
+    """The pairwise mask key s_uv itself (32 bytes, as a field element), revealed by an agent
+    u for a neighbour v whose shares did not open: u holds nothing of v's secrets, and the
+    server removes their pair's mask with it where v's own secrets cannot be rebuilt."""
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -128,6 +141,8 @@ class _AgentRound:
     held: dict[int, tuple[bytes, bytes]] = field(default_factory=dict)
     """Neighbour → (share of its mask key, share of its self-mask seed)."""
     masked_with: frozenset[int] = frozenset()
+    unreadable: dict[int, bytes] = field(default_factory=dict)
+    """Neighbour → its mask public key, of the neighbours whose sealed shares did not open."""
     revealed: bool = False
 
 
@@ -164,7 +179,11 @@ class SecAggAgent:
         seed_shares = shamir.split(state.self_seed, points, threshold)
         sealed = {}
         for v, key_share, seed_share in zip(neighbours, key_shares, seed_shares, strict=True):
-            channel = self._channel(self.index, v, setup.channel_keys[v])
+            try:
+                channel = self._channel(self.index, v, setup.channel_keys[v])
+            except masks.PeerDataError:  # v cannot open anything: it holds none of our shares
+                sealed[v] = os.urandom(SEALED_BYTES)
+                continue
             plaintext = _associated(setup, self.index, v) + key_share + seed_share
             sealed[v] = masks.seal(channel, plaintext, _associated(setup, self.index, v))
         self._round = state
@@ -192,28 +211,49 @@ class SecAggAgent:
                 f"round {round_index}: {len(present)} of agent {self.index}'s neighbours shared "
                 f"keys, fewer than the threshold {threshold}"
             )
-        for v in sorted(present):
-            channel = self._channel(v, self.index, setup.channel_keys[v])
-            plaintext = masks.open_sealed(channel, sealed[v], _associated(setup, v, self.index))
-            header, rest = plaintext[: SHARE_PLAINTEXT.size], plaintext[SHARE_PLAINTEXT.size :]
-            if header != _associated(setup, v, self.index):
-                raise SecAggError(f"a share from agent {v} names another round or agent")
-            state.held[v] = (rest[: shamir.SHARE_BYTES], rest[shamir.SHARE_BYTES :])
         masked = inputs.copy()
         fixedpoint.add(masked, masks.expand(state.self_seed, setup.length))
         for v in sorted(present):
-            fixedpoint_step = fixedpoint.add if v > self.index else fixedpoint.subtract
-            fixedpoint_step(
-                masked, _pair_mask(state.mask_private, mask_keys[v], setup, self.index, v)
-            )
+            step = fixedpoint.add if v > self.index else fixedpoint.subtract
+            try:
+                step(masked, _pair_mask(state.mask_private, mask_keys[v], setup, self.index, v))
+            except masks.PeerDataError:
+                raise SecAggError(f"the server routed an unusable mask key of agent {v}") from None
+        held, unreadable = {}, {}
+        for v in sorted(present):
+            opened = self._open(setup, v, sealed[v])
+            if opened is None:
+                unreadable[v] = mask_keys[v]
+            else:
+                held[v] = opened
+        state.held, state.unreadable = held, unreadable
         state.masked_with = frozenset(present)
         return masked
+
+    def unreadable(self, round_index: int) -> frozenset[int]:
+        """The neighbours whose sealed shares did not open in step 2 (their drop-out as far
+        as this agent's shares go: it holds none of theirs)."""
+        return frozenset(self._state(round_index).unreadable)
+
+    def _open(self, setup: RoundSetup, v: int, sealed: bytes) -> tuple[bytes, bytes] | None:
+        """The two shares agent ``v`` sealed for this agent; None if they do not open (altered,
+        replayed from another round or pair, or not a share at all)."""
+        try:
+            channel = self._channel(v, self.index, setup.channel_keys[v])
+            plaintext = masks.open_sealed(channel, sealed, _associated(setup, v, self.index))
+        except masks.PeerDataError:
+            return None
+        header, rest = plaintext[: SHARE_PLAINTEXT.size], plaintext[SHARE_PLAINTEXT.size :]
+        if header != _associated(setup, v, self.index) or len(rest) != 2 * shamir.SHARE_BYTES:
+            return None
+        return rest[: shamir.SHARE_BYTES], rest[shamir.SHARE_BYTES :]
 
     def reveal(
         self, round_index: int, dropped: Collection[int], included: Collection[int]
     ) -> dict[int, tuple[Revealed, bytes]]:
         """Step 3: for each neighbour it masked with, the share of its mask key (it dropped)
-        or of its self-mask seed (its input is in the sum); never both, never twice."""
+        or of its self-mask seed (its input is in the sum); never both, never twice. For a
+        neighbour whose shares did not open, their pair's mask key instead."""
         state = self._state(round_index)
         dropped, included = set(dropped), set(included)
         if state.revealed:
@@ -231,6 +271,12 @@ class SecAggAgent:
         state.revealed = True
         answer: dict[int, tuple[Revealed, bytes]] = {}
         for v in sorted(state.masked_with):
+            if v in state.unreadable:
+                pair_key = _pair_key(
+                    state.mask_private, state.unreadable[v], state.setup, self.index, v
+                )
+                answer[v] = (Revealed.PAIR_KEY, pair_key.rjust(shamir.SHARE_BYTES, b"\0"))
+                continue
             key_share, seed_share = state.held[v]
             if v in dropped:
                 answer[v] = (Revealed.MASK_KEY, key_share)
@@ -245,15 +291,33 @@ class SecAggAgent:
         return state
 
 
+def _pair_key(private: bytes, peer_public: bytes, setup: RoundSetup, u: int, v: int) -> bytes:
+    """s_uv: the 32-byte key both agents of a pair agree from their mask keys."""
+    return masks.agree(private, peer_public, masks.mask_purpose(setup.round, u, v))
+
+
 def _pair_mask(private: bytes, peer_public: bytes, setup: RoundSetup, u: int, v: int) -> np.ndarray:
     """PRG(s_uv): the words both agents of a pair derive from their mask keys."""
-    seed = masks.agree(private, peer_public, masks.mask_purpose(setup.round, u, v))
-    return masks.expand(seed, setup.length)
+    return masks.expand(_pair_key(private, peer_public, setup, u, v), setup.length)
+
+
+class _Blame(Exception):
+    """Holders whose revealed shares were found wrong: the sum is rebuilt without them."""
+
+    def __init__(self, holders: Mapping[int, str]) -> None:
+        super().__init__(dict(holders))
+        self.holders = dict(holders)
 
 
 class SecAggRound:
     """The server's side of one aggregation: it routes, collects and unmasks, never sees an
-    input alone."""
+    input alone.
+
+    Every value an agent sends is checked before it is kept (:meth:`add_keys`,
+    :meth:`add_masked`, :meth:`add_reveal` raise SecAggError: the caller counts that agent as
+    dropped out at that step), and every secret rebuilt is checked (:func:`shamir.rebuild`: the
+    shares beyond the threshold must agree, a mask key must match the public key its owner
+    advertised): a holder whose shares are wrong is left out of the unmasking."""
 
     def __init__(self, setup: RoundSetup) -> None:
         self.setup = setup
@@ -263,13 +327,27 @@ class SecAggRound:
         """U2: the masked inputs that arrived."""
         self.reveals: dict[int, dict[int, tuple[Revealed, bytes]]] = {}
         """U3: who answered the unmasking request."""
+        self.summed: list[int] = []
+        """After :meth:`total`: whose inputs the sum holds (U2, less any agent whose self mask
+        could not be rebuilt: see :attr:`left_out`)."""
+        self.left_out: dict[int, str] = {}
+        """After :meth:`total`: agents of U2 whose inputs the sum does not hold, and why."""
+        self.blamed: dict[int, str] = {}
+        """After :meth:`total`: agents whose revealed shares were wrong (left out of the
+        unmasking; their own inputs stay in the sum), and why."""
 
     def add_keys(self, agent: int, shares: KeyShares) -> None:
-        neighbours = set(self.setup.graph.get(agent, ()))
-        if agent not in self.setup.graph or set(shares.sealed) != neighbours:
+        graph = self.setup.graph
+        if agent not in graph:
+            raise SecAggError(f"agent {agent} is not a participant of round {self.setup.round}")
+        if agent in self.keys:
+            raise SecAggError(f"agent {agent} already shared keys")
+        if set(shares.sealed) != set(graph[agent]):
             raise SecAggError(f"agent {agent}'s key shares do not match its neighbours")
         if any(len(c) != SEALED_BYTES for c in shares.sealed.values()):
             raise SecAggError(f"agent {agent}'s sealed shares are not {SEALED_BYTES} bytes")
+        if not masks.usable_public_key(shares.mask_key):
+            raise SecAggError(f"agent {agent}'s mask key agrees on no secret")
         self.keys[agent] = shares
 
     def routed(self, agent: int) -> tuple[dict[int, bytes], dict[int, bytes]]:
@@ -284,54 +362,173 @@ class SecAggRound:
     def add_masked(self, agent: int, masked: np.ndarray) -> None:
         if agent not in self.keys:
             raise SecAggError(f"agent {agent} sent an input without having shared keys")
-        if masked.shape != (self.setup.length,):
-            raise SecAggError(f"agent {agent}'s input is not {self.setup.length} words")
-        self.inputs[agent] = np.asarray(masked, dtype=np.uint64)
+        if agent in self.inputs:
+            raise SecAggError(f"agent {agent} already sent its input")
+        if masked.shape != (self.setup.length,) or masked.dtype != np.uint64:
+            raise SecAggError(f"agent {agent}'s input is not {self.setup.length} uint64 words")
+        self.inputs[agent] = masked.copy()
 
     def unmask_request(self) -> tuple[list[int], list[int]]:
         """(dropped: shared keys but sent no input, included: sent an input)."""
         return sorted(set(self.keys) - set(self.inputs)), sorted(self.inputs)
 
     def add_reveal(self, agent: int, shares: Mapping[int, tuple[Revealed, bytes]]) -> None:
+        """``agent``'s answer to the unmasking request: for each neighbour it masked with, a
+        share of its mask key (it dropped) or of its self seed (included), or their pair's
+        mask key (its shares did not open)."""
         if agent not in self.inputs:
             raise SecAggError(f"agent {agent} revealed shares without an input in the sum")
+        if agent in self.reveals:
+            raise SecAggError(f"agent {agent} already revealed its shares")
+        masked_with = {v for v in self.setup.graph[agent] if v in self.keys}
+        for owner, (kind, share) in shares.items():
+            if owner not in masked_with:
+                raise SecAggError(f"agent {agent} revealed a secret of {owner}, not a neighbour")
+            wanted = Revealed.SELF_SEED if owner in self.inputs else Revealed.MASK_KEY
+            if kind not in (wanted, Revealed.PAIR_KEY):
+                raise SecAggError(
+                    f"agent {agent} revealed a share of {owner}'s {_name(kind)}, not of its "
+                    f"{_name(wanted)}"
+                )
+            limit = 1 << (8 * masks.KEY_BYTES) if kind is Revealed.PAIR_KEY else shamir.PRIME
+            if len(share) != shamir.SHARE_BYTES or int.from_bytes(share, "big") >= limit:
+                raise SecAggError(f"agent {agent}'s share of {owner}'s {_name(kind)} is no share")
         self.reveals[agent] = dict(shares)
 
-    def total(self) -> np.ndarray:
-        """Σ x_u over the included agents, modulo 2⁶⁴; SecAggError when some secret has fewer
-        than t shares among the answers."""
-        setup = self.setup
+    def total(self, fewest: int = 1) -> np.ndarray:
+        """Σ x_u over the agents of :attr:`summed`, modulo 2⁶⁴; SecAggError when some secret
+        the sum needs has fewer than t right shares among the answers, or when the sum would
+        hold fewer than ``fewest`` inputs (it is then never computed)."""
         dropped, included = self.unmask_request()
         if not included:
-            raise SecAggError(f"round {setup.round}: no masked input arrived")
-        collected: dict[tuple[int, Revealed], dict[int, bytes]] = {}
-        for holder, shares in self.reveals.items():
-            for owner, (kind, share) in shares.items():
-                collected.setdefault((owner, kind), {})[share_point(holder)] = share
-        total = np.zeros(setup.length, dtype=np.uint64)
-        for u in included:
-            fixedpoint.add(total, self.inputs[u])
-            seed = self._secret(collected, u, Revealed.SELF_SEED)
-            fixedpoint.subtract(total, masks.expand(seed, setup.length))
-        for v in dropped:
-            partners = [u for u in setup.graph[v] if u in self.inputs]
-            if not partners:
+            raise SecAggError(f"round {self.setup.round}: no masked input arrived")
+        blamed: dict[int, str] = {}
+        for _ in range(len(self.reveals) + 1):  # each pass leaves out one holder at least
+            try:
+                words, summed, left_out = self._unmasked(dropped, included, set(blamed), fewest)
+            except _Blame as blame:
+                blamed.update(blame.holders)
                 continue
-            private = self._secret(collected, v, Revealed.MASK_KEY)
+            self.summed, self.left_out, self.blamed = summed, left_out, blamed
+            return words
+        raise SecAggError(f"round {self.setup.round}: the revealed shares do not interpolate")
+
+    def _unmasked(
+        self, dropped: list[int], included: list[int], excluded: set[int], fewest: int
+    ) -> tuple[np.ndarray, list[int], dict[int, str]]:
+        """One unmasking without the shares of ``excluded`` holders; _Blame when shares turn
+        out wrong (their holders are named), SecAggError when a needed secret cannot be
+        rebuilt."""
+        setup = self.setup
+        collected: dict[tuple[int, Revealed], dict[int, bytes]] = {}
+        pair_keys: dict[tuple[int, int], bytes] = {}
+        for holder, shares in self.reveals.items():
+            if holder in excluded:
+                continue
+            for owner, (kind, share) in shares.items():
+                if kind is Revealed.PAIR_KEY:
+                    pair_keys[holder, owner] = share[-masks.KEY_BYTES :]
+                else:
+                    collected.setdefault((owner, kind), {})[share_point(holder)] = share
+        rebuild = _Rebuild(setup, collected)
+        seeds = {u: rebuild.secret(u, Revealed.SELF_SEED) for u in included}
+        rebuild.settle()
+        summed = [u for u in included if seeds[u] is not None]
+        missing = [u for u in included if seeds[u] is None]
+        for u in missing:  # out of the sum if every summed partner can undo their pair mask
+            partners = [w for w in setup.graph[u] if w in summed]
+            if not summed or any((w, u) not in pair_keys for w in partners):
+                raise SecAggError(rebuild.shortfall(u, Revealed.SELF_SEED))
+        if len(summed) < fewest:
+            raise SecAggError(
+                f"round {setup.round}: {len(summed)} inputs could be unmasked, fewer than {fewest}"
+            )
+        total = np.zeros(setup.length, dtype=np.uint64)
+        for u in summed:
+            fixedpoint.add(total, self.inputs[u])
+            fixedpoint.subtract(total, masks.expand(seeds[u] or b"", setup.length))
+        for v in [*dropped, *missing]:
+            partners = [u for u in setup.graph[v] if u in summed]
+            private = None
+            if v in dropped and any((u, v) not in pair_keys for u in partners):
+                advertised = self.keys[v].mask_key
+                private = rebuild.secret(v, Revealed.MASK_KEY, advertised.__eq__)
+                rebuild.settle()
+                if private is None:
+                    raise SecAggError(rebuild.shortfall(v, Revealed.MASK_KEY))
             for u in partners:
                 # u added +PRG(s_uv) for v > u, −PRG(s_uv) for v < u: take it back out
                 step = fixedpoint.subtract if v > u else fixedpoint.add
-                step(total, _pair_mask(private, self.keys[u].mask_key, setup, v, u))
-        return total
+                if private is not None:
+                    step(total, _pair_mask(private, self.keys[u].mask_key, setup, v, u))
+                else:
+                    step(total, masks.expand(pair_keys[u, v], setup.length))
+        left_out = {
+            u: "its self-mask seed could not be rebuilt (its shares did not open for its "
+            "neighbours)"
+            for u in missing
+        }
+        return total, summed, left_out
 
-    def _secret(
-        self, collected: Mapping[tuple[int, Revealed], dict[int, bytes]], owner: int, kind: Revealed
-    ) -> bytes:
-        shares = collected.get((owner, kind), {})
+
+class _Rebuild:
+    """The secrets of one unmasking, each from its shares (checked), and what went wrong."""
+
+    def __init__(
+        self, setup: RoundSetup, collected: Mapping[tuple[int, Revealed], dict[int, bytes]]
+    ) -> None:
+        self.setup = setup
+        self.collected = collected
+        self.wrong: dict[int, str] = {}
+        """Holders whose shares disagree with the others'."""
+        self.suspects: list[tuple[frozenset[int], str]] = []
+        """Share sets that do not interpolate, no one share to blame: (holders, what)."""
+
+    def secret(
+        self, owner: int, kind: Revealed, accept: Callable[[bytes], bool] | None = None
+    ) -> bytes | None:
+        """``owner``'s secret of ``kind``; None without enough right shares. ``accept``: a
+        check of the public key of the secret (a private key)."""
+        shares = self.collected.get((owner, kind), {})
         threshold = self.setup.threshold_of(owner)
         if len(shares) < threshold:
-            raise SecAggError(
-                f"round {self.setup.round}: {len(shares)} share(s) of agent {owner}'s "
-                f"{kind.name.lower().replace('_', ' ')}, fewer than the threshold {threshold}"
-            )
-        return shamir.combine(shares, threshold)
+            return None
+        what = f"agent {owner}'s {_name(kind)}"
+
+        def right(key: bytes) -> bool:  # a mask key is checked against its public key
+            return accept is None or accept(masks.public_key(key))
+
+        try:
+            secret, wrong = shamir.rebuild(shares, threshold, right if accept else None)
+        except shamir.Inconsistent as error:
+            self.suspects.append((frozenset(x - 1 for x in error.suspects), what))
+            return None
+        for x in wrong:
+            self.wrong[x - 1] = f"its share of {what} does not interpolate with the others"
+        return secret
+
+    def settle(self) -> None:
+        """_Blame for the holders found wrong, or the one holder every inconsistent share set
+        has in common; SecAggError when shares disagree and no one holder explains it."""
+        if self.wrong:
+            raise _Blame(self.wrong)
+        if not self.suspects:
+            return
+        common = frozenset.intersection(*(holders for holders, _ in self.suspects))
+        if len(common) == 1:
+            raise _Blame({h: "its shares do not interpolate with the others" for h in common})
+        raise SecAggError(
+            f"round {self.setup.round}: the shares of {self.suspects[0][1]} do not "
+            "interpolate to one secret"
+        )
+
+    def shortfall(self, owner: int, kind: Revealed) -> str:
+        count = len(self.collected.get((owner, kind), {}))
+        return (
+            f"round {self.setup.round}: {count} share(s) of agent {owner}'s {_name(kind)}, "
+            f"fewer than the threshold {self.setup.threshold_of(owner)}"
+        )
+
+
+def _name(kind: Revealed) -> str:
+    return kind.name.lower().replace("_", " ")

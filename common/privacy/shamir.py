@@ -9,8 +9,9 @@ from the operating system's entropy (``secrets``).
 
 from __future__ import annotations
 
+import functools
 import secrets
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 
 PRIME = (1 << 521) - 1
 """A Mersenne prime above every 32-byte value."""
@@ -43,16 +44,112 @@ def combine(shares: Mapping[int, bytes], threshold: int) -> bytes:
     """The secret from at least ``threshold`` shares {x: f(x)} (the first ``threshold`` by x)."""
     if len(shares) < threshold:
         raise ValueError(f"{len(shares)} shares, fewer than the threshold {threshold}")
-    points = sorted(shares.items())[:threshold]
-    secret = 0
-    for i, (x_i, share) in enumerate(points):
-        numerator, denominator = 1, 1
-        for j, (x_j, _) in enumerate(points):
-            if i != j:
-                numerator = numerator * x_j % PRIME
-                denominator = denominator * (x_j - x_i) % PRIME
-        y_i = int.from_bytes(share, "big")
-        secret = (secret + y_i * numerator * pow(denominator, -1, PRIME)) % PRIME
-    if secret >> (8 * SECRET_BYTES):
+    points = sorted((x, _value(y)) for x, y in shares.items())[:threshold]
+    return _secret(_at(points, 0))
+
+
+class Inconsistent(ValueError):
+    """Shares that no one polynomial of degree below the threshold goes through, without one
+    share to blame: ``suspects`` are the points any one of which may be wrong."""
+
+    def __init__(self, message: str, suspects: frozenset[int]) -> None:
+        super().__init__(message)
+        self.suspects = suspects
+
+
+def rebuild(
+    shares: Mapping[int, bytes],
+    threshold: int,
+    accept: Callable[[bytes], bool] | None = None,
+) -> tuple[bytes, frozenset[int]]:
+    """The secret of ``shares``, checked, and the points whose shares were found wrong.
+
+    The first ``threshold`` points by x give the polynomial; every further share must lie on
+    it, and the secret must fit 32 bytes and pass ``accept`` (where the caller can tell a right
+    secret: a private key against its public key). Further shares that disagree while another
+    agrees are the wrong ones; when none agrees, each of the first ``threshold`` is left out in
+    turn, and the one whose absence makes the rest agree is. :class:`Inconsistent` when no one
+    share explains the disagreement; ValueError for fewer than ``threshold`` shares. With
+    exactly ``threshold`` shares and no ``accept`` nothing can be checked."""
+    if len(shares) < threshold:
+        raise ValueError(f"{len(shares)} shares, fewer than the threshold {threshold}")
+    points = sorted((x, _value(y)) for x, y in shares.items())
+    found = _checked(points, threshold, accept)
+    if found is not None:
+        return found
+    base = points[:threshold]
+    blamed = []
+    if len(points) > threshold or accept is not None:
+        for x, _ in base:
+            rest = [p for p in points if p[0] != x]
+            if len(rest) < threshold or (len(rest) == threshold and accept is None):
+                continue
+            again = _checked(rest, threshold, accept)
+            if again is not None:
+                blamed.append((again[0], again[1] | {x}))
+    if len(blamed) == 1:
+        return blamed[0]
+    raise Inconsistent(
+        f"{len(points)} shares do not interpolate to one secret", frozenset(x for x, _ in base)
+    )
+
+
+def _checked(
+    points: list[tuple[int, int]], threshold: int, accept: Callable[[bytes], bool] | None
+) -> tuple[bytes, frozenset[int]] | None:
+    """The secret of ``points``' first ``threshold`` and the further points off its polynomial,
+    if the secret passes and some further point (or ``accept``) vouches for it; else None."""
+    base, further = points[:threshold], points[threshold:]
+    xs = tuple(x for x, _ in base)
+    value = _at(base, 0)
+    if value >> (8 * SECRET_BYTES):
+        return None
+    off = frozenset(x for x, y in further if _at(base, x, xs) != y)
+    if further and len(off) == len(further):
+        return None
+    secret = value.to_bytes(SECRET_BYTES, "big")
+    if accept is not None and not accept(secret):
+        return None
+    return secret, off
+
+
+def _value(share: bytes) -> int:
+    value = int.from_bytes(share, "big")
+    if len(share) != SHARE_BYTES or value >= PRIME:
+        raise ValueError(f"a share is a field element of {SHARE_BYTES} bytes")
+    return value
+
+
+def _secret(value: int) -> bytes:
+    if value >> (8 * SECRET_BYTES):
         raise ValueError("the shares do not interpolate to a 32-byte secret")
-    return secret.to_bytes(SECRET_BYTES, "big")
+    return value.to_bytes(SECRET_BYTES, "big")
+
+
+def _at(points: list[tuple[int, int]], at: int, xs: tuple[int, ...] | None = None) -> int:
+    """The polynomial through ``points`` (distinct x) evaluated at ``at``: Σ y_i ℓ_i(at)."""
+    xs = xs if xs is not None else tuple(x for x, _ in points)
+    inverses = _inverse_denominators(xs)
+    count = len(xs)
+    before = [1] * (count + 1)  # ∏_{j<i} (at − x_j)
+    for i, x in enumerate(xs):
+        before[i + 1] = before[i] * (at - x) % PRIME
+    total, after = 0, 1  # after: ∏_{j>i} (at − x_j)
+    for i in range(count - 1, -1, -1):
+        total = (total + points[i][1] * before[i] % PRIME * after % PRIME * inverses[i]) % PRIME
+        after = after * (at - xs[i]) % PRIME
+    return total
+
+
+@functools.lru_cache(maxsize=64)
+def _inverse_denominators(xs: tuple[int, ...]) -> tuple[int, ...]:
+    """1 / ∏_{j≠i} (x_i − x_j) for each point of ``xs`` (the same for every secret whose
+    shares come from the same holders)."""
+    inverses = []
+    for i, x_i in enumerate(xs):
+        denominator = 1
+        for j, x_j in enumerate(xs):
+            if i != j:
+                denominator = denominator * (x_i - x_j) % PRIME
+        inverses.append(pow(denominator, -1, PRIME))
+    return tuple(inverses)

@@ -32,7 +32,7 @@ from fedhpg.common.limits import (
 from fedhpg.common.privacy.contribution import RoundPrivacy
 from fedhpg.common.types import EvaluationStats, UpdateColumns
 
-PROTOCOL_VERSION = 8
+PROTOCOL_VERSION = 9
 """Bumped whenever a message changes; a peer of another version is refused with a reason."""
 
 KIB = 1024
@@ -215,8 +215,9 @@ class UnmaskRequest:
 @dataclass(frozen=True, kw_only=True, eq=False)
 class Unmasking:
     """Agent → server: row i holds agent ``agents[i]``'s revealed shares: of agent
-    ``owners[i, j]``'s secret of kind ``kinds[i, j]`` (1: mask key, 2: self-mask seed; 0 and
-    owner −1: an unused slot)."""
+    ``owners[i, j]``'s secret of kind ``kinds[i, j]`` (1: mask key, 2: self-mask seed; 3: not
+    a share but the pair's mask key, for a neighbour whose sealed shares did not open; owner
+    −1: an unused slot). Each owner once per row."""
 
     round: Round
     agents: AnswerList

@@ -46,6 +46,12 @@ class SecureSum:
     total: np.ndarray
     inputs: int
     """How many agents' contributions the sum holds."""
+    participants: int
+    """How many agents took part in the protocol (its n: the noise shares and the fixed point
+    are sized from it)."""
+    failed: str | None = None
+    """Why the round has no sum (too few keys, inputs or shares; too little noise): θ̃ stays
+    as it was, the round is recorded as skipped."""
 
 
 class AgentPool(Protocol):

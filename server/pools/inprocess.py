@@ -13,6 +13,7 @@ import dataclasses
 import logging
 from collections.abc import Callable, Mapping, Sequence
 
+import numpy as np
 import torch
 
 from fedhpg.common.config import RunConfig, agent_id_of
@@ -20,14 +21,14 @@ from fedhpg.common.device import DeviceModel, device_for, message_bytes
 from fedhpg.common.group import AgentGroup, make_agent_group
 from fedhpg.common.privacy import fixedpoint
 from fedhpg.common.privacy.contribution import EXTRA, RoundPrivacy, contribution, redacted
-from fedhpg.common.privacy.secagg import SecAggError, SecAggRound
+from fedhpg.common.privacy.secagg import SecAggError, SecAggRound, fewest_inputs
 from fedhpg.common.privacy.session import LocalSecAgg
 from fedhpg.common.runtime.memory import pin_malloc_mmap_threshold, tune_malloc_for
 from fedhpg.common.types import AgentUpdate, EvaluationStats, LocalResult
 from fedhpg.common.variants import variants_of
 from fedhpg.common.worker import IterationWork
 from fedhpg.envs.base import EnvVariant
-from fedhpg.server.pools import FederationError, RoundAnswers, SecureSum
+from fedhpg.server.pools import RoundAnswers, SecureSum
 from fedhpg.server.validation import Rejection, UpdateCheck
 
 logger = logging.getLogger(__name__)
@@ -119,15 +120,31 @@ class InProcessPool:
             words = fixedpoint.encode(row, scale, max(private.bound, 1.0))
             server.add_masked(k, self.secure.agent(k).mask(round_index, words, *server.routed(k)))
         dropped, included = server.unmask_request()
+        privacy = self.run.privacy
+        fewest = fewest_inputs(privacy.mode, privacy.secagg.threshold, len(selected))
+        stripped = [dataclasses.replace(u, theta=theta) for u in answers.updates]
+
+        def failed(reason: str) -> RoundAnswers:
+            empty = SecureSum(
+                total=np.zeros(0), inputs=0, participants=len(selected), failed=reason
+            )
+            return dataclasses.replace(answers, updates=stripped, secure=empty)
+
+        if len(included) < fewest:  # checked before any input is unmasked
+            return failed(
+                f"{len(included)} inputs arrived, fewer than the {fewest} the round needs "
+                "(privacy.secagg.threshold): nothing was unmasked"
+            )
         for k in included:
             server.add_reveal(k, self.secure.agent(k).reveal(round_index, dropped, included))
         try:
-            total = fixedpoint.decode(server.total(), scale)
+            total = fixedpoint.decode(server.total(fewest=fewest), scale)
         except SecAggError as error:
-            raise FederationError(str(error)) from None
-        stripped = [dataclasses.replace(u, theta=theta) for u in answers.updates]
+            return failed(f"secure aggregation failed: {error}")
         return dataclasses.replace(
-            answers, updates=stripped, secure=SecureSum(total=total, inputs=len(included))
+            answers,
+            updates=stripped,
+            secure=SecureSum(total=total, inputs=len(included), participants=len(selected)),
         )
 
     def _at_deadline(

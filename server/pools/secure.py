@@ -18,39 +18,39 @@ the others' shares. The server keeps only the sum; the updates it returns carry 
 
 from __future__ import annotations
 
+import contextlib
 import logging
-from collections.abc import Callable, Mapping, Sequence
+from collections.abc import Callable, Iterator, Mapping, Sequence
 
 import numpy as np
 import torch
 
 from fedhpg.common.config import RunConfig
-from fedhpg.common.privacy import fixedpoint, shamir
+from fedhpg.common.privacy import fixedpoint, masks, shamir
+from fedhpg.common.privacy import secure_messages as read
 from fedhpg.common.privacy.contribution import EXTRA, RoundPrivacy
 from fedhpg.common.privacy.secagg import (
     SEALED_BYTES,
-    Revealed,
     RoundSetup,
     SecAggError,
     SecAggRound,
+    fewest_inputs,
 )
-from fedhpg.common.privacy.secagg import (
-    KeyShares as Shares,
-)
+from fedhpg.common.privacy.secure_messages import RowError
 from fedhpg.common.types import AgentUpdate, UpdateStats
 from fedhpg.common.wire.protocol import (
     KEY_BYTES,
     KeyShares,
-    MaskedUpdate,
     MaskRequest,
     Request,
     Train,
     Unmasking,
     UnmaskRequest,
 )
-from fedhpg.server.pools import FederationError, RoundAnswers, SecureSum
+from fedhpg.server.pools import RoundAnswers, SecureSum
 from fedhpg.server.pools.collection import Collector
 from fedhpg.server.pools.links import Links
+from fedhpg.server.validation import Reject, Rejection
 
 logger = logging.getLogger(__name__)
 
@@ -81,6 +81,11 @@ class SecureExchange:
         self.length = num_params + EXTRA
         self.answer_bytes = row_bytes(run, num_params)
 
+    def participants(self, links: Links, agents: Sequence[int]) -> list[int]:
+        """The agents of ``agents`` that can take part in a secure round: registered, with a
+        channel key a secret can be agreed with."""
+        return sorted(_channel_keys(links, agents))
+
     def round(
         self,
         collector: Collector,
@@ -95,17 +100,15 @@ class SecureExchange:
         while_training: Callable[[], None] | None = None,
     ) -> RoundAnswers:
         """One round's training and secure aggregation; its sum and the included agents'
-        statistics."""
+        statistics, or (``secure.failed``) why it has none."""
         selected = sorted(agents)
-        keys = {
-            k: peer.link.channel_keys[k]
-            for k in selected
-            if (peer := links.peers.get(k)) is not None and k in peer.link.channel_keys
-        }
+        keys = _channel_keys(links, selected)
         participants = sorted(keys)
-        if not participants:
-            raise FederationError(f"round {round_index}: no selected agent is registered")
         secagg = self.run.privacy.secagg
+        fewest = fewest_inputs(self.run.privacy.mode, secagg.threshold, len(participants))
+        outcome = _Outcome(round_index, selected, links.name, len(participants))
+        if not participants:
+            return outcome.failed("no selected agent is registered")
         setup = RoundSetup(
             round=round_index,
             participants=tuple(participants),
@@ -134,19 +137,14 @@ class SecureExchange:
             while_waiting=while_training,
         )
         for k, (message, row) in sorted(shared.answers.items()):
-            sealed = {
-                int(v): bytes(message.sealed[row, j])
-                for j, v in enumerate(message.recipients[row])
-                if v >= 0
-            }
-            try:
-                server.add_keys(k, Shares(mask_key=bytes(message.mask_keys[row]), sealed=sealed))
-            except SecAggError as error:
-                logger.warning("round %d: %s drops out: %s", round_index, links.name(k), error)
-        stats = self._masked_inputs(collector, pump, server, setup)
+            with outcome.step(k, "key shares"):
+                server.add_keys(k, read.key_shares(message, row))
+        if len(server.keys) < fewest:
+            return outcome.failed(f"{len(server.keys)} agents shared keys, fewer than {fewest}")
+        stats = self._masked_inputs(collector, pump, server, setup, outcome)
         dropped, included = server.unmask_request()
-        if not included:
-            raise FederationError(f"round {round_index}: no masked input arrived")
+        if len(included) < fewest:  # checked before any input is unmasked
+            return outcome.failed(_too_few_inputs(len(included), fewest, self.run))
         revealed = collector.collect(
             UnmaskRequest(round=round_index, agents=[], dropped=dropped, included=included),
             "unmasking of round",
@@ -155,37 +153,25 @@ class SecureExchange:
             phase=True,
         )
         for k, (message, row) in sorted(revealed.answers.items()):
-            server.add_reveal(
-                k,
-                {
-                    int(owner): (Revealed(int(kind)), bytes(message.shares[row, j]))
-                    for j, (owner, kind) in enumerate(
-                        zip(message.owners[row], message.kinds[row], strict=True)
-                    )
-                    if owner >= 0 and kind in (Revealed.MASK_KEY, Revealed.SELF_SEED)
-                },
-            )
+            with outcome.step(k, "revealed shares"):
+                server.add_reveal(k, read.unmasking(message, row))
         try:
-            words = server.total()
+            words = server.total(fewest=fewest)
         except SecAggError as error:
-            raise FederationError(f"secure aggregation failed: {error}") from None
+            return outcome.failed(f"secure aggregation failed: {error}")
+        outcome.unmasked(server)
         scale = fixedpoint.scale_for(len(participants), max(private.bound, 1.0))
-        missing = [links.name(k) for k in selected if k not in server.inputs]
-        if missing:
-            logger.warning(
-                "round %d aggregated %d of %d masked inputs; dropped out: %s",
-                round_index,
-                len(included),
-                len(selected),
-                ", ".join(missing),
-            )
-        return RoundAnswers(
-            updates=[
-                AgentUpdate(agent_index=k, agent_id=links.name(k), theta=theta, stats=stats[k])
-                for k in included
-            ],
-            stragglers=missing,
-            secure=SecureSum(total=fixedpoint.decode(words, scale), inputs=len(included)),
+        updates = [
+            AgentUpdate(agent_index=k, agent_id=links.name(k), theta=theta, stats=stats[k])
+            for k in server.summed
+        ]
+        return outcome.answers(
+            updates,
+            SecureSum(
+                total=fixedpoint.decode(words, scale),
+                inputs=len(server.summed),
+                participants=len(participants),
+            ),
         )
 
     def _masked_inputs(
@@ -194,6 +180,7 @@ class SecureExchange:
         pump: Callable[[], None],
         server: SecAggRound,
         setup: RoundSetup,
+        outcome: _Outcome,
     ) -> dict[int, UpdateStats]:
         """Exchange 2: the routed keys and shares out, the masked inputs in."""
         width = max((len(setup.graph[k]) for k in server.keys), default=0)
@@ -228,19 +215,102 @@ class SecureExchange:
             phase=True,
         )
         stats: dict[int, UpdateStats] = {}
-        records: dict[int, list[UpdateStats]] = {}
         for k, (message, row) in sorted(masked.answers.items()):
-            assert isinstance(message, MaskedUpdate)
-            words = np.ascontiguousarray(message.masked[row]).view(np.uint64)
-            try:
+            with outcome.step(k, "masked input"):
+                words, kept = read.masked_update(message, row, setup.length)
                 server.add_masked(k, words)
-            except SecAggError as error:
-                logger.warning("round %d: agent %d drops out: %s", setup.round, k, error)
-                continue
-            if id(message) not in records:
-                records[id(message)] = message.stats.records()
-            stats[k] = records[id(message)][row]
+                stats[k] = kept
         return stats
+
+
+class _Outcome:
+    """What becomes of one secure round: the agents refused at each step (each logged once,
+    recorded in the round's ``failures``) and the answers the coordinator takes."""
+
+    def __init__(
+        self, round_index: int, selected: list[int], name: Callable[[int], str], participants: int
+    ) -> None:
+        self.round = round_index
+        self.selected = selected
+        self.name = name
+        self.participants = participants
+        self.refused: dict[int, Rejection] = {}
+
+    @contextlib.contextmanager
+    def step(self, agent: int, what: str) -> Iterator[None]:
+        """Around taking agent ``agent``'s row: a row refused is the agent's drop-out."""
+        try:
+            yield
+        except (RowError, SecAggError) as error:
+            self.refuse(agent, f"its {what} were refused: {error}")
+
+    def refuse(self, agent: int, reason: str) -> None:
+        logger.warning("round %d: %s drops out: %s", self.round, self.name(agent), reason)
+        self.refused.setdefault(agent, Rejection(Reject.PROTOCOL, reason))
+
+    def unmasked(self, server: SecAggRound) -> None:
+        """Log who the unmasking left out, or found revealing wrong shares."""
+        for agent, reason in sorted(server.blamed.items()):
+            logger.warning(
+                "round %d: %s's revealed shares were left out: %s",
+                self.round,
+                self.name(agent),
+                reason,
+            )
+        for agent, reason in sorted(server.left_out.items()):
+            self.refuse(agent, f"its input was left out of the sum: {reason}")
+
+    def failed(self, reason: str) -> RoundAnswers:
+        """A round with no sum: θ̃ stays, the coordinator records the round as skipped."""
+        return self.answers(
+            [],
+            SecureSum(total=np.zeros(0), inputs=0, participants=self.participants, failed=reason),
+        )
+
+    def answers(self, updates: list[AgentUpdate], secure: SecureSum) -> RoundAnswers:
+        summed = {u.agent_index for u in updates}
+        missing = [self.name(k) for k in self.selected if k not in summed and k not in self.refused]
+        if secure.failed is None and (missing or self.refused):
+            logger.warning(
+                "round %d aggregated %d of %d masked inputs; dropped out: %s",
+                self.round,
+                len(updates),
+                len(self.selected),
+                ", ".join(missing + [self.name(k) for k in sorted(self.refused)]),
+            )
+        return RoundAnswers(
+            updates=updates,
+            failures={self.name(k): r for k, r in sorted(self.refused.items())},
+            stragglers=missing,
+            secure=secure,
+        )
+
+
+def _channel_keys(links: Links, agents: Sequence[int]) -> dict[int, bytes]:
+    """The channel keys of the registered agents of ``agents`` (a key no secret can be agreed
+    with leaves its agent out)."""
+    keys = {}
+    for k in agents:
+        peer = links.peers.get(k)
+        if peer is None or k not in peer.link.channel_keys:
+            continue
+        key = bytes(peer.link.channel_keys[k])
+        if masks.usable_public_key(key):
+            keys[k] = key
+        else:
+            logger.warning(
+                "%s's channel key agrees on no secret: it cannot aggregate", links.name(k)
+            )
+    return keys
+
+
+def _too_few_inputs(arrived: int, fewest: int, run: RunConfig) -> str:
+    if run.privacy.mode == "dp_secagg":
+        return (
+            f"{arrived} masked inputs arrived, fewer than the {fewest} whose noise shares reach "
+            "σC (privacy.secagg.threshold): nothing was unmasked"
+        )
+    return "no masked input arrived"
 
 
 __all__ = ["KeyShares", "SecureExchange", "Unmasking", "row_bytes"]
