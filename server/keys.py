@@ -5,14 +5,18 @@ Writes, into one directory::
     server.key, server.key_secret        the server's key pair
     agent-<k>.key, agent-<k>.key_secret  each agent's key pair (or the names given)
     allowed/agent-<k>.key                the agents' public keys: the server's allow-list
+    agent-<k>.sign_secret                each agent's signing key (secure aggregation)
+    signers/agent-<k>.sign               the agents' public signing keys: every agent's roster
 
 An allow-list entry binds its key to the agents it may speak for
 (:func:`~fedhpg.common.wire.security.parse_binding`): ``agent-<k>`` and ``host-<f>-<l>`` by
 their names, any other name by a suffix (``--names alice@3`` writes ``alice.key_secret`` and
 ``allowed/alice@3.key``; ``--names rack@0-99`` a host's key for agents 0..99).
 
-Secret files are mode 0600 from the start (generated in a private temporary directory, then
-renamed into place). Existing keys are never replaced without ``--force``.
+The signing keys authenticate what agents advertise in a secure round
+(:mod:`fedhpg.common.privacy.signing`): the roster goes to every agent host, so that no server
+can substitute a key. Secret files are mode 0600 from the start (generated in a private
+temporary directory, then renamed into place). Existing keys are never replaced without ``--force``.
 """
 
 from __future__ import annotations
@@ -33,6 +37,12 @@ import zmq
 import zmq.auth
 
 from fedhpg.common.config import host_id_of, host_ranges
+from fedhpg.common.privacy.signing import (
+    SIGN_SECRET_SUFFIX,
+    SIGN_SUFFIX,
+    SIGNERS_DIR,
+    write_key_pair,
+)
 from fedhpg.common.runtime.cli import version_text
 from fedhpg.common.wire.security import (
     ALLOWED_DIR,
@@ -61,11 +71,12 @@ WHERE_TO = """\
 Which file goes where:
   server host:   {dir}/server.key_secret and the directory {dir}/allowed/
                  fedhpg-server security.curve=true security.keys_dir={dir} ...
-  agent host k:  {dir}/agent-k.key_secret and {dir}/server.key (nothing else)
+  agent host k:  {dir}/agent-k.key_secret, {dir}/server.key, and for secure aggregation
+                 {dir}/agent-k.sign_secret and the directory {dir}/signers/ (nothing else)
                  fedhpg-agent agent.index=k security.curve=true security.keys_dir=<their dir> ...
-  (a host of agents f..l: {dir}/host-f-l.key_secret and {dir}/server.key)
+  (a host of agents f..l: {dir}/host-f-l.key_secret, .sign_secret, server.key, signers/)
   one machine:   fedhpg-run security.curve=true security.keys_dir={dir}
-Never copy a .key_secret file anywhere but to the host it belongs to.
+Never copy a .key_secret or .sign_secret file anywhere but to the host it belongs to.
 """
 
 
@@ -171,20 +182,22 @@ def _targets(directory: Path, entries: list[Entry]) -> list[Path]:
             directory / f"{entry.name}{SECRET_SUFFIX}",
         ]
         paths.append(directory / ALLOWED_DIR / f"{entry.allowed}{PUBLIC_SUFFIX}")
+        paths.append(directory / f"{entry.name}{SIGN_SECRET_SUFFIX}")
+        paths.append(directory / SIGNERS_DIR / f"{entry.allowed}{SIGN_SUFFIX}")
     return paths
 
 
 def _prepare(directory: Path) -> None:
-    for folder in (directory, directory / ALLOWED_DIR):
+    folders = (directory, directory / ALLOWED_DIR, directory / SIGNERS_DIR)
+    for folder in folders:
         if folder.exists() and not folder.is_dir():
             raise UsageError(f"{folder}: exists and is not a directory")
     try:
-        (directory / ALLOWED_DIR).mkdir(parents=True, exist_ok=True)
+        for folder in folders[1:]:
+            folder.mkdir(parents=True, exist_ok=True)
     except OSError as error:
         raise UsageError(f"cannot create {directory}: {error.strerror or error}") from None
-    if not os.access(directory, os.W_OK | os.X_OK) or not os.access(
-        directory / ALLOWED_DIR, os.W_OK | os.X_OK
-    ):
+    if not all(os.access(folder, os.W_OK | os.X_OK) for folder in folders):
         raise UsageError(f"cannot write to {directory}: permission denied")
 
 
@@ -215,6 +228,15 @@ def generate(directory: Path, entries: list[Entry], *, force: bool = False) -> l
                 target = directory / ALLOWED_DIR / f"{entry.allowed}{PUBLIC_SUFFIX}"
                 os.replace(allowed, target)
                 written.append(target)
+                secret_signing, public_signing = write_key_pair(
+                    staging, staging, entry.name, entry.allowed
+                )
+                for path, folder in (
+                    (secret_signing, directory),
+                    (public_signing, directory / SIGNERS_DIR),
+                ):
+                    os.replace(path, folder / path.name)
+                    written.append(folder / path.name)
             for path in (public, secret):
                 os.replace(path, directory / path.name)
                 written.append(directory / path.name)
