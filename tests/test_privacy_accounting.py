@@ -152,7 +152,8 @@ def test_dp_secagg_reports_epsilon_against_the_server(
         library = dp_accounting.rdp.RdpAccountant()
         library.compose(dp_accounting.GaussianDpEvent(sigma / 2), int(counts.max()))
         assert record["epsilon_server"] == pytest.approx(library.get_epsilon(delta))
-        assert record["epsilon_server"] > record["epsilon"]
+        if counts.max() == record["round"]:  # an agent drawn every round: amplified is less
+            assert record["epsilon_server"] > record["epsilon"]
         assert record["selected"] == spy.rounds[record["round"]]  # the server's own view
     summary = json.loads((out / "summary.json").read_text())["privacy"]
     assert summary["epsilon_server"] == result.records[-1]["epsilon_server"]
