@@ -53,6 +53,7 @@ from fedhpg.common.privacy.contribution import EXTRA, RoundPrivacy, average, con
 from fedhpg.common.types import AgentUpdate
 from fedhpg.server.checkpoint import write_atomic
 from fedhpg.server.pools import FederationError, RoundAnswers
+from fedhpg.server.run_dir import RunDirectoryError
 
 logger = logging.getLogger(__name__)
 
@@ -360,8 +361,14 @@ class PrivateRounds:
         entry: dict[str, Any] = {"round": round_number, "rounds_accounted": self.accounted}
         if self.participations is not None:
             entry["participations"] = self.participations.tolist()
-        self.journal.parent.mkdir(parents=True, exist_ok=True)
-        write_atomic(self.journal, json.dumps(entry).encode())
+        try:
+            self.journal.parent.mkdir(parents=True, exist_ok=True)
+            write_atomic(self.journal, json.dumps(entry).encode())
+        except OSError as error:
+            raise RunDirectoryError(
+                f"cannot write the privacy journal {self.journal}: {error.strerror or error}; "
+                f"θ̃ of round {round_number} is not released, the checkpoints are kept"
+            ) from None
 
     def hiding_names(self, names: Sequence[str]) -> contextlib.AbstractContextManager[None]:
         """While the rounds run: the pools' log lines name no agent where the sample is hidden
