@@ -422,7 +422,13 @@ class ServerConfig:
     """A peer silent for this many heartbeat intervals is presumed dead."""
     max_update_norm: float | None = None
     """Reject an update whose distance ‖θ_k − θ̃‖ exceeds this (a failure for the round);
-    None = no bound. NaN/Inf and wrong shapes are always rejected. Every pool applies it."""
+    None = no bound. NaN/Inf and wrong shapes are always rejected. Every pool applies it.
+    Under secure aggregation (the server sees no θ_k) it bounds the round's average step
+    instead: a round past it is skipped (some update was past it)."""
+    max_failed_rounds: int = 3
+    """Secure rounds that may be skipped in a row (too few keys, inputs or shares; too little
+    noise; a sum no honest agents could send: θ̃ kept, the round recorded) before the run
+    stops, its checkpoint intact."""
     max_message_mb: float = 256.0
     """Upper bound on a message, in MiB. The server accepts no more than its run needs (a
     1 MiB header and θ as float32: ZMQ_MAXMSGSIZE and the codec's cap) and refuses to start
@@ -708,6 +714,9 @@ class GroupRole:
     """It defines the run: a resumed run must keep it."""
     compared: bool
     """Runs that differ in it are different experiments: plots group by it."""
+    agreed: bool = False
+    """Dictated, but an agent must already hold the same: it consents instead of adopting, so
+    that no server can lower what protects an agent."""
 
 
 GROUPS: dict[str, GroupRole] = {
@@ -724,7 +733,7 @@ GROUPS: dict[str, GroupRole] = {
     "server": GroupRole(dictated=False, fixed=False, compared=False),
     "agent": GroupRole(dictated=False, fixed=False, compared=False),
     "security": GroupRole(dictated=False, fixed=False, compared=False),  # paths stay on host
-    "privacy": GroupRole(dictated=True, fixed=True, compared=True),  # agents clip, noise, mask
+    "privacy": GroupRole(dictated=True, fixed=True, compared=True, agreed=True),
     "cluster": GroupRole(dictated=False, fixed=False, compared=False),  # fedhpg-cluster's jobs
     "resume": GroupRole(dictated=False, fixed=False, compared=False),
 }
@@ -749,11 +758,35 @@ def dictated_settings(config: RunConfig) -> dict[str, Any]:
 
 
 def adopt_settings(own: RunConfig, dictated: dict[str, Any]) -> RunConfig:
-    """This host's config with the server's dictated keys in place of its own."""
+    """This host's config with the server's dictated keys in place of its own; ConfigError
+    where the server's value of an agreed key (privacy) differs from this host's own."""
     unknown = sorted(set(dictated) - set(groups("dictated")))
     if unknown:
         raise ConfigError(unknown[0], "the server may not dictate this key")
-    return from_dict({**to_dict(own), **dictated})
+    values = to_dict(own)
+    for group in groups("agreed"):
+        if group in dictated and (differs := _first_difference(values[group], dictated[group])):
+            key, mine, theirs = differs
+            raise ConfigError(
+                f"{group}.{key}" if key else group,
+                f"the server runs {theirs!r}, this agent was started with {mine!r}: an agent "
+                f"keeps its own {group} settings; start it with the server's",
+            )
+    return from_dict({**values, **dictated})
+
+
+def _first_difference(mine: Any, theirs: Any, path: str = "") -> tuple[str, Any, Any] | None:
+    """The first key (dotted; a ``mode`` first) whose values differ between two nested dicts,
+    and both values."""
+    if isinstance(mine, dict) and isinstance(theirs, dict):
+        for key in sorted(set(mine) | set(theirs), key=lambda k: (k != "mode", k)):
+            found = _first_difference(
+                mine.get(key), theirs.get(key), f"{path}.{key}" if path else key
+            )
+            if found is not None:
+                return found
+        return None
+    return None if mine == theirs else (path, mine, theirs)
 
 
 # --- checks -----------------------------------------------------------------------------------
@@ -922,6 +955,7 @@ def _validate_server(server: ServerConfig, num_agents: int) -> None:
     _check_int(server.heartbeat_liveness, "server.heartbeat_liveness", low=2)
     if server.max_update_norm is not None:
         _check_number(server.max_update_norm, "server.max_update_norm", low=0.0, low_open=True)
+    _check_int(server.max_failed_rounds, "server.max_failed_rounds", low=0)
     if server.max_connections is not None:
         # low=1, not K: agent hosts serve many agents over one connection each
         _check_int(server.max_connections, "server.max_connections", low=1)
