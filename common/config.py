@@ -513,6 +513,13 @@ class SecurityConfig:
     """Agent: the server's public key file; None = ``<keys_dir>/server.key``."""
     agent_secret_key: str | None = None
     """Agent: its own secret key file; None = ``<keys_dir>/<agent id>.key_secret``."""
+    signing_key: str | None = None
+    """Agent, secure aggregation: its secret signing key file; None =
+    ``<keys_dir>/<agent id>.sign_secret``. Needed wherever a roster is."""
+    signers_dir: str | None = None
+    """Agent, secure aggregation: the roster of every agent's public signing key; None =
+    ``<keys_dir>/signers`` where it exists. Without one, key advertisements are not signed and
+    the server is trusted to relay keys unchanged."""
 
 
 @dataclass(kw_only=True)

@@ -9,7 +9,7 @@ Writes, into one directory::
     signers/agent-<k>.sign               the agents' public signing keys: every agent's roster
 
 An allow-list entry binds its key to the agents it may speak for
-(:func:`~fedhpg.common.wire.security.parse_binding`): ``agent-<k>`` and ``host-<f>-<l>`` by
+(:func:`~fedhpg.common.key_names.parse_binding`): ``agent-<k>`` and ``host-<f>-<l>`` by
 their names, any other name by a suffix (``--names alice@3`` writes ``alice.key_secret`` and
 ``allowed/alice@3.key``; ``--names rack@0-99`` a host's key for agents 0..99).
 
@@ -37,6 +37,7 @@ import zmq
 import zmq.auth
 
 from fedhpg.common.config import host_id_of, host_ranges
+from fedhpg.common.key_names import BIND, parse_binding
 from fedhpg.common.privacy.signing import (
     SIGN_SECRET_SUFFIX,
     SIGN_SUFFIX,
@@ -46,11 +47,9 @@ from fedhpg.common.privacy.signing import (
 from fedhpg.common.runtime.cli import version_text
 from fedhpg.common.wire.security import (
     ALLOWED_DIR,
-    BIND,
     PUBLIC_SUFFIX,
     SECRET_SUFFIX,
     SERVER_KEY_NAME,
-    parse_binding,
 )
 
 EXIT_USAGE = 2

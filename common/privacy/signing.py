@@ -22,6 +22,9 @@ from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
 
+from fedhpg.common.config import ConfigError, SecurityConfig
+from fedhpg.common.key_names import parse_binding
+
 try:  # the privacy extra (``cryptography``); without it privacy settings are refused at start
     from cryptography.exceptions import InvalidSignature
     from cryptography.hazmat.primitives.asymmetric.ed25519 import (
@@ -133,8 +136,6 @@ def load_roster(directory: Path) -> Roster:
     """The roster in ``directory``: every ``<entry>.sign`` file, its agents named by the entry
     as an allow-list's are. SignatureError naming the file when one is malformed or two
     entries claim one agent."""
-    from fedhpg.common.wire.security import parse_binding
-
     keys: dict[int, bytes] = {}
     for path in sorted(directory.glob(f"*{SIGN_SUFFIX}")):
         binding = parse_binding(path.name[: -len(SIGN_SUFFIX)])
@@ -146,3 +147,41 @@ def load_roster(directory: Path) -> Roster:
                 raise SignatureError(f"{path}: agent {agent} already has a signing key")
             keys[agent] = public
     return Roster(keys)
+
+
+@dataclass(frozen=True)
+class AgentSigning:
+    """What an agent program signs with and checks against (secure aggregation)."""
+
+    private: bytes
+    roster: Roster
+
+
+def agent_signing(security: SecurityConfig, agent_id: str) -> AgentSigning | None:
+    """The signing key of ``agent_id`` (a lone agent's or a host's id) and the roster, from
+    ``security.signing_key`` / ``security.signers_dir`` or the keys directory; None where no
+    roster is given or found. ConfigError naming the setting when a file is missing or wrong."""
+    folder: Path | None = None
+    if security.signers_dir is not None:
+        folder = Path(security.signers_dir)
+        if not folder.is_dir():
+            raise ConfigError("security.signers_dir", f"{folder}: no such directory")
+    elif security.keys_dir is not None and (Path(security.keys_dir) / SIGNERS_DIR).is_dir():
+        folder = Path(security.keys_dir) / SIGNERS_DIR
+    if folder is None:
+        return None
+    if security.signing_key is not None:
+        key_path, setting = Path(security.signing_key), "security.signing_key"
+    elif security.keys_dir is not None:
+        key_path = Path(security.keys_dir) / f"{agent_id}{SIGN_SECRET_SUFFIX}"
+        setting = "security.keys_dir"
+    else:
+        raise ConfigError(
+            "security.signing_key", f"a roster is given ({folder}) but no signing key to sign with"
+        )
+    if not key_path.is_file():
+        raise ConfigError(setting, f"{key_path}: no such file (fedhpg-keys writes it)")
+    try:
+        return AgentSigning(private=load_signing_key(key_path), roster=load_roster(folder))
+    except SignatureError as error:
+        raise ConfigError(setting, str(error)) from None
