@@ -24,9 +24,10 @@ from fedhpg.common.runtime import timeline
 from fedhpg.common.types import AgentUpdate, EvaluationStats, SavedState
 from fedhpg.server.bound_report import round_bound
 from fedhpg.server.participation import make_participation
-from fedhpg.server.pools import AgentPool, FederationError, RoundAnswers
+from fedhpg.server.pools import AgentPool, FederationError, RoundAnswers, SkippedRound
 from fedhpg.server.privacy import PrivateRounds
 from fedhpg.server.replan import make_replanner
+from fedhpg.server.secure_sum import sum_problem
 from fedhpg.server.strategies import Strategy
 from fedhpg.server.tolerance import tolerance_shortfall
 from fedhpg.server.validation import diverged, reasons
@@ -68,6 +69,8 @@ class RoundRecord:
     """What the strategy reports of its aggregation (:meth:`Strategy.round_stats`)."""
     privacy: dict[str, Any] | None = None
     """``privacy.mode`` ≠ none: ε and δ so far, σ, the clip, the inputs aggregated."""
+    secure: dict[str, Any] | None = None
+    """A secure round that was skipped: ``{"failed": why}`` (θ̃ is the round before's)."""
     aggregated: int | None = None
     """Where the sample is secret (``privacy=dp`` sampled: ``agents``, ``selected``,
     ``failures`` and ``stragglers`` left empty), the number of updates aggregated."""
@@ -120,6 +123,8 @@ class RoundRecord:
             if "epsilon_server" in rest:
                 record["epsilon_server"] = rest.pop("epsilon_server")
             record["privacy"] = rest
+        if self.secure is not None:
+            record["secure"] = dict(self.secure)
         return record
 
 
@@ -191,6 +196,8 @@ class Coordinator:
         self._unwritten: tuple[RoundRecord, torch.Tensor] | None = None
         """The last round's record and θ̃, until written (:meth:`_write_record`)."""
         self.participation = make_participation(run)
+        self.failed_in_a_row = 0
+        """Secure rounds skipped since the last one aggregated (``server.max_failed_rounds``)."""
         self.replanner = make_replanner(run, self.progress.plan_state)
         shortfall = tolerance_shortfall(run, strategy)  # refused at validation unless 'warn'
         if shortfall is not None:
@@ -200,9 +207,32 @@ class Coordinator:
             if privacy is not None:
                 privacy.restore(self.progress.privacy_state, run)
 
+    def _aggregate_or_skip(
+        self, round_number: int, answers: RoundAnswers, selected: int
+    ) -> str | None:
+        """:meth:`_aggregate`; a secure round that cannot be aggregated is skipped (θ̃ stays,
+        logged): why, or None. Past ``server.max_failed_rounds`` skipped in a row the run
+        stops (FederationError), its checkpoint of the last round aggregated intact."""
+        try:
+            self._aggregate(round_number, answers, selected)
+        except SkippedRound as skipped:
+            self.failed_in_a_row += 1
+            limit = self.run.server.max_failed_rounds
+            if self.failed_in_a_row > limit:
+                raise FederationError(
+                    f"{skipped}; {self.failed_in_a_row} secure rounds in a row could not be "
+                    f"aggregated (server.max_failed_rounds={limit}): the run stops, θ̃ of round "
+                    f"{round_number - self.failed_in_a_row} kept in the checkpoints"
+                ) from None
+            logger.warning("%s: round skipped, θ̃ of round %d kept", skipped, round_number - 1)
+            return skipped.reason
+        self.failed_in_a_row = 0
+        return None
+
     def _aggregate(self, round_number: int, answers: RoundAnswers, selected: int) -> None:
         updates, failures = answers.updates, answers.failures
-        if not updates:
+        failed = answers.secure is not None and answers.secure.failed is not None
+        if not updates and not failed:  # a failed secure round: the privacy step says why
             if diverged(failures):
                 raise FederationError(diverged_message(self.run, round_number))
             raise FederationError(
@@ -210,6 +240,13 @@ class Coordinator:
             )
         if self.privacy is not None:
             average = self.privacy.aggregate(round_number, self.theta, answers, selected)
+            if answers.secure is not None:  # only the sum was seen: check what is public of it
+                step = (average - self.theta).numpy()
+                problem = sum_problem(
+                    self.run, answers.secure, step, weighted=self.privacy.weighted
+                )
+                if problem is not None:
+                    raise SkippedRound(round_number, problem)
             theta = self.strategy.from_average(round_number, self.theta, average).detach()
         else:
             theta = self.strategy.aggregate(
@@ -257,7 +294,9 @@ class Coordinator:
         if self.privacy is not None:
             self.privacy.check_budget(round_number, selected)
             if self.privacy.secure:
-                private = self.privacy.round_privacy(len(selected))
+                # the noise shares are sized from the agents that run the protocol
+                taking_part = self.pool.secure_participants(selected)
+                private = self.privacy.round_privacy(len(taking_part))
         answers = self.pool.train(
             round_number,
             self.theta,
@@ -268,7 +307,7 @@ class Coordinator:
         )
         self._write_record()  # where the pool did not call it
         timeline.mark("server", "answers-in", round_number)
-        self._aggregate(round_number, answers, len(selected))
+        skipped = self._aggregate_or_skip(round_number, answers, len(selected))
         round_time = time.perf_counter() - round_started
         timeline.mark("server", "aggregated", round_number)
         evaluation, eval_time = None, None
@@ -294,7 +333,7 @@ class Coordinator:
             round=round_number,
             wall_time_s=wall_time,
             round_time_s=round_time,
-            agents=sorted(answers.updates, key=lambda u: u.agent_index),
+            agents=[] if skipped else sorted(answers.updates, key=lambda u: u.agent_index),
             trajectories_per_agent=progress.trajectories_per_agent,
             eval=evaluation,
             eval_time_s=eval_time,
@@ -305,8 +344,9 @@ class Coordinator:
             if self.run.algo.bound_estimates
             else None,
             plan=plan,
-            strategy=self.strategy.round_stats(),
+            strategy={} if skipped else self.strategy.round_stats(),
             privacy=self.privacy.round_stats() if self.privacy is not None else None,
+            secure=None if skipped is None else {"failed": skipped},
         )
         if self.privacy is not None and self.privacy.hides_sample:
             # the accounted ε is amplified by a sample nobody else may learn: no record of it

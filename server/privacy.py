@@ -50,9 +50,10 @@ from fedhpg.common.config import ConfigError, RunConfig
 from fedhpg.common.privacy import accounting, dp
 from fedhpg.common.privacy.accounting import Sampling
 from fedhpg.common.privacy.contribution import EXTRA, RoundPrivacy, average, contribution
+from fedhpg.common.privacy.secagg import fewest_inputs
 from fedhpg.common.types import AgentUpdate
 from fedhpg.server.checkpoint import write_atomic
-from fedhpg.server.pools import FederationError, RoundAnswers
+from fedhpg.server.pools import FederationError, RoundAnswers, SkippedRound
 from fedhpg.server.run_dir import RunDirectoryError
 
 logger = logging.getLogger(__name__)
@@ -191,13 +192,14 @@ class PrivateRounds:
 
     def min_inputs(self, participants: int) -> int:
         """The fewest contributions a round's sum may hold: with distributed noise, enough
-        shares of it to reach σC (the secure aggregation threshold of the round)."""
-        if self.mode != "dp_secagg":
-            return 1
-        return min(math.floor(self.settings.secagg.threshold * participants) + 1, participants)
+        shares of it to reach σC (the secure aggregation threshold of the round of
+        ``participants``, the agents that run its protocol)."""
+        return fewest_inputs(self.mode, self.settings.secagg.threshold, participants)
 
     def round_privacy(self, participants: int) -> RoundPrivacy:
-        """What the round's agents (or the server, for central noise) contribute with."""
+        """What the round's agents (or the server, for central noise) contribute with; with
+        distributed noise, each agent's share is sized from the ``participants`` that run the
+        round's protocol (the pools unmask no fewer than :meth:`min_inputs` of them)."""
         clip = self.clip if self.dp else 0.0
         noise_std = count_std = 0.0
         if self.mode == "dp_secagg":
@@ -223,15 +225,17 @@ class PrivateRounds:
         if self.secure:
             if answers.secure is None:
                 raise FederationError(f"round {round_number}: no secure sum came back")
-            if answers.secure.failed is not None:
-                raise FederationError(f"round {round_number}: {answers.secure.failed}")
+            if answers.secure.failed is not None:  # nothing was released: nothing to account
+                self._last = {"inputs": 0}
+                raise SkippedRound(round_number, answers.secure.failed)
             total, inputs = answers.secure.total, answers.secure.inputs
-            fewest = self.min_inputs(selected)
-            if inputs < fewest:
+            participants = answers.secure.participants
+            fewest = self.min_inputs(participants)
+            if inputs < fewest:  # the pools check this before unmasking: never here
                 raise FederationError(
-                    f"round {round_number}: {inputs} of {selected} agents' inputs were "
-                    f"aggregated, fewer than the {fewest} whose noise shares reach σC "
-                    "(privacy.secagg.threshold): the round is not released"
+                    f"round {round_number}: {inputs} of {participants} agents' inputs were "
+                    f"unmasked, fewer than the {fewest} whose noise shares reach σC "
+                    "(privacy.secagg.threshold)"
                 )
         else:
             total, inputs = self._central_sum(round_number, theta, answers.updates, selected)

@@ -154,19 +154,67 @@ def secure_round(
     round_index: int = 1,
     private: RoundPrivacy | None = None,
     keys: Mapping[int, bytes] | None = None,
+    theta: torch.Tensor | None = None,
+    agents: Sequence[int] | None = None,
 ) -> RoundAnswers:
-    """One secure round of every side's agent from θ̃ = 0."""
-    exchange = SecureExchange(run, num_params)
+    """One secure round of ``agents`` (default: every side's agent) from θ̃ (default 0)."""
+    theta = torch.zeros(num_params) if theta is None else theta
+    exchange = SecureExchange(run, theta.numel())
     links = Links(keys if keys is not None else {k: s.channel_key for k, s in sides.items()})
     return exchange.round(
         Wire(sides),  # type: ignore[arg-type]
         links,  # type: ignore[arg-type]
         lambda: None,
         round_index,
-        torch.zeros(num_params),
-        sorted(sides),
+        theta,
+        sorted(sides) if agents is None else sorted(agents),
         private or RoundPrivacy(bound=1.0e4),
     )
+
+
+class SecurePool:
+    """The coordinator's pool over these sides: its agents ``sides`` are registered, any other
+    selected agent is not (it takes no part, as over ZeroMQ); ``sent`` keeps each round's
+    ``private`` settings."""
+
+    def __init__(self, run: RunConfig, sides: Mapping[int, HonestSide]) -> None:
+        self.run = run
+        self.sides = sides
+        self.sent: list[RoundPrivacy | None] = []
+
+    @property
+    def agent_ids(self) -> list[str]:
+        return [f"agent-{k}" for k in range(self.run.agents.num_agents)]
+
+    def secure_participants(self, agents: Sequence[int]) -> list[int]:
+        return sorted(k for k in agents if k in self.sides)
+
+    def train(
+        self,
+        round_index: int,
+        theta: torch.Tensor,
+        agents: Sequence[int],
+        *,
+        budgets: Any = None,
+        while_training: Callable[[], None] | None = None,
+        private: RoundPrivacy | None = None,
+    ) -> RoundAnswers:
+        if while_training is not None:
+            while_training()
+        self.sent.append(private)
+        return secure_round(
+            self.run, self.sides, round_index=round_index, private=private, theta=theta,
+            agents=agents,
+        )  # fmt: skip
+
+    def evaluate(self, round_index: int, theta: torch.Tensor, episodes: int) -> dict:
+        return {}
+
+    def counters(self) -> dict[str, int]:
+        return {}
+
+    def close(self) -> None:
+        pass
 
 
 def honest_mean(ks: Sequence[int], num_params: int = 6) -> np.ndarray:

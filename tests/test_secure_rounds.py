@@ -15,9 +15,19 @@ from functools import cache
 
 import numpy as np
 import pytest
-from secure_peers import HonestSide, Reply, RogueSide, honest_mean, secure_round
+import torch
+from secure_peers import (
+    HonestSide,
+    Reply,
+    RogueSide,
+    SecurePool,
+    honest_mean,
+    secure_round,
+    step_of,
+)
 
 from fedhpg.common.config import RunConfig
+from fedhpg.common.privacy import fixedpoint
 from fedhpg.common.privacy.secagg import SEALED_BYTES
 from fedhpg.common.runtime.cli import compose
 from fedhpg.common.types import UpdateColumns
@@ -30,10 +40,16 @@ from fedhpg.common.wire.protocol import (
     Unmasking,
     UnmaskRequest,
 )
+from fedhpg.server.coordinator import Coordinator, RoundRecord
+from fedhpg.server.pools import FederationError
+from fedhpg.server.privacy import PrivateRounds
+from fedhpg.server.strategies import make_strategy
 
 K = 5
 ROGUE = 2
 HONEST = [k for k in range(K) if k != ROGUE]
+NUM_PARAMS = 6
+"""θ̃'s size in these rounds (the strategies and the protocol take any)."""
 TOLERANCE = 1e-9
 """The fixed point's resolution at K = 5 and range 10⁴ is ~10⁻¹⁴ a coordinate."""
 
@@ -248,3 +264,185 @@ def test_an_agent_refuses_a_malformed_request_without_raising(change: Callable) 
     for request in requests[:index]:  # the round's earlier steps, as they were
         HonestSide.answer(side, request)
     assert HonestSide.answer(side, change(requests[index])) == []
+
+
+# --- the sum's public weight column and step are checked before θ̃ is adopted -------------------
+
+
+class ForgedInput(HonestSide):
+    """Agent k whose contribution is ``value`` in every coordinate of the update and
+    ``weight`` in the weight column: any words it likes, masked as the protocol asks."""
+
+    def __init__(self, run: RunConfig, k: int, weight: float, value: float) -> None:
+        super().__init__(run, k)
+        self.weight, self.value = weight, value
+
+    def answer(self, request: Message) -> list[Reply]:
+        answers = super().answer(request)
+        if isinstance(request, Train):
+            row = np.full(6 + 2, self.value)
+            row[-2], row[-1] = self.weight, 0.5
+            scale = fixedpoint.scale_for(len(request.participants), 1.0e4)
+            self.agents._inputs[self.k] = fixedpoint.encode(row, scale, 1.0e4)
+        return answers
+
+
+def run_rounds(
+    run: RunConfig, sides: dict[int, HonestSide], *, weighted: bool = False
+) -> tuple[list[RoundRecord], torch.Tensor, SecurePool]:
+    """The run's rounds over these sides from θ̃ = 0: every round's record, the final θ̃."""
+    pool = SecurePool(run, sides)
+    records: list[RoundRecord] = []
+    coordinator = Coordinator(
+        run=run,
+        pool=pool,  # type: ignore[arg-type]
+        strategy=make_strategy(run.strategy, run=run),
+        theta=torch.zeros(NUM_PARAMS),
+        on_round=[lambda record, theta: records.append(record)],
+        privacy=PrivateRounds(run, weighted=weighted),
+    )
+    theta = coordinator.run_rounds()
+    return records, theta, pool
+
+
+def settings(*extra: str, mode: str = "secagg", k: int = K, rounds: int = 1) -> RunConfig:
+    base = [f"privacy={mode}", "agents=homogeneous10", f"agents.num_agents={k}"]
+    return compose([*base, f"rounds={rounds}", "eval.every=100", *extra], report=False)
+
+
+def steps(ks: list[int], weights: np.ndarray | None = None) -> np.ndarray:
+    rows = np.stack([step_of(k, NUM_PARAMS).astype(np.float64) for k in ks])
+    weights = np.ones(len(ks)) if weights is None else weights
+    return weights @ rows / weights.sum()
+
+
+WEIGHTS = {  # the rogue's (weight, value in every coordinate); the honest weigh 1 each
+    "a sum of 2^-46": (2.0**-46 - (K - 1), 1.0e4),
+    "a zero sum": (-(K - 1), 0.0),
+    "a tiny weight": (2.0**-46, 1.0e4 * 2.0**-46),
+    "a huge weight": (1.0e4, 1.0e4),
+}
+
+
+@pytest.mark.parametrize(("weight", "value"), WEIGHTS.values(), ids=WEIGHTS.keys())
+def test_a_weight_sum_honest_agents_cannot_send_is_skipped(weight: float, value: float) -> None:
+    run = settings()
+    sides = {k: HonestSide(run, k) for k in range(K)}
+    sides[ROGUE] = ForgedInput(run, ROGUE, weight, value)
+    records, theta, _ = run_rounds(run, sides)
+    assert torch.equal(theta, torch.zeros(NUM_PARAMS)), f"adopted θ̃ up to {theta.abs().max():.3g}"
+    row = records[0].to_json()
+    assert "weights add up to" in row["secure"]["failed"]
+    assert row["agents"] == [] and row["updates"] == 0
+
+
+def test_honest_weight_sums_are_adopted_weighted_or_not() -> None:
+    for weighted in (False, True):
+        run = settings(*(["strategy=weighted"] if weighted else []))
+        records, theta, _ = run_rounds(
+            run, {k: HonestSide(run, k) for k in range(K)}, weighted=weighted
+        )
+        assert "secure" not in records[0].to_json()
+        weights = np.array([3.0 + k for k in range(K)]) if weighted else None
+        np.testing.assert_allclose(theta.numpy(), steps(list(range(K)), weights), atol=1e-6)
+
+
+def test_max_update_norm_bounds_the_secure_average_step() -> None:
+    run = settings("server.max_update_norm=1", rounds=2)
+    honest = {k: HonestSide(run, k) for k in range(K)}
+    records, theta, _ = run_rounds(run, honest)  # the honest steps are ~0.1 long
+    assert ["secure" in r.to_json() for r in records] == [False, False]
+    sides: dict[int, HonestSide] = {k: HonestSide(run, k) for k in range(K)}
+    sides[ROGUE] = ForgedInput(run, ROGUE, 1.0, 1.0e4)  # a right weight, a step of 10⁴
+    records, theta, _ = run_rounds(run, sides)
+    assert torch.equal(theta, torch.zeros(NUM_PARAMS)), f"adopted θ̃ up to {theta.abs().max():.3g}"
+    assert all("server.max_update_norm" in r.to_json()["secure"]["failed"] for r in records)
+
+
+# --- distributed noise is sized from the agents that run the protocol ---------------------------
+
+
+def test_dp_secagg_sizes_the_noise_from_the_registered_agents() -> None:
+    # 10 agents selected, 5 registered: each of the 5 adds 1/3 of σC's variance (t = 3 of 5),
+    # and the round's 5 inputs carry more than σC, so it is unmasked and adopted
+    run = settings("privacy.noise_multiplier=1", "privacy.noise_seed=3", mode="dp_secagg", k=10)
+    sides = {k: HonestSide(run, k) for k in range(5)}
+    records, _, pool = run_rounds(run, sides)
+    private = pool.sent[0]
+    assert private is not None
+    rounds = PrivateRounds(run, weighted=False)
+    sigma_c = rounds.update_multiplier * rounds.clip
+    assert private.noise_std == pytest.approx(sigma_c / np.sqrt(3))
+    row = records[0].to_json()
+    assert "secure" not in row and row["privacy"]["inputs"] == 5
+    assert row["privacy"]["rounds_accounted"] == 1
+
+
+def test_too_few_noise_shares_are_never_unmasked_nor_accounted() -> None:
+    # 5 registered, t = 3; three drop before their masked input: 2 inputs carry 2/3 of σC's
+    # variance: no unmasking request goes out, the round is skipped and not accounted
+    run = settings("privacy.noise_multiplier=1", "privacy.noise_seed=3", mode="dp_secagg")
+    asked: list[int] = []
+
+    def gone_after_keys(request: Message, honest: list[Reply]) -> list[Reply]:
+        return honest if isinstance(request, Train) else []
+
+    def watch(request: Message, honest: list[Reply]) -> list[Reply]:
+        if isinstance(request, UnmaskRequest):
+            asked.append(request.round)
+        return honest
+
+    sides: dict[int, HonestSide] = {k: RogueSide(run, k, watch) for k in (0, 1)}
+    sides.update({k: RogueSide(run, k, gone_after_keys) for k in (2, 3, 4)})
+    records, theta, _ = run_rounds(run, sides)
+    assert asked == []
+    row = records[0].to_json()
+    assert "noise shares reach σC" in row["secure"]["failed"]
+    assert row["privacy"].get("rounds_accounted", 0) == 0
+    assert torch.equal(theta, torch.zeros(NUM_PARAMS))
+
+
+# --- a failed round is skipped and recorded; the run goes on, up to a bound ----------------------
+
+
+class Silent(HonestSide):
+    """Agent k, registered, that answers nothing in the rounds listed."""
+
+    def __init__(self, run: RunConfig, k: int, rounds: set[int]) -> None:
+        super().__init__(run, k)
+        self.rounds = rounds
+
+    def answer(self, request: Message) -> list[Reply]:
+        return [] if request.round in self.rounds else super().answer(request)  # type: ignore[union-attr]
+
+
+def test_a_failed_round_is_skipped_and_recorded_and_the_run_goes_on() -> None:
+    run = settings(rounds=3)
+    sides = {k: Silent(run, k, {2}) for k in range(K)}  # round 2: no input arrives
+    records, theta, _ = run_rounds(run, sides)
+    rows = [r.to_json() for r in records]
+    assert [r["round"] for r in rows] == [1, 2, 3]
+    assert "secure" not in rows[0] and "secure" not in rows[2]
+    assert rows[1]["secure"] == {"failed": "0 agents shared keys, fewer than 1"}
+    assert rows[1]["agents"] == [] and rows[1]["updates"] == 0
+    # rounds 1 and 3 each took the mean step (the sides step alike every round)
+    np.testing.assert_allclose(theta.numpy(), 2 * steps(list(range(K))), atol=1e-5)
+
+
+def test_rounds_that_keep_failing_stop_the_run_in_one_line() -> None:
+    run = settings("server.max_failed_rounds=2", rounds=6)
+    sides = {k: Silent(run, k, {2, 3, 4, 5, 6}) for k in range(K)}
+    pool = SecurePool(run, sides)
+    records: list[RoundRecord] = []
+    coordinator = Coordinator(
+        run=run,
+        pool=pool,  # type: ignore[arg-type]
+        strategy=make_strategy(run.strategy, run=run),
+        theta=torch.zeros(NUM_PARAMS),
+        on_round=[lambda record, theta: records.append(record)],
+        privacy=PrivateRounds(run, weighted=False),
+    )
+    with pytest.raises(FederationError, match=r"server.max_failed_rounds=2.*θ̃ of round 1 kept"):
+        coordinator.run_rounds()
+    assert [r.round for r in records] == [1, 2, 3]  # round 4, the third in a row, stops it
+    np.testing.assert_allclose(coordinator.theta.numpy(), steps(list(range(K))), atol=1e-5)

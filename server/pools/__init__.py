@@ -23,6 +23,16 @@ class FederationError(RuntimeError):
     """The federation cannot go on (agents missing, a round timed out, nothing to aggregate)."""
 
 
+class SkippedRound(FederationError):
+    """A secure round with no sum θ̃ may take (too few keys, inputs or shares; too little
+    noise; a weight sum no honest agents can send; a step past ``server.max_update_norm``):
+    the coordinator records it and goes on from the θ̃ it had."""
+
+    def __init__(self, round_number: int, reason: str) -> None:
+        super().__init__(f"round {round_number}: {reason}")
+        self.reason = reason
+
+
 @dataclass(frozen=True, kw_only=True)
 class RoundAnswers:
     """What a pool collected for one round's train request."""
@@ -80,6 +90,11 @@ class AgentPool(Protocol):
         ``budgets``: the round's planned budget fields per agent (``agents.plan``);
         ``while_training``: the server's own work, called once, while the agents train where
         they train elsewhere (after the requests went out), else before they train."""
+        ...
+
+    def secure_participants(self, agents: Sequence[int]) -> list[int]:
+        """The agents of ``agents`` that would take part in a secure round now (registered,
+        with a usable channel key): its noise shares are sized from them."""
         ...
 
     def evaluate(

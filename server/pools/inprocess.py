@@ -41,7 +41,11 @@ class InProcessPool:
         self.run = run
         self.group = group
         self.num_params = num_params
-        self.check = UpdateCheck(num_params=num_params, max_update_norm=run.server.max_update_norm)
+        # under secure aggregation the server sees no θ_k: max_update_norm bounds the round's
+        # average step instead (server/secure_sum.py), as with agent processes
+        secure = run.privacy.mode in ("secagg", "dp_secagg")
+        bound = None if secure else run.server.max_update_norm
+        self.check = UpdateCheck(num_params=num_params, max_update_norm=bound)
         self._devices: dict[int, DeviceModel] = {}
         self.secure = LocalSecAgg(run)
 
@@ -219,6 +223,10 @@ class InProcessPool:
     ) -> dict[str, EvaluationStats]:
         evaluations = self.group.evaluate(round_index, theta, episodes, self.group.indices)
         return {agent_id_of(k): stats for k, stats in evaluations.items()}
+
+    def secure_participants(self, agents: Sequence[int]) -> list[int]:
+        """Every agent is here: all of them."""
+        return sorted(agents)
 
     def counters(self) -> dict[str, int]:
         """Nothing goes wrong between agents on one thread: no counters."""

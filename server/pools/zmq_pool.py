@@ -405,6 +405,12 @@ class ZmqAgentPool:
                 )
             self.pump(deadline - time.monotonic())
 
+    def secure_participants(self, agents: Sequence[int]) -> list[int]:
+        """The registered agents of ``agents`` with a usable channel key."""
+        if self.secure is None:
+            return sorted(agents)
+        return self.secure.participants(self.links, agents)
+
     def train(
         self,
         round_index: int,
