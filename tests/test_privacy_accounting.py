@@ -357,3 +357,17 @@ def test_a_dp_run_draws_its_noise_securely_unless_seeded(
             ]
         )
     assert refused.value.key == "privacy.secure_noise"
+
+
+def test_a_plan_that_would_name_a_secret_sample_is_refused() -> None:
+    with pytest.raises(ConfigError, match="would name the sample") as refused:
+        api.resolve_config(
+            overrides=[
+                *SAMPLED,
+                "privacy=dp",
+                "privacy.epsilon=4",
+                "agents.plan=theorem1",
+                "algo.bound_estimates=true",
+            ]
+        )
+    assert refused.value.key == "agents.plan"
