@@ -46,7 +46,7 @@ from fedhpg.server.privacy import PrivateRounds
 from fedhpg.server.strategies import make_strategy
 
 K = 5
-ROGUE = 2
+ROGUE = 4
 HONEST = [k for k in range(K) if k != ROGUE]
 NUM_PARAMS = 6
 """θ̃'s size in these rounds (the strategies and the protocol take any)."""
@@ -62,11 +62,13 @@ def run_of(mode: str = "secagg", k: int = K) -> RunConfig:
 
 
 def sides_with(
-    script: Callable[[Message, list[Reply]], list[Reply]], run: RunConfig | None = None
+    script: Callable[[Message, list[Reply]], list[Reply]],
+    run: RunConfig | None = None,
+    rogue: int = ROGUE,
 ) -> dict[int, HonestSide]:
     run = run or run_of()
     sides = {k: HonestSide(run, k) for k in range(K)}
-    sides[ROGUE] = RogueSide(run, ROGUE, script)
+    sides[rogue] = RogueSide(run, rogue, script)
     return sides
 
 
@@ -141,10 +143,13 @@ REVEALS = {
 }
 
 
+@pytest.mark.parametrize("rogue", [0, 2, 4])  # its shares first, among, or after the rest
 @pytest.mark.parametrize("script", REVEALS.values(), ids=REVEALS.keys())
-def test_wrong_revealed_shares_are_left_out_and_the_sum_is_exact(script: Callable) -> None:
+def test_wrong_revealed_shares_are_left_out_and_the_sum_is_exact(
+    script: Callable, rogue: int
+) -> None:
     # the rogue's masked input was fine: it stays in the sum, its wrong shares do not
-    answers = secure_round(run_of(), sides_with(script))
+    answers = secure_round(run_of(), sides_with(script, rogue=rogue))
     assert_honest_mean(answers, list(range(K)))
 
 

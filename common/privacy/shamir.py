@@ -67,30 +67,28 @@ def rebuild(
     The first ``threshold`` points by x give the polynomial; every further share must lie on
     it, and the secret must fit 32 bytes and pass ``accept`` (where the caller can tell a right
     secret: a private key against its public key). Further shares that disagree while another
-    agrees are the wrong ones; when none agrees, each of the first ``threshold`` is left out in
-    turn, and the one whose absence makes the rest agree is. :class:`Inconsistent` when no one
-    share explains the disagreement; ValueError for fewer than ``threshold`` shares. With
-    exactly ``threshold`` shares and no ``accept`` nothing can be checked."""
+    agrees are the wrong ones; when none agrees, each share is left out in turn, and the one
+    whose absence makes the rest agree (checkably) is. :class:`Inconsistent`, naming every
+    share, when no one share explains the disagreement (one share more than the threshold: any
+    of them may be the wrong one); ValueError for fewer than ``threshold`` shares. With exactly
+    ``threshold`` shares and no ``accept`` nothing can be checked."""
     if len(shares) < threshold:
         raise ValueError(f"{len(shares)} shares, fewer than the threshold {threshold}")
     points = sorted((x, _value(y)) for x, y in shares.items())
     found = _checked(points, threshold, accept)
     if found is not None:
         return found
-    base = points[:threshold]
     blamed = []
-    if len(points) > threshold or accept is not None:
-        for x, _ in base:
-            rest = [p for p in points if p[0] != x]
-            if len(rest) < threshold or (len(rest) == threshold and accept is None):
-                continue
+    for x, _ in points:
+        rest = [p for p in points if p[0] != x]
+        if len(rest) > threshold or (len(rest) == threshold and accept is not None):
             again = _checked(rest, threshold, accept)
             if again is not None:
                 blamed.append((again[0], again[1] | {x}))
     if len(blamed) == 1:
         return blamed[0]
     raise Inconsistent(
-        f"{len(points)} shares do not interpolate to one secret", frozenset(x for x, _ in base)
+        f"{len(points)} shares do not interpolate to one secret", frozenset(x for x, _ in points)
     )
 
 
