@@ -167,6 +167,20 @@ def test_a_secret_shared_with_one_wrong_share_is_rebuilt_without_it() -> None:
     assert_honest_mean(answers, list(range(6)))
 
 
+def test_one_wrong_share_among_t_plus_one_skips_the_round_naming_the_secret() -> None:
+    # five agents: each secret has t + 1 = 4 shares; the rogue flips one byte of one share:
+    # the disagreement is found, but any of the four may be the wrong one, so the round has
+    # no sum (and is skipped by the coordinator), never a wrong one
+    def one_flip(m: Unmasking) -> np.ndarray:
+        shares = m.shares.copy()
+        shares[0, 0, -1] ^= 1
+        return shares
+
+    answers = secure_round(run_of(), sides_with(tamper(Unmasking, shares=one_flip)))
+    assert answers.secure is not None
+    assert "do not interpolate" in str(answers.secure.failed)
+
+
 # --- a peer's crypto failure is that peer's drop-out, never an honest agent's exit --------------
 
 
