@@ -50,9 +50,11 @@ from fedhpg.common.wire.protocol import (
     Hello,
     KeyShares,
     MaskedUpdate,
+    MaskKeys,
     MaskRequest,
     Message,
     Request,
+    ShareRequest,
     Shutdown,
     Train,
     Unmasking,
@@ -106,7 +108,7 @@ def same_request(a: Request, b: Request) -> bool:
     of a's agents (as when a host is asked again, after rejoining, for the answers lost)."""
     if type(a) is not type(b) or not set(b.agents) <= set(a.agents) or a.round != b.round:
         return False
-    if isinstance(a, MaskRequest | UnmaskRequest):  # one of each per round
+    if isinstance(a, ShareRequest | MaskRequest | UnmaskRequest):  # one of each per round
         return True
     assert isinstance(b, Train | Evaluate) and isinstance(a, Train | Evaluate)
     return a.theta.shape == b.theta.shape and bool(np.array_equal(a.theta, b.theta))
@@ -420,7 +422,7 @@ class AgentHost:
 
     def _dispatch(self, message: Message) -> bool:
         """Act on one message from the server; False when the run is over."""
-        if isinstance(message, Train | Evaluate | MaskRequest | UnmaskRequest):
+        if isinstance(message, Train | Evaluate | ShareRequest | MaskRequest | UnmaskRequest):
             self._on_request(message)
         elif isinstance(message, Shutdown):
             logger.debug("%s: shutdown (%s)", self.agent_id, message.reason)
@@ -487,7 +489,7 @@ def _resend(answers: list[Message], request: Request) -> list[Message]:
     wanted = set(request.agents)
     again: list[Message] = []
     for answer in answers:
-        if isinstance(answer, KeyShares | MaskedUpdate | Unmasking):
+        if isinstance(answer, MaskKeys | KeyShares | MaskedUpdate | Unmasking):
             if wanted & set(answer.agents):  # the server files the rows it still awaits
                 again.append(answer)
             continue

@@ -49,9 +49,11 @@ from fedhpg.common.wire.protocol import (
     Evaluation,
     KeyShares,
     MaskedUpdate,
+    MaskKeys,
     MaskRequest,
     Message,
     Request,
+    ShareRequest,
     Train,
     Unmasking,
     UnmaskRequest,
@@ -89,7 +91,7 @@ class AgentWork:
         self.private = run.privacy.mode != "none"
         self.secure: SecureAgents | None = None
         if run.privacy.mode in SECURE_MODES:  # channel keys go in the hello
-            self.secure = SecureAgents(run)
+            self.secure = SecureAgents(run, label)
             self.secure.keys.channel_keys(indices)
 
     def channel_keys(self) -> np.ndarray:
@@ -144,9 +146,11 @@ class AgentWork:
             raise OutsideRange(f"the server asked for agents outside {self.label}'s range")
         if not agents:
             return []
-        if isinstance(request, MaskRequest | UnmaskRequest):
+        if isinstance(request, ShareRequest | MaskRequest | UnmaskRequest):
             if self.secure is None:
                 raise OutsideRange(f"{self.label} was asked to mask without channel keys")
+            if isinstance(request, ShareRequest):
+                return self.secure.share_keys(request, max_bytes)
             if isinstance(request, MaskRequest):
                 return self.secure.mask(request, max_bytes)
             return self.secure.reveal(request, max_bytes)
@@ -262,19 +266,30 @@ class SecureAgents:
     contributions, masked and unmasked as the server's exchanges ask (server/pools/secure.py).
 
     Every request is read with its fields checked
-    (:mod:`~fedhpg.common.privacy.secure_messages`). A row the protocol refuses (a round this
+    (:mod:`~fedhpg.common.wire.secure_rows`). A row the protocol refuses (a round this
     program has no keys for, after a restart; a request that does not fit the round) is left
     out of the answer: the server then counts that agent as dropped out. A neighbour whose
     sealed shares do not open (altered, replayed, or not shares at all) is that neighbour's
     drop-out as far as this agent's shares go: the agent answers for itself, logs it once,
     and never exits over another party's data."""
 
-    def __init__(self, run: RunConfig) -> None:
+    def __init__(self, run: RunConfig, agent_id: str) -> None:
         from fedhpg.common.privacy.session import LocalSecAgg
+        from fedhpg.common.privacy.signing import agent_signing
 
-        self.keys = LocalSecAgg(run)
+        signing = agent_signing(run.security, agent_id)
+        if signing is None:
+            logger.info(
+                "%s: no signing roster (security.signers_dir): the mask keys it advertises are "
+                "not signed, and the server is trusted to relay every agent's keys unchanged",
+                agent_id,
+            )
+        self.keys = LocalSecAgg(run, signing)
+        self.label = agent_id
         self._inputs: dict[int, np.ndarray] = {}
         self._stats: dict[int, UpdateStats] = {}
+        self._channel_keys: dict[int, bytes] = {}
+        self._planned = 0
         self._round = -1
         self._num_params = 1
 
@@ -287,39 +302,26 @@ class SecureAgents:
         stats: UpdateColumns,
         max_bytes: int,
     ) -> list[Message]:
-        """After training: each agent's contribution kept, its key shares sent."""
-        from fedhpg.common.privacy import fixedpoint, secure_messages
-        from fedhpg.common.privacy.secagg import SEALED_BYTES, SecAggError
+        """After training: each agent's contribution kept, its round mask key advertised."""
+        from fedhpg.common.privacy import fixedpoint
+        from fedhpg.common.privacy.signing import SIGNATURE_BYTES
+        from fedhpg.common.wire import secure_rows
 
         private = request.private
         assert private is not None
         try:
-            keys = secure_messages.train_participants(request)
-        except secure_messages.RowError as error:
+            keys = secure_rows.train_participants(request)
+        except secure_rows.RowError as error:
             logger.warning("round %d: no agent takes part: %s", request.round, error)
             return []
-        participants = sorted(keys)
-        setup = self.keys.setup(request.round, participants, thetas.shape[1] + EXTRA, keys)
         bound = max(private.bound, 1.0)
-        scale = fixedpoint.scale_for(len(participants), bound)
+        scale = fixedpoint.scale_for(len(keys), bound)
         records = stats.records()
         self._round, self._inputs, self._stats = request.round, {}, {}
+        self._channel_keys, self._planned = keys, len(keys)
         self._num_params = thetas.shape[1]
-        shared = {}
-        for k in agents:
-            try:
-                shared[k] = self.keys.agent(k).share_keys(setup)
-            except SecAggError as error:
-                logger.warning("round %d: agent %d takes no part: %s", request.round, k, error)
-        if not shared:
-            return []
-        keep = [i for i, k in enumerate(agents) if k in shared]
-        agents, records = [agents[i] for i in keep], [records[i] for i in keep]
-        thetas = thetas[keep]
-        width = max(len(shares.sealed) for shares in shared.values())
         mask_keys = np.zeros((len(agents), KEY_BYTES), dtype=np.uint8)
-        recipients = np.full((len(agents), width), -1, dtype=np.int64)
-        sealed = np.zeros((len(agents), width, SEALED_BYTES), dtype=np.uint8)
+        signatures = np.zeros((len(agents), SIGNATURE_BYTES), dtype=np.uint8)
         for i, k in enumerate(agents):
             row = contribution(
                 torch.from_numpy(thetas[i]) - theta,
@@ -329,8 +331,60 @@ class SecureAgents:
             )
             self._inputs[k] = fixedpoint.encode(row, scale, bound)
             self._stats[k] = records[i]
+            mask_key, signature = self.keys.advertise(request.round, k)
+            mask_keys[i] = np.frombuffer(mask_key, dtype=np.uint8)
+            signatures[i] = np.frombuffer(signature, dtype=np.uint8)
+        per = _rows_per_message(max_bytes, self._num_params, KEY_BYTES + SIGNATURE_BYTES)
+        return [
+            MaskKeys(
+                round=request.round,
+                agents=agents[s : s + per],
+                mask_keys=mask_keys[s : s + per],
+                signatures=signatures[s : s + per],
+            )
+            for s in range(0, len(agents), per)
+        ]
+
+    def share_keys(self, request: ShareRequest, max_bytes: int) -> list[Message]:
+        """Each agent's secrets shared among its neighbours of the graph drawn from every
+        advertised mask key (checked against the roster, where there is one)."""
+        from fedhpg.common.privacy.secagg import SEALED_BYTES, SecAggError
+        from fedhpg.common.wire import secure_rows
+
+        if request.round != self._round:
+            logger.warning("round %d: no keys advertised for it", request.round)
+            return []
+        try:
+            mask_keys, signatures = secure_rows.share_request(request)
+            setup = self.keys.setup(
+                request.round,
+                self._planned,
+                self._num_params + EXTRA,
+                self._channel_keys,
+                mask_keys,
+                signatures,
+            )
+        except (secure_rows.RowError, SecAggError) as error:
+            logger.warning("round %d: %s refuses the round: %s", request.round, self.label, error)
+            return []
+        shared = {}
+        for k in request.agents:
+            if k not in self._inputs:
+                continue
+            try:
+                shared[k] = self.keys.agent(k).share_keys(setup)
+            except SecAggError as error:
+                logger.warning("round %d: agent %d takes no part: %s", request.round, k, error)
+        if not shared:
+            return []
+        agents = sorted(shared)
+        width = max(len(shares.sealed) for shares in shared.values())
+        own_keys = np.zeros((len(agents), KEY_BYTES), dtype=np.uint8)
+        recipients = np.full((len(agents), width), -1, dtype=np.int64)
+        sealed = np.zeros((len(agents), width, SEALED_BYTES), dtype=np.uint8)
+        for i, k in enumerate(agents):
             shares = shared[k]
-            mask_keys[i] = np.frombuffer(shares.mask_key, dtype=np.uint8)
+            own_keys[i] = np.frombuffer(shares.mask_key, dtype=np.uint8)
             for j, (v, box) in enumerate(sorted(shares.sealed.items())):
                 recipients[i, j] = v
                 sealed[i, j] = np.frombuffer(box, dtype=np.uint8)
@@ -339,7 +393,7 @@ class SecureAgents:
             KeyShares(
                 round=request.round,
                 agents=agents[s : s + per],
-                mask_keys=mask_keys[s : s + per],
+                mask_keys=own_keys[s : s + per],
                 recipients=recipients[s : s + per],
                 sealed=sealed[s : s + per],
             )
@@ -348,8 +402,8 @@ class SecureAgents:
 
     def mask(self, request: MaskRequest, max_bytes: int) -> list[Message]:
         """Each agent's contribution, masked with its neighbours that shared keys."""
-        from fedhpg.common.privacy import secure_messages
         from fedhpg.common.privacy.secagg import SecAggError
+        from fedhpg.common.wire import secure_rows
 
         done, rows = [], []
         for i, k in enumerate(request.agents):
@@ -358,9 +412,9 @@ class SecureAgents:
                 continue
             agent = self.keys.agent(k)
             try:
-                keys, sealed = secure_messages.mask_request(request, i)
+                keys, sealed = secure_rows.mask_request(request, i)
                 masked = agent.mask(request.round, self._inputs[k], keys, sealed)
-            except (secure_messages.RowError, SecAggError) as error:
+            except (secure_rows.RowError, SecAggError) as error:
                 logger.warning("round %d: agent %d drops out: %s", request.round, k, error)
                 continue
             unreadable = agent.unreadable(request.round)

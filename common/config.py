@@ -527,13 +527,21 @@ class SecAggConfig:
     """Secure aggregation: agents mask their encoded updates so that the server learns only
     the sum (docs/privacy.md)."""
 
-    threshold: float = 0.5
-    """t = ⌊threshold · k⌋ + 1 of an agent's k neighbours rebuild its secrets when it drops
-    out; the round fails when fewer remain. In (0, 1); above 0.5, no server can be handed
-    both secrets of one agent."""
+    corruption: float = 0.1
+    """γ: the fraction of a round's agents that may collude with the server (which may also
+    deviate from the protocol) without exposing any other agent's input: the round's graph
+    and threshold are derived from it (docs/privacy.md)."""
+    dropout: float = 0.1
+    """δ: the fraction of a round's agents that may stop answering (besides the colluders)
+    with the round still completing."""
+    threshold: float | None = None
+    """t = ⌊threshold · k⌋ + 1 of an agent's k neighbours rebuild its secrets; None = the
+    smallest t that meets ``corruption`` and ``dropout``. A value that does not meet them is
+    refused, saying which would."""
     neighbours: int | None = None
     """k, the agents each one masks with and shares its secrets with (SecAgg+); None = every
-    other agent of the round (SecAgg). Cost per agent grows with k, not with the round."""
+    other agent up to 64 a round, beyond that the fewest that meet ``corruption`` and
+    ``dropout``. Cost per agent grows with k, not with the round."""
     range: float = 1.0e4
     """Each coordinate of an update is clipped to [−range, range] before its fixed-point
     encoding (resolution about n · range / 2⁶², n the round's agents)."""
@@ -637,11 +645,25 @@ def _validate_privacy(privacy: PrivacyConfig) -> None:
         "privacy=dp_secagg",
     )
     secagg = privacy.secagg
-    _check_number(secagg.threshold, "privacy.secagg.threshold", low=0.0, low_open=True)
+    if secagg.threshold is not None:
+        _check_number(secagg.threshold, "privacy.secagg.threshold", low=0.0, low_open=True)
+        _require(
+            secagg.threshold < 1,
+            "privacy.secagg.threshold",
+            f"got {secagg.threshold!r}, must be in (0, 1)",
+        )
+    _check_number(secagg.corruption, "privacy.secagg.corruption", low=0.0)
     _require(
-        secagg.threshold < 1,
-        "privacy.secagg.threshold",
-        f"got {secagg.threshold!r}, must be in (0, 1)",
+        secagg.corruption < 0.5,
+        "privacy.secagg.corruption",
+        f"got {secagg.corruption!r}, must be in [0, 0.5): a server with half the agents "
+        "colluding learns every input from their shares",
+    )
+    _check_number(secagg.dropout, "privacy.secagg.dropout", low=0.0)
+    _require(
+        secagg.corruption + secagg.dropout < 1,
+        "privacy.secagg.dropout",
+        f"got {secagg.dropout!r}; corruption + dropout must be below 1",
     )
     if secagg.neighbours is not None:
         _check_int(secagg.neighbours, "privacy.secagg.neighbours", low=2)

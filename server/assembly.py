@@ -127,7 +127,33 @@ def _check_privacy(run: RunConfig, strategy: Strategy[Any]) -> PrivateRounds | N
             f"got 'buffered'; privacy.mode={mode} accounts and masks synchronous rounds: use "
             "wait_all or deadline",
         )
+    if mode in ("secagg", "dp_secagg"):
+        _check_secure_rounds(run)
     return PrivateRounds(run, weighted=averaging == "weighted")
+
+
+def _check_secure_rounds(run: RunConfig) -> None:
+    """Every round size the run expects can meet ``privacy.secagg``'s own tolerance: a
+    threshold or neighbour count that cannot is refused before anything starts."""
+    from fedhpg.common.privacy.graph import GraphError, round_plan
+
+    participation = run.strategy.participation
+    sizes = {run.agents.num_agents}
+    if participation.mode == "uniform" and participation.per_round is not None:
+        sizes = {participation.per_round}
+    secagg = run.privacy.secagg
+    key = (
+        "privacy.secagg.threshold"
+        if secagg.threshold is not None
+        else "privacy.secagg.neighbours"
+        if secagg.neighbours is not None
+        else "privacy.secagg.corruption"
+    )
+    for size in sorted(sizes):
+        try:
+            round_plan(secagg, size)
+        except GraphError as error:
+            raise ConfigError(key, str(error)) from None
 
 
 def _check_round_policy(run: RunConfig, strategy: Strategy[Any], *, distributed: bool) -> None:

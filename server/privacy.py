@@ -50,7 +50,7 @@ from fedhpg.common.config import ConfigError, RunConfig
 from fedhpg.common.privacy import accounting, dp
 from fedhpg.common.privacy.accounting import Sampling
 from fedhpg.common.privacy.contribution import EXTRA, RoundPrivacy, average, contribution
-from fedhpg.common.privacy.secagg import fewest_inputs
+from fedhpg.common.privacy.secagg import fewest_inputs, noise_shares
 from fedhpg.common.types import AgentUpdate
 from fedhpg.server.checkpoint import write_atomic
 from fedhpg.server.pools import FederationError, RoundAnswers, SkippedRound
@@ -194,16 +194,17 @@ class PrivateRounds:
         """The fewest contributions a round's sum may hold: with distributed noise, enough
         shares of it to reach σC (the secure aggregation threshold of the round of
         ``participants``, the agents that run its protocol)."""
-        return fewest_inputs(self.mode, self.settings.secagg.threshold, participants)
+        return fewest_inputs(self.mode, self.settings.secagg, participants)
 
     def round_privacy(self, participants: int) -> RoundPrivacy:
         """What the round's agents (or the server, for central noise) contribute with; with
         distributed noise, each agent's share is sized from the ``participants`` that run the
-        round's protocol (the pools unmask no fewer than :meth:`min_inputs` of them)."""
+        round's protocol (:func:`noise_shares`: the pools unmask no fewer than
+        :meth:`min_inputs` of them, and colluders' shares do not count)."""
         clip = self.clip if self.dp else 0.0
         noise_std = count_std = 0.0
         if self.mode == "dp_secagg":
-            shares = self.min_inputs(participants)
+            shares = noise_shares(self.settings.secagg, participants)
             noise_std = dp.per_agent_std(self.update_multiplier * clip, shares)
             count_std = dp.per_agent_std(self.count_std or 0.0, shares)
         return RoundPrivacy(
@@ -235,7 +236,7 @@ class PrivateRounds:
                 raise FederationError(
                     f"round {round_number}: {inputs} of {participants} agents' inputs were "
                     f"unmasked, fewer than the {fewest} whose noise shares reach σC "
-                    "(privacy.secagg.threshold)"
+                    "(privacy.secagg.dropout)"
                 )
         else:
             total, inputs = self._central_sum(round_number, theta, answers.updates, selected)

@@ -28,8 +28,10 @@ from fedhpg.common.wire.codec import ProtocolError, decode, encode
 from fedhpg.common.wire.protocol import (
     KeyShares,
     MaskedUpdate,
+    MaskKeys,
     MaskRequest,
     Message,
+    ShareRequest,
     Train,
     Unmasking,
     UnmaskRequest,
@@ -38,7 +40,12 @@ from fedhpg.server.pools import RoundAnswers
 from fedhpg.server.pools.secure import SecureExchange
 
 MAX_BYTES = 64 << 20
-ANSWER_TO = {Train: KeyShares, MaskRequest: MaskedUpdate, UnmaskRequest: Unmasking}
+ANSWER_TO = {
+    Train: MaskKeys,
+    ShareRequest: KeyShares,
+    MaskRequest: MaskedUpdate,
+    UnmaskRequest: Unmasking,
+}
 Reply = Message | list[bytes]
 
 
@@ -56,7 +63,7 @@ class HonestSide:
 
     def __init__(self, run: RunConfig, k: int) -> None:
         self.k = k
-        self.agents = SecureAgents(run)
+        self.agents = SecureAgents(run, f"agent-{k}")
         self.channel_key = self.agents.keys.agent(k).channel_public
 
     def answer(self, request: Message) -> list[Reply]:
@@ -65,6 +72,8 @@ class HonestSide:
             thetas = (theta.numpy() + step_of(self.k, theta.numel()))[None]
             stats = UpdateColumns.of([stats_of(self.k)])
             return list(self.agents.share(request, [self.k], theta, thetas, stats, MAX_BYTES))
+        if isinstance(request, ShareRequest):
+            return list(self.agents.share_keys(request, MAX_BYTES))
         if isinstance(request, MaskRequest):
             return list(self.agents.mask(request, MAX_BYTES))
         assert isinstance(request, UnmaskRequest)

@@ -39,7 +39,9 @@ from fedhpg.common.wire.protocol import (
     Hello,
     KeyShares,
     MaskedUpdate,
+    MaskKeys,
     MaskRequest,
+    ShareRequest,
     Shutdown,
     Train,
     Unmasking,
@@ -136,7 +138,7 @@ SAMPLES = [
     Heartbeat(),
     Shutdown(reason="run complete"),
     Error(code="bad_update", reason="parameters contain NaN or Inf"),
-    # secure aggregation (common/privacy/secagg.py): keys, its three exchanges
+    # secure aggregation (common/privacy/secagg.py): keys, its four exchanges
     Hello(
         id="host-0-1",
         first=0,
@@ -152,6 +154,19 @@ SAMPLES = [
         private=RoundPrivacy(clip=1.5, noise_std=0.25, count_std=0.5, bound=100.0),
         participants=[0, 1, 4],
         channel_keys=np.ones((3, 32), dtype=np.uint8),
+    ),
+    MaskKeys(
+        round=7,
+        agents=[0, 1],
+        mask_keys=np.full((2, 32), 7, dtype=np.uint8),
+        signatures=np.full((2, 64), 3, dtype=np.uint8),
+    ),
+    ShareRequest(
+        round=7,
+        agents=[0, 1],
+        participants=[0, 1, 4],
+        mask_keys=np.full((3, 32), 7, dtype=np.uint8),
+        signatures=np.zeros((3, 64), dtype=np.uint8),
     ),
     KeyShares(
         round=7,
@@ -664,7 +679,9 @@ def test_rejections_carry_a_code(frames: list[Any], code: str) -> None:
 
 
 def test_version_error_names_both_versions() -> None:
-    with pytest.raises(ProtocolError, match=r"received protocol version 3, expected 8"):
+    with pytest.raises(
+        ProtocolError, match=rf"received protocol version 3, expected {PROTOCOL_VERSION}"
+    ):
         decode([_header(v=3), GOOD_ARRAY])
 
 

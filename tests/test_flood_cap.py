@@ -109,6 +109,7 @@ def test_a_secure_round_of_a_host_of_150_agents_one_row_per_message(tmp_path: Pa
     k = 150
     keys = [
         *_run_keys(k, 1.5), "privacy=secagg", "privacy.secagg.neighbours=26",
+        "privacy.secagg.corruption=0.02", "privacy.secagg.dropout=0.02",
         "server.round_policy=deadline", "server.round_deadline_s=20",
     ]  # fmt: skip
     d = _num_params(keys)

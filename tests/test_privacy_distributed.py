@@ -28,6 +28,7 @@ from fedhpg.common.wire.protocol import (
     Hello,
     MaskRequest,
     Message,
+    ShareRequest,
     Shutdown,
     Train,
     UnmaskRequest,
@@ -114,7 +115,7 @@ class SecurePeers:
             socket.close()
             del self.sockets[i]
             self.dropped.append(i)
-        elif isinstance(message, Train | MaskRequest | UnmaskRequest | Evaluate):
+        elif isinstance(message, Train | ShareRequest | MaskRequest | UnmaskRequest | Evaluate):
             for answer in self.works[i].answer(message, threading.Event(), MAX_BYTES):
                 socket.send_multipart(encode(answer))
 

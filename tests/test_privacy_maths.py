@@ -302,13 +302,7 @@ def _round(
     round_index: int = 1,
 ) -> tuple[np.ndarray, list[int], dict[int, np.ndarray]]:
     agents = {k: secagg.SecAggAgent(k) for k in range(n)}
-    setup = secagg.RoundSetup(
-        round=round_index,
-        participants=tuple(range(n)),
-        channel_keys={k: a.channel_public for k, a in agents.items()},
-        length=length,
-        neighbours=neighbours,
-    )
+    setup = _setup(agents, round_index, length, neighbours)
     server = secagg.SecAggRound(setup)
     for k, agent in agents.items():
         server.add_keys(k, agent.share_keys(setup))
@@ -323,6 +317,24 @@ def _round(
         if k not in drop_after_input:
             server.add_reveal(k, agents[k].reveal(round_index, dropped, included))
     return server.total(), included, seen
+
+
+def _setup(
+    agents: dict[int, secagg.SecAggAgent], round_index: int, length: int, neighbours: int | None
+) -> secagg.RoundSetup:
+    """Every agent advertises a mask key; the setup of t = ⌊k/2⌋ + 1 of k neighbours (all by
+    default) over the graph they draw."""
+    mask_keys = {k: agent.advertise(round_index) for k, agent in agents.items()}
+    k = len(agents) - 1 if neighbours is None else neighbours
+    return secagg.RoundSetup(
+        round=round_index,
+        participants=tuple(sorted(agents)),
+        channel_keys={v: a.channel_public for v, a in agents.items()},
+        mask_keys=mask_keys,
+        length=length,
+        neighbours=k,
+        threshold=k // 2 + 1,
+    )
 
 
 def _words(rng: np.random.Generator, n: int, length: int) -> dict[int, np.ndarray]:
@@ -368,12 +380,7 @@ def test_too_many_dropouts_cannot_be_unmasked() -> None:
 
 def test_an_agent_never_reveals_both_secrets_of_a_neighbour() -> None:
     agents = {k: secagg.SecAggAgent(k) for k in range(4)}
-    setup = secagg.RoundSetup(
-        round=2,
-        participants=(0, 1, 2, 3),
-        channel_keys={k: a.channel_public for k, a in agents.items()},
-        length=2,
-    )
+    setup = _setup(agents, 2, 2, None)
     server = secagg.SecAggRound(setup)
     for k, agent in agents.items():
         server.add_keys(k, agent.share_keys(setup))

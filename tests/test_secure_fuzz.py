@@ -1,8 +1,8 @@
 """Property-based fuzz of a secure round: one registered participant (any of the round's five)
-answers each of the three exchanges with what Hypothesis draws: nothing, its honest message,
-that message with any of its fields (``round``, ``agents`` and every array of ``KeyShares``,
-``MaskedUpdate``, ``Unmasking``) replaced, mutated or of the wrong type, or raw frames the
-codec refuses. The messages go through the codec both ways (tests/secure_peers.py).
+answers each of the four exchanges with what Hypothesis draws: nothing, its honest message,
+that message with any of its fields (``round``, ``agents`` and every array of ``MaskKeys``,
+``KeyShares``, ``MaskedUpdate``, ``Unmasking``) replaced, mutated or of the wrong type, or raw
+frames the codec refuses. The messages go through the codec both ways (tests/secure_peers.py).
 
 Whatever it sends: the server and the five honest agents never raise; a round either sums
 every honest input (exactly, where the rogue's own input is honest or left out) or fails
@@ -29,6 +29,7 @@ from fedhpg.common.types import UpdateColumns
 from fedhpg.common.wire.protocol import (
     KeyShares,
     MaskedUpdate,
+    MaskKeys,
     Message,
     Unmasking,
 )
@@ -41,6 +42,7 @@ NUM_PARAMS = 6
 FAST_EXAMPLES = 60
 SLOW_EXAMPLES = 2000
 FIELDS = {
+    MaskKeys: ["round", "agents", "mask_keys", "signatures"],
     KeyShares: ["round", "agents", "mask_keys", "recipients", "sealed"],
     MaskedUpdate: ["round", "agents", "masked", "stats"],
     Unmasking: ["round", "agents", "owners", "kinds", "shares"],
@@ -170,7 +172,9 @@ def _check_round(rogue: int, plans: dict[type, tuple]) -> None:
     summed = sorted(u.agent_index for u in answers.updates)
     assert set(honest) <= set(summed), (summed, answers.failures)
     assert np.isfinite(secure.total).all()
-    own_input_honest = plans[KeyShares][0] == "honest" and plans[MaskedUpdate][0] == "honest"
+    own_input_honest = all(
+        plans[kind][0] == "honest" for kind in (MaskKeys, KeyShares, MaskedUpdate)
+    )
     if rogue not in summed or own_input_honest:
         mean = np.mean([step_of(k, NUM_PARAMS).astype(np.float64) for k in summed], axis=0)
         assert secure.total[-2] == pytest.approx(len(summed), abs=1e-9)
@@ -182,7 +186,7 @@ def _check_round(rogue: int, plans: dict[type, tuple]) -> None:
 
 
 plans_of = st.fixed_dictionaries(
-    {KeyShares: step_plans, MaskedUpdate: step_plans, Unmasking: step_plans}
+    {MaskKeys: step_plans, KeyShares: step_plans, MaskedUpdate: step_plans, Unmasking: step_plans}
 )
 
 

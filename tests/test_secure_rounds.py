@@ -28,7 +28,7 @@ from secure_peers import (
 
 from fedhpg.common.config import RunConfig
 from fedhpg.common.privacy import fixedpoint
-from fedhpg.common.privacy.secagg import SEALED_BYTES
+from fedhpg.common.privacy.secagg import SEALED_BYTES, noise_shares
 from fedhpg.common.runtime.cli import compose
 from fedhpg.common.types import UpdateColumns
 from fedhpg.common.wire.protocol import (
@@ -36,6 +36,7 @@ from fedhpg.common.wire.protocol import (
     MaskedUpdate,
     MaskRequest,
     Message,
+    ShareRequest,
     Train,
     Unmasking,
     UnmaskRequest,
@@ -382,8 +383,9 @@ def test_max_update_norm_bounds_the_secure_average_step() -> None:
 
 
 def test_dp_secagg_sizes_the_noise_from_the_registered_agents() -> None:
-    # 10 agents selected, 5 registered: each of the 5 adds 1/3 of σC's variance (t = 3 of 5),
-    # and the round's 5 inputs carry more than σC, so it is unmasked and adopted
+    # 10 agents selected, 5 registered: each of the 5 adds 1/4 of σC's variance (all but the
+    # ⌊(0.1 + 0.1) · 5⌋ = 1 colluder or drop-out the round tolerates), and the round's 5 inputs
+    # carry more than σC, so it is unmasked and adopted
     run = settings("privacy.noise_multiplier=1", "privacy.noise_seed=3", mode="dp_secagg", k=10)
     sides = {k: HonestSide(run, k) for k in range(5)}
     records, _, pool = run_rounds(run, sides)
@@ -391,20 +393,21 @@ def test_dp_secagg_sizes_the_noise_from_the_registered_agents() -> None:
     assert private is not None
     rounds = PrivateRounds(run, weighted=False)
     sigma_c = rounds.update_multiplier * rounds.clip
-    assert private.noise_std == pytest.approx(sigma_c / np.sqrt(3))
+    assert noise_shares(run.privacy.secagg, 5) == 4
+    assert private.noise_std == pytest.approx(sigma_c / np.sqrt(4))
     row = records[0].to_json()
     assert "secure" not in row and row["privacy"]["inputs"] == 5
     assert row["privacy"]["rounds_accounted"] == 1
 
 
 def test_too_few_noise_shares_are_never_unmasked_nor_accounted() -> None:
-    # 5 registered, t = 3; three drop before their masked input: 2 inputs carry 2/3 of σC's
-    # variance: no unmasking request goes out, the round is skipped and not accounted
+    # 5 registered, 4 noise shares needed; three drop before their masked input: 2 inputs carry
+    # half of σC's variance: no unmasking request goes out, the round is skipped, not accounted
     run = settings("privacy.noise_multiplier=1", "privacy.noise_seed=3", mode="dp_secagg")
     asked: list[int] = []
 
     def gone_after_keys(request: Message, honest: list[Reply]) -> list[Reply]:
-        return honest if isinstance(request, Train) else []
+        return honest if isinstance(request, Train | ShareRequest) else []
 
     def watch(request: Message, honest: list[Reply]) -> list[Reply]:
         if isinstance(request, UnmaskRequest):
@@ -442,7 +445,7 @@ def test_a_failed_round_is_skipped_and_recorded_and_the_run_goes_on() -> None:
     rows = [r.to_json() for r in records]
     assert [r["round"] for r in rows] == [1, 2, 3]
     assert "secure" not in rows[0] and "secure" not in rows[2]
-    assert rows[1]["secure"] == {"failed": "0 agents shared keys, fewer than 1"}
+    assert rows[1]["secure"] == {"failed": "0 agents advertised keys, fewer than 1"}
     assert rows[1]["agents"] == [] and rows[1]["updates"] == 0
     # rounds 1 and 3 each took the mean step (the sides step alike every round)
     np.testing.assert_allclose(theta.numpy(), 2 * steps(list(range(K))), atol=1e-5)

@@ -41,6 +41,8 @@ import struct
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 
+from fedhpg.common.config import SecAggConfig
+
 PRIVACY_BITS = 40
 """P[some input exposed] ≤ 2^-PRIVACY_BITS in a round (Bell et al.'s σ)."""
 CORRECTNESS_BITS = 20
@@ -217,14 +219,17 @@ def _why(agents: int, neighbours: int, threshold: float | None, tolerance: Toler
         f"(corruption {tolerance.corruption:g}) and complete with {silent} of them silent "
         f"(corruption + dropout {tolerance.corruption + tolerance.dropout:g})"
     )
-    if threshold is not None:
+    if threshold is not None or neighbours < agents - 1:
         try:
-            fit = plan_graph(agents, tolerance, neighbours if neighbours < agents - 1 else None)
+            fit = plan_graph(agents, tolerance)
         except GraphError:
             pass
         else:
             fits = f"t = {fit.threshold} of k = {fit.neighbours}"
-            return f"{what}; {fits} would (leave privacy.secagg.threshold unset)"
+            return (
+                f"{what}; {fits} would (leave privacy.secagg.threshold and "
+                "privacy.secagg.neighbours unset)"
+            )
     return f"{what}; lower privacy.secagg.corruption or privacy.secagg.dropout"
 
 
@@ -253,3 +258,11 @@ def neighbour_graph(
         near = {ring[(position + step) % count] for step in range(-half, half + 1)} - {u}
         graph[u] = tuple(sorted(near))
     return graph
+
+
+def round_plan(settings: SecAggConfig, agents: int) -> GraphPlan:
+    """The plan of a round of ``agents`` under ``privacy.secagg``: what both the server and
+    every agent derive from the same settings (GraphError: the settings cannot meet their
+    own tolerance at that size)."""
+    tolerance = Tolerance(corruption=settings.corruption, dropout=settings.dropout)
+    return plan_graph(agents, tolerance, settings.neighbours, settings.threshold)

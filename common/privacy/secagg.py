@@ -6,12 +6,14 @@ The rounds of one aggregation, each agent's and the server's side (no wire here:
 and the agent program carry these values in their messages):
 
 0. Before: every agent has a long-lived channel key pair (X25519), its public half registered
-   with the server. The round's :class:`RoundSetup` names the participants and their channel
-   keys, and which of them are each one's neighbours (everyone, or k of them: SecAgg+).
-1. :meth:`SecAggAgent.share_keys`: a fresh mask key pair and self-mask seed b_u for the round;
-   t-of-k Shamir shares of both secrets, one pair for each neighbour, sealed (AES-GCM) under
-   the channel key of that pair. Sent: the mask public key and the sealed shares (U1: those
-   whose keys arrived).
+   with the server. :meth:`SecAggAgent.advertise`: a fresh mask key pair and self-mask seed
+   b_u for the round; the mask public key is advertised (signed where agents have a roster:
+   :mod:`.signing`). The round's :class:`RoundSetup` names those that advertised, their keys,
+   and each one's neighbours: every other, or k of them on a ring drawn from all the
+   advertised keys (SecAgg+, :mod:`.graph`), with the threshold t of the round's plan.
+1. :meth:`SecAggAgent.share_keys`: t-of-k Shamir shares of both secrets, one pair for each
+   neighbour, sealed (AES-GCM) under the channel key of that pair (U1: those whose shares
+   arrived).
 2. :meth:`SecAggRound.routed` gives each agent its neighbours' mask keys and the shares sealed
    for it; :meth:`SecAggAgent.mask` opens them and sends y_u = x_u + PRG(b_u) + Σ_{v>u} PRG(s_uv)
    − Σ_{v<u} PRG(s_uv) modulo 2⁶⁴, s_uv agreed from the pair's mask keys (U2: inputs that
@@ -23,17 +25,16 @@ and the agent program carry these values in their messages):
    included agent's PRG(b_u), every pairwise mask between an included and a dropped agent.
 
 The sum is exactly Σ_{u∈U2} x_u modulo 2⁶⁴. An honest agent refuses a round in which fewer
-than t of its neighbours take part at any step (the server could otherwise ask for both of
-one agent's secrets). Against a server that follows the protocol and any agents but fewer
-than t of each neighbourhood colluding with it, one input stays hidden; a server that lies
-about the channel keys (no public-key infrastructure here) is outside this model.
+than t of its neighbours take part at any step, and answers one unmasking request a round:
+a server asking some neighbours for one secret and others for the other gets t shares of both
+only with 2t − k colluding neighbours, which the round's plan makes improbable (:mod:`.graph`).
+With a roster, a server that substitutes keys is caught by the agents; without one, the server
+is trusted to relay the keys it was sent.
 """
 
 from __future__ import annotations
 
 import functools
-import hashlib
-import math
 import os
 import struct
 from collections.abc import Callable, Collection, Mapping
@@ -42,7 +43,9 @@ from enum import IntEnum
 
 import numpy as np
 
+from fedhpg.common.config import SecAggConfig
 from fedhpg.common.privacy import fixedpoint, masks, shamir
+from fedhpg.common.privacy.graph import Tolerance, graph_seed, neighbour_graph
 
 SHARE_PLAINTEXT = struct.Struct("<qqq")
 """A sealed share's header: sender, receiver, round; then the two shares."""
@@ -53,13 +56,24 @@ class SecAggError(RuntimeError):
     """A round that cannot go on: too few agents or shares, or a value that does not fit."""
 
 
-def fewest_inputs(mode: str, threshold: float, participants: int) -> int:
+def fewest_inputs(mode: str, settings: SecAggConfig, participants: int) -> int:
     """The fewest inputs a round of ``participants`` may unmask: with distributed noise
-    (``dp_secagg``), each agent adds 1/t of the noise's variance, so t = ⌊threshold · n⌋ + 1
-    of them (at most n) reach σC; otherwise one."""
+    (``dp_secagg``), enough that the honest ones among them (all but the colluders the round
+    tolerates) carry :func:`noise_shares` shares of the noise; otherwise one."""
     if mode != "dp_secagg":
         return 1
-    return min(math.floor(threshold * participants) + 1, participants)
+    colluders = Tolerance(corruption=settings.corruption, dropout=settings.dropout).colluders(
+        participants
+    )
+    return min(participants, noise_shares(settings, participants) + colluders)
+
+
+def noise_shares(settings: SecAggConfig, participants: int) -> int:
+    """How many agents' noise a ``dp_secagg`` round's sum is sure to hold against the server
+    and the agents colluding with it (they know, and can remove, their own): each agent adds
+    1/this of the noise's variance."""
+    tolerance = Tolerance(corruption=settings.corruption, dropout=settings.dropout)
+    return max(1, participants - tolerance.silent(participants))
 
 
 class Revealed(IntEnum):
@@ -77,43 +91,35 @@ class Revealed(IntEnum):
 
 @dataclass(frozen=True, kw_only=True)
 class RoundSetup:
-    """What everyone knows of a round before it starts."""
+    """What everyone knows of a round once its mask keys are advertised."""
 
     round: int
     participants: tuple[int, ...]
-    """The agents asked, in increasing order."""
+    """The agents that advertised a mask key, in increasing order."""
     channel_keys: Mapping[int, bytes]
     """Each participant's channel public key."""
+    mask_keys: Mapping[int, bytes]
+    """Each participant's round mask public key: the graph is drawn from them."""
     length: int
     """Words in each input."""
-    threshold: float = 0.5
-    """t = ⌊threshold · k⌋ + 1 shares of an agent's k rebuild its secrets."""
-    neighbours: int | None = None
-    """k: how many others each agent masks with (SecAgg+); None, or k ≥ n − 1: all (SecAgg)."""
+    neighbours: int
+    """k of the round's plan (:func:`fedhpg.common.privacy.graph.plan_graph`); k ≥ n − 1:
+    every other participant."""
+    threshold: int
+    """t of the round's plan: shares of an agent's secret that rebuild it."""
 
     @functools.cached_property
     def graph(self) -> dict[int, tuple[int, ...]]:
         """Each participant's neighbours: every other one, or its k nearest on a ring in an
-        order drawn from the round (public: every side computes the same)."""
-        people = list(self.participants)
-        count = len(people)
-        if self.neighbours is None or self.neighbours >= count - 1:
-            return {u: tuple(v for v in people if v != u) for u in people}
-        ring = sorted(
-            people,
-            key=lambda u: hashlib.sha256(struct.pack("<qq", self.round, u)).digest(),
-        )
-        half = math.ceil(self.neighbours / 2)
-        graph: dict[int, tuple[int, ...]] = {}
-        for position, u in enumerate(ring):
-            near = {ring[(position + step) % count] for step in range(-half, half + 1)} - {u}
-            graph[u] = tuple(sorted(near))
-        return graph
+        order drawn from every advertised mask key (no one can know it before they are all
+        fixed)."""
+        seed = graph_seed(self.round, self.mask_keys)
+        return neighbour_graph(self.participants, self.neighbours, seed)
 
     def threshold_of(self, agent: int) -> int:
-        """t of ``agent``'s neighbourhood."""
-        degree = len(self.graph[agent])
-        return min(math.floor(self.threshold * degree) + 1, degree)
+        """t of ``agent``'s neighbourhood (all of it where fewer agents advertised keys than
+        the round was planned for)."""
+        return min(self.threshold, len(self.graph[agent]))
 
 
 def share_point(agent: int) -> int:
@@ -135,9 +141,11 @@ class KeyShares:
 
 @dataclass(kw_only=True)
 class _AgentRound:
-    setup: RoundSetup
+    round: int
     mask_private: bytes
     self_seed: bytes
+    setup: RoundSetup | None = None
+    """Known once every participant's mask key is (:meth:`SecAggAgent.share_keys`)."""
     held: dict[int, tuple[bytes, bytes]] = field(default_factory=dict)
     """Neighbour → (share of its mask key, share of its self-mask seed)."""
     masked_with: frozenset[int] = frozenset()
@@ -164,16 +172,27 @@ class SecAggAgent:
             )
         return self._channels[key]
 
+    def advertise(self, round_index: int) -> bytes:
+        """Step 0: a fresh mask key pair and self-mask seed for the round; the mask public
+        key to advertise."""
+        state = _AgentRound(
+            round=round_index, mask_private=masks.new_private_key(), self_seed=os.urandom(32)
+        )
+        self._round = state
+        return masks.public_key(state.mask_private)
+
     def share_keys(self, setup: RoundSetup) -> KeyShares:
-        """Step 1: a fresh mask key pair and self-mask seed, and their shares for each
-        neighbour, sealed for it."""
+        """Step 1: shares of the round's mask key and self-mask seed for each neighbour of the
+        graph drawn from every advertised key, each sealed for it."""
+        state = self._state(setup.round, shared=False)
         if self.index not in setup.graph:
             raise SecAggError(f"agent {self.index} is not a participant of round {setup.round}")
+        if state.setup is not None:
+            raise SecAggError(f"round {setup.round}: agent {self.index} already shared its keys")
+        if setup.mask_keys.get(self.index) != masks.public_key(state.mask_private):
+            raise SecAggError(f"round {setup.round}: the server relayed another mask key as ours")
         neighbours = setup.graph[self.index]
         threshold = setup.threshold_of(self.index)
-        state = _AgentRound(
-            setup=setup, mask_private=masks.new_private_key(), self_seed=os.urandom(32)
-        )
         points = [share_point(v) for v in neighbours]
         key_shares = shamir.split(state.mask_private, points, threshold)
         seed_shares = shamir.split(state.self_seed, points, threshold)
@@ -186,7 +205,7 @@ class SecAggAgent:
                 continue
             plaintext = _associated(setup, self.index, v) + key_share + seed_share
             sealed[v] = masks.seal(channel, plaintext, _associated(setup, self.index, v))
-        self._round = state
+        state.setup = setup
         return KeyShares(mask_key=masks.public_key(state.mask_private), sealed=sealed)
 
     def mask(
@@ -199,7 +218,7 @@ class SecAggAgent:
         """Step 2: ``inputs`` (uint64 words) masked with the self mask and a pairwise mask with
         each neighbour whose keys arrived (``mask_keys``), whose sealed shares it keeps."""
         state = self._state(round_index)
-        setup = state.setup
+        setup = self._setup(state)
         if inputs.shape != (setup.length,) or inputs.dtype != np.uint64:
             raise SecAggError(f"an input is {setup.length} uint64 words, got {inputs.shape}")
         present = set(mask_keys)
@@ -262,7 +281,8 @@ class SecAggAgent:
             raise SecAggError("an unmasking request must name disjoint sets, this agent included")
         if not (dropped | included) >= state.masked_with:
             raise SecAggError("an unmasking request must account for every neighbour masked with")
-        threshold = state.setup.threshold_of(self.index)
+        setup = self._setup(state)
+        threshold = setup.threshold_of(self.index)
         if len(state.masked_with & included) + 1 < threshold:  # + 1: itself
             raise SecAggError(
                 f"round {round_index}: fewer than {threshold} of agent {self.index}'s "
@@ -272,9 +292,7 @@ class SecAggAgent:
         answer: dict[int, tuple[Revealed, bytes]] = {}
         for v in sorted(state.masked_with):
             if v in state.unreadable:
-                pair_key = _pair_key(
-                    state.mask_private, state.unreadable[v], state.setup, self.index, v
-                )
+                pair_key = _pair_key(state.mask_private, state.unreadable[v], setup, self.index, v)
                 answer[v] = (Revealed.PAIR_KEY, pair_key.rjust(shamir.SHARE_BYTES, b"\0"))
                 continue
             key_share, seed_share = state.held[v]
@@ -284,11 +302,18 @@ class SecAggAgent:
                 answer[v] = (Revealed.SELF_SEED, seed_share)
         return answer
 
-    def _state(self, round_index: int) -> _AgentRound:
+    def _state(self, round_index: int, *, shared: bool = True) -> _AgentRound:
+        """The round in progress (``shared``: with its shares sent, so its setup known)."""
         state = self._round
-        if state is None or state.setup.round != round_index:
+        if state is None or state.round != round_index:
             raise SecAggError(f"agent {self.index} has no keys for round {round_index}")
+        if shared and state.setup is None:
+            raise SecAggError(f"round {round_index}: agent {self.index} shared no keys")
         return state
+
+    def _setup(self, state: _AgentRound) -> RoundSetup:
+        assert state.setup is not None  # _state(shared=True) checked it
+        return state.setup
 
 
 def _pair_key(private: bytes, peer_public: bytes, setup: RoundSetup, u: int, v: int) -> bytes:

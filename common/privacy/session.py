@@ -12,14 +12,24 @@ import numpy as np
 
 from fedhpg.common.config import RunConfig
 from fedhpg.common.privacy import dp
-from fedhpg.common.privacy.secagg import RoundSetup, SecAggAgent
+from fedhpg.common.privacy.graph import GraphError, round_plan
+from fedhpg.common.privacy.secagg import RoundSetup, SecAggAgent, SecAggError
+from fedhpg.common.privacy.signing import (
+    SIGNATURE_BYTES,
+    AgentSigning,
+    SignatureError,
+    mask_statement,
+    sign,
+)
 
 
 class LocalSecAgg:
-    """The secure aggregation state of the logical agents this process serves."""
+    """The secure aggregation state of the logical agents this process serves, and what it
+    signs with and checks against (:mod:`.signing`; None: unsigned)."""
 
-    def __init__(self, run: RunConfig) -> None:
+    def __init__(self, run: RunConfig, signing: AgentSigning | None = None) -> None:
         self.settings = run.privacy
+        self.signing = signing
         self._agents: dict[int, SecAggAgent] = {}
 
     def agent(self, index: int) -> SecAggAgent:
@@ -33,27 +43,54 @@ class LocalSecAgg:
         keys = b"".join(self.agent(k).channel_public for k in indices)
         return np.frombuffer(keys, dtype=np.uint8).reshape(len(indices), 32).copy()
 
+    def advertise(self, round_index: int, index: int) -> tuple[bytes, bytes]:
+        """Agent ``index``'s fresh mask key for the round and its signature of it with the
+        agent's channel key (64 zero bytes where this process has no roster)."""
+        agent = self.agent(index)
+        mask_key = agent.advertise(round_index)
+        if self.signing is None:
+            return mask_key, bytes(SIGNATURE_BYTES)
+        statement = mask_statement(round_index, index, mask_key, agent.channel_public)
+        return mask_key, sign(self.signing.private, statement)
+
     def setup(
         self,
         round_index: int,
-        participants: Sequence[int],
+        planned: int,
         length: int,
-        channel_keys: Mapping[int, bytes] | None = None,
+        channel_keys: Mapping[int, bytes],
+        mask_keys: Mapping[int, bytes],
+        signatures: Mapping[int, bytes] | None = None,
     ) -> RoundSetup:
-        """The round's public setup (``channel_keys``: as the server sent them; None: this
-        process's own agents', in process)."""
-        keys = (
-            dict(channel_keys)
-            if channel_keys is not None
-            else {k: self.agent(k).channel_public for k in participants}
-        )
+        """The round's public setup once its mask keys are advertised: the graph and
+        threshold of a round of ``planned`` agents (the participants the server named) over
+        those that advertised. With a roster, every advertised key must carry its agent's
+        signature (SecAggError: this process refuses the round)."""
+        if not set(mask_keys) <= set(channel_keys):
+            raise SecAggError(f"round {round_index}: a mask key of an agent with no channel key")
+        if self.signing is not None:
+            roster = self.signing.roster
+            for v, key in mask_keys.items():
+                statement = mask_statement(round_index, v, key, channel_keys[v])
+                try:
+                    roster.check(v, statement, (signatures or {}).get(v, b""))
+                except SignatureError as error:
+                    raise SecAggError(
+                        f"round {round_index}: the server relayed keys its agent did not sign: "
+                        f"{error}"
+                    ) from None
+        try:
+            plan = round_plan(self.settings.secagg, planned)
+        except GraphError as error:
+            raise SecAggError(f"round {round_index}: {error}") from None
         return RoundSetup(
             round=round_index,
-            participants=tuple(sorted(participants)),
-            channel_keys=keys,
+            participants=tuple(sorted(mask_keys)),
+            channel_keys={v: channel_keys[v] for v in mask_keys},
+            mask_keys=dict(mask_keys),
             length=length,
-            threshold=self.settings.secagg.threshold,
-            neighbours=self.settings.secagg.neighbours,
+            neighbours=plan.neighbours,
+            threshold=plan.threshold,
         )
 
     def noise(self, round_index: int, agent: int) -> dp.NoiseSource:

@@ -10,8 +10,8 @@ checks each key it is handed against the roster entry of the agent it claims to 
 uses it. A round with a key that does not verify is refused by the agent that sees it (it
 drops out; the server cannot make it use a forged key).
 
-What is signed is bound to its use: a channel key to its agent, a mask key to its agent and
-round, so a signature cannot be replayed for another agent, round or purpose.
+Each round an agent signs its fresh mask key together with its channel key, its index and the
+round, so a signature cannot be replayed for another agent, round or key.
 """
 
 from __future__ import annotations
@@ -68,14 +68,9 @@ def verifying_key(private: bytes) -> bytes:
     )
 
 
-def channel_statement(agent: int, channel_key: bytes) -> bytes:
-    """What an agent signs of its long-lived channel key."""
-    return b"fedhpg channel key" + struct.pack("<q", agent) + channel_key
-
-
-def mask_statement(round_index: int, agent: int, mask_key: bytes) -> bytes:
-    """What an agent signs of its mask key for one round."""
-    return b"fedhpg mask key" + struct.pack("<qq", round_index, agent) + mask_key
+def mask_statement(round_index: int, agent: int, mask_key: bytes, channel_key: bytes) -> bytes:
+    """What an agent signs each round: its mask key for the round and its channel key."""
+    return b"fedhpg mask key" + struct.pack("<qq", round_index, agent) + mask_key + channel_key
 
 
 def sign(private: bytes, statement: bytes) -> bytes:

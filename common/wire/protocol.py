@@ -32,7 +32,7 @@ from fedhpg.common.limits import (
 from fedhpg.common.privacy.contribution import RoundPrivacy
 from fedhpg.common.types import EvaluationStats, UpdateColumns
 
-PROTOCOL_VERSION = 9
+PROTOCOL_VERSION = 10
 """Bumped whenever a message changes; a peer of another version is refused with a reason."""
 
 KIB = 1024
@@ -58,6 +58,8 @@ class MsgType(StrEnum):
     WELCOME = "welcome"
     TRAIN = "train"
     UPDATE = "update"
+    MASK_KEYS = "mask_keys"
+    SHARE_REQUEST = "share_request"
     KEY_SHARES = "key_shares"
     MASK_REQUEST = "mask_request"
     MASKED_UPDATE = "masked_update"
@@ -130,7 +132,7 @@ class Train:
     (``agents.plan``)."""
     private: RoundPrivacy | None = None
     """Secure aggregation: how each agent contributes (clip, its share of the noise, the
-    fixed-point range); the agents answer with :class:`KeyShares`, not an :class:`Update`."""
+    fixed-point range); the agents answer with :class:`MaskKeys`, not an :class:`Update`."""
     participants: Annotated[list[AgentIndex], Bound(max_len=MAX_ROUND_AGENTS)] = field(
         default_factory=list
     )
@@ -156,14 +158,43 @@ class Update:
     stats: UpdateColumns
 
 
-# --- secure aggregation: the three exchanges after a private Train (common/privacy/secagg.py) --
+# --- secure aggregation: the exchanges of a private round (common/privacy/secagg.py) ---------
+
+
+@dataclass(frozen=True, kw_only=True, eq=False)
+class MaskKeys:
+    """Agent → server, after training a private round: row i is agent ``agents[i]``'s fresh
+    round mask public key and its signature of (round, agent, mask key, channel key) under
+    its roster key (all zeros where the agent has no roster: unsigned)."""
+
+    round: Round
+    agents: AnswerList
+    mask_keys: np.ndarray
+    """[A, 32] uint8."""
+    signatures: np.ndarray
+    """[A, 64] uint8."""
+
+
+@dataclass(frozen=True, kw_only=True, eq=False)
+class ShareRequest:
+    """Server → agent: every mask key advertised for the round (by ``participants``, in
+    increasing order) with its signature; the round's graph is drawn from them, and each of
+    ``agents`` answers with its shares sealed for its neighbours (:class:`KeyShares`)."""
+
+    round: Round
+    agents: AgentList
+    participants: Annotated[list[AgentIndex], Bound(max_len=MAX_ROUND_AGENTS)]
+    mask_keys: np.ndarray
+    """[len(participants), 32] uint8."""
+    signatures: np.ndarray
+    """[len(participants), 64] uint8."""
 
 
 @dataclass(frozen=True, kw_only=True, eq=False)
 class KeyShares:
-    """Agent → server, after training a private round: row i is agent ``agents[i]``'s round
-    mask public key, and its secret shares sealed for each neighbour ``recipients[i, j]``
-    (−1: an unused slot)."""
+    """Agent → server, answering a :class:`ShareRequest`: row i is agent ``agents[i]``'s round
+    mask public key (as advertised), and its secret shares sealed for each neighbour
+    ``recipients[i, j]`` (−1: an unused slot)."""
 
     round: Round
     agents: AnswerList
@@ -276,6 +307,8 @@ Message = (
     | Welcome
     | Train
     | Update
+    | MaskKeys
+    | ShareRequest
     | KeyShares
     | MaskRequest
     | MaskedUpdate
@@ -287,9 +320,9 @@ Message = (
     | Shutdown
     | Error
 )
-Request = Train | MaskRequest | UnmaskRequest | Evaluate
+Request = Train | ShareRequest | MaskRequest | UnmaskRequest | Evaluate
 """What the server asks of an agent; a newer request supersedes the one in flight."""
-SecureAnswer = KeyShares | MaskedUpdate | Unmasking
+SecureAnswer = MaskKeys | KeyShares | MaskedUpdate | Unmasking
 """An agent's answers in a securely aggregated round."""
 
 PAYLOAD_TYPES: dict[str, type] = {  # keyed by MsgType, a str: decode looks up plain str
@@ -297,6 +330,8 @@ PAYLOAD_TYPES: dict[str, type] = {  # keyed by MsgType, a str: decode looks up p
     MsgType.WELCOME: Welcome,
     MsgType.TRAIN: Train,
     MsgType.UPDATE: Update,
+    MsgType.MASK_KEYS: MaskKeys,
+    MsgType.SHARE_REQUEST: ShareRequest,
     MsgType.KEY_SHARES: KeyShares,
     MsgType.MASK_REQUEST: MaskRequest,
     MsgType.MASKED_UPDATE: MaskedUpdate,
@@ -312,6 +347,7 @@ HEADER_LIMITS: dict[type, int] = {
     Hello: 64 * KIB,
     Update: 4 * KIB + MAX_BATCH_ANSWERS * 3 * KIB,
     MaskedUpdate: 4 * KIB + MAX_BATCH_ANSWERS * 3 * KIB,
+    MaskKeys: 4 * KIB + MAX_BATCH_ANSWERS * 16,
     KeyShares: 4 * KIB + MAX_BATCH_ANSWERS * 16,
     Unmasking: 4 * KIB + MAX_BATCH_ANSWERS * 16,
     Evaluation: 1 * KIB + MAX_BATCH_ANSWERS * 1 * KIB,

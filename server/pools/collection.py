@@ -31,9 +31,11 @@ from fedhpg.common.wire.protocol import (
     Evaluation,
     KeyShares,
     MaskedUpdate,
+    MaskKeys,
     MaskRequest,
     Request,
     SecureAnswer,
+    ShareRequest,
     Train,
     Unmasking,
     UnmaskRequest,
@@ -76,7 +78,7 @@ class Collection:
         """What answers this request."""
         request = self.request
         if isinstance(request, Train):
-            return KeyShares if request.private is not None else Update
+            return MaskKeys if request.private is not None else Update
         return SECURE_ANSWER.get(type(request), Evaluation)
 
     @property
@@ -95,7 +97,11 @@ class Collection:
         return index in self.expected and not self.answered(index)
 
 
-SECURE_ANSWER: dict[type, type] = {MaskRequest: MaskedUpdate, UnmaskRequest: Unmasking}
+SECURE_ANSWER: dict[type, type] = {
+    ShareRequest: KeyShares,
+    MaskRequest: MaskedUpdate,
+    UnmaskRequest: Unmasking,
+}
 """The answer to each request of a secure aggregation's exchanges after training."""
 
 

@@ -105,7 +105,22 @@ class InProcessPool:
         key exchange and drops out before its input, as over the wire."""
         contributing = {u.agent_index: u for u in answers.updates}
         length = theta.numel() + EXTRA
-        setup = self.secure.setup(round_index, selected, length)
+        advertised = {k: self.secure.advertise(round_index, k) for k in selected}
+        try:
+            setup = self.secure.setup(
+                round_index,
+                len(selected),
+                length,
+                {k: self.secure.agent(k).channel_public for k in selected},
+                {k: key for k, (key, _) in advertised.items()},
+                {k: signature for k, (_, signature) in advertised.items()},
+            )
+        except SecAggError as error:
+            stripped = [dataclasses.replace(u, theta=theta) for u in answers.updates]
+            empty = SecureSum(
+                total=np.zeros(0), inputs=0, participants=len(selected), failed=str(error)
+            )
+            return dataclasses.replace(answers, updates=stripped, secure=empty)
         server = SecAggRound(setup)
         for k in selected:
             server.add_keys(k, self.secure.agent(k).share_keys(setup))
@@ -125,7 +140,7 @@ class InProcessPool:
             server.add_masked(k, self.secure.agent(k).mask(round_index, words, *server.routed(k)))
         dropped, included = server.unmask_request()
         privacy = self.run.privacy
-        fewest = fewest_inputs(privacy.mode, privacy.secagg.threshold, len(selected))
+        fewest = fewest_inputs(privacy.mode, privacy.secagg, len(selected))
         stripped = [dataclasses.replace(u, theta=theta) for u in answers.updates]
 
         def failed(reason: str) -> RoundAnswers:
@@ -137,7 +152,7 @@ class InProcessPool:
         if len(included) < fewest:  # checked before any input is unmasked
             return failed(
                 f"{len(included)} inputs arrived, fewer than the {fewest} the round needs "
-                "(privacy.secagg.threshold): nothing was unmasked"
+                "(privacy.secagg.dropout): nothing was unmasked"
             )
         for k in included:
             server.add_reveal(k, self.secure.agent(k).reveal(round_index, dropped, included))

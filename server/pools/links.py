@@ -43,6 +43,7 @@ from fedhpg.common.wire.protocol import (
     Hello,
     MaskRequest,
     Message,
+    ShareRequest,
     Train,
     UnmaskRequest,
     Welcome,
@@ -363,7 +364,7 @@ class Links:
         """Send to a link; a link whose connection is gone is presumed dead. A request gives
         the link room for its answers past the per-peer cap (:meth:`Link.allow`)."""
         if self.outbox.send(link.identity, message):
-            if isinstance(message, Train | Evaluate | MaskRequest | UnmaskRequest):
+            if isinstance(message, Train | Evaluate | ShareRequest | MaskRequest | UnmaskRequest):
                 link.allow(len(message.agents))
         elif not self.outbox.routable(link.identity):
             self.drop(link, "its connection is gone")

@@ -1,16 +1,21 @@
-"""Secure aggregation over the wire: a private round's three exchanges after the ``Train``.
+"""Secure aggregation over the wire: a private round's four exchanges, the ``Train`` first.
 
 1. ``Train`` (with ``private``, the participants and their channel keys): every agent trains,
-   then answers :class:`~fedhpg.common.wire.protocol.KeyShares` (its round mask key, its secret
-   shares sealed for each neighbour); the round policy closes this exchange as any round.
-2. :class:`~fedhpg.common.wire.protocol.MaskRequest`: each agent gets its neighbours' keys and
+   then answers :class:`~fedhpg.common.wire.protocol.MaskKeys` (its fresh round mask key,
+   signed with its channel key where agents have a roster); the round policy closes this
+   exchange as any round.
+2. :class:`~fedhpg.common.wire.protocol.ShareRequest`: every advertised key goes to every
+   agent, which checks the signatures, draws the round's graph from the keys and answers
+   :class:`~fedhpg.common.wire.protocol.KeyShares` (its secret shares sealed for each
+   neighbour).
+3. :class:`~fedhpg.common.wire.protocol.MaskRequest`: each agent gets its neighbours' keys and
    the shares sealed for it, and answers its masked contribution
    (:class:`~fedhpg.common.wire.protocol.MaskedUpdate`, with its statistics).
-3. :class:`~fedhpg.common.wire.protocol.UnmaskRequest`: who dropped out and whose input is in;
+4. :class:`~fedhpg.common.wire.protocol.UnmaskRequest`: who dropped out and whose input is in;
    each included agent answers its revealed shares
    (:class:`~fedhpg.common.wire.protocol.Unmasking`).
 
-Exchanges 2 and 3 close once every live agent asked has answered, or after
+Exchanges 2 to 4 close once every live agent asked has answered, or after
 ``server.round_deadline_s``: an agent that died, or does not answer in time, drops out, and the
 protocol (:class:`~fedhpg.common.privacy.secagg.SecAggRound`) rebuilds what the sum needs from
 the others' shares. The server keeps only the sum; the updates it returns carry statistics.
@@ -27,8 +32,8 @@ import torch
 
 from fedhpg.common.config import RunConfig
 from fedhpg.common.privacy import fixedpoint, masks, shamir
-from fedhpg.common.privacy import secure_messages as read
 from fedhpg.common.privacy.contribution import EXTRA, RoundPrivacy
+from fedhpg.common.privacy.graph import GraphError, round_plan
 from fedhpg.common.privacy.secagg import (
     SEALED_BYTES,
     RoundSetup,
@@ -36,17 +41,19 @@ from fedhpg.common.privacy.secagg import (
     SecAggRound,
     fewest_inputs,
 )
-from fedhpg.common.privacy.secure_messages import RowError
 from fedhpg.common.types import AgentUpdate, UpdateStats
+from fedhpg.common.wire import secure_rows as read
 from fedhpg.common.wire.protocol import (
     KEY_BYTES,
     KeyShares,
     MaskRequest,
     Request,
+    ShareRequest,
     Train,
     Unmasking,
     UnmaskRequest,
 )
+from fedhpg.common.wire.secure_rows import RowError
 from fedhpg.server.pools import RoundAnswers, SecureSum
 from fedhpg.server.pools.collection import Collector
 from fedhpg.server.pools.links import Links
@@ -56,10 +63,13 @@ logger = logging.getLogger(__name__)
 
 
 def neighbour_count(run: RunConfig, participants: int) -> int:
-    """k: how many neighbours each agent of a round of ``participants`` has at most."""
-    others = max(participants - 1, 0)
-    chosen = run.privacy.secagg.neighbours
-    return others if chosen is None else min(others, 2 * ((chosen + 1) // 2))
+    """k: how many neighbours each agent of a round of ``participants`` has at most (the
+    run's plan for that size; every other agent where the plan cannot be met, which the
+    round then reports)."""
+    try:
+        return round_plan(run.privacy.secagg, participants).neighbours
+    except GraphError:
+        return max(participants - 1, 0)
 
 
 def row_bytes(run: RunConfig, num_params: int) -> int:
@@ -105,19 +115,14 @@ class SecureExchange:
         keys = _channel_keys(links, selected)
         participants = sorted(keys)
         secagg = self.run.privacy.secagg
-        fewest = fewest_inputs(self.run.privacy.mode, secagg.threshold, len(participants))
+        fewest = fewest_inputs(self.run.privacy.mode, secagg, len(participants))
         outcome = _Outcome(round_index, selected, links.name, len(participants))
         if not participants:
             return outcome.failed("no selected agent is registered")
-        setup = RoundSetup(
-            round=round_index,
-            participants=tuple(participants),
-            channel_keys=keys,
-            length=self.length,
-            threshold=secagg.threshold,
-            neighbours=secagg.neighbours,
-        )
-        server = SecAggRound(setup)
+        try:
+            plan = round_plan(secagg, len(participants))
+        except GraphError as error:
+            return outcome.failed(str(error))
         train = Train(
             round=round_index,
             theta=theta.detach().numpy(),
@@ -128,7 +133,7 @@ class SecureExchange:
             .reshape(len(participants), KEY_BYTES)
             .copy(),
         )
-        shared = collector.collect(
+        advertised = collector.collect(
             train,
             "round",
             participants,
@@ -136,9 +141,43 @@ class SecureExchange:
             budgets=budgets,
             while_waiting=while_training,
         )
+        mask_keys: dict[int, bytes] = {}
+        signatures: dict[int, bytes] = {}
+        for k, (message, row) in sorted(advertised.answers.items()):
+            with outcome.step(k, "mask key"):
+                mask_keys[k], signatures[k] = read.mask_keys(message, row)
+        if len(mask_keys) < fewest:
+            return outcome.failed(f"{len(mask_keys)} agents advertised keys, fewer than {fewest}")
+        setup = RoundSetup(
+            round=round_index,
+            participants=tuple(sorted(mask_keys)),
+            channel_keys={k: keys[k] for k in mask_keys},
+            mask_keys=mask_keys,
+            length=self.length,
+            neighbours=plan.neighbours,
+            threshold=plan.threshold,
+        )
+        server = SecAggRound(setup)
+        owners = list(setup.participants)
+        shared = collector.collect(
+            ShareRequest(
+                round=round_index,
+                agents=[],
+                participants=owners,
+                mask_keys=np.stack([np.frombuffer(mask_keys[k], np.uint8) for k in owners]),
+                signatures=np.stack([np.frombuffer(signatures[k], np.uint8) for k in owners]),
+            ),
+            "key sharing of round",
+            owners,
+            pump=pump,
+            phase=True,
+        )
         for k, (message, row) in sorted(shared.answers.items()):
             with outcome.step(k, "key shares"):
-                server.add_keys(k, read.key_shares(message, row))
+                shares = read.key_shares(message, row)
+                if shares.mask_key != mask_keys[k]:
+                    raise SecAggError("they name another mask key than it advertised")
+                server.add_keys(k, shares)
         if len(server.keys) < fewest:
             return outcome.failed(f"{len(server.keys)} agents shared keys, fewer than {fewest}")
         stats = self._masked_inputs(collector, pump, server, setup, outcome)
@@ -308,7 +347,7 @@ def _too_few_inputs(arrived: int, fewest: int, run: RunConfig) -> str:
     if run.privacy.mode == "dp_secagg":
         return (
             f"{arrived} masked inputs arrived, fewer than the {fewest} whose noise shares reach "
-            "σC (privacy.secagg.threshold): nothing was unmasked"
+            "σC (privacy.secagg.dropout): nothing was unmasked"
         )
     return "no masked input arrived"
 

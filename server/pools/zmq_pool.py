@@ -46,6 +46,7 @@ from fedhpg.common.wire.protocol import (
     Hello,
     KeyShares,
     MaskedUpdate,
+    MaskKeys,
     Shutdown,
     Train,
     Unmasking,
@@ -256,7 +257,7 @@ class ZmqAgentPool:
             self._on_hello(identity, decoded, fd)
         elif isinstance(decoded, Update | Evaluation):
             self._on_answer(identity, link, decoded)
-        elif isinstance(decoded, KeyShares | MaskedUpdate | Unmasking):
+        elif isinstance(decoded, MaskKeys | KeyShares | MaskedUpdate | Unmasking):
             if link is None:
                 self._reject(identity, "not_registered", "answers from an unregistered peer")
             elif any(k not in link.indices for k in decoded.agents):

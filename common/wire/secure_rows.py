@@ -1,9 +1,9 @@
 """The secure rounds' wire messages read row by row, every field checked before any is used.
 
-A secure round's messages (:mod:`fedhpg.common.wire.protocol`: ``KeyShares``,
-``MaskedUpdate``, ``Unmasking`` from agents; ``Train``'s participants, ``MaskRequest`` and
-``UnmaskRequest`` from the server) carry arrays the codec checked for their dtype's kind and
-size only. Each reader here returns the row's values as the protocol
+A secure round's messages (:mod:`fedhpg.common.wire.protocol`: ``MaskKeys``, ``KeyShares``,
+``MaskedUpdate``, ``Unmasking`` from agents; ``Train``'s participants, ``ShareRequest``,
+``MaskRequest`` and ``UnmaskRequest`` from the server) carry arrays the codec checked for
+their dtype's kind and size only. Each reader here returns the row's values as the protocol
 (:mod:`fedhpg.common.privacy.secagg`) takes them, or raises :class:`RowError` saying what is
 wrong: shapes and dtypes, key and share sizes, indices out of range, a neighbour named twice.
 The protocol then checks what needs the round (who is whose neighbour, who dropped out). A row
@@ -19,6 +19,7 @@ import numpy as np
 
 from fedhpg.common.privacy import masks, shamir
 from fedhpg.common.privacy.secagg import SEALED_BYTES, KeyShares, Revealed
+from fedhpg.common.privacy.signing import SIGNATURE_BYTES
 from fedhpg.common.types import UpdateStats
 from fedhpg.common.wire import protocol
 
@@ -28,6 +29,34 @@ UNUSED = -1
 
 class RowError(ValueError):
     """A row of a secure round's message that cannot be used: its agent drops out."""
+
+
+def mask_keys(message: protocol.MaskKeys, row: int) -> tuple[bytes, bytes]:
+    """Row ``row`` of an agent's ``MaskKeys``: its round mask public key and its signature."""
+    rows = len(message.agents)
+    keys = _array(message.mask_keys, "mask_keys", np.uint8, rows, (masks.KEY_BYTES,))
+    signatures = _array(message.signatures, "signatures", np.uint8, rows, (SIGNATURE_BYTES,))
+    mask_key = bytes(keys[row])
+    if not masks.usable_public_key(mask_key):
+        raise RowError("the mask key agrees on no secret (a low-order point)")
+    return mask_key, bytes(signatures[row])
+
+
+def share_request(request: protocol.ShareRequest) -> tuple[dict[int, bytes], dict[int, bytes]]:
+    """A ``ShareRequest``'s advertised mask keys and signatures, by participant (strictly
+    increasing, each key usable, the agents asked among them)."""
+    participants = list(request.participants)
+    if any(b <= a for a, b in itertools.pairwise(participants)):
+        raise RowError("the participants are not strictly increasing")
+    count = len(participants)
+    keys = _array(request.mask_keys, "mask_keys", np.uint8, count, (masks.KEY_BYTES,))
+    signatures = _array(request.signatures, "signatures", np.uint8, count, (SIGNATURE_BYTES,))
+    if not set(request.agents) <= set(participants):
+        raise RowError("the request names agents that advertised no mask key")
+    advertised = {k: bytes(row) for k, row in zip(participants, keys, strict=True)}
+    if not all(masks.usable_public_key(key) for key in advertised.values()):
+        raise RowError("a mask key agrees on no secret (a low-order point)")
+    return advertised, {k: bytes(row) for k, row in zip(participants, signatures, strict=True)}
 
 
 def key_shares(message: protocol.KeyShares, row: int) -> KeyShares:
