@@ -117,7 +117,7 @@ class AgentWork:
         self.close()
         self.private = run.privacy.mode != "none"
         if self.secure is not None:
-            self.secure.keys.settings = run.privacy
+            self.secure.adopt(run)
         self.devices = self._devices(run)
         # row k - first is agent k's: what a round prices
         self._columns = (
@@ -286,12 +286,18 @@ class SecureAgents:
             )
         self.keys = LocalSecAgg(run, signing)
         self.label = agent_id
+        self.run = run
         self._inputs: dict[int, np.ndarray] = {}
         self._stats: dict[int, UpdateStats] = {}
         self._channel_keys: dict[int, bytes] = {}
         self._planned = 0
         self._round = -1
         self._num_params = 1
+
+    def adopt(self, run: RunConfig) -> None:
+        """The run as the server dictates it (its privacy settings are this program's own)."""
+        self.run = run
+        self.keys.settings = run.privacy
 
     def share(
         self,
@@ -304,6 +310,7 @@ class SecureAgents:
     ) -> list[Message]:
         """After training: each agent's contribution kept, its round mask key advertised."""
         from fedhpg.common.privacy import fixedpoint
+        from fedhpg.common.privacy.consent import refusal
         from fedhpg.common.privacy.signing import SIGNATURE_BYTES
         from fedhpg.common.wire import secure_rows
 
@@ -313,6 +320,21 @@ class SecureAgents:
             keys = secure_rows.train_participants(request)
         except secure_rows.RowError as error:
             logger.warning("round %d: no agent takes part: %s", request.round, error)
+            return []
+        refused = refusal(
+            self.run.privacy,
+            private,
+            participants=len(keys),
+            population=self.run.agents.num_agents,
+            rounds=self.run.rounds,
+        )
+        if refused is not None:
+            logger.error(
+                "round %d: %s refuses to contribute as the server asks: %s",
+                request.round,
+                self.label,
+                refused,
+            )
             return []
         bound = max(private.bound, 1.0)
         scale = fixedpoint.scale_for(len(keys), bound)
