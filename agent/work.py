@@ -343,6 +343,7 @@ class SecureAgents:
         self._channel_keys, self._planned = keys, len(keys)
         self._num_params = thetas.shape[1]
         mask_keys = np.zeros((len(agents), KEY_BYTES), dtype=np.uint8)
+        commitments = np.zeros((len(agents), KEY_BYTES), dtype=np.uint8)
         signatures = np.zeros((len(agents), SIGNATURE_BYTES), dtype=np.uint8)
         for i, k in enumerate(agents):
             row = contribution(
@@ -353,15 +354,17 @@ class SecureAgents:
             )
             self._inputs[k] = fixedpoint.encode(row, scale, bound)
             self._stats[k] = records[i]
-            mask_key, signature = self.keys.advertise(request.round, k)
+            mask_key, commitment, signature = self.keys.advertise(request.round, k)
             mask_keys[i] = np.frombuffer(mask_key, dtype=np.uint8)
+            commitments[i] = np.frombuffer(commitment, dtype=np.uint8)
             signatures[i] = np.frombuffer(signature, dtype=np.uint8)
-        per = _rows_per_message(max_bytes, self._num_params, KEY_BYTES + SIGNATURE_BYTES)
+        per = _rows_per_message(max_bytes, self._num_params, 2 * KEY_BYTES + SIGNATURE_BYTES)
         return [
             MaskKeys(
                 round=request.round,
                 agents=agents[s : s + per],
                 mask_keys=mask_keys[s : s + per],
+                seed_commitments=commitments[s : s + per],
                 signatures=signatures[s : s + per],
             )
             for s in range(0, len(agents), per)
@@ -377,13 +380,14 @@ class SecureAgents:
             logger.warning("round %d: no keys advertised for it", request.round)
             return []
         try:
-            mask_keys, signatures = secure_rows.share_request(request)
+            mask_keys, commitments, signatures = secure_rows.share_request(request)
             setup = self.keys.setup(
                 request.round,
                 self._planned,
                 self._num_params + EXTRA,
                 self._channel_keys,
                 mask_keys,
+                commitments,
                 signatures,
             )
         except (secure_rows.RowError, SecAggError) as error:

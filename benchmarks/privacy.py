@@ -13,14 +13,16 @@ rounds against trajectories per agent. Writes ``benchmarks/results/privacy_utili
 
 ``--part overhead``: one secure aggregation of K agents' updates of d = 386 parameters (the
 CartPole preset's 16-16 policy) with the protocol's own code (``common/privacy/secagg.py``),
-timed per side on one thread, against a plain round of the same K agents in process; every
-agent of the round takes part, none drops out (and one setting where 10 % drop after sending
-their input). Bytes each agent sends and receives are counted from the messages' arrays.
+timed per side on one thread, against a plain round of the same K agents in process; the
+graph planned for corruption = dropout = γ (0.1, the default, and 0.05); every agent of the
+round takes part, none drops out (and one setting where 10 % drop after sending their input).
+Bytes each agent sends and receives are counted from the messages' arrays.
 Writes ``benchmarks/results/privacy_overhead.json``.
 
 ``--part wire``: ``fedhpg-run`` on loopback (a server and two agent hosts; CartPole, B = 8,
-every agent in every round), plain against ``privacy=secagg``: the median round time of
-rounds 2–6 at K = 10, 100 and 1,000. Writes ``benchmarks/results/privacy_wire.json``.
+every agent in every round), plain against ``privacy=secagg`` (corruption = dropout = 0.1 or
+0.05): the median round time of rounds 2–6 at K = 10, 100 and 1,000. Writes
+``benchmarks/results/privacy_wire.json``.
 
 ``python -m benchmarks.privacy --part utility|overhead|wire`` (each prints its table).
 """
@@ -41,6 +43,7 @@ import torch
 
 from fedhpg.common.privacy import accounting, fixedpoint, secagg, shamir
 from fedhpg.common.privacy.contribution import EXTRA
+from fedhpg.common.privacy.graph import Tolerance, plan_graph
 from fedhpg.common.runtime.cli import compose
 from fedhpg.server.assembly import run_in_process
 
@@ -184,18 +187,23 @@ def _plain_round_s(agents: int) -> float:
         pool.close()
 
 
-def secure_round(agents: int, neighbours: int | None, drop: float = 0.0) -> dict[str, Any]:
-    """One secure aggregation of ``agents`` inputs: seconds per side, bytes per agent."""
+def secure_round(agents: int, tolerance: float, drop: float = 0.0) -> dict[str, Any]:
+    """One secure aggregation of ``agents`` inputs, its graph planned for corruption = dropout
+    = ``tolerance``: seconds per side, bytes per agent."""
     rng = np.random.default_rng(0)
     length = NUM_PARAMS + EXTRA
     scale = fixedpoint.scale_for(agents, 1e4)
     sides = {k: secagg.SecAggAgent(k) for k in range(agents)}
+    plan = plan_graph(agents, Tolerance(corruption=tolerance, dropout=tolerance))
     setup = secagg.RoundSetup(
         round=1,
         participants=tuple(range(agents)),
         channel_keys={k: a.channel_public for k, a in sides.items()},
+        mask_keys={k: side.advertise(1) for k, side in sides.items()},
+        seed_commitments={k: side.seed_commitment(1) for k, side in sides.items()},
         length=length,
-        neighbours=neighbours,
+        neighbours=plan.neighbours,
+        threshold=plan.threshold,
     )
     server = secagg.SecAggRound(setup)
     agent_s = server_s = 0.0
@@ -208,7 +216,9 @@ def secure_round(agents: int, neighbours: int | None, drop: float = 0.0) -> dict
         t = time.perf_counter()
         server.add_keys(k, shares)
         server_s += time.perf_counter() - t
-        sent += 32 + len(shares.sealed) * (secagg.SEALED_BYTES + 8)
+        # its advert (mask key, seed commitment, signature) and its sealed shares; every advert
+        sent += 32 + 32 + 64 + len(shares.sealed) * (secagg.SEALED_BYTES + 8)
+        received += agents * (32 + 32 + 64)
     for k, side in sides.items():
         t = time.perf_counter()
         keys, sealed = server.routed(k)
@@ -238,6 +248,7 @@ def secure_round(agents: int, neighbours: int | None, drop: float = 0.0) -> dict
     degree = len(setup.graph[0])
     return {
         "agents": agents,
+        "tolerance": tolerance,
         "neighbours": degree,
         "threshold": setup.threshold_of(0),
         "dropped_after_input": len(dropped),
@@ -251,12 +262,12 @@ def secure_round(agents: int, neighbours: int | None, drop: float = 0.0) -> dict
 
 
 def overhead() -> dict[str, Any]:
-    cases = [(10, None, 0.0), (100, None, 0.0), (100, None, 0.1), (100, 16, 0.0), (1000, 16, 0.0),
-             (1000, 32, 0.0)]  # fmt: skip
+    cases = [(10, 0.1, 0.0), (100, 0.1, 0.0), (100, 0.1, 0.1), (100, 0.05, 0.0), (1000, 0.05, 0.0),
+             (1000, 0.1, 0.0)]  # fmt: skip
     plain = {k: _plain_round_s(k) for k in sorted({c[0] for c in cases})}
     rows = []
-    for agents, neighbours, drop in cases:
-        row = secure_round(agents, neighbours, drop)
+    for agents, tolerance, drop in cases:
+        row = secure_round(agents, tolerance, drop)
         row["plain_round_s"] = plain[agents]
         rows.append(row)
         logging.info("%s", row)
@@ -271,13 +282,13 @@ def overhead() -> dict[str, Any]:
 
 def overhead_table(data: dict[str, Any]) -> str:
     lines = [
-        "| K | neighbours k (t) | dropped | plain round s | secure agg: agents' s (each) | "
-        "server s | bytes sent / agent (plain) | bytes received / agent |",
-        "|---|---|---|---|---|---|---|---|",
+        "| K | γ = δ | neighbours k (t) | dropped | plain round s | secure agg: agents' s (each) "
+        "| server s | bytes sent / agent (plain) | bytes received / agent |",
+        "|---|---|---|---|---|---|---|---|---|",
     ]
     for r in data["rows"]:
         lines.append(
-            f"| {r['agents']:,} | {r['neighbours']} ({r['threshold']}) | "
+            f"| {r['agents']:,} | {r['tolerance']:g} | {r['neighbours']} ({r['threshold']}) | "
             f"{r['dropped_after_input']} | {r['plain_round_s']:.3f} | {r['agents_s_total']:.2f} "
             f"({1000 * r['agent_s_each']:.1f} ms) | {r['server_s']:.2f} | "
             f"{r['bytes_sent_each']:,.0f} ({r['plain_bytes_each']:,}) | "
@@ -288,8 +299,8 @@ def overhead_table(data: dict[str, Any]) -> str:
 
 # --- over the wire: fedhpg-run's round times ----------------------------------------------------
 
-WIRE_CASES = ((10, 5, None), (100, 50, None), (100, 50, 16), (1000, 500, 16))
-"""(K, agents per host, neighbours): two agent hosts, every agent in every round."""
+WIRE_CASES = ((10, 5, 0.1), (100, 50, 0.1), (100, 50, 0.05), (1000, 500, 0.05))
+"""(K, agents per host, corruption = dropout): two agent hosts, every agent in every round."""
 
 
 def wire() -> dict[str, Any]:
@@ -299,12 +310,21 @@ def wire() -> dict[str, Any]:
     import tempfile
 
     rows = []
-    for agents, per_host, neighbours in WIRE_CASES:
-        row: dict[str, Any] = {"agents": agents, "per_host": per_host, "neighbours": neighbours}
+    for agents, per_host, tolerance in WIRE_CASES:
+        plan = plan_graph(agents, Tolerance(corruption=tolerance, dropout=tolerance))
+        row: dict[str, Any] = {
+            "agents": agents,
+            "per_host": per_host,
+            "tolerance": tolerance,
+            "neighbours": plan.neighbours,
+        }
         for mode in ("none", "secagg"):
             with tempfile.TemporaryDirectory() as directory:
                 out = Path(directory) / "run"
-                extra = [] if neighbours is None else [f"privacy.secagg.neighbours={neighbours}"]
+                extra = [
+                    f"privacy.secagg.corruption={tolerance}",
+                    f"privacy.secagg.dropout={tolerance}",
+                ]
                 command = [
                     str(Path(sys.prefix) / "bin" / "fedhpg-run"),
                     "env=cartpole",
@@ -337,13 +357,13 @@ def wire() -> dict[str, Any]:
 
 def wire_table(data: dict[str, Any]) -> str:
     lines = [
-        "| K | hosts × agents | neighbours | plain round s | secure round s | overhead s |",
-        "|---|---|---|---|---|---|",
+        "| K | hosts × agents | γ = δ | neighbours | plain round s | secure round s | overhead s |",
+        "|---|---|---|---|---|---|---|",
     ]
     for r in data["rows"]:
-        k = "all" if r["neighbours"] is None else str(r["neighbours"])
         lines.append(
-            f"| {r['agents']:,} | 2 × {r['per_host']} | {k} | {r['none']:.3f} | "
+            f"| {r['agents']:,} | 2 × {r['per_host']} | {r['tolerance']:g} | {r['neighbours']} | "
+            f"{r['none']:.3f} | "
             f"{r['secagg']:.3f} | {r['secagg'] - r['none']:.3f} |"
         )
     return "\n".join(lines)

@@ -159,6 +159,7 @@ SAMPLES = [
         round=7,
         agents=[0, 1],
         mask_keys=np.full((2, 32), 7, dtype=np.uint8),
+        seed_commitments=np.full((2, 32), 5, dtype=np.uint8),
         signatures=np.full((2, 64), 3, dtype=np.uint8),
     ),
     ShareRequest(
@@ -166,6 +167,7 @@ SAMPLES = [
         agents=[0, 1],
         participants=[0, 1, 4],
         mask_keys=np.full((3, 32), 7, dtype=np.uint8),
+        seed_commitments=np.full((3, 32), 5, dtype=np.uint8),
         signatures=np.zeros((3, 64), dtype=np.uint8),
     ),
     KeyShares(

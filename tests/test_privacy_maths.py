@@ -325,12 +325,14 @@ def _setup(
     """Every agent advertises a mask key; the setup of t = ⌊k/2⌋ + 1 of k neighbours (all by
     default) over the graph they draw."""
     mask_keys = {k: agent.advertise(round_index) for k, agent in agents.items()}
+    commitments = {k: agent.seed_commitment(round_index) for k, agent in agents.items()}
     k = len(agents) - 1 if neighbours is None else neighbours
     return secagg.RoundSetup(
         round=round_index,
         participants=tuple(sorted(agents)),
         channel_keys={v: a.channel_public for v, a in agents.items()},
         mask_keys=mask_keys,
+        seed_commitments=commitments,
         length=length,
         neighbours=k,
         threshold=k // 2 + 1,

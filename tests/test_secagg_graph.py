@@ -143,19 +143,20 @@ def test_the_seed_depends_on_every_participants_mask_key() -> None:
 def test_a_signature_binds_a_key_to_its_agent_round_and_purpose() -> None:
     private = signing.new_signing_key()
     roster = signing.Roster({3: signing.verifying_key(private)})
-    mask_key, channel_key = os.urandom(32), os.urandom(32)
-    signature = signing.sign(private, signing.mask_statement(5, 3, mask_key, channel_key))
-    roster.check(3, signing.mask_statement(5, 3, mask_key, channel_key), signature)
+    mask_key, channel_key, seed = os.urandom(32), os.urandom(32), os.urandom(32)
+    signature = signing.sign(private, signing.mask_statement(5, 3, mask_key, channel_key, seed))
+    roster.check(3, signing.mask_statement(5, 3, mask_key, channel_key, seed), signature)
     for statement in (
-        signing.mask_statement(6, 3, mask_key, channel_key),  # another round
-        signing.mask_statement(5, 3, os.urandom(32), channel_key),  # a substituted mask key
-        signing.mask_statement(5, 3, mask_key, os.urandom(32)),  # a substituted channel key
-        signing.mask_statement(5, 4, mask_key, channel_key),  # another agent
+        signing.mask_statement(6, 3, mask_key, channel_key, seed),  # another round
+        signing.mask_statement(5, 3, os.urandom(32), channel_key, seed),  # a substituted key
+        signing.mask_statement(5, 3, mask_key, os.urandom(32), seed),  # another channel key
+        signing.mask_statement(5, 3, mask_key, channel_key, os.urandom(32)),  # commitment
+        signing.mask_statement(5, 4, mask_key, channel_key, seed),  # another agent
     ):
         with pytest.raises(signing.SignatureError):
             roster.check(3, statement, signature)
     with pytest.raises(signing.SignatureError, match="no signing key"):
-        roster.check(4, signing.mask_statement(5, 4, mask_key, channel_key), signature)
+        roster.check(4, signing.mask_statement(5, 4, mask_key, channel_key, seed), signature)
 
 
 def test_fedhpg_keys_writes_a_roster_that_binds_hosts_and_named_agents(tmp_path) -> None:
@@ -165,7 +166,7 @@ def test_fedhpg_keys_writes_a_roster_that_binds_hosts_and_named_agents(tmp_path)
     roster = signing.load_roster(tmp_path / "k" / signing.SIGNERS_DIR)
     assert sorted(roster.keys) == list(range(10))
     host = signing.load_signing_key(tmp_path / "k" / "host-0-4.sign_secret")
-    statement = signing.mask_statement(1, 2, os.urandom(32), os.urandom(32))
+    statement = signing.mask_statement(1, 2, os.urandom(32), os.urandom(32), os.urandom(32))
     roster.check(2, statement, signing.sign(host, statement))
     with pytest.raises(signing.SignatureError):
         roster.check(7, statement, signing.sign(host, statement))  # the other host's agent

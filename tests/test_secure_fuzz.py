@@ -36,13 +36,12 @@ from fedhpg.common.wire.protocol import (
 from fedhpg.server.secure_sum import sum_problem
 
 K = 6
-"""Five neighbours each, t = 3: every secret has t + 2 shares, so one wrong share can be placed
-(with t + 1 it is found but cannot be placed, and the round is skipped: test_secure_rounds)."""
+"""Five neighbours each, t = 3: every secret has t + 2 shares."""
 NUM_PARAMS = 6
 FAST_EXAMPLES = 60
 SLOW_EXAMPLES = 2000
 FIELDS = {
-    MaskKeys: ["round", "agents", "mask_keys", "signatures"],
+    MaskKeys: ["round", "agents", "mask_keys", "seed_commitments", "signatures"],
     KeyShares: ["round", "agents", "mask_keys", "recipients", "sealed"],
     MaskedUpdate: ["round", "agents", "masked", "stats"],
     Unmasking: ["round", "agents", "owners", "kinds", "shares"],

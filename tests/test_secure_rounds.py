@@ -34,6 +34,7 @@ from fedhpg.common.types import UpdateColumns
 from fedhpg.common.wire.protocol import (
     KeyShares,
     MaskedUpdate,
+    MaskKeys,
     MaskRequest,
     Message,
     ShareRequest,
@@ -168,18 +169,51 @@ def test_a_secret_shared_with_one_wrong_share_is_rebuilt_without_it() -> None:
     assert_honest_mean(answers, list(range(6)))
 
 
-def test_one_wrong_share_among_t_plus_one_skips_the_round_naming_the_secret() -> None:
-    # five agents: each secret has t + 1 = 4 shares; the rogue flips one byte of one share:
-    # the disagreement is found, but any of the four may be the wrong one, so the round has
-    # no sum (and is skipped by the coordinator), never a wrong one
+def test_one_wrong_share_among_t_plus_one_is_outvoted_by_the_seed_commitment() -> None:
+    # five agents: each secret has t + 1 = 4 shares; the rogue flips one byte of one share. The
+    # shares alone cannot tell which of the four is wrong; the seed's advertised commitment
+    # can: the right secret is the one some t of them rebuild that matches it, and every input
+    # is summed exactly
     def one_flip(m: Unmasking) -> np.ndarray:
         shares = m.shares.copy()
         shares[0, 0, -1] ^= 1
         return shares
 
     answers = secure_round(run_of(), sides_with(tamper(Unmasking, shares=one_flip)))
-    assert answers.secure is not None
-    assert "do not interpolate" in str(answers.secure.failed)
+    assert_honest_mean(answers, list(range(5)))  # the rogue's own input was honest
+
+
+def test_without_commitments_one_wrong_share_among_t_plus_one_skips_the_round() -> None:
+    """The control (a round set up without seed commitments, as the protocol's own tests
+    do): the disagreement is found, but any of the four may be the wrong one, so the round
+    has no sum, never a wrong one."""
+    from fedhpg.common.privacy import secagg
+
+    agents = {k: secagg.SecAggAgent(k) for k in range(5)}
+    setup = secagg.RoundSetup(
+        round=1,
+        participants=tuple(range(5)),
+        channel_keys={k: a.channel_public for k, a in agents.items()},
+        mask_keys={k: a.advertise(1) for k, a in agents.items()},
+        length=3,
+        neighbours=4,
+        threshold=3,
+    )
+    server = secagg.SecAggRound(setup)
+    for k, agent in agents.items():
+        server.add_keys(k, agent.share_keys(setup))
+    for k, agent in agents.items():
+        server.add_masked(k, agent.mask(1, np.zeros(3, np.uint64), *server.routed(k)))
+    dropped, included = server.unmask_request()
+    for k in included:
+        revealed = agents[k].reveal(1, dropped, included)
+        if k == 0:
+            owner = next(iter(revealed))
+            kind, share = revealed[owner]
+            revealed[owner] = (kind, share[:-1] + bytes([share[-1] ^ 1]))
+        server.add_reveal(k, revealed)
+    with pytest.raises(secagg.SecAggError, match="do not interpolate"):
+        server.total()
 
 
 # --- a peer's crypto failure is that peer's drop-out, never an honest agent's exit --------------
@@ -468,3 +502,46 @@ def test_rounds_that_keep_failing_stop_the_run_in_one_line() -> None:
         coordinator.run_rounds()
     assert [r.round for r in records] == [1, 2, 3]  # round 4, the third in a row, stops it
     np.testing.assert_allclose(coordinator.theta.numpy(), steps(list(range(K))), atol=1e-5)
+
+
+def test_a_wrong_seed_commitment_drops_only_its_sender() -> None:
+    # the rogue advertises a commitment to another seed (its own program then refuses to share
+    # under it): the honest inputs are summed exactly
+    def wrong_commitment(m: MaskKeys) -> np.ndarray:
+        return np.full_like(m.seed_commitments, 7)
+
+    rogue = tamper(MaskKeys, seed_commitments=wrong_commitment)
+    answers = secure_round(run_of(), sides_with(rogue))
+    assert_honest_mean(answers, HONEST)
+
+
+def test_shares_outvote_a_seed_commitment_that_matches_no_t_of_them() -> None:
+    """On the server's side alone: a commitment no t shares match (its owner lied) falls back
+    to the shares, so the owner's input is still unmasked."""
+    from fedhpg.common.privacy import secagg
+
+    agents = {k: secagg.SecAggAgent(k) for k in range(5)}
+    mask_keys = {k: a.advertise(1) for k, a in agents.items()}
+    honest = {k: a.seed_commitment(1) for k, a in agents.items()}
+    setup = secagg.RoundSetup(
+        round=1,
+        participants=tuple(range(5)),
+        channel_keys={k: a.channel_public for k, a in agents.items()},
+        mask_keys=mask_keys,
+        seed_commitments=honest,
+        length=3,
+        neighbours=4,
+        threshold=3,
+    )
+    server = secagg.SecAggRound(
+        dataclasses.replace(setup, seed_commitments={**honest, 2: bytes(32)})
+    )
+    for k, agent in agents.items():
+        server.add_keys(k, agent.share_keys(setup))
+    words = {k: np.full(3, k + 1, np.uint64) for k in agents}
+    for k, agent in agents.items():
+        server.add_masked(k, agent.mask(1, words[k], *server.routed(k)))
+    dropped, included = server.unmask_request()
+    for k in included:
+        server.add_reveal(k, agents[k].reveal(1, dropped, included))
+    assert np.array_equal(server.total(), np.full(3, 15, np.uint64))

@@ -11,6 +11,7 @@
 
 from __future__ import annotations
 
+import functools
 import os
 import struct
 
@@ -53,9 +54,16 @@ def new_private_key() -> bytes:
     return X25519PrivateKey.generate().private_bytes_raw()
 
 
+@functools.lru_cache(maxsize=4096)
+def _private_key(private: bytes) -> X25519PrivateKey:
+    """``private`` loaded once: an agent agrees keys with each of its neighbours, and the
+    loading costs as much as the exchange itself."""
+    return X25519PrivateKey.from_private_bytes(private)
+
+
 def public_key(private: bytes) -> bytes:
     """The raw 32-byte public key of ``private``."""
-    key = X25519PrivateKey.from_private_bytes(private).public_key()
+    key = _private_key(private).public_key()
     return key.public_bytes(Encoding.Raw, PublicFormat.Raw)
 
 
@@ -66,9 +74,7 @@ def agree(private: bytes, peer_public: bytes, purpose: bytes) -> bytes:
     if len(peer_public) != KEY_BYTES:
         raise BadPublicKey(f"a public key is {KEY_BYTES} bytes, got {len(peer_public)}")
     try:
-        shared = X25519PrivateKey.from_private_bytes(private).exchange(
-            X25519PublicKey.from_public_bytes(peer_public)
-        )
+        shared = _private_key(private).exchange(X25519PublicKey.from_public_bytes(peer_public))
     except ValueError:  # a low-order point: the shared secret would be all zeros
         raise BadPublicKey("a public key of low order agrees on no secret") from None
     return HKDF(algorithm=hashes.SHA256(), length=KEY_BYTES, salt=None, info=purpose).derive(shared)

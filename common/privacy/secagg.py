@@ -35,6 +35,7 @@ is trusted to relay the keys it was sent.
 from __future__ import annotations
 
 import functools
+import hashlib
 import os
 import struct
 from collections.abc import Callable, Collection, Mapping
@@ -100,6 +101,9 @@ class RoundSetup:
     """Each participant's channel public key."""
     mask_keys: Mapping[int, bytes]
     """Each participant's round mask public key: the graph is drawn from them."""
+    seed_commitments: Mapping[int, bytes] = field(default_factory=dict)
+    """Each participant's :func:`seed_commitment`, advertised with its mask key: a self-mask
+    seed rebuilt from shares is checked against it (empty: checked by the shares alone)."""
     length: int
     """Words in each input."""
     neighbours: int
@@ -120,6 +124,14 @@ class RoundSetup:
         """t of ``agent``'s neighbourhood (all of it where fewer agents advertised keys than
         the round was planned for)."""
         return min(self.threshold, len(self.graph[agent]))
+
+
+def seed_commitment(round_index: int, agent: int, seed: bytes) -> bytes:
+    """SHA-256 of an agent's self-mask seed, bound to the agent and round: published with its
+    mask key, it hides the seed (32 random bytes) and lets anyone check a rebuilt one."""
+    return hashlib.sha256(
+        b"fedhpg self seed" + struct.pack("<qq", round_index, agent) + seed
+    ).digest()
 
 
 def share_point(agent: int) -> int:
@@ -181,6 +193,11 @@ class SecAggAgent:
         self._round = state
         return masks.public_key(state.mask_private)
 
+    def seed_commitment(self, round_index: int) -> bytes:
+        """The commitment to the round's self-mask seed, advertised with its mask key."""
+        state = self._state(round_index, shared=False)
+        return seed_commitment(round_index, self.index, state.self_seed)
+
     def share_keys(self, setup: RoundSetup) -> KeyShares:
         """Step 1: shares of the round's mask key and self-mask seed for each neighbour of the
         graph drawn from every advertised key, each sealed for it."""
@@ -191,6 +208,9 @@ class SecAggAgent:
             raise SecAggError(f"round {setup.round}: agent {self.index} already shared its keys")
         if setup.mask_keys.get(self.index) != masks.public_key(state.mask_private):
             raise SecAggError(f"round {setup.round}: the server relayed another mask key as ours")
+        committed = setup.seed_commitments.get(self.index)
+        if setup.seed_commitments and committed != self.seed_commitment(setup.round):
+            raise SecAggError(f"round {setup.round}: the server relayed another seed commitment")
         neighbours = setup.graph[self.index]
         threshold = setup.threshold_of(self.index)
         points = [share_point(v) for v in neighbours]
@@ -438,6 +458,18 @@ class SecAggRound:
             return words
         raise SecAggError(f"round {self.setup.round}: the revealed shares do not interpolate")
 
+    def _key_check(self, owner: int) -> Callable[[bytes], bool]:
+        """Whether a rebuilt mask private key is ``owner``'s advertised one."""
+        advertised = self.keys[owner].mask_key
+        return lambda key: masks.public_key(key) == advertised
+
+    def _seed_check(self, owner: int) -> Callable[[bytes], bool] | None:
+        """Whether a rebuilt seed is ``owner``'s committed one (None: no commitment)."""
+        committed = self.setup.seed_commitments.get(owner)
+        if committed is None:
+            return None
+        return lambda seed: seed_commitment(self.setup.round, owner, seed) == committed
+
     def _unmasked(
         self, dropped: list[int], included: list[int], excluded: set[int], fewest: int
     ) -> tuple[np.ndarray, list[int], dict[int, str]]:
@@ -456,7 +488,7 @@ class SecAggRound:
                 else:
                     collected.setdefault((owner, kind), {})[share_point(holder)] = share
         rebuild = _Rebuild(setup, collected)
-        seeds = {u: rebuild.secret(u, Revealed.SELF_SEED) for u in included}
+        seeds = {u: rebuild.secret(u, Revealed.SELF_SEED, self._seed_check(u)) for u in included}
         rebuild.settle()
         summed = [u for u in included if seeds[u] is not None]
         missing = [u for u in included if seeds[u] is None]
@@ -476,8 +508,7 @@ class SecAggRound:
             partners = [u for u in setup.graph[v] if u in summed]
             private = None
             if v in dropped and any((u, v) not in pair_keys for u in partners):
-                advertised = self.keys[v].mask_key
-                private = rebuild.secret(v, Revealed.MASK_KEY, advertised.__eq__)
+                private = rebuild.secret(v, Revealed.MASK_KEY, self._key_check(v))
                 rebuild.settle()
                 if private is None:
                     raise SecAggError(rebuild.shortfall(v, Revealed.MASK_KEY))
@@ -513,18 +544,23 @@ class _Rebuild:
         self, owner: int, kind: Revealed, accept: Callable[[bytes], bool] | None = None
     ) -> bytes | None:
         """``owner``'s secret of ``kind``; None without enough right shares. ``accept``: a
-        check of the public key of the secret (a private key)."""
+        check of the secret itself (a mask key against its public key, a seed against its
+        commitment)."""
         shares = self.collected.get((owner, kind), {})
         threshold = self.setup.threshold_of(owner)
         if len(shares) < threshold:
             return None
         what = f"agent {owner}'s {_name(kind)}"
 
-        def right(key: bytes) -> bool:  # a mask key is checked against its public key
-            return accept is None or accept(masks.public_key(key))
-
         try:
-            secret, wrong = shamir.rebuild(shares, threshold, right if accept else None)
+            try:
+                secret, wrong = shamir.rebuild(shares, threshold, accept)
+            except shamir.Inconsistent:
+                if kind is not Revealed.SELF_SEED or accept is None:
+                    raise
+                # no t of them match the seed's commitment: the owner may have advertised a
+                # wrong one, so the shares alone decide, as without a commitment
+                secret, wrong = shamir.rebuild(shares, threshold)
         except shamir.Inconsistent as error:
             self.suspects.append((frozenset(x - 1 for x in error.suspects), what))
             return None

@@ -43,15 +43,17 @@ class LocalSecAgg:
         keys = b"".join(self.agent(k).channel_public for k in indices)
         return np.frombuffer(keys, dtype=np.uint8).reshape(len(indices), 32).copy()
 
-    def advertise(self, round_index: int, index: int) -> tuple[bytes, bytes]:
-        """Agent ``index``'s fresh mask key for the round and its signature of it with the
-        agent's channel key (64 zero bytes where this process has no roster)."""
+    def advertise(self, round_index: int, index: int) -> tuple[bytes, bytes, bytes]:
+        """Agent ``index``'s fresh mask key for the round, its seed commitment, and its
+        signature of both with the agent's channel key (64 zero bytes where this process has
+        no roster)."""
         agent = self.agent(index)
         mask_key = agent.advertise(round_index)
+        commitment = agent.seed_commitment(round_index)
         if self.signing is None:
-            return mask_key, bytes(SIGNATURE_BYTES)
-        statement = mask_statement(round_index, index, mask_key, agent.channel_public)
-        return mask_key, sign(self.signing.private, statement)
+            return mask_key, commitment, bytes(SIGNATURE_BYTES)
+        statement = mask_statement(round_index, index, mask_key, agent.channel_public, commitment)
+        return mask_key, commitment, sign(self.signing.private, statement)
 
     def setup(
         self,
@@ -60,18 +62,21 @@ class LocalSecAgg:
         length: int,
         channel_keys: Mapping[int, bytes],
         mask_keys: Mapping[int, bytes],
+        seed_commitments: Mapping[int, bytes],
         signatures: Mapping[int, bytes] | None = None,
     ) -> RoundSetup:
         """The round's public setup once its mask keys are advertised: the graph and
         threshold of a round of ``planned`` agents (the participants the server named) over
         those that advertised. With a roster, every advertised key must carry its agent's
         signature (SecAggError: this process refuses the round)."""
-        if not set(mask_keys) <= set(channel_keys):
-            raise SecAggError(f"round {round_index}: a mask key of an agent with no channel key")
+        if not set(mask_keys) <= set(channel_keys) or set(seed_commitments) != set(mask_keys):
+            raise SecAggError(f"round {round_index}: keys of agents with no channel key")
         if self.signing is not None:
             roster = self.signing.roster
             for v, key in mask_keys.items():
-                statement = mask_statement(round_index, v, key, channel_keys[v])
+                statement = mask_statement(
+                    round_index, v, key, channel_keys[v], seed_commitments[v]
+                )
                 try:
                     roster.check(v, statement, (signatures or {}).get(v, b""))
                 except SignatureError as error:
@@ -88,6 +93,7 @@ class LocalSecAgg:
             participants=tuple(sorted(mask_keys)),
             channel_keys={v: channel_keys[v] for v in mask_keys},
             mask_keys=dict(mask_keys),
+            seed_commitments=dict(seed_commitments),
             length=length,
             neighbours=plan.neighbours,
             threshold=plan.threshold,

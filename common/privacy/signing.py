@@ -10,8 +10,9 @@ checks each key it is handed against the roster entry of the agent it claims to 
 uses it. A round with a key that does not verify is refused by the agent that sees it (it
 drops out; the server cannot make it use a forged key).
 
-Each round an agent signs its fresh mask key together with its channel key, its index and the
-round, so a signature cannot be replayed for another agent, round or key.
+Each round an agent signs its fresh mask key and seed commitment together with its channel
+key, its index and the round, so a signature cannot be replayed for another agent, round or
+key.
 """
 
 from __future__ import annotations
@@ -68,9 +69,18 @@ def verifying_key(private: bytes) -> bytes:
     )
 
 
-def mask_statement(round_index: int, agent: int, mask_key: bytes, channel_key: bytes) -> bytes:
-    """What an agent signs each round: its mask key for the round and its channel key."""
-    return b"fedhpg mask key" + struct.pack("<qq", round_index, agent) + mask_key + channel_key
+def mask_statement(
+    round_index: int, agent: int, mask_key: bytes, channel_key: bytes, seed_commitment: bytes
+) -> bytes:
+    """What an agent signs each round: its mask key and seed commitment for the round, and its
+    channel key."""
+    return (
+        b"fedhpg mask key"
+        + struct.pack("<qq", round_index, agent)
+        + mask_key
+        + channel_key
+        + seed_commitment
+    )
 
 
 def sign(private: bytes, statement: bytes) -> bytes:

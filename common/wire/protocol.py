@@ -164,12 +164,15 @@ class Update:
 @dataclass(frozen=True, kw_only=True, eq=False)
 class MaskKeys:
     """Agent → server, after training a private round: row i is agent ``agents[i]``'s fresh
-    round mask public key and its signature of (round, agent, mask key, channel key) under
-    its roster key (all zeros where the agent has no roster: unsigned)."""
+    round mask public key, its commitment to its self-mask seed, and its signature of (round,
+    agent, mask key, channel key, commitment) under its roster key (all zeros where the agent
+    has no roster: unsigned)."""
 
     round: Round
     agents: AnswerList
     mask_keys: np.ndarray
+    """[A, 32] uint8."""
+    seed_commitments: np.ndarray
     """[A, 32] uint8."""
     signatures: np.ndarray
     """[A, 64] uint8."""
@@ -178,13 +181,16 @@ class MaskKeys:
 @dataclass(frozen=True, kw_only=True, eq=False)
 class ShareRequest:
     """Server → agent: every mask key advertised for the round (by ``participants``, in
-    increasing order) with its signature; the round's graph is drawn from them, and each of
-    ``agents`` answers with its shares sealed for its neighbours (:class:`KeyShares`)."""
+    increasing order) with its seed commitment and signature; the round's graph is drawn from
+    them, and each of ``agents`` answers with its shares sealed for its neighbours
+    (:class:`KeyShares`)."""
 
     round: Round
     agents: AgentList
     participants: Annotated[list[AgentIndex], Bound(max_len=MAX_ROUND_AGENTS)]
     mask_keys: np.ndarray
+    """[len(participants), 32] uint8."""
+    seed_commitments: np.ndarray
     """[len(participants), 32] uint8."""
     signatures: np.ndarray
     """[len(participants), 64] uint8."""

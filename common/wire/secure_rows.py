@@ -23,6 +23,8 @@ from fedhpg.common.privacy.signing import SIGNATURE_BYTES
 from fedhpg.common.types import UpdateStats
 from fedhpg.common.wire import protocol
 
+COMMITMENT_BYTES = 32
+"""A seed commitment: SHA-256 (:func:`fedhpg.common.privacy.secagg.seed_commitment`)."""
 UNUSED = -1
 """An index slot that names no agent (rows are padded to the widest)."""
 
@@ -31,32 +33,45 @@ class RowError(ValueError):
     """A row of a secure round's message that cannot be used: its agent drops out."""
 
 
-def mask_keys(message: protocol.MaskKeys, row: int) -> tuple[bytes, bytes]:
-    """Row ``row`` of an agent's ``MaskKeys``: its round mask public key and its signature."""
+def mask_keys(message: protocol.MaskKeys, row: int) -> tuple[bytes, bytes, bytes]:
+    """Row ``row`` of an agent's ``MaskKeys``: its round mask public key, its seed commitment
+    and its signature."""
     rows = len(message.agents)
     keys = _array(message.mask_keys, "mask_keys", np.uint8, rows, (masks.KEY_BYTES,))
+    commitments = _array(
+        message.seed_commitments, "seed_commitments", np.uint8, rows, (COMMITMENT_BYTES,)
+    )
     signatures = _array(message.signatures, "signatures", np.uint8, rows, (SIGNATURE_BYTES,))
     mask_key = bytes(keys[row])
     if not masks.usable_public_key(mask_key):
         raise RowError("the mask key agrees on no secret (a low-order point)")
-    return mask_key, bytes(signatures[row])
+    return mask_key, bytes(commitments[row]), bytes(signatures[row])
 
 
-def share_request(request: protocol.ShareRequest) -> tuple[dict[int, bytes], dict[int, bytes]]:
-    """A ``ShareRequest``'s advertised mask keys and signatures, by participant (strictly
-    increasing, each key usable, the agents asked among them)."""
+def share_request(
+    request: protocol.ShareRequest,
+) -> tuple[dict[int, bytes], dict[int, bytes], dict[int, bytes]]:
+    """A ``ShareRequest``'s advertised mask keys, seed commitments and signatures, by
+    participant (strictly increasing, each key usable, the agents asked among them)."""
     participants = list(request.participants)
     if any(b <= a for a, b in itertools.pairwise(participants)):
         raise RowError("the participants are not strictly increasing")
     count = len(participants)
     keys = _array(request.mask_keys, "mask_keys", np.uint8, count, (masks.KEY_BYTES,))
+    commitments = _array(
+        request.seed_commitments, "seed_commitments", np.uint8, count, (COMMITMENT_BYTES,)
+    )
     signatures = _array(request.signatures, "signatures", np.uint8, count, (SIGNATURE_BYTES,))
     if not set(request.agents) <= set(participants):
         raise RowError("the request names agents that advertised no mask key")
     advertised = {k: bytes(row) for k, row in zip(participants, keys, strict=True)}
     if not all(masks.usable_public_key(key) for key in advertised.values()):
         raise RowError("a mask key agrees on no secret (a low-order point)")
-    return advertised, {k: bytes(row) for k, row in zip(participants, signatures, strict=True)}
+    return (
+        advertised,
+        {k: bytes(row) for k, row in zip(participants, commitments, strict=True)},
+        {k: bytes(row) for k, row in zip(participants, signatures, strict=True)},
+    )
 
 
 def key_shares(message: protocol.KeyShares, row: int) -> KeyShares:

@@ -112,8 +112,9 @@ class InProcessPool:
                 len(selected),
                 length,
                 {k: self.secure.agent(k).channel_public for k in selected},
-                {k: key for k, (key, _) in advertised.items()},
-                {k: signature for k, (_, signature) in advertised.items()},
+                {k: advert[0] for k, advert in advertised.items()},
+                {k: advert[1] for k, advert in advertised.items()},
+                {k: advert[2] for k, advert in advertised.items()},
             )
         except SecAggError as error:
             stripped = [dataclasses.replace(u, theta=theta) for u in answers.updates]

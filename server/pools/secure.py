@@ -141,11 +141,11 @@ class SecureExchange:
             budgets=budgets,
             while_waiting=while_training,
         )
-        mask_keys: dict[int, bytes] = {}
-        signatures: dict[int, bytes] = {}
+        adverts: dict[int, tuple[bytes, bytes, bytes]] = {}
         for k, (message, row) in sorted(advertised.answers.items()):
             with outcome.step(k, "mask key"):
-                mask_keys[k], signatures[k] = read.mask_keys(message, row)
+                adverts[k] = read.mask_keys(message, row)
+        mask_keys = {k: advert[0] for k, advert in adverts.items()}
         if len(mask_keys) < fewest:
             return outcome.failed(f"{len(mask_keys)} agents advertised keys, fewer than {fewest}")
         setup = RoundSetup(
@@ -153,6 +153,7 @@ class SecureExchange:
             participants=tuple(sorted(mask_keys)),
             channel_keys={k: keys[k] for k in mask_keys},
             mask_keys=mask_keys,
+            seed_commitments={k: advert[1] for k, advert in adverts.items()},
             length=self.length,
             neighbours=plan.neighbours,
             threshold=plan.threshold,
@@ -164,8 +165,9 @@ class SecureExchange:
                 round=round_index,
                 agents=[],
                 participants=owners,
-                mask_keys=np.stack([np.frombuffer(mask_keys[k], np.uint8) for k in owners]),
-                signatures=np.stack([np.frombuffer(signatures[k], np.uint8) for k in owners]),
+                mask_keys=_rows([adverts[k][0] for k in owners]),
+                seed_commitments=_rows([adverts[k][1] for k in owners]),
+                signatures=_rows([adverts[k][2] for k in owners]),
             ),
             "key sharing of round",
             owners,
@@ -323,6 +325,11 @@ class _Outcome:
             stragglers=missing,
             secure=secure,
         )
+
+
+def _rows(values: list[bytes]) -> np.ndarray:
+    """Equal-length byte strings as the rows of a uint8 array."""
+    return np.frombuffer(b"".join(values), np.uint8).reshape(len(values), -1).copy()
 
 
 def _channel_keys(links: Links, agents: Sequence[int]) -> dict[int, bytes]:
