@@ -28,7 +28,8 @@ import dataclasses
 import logging
 import threading
 import time
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
+from typing import Any
 
 import numpy as np
 import torch
@@ -359,16 +360,15 @@ class SecureAgents:
             commitments[i] = np.frombuffer(commitment, dtype=np.uint8)
             signatures[i] = np.frombuffer(signature, dtype=np.uint8)
         per = _rows_per_message(max_bytes, self._num_params, 2 * KEY_BYTES + SIGNATURE_BYTES)
-        return [
-            MaskKeys(
-                round=request.round,
-                agents=agents[s : s + per],
-                mask_keys=mask_keys[s : s + per],
-                seed_commitments=commitments[s : s + per],
-                signatures=signatures[s : s + per],
-            )
-            for s in range(0, len(agents), per)
-        ]
+        return _in_messages(
+            MaskKeys,
+            request.round,
+            agents,
+            per,
+            mask_keys=mask_keys,
+            seed_commitments=commitments,
+            signatures=signatures,
+        )
 
     def share_keys(self, request: ShareRequest, max_bytes: int) -> list[Message]:
         """Each agent's secrets shared among its neighbours of the graph drawn from every
@@ -415,16 +415,15 @@ class SecureAgents:
                 recipients[i, j] = v
                 sealed[i, j] = np.frombuffer(box, dtype=np.uint8)
         per = _rows_per_message(max_bytes, self._num_params, KEY_BYTES + width * (8 + SEALED_BYTES))
-        return [
-            KeyShares(
-                round=request.round,
-                agents=agents[s : s + per],
-                mask_keys=own_keys[s : s + per],
-                recipients=recipients[s : s + per],
-                sealed=sealed[s : s + per],
-            )
-            for s in range(0, len(agents), per)
-        ]
+        return _in_messages(
+            KeyShares,
+            request.round,
+            agents,
+            per,
+            mask_keys=own_keys,
+            recipients=recipients,
+            sealed=sealed,
+        )
 
     def mask(self, request: MaskRequest, max_bytes: int) -> list[Message]:
         """Each agent's contribution, masked with its neighbours that shared keys."""
@@ -459,15 +458,7 @@ class SecureAgents:
         masked_rows = np.stack(rows)
         stats = UpdateColumns.of([self._stats[k] for k in done])
         per = _rows_per_message(max_bytes, self._num_params, 8 * masked_rows.shape[1] + 3 * 1024)
-        return [
-            MaskedUpdate(
-                round=request.round,
-                agents=done[s : s + per],
-                masked=masked_rows[s : s + per],
-                stats=stats[s : s + per],
-            )
-            for s in range(0, len(done), per)
-        ]
+        return _in_messages(MaskedUpdate, request.round, done, per, masked=masked_rows, stats=stats)
 
     def reveal(self, request: UnmaskRequest, max_bytes: int) -> list[Message]:
         """Each agent's shares of its dropped neighbours' mask keys and of its included
@@ -496,16 +487,24 @@ class SecureAgents:
                 owners[i, j], kinds[i, j] = owner, int(kind)
                 shares[i, j] = np.frombuffer(share, dtype=np.uint8)
         per = _rows_per_message(max_bytes, self._num_params, width * (9 + SHARE_BYTES))
-        return [
-            Unmasking(
-                round=request.round,
-                agents=done[s : s + per],
-                owners=owners[s : s + per],
-                kinds=kinds[s : s + per],
-                shares=shares[s : s + per],
-            )
-            for s in range(0, len(done), per)
-        ]
+        return _in_messages(
+            Unmasking, request.round, done, per, owners=owners, kinds=kinds, shares=shares
+        )
+
+
+def _in_messages(
+    kind: Callable[..., Message], round_index: int, agents: list[int], per: int, **rows: Any
+) -> list[Message]:
+    """One answer of ``kind`` per ``per`` of ``agents``, every array (or columns) in ``rows``
+    cut alike: row i is agent ``agents[i]``'s."""
+    return [
+        kind(
+            round=round_index,
+            agents=agents[start : start + per],
+            **{name: value[start : start + per] for name, value in rows.items()},
+        )
+        for start in range(0, len(agents), per)
+    ]
 
 
 def _rows_per_message(max_bytes: int, num_params: int, row_bytes: int) -> int:
