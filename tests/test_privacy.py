@@ -176,6 +176,19 @@ def test_privacy_on_the_torch_engine_and_its_device_cartpole() -> None:
             "synchronous rounds",
         ),
         (["privacy=secagg", "privacy.secagg.threshold=1"], "privacy.secagg.threshold", "(0, 1)"),
+        # ten agents, 9 neighbours each: t = 5 lets one colluder and split unmasking requests
+        # rebuild both secrets of an agent (accepted before); t = 6 is the least that holds
+        (
+            ["privacy=secagg", "agents=homogeneous10", "privacy.secagg.threshold=0.5"],
+            "privacy.secagg.threshold",
+            "t = 6 of k = 9 would",
+        ),
+        (
+            ["privacy=secagg", "agents=homogeneous10", "privacy.secagg.neighbours=4"],
+            "privacy.secagg.neighbours",
+            "cannot both hide every input",
+        ),
+        (["privacy=secagg", "privacy.secagg.corruption=0.5"], "privacy.secagg.corruption", "0.5"),
     ],
 )
 def test_incompatible_combinations_are_refused(overrides: list[str], key: str, words: str) -> None:

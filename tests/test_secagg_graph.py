@@ -113,6 +113,10 @@ def test_the_ring_is_unknown_until_every_mask_key_is_fixed() -> None:
     )
     where = public_ring.index(target)
     chosen = {public_ring[(where + step) % n] for step in (-5, -4, -3, -2, -1, 1, 2, 3, 4)}
+    # the control: on the public ring with the guide's k = 16 (t = 9) they were 9 of the
+    # target's 16 neighbours, past the 2t − k = 2 that exposes it, in every round
+    old = {public_ring[(where + step) % n] for step in range(-8, 9)} - {target}
+    assert chosen <= old and len(chosen) >= 2 * 9 - 16
     rng = np.random.default_rng(11)
     hits = []
     for _ in range(50):
