@@ -152,3 +152,45 @@ def test_the_readmes_quickstart_output_is_what_the_demo_prints(tmp_path: Path) -
     )
     assert result.returncode == 0, result.stderr[-3000:]
     assert _table(result.stdout) == _table(shown.body), result.stdout
+
+
+def _index_modes() -> dict[str, str]:
+    """Path → git's file mode (100644, 100755) of every tracked file."""
+    listed = subprocess.run(
+        ["git", "ls-files", "-s"], cwd=ROOT, capture_output=True, text=True, timeout=60
+    )
+    if listed.returncode != 0:
+        pytest.skip(f"not a git checkout: {listed.stderr.strip()}")
+    modes = {}
+    for line in listed.stdout.splitlines():
+        info, path = line.split("\t", 1)
+        modes[path] = info.split()[0]
+    return modes
+
+
+def _invoked_paths(modes: dict[str, str]) -> set[str]:
+    """Tracked files a page's bash block runs as commands (``cluster/ray.sh start``, also after
+    ``sudo`` and ``NAME=value``)."""
+    invoked = set()
+    for page in PAGES:
+        for block in blocks(page):
+            if block.language != "bash":
+                continue
+            for line in block.body.splitlines():
+                words = [w for w in line.split() if not re.fullmatch(r"\w+=\S*", w)]
+                if words and words[0] == "sudo":
+                    words = words[1:]
+                if words and words[0].removeprefix("./") in modes:
+                    invoked.add(words[0].removeprefix("./"))
+    return invoked
+
+
+def test_the_shell_scripts_and_the_scripts_the_pages_run_are_executable_in_git() -> None:
+    """A checkout gets git's mode: a script committed 100644 is 'Permission denied' when the
+    guides run it by its path (``sudo cluster/ray.sh start``)."""
+    modes = _index_modes()
+    scripts = {p for p in modes if p.startswith(("cluster/", "docker/")) and p.endswith(".sh")}
+    invoked = _invoked_paths(modes)
+    assert "cluster/ray.sh" in invoked and "cluster/slurm.sh" in invoked, invoked
+    not_executable = sorted(p for p in scripts | invoked if modes[p] != "100755")
+    assert not not_executable, f"committed without the executable bit: {not_executable}"
