@@ -22,13 +22,14 @@ demo: $(STAMP)
 
 # The documentation site (mkdocs-material, mkdocstrings) in build/site, --strict: a broken link
 # or a docstring the API reference cannot render is an error. The reference reads fedhpg.*
-# through links under build/docs/fedhpg (the package lives in the root folders).
+# through links under build/docs/fedhpg (the package lives in the root folders). No --quiet:
+# mkdocs 1.6 then drops the warnings before --strict counts them.
 DOCS := build/docs
 docs: $(STAMP)
 	rm -rf $(DOCS) && mkdir -p $(DOCS)/fedhpg
 	for d in agent common envs server; do ln -s ../../../$$d $(DOCS)/fedhpg/$$d; done
 	ln -s ../../../fedhpg/__init__.py $(DOCS)/fedhpg/__init__.py
-	NO_MKDOCS_2_WARNING=1 $(BIN)/mkdocs build --strict --quiet
+	NO_MKDOCS_2_WARNING=1 $(BIN)/mkdocs build --strict
 
 # Two xdist workers: one runs the tests that start federations, in order; both share the rest
 # (tests/conftest.py). Measured on 2 cores: 11.2 min, against 13.9 in one worker.
