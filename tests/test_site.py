@@ -1,14 +1,16 @@
 """The documentation site as a reader gets it (``make docs`` builds it into build/site).
 
 The site is built once here, into a temporary folder, and its HTML is read back: every local
-link and image points to a file of the site. The build is not strict here, so that the checks
-report what they find rather than mkdocs' first warning; ``make docs`` is the strict build.
+link and image points to a file of the site, and no raw Sphinx role (``:func:`x```) shows in
+the text. The build is not strict here, so that these checks report what they find rather than
+mkdocs' first warning; ``make docs`` is the strict build.
 """
 
 from __future__ import annotations
 
 import os
 import posixpath
+import re
 import subprocess
 from collections.abc import Iterator
 from html.parser import HTMLParser
@@ -20,6 +22,8 @@ from procs import BIN
 
 ROOT = Path(__file__).parents[1]
 PACKAGE_FOLDERS = ("agent", "common", "envs", "server")
+ROLE = re.compile(r":(?:py:)?(?:func|class|mod|meth|attr|data|exc|obj|const):")
+"""A Sphinx role's marker, as it shows when nothing rendered it."""
 
 
 def _link_package(docs: Path) -> None:
@@ -107,6 +111,16 @@ def test_every_local_link_and_image_of_the_site_exists(site: Path) -> None:
             if file is not None and not file.is_file():
                 broken.append(f"{html.relative_to(site)}: {target}")
     assert not broken, "links or images to nothing:\n" + "\n".join(sorted(set(broken)))
+
+
+def test_no_raw_sphinx_role_shows_on_the_site(site: Path) -> None:
+    raw = []
+    for html, page in _pages(site):
+        text = "".join(page.text)
+        for match in ROLE.finditer(text):
+            shown = " ".join(text[match.start() : match.end() + 40].split())
+            raw.append(f"{html.relative_to(site)}: {shown}…")
+    assert not raw, f"{len(raw)} raw roles:\n" + "\n".join(raw)
 
 
 def _docs_build_command(makefile: str) -> str:
