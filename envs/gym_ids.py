@@ -25,6 +25,7 @@ GYM_IDS: dict[str, str] = {
     "cartpole": "fedhpg/CartPole-v1",
     "acrobot": "fedhpg/Acrobot-v1",
     "pendulum": "fedhpg/Pendulum-v1",
+    "mountaincar": "fedhpg/MountainCar-v0",
     "lunarlander": "fedhpg/LunarLander-v3",
     "lunarlander-continuous": "fedhpg/LunarLanderContinuous-v3",
     "halfcheetah": "fedhpg/HalfCheetah-v5",

@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import subprocess
 import sys
+from pathlib import Path
 from typing import Any
 
 import gymnasium as gym
@@ -16,8 +17,12 @@ from gymnasium.utils.env_checker import check_env
 
 from fedhpg.common.runtime.cli import compose
 from fedhpg.common.variants import run_variants
+from fedhpg.envs.families import GYM_FAMILIES
 from fedhpg.envs.gym_ids import GYM_IDS
 
+ENVIRONMENTS_PAGE = Path(__file__).parents[1] / "docs" / "environments.md"
+SHIPPED = ["gridworld", *GYM_FAMILIES]
+"""The families fedhpg ships (the registry's, less ``gym``, which runs any id)."""
 LEVEL, NUM_AGENTS, SEED, INDEX = 0.8, 3, 7, 2
 STEPS = 40
 
@@ -134,3 +139,11 @@ def test_the_ids_resolve_in_a_process_that_never_imported_fedhpg() -> None:
     assert done.returncode == 0, done.stderr[-2000:]
     expected = gym.make("fedhpg/Acrobot-v1", level=0.5, index=1, seed=0).unwrapped
     assert float(done.stdout.split()[-1]) == pytest.approx(expected.LINK_LENGTH_1, rel=1e-12)
+
+
+def test_every_shipped_family_has_an_id_and_the_environments_page_names_it() -> None:
+    page = ENVIRONMENTS_PAGE.read_text(encoding="utf-8")
+    section = page.split("## Each agent's MDP as a gymnasium id", 1)[1].split("\n## ", 1)[0]
+    assert not [family for family in SHIPPED if family not in GYM_IDS], "a family without an id"
+    unnamed = [GYM_IDS[family] for family in SHIPPED if f"`{GYM_IDS[family]}`" not in section]
+    assert not unnamed, f"docs/environments.md does not name {unnamed}"
