@@ -4,6 +4,10 @@ self-normalisation do what they say, per agent."""
 
 from __future__ import annotations
 
+import ast
+import inspect
+from itertools import pairwise
+
 import pytest
 import torch
 
@@ -84,3 +88,20 @@ def test_self_normalised_correction_is_a_weighted_mean() -> None:
     # (1/b) Σ (b w_j / Σw) g_j = Σ w_j g_j / Σ w_j = (b / Σw) · (1/b) Σ w_j g_j, per agent
     factor = batch.counts.double() / batch.per_row(weights)
     torch.testing.assert_close(scaled, plain * factor.float().unsqueeze(1), atol=1e-5, rtol=1e-4)
+
+
+def _field_docstrings(cls: type) -> dict[str, str]:
+    """A dataclass's fields → the docstring under each (what the API reference shows)."""
+    body = ast.parse(inspect.getsource(cls)).body[0].body  # type: ignore[attr-defined]
+    return {
+        field.target.id: ast.literal_eval(docstring.value)
+        for field, docstring in pairwise(body)
+        if isinstance(field, ast.AnnAssign) and isinstance(field.target, ast.Name)
+        if isinstance(docstring, ast.Expr) and isinstance(docstring.value, ast.Constant)
+    }
+
+
+@pytest.mark.parametrize("field", ["iw_clip", "iw_self_normalize"])
+def test_the_biased_options_say_so_where_the_reference_shows_them(field: str) -> None:
+    """docs/configuration.md and conf/algo/fedhpgvr.yaml call both biased for ∇J."""
+    assert "biased" in _field_docstrings(FedHPGVRParams)[field]

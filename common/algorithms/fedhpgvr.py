@@ -41,9 +41,11 @@ class FedHPGVRParams:
     """'trajectory' (one weight per trajectory), 'per_decision' (w_{0:h} per step, GPOMDP
     only), or 'auto': trajectory with REINFORCE, per-decision with GPOMDP."""
     iw_clip: tuple[float, float] | None = None
-    """Clip the weights to [lo, hi]; None = off."""
+    """Clip the weights to [lo, hi]; None = off. The correction term, and so the gradient
+    estimate, is then biased for ∇J."""
     iw_self_normalize: bool = False
-    """Divide the correction term by Σw instead of b_k."""
+    """Divide the correction term by Σw instead of b_k. The estimate is then biased for ∇J, by
+    an amount that shrinks about as 1/b_k."""
 
     def __post_init__(self) -> None:
         if self.iw_clip is not None:
