@@ -12,15 +12,16 @@ import os
 import posixpath
 import re
 import subprocess
+import sys
 from collections.abc import Iterator
 from html.parser import HTMLParser
 from pathlib import Path
 from urllib.parse import unquote, urlsplit
 
 import pytest
-from procs import BIN
 
 ROOT = Path(__file__).parents[1]
+BIN = Path(sys.prefix) / "bin"  # not tests/procs.py's: this module starts no federation
 PACKAGE_FOLDERS = ("agent", "common", "envs", "server")
 ROLE = re.compile(r":(?:py:)?(?:func|class|mod|meth|attr|data|exc|obj|const):")
 """A Sphinx role's marker, as it shows when nothing rendered it."""
