@@ -271,6 +271,7 @@ def main(argv: Sequence[str] | None = None) -> None:
         compose,
         fail,
         own_overrides,
+        repeated_key,
         setup_logging,
         unknown_flag,
     )
@@ -292,7 +293,7 @@ def main(argv: Sequence[str] | None = None) -> None:
                 )
             )
         )
-    flag = unknown_flag(args, known=())
+    flag = unknown_flag(args, known=()) or repeated_key(args)
     if flag is not None:
         sys.exit(fail(flag))
     setup_logging()

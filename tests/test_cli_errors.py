@@ -250,6 +250,32 @@ CASES: dict[str, tuple[str, list[str], str]] = {
         ["server.max_staleness=-1"],
         "server.max_staleness: got -1, must be an integer >= 0",
     ),
+    # a key given twice: the last one was taken without a word
+    "key-given-twice": (
+        "fedhpg-run",
+        ["rounds=3", "rounds=4"],
+        "rounds: given twice (rounds=3, rounds=4); give it once",
+    ),
+    "group-given-twice": (
+        "fedhpg-run",
+        ["env=cartpole", "env=acrobot"],
+        "env: given twice (env=cartpole, env=acrobot); give it once",
+    ),
+    "key-given-twice-with-a-hydra-flag": (
+        "fedhpg-run",
+        ["--cfg", "job", "rounds=3", "rounds=4"],
+        "rounds: given twice (rounds=3, rounds=4); give it once",
+    ),
+    "server-key-given-twice": (
+        "fedhpg-server",
+        ["seed=1", "seed=2"],
+        "seed: given twice (seed=1, seed=2); give it once",
+    ),
+    "sweep-key-given-twice": (
+        "fedhpg-run",
+        ["-m", "seed=0,1", "+rounds=3", "rounds=4"],
+        "rounds: given twice (+rounds=3, rounds=4); give it once",
+    ),
     # e.g. env=halfcheetah where fedhpg was installed without the envs extra (MuJoCo)
     "missing-simulator": (
         "fedhpg-run",
