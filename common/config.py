@@ -842,6 +842,28 @@ def _check_number(value: Any, key: str, *, low: float, low_open: bool = False) -
     _require(ok, key, f"got {value!r}, must be a finite number {bound}")
 
 
+WIRE_INT_RANGE = (-(2**63), 2**63)
+"""The integers a run's settings may hold: the wire carries signed 64-bit ones (the server
+sends the config to every agent)."""
+
+
+def _check_wire_ints(value: Any, key: str) -> None:
+    """Every integer in ``value`` (nested dicts and lists) within :data:`WIRE_INT_RANGE`."""
+    if isinstance(value, dict):
+        for name, item in value.items():
+            _check_wire_ints(item, f"{key}.{name}" if key else str(name))
+    elif isinstance(value, list | tuple):
+        for i, item in enumerate(value):
+            _check_wire_ints(item, f"{key}[{i}]")
+    elif isinstance(value, int) and not isinstance(value, bool):
+        low, end = WIRE_INT_RANGE
+        _require(
+            low <= value < end,
+            key,
+            f"got {value}, beyond the signed 64-bit integers a run's settings travel as",
+        )
+
+
 def _check_int(value: Any, key: str, *, low: int) -> None:
     ok = isinstance(value, int) and not isinstance(value, bool) and value >= low
     _require(ok, key, f"got {value!r}, must be an integer >= {low}")
@@ -1031,6 +1053,7 @@ def _validate_host_range(agent: AgentConfig, num_agents: int) -> None:
 def validate(config: RunConfig) -> RunConfig:
     """Check every value this module can judge; raise :class:`ConfigError` naming the first bad
     key. (Names and options of registry entries: :func:`fedhpg.common.components.validate_run`.)"""
+    _check_wire_ints(to_dict(config), "")
     _check_int(config.seed, "seed", low=0)
     _check_int(config.rounds, "rounds", low=1)
     for i, module in enumerate(config.plugins):

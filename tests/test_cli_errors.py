@@ -250,6 +250,12 @@ CASES: dict[str, tuple[str, list[str], str]] = {
         ["server.max_staleness=-1"],
         "server.max_staleness: got -1, must be an integer >= 0",
     ),
+    # an integer no message of the wire carries: it started a federation that failed
+    "rounds-beyond-64-bits": (
+        "fedhpg-run",
+        [f"rounds={10**30}"],
+        f"rounds: got {10**30}, beyond the signed 64-bit integers a run's settings travel as",
+    ),
     # a key given twice: the last one was taken without a word
     "key-given-twice": (
         "fedhpg-run",

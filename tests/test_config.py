@@ -190,3 +190,12 @@ def test_a_key_given_twice_with_different_values_is_refused() -> None:
     assert repeated_key(["rounds=3", "rounds=3", "seed=1"]) is None, "the same value twice"
     assert repeated_key(["hydra.run.dir=a", "hydra.run.dir=b"]) is None, "Hydra's own settings"
 
+
+def test_an_integer_beyond_64_bits_is_refused_by_its_key() -> None:
+    with pytest.raises(ConfigError) as error:
+        compose([f"rounds={10**30}"])
+    assert error.value.key == "rounds"
+    with pytest.raises(ConfigError) as error:
+        compose([f"agents.budget.batch_size=[4,{2**63}]"])
+    assert error.value.key == "agents.budget.batch_size[1]"
+    assert compose([f"seed={2**63 - 1}"]).seed == 2**63 - 1
