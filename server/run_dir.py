@@ -83,6 +83,8 @@ class RunDirectory:
         file, a run already there): for entry points that check before they start."""
         if path.exists() and not path.is_dir():
             raise ConfigError(key, f"{path} is a file, not a directory")
+        if not path.exists():
+            _check_creatable(path, key)
         if not resume and holds_run(path):
             raise ConfigError(
                 key,
@@ -132,6 +134,26 @@ class RunDirectory:
                     f"{rounds}: restore the file, or start a new run",
                 )
         return lines[:rounds]
+
+
+def _check_creatable(path: Path, key: str) -> None:
+    """ConfigError unless ``path`` (absent) can be made: its nearest existing ancestor is a
+    directory that takes a new directory. The probe is an empty directory made there and
+    removed at once (only a try tells what /proc, /sys or a read-only mount refuse, even to
+    root)."""
+    import tempfile
+
+    ancestor = next(parent for parent in path.parents if parent.exists())
+    if not ancestor.is_dir():
+        raise ConfigError(key, f"cannot create {path}: {ancestor} is not a directory")
+    try:
+        os.rmdir(tempfile.mkdtemp(prefix=".fedhpg-probe-", dir=ancestor))
+    except OSError as error:
+        raise ConfigError(
+            key,
+            f"cannot create {path}: no directory can be made in {ancestor} "
+            f"({error.strerror or error}); choose another {key}",
+        ) from None
 
 
 @contextlib.contextmanager

@@ -256,6 +256,23 @@ CASES: dict[str, tuple[str, list[str], str]] = {
         [f"rounds={10**30}"],
         f"rounds: got {10**30}, beyond the signed 64-bit integers a run's settings travel as",
     ),
+    # a run directory that cannot be made: Hydra's traceback before
+    "out-dir-under-a-file": (
+        "fedhpg-run",
+        [f"server.out_dir={RUN_DIR}/config.json/run"],
+        f"server.out_dir: cannot create {RUN_DIR}/config.json/run: {RUN_DIR}/config.json is not "
+        "a directory",
+    ),
+    "out-dir-in-proc": (
+        "fedhpg-run",
+        ["server.out_dir=/proc/fedhpg-run"],
+        "server.out_dir: cannot create /proc/fedhpg-run: no directory can be made in /proc (",
+    ),
+    "out-dir-in-sys": (
+        "fedhpg-run",
+        ["server.out_dir=/sys/fedhpg/run"],
+        "server.out_dir: cannot create /sys/fedhpg/run: no directory can be made in /sys (",
+    ),
     # a key given twice: the last one was taken without a word
     "key-given-twice": (
         "fedhpg-run",
