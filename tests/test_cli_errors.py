@@ -299,6 +299,18 @@ CASES: dict[str, tuple[str, list[str], str]] = {
         ["-m", "seed=0,1", "+rounds=3", "rounds=4"],
         "rounds: given twice (+rounds=3, rounds=4); give it once",
     ),
+    # a section's name where a config group goes: an OmegaConf type message before
+    "section-for-group": (
+        "fedhpg-run",
+        ["agent=demo4"],
+        "agent: a section of settings (agent.KEY=VALUE), not a config group; did you mean "
+        "agents=demo4?",
+    ),
+    "group-typo": (
+        "fedhpg-run",
+        ["experiments=fig1_batch_size"],
+        "experiments: not a fedhpg key; did you mean experiment=fig1_batch_size?",
+    ),
     # e.g. env=halfcheetah where fedhpg was installed without the envs extra (MuJoCo)
     "missing-simulator": (
         "fedhpg-run",

@@ -148,6 +148,11 @@ def hydra_errors(overrides: Sequence[str]) -> Iterator[None]:
         key = getattr(cause, "full_key", None) or _override_key(error, overrides)
         if "To append to your config use +" in str(error):
             typo = _typo(key)
+            group = _closest_group(key, overrides)
+            if typo is not None and group is not None:
+                plain, _, hinted = typo.partition("; did you mean ")
+                if hinted in ("", f"{group.split('=', 1)[0]}?"):  # no key nearer than the group
+                    typo = f"{plain}; did you mean {group}?"
             if typo is not None:
                 raise ConfigError(key, typo) from None
             raise ConfigError(
@@ -155,7 +160,48 @@ def hydra_errors(overrides: Sequence[str]) -> Iterator[None]:
                 f"not in the composed config; add it with +{key}=... (an algorithm's budget and "
                 "options come with its group: algo=NAME)",
             ) from None
+        if _is_section(key) and _value_of(key, overrides) is not None:
+            group = _closest_group(key, overrides)
+            hint = f"; did you mean {group}?" if group is not None else ""
+            raise ConfigError(
+                key, f"a section of settings ({key}.KEY=VALUE), not a config group{hint}"
+            ) from None
         raise ConfigError(key, _one_line(cause)) from None
+
+
+def _value_of(key: str, overrides: Sequence[str]) -> str | None:
+    """The value the overrides give ``key`` (the last one), or None."""
+    values = [o.split("=", 1)[1] for o in overrides if o.split("=", 1)[0].lstrip("+~") == key]
+    return values[-1] if values else None
+
+
+def _is_section(key: str) -> bool:
+    """Whether ``key`` names a section of settings (``agent``, ``agents.population``)."""
+    from fedhpg.common.config import all_keys
+
+    return any(k.startswith(f"{key}.") for k in all_keys())
+
+
+def _closest_group(key: str, overrides: Sequence[str]) -> str | None:
+    """The config group whose name is closest to a mistyped top-level ``key``, as
+    ``GROUP=VALUE`` where the value is one of its options (``agent=demo4`` →
+    ``agents=demo4``), else ``GROUP``; None if no group is close (inside
+    :func:`hydra_context`)."""
+    import difflib
+
+    from hydra.core.global_hydra import GlobalHydra
+
+    if "." in key or not GlobalHydra.instance().is_initialized():
+        return None
+    loader = GlobalHydra.instance().config_loader()
+    groups = [name for name in loader.list_groups("") if name not in ("hydra", key)]
+    close = difflib.get_close_matches(key, groups, n=1, cutoff=0.75)
+    if not close:
+        return None
+    value = _value_of(key, overrides)
+    if value is not None and value in loader.get_group_options(close[0]):
+        return f"{close[0]}={value}"
+    return close[0]
 
 
 def _typo(key: str) -> str | None:
