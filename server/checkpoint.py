@@ -312,13 +312,27 @@ def _load_msgpack(path: Path, raw: bytes) -> Checkpoint:
         raise CheckpointError(f"{path}: malformed checkpoint ({error})") from None
 
 
+_REPORTED: set[tuple[str, int, int]] = set()
+"""(path, size, mtime) of the damaged files warned about: a resume reads the checkpoints more
+than once (is the run complete, then its resume point; on an interrupt, where to continue),
+in one process or its forked server; a file damaged again since is warned about again."""
+
+
 def latest_valid_checkpoint(directory: Path) -> Checkpoint | None:
-    """The newest checkpoint that loads; corrupt newer ones are reported and skipped."""
+    """The newest checkpoint that loads; corrupt newer ones are reported (once each) and
+    skipped."""
     for path in reversed(checkpoint_files(directory)):
         try:
             return load_checkpoint(path)
         except CheckpointError as error:
-            logger.warning("skipping checkpoint: %s", error)
+            try:
+                stat = path.stat()
+                seen = (str(path.resolve()), stat.st_size, stat.st_mtime_ns)
+            except OSError:
+                seen = (str(path), -1, -1)
+            if seen not in _REPORTED:
+                _REPORTED.add(seen)
+                logger.warning("skipping checkpoint: %s", error)
     return None
 
 

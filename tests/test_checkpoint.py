@@ -22,6 +22,8 @@ from fedhpg.server.checkpoint import (
     Checkpoint,
     CheckpointError,
     checkpoint_path,
+    completed_round,
+    interrupted_message,
     latest_valid_checkpoint,
     load_checkpoint,
     save_checkpoint,
@@ -83,6 +85,28 @@ def test_a_damaged_newest_checkpoint_falls_back_to_the_previous(
     assert loaded is not None and loaded.round == 1
     assert f"skipping checkpoint: {newest}" in caplog.text
     assert "torn or corrupt file" in caplog.text
+
+
+def test_a_damaged_checkpoint_is_reported_once_per_resume(
+    tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    """A resume reads the checkpoints more than once (is the run complete? then its resume
+    point; on an interrupt, where to continue): each damaged file is one warning."""
+    directory = tmp_path / "checkpoints"
+    save_checkpoint(directory, _checkpoint(1))
+    newest = save_checkpoint(directory, _checkpoint(2))
+    newest.write_bytes(newest.read_bytes()[:-7])
+    with caplog.at_level(logging.WARNING):
+        assert completed_round(directory, 5) is None  # the entry point, before serving
+        loaded = latest_valid_checkpoint(directory)  # the server's resume point
+        interrupted_message(tmp_path, "fedhpg-run resume=...")
+    assert loaded is not None and loaded.round == 1
+    assert caplog.text.count("skipping checkpoint") == 1, caplog.text
+    caplog.clear()
+    newest.write_bytes(newest.read_bytes()[:-7])  # damaged again, differently
+    with caplog.at_level(logging.WARNING):
+        latest_valid_checkpoint(directory)
+    assert caplog.text.count("skipping checkpoint") == 1, "a new damage is a new warning"
 
 
 def _sealed(path: Path, body: bytes) -> Path:
