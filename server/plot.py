@@ -361,6 +361,24 @@ def agent_setting(run: Run, index: int) -> str:
     return ", ".join(f"{names[k]}={_value(flat[k][index])}" for k in keys)
 
 
+def records_success(run: Run) -> bool:
+    """Whether the episodes of ``run``'s environment can reach a goal (``has_goal``): only
+    then is its success rate a measurement (metrics.jsonl holds 0 where there is none, as a
+    failed task would read). True where the family cannot be built here (a plugin that is not
+    installed, a config of another version): its records are drawn as they are."""
+    from fedhpg.common.config import ConfigError, from_dict
+    from fedhpg.common.registry import import_plugins
+
+    try:
+        config = from_dict(run.config)
+        import_plugins(list(config.plugins))
+        from fedhpg.common.variants import variant_of
+
+        return bool(variant_of(config, 0).has_goal)
+    except (ConfigError, ImportError, OSError, ValueError, TypeError, KeyError):
+        return True
+
+
 def curves_of(
     groups: dict[str, list[Run]], *, x_axis: str, metric: str, per_agent: bool
 ) -> list[tuple[str, list[tuple[np.ndarray, np.ndarray]]]]:
@@ -368,6 +386,15 @@ def curves_of(
     point of ``metric``."""
     if per_agent and not METRICS[metric][1]:
         raise PlotError(f"--per-agent: {metric} is over all agents; use --metric eval_return")
+    if metric == "eval_success":
+        for run in (run for runs in groups.values() for run in runs):
+            if not records_success(run):
+                family = run.config.get("env", {}).get("family")
+                raise PlotError(
+                    f"--metric: eval_success: {run.path} runs env.family={family}, whose "
+                    "episodes have no goal: it records no success rate (plot eval_return or "
+                    "eval_worst_return)"
+                )
     drawn = []
     for label, runs in groups.items():
         agents = runs[0].records[0]["agents"] if per_agent else [None]

@@ -229,6 +229,15 @@ def test_out_into_a_missing_directory_is_one_line_and_creates_nothing(
         (["{one}", "--per-agent", "--metric", "eval_worst_return"], "--per-agent: eval_worst"),
         (["{torn}"], "{torn}/metrics.jsonl line 2: not a JSON record"),
         (["{noeval}"], "nothing to plot for eval_return: the runs have no evaluation rounds"),
+        (
+            ["{cartpole}", "--metric", "eval_success", "--out", "{tmp}/c.png"],
+            "--metric: eval_success: {cartpole} runs env.family=cartpole, whose episodes have "
+            "no goal: it records no success rate (plot eval_return or eval_worst_return)",
+        ),
+        (
+            ["{cartpole}", "--metric", "eval_success", "--per-agent", "--out", "{tmp}/c.png"],
+            "--metric: eval_success:",
+        ),
     ],
 )
 def test_bad_input_is_one_line_exit_2(
@@ -252,7 +261,21 @@ def test_bad_input_is_one_line_exit_2(
     record = json.loads(first)
     del record["eval"]
     (noeval / "metrics.jsonl").write_text(json.dumps(record) + "\n")
-    names = {"tmp": tmp_path, "sweep": sweep, "one": single_point, "torn": torn, "noeval": noeval}
+    cartpole = tmp_path / "cartpole"  # what a CartPole run writes: success_rate 0 throughout
+    cartpole.mkdir()
+    (cartpole / "config.json").write_text(json.dumps(to_dict(compose(["env=cartpole"]))))
+    record = json.loads(first)
+    for evaluation in record["eval"].values():
+        evaluation["success_rate"] = 0.0
+    (cartpole / "metrics.jsonl").write_text(json.dumps(record) + "\n")
+    names = {
+        "tmp": tmp_path,
+        "sweep": sweep,
+        "one": single_point,
+        "torn": torn,
+        "noeval": noeval,
+        "cartpole": cartpole,
+    }
     before = sorted(tmp_path.rglob("*"))
     try:
         code = main([a.format(**names) for a in arguments])
