@@ -79,11 +79,16 @@ class RunDirectory:
 
     @staticmethod
     def precheck(path: Path, *, resume: bool, key: str = "server.out_dir") -> None:
-        """What :meth:`claim` would refuse that can be seen without touching anything (a
-        file, a run already there): for entry points that check before they start."""
-        if path.exists() and not path.is_dir():
+        """What :meth:`claim` would refuse, seen without changing anything (a file, a
+        directory that cannot be made, a run already there): for entry points that check
+        before they start."""
+        try:
+            exists = path.exists()
+        except OSError as error:  # e.g. a parent this user may not search
+            raise ConfigError(key, f"cannot use {path}: {error.strerror or error}") from None
+        if exists and not path.is_dir():
             raise ConfigError(key, f"{path} is a file, not a directory")
-        if not path.exists():
+        if not exists:
             _check_creatable(path, key)
         if not resume and holds_run(path):
             raise ConfigError(
@@ -143,7 +148,9 @@ def _check_creatable(path: Path, key: str) -> None:
     root)."""
     import tempfile
 
-    ancestor = next(parent for parent in path.parents if parent.exists())
+    ancestor = next((parent for parent in path.parents if parent.exists()), None)
+    if ancestor is None:  # the working directory itself was removed
+        raise ConfigError(key, f"cannot create {path}: no such directory")
     if not ancestor.is_dir():
         raise ConfigError(key, f"cannot create {path}: {ancestor} is not a directory")
     try:
