@@ -271,7 +271,6 @@ def main(argv: Sequence[str] | None = None) -> None:
         compose,
         fail,
         own_overrides,
-        repeated_key,
         setup_logging,
         unknown_flag,
     )
@@ -293,7 +292,7 @@ def main(argv: Sequence[str] | None = None) -> None:
                 )
             )
         )
-    flag = unknown_flag(args, known=()) or repeated_key(args)
+    flag = unknown_flag(args, known=())
     if flag is not None:
         sys.exit(fail(flag))
     setup_logging()

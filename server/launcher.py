@@ -395,7 +395,6 @@ def main() -> None:
         limit_threads,
         own_overrides,
         register_schema,
-        repeated_key,
         report_presets,
         setup_logging,
         unknown_flag,
@@ -409,7 +408,7 @@ def main() -> None:
 
         sys.stdout.write(help_text("fedhpg-run"))
         sys.exit(0)
-    flag = unknown_flag(args) or repeated_key(args)
+    flag = unknown_flag(args)
     if flag is not None:
         sys.stderr.write(f"error: {flag}\n")
         sys.exit(EXIT_USAGE)

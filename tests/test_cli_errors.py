@@ -273,32 +273,6 @@ CASES: dict[str, tuple[str, list[str], str]] = {
         ["server.out_dir=/sys/fedhpg/run"],
         "server.out_dir: cannot create /sys/fedhpg/run: no directory can be made in /sys (",
     ),
-    # a key given twice: the last one was taken without a word
-    "key-given-twice": (
-        "fedhpg-run",
-        ["rounds=3", "rounds=4"],
-        "rounds: given twice (rounds=3, rounds=4); give it once",
-    ),
-    "group-given-twice": (
-        "fedhpg-run",
-        ["env=cartpole", "env=acrobot"],
-        "env: given twice (env=cartpole, env=acrobot); give it once",
-    ),
-    "key-given-twice-with-a-hydra-flag": (
-        "fedhpg-run",
-        ["--cfg", "job", "rounds=3", "rounds=4"],
-        "rounds: given twice (rounds=3, rounds=4); give it once",
-    ),
-    "server-key-given-twice": (
-        "fedhpg-server",
-        ["seed=1", "seed=2"],
-        "seed: given twice (seed=1, seed=2); give it once",
-    ),
-    "sweep-key-given-twice": (
-        "fedhpg-run",
-        ["-m", "seed=0,1", "+rounds=3", "rounds=4"],
-        "rounds: given twice (+rounds=3, rounds=4); give it once",
-    ),
     # a section's name where a config group goes: an OmegaConf type message before
     "section-for-group": (
         "fedhpg-run",

@@ -20,7 +20,7 @@ from fedhpg.common.config import (
     to_dict,
     unknown_key,
 )
-from fedhpg.common.runtime.cli import compose, compose_sweep, repeated_key
+from fedhpg.common.runtime.cli import compose, compose_sweep
 
 
 def test_default_config_composes_and_validates() -> None:
@@ -174,21 +174,6 @@ def test_a_sweep_is_checked_point_by_point() -> None:
     with pytest.raises(ConfigError, match=r"sweep point 2/2 \(env.family=foo\)") as error:
         compose_sweep(["env.family=gridworld,foo"])
     assert error.value.key == "sweep point 2/2 (env.family=foo): env.family"
-
-
-def test_a_key_given_twice_with_different_values_is_refused() -> None:
-    """On the command line (every entry point asks :func:`repeated_key`); a program's own
-    list of overrides to compose keeps Hydra's rule, the last one wins."""
-    for overrides, key in [
-        (["rounds=3", "rounds=4"], "rounds"),
-        (["env=cartpole", "env=acrobot"], "env"),
-        (["+algo.step_size=0.1", "algo.step_size=0.2"], "algo.step_size"),
-        (["-m", "seed=0,1", "rounds=3", "seed=2"], "seed"),
-    ]:
-        error = repeated_key(overrides)
-        assert error is not None and error.key == key and "given twice" in str(error)
-    assert repeated_key(["rounds=3", "rounds=3", "seed=1"]) is None, "the same value twice"
-    assert repeated_key(["hydra.run.dir=a", "hydra.run.dir=b"]) is None, "Hydra's own settings"
 
 
 def test_an_integer_beyond_64_bits_is_refused_by_its_key() -> None:

@@ -239,21 +239,6 @@ def unknown_flag(args: Sequence[str], known: Sequence[str] = HYDRA_FLAGS) -> Con
     return None
 
 
-def repeated_key(args: Sequence[str]) -> ConfigError | None:
-    """A key (or config group) that the command line sets twice to different values: Hydra
-    would take the last one without a word. The same value twice is no conflict."""
-    seen: dict[str, str] = {}
-    for override in own_overrides(args):
-        if "=" not in override:
-            continue
-        key, value = override.split("=", 1)
-        key = key.lstrip("+~")
-        first = seen.setdefault(key, override)
-        if first.split("=", 1)[1] != value:
-            return ConfigError(key, f"given twice ({first}, {override}); give it once")
-    return None
-
-
 def compose_cfg(overrides: Sequence[str]) -> Any:
     """The composed DictConfig (inside :func:`hydra_context`)."""
     from hydra import compose as hydra_compose
@@ -560,7 +545,7 @@ def run_entry(
 
         sys.stdout.write(help_text(prog))
         return 0
-    flag = unknown_flag(args, known=()) or repeated_key(args)
+    flag = unknown_flag(args, known=())
     if flag is not None:
         return fail(flag)
     setup_logging()
