@@ -345,8 +345,21 @@ def run_rounds(
     run: RunConfig, sides: dict[int, HonestSide], *, weighted: bool = False
 ) -> tuple[list[RoundRecord], torch.Tensor, SecurePool]:
     """The run's rounds over these sides from θ̃ = 0: every round's record, the final θ̃."""
-    pool = SecurePool(run, sides)
     records: list[RoundRecord] = []
+    coordinator, pool = coordinator_of(run, sides, records, weighted=weighted)
+    theta = coordinator.run_rounds()
+    return records, theta, pool
+
+
+def coordinator_of(
+    run: RunConfig,
+    sides: dict[int, HonestSide],
+    records: list[RoundRecord],
+    *,
+    weighted: bool = False,
+) -> tuple[Coordinator, SecurePool]:
+    """A coordinator over these sides from θ̃ = 0 that appends each round's record."""
+    pool = SecurePool(run, sides)
     coordinator = Coordinator(
         run=run,
         pool=pool,  # type: ignore[arg-type]
@@ -355,8 +368,7 @@ def run_rounds(
         on_round=[lambda record, theta: records.append(record)],
         privacy=PrivateRounds(run, weighted=weighted),
     )
-    theta = coordinator.run_rounds()
-    return records, theta, pool
+    return coordinator, pool
 
 
 def settings(*extra: str, mode: str = "secagg", k: int = K, rounds: int = 1) -> RunConfig:
@@ -487,17 +499,9 @@ def test_a_failed_round_is_skipped_and_recorded_and_the_run_goes_on() -> None:
 
 def test_rounds_that_keep_failing_stop_the_run_in_one_line() -> None:
     run = settings("server.max_failed_rounds=2", rounds=6)
-    sides = {k: Silent(run, k, {2, 3, 4, 5, 6}) for k in range(K)}
-    pool = SecurePool(run, sides)
+    sides: dict[int, HonestSide] = {k: Silent(run, k, {2, 3, 4, 5, 6}) for k in range(K)}
     records: list[RoundRecord] = []
-    coordinator = Coordinator(
-        run=run,
-        pool=pool,  # type: ignore[arg-type]
-        strategy=make_strategy(run.strategy, run=run),
-        theta=torch.zeros(NUM_PARAMS),
-        on_round=[lambda record, theta: records.append(record)],
-        privacy=PrivateRounds(run, weighted=False),
-    )
+    coordinator, _ = coordinator_of(run, sides, records)
     with pytest.raises(FederationError, match=r"server.max_failed_rounds=2.*θ̃ of round 1 kept"):
         coordinator.run_rounds()
     assert [r.round for r in records] == [1, 2, 3]  # round 4, the third in a row, stops it
