@@ -39,7 +39,8 @@ from benchmarks.scale_device import (
     check_device_argument,
     timed_round,
 )
-from fedhpg.common.engine.engine import Engine
+from fedhpg.common.batched.backend import CompiledBackend
+from fedhpg.common.engine.torch_backend import TorchBackend
 from fedhpg.common.group import EngineGroup, make_agent_group
 from fedhpg.common.variants import variants_of
 from fedhpg.common.worker import initial_theta
@@ -54,7 +55,7 @@ SECTIONS = {
     "tile gradients": "_tile_gradients",
     "row sums": "_group_sums",
 }
-"""Section name → the :class:`Engine` method it times (none of them calls another)."""
+"""Section name → the :class:`TorchBackend` method it times (none of them calls another)."""
 TOP = 20
 
 
@@ -77,17 +78,17 @@ def timed_sections(device: str, seconds: dict[str, float]) -> Iterator[None]:
         return call
 
     for section, name in SECTIONS.items():
-        static = inspect.getattr_static(Engine, name)
+        static = inspect.getattr_static(TorchBackend, name)
         saved[name] = static
         if isinstance(static, staticmethod):
-            setattr(Engine, name, staticmethod(timer(section, static.__func__)))
+            setattr(TorchBackend, name, staticmethod(timer(section, static.__func__)))
         else:
-            setattr(Engine, name, timer(section, static))
+            setattr(TorchBackend, name, timer(section, static))
     try:
         yield
     finally:
         for name, static in saved.items():
-            setattr(Engine, name, static)
+            setattr(TorchBackend, name, static)
 
 
 def top_operators(
@@ -126,7 +127,8 @@ def profile_round(agents: int, device: str, name: str) -> dict[str, object]:
     run = _run(agents, device)
     indices = list(range(agents))
     group = make_agent_group(run, indices, variants_of(run, indices))
-    assert isinstance(group, EngineGroup) and group.engine.compiled is None
+    assert isinstance(group, EngineGroup)
+    assert not isinstance(group.engine.backend, CompiledBackend)
     group.prepare()
     theta = (
         initial_theta(variants_of(run, [0])[0], run) if name == "initial" else balancing_theta(run)

@@ -49,6 +49,7 @@ import torch
 
 from benchmarks.device_reference import measure as reference
 from benchmarks.scale_refs import cpu_description
+from fedhpg.common.batched.backend import CompiledBackend
 from fedhpg.common.config import DEVICE_PATTERN, RunConfig
 from fedhpg.common.engine.devices import device_problem
 from fedhpg.common.group import EngineGroup, make_agent_group
@@ -223,7 +224,8 @@ def measure_engine(agents: int, device: str, repeats: int, compare: bool,
     run = _run(agents, device)
     indices = list(range(agents))
     group = make_agent_group(run, indices, variants_of(run, indices))
-    assert isinstance(group, EngineGroup) and group.engine.compiled is None
+    assert isinstance(group, EngineGroup)
+    assert not isinstance(group.engine.backend, CompiledBackend)
     group.prepare()
     plan = group.plan(indices)
     logger.info("K = %d: planned peak %.0f MiB in %d chunk(s) of <= %d agents", agents,
@@ -232,7 +234,8 @@ def measure_engine(agents: int, device: str, repeats: int, compare: bool,
     if compare:
         cpu = _run(agents, "cpu", engine="auto")
         compiled_group = make_agent_group(cpu, indices, variants_of(cpu, indices))
-        assert isinstance(compiled_group, EngineGroup) and compiled_group.engine.compiled
+        assert isinstance(compiled_group, EngineGroup)
+        assert isinstance(compiled_group.engine.backend, CompiledBackend)
         compiled_group.prepare()
     rows = []
     for name, theta in (("initial", initial_theta(variants_of(run, [0])[0], run)),

@@ -190,12 +190,12 @@ class RowBounds:
         self.points: dict[int, list[tuple[torch.Tensor, torch.Tensor, float]]] = {}
 
     def measure(
-        self, engine: Any, theta: torch.Tensor, batch: Any, gradient: torch.Tensor, *, first: bool
+        self, rows: Any, theta: torch.Tensor, batch: Any, gradient: torch.Tensor, *, first: bool
     ) -> None:
-        """Per-trajectory gradients of ``batch`` at ``theta`` (rows of ``engine``'s round):
-        the moments of a first batch, a point of each row's secant."""
-        with engine.untimed():  # a diagnostic, not the device's work
-            per_trajectory = engine.trajectory_gradients(theta, batch, engine.coefficients(batch))
+        """Per-trajectory gradients of ``batch`` at ``theta`` (``rows``: the round): the
+        moments of a first batch, a point of each row's secant."""
+        with rows.untimed():  # a diagnostic, not the device's work
+            per_trajectory = rows.trajectory_gradients(theta, batch, rows.coefficients(batch))
             owner = batch.owner
             for row in torch.nonzero(batch.counts >= 2).squeeze(1).tolist():
                 moments = gradient_moments(per_trajectory[owner == row].cpu())
@@ -208,7 +208,7 @@ class RowBounds:
                     (theta[row].detach().cpu().clone(), gradient[row].detach().cpu().clone(), noise)
                 )
 
-    def report(self, engine: Any) -> None:
+    def report(self, rows: Any) -> None:
         for row, points in self.points.items():
             if len(points) >= 2:
                 (t0, g0, n0), (t1, g1, n1) = points[:2]
@@ -217,7 +217,7 @@ class RowBounds:
                     self.values["bound_smoothness"][row] = found
         for name, values in self.values.items():
             if not bool(values.isnan().all()):
-                engine.report(name, values)
+                rows.report(name, values)
 
 
 def row_bound_statistics(rows: int) -> RowBounds:

@@ -28,8 +28,8 @@ from fedhpg.common.worker import IterationWork
 from fedhpg.envs.base import EnvVariant
 
 if TYPE_CHECKING:
-    from fedhpg.common.engine.engine import RowWork
     from fedhpg.common.engine.memory import RoundPlan
+    from fedhpg.common.engine.round import RowWork
     from fedhpg.common.round_columns import IterationColumns, TrainedColumns
 
 logger = logging.getLogger(__name__)
@@ -138,7 +138,8 @@ class EngineGroup:
         not depend on the chunk it is in); only the θ rows and the statistics leave the
         device."""
         from fedhpg.common.attacks import corrupt_rows
-        from fedhpg.common.engine.engine import Tally, engine_settings
+        from fedhpg.common.engine.engine import engine_settings
+        from fedhpg.common.engine.round import Tally
         from fedhpg.common.round_columns import IterationColumns, TrainedColumns
 
         order = sorted(agents)
@@ -170,10 +171,9 @@ class EngineGroup:
                 rows = engine.begin(
                     round_index, theta, order[chunk.start : chunk.stop], budgets, hook
                 )
-                honest.append(self.algorithm.local_update(rows, engine, self.params).detach().cpu())
-            assert engine.tally is not None
-            tallies.append(engine.tally)
-            engine.rows = engine.tally = None
+                update = self.algorithm.local_update(rows, self.run.algo, self.params)
+                honest.append(update.detach().cpu())
+            tallies.append(rows.tally)
         sent = corrupt_rows(
             self.run.attack,
             theta.detach().to(torch.float32),

@@ -18,7 +18,8 @@ from dataclasses import dataclass
 import torch
 
 from fedhpg.common.algorithms import Algorithm, at_least_one, register_algorithm
-from fedhpg.common.engine.engine import Engine, Rows
+from fedhpg.common.config import AlgoConfig
+from fedhpg.common.engine.round import Round
 from fedhpg.common.registry import OptionError
 from fedhpg.server.strategies import CoordinateRule, NoParams, register_strategy
 
@@ -48,18 +49,20 @@ class ToySign(Algorithm[ToySignParams, ToySignBudget]):
     Params = ToySignParams
     Budget = ToySignBudget
 
-    def local_update(self, rows: Rows, engine: Engine, params: ToySignParams) -> torch.Tensor:
+    def local_update(
+        self, rows: Round, settings: AlgoConfig, params: ToySignParams
+    ) -> torch.Tensor:
         theta = rows.theta.clone()
         steps, batch_size = rows.budget("steps"), rows.budget("batch_size")
         signs = []
         for step in range(int(steps.max())):
             active = steps > step
-            batch = engine.sample(theta, torch.where(active, batch_size, 0), iteration=step)
-            signs.append(torch.sign(engine.mean_gradients(theta, batch)))
+            batch = rows.sample(theta, torch.where(active, batch_size, 0), iteration=step)
+            signs.append(torch.sign(rows.mean_gradients(theta, batch)))
             theta += params.scale * signs[-1] * active.unsqueeze(1)
-            engine.finished(batch)
+            rows.finished(batch)
         flipped = (signs[0] != signs[-1]).double().mean(dim=1)
-        engine.report("sign_flips", flipped)
+        rows.report("sign_flips", flipped)
         return theta
 
 

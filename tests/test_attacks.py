@@ -60,7 +60,7 @@ def test_reward_flip_negates_only_the_attackers_rewards() -> None:
     batches = []
     for engine in (honest, flipped):
         rows = engine.begin(1, initial_theta(engine.variants[0], engine.run), [0, 1])
-        batches.append(engine.sample(rows.theta, torch.tensor([3, 3]), iteration=0))
+        batches.append(rows.sample(rows.theta, torch.tensor([3, 3]), iteration=0))
     clean, attacked = batches
     torch.testing.assert_close(attacked.rewards[:, 3:], -clean.rewards[:, 3:])
     assert torch.equal(attacked.rewards[:, :3], clean.rewards[:, :3])
@@ -75,7 +75,7 @@ def test_random_actions_are_uniform_and_scored_by_the_policy() -> None:
     rows = engine.begin(1, theta, [0, 1])
     skewed = rows.theta.clone()
     skewed[:, -2:] = torch.tensor([-9.0, 9.0])  # the last layer's biases
-    batch = engine.sample(skewed, torch.tensor([400, 400]), iteration=0)
+    batch = rows.sample(skewed, torch.tensor([400, 400]), iteration=0)
     actions = batch.actions[batch.alive]
     owner = batch.owner.expand_as(batch.alive)[batch.alive]
     attacker = actions[owner == 0].double()
@@ -83,7 +83,7 @@ def test_random_actions_are_uniform_and_scored_by_the_policy() -> None:
     share = float(attacker.mean())
     assert abs(share - 0.5) < 5 * (0.25 / len(attacker)) ** 0.5, share
     assert float(honest.mean()) > 0.99, "the honest agent follows its policy"
-    log_probs = engine.log_probs(skewed, batch)[batch.alive]
+    log_probs = rows.log_probs(skewed, batch)[batch.alive]
     assert float(log_probs[owner == 0][attacker == 0].max()) < -15, "scored by the policy"
     box = _random_actions(
         torch.zeros(1000, 2), torch.ones(1000, dtype=torch.bool), torch.arange(1000), 0, 2,

@@ -49,7 +49,7 @@ def test_fixed_shape_policy_calls_give_the_same_theta_in_any_company(
     monkeypatch.setattr(PolicyRows, "act", recorded)
     for company in ([4], list(range(9)), [8, 4, 1]):
         group = EngineGroup(run, variants_of(run, company))
-        group.engine.act_tiles_per_call = 3  # what a GPU gets, forced on
+        group.engine.backend.act_tiles_per_call = 3  # what a GPU gets, forced on
         assert torch.equal(group.train(3, theta, company)[4].theta, plain)
     assert calls and set(calls) == {3}, "every policy call takes exactly 3 tiles"
 

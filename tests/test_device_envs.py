@@ -243,9 +243,9 @@ def test_both_environment_paths_give_returns_of_one_distribution(
             "algo.engine=torch", f"algo.envs={path}", f"env.horizon={horizon}",
         ])  # fmt: skip
         engine = Engine(run, variants_of(run, range(agents)))
-        assert (engine.family() is not None) == (path == "auto")
+        assert (engine.backend.family() is not None) == (path == "auto")
         rows = engine.begin(1, initial_theta(variants_of(run, [0])[0], run), list(range(agents)))
-        batch = engine.sample(rows.theta, torch.full((agents,), copies), iteration=0)
+        batch = rows.sample(rows.theta, torch.full((agents,), copies), iteration=0)
         returns[path] = batch.returns()
         engine.close()
     device, gym = returns["auto"], returns["gymnasium"]

@@ -116,13 +116,13 @@ def test_engine_estimates_are_unbiased(estimator: str, baseline: str, terminal: 
     exact = exact_gradient(logits, gamma) if terminal else _NoTerminal.exact_gradient(logits, gamma)
     engine = _engine(estimator, baseline, gamma, ROWS, terminal)
     rows = engine.begin(1, logits.reshape(-1), list(range(ROWS)))
-    batch = engine.sample(rows.theta, torch.full((ROWS,), BATCH), iteration=0)
-    estimates = engine.mean_gradients(rows.theta, batch).double()
+    batch = rows.sample(rows.theta, torch.full((ROWS,), BATCH), iteration=0)
+    estimates = rows.mean_gradients(rows.theta, batch).double()
     error = (estimates.mean(dim=0) - exact).abs()
     stderr = (estimates.std(dim=0) / ROWS**0.5).clamp_min(STDERR_FLOOR)
     assert float((error / stderr).max()) < Z_LIMIT, (error / stderr).tolist()
     # power: the same check catches a wrong sign on the baseline-free coefficients
-    wrong = engine.gradients(rows.theta, batch, -engine.coefficients(batch)) / BATCH
+    wrong = rows.gradients(rows.theta, batch, -rows.coefficients(batch)) / BATCH
     assert float(((wrong.double().mean(0) - exact).abs() / stderr).max()) > 6.0
 
 
@@ -138,8 +138,8 @@ def test_each_row_equals_the_per_agent_autograd_oracle(estimator: str, baseline:
         rows.theta.shape, generator=torch.Generator().manual_seed(1)
     )
     counts = torch.tensor([3, 1, 6, 2, 4])
-    batch = engine.sample(theta, counts, iteration=0)
-    gradients = engine.mean_gradients(theta, batch)
+    batch = rows.sample(theta, counts, iteration=0)
+    gradients = rows.mean_gradients(theta, batch)
     for row in range(5):
         mine = batch.owner == row
         policy = seeded_policy(0)
@@ -159,7 +159,7 @@ def test_action_draws_follow_the_policy() -> None:
     engine = _engine("gpomdp", "none", 1.0, 2500)
     logits = seeded_policy(11, scale=1.5).logits.detach()
     rows = engine.begin(3, logits.reshape(-1), list(range(2500)))
-    batch = engine.sample(rows.theta, torch.full((2500,), 4), iteration=0)
+    batch = rows.sample(rows.theta, torch.full((2500,), 4), iteration=0)
     probabilities = torch.softmax(logits.double(), dim=-1)
     obs, actions = batch.obs[batch.alive], batch.actions[batch.alive]
     for state in range(4):
@@ -255,7 +255,7 @@ def test_ended_copies_leave_the_stepping() -> None:
 
     copies_module.DeviceBlocks.step = spy  # type: ignore[method-assign]
     try:
-        batch = engine.sample(rows.theta, torch.full((6,), 16), iteration=0)
+        batch = rows.sample(rows.theta, torch.full((6,), 16), iteration=0)
     finally:
         copies_module.DeviceBlocks.step = step  # type: ignore[method-assign]
     lengths = batch.alive.sum(0)

@@ -279,8 +279,8 @@ def test_the_engines_gradient_is_the_oracles_with_the_options(options: tuple[str
     rows = engine.begin(2, initial_theta(engine.variants[0], run), [0, 1, 2])
     generator = torch.Generator().manual_seed(4)
     theta = rows.theta + 0.3 * torch.randn(rows.theta.shape, generator=generator)
-    batch = engine.sample(theta, torch.tensor([4, 6, 5]), iteration=0)
-    gradient = engine.mean_gradients(theta, batch)
+    batch = rows.sample(theta, torch.tensor([4, 6, 5]), iteration=0)
+    gradient = rows.mean_gradients(theta, batch)
     policy = build_policy(engine.variants[0], run)
     for a in range(3):
         mine = batch.owner == a

@@ -17,13 +17,15 @@ from fedhpg.common.algorithms.fedhpgvr import (
     semi_stochastic_gradient,
 )
 from fedhpg.common.engine.engine import Engine
+from fedhpg.common.engine.round import Round
+from fedhpg.common.engine.trajectories import Trajectories
 from fedhpg.common.importance import self_normalise
 from fedhpg.common.runtime.cli import compose
 from fedhpg.common.variants import variants_of
 from fedhpg.common.worker import initial_theta
 
 
-def _cartpole(estimator: str = "gpomdp") -> tuple[Engine, torch.Tensor, object]:
+def _cartpole(estimator: str = "gpomdp") -> tuple[Engine, Round, torch.Tensor, Trajectories]:
     run = compose([
         "env=cartpole", "algo=fedhpgvr", "algo.engine=torch", f"algo.estimator={estimator}",
         "policy.hidden=[16]", "agents.num_agents=3", "agents.budget.batch_size=[8]",
@@ -34,8 +36,8 @@ def _cartpole(estimator: str = "gpomdp") -> tuple[Engine, torch.Tensor, object]:
     theta = rows.theta + 0.2 * torch.randn(
         rows.theta.shape, generator=torch.Generator().manual_seed(0)
     )
-    batch = engine.sample(theta, torch.tensor([8, 5, 6]), iteration=1)
-    return engine, theta, batch
+    batch = rows.sample(theta, torch.tensor([8, 5, 6]), iteration=1)
+    return engine, rows, theta, batch
 
 
 @pytest.mark.parametrize(
@@ -43,26 +45,28 @@ def _cartpole(estimator: str = "gpomdp") -> tuple[Engine, torch.Tensor, object]:
     [("reinforce", "trajectory"), ("gpomdp", "per_decision"), ("gpomdp", "trajectory")],
 )
 def test_at_the_snapshot_weights_are_one_and_v_is_mu(estimator: str, mode: str) -> None:
-    engine, theta, batch = _cartpole(estimator)
+    engine, rows, theta, batch = _cartpole(estimator)
     params = FedHPGVRParams(iw_mode=mode)  # type: ignore[arg-type]
-    weights = importance_weights(engine, theta, theta, batch, params)
+    weights = importance_weights(rows, engine.run.algo, theta, theta, batch, params)
     assert torch.equal(weights.values, torch.ones_like(weights.values)), "θ_n = θ_0 ⇒ w = 1"
     assert torch.equal(weights.clipped, torch.zeros_like(weights.clipped))
     mu = torch.randn(theta.shape, generator=torch.Generator().manual_seed(1))
-    v, _ = semi_stochastic_gradient(engine, theta, theta, batch, mu, params)
+    v, _ = semi_stochastic_gradient(rows, engine.run.algo, theta, theta, batch, mu, params)
     # g(τ|θ_n) − 1·g(τ|θ_0) vanishes term by term when θ_n = θ_0.
     torch.testing.assert_close(v, mu, atol=1e-6, rtol=0)
 
 
 def test_weights_are_each_rows_probability_ratios() -> None:
-    engine, theta, batch = _cartpole("reinforce")
+    engine, rows, theta, batch = _cartpole("reinforce")
     snapshot = theta + 0.3 * torch.randn(theta.shape, generator=torch.Generator().manual_seed(2))
-    weights = importance_weights(engine, theta, snapshot, batch, FedHPGVRParams())
-    log_ratio = engine.log_probs(snapshot, batch) - engine.log_probs(theta, batch)
+    weights = importance_weights(rows, engine.run.algo, theta, snapshot, batch, FedHPGVRParams())
+    log_ratio = rows.log_probs(snapshot, batch) - rows.log_probs(theta, batch)
     expected = torch.where(batch.alive, log_ratio, 0.0).sum(0).exp()
     torch.testing.assert_close(weights.values, expected)
     assert not torch.allclose(weights.values, torch.ones_like(weights.values))
-    clipped = importance_weights(engine, theta, snapshot, batch, FedHPGVRParams(iw_clip=(0.5, 2.0)))
+    clipped = importance_weights(
+        rows, engine.run.algo, theta, snapshot, batch, FedHPGVRParams(iw_clip=(0.5, 2.0))
+    )
     torch.testing.assert_close(clipped.values, expected.clamp(0.5, 2.0))
     changed = (expected.clamp(0.5, 2.0) != expected).double()
     torch.testing.assert_close(clipped.clipped, batch.per_row(changed) / batch.counts.double())
@@ -79,12 +83,12 @@ def test_self_normalise_averages_to_one_within_each_agent() -> None:
 
 
 def test_self_normalised_correction_is_a_weighted_mean() -> None:
-    engine, theta, batch = _cartpole("reinforce")
+    _, rows, theta, batch = _cartpole("reinforce")
     weights = (
         torch.rand(batch.owner.shape, generator=torch.Generator().manual_seed(3)).double() + 0.2
     )
-    scaled = engine.mean_gradients(theta, batch, self_normalise(weights, batch.owner))
-    plain = engine.mean_gradients(theta, batch, weights)
+    scaled = rows.mean_gradients(theta, batch, self_normalise(weights, batch.owner))
+    plain = rows.mean_gradients(theta, batch, weights)
     # (1/b) Σ (b w_j / Σw) g_j = Σ w_j g_j / Σ w_j = (b / Σw) · (1/b) Σ w_j g_j, per agent
     factor = batch.counts.double() / batch.per_row(weights)
     torch.testing.assert_close(scaled, plain * factor.float().unsqueeze(1), atol=1e-5, rtol=1e-4)

@@ -52,11 +52,11 @@ def _v_draws(
     rows = engine.begin(7, snapshot.reshape(-1), list(range(DRAWS)))
     theta_0 = rows.theta
     theta_n = current.reshape(1, -1).repeat(DRAWS, 1)
-    mu = engine.mean_gradients(
-        theta_0, engine.sample(theta_0, torch.full((DRAWS,), SNAPSHOT_BATCH), iteration=0)
+    mu = rows.mean_gradients(
+        theta_0, rows.sample(theta_0, torch.full((DRAWS,), SNAPSHOT_BATCH), iteration=0)
     )
-    fresh = engine.sample(theta_n, torch.full((DRAWS,), MINI_BATCH), iteration=1)
-    v, _ = semi_stochastic_gradient(engine, theta_n, theta_0, fresh, mu, params)
+    fresh = rows.sample(theta_n, torch.full((DRAWS,), MINI_BATCH), iteration=1)
+    v, _ = semi_stochastic_gradient(rows, engine.run.algo, theta_n, theta_0, fresh, mu, params)
     return v.double()
 
 
@@ -64,10 +64,10 @@ def test_weights_are_the_exact_trajectory_probability_ratio() -> None:
     snapshot, current = _logits(), _logits(0.5)
     engine = _engine("reinforce")
     rows = engine.begin(3, current.reshape(-1), list(range(64)))
-    batch = engine.sample(rows.theta, torch.full((64,), 4), iteration=0)
+    batch = rows.sample(rows.theta, torch.full((64,), 4), iteration=0)
     theta_0 = snapshot.reshape(1, -1).repeat(64, 1)
     weights = importance_weights(
-        engine, rows.theta, theta_0, batch, FedHPGVRParams(iw_mode="trajectory")
+        rows, engine.run.algo, rows.theta, theta_0, batch, FedHPGVRParams(iw_mode="trajectory")
     )
     obs, actions, alive = (x.numpy() for x in (batch.obs, batch.actions, batch.alive))
     exact = np.exp(
@@ -77,7 +77,7 @@ def test_weights_are_the_exact_trajectory_probability_ratio() -> None:
     np.testing.assert_allclose(weights.values.numpy(), exact, rtol=1e-5)
     assert np.ptp(exact) > 0.5, "the policies differ enough for the weights to matter"
     per_decision = importance_weights(
-        engine, rows.theta, theta_0, batch, FedHPGVRParams(iw_mode="per_decision")
+        rows, engine.run.algo, rows.theta, theta_0, batch, FedHPGVRParams(iw_mode="per_decision")
     )
     np.testing.assert_allclose(per_decision.final.numpy(), exact, rtol=1e-5)  # w_{0:H-1} = w(τ)
     assert per_decision.values.shape == batch.alive.shape
@@ -101,8 +101,8 @@ def test_near_the_snapshot_v_has_less_variance_than_plain_gpomdp() -> None:
     engine = _engine("gpomdp", baseline="mean")
     v = _v_draws(engine, FedHPGVRParams(iw_mode="per_decision"), snapshot, current)
     rows = engine.begin(9, current.reshape(-1), list(range(DRAWS)))
-    plain = engine.mean_gradients(
-        rows.theta, engine.sample(rows.theta, torch.full((DRAWS,), MINI_BATCH), iteration=0)
+    plain = rows.mean_gradients(
+        rows.theta, rows.sample(rows.theta, torch.full((DRAWS,), MINI_BATCH), iteration=0)
     ).double()
     variance_v, variance_plain = float(v.var(0).sum()), float(plain.var(0).sum())
     assert variance_v < variance_plain, (variance_v, variance_plain)

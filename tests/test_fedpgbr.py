@@ -141,9 +141,9 @@ def test_the_inner_step_is_unbiased_for_the_gradient_at_theta_n() -> None:
     rows = engine.begin(1, current.reshape(-1), list(range(draws)))
     theta_0 = snapshot.reshape(1, -1).repeat(draws, 1)
     mu = exact_gradient(snapshot, gamma).float().reshape(1, -1).repeat(draws, 1)
-    batch = engine.sample(rows.theta, torch.full((draws,), b), iteration=0)
+    batch = rows.sample(rows.theta, torch.full((draws,), b), iteration=0)
     v, _ = semi_stochastic_gradient(
-        engine, rows.theta, theta_0, batch, mu, FedHPGVRParams(iw_mode="trajectory")
+        rows, engine.run.algo, rows.theta, theta_0, batch, mu, FedHPGVRParams(iw_mode="trajectory")
     )
     z = max_standard_errors(v.double(), exact_gradient(current, gamma).flatten())
     assert z < Z_LIMIT, f"E[v] is {z:.2f} standard errors from ∇J(θ_n)"

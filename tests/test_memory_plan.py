@@ -22,6 +22,7 @@ import textwrap
 import torch
 
 from fedhpg.common.engine.memory import GIB, StepBytes, plan_round
+from fedhpg.common.engine.torch_backend import TorchBackend
 from fedhpg.common.group import TIMING_STATS, EngineGroup
 from fedhpg.common.runtime.cli import compose
 from fedhpg.common.variants import variants_of
@@ -33,9 +34,10 @@ CUDA = torch.device("cuda")  # a device name only: nothing here asks CUDA anythi
 def _cartpole_step_bytes(device: torch.device) -> StepBytes:
     run = compose(["env=cartpole", "algo.engine=torch", "policy.hidden=[16,16]"])
     group = EngineGroup(run, variants_of(run, [0]))
-    engine = group.engine
-    return StepBytes.of(engine.observation_space, engine.action_space,
-                        engine.policy.num_params, engine.policy.noise_size, device)  # fmt: skip
+    backend = group.engine.backend
+    assert isinstance(backend, TorchBackend)
+    return StepBytes.of(backend.observation_space, backend.action_space,
+                        backend.policy.num_params, backend.policy.noise_size, device)  # fmt: skip
 
 
 def test_65536_cartpole_agents_fit_a_24_gib_card_in_chunks() -> None:

@@ -15,7 +15,7 @@ import pytest
 import torch
 
 from fedhpg.common import estimators, importance, staircase
-from fedhpg.common.engine import engine, trajectories
+from fedhpg.common.engine import torch_backend, trajectories
 from fedhpg.common.group import EngineGroup
 from fedhpg.common.runtime.cli import compose
 from fedhpg.common.staircase import Staircase, _summed_by_columns, ordered_sums
@@ -70,7 +70,7 @@ def _columns_everywhere(monkeypatch: pytest.MonkeyPatch) -> None:
     def by_columns(index: torch.Tensor, values: torch.Tensor, size: int) -> torch.Tensor:
         return _summed_by_columns(index, values, values.new_zeros((size, *values.shape[1:])))
 
-    for module in (estimators, importance, staircase, trajectories, engine):
+    for module in (estimators, importance, staircase, trajectories, torch_backend):
         monkeypatch.setattr(module, "ordered_sums", by_columns)
 
 

@@ -54,7 +54,7 @@ def _countdown(rows: int = 1, truncate: bool = False, horizon: int = 10) -> Engi
 
 def _sample(engine: Engine, counts: list[int], **keywords: object):
     rows = engine.begin(1, torch.zeros(8), list(range(len(counts))))
-    return engine.sample(rows.theta, torch.tensor(counts), iteration=0, **keywords)
+    return rows.sample(rows.theta, torch.tensor(counts), iteration=0, **keywords)
 
 
 @pytest.mark.parametrize("truncate", [False, True])
@@ -77,7 +77,7 @@ def test_horizon_cuts_episodes() -> None:
 def test_each_row_keeps_its_own_horizon_and_discount() -> None:
     engine = _countdown(rows=2)
     rows = engine.begin(1, torch.zeros(8), [0, 1])
-    batch = engine.sample(rows.theta, torch.tensor([3, 3]), iteration=0,
+    batch = rows.sample(rows.theta, torch.tensor([3, 3]), iteration=0,
                           horizons=torch.tensor([2, 5]))  # fmt: skip
     np.testing.assert_array_equal(batch.lengths().numpy(), [1, 2, 2, 1, 2, 3])
     discounted = batch.returns(torch.tensor([0.5, 0.5], dtype=torch.float64))

@@ -115,10 +115,11 @@ def test_the_profile_splits_a_round_into_sections_and_operators(tmp_path) -> Non
     """device_profile times each engine section of a real round (each > 0, together no more
     than the round), names torch's busiest operators, and leaves the engine as it was."""
     from benchmarks import device_profile
-    from fedhpg.common.engine.engine import Engine
+    from fedhpg.common.engine.torch_backend import TorchBackend
 
     before = {
-        name: inspect.getattr_static(Engine, name) for name in device_profile.SECTIONS.values()
+        name: inspect.getattr_static(TorchBackend, name)
+        for name in device_profile.SECTIONS.values()
     }
     out = tmp_path / "profile.json"
     device_profile.main(["--device", "cpu", "--agents", "2", "--policies", "balancing",
@@ -134,6 +135,7 @@ def test_the_profile_splits_a_round_into_sections_and_operators(tmp_path) -> Non
     assert entry["operators_ranked_by"] == "cpu"
     assert "aten::bmm" in operators  # the policy's per-row matrix products
     after = {
-        name: inspect.getattr_static(Engine, name) for name in device_profile.SECTIONS.values()
+        name: inspect.getattr_static(TorchBackend, name)
+        for name in device_profile.SECTIONS.values()
     }
     assert after == before

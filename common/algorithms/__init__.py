@@ -4,7 +4,7 @@ An algorithm is the local half of a federated method: from the server's θ̃ and
 trajectories it computes each agent's θ_k. It runs on rows: ``rows.theta`` is [A, d], one row
 per agent the process trains this round (A = 1 for a lone agent), and every budget field is a
 vector ``rows.budget(name)`` [A]. Its ``local_update`` holds the one loop of the method, written
-with the engine's primitives (:class:`~fedhpg.common.engine.engine.Engine`: sample,
+with the round's primitives (:class:`~fedhpg.common.engine.round.Round`: sample,
 coefficients, gradients, log-probabilities, bookkeeping), so it runs batched over any number of
 agents, on the CPU or a GPU, without a line of its own for that. Adding one is its module here
 (or in a plugin) and a YAML in ``conf/algo/``::
@@ -14,7 +14,7 @@ agents, on the CPU or a GPU, without a line of its own for that. Adding one is i
         name = "mine"
         Params, Budget = MyParams, MyBudget
 
-        def local_update(self, rows, engine, params) -> torch.Tensor: ...  # θ_k rows [A, d]
+        def local_update(self, rows, settings, params) -> torch.Tensor: ...  # θ_k rows [A, d]
 """
 
 from __future__ import annotations
@@ -29,7 +29,7 @@ from fedhpg.common.config import AlgoConfig
 from fedhpg.common.registry import OptionError, Registry
 
 if TYPE_CHECKING:
-    from fedhpg.common.engine.engine import Engine, Rows
+    from fedhpg.common.engine.round import Round
 
 P = TypeVar("P")
 B = TypeVar("B")
@@ -63,9 +63,10 @@ class Algorithm(abc.ABC, Generic[P, B]):
     budgets."""
 
     @abc.abstractmethod
-    def local_update(self, rows: Rows, engine: Engine, params: P) -> torch.Tensor:
-        """θ_k of every row from θ̃ (``rows.theta``), [A, d]; statistics go to the engine
-        (:meth:`Engine.finished` after each iteration, :meth:`Engine.report`)."""
+    def local_update(self, rows: Round, settings: AlgoConfig, params: P) -> torch.Tensor:
+        """θ_k of every row from θ̃ (``rows.theta``), [A, d], under the run's ``settings``
+        (``algo``); statistics go to the round (:meth:`Round.finished` after each iteration,
+        :meth:`Round.report`)."""
 
     def check(self, settings: AlgoConfig, params: P) -> None:
         """Raise :class:`~fedhpg.common.registry.OptionError` for options that do not go with

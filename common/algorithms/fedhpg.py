@@ -17,7 +17,8 @@ import torch
 
 from fedhpg.common.algorithms import Algorithm, NoParams, at_least_one, register_algorithm
 from fedhpg.common.bounds import row_bound_statistics
-from fedhpg.common.engine.engine import Engine, Rows
+from fedhpg.common.config import AlgoConfig
+from fedhpg.common.engine.round import Round
 from fedhpg.common.estimators import clip_rows
 from fedhpg.common.optim import make_optimizer
 
@@ -44,24 +45,24 @@ class FedHPG(Algorithm[NoParams, FedHPGBudget]):
     Budget = FedHPGBudget
     theorem1 = True
 
-    def local_update(self, rows: Rows, engine: Engine, params: NoParams) -> torch.Tensor:
-        algo = engine.run.algo
+    def local_update(self, rows: Round, settings: AlgoConfig, params: NoParams) -> torch.Tensor:
+        algo = settings
         theta = rows.theta.clone()
         ascent = make_optimizer(algo)
         local_iters, batch_size = rows.budget("local_iters"), rows.budget("batch_size")
         bounds = row_bound_statistics(rows.size) if algo.bound_estimates else None
         for iteration in range(int(local_iters.max())):
             active = local_iters > iteration
-            batch = engine.sample(theta, torch.where(active, batch_size, 0), iteration=iteration)
-            gradient = engine.mean_gradients(theta, batch)
+            batch = rows.sample(theta, torch.where(active, batch_size, 0), iteration=iteration)
+            gradient = rows.mean_gradients(theta, batch)
             if bounds is not None and iteration < 2:  # at θ̃, and the secant for L
-                bounds.measure(engine, theta, batch, gradient, first=iteration == 0)
+                bounds.measure(rows, theta, batch, gradient, first=iteration == 0)
             gradient, clipped = clip_rows(gradient, algo.grad_clip)
             theta += ascent.direction(gradient, active.to(theta.device))
-            engine.finished(batch, clipped=clipped)
+            rows.finished(batch, clipped=clipped)
             del batch  # its memory goes back to the sampler (one batch held at a time)
         if bounds is not None:
-            bounds.report(engine)
+            bounds.report(rows)
         return theta
 
     def held_trajectories(self, budget: FedHPGBudget) -> int:

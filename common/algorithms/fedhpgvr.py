@@ -20,7 +20,7 @@ import torch
 
 from fedhpg.common.algorithms import Algorithm, at_least_one, register_algorithm
 from fedhpg.common.config import AlgoConfig, ConfigError
-from fedhpg.common.engine.engine import Engine, Rows
+from fedhpg.common.engine.round import Round
 from fedhpg.common.engine.trajectories import Trajectories
 from fedhpg.common.estimators import clip_rows
 from fedhpg.common.importance import (
@@ -93,7 +93,8 @@ class Weights:
 
 
 def importance_weights(
-    engine: Engine,
+    rows: Round,
+    settings: AlgoConfig,
     theta_n: torch.Tensor,
     theta_0: torch.Tensor,
     batch: Trajectories,
@@ -102,9 +103,9 @@ def importance_weights(
     """w = p(τ|θ_0) / p(τ|θ_n) for every trajectory of ``batch`` (drawn at θ_n), each row at
     its own two θ rows; clipped and self-normalised as ``params`` say."""
     log_ratios = log_ratio_steps(
-        engine.log_probs(theta_0, batch), engine.log_probs(theta_n, batch), batch.alive
+        rows.log_probs(theta_0, batch), rows.log_probs(theta_n, batch), batch.alive
     )
-    per_decision = importance_mode(params, engine.run.algo) == "per_decision"
+    per_decision = importance_mode(params, settings) == "per_decision"
     weights = per_decision_weights(log_ratios) if per_decision else trajectory_weights(log_ratios)
     counted = batch.alive if per_decision else torch.ones_like(weights, dtype=torch.bool)
     changed = torch.zeros_like(weights, dtype=torch.bool)
@@ -129,7 +130,8 @@ def _last_alive(weights: torch.Tensor, alive: torch.Tensor) -> torch.Tensor:
 
 
 def semi_stochastic_gradient(
-    engine: Engine,
+    rows: Round,
+    settings: AlgoConfig,
     theta_n: torch.Tensor,
     theta_0: torch.Tensor,
     batch: Trajectories,
@@ -137,9 +139,9 @@ def semi_stochastic_gradient(
     params: FedHPGVRParams,
 ) -> tuple[torch.Tensor, Weights]:
     """v = (1/b) Σ_j [g(τ_j|θ_n) − w_j g(τ_j|θ_0)] + μ per row; also the weights used."""
-    weights = importance_weights(engine, theta_n, theta_0, batch, params)
-    current = engine.mean_gradients(theta_n, batch)
-    correction = engine.mean_gradients(theta_0, batch, weights.values)
+    weights = importance_weights(rows, settings, theta_n, theta_0, batch, params)
+    current = rows.mean_gradients(theta_n, batch)
+    correction = rows.mean_gradients(theta_0, batch, weights.values)
     return current - correction + mu, weights
 
 
@@ -151,12 +153,14 @@ class FedHPGVR(Algorithm[FedHPGVRParams, FedHPGVRBudget]):
     Params = FedHPGVRParams
     Budget = FedHPGVRBudget
 
-    def local_update(self, rows: Rows, engine: Engine, params: FedHPGVRParams) -> torch.Tensor:
-        algo = engine.run.algo
+    def local_update(
+        self, rows: Round, settings: AlgoConfig, params: FedHPGVRParams
+    ) -> torch.Tensor:
+        algo = settings
         theta_0 = rows.theta
-        snapshot = engine.sample(theta_0, rows.budget("batch_size"), iteration=0)
-        mu = engine.mean_gradients(theta_0, snapshot)
-        engine.finished(snapshot)
+        snapshot = rows.sample(theta_0, rows.budget("batch_size"), iteration=0)
+        mu = rows.mean_gradients(theta_0, snapshot)
+        rows.finished(snapshot)
         del snapshot  # its memory goes back to the sampler (one batch held at a time)
         theta = theta_0.clone()
         ascent = make_optimizer(algo)
@@ -166,11 +170,13 @@ class FedHPGVR(Algorithm[FedHPGVRParams, FedHPGVRBudget]):
         clipped_sum = torch.zeros(rows.size, dtype=torch.float64)
         for step in range(int(inner_steps.max())):
             active = inner_steps > step
-            batch = engine.sample(theta, torch.where(active, mini_batch, 0), iteration=step + 1)
-            direction, weights = semi_stochastic_gradient(engine, theta, theta_0, batch, mu, params)
+            batch = rows.sample(theta, torch.where(active, mini_batch, 0), iteration=step + 1)
+            direction, weights = semi_stochastic_gradient(
+                rows, algo, theta, theta_0, batch, mu, params
+            )
             direction, clipped = clip_rows(direction, algo.grad_clip)
             theta += ascent.direction(direction, active.to(theta.device))
-            engine.finished(batch, clipped=clipped, grad_steps=2 * batch.steps_per_row())
+            rows.finished(batch, clipped=clipped, grad_steps=2 * batch.steps_per_row())
             final = weights.final.double().cpu()
             owner = batch.owner.cpu()
             weight_sum += batch.per_row(final.to(batch.owner.device)).cpu()
@@ -183,9 +189,9 @@ class FedHPGVR(Algorithm[FedHPGVRParams, FedHPGVRBudget]):
             clipped_sum += weights.clipped.cpu()
             del batch, weights  # back to the sampler before the next step's batch
         trajectories = (inner_steps * mini_batch).double()
-        engine.report("iw_mean", weight_sum / trajectories)
-        engine.report("iw_max", weight_max)
-        engine.report("iw_clipped_fraction", clipped_sum / inner_steps.double())
+        rows.report("iw_mean", weight_sum / trajectories)
+        rows.report("iw_max", weight_max)
+        rows.report("iw_clipped_fraction", clipped_sum / inner_steps.double())
         return theta
 
     def check(self, settings: AlgoConfig, params: FedHPGVRParams) -> None:

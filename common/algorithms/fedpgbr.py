@@ -20,7 +20,7 @@ import torch
 
 from fedhpg.common.algorithms import GRADIENTS, Algorithm, register_algorithm
 from fedhpg.common.config import AlgoConfig, ConfigError
-from fedhpg.common.engine.engine import Engine, Rows
+from fedhpg.common.engine.round import Round
 from fedhpg.common.registry import OptionError
 
 SCHEDULE_KEY = 0x46504252
@@ -80,11 +80,13 @@ class FedPGBR(Algorithm[FedPGBRParams, FedPGBRBudget]):
     strategy = "fedpgbr"
     sends = GRADIENTS
 
-    def local_update(self, rows: Rows, engine: Engine, params: FedPGBRParams) -> torch.Tensor:
-        size = round_schedule(engine.run.seed, rows.round_index, params).batch_size
-        batch = engine.sample(rows.theta, torch.full((rows.size,), size), iteration=0)
-        mu = engine.mean_gradients(rows.theta, batch)
-        engine.finished(batch)
+    def local_update(
+        self, rows: Round, settings: AlgoConfig, params: FedPGBRParams
+    ) -> torch.Tensor:
+        size = round_schedule(rows.seed, rows.round_index, params).batch_size
+        batch = rows.sample(rows.theta, torch.full((rows.size,), size), iteration=0)
+        mu = rows.mean_gradients(rows.theta, batch)
+        rows.finished(batch)
         return rows.theta + mu
 
     def check(self, settings: AlgoConfig, params: FedPGBRParams) -> None:

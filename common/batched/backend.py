@@ -1,14 +1,13 @@
-"""The compiled backend: the engine's two heavy primitives, sampling and score gradients, for
-CartPole agents with the MLP categorical policy, in numba on the CPU.
+"""The compiled backend: the engine's primitives for CartPole agents with the MLP
+categorical policy, in numba on the CPU (:class:`~fedhpg.common.engine.backend.Backend`).
 
-The algorithms' loops, the estimator's coefficients, the optimizer steps and every other
-primitive are the engine's own (torch); this supplies ``sample`` and ``gradients`` an agent
-at a time inside :mod:`fedhpg.common.batched.kernels`, several times faster than torch's
-lockstep on a CPU (BENCHMARKS.md). Each copy draws from its own trajectory key with the
-engine's own hash (common/randomness.py), so an agent's trajectories depend on it alone; the
-floats differ from the torch backend's (float64 dynamics, a float32 rational tanh), so
-``algo.engine`` is dictated by the server, and between placements of one run they never
-differ.
+Sampling, the keys and the score gradients run an agent at a time inside
+:mod:`fedhpg.common.batched.kernels`, several times faster than torch's lockstep on a CPU
+(BENCHMARKS.md); log-probabilities are the torch backend's, on the same batch. Each copy
+draws from its own trajectory key with the engine's own hash (common/randomness.py), so an
+agent's trajectories depend on it alone; the floats differ from the torch backend's (float64
+dynamics, a float32 rational tanh), so ``algo.engine`` is dictated by the server, and between
+placements of one run they never differ.
 """
 
 from __future__ import annotations
@@ -24,6 +23,8 @@ from fedhpg.common import randomness
 from fedhpg.common.batched import kernels
 from fedhpg.common.batched.mlp import MLPShape
 from fedhpg.common.batched.scans import SCANS
+from fedhpg.common.engine.estimate import EstimatorOptions, batch_coefficients
+from fedhpg.common.engine.torch_backend import TorchBackend
 from fedhpg.common.engine.trajectories import StepRows, Trajectories
 from fedhpg.common.randomness import Purpose
 from fedhpg.envs.base import EnvVariant
@@ -39,10 +40,18 @@ def covers(variant: EnvVariant) -> bool:
 
 
 class CompiledBackend:
-    """``sample`` and ``gradients`` of an MLP categorical policy on CartPole variants."""
+    """The primitives of an MLP categorical policy on CartPole variants (``variants``: the
+    group's agents; ``torch``: the torch backend of the same agents, for log-probabilities)."""
 
-    def __init__(self, shape: MLPShape) -> None:
+    def __init__(
+        self,
+        shape: MLPShape,
+        variants: dict[int, EnvVariant] | None = None,
+        torch_backend: TorchBackend | None = None,
+    ) -> None:
         self.shape = shape
+        self.variants = variants or {}
+        self._torch = torch_backend
         self.sizes = np.asarray(shape.sizes, dtype=np.int64)
         self._row_of: dict[int, int] = {}
         self._tables: list[np.ndarray] = []
@@ -51,15 +60,15 @@ class CompiledBackend:
         """The physics rows of recent calls' agents (a round's iterations repeat them)."""
         self._buffers = _RowBuffers()
 
-    def _physics_rows(self, agents: Sequence[int], variants: Sequence[EnvVariant]) -> np.ndarray:
+    def _physics_rows(self, agents: Sequence[int]) -> np.ndarray:
         """The rows' physics tables, [A, P] (each agent's built once, kept in one array; the
         rows of recent calls kept for the next round's same iterations)."""
         key = tuple(agents)
         if key in self._recent:
             return self._recent[key]
-        for k, variant in zip(agents, variants, strict=True):
+        for k in agents:
             if k not in self._row_of:
-                table = cartpole_table([variant])
+                table = cartpole_table([self.variants[k]])
                 if table is None:
                     raise ValueError(f"agent {k}'s variant is not a CartPole the backend models")
                 self._row_of[k] = len(self._row_of)
@@ -74,7 +83,7 @@ class CompiledBackend:
         return self._recent[key]
 
     @staticmethod
-    def trajectory_keys(
+    def keys(
         seed: int,
         agents: torch.Tensor,
         counts: torch.Tensor,
@@ -91,6 +100,16 @@ class CompiledBackend:
         )  # fmt: skip
         return torch.from_numpy(out)
 
+    def coefficients(
+        self,
+        batch: Trajectories,
+        options: EstimatorOptions,
+        gammas: torch.Tensor,
+        weights: torch.Tensor | None,
+    ) -> torch.Tensor:
+        """One per cell of ``batch.layout``, [S] float64."""
+        return batch_coefficients(batch, options, gammas, weights)
+
     def sample(
         self,
         theta: torch.Tensor,
@@ -98,14 +117,13 @@ class CompiledBackend:
         keys: torch.Tensor,
         horizons: torch.Tensor,
         agents: Sequence[int],
-        variants: Sequence[EnvVariant],
         *,
         greedy: bool,
     ) -> Trajectories:
         """One episode per copy of every row, as the engine's ``sample`` returns them."""
         count = counts.numpy().astype(np.int64)
         limits = np.minimum(horizons.numpy().astype(np.int64), CARTPOLE_STEP_LIMIT)
-        physics = self._physics_rows(agents, variants)
+        physics = self._physics_rows(agents)
         rows_obs, rows_action, rows_column, rows_time = self._buffers.take(
             int((count * limits).sum()), int(self.sizes[0])
         )
@@ -142,30 +160,77 @@ class CompiledBackend:
         """Σ_n Σ_t coef[t, n] ∇ log π_θa(a_t|s_t) over each row a's trajectories, [A, d], from
         the batch's packed steps (the order the sampler wrote them); ``coefficients`` per cell
         of ``batch.layout``."""
-        if batch.steps is not None:
-            steps, at = batch.steps, batch.step_cells
-        else:
-            steps = _packed(batch)
-            at = batch.layout.cell(steps.time, steps.column)
+        steps, at = self._packed_steps(batch)
         every_row = len(steps.rows) == theta.shape[0]  # then the rows are 0 … A − 1 in order
-        part = np.zeros((len(steps.rows), theta.shape[1]), dtype=np.float32)
+        part = self._gradients(
+            theta if every_row else theta[steps.rows], steps, coefficients, at, steps.row_start
+        )
+        if every_row:
+            return part
+        out = torch.zeros((theta.shape[0], theta.shape[1]), dtype=torch.float32)
+        out[steps.rows] = part
+        return out
+
+    def trajectory_gradients(
+        self, theta: torch.Tensor, batch: Trajectories, coefficients: torch.Tensor
+    ) -> torch.Tensor:
+        """g(τ_n | θ_{owner(n)}) of every trajectory, [N, d]: the steps regrouped by trajectory
+        (each one's in time order), a trajectory a row of the gradient kernel."""
+        steps, at = self._packed_steps(batch)
+        order = torch.from_numpy(np.lexsort((steps.time.numpy(), steps.column.numpy())))
+        columns = int(batch.owner.shape[0])
+        per_column = torch.bincount(steps.column, minlength=columns)
+        starts = torch.cat([per_column.new_zeros(1), torch.cumsum(per_column, 0)])
+        by_column = StepRows(
+            obs=steps.obs[order], actions=steps.actions[order], rewards=steps.rewards[order],
+            time=steps.time[order], column=steps.column[order], rows=torch.arange(columns),
+            row_start=starts,
+        )  # fmt: skip
+        return self._gradients(theta[batch.owner], by_column, coefficients, at[order], starts)
+
+    def _gradients(
+        self,
+        thetas: torch.Tensor,
+        steps: StepRows,
+        coefficients: torch.Tensor,
+        at: torch.Tensor,
+        row_start: torch.Tensor,
+    ) -> torch.Tensor:
+        """Row i of ``thetas`` against steps ``row_start[i]`` … ``row_start[i + 1]`` − 1, step
+        r's coefficient ``coefficients[at[r]]``."""
+        out = np.zeros((thetas.shape[0], thetas.shape[1]), dtype=np.float32)
         kernels.row_gradients(
-            np.ascontiguousarray(
-                (theta if every_row else theta[steps.rows]).detach().numpy(), dtype=np.float32
-            ),
+            np.ascontiguousarray(thetas.detach().numpy(), dtype=np.float32),
             self.sizes,
             steps.obs.numpy(),
             steps.actions.numpy(),
             coefficients.contiguous().numpy(),
             at.contiguous().numpy(),
-            steps.row_start.numpy(),
-            part,
+            row_start.numpy(),
+            out,
         )
-        if every_row:
-            return torch.from_numpy(part)
-        out = np.zeros((theta.shape[0], theta.shape[1]), dtype=np.float32)
-        out[steps.rows.numpy()] = part
         return torch.from_numpy(out)
+
+    @staticmethod
+    def _packed_steps(batch: Trajectories) -> tuple[StepRows, torch.Tensor]:
+        """The batch's alive steps packed, and each one's cell of ``batch.layout``."""
+        if batch.steps is not None:
+            return batch.steps, batch.step_cells
+        steps = _packed(batch)
+        return steps, batch.layout.cell(steps.time, steps.column)
+
+    def prepare(self) -> None:
+        self._physics_rows(sorted(self.variants))
+
+    def log_probs(self, theta: torch.Tensor, batch: Trajectories) -> torch.Tensor:
+        """The torch backend's, on this batch (the policy's float32 maths in torch)."""
+        if self._torch is None:
+            raise ValueError("this compiled backend was made without a torch backend")
+        return self._torch.log_probs(theta, batch)
+
+    def close(self) -> None:
+        if self._torch is not None:
+            self._torch.close()
 
 
 class _RowBuffers:
@@ -237,11 +302,11 @@ def warm_up() -> float:
     backend = CompiledBackend(MLPShape((4, 2, 2)))
     backend._row_of, backend._tables = {0: 0}, [np.asarray(CARTPOLE_DEFAULTS, dtype=np.float64)]
     theta = torch.zeros((2, 16))
-    backend.trajectory_keys(0, torch.tensor([0, 1]), torch.tensor([1, 2]), 0, Purpose.TRAIN, 0)
+    backend.keys(0, torch.tensor([0, 1]), torch.tensor([1, 2]), 0, Purpose.TRAIN, 0)
     for greedy in (False, True):
         batch = backend.sample(
             theta, torch.tensor([1, 2]), torch.arange(3), torch.tensor([3, 3]), [0, 0],
-            [None, None], greedy=greedy,  # type: ignore[list-item]
+            greedy=greedy,
         )  # fmt: skip
     # the estimator on the batch's layouts: the scans, sums and indices it calls compiled
     layouts: list[tuple[Staircase, RewardToGoName]] = [

@@ -189,15 +189,15 @@ class FedPGBR(Strategy[FedPGBRStrategyParams]):
         weights = FedHPGVRParams(iw_mode=self.params.iw_mode)
         size = torch.tensor([side.schedule.mini_batch_size])
         for step in range(steps):
-            batch = engine.sample(current, size, iteration=step, purpose=Purpose.SERVER)
+            batch = rows.sample(current, size, iteration=step, purpose=Purpose.SERVER)
             if mu is None:  # no kept gradient: a plain GPOMDP step on the server's samples
-                direction = engine.mean_gradients(current, batch)
+                direction = rows.mean_gradients(current, batch)
             else:
                 direction, _ = semi_stochastic_gradient(
-                    engine, current, snapshot, batch, mu.to(current).unsqueeze(0), weights
-                )
+                    rows, side.run.algo, current, snapshot, batch, mu.to(current).unsqueeze(0),
+                    weights,
+                )  # fmt: skip
             current = current + self.adam.direction(direction[0].cpu()).to(current)
-        engine.rows = engine.tally = None
         return current[0].detach().cpu().clone()
 
     def round_stats(self) -> dict[str, Any]:

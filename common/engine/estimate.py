@@ -1,0 +1,68 @@
+"""The run's estimator on a batch of trajectories: the torch definition every backend is held
+to (``common/estimators.py`` holds the maths; this applies it to a batch's cells)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+
+from fedhpg.common import estimators
+from fedhpg.common.config import AlgoConfig
+from fedhpg.common.engine.trajectories import Trajectories
+
+
+@dataclass(frozen=True)
+class EstimatorOptions:
+    """The estimator's settings (``algo.estimator``, ``baseline``, ``reward_to_go``,
+    ``normalize``)."""
+
+    estimator: estimators.EstimatorName = "gpomdp"
+    baseline: estimators.BaselineName = "mean"
+    reward_to_go: estimators.RewardToGoName = "from_start"
+    normalize: estimators.NormalizeName = "none"
+
+    @classmethod
+    def of(cls, algo: AlgoConfig) -> EstimatorOptions:
+        return cls(
+            estimator=algo.estimator,  # type: ignore[arg-type]
+            baseline=algo.baseline,  # type: ignore[arg-type]
+            reward_to_go=algo.reward_to_go,  # type: ignore[arg-type]
+            normalize=algo.normalize,  # type: ignore[arg-type]
+        )
+
+
+def batch_coefficients(
+    batch: Trajectories,
+    options: EstimatorOptions,
+    gammas: torch.Tensor,
+    weights: torch.Tensor | None = None,
+) -> torch.Tensor:
+    """The estimator's coefficients of ``batch``, one per cell of ``batch.layout``, [S]
+    float64: each row's trajectories its baselines' group, discounted by its γ (``gammas``
+    [A]); ``weights``: importance weights, [N] per trajectory or [T, N] per decision."""
+    # weights past a trajectory's end, and a batch's standardisation in its cells' order,
+    # need every cell the terms reach
+    layout = (
+        batch.grouped_layout
+        if weights is not None or options.normalize == "batch"
+        else batch.layout
+    )
+    rewards, alive = batch.cells if layout is batch.layout else batch.cells_on(layout)
+    if weights is not None and weights.dim() == 2:
+        weights = layout.gather(weights)
+    coefficients = estimators.coefficients(
+        options.estimator,
+        layout,
+        rewards,
+        alive,
+        gamma=gammas[batch.owner],
+        baseline=options.baseline,
+        weights=weights,
+        reward_to_go=options.reward_to_go,
+        normalize=options.normalize,
+        groups=batch.owner,
+    )
+    if layout is batch.layout:
+        return coefficients
+    return coefficients.index_select(0, layout.cell(batch.layout.time, batch.layout.column))

@@ -1,0 +1,283 @@
+"""A round of some agents' local updates: their rows, the primitives an algorithm's loop is
+written with, and what the round did.
+
+:meth:`Engine.begin <fedhpg.common.engine.engine.Engine.begin>` returns a :class:`Round`; an
+algorithm (``common/algorithms/<name>.py``) runs its one loop over the round's θ rows [A, d]
+with:
+
+- :meth:`Round.sample`: B trajectories per row, drawn at each row's own θ from its own
+  environment variant (keys: seed, agent, round, purpose, iteration, trajectory);
+- :meth:`Round.coefficients`: the run's estimator (``common/engine/estimate.py``) for them;
+- :meth:`Round.gradients`, :meth:`Round.log_probs`, :meth:`Round.trajectory_gradients`: the
+  policy's score-function maths per row;
+- :meth:`Round.finished`: the bookkeeping of an iteration (statistics, the device emulation's
+  hook, cancellation), and :meth:`Round.report` for the algorithm's own statistics.
+
+The primitives are the backend's (:class:`~fedhpg.common.engine.backend.Backend`), chosen once
+per group; the round adds the keys and the tally. Rows are placement-free: what a row computes
+depends on its agent, round and θ alone.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from collections.abc import Callable, Iterator, Sequence
+from contextlib import contextmanager
+from dataclasses import dataclass, field, fields, replace
+
+import torch
+
+from fedhpg.common.engine.backend import Backend
+from fedhpg.common.engine.estimate import EstimatorOptions
+from fedhpg.common.engine.trajectories import Trajectories
+from fedhpg.common.randomness import Purpose
+
+
+@dataclass
+class RowWork:
+    """What one iteration cost each row: what the device emulation prices."""
+
+    rows: torch.Tensor
+    """Positions of the rows that ran it."""
+    iterations: torch.Tensor
+    """Each one's iteration number (its own count of iterations this round)."""
+    compute_s: torch.Tensor
+    env_steps: torch.Tensor
+    grad_steps: torch.Tensor
+
+
+@dataclass
+class Tally:
+    """Per-row totals of a round (``UpdateStats``), and its work per iteration."""
+
+    trajectories: torch.Tensor
+    env_steps: torch.Tensor
+    return_sum: torch.Tensor
+    compute_s: torch.Tensor
+    clipped: torch.Tensor
+    iterations: torch.Tensor
+    sample_s: torch.Tensor
+    """Each row's share of the CPU time spent sampling (the rest of ``compute_s`` went to
+    its gradients and steps)."""
+    algorithm: dict[str, torch.Tensor] = field(default_factory=dict)
+    """Per-row algorithm statistics; NaN where a row has none."""
+    work: list[RowWork] = field(default_factory=list)
+
+    @classmethod
+    def zeros(cls, rows: int) -> Tally:
+        trajectories, env_steps, clipped, iterations = torch.zeros((4, rows), dtype=torch.int64)
+        return_sum, compute_s, sample_s = torch.zeros((3, rows), dtype=torch.float64)
+        return cls(trajectories, env_steps, return_sum, compute_s, clipped, iterations, sample_s)
+
+    @classmethod
+    def concatenated(cls, parts: Sequence[Tally]) -> Tally:
+        """The tallies of consecutive chunks of a round's rows as one (its works' rows
+        renumbered in the whole round)."""
+        if len(parts) == 1:
+            return parts[0]
+        names = list(dict.fromkeys(name for part in parts for name in part.algorithm))
+
+        def stat(part: Tally, name: str) -> torch.Tensor:
+            values = part.algorithm.get(name)
+            return values if values is not None else torch.full_like(part.sample_s, math.nan)
+
+        starts = [0]
+        for part in parts[:-1]:
+            starts.append(starts[-1] + int(part.trajectories.shape[0]))
+        return cls(
+            **{
+                name: torch.cat([getattr(p, name) for p in parts])
+                for name in (f.name for f in fields(cls))
+                if name not in ("algorithm", "work")
+            },
+            algorithm={name: torch.cat([stat(p, name) for p in parts]) for name in names},
+            work=[
+                replace(work, rows=work.rows + start)
+                for part, start in zip(parts, starts, strict=True)
+                for work in part.work
+            ],
+        )
+
+
+WorkHook = Callable[[RowWork], None]
+"""Called after each iteration with what it cost each row (it may raise: cancellation)."""
+
+
+@dataclass(frozen=True)
+class RowConstants:
+    """What sampling and the estimator read of each row, [A] tensors on the device (made once
+    for a list of agents, not at every iteration)."""
+
+    agent: torch.Tensor
+    gamma: torch.Tensor
+    """float64."""
+    horizon: torch.Tensor
+
+
+class Round:
+    """The rows of one round's agents and the primitives their algorithm's loop uses (see the
+    module docstring)."""
+
+    def __init__(
+        self,
+        *,
+        backend: Backend,
+        options: EstimatorOptions,
+        seed: int,
+        round_index: int,
+        agents: Sequence[int],
+        theta: torch.Tensor,
+        budgets: dict[str, torch.Tensor],
+        constants: RowConstants,
+        hook: WorkHook | None = None,
+    ) -> None:
+        self.backend = backend
+        self.options = options
+        self.seed = seed
+        """The run's seed (an algorithm's own draws, e.g. FedPG-BR's B_t, are keyed by it)."""
+        self.round_index = round_index
+        self.agents = list(agents)
+        self.theta = theta
+        """[A, d]: every row starts from θ̃."""
+        self.budgets = budgets
+        """Each budget field as [A] int64 (the configured budget, or the round's plan)."""
+        self.constants = constants
+        self.tally = Tally.zeros(len(self.agents))
+        self._hook = hook
+        self._clock = time.thread_time()
+        self._sampling_s = 0.0
+        """Thread CPU seconds spent sampling since the last :meth:`finished`."""
+
+    @property
+    def size(self) -> int:
+        return len(self.agents)
+
+    def budget(self, name: str) -> torch.Tensor:
+        return self.budgets[name]
+
+    @property
+    def gammas(self) -> torch.Tensor:
+        """γ_k of every row, [A] float64."""
+        return self.constants.gamma
+
+    # -- the primitives ----------------------------------------------------------------------
+
+    def sample(
+        self,
+        theta: torch.Tensor,
+        counts: torch.Tensor,
+        *,
+        iteration: int,
+        purpose: Purpose = Purpose.TRAIN,
+        greedy: bool = False,
+        horizons: torch.Tensor | None = None,
+    ) -> Trajectories:
+        """``counts[a]`` trajectories of row a at θ row ``theta[a]`` (0: none)."""
+        constants = self.constants
+        limit = constants.horizon if horizons is None else horizons
+        wanted = counts
+        if bool((counts > 0).all()):  # every row samples: no row to leave out
+            positions = None
+            agents, agent_ids, rows = self.agents, constants.agent, theta
+        else:
+            positions = torch.nonzero(counts > 0).squeeze(1)
+            wanted, limit = counts[positions], limit[positions]
+            agents = [self.agents[i] for i in positions.tolist()]
+            agent_ids, rows = constants.agent[positions], theta[positions]
+        started = time.thread_time()
+        try:
+            keys = self.backend.keys(self.seed, agent_ids, wanted, self.round_index, purpose,
+                                     iteration)  # fmt: skip
+            batch = self.backend.sample(rows, wanted, keys, limit, agents, greedy=greedy)
+        finally:
+            self._sampling_s += time.thread_time() - started
+        return batch if positions is None else batch.regrouped(positions, self.size)
+
+    def coefficients(
+        self, batch: Trajectories, weights: torch.Tensor | None = None
+    ) -> torch.Tensor:
+        """The run's estimator coefficients of ``batch`` (per-row baselines and discounts;
+        ``weights`` [N] or [T, N] importance weights), in the backend's own layout: what
+        :meth:`gradients` and :meth:`trajectory_gradients` take."""
+        return self.backend.coefficients(batch, self.options, self.gammas, weights)
+
+    def gradients(
+        self, theta: torch.Tensor, batch: Trajectories, coefficients: torch.Tensor
+    ) -> torch.Tensor:
+        """Σ_n Σ_t coef[t, n] ∇ log π_θa(a_t|s_t) over each row a's trajectories n, [A, d]
+        (zero for a row without trajectories)."""
+        return self.backend.gradients(theta, batch, coefficients)
+
+    def mean_gradients(
+        self, theta: torch.Tensor, batch: Trajectories, weights: torch.Tensor | None = None
+    ) -> torch.Tensor:
+        """(1/B_a) Σ_n g(τ_n | θ_a) with the run's estimator, per row [A, d]."""
+        gradient = self.gradients(theta, batch, self.coefficients(batch, weights))
+        return gradient / batch.counts.clamp_min(1).to(gradient.dtype).unsqueeze(1)
+
+    def log_probs(self, theta: torch.Tensor, batch: Trajectories) -> torch.Tensor:
+        """log π_θa(a_t|s_t) of every alive step under its row's θ row, [T, N] float64 (0
+        elsewhere)."""
+        return self.backend.log_probs(theta, batch)
+
+    def trajectory_gradients(
+        self, theta: torch.Tensor, batch: Trajectories, coefficients: torch.Tensor
+    ) -> torch.Tensor:
+        """g(τ_n | θ_{owner(n)}) of every trajectory, [N, d]."""
+        return self.backend.trajectory_gradients(theta, batch, coefficients)
+
+    # -- bookkeeping -------------------------------------------------------------------------
+
+    def finished(
+        self,
+        batch: Trajectories,
+        *,
+        clipped: torch.Tensor | None = None,
+        grad_steps: torch.Tensor | None = None,
+    ) -> None:
+        """An iteration is done for the rows that sampled ``batch``: their totals, and the
+        work each row did (its share of the iteration's CPU time, by env steps) to the hook."""
+        tally = self.tally
+        now = time.thread_time()
+        elapsed, self._clock = now - self._clock, now
+        sampled, self._sampling_s = min(self._sampling_s, elapsed), 0.0
+        counts = batch.counts.cpu()
+        steps = batch.steps_per_row().cpu()
+        share = steps.double() / max(int(steps.sum()), 1)
+        compute = share * elapsed
+        tally.trajectories += counts
+        tally.env_steps += steps
+        tally.return_sum += batch.per_row(batch.returns()).cpu()
+        tally.compute_s += compute
+        tally.sample_s += share * sampled
+        if clipped is not None:
+            tally.clipped += clipped.cpu().long()
+        grads = steps if grad_steps is None else grad_steps.cpu().clone()
+        ran = counts > 0
+        if bool(ran.all()):  # every row ran: whole tensors, no indexing
+            work = RowWork(
+                torch.arange(len(counts)), tally.iterations.clone(), compute, steps, grads
+            )
+            tally.iterations += 1
+        else:
+            rows = torch.nonzero(ran).squeeze(1)
+            work = RowWork(rows, tally.iterations[rows], compute[rows], steps[rows], grads[rows])
+            tally.iterations[rows] += 1
+        tally.work.append(work)
+        if self._hook is not None:
+            self._hook(work)
+        self._clock = time.thread_time()
+
+    @contextmanager
+    def untimed(self) -> Iterator[None]:
+        """Work inside is left out of the rows' compute time (diagnostics)."""
+        started = time.thread_time()
+        try:
+            yield
+        finally:
+            self._clock += time.thread_time() - started
+
+    def report(self, name: str, values: torch.Tensor) -> None:
+        """An algorithm statistic of every row, [A] (NaN: none for that row)."""
+        self.tally.algorithm[name] = values.detach().double().cpu()

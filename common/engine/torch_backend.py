@@ -1,0 +1,309 @@
+"""The torch backend: every policy, environment family and space, on ``algo.device``.
+
+All rows sampled together (``common/engine/sampling.py``: one episode in every copy of every
+row, stepped in lockstep; the copies on the device for the families with a torch
+implementation, through gymnasium otherwise), the estimator's torch definition
+(``common/engine/estimate.py``), and the policy's score-function maths per row in tiles of
+:data:`TILE` steps, so that a row's floats never depend on the batch's shape or company.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+from typing import Any
+
+import gymnasium as gym
+import torch
+
+from fedhpg.common.attacks import attack_of
+from fedhpg.common.config import RunConfig
+from fedhpg.common.engine.copies import make_copies
+from fedhpg.common.engine.estimate import EstimatorOptions, batch_coefficients
+from fedhpg.common.engine.memory import packed_elements
+from fedhpg.common.engine.policy_rows import PolicyRows, chunked
+from fedhpg.common.engine.sampling import Faults, act_tiles_per_call, sample
+from fedhpg.common.engine.trajectories import Trajectories
+from fedhpg.common.randomness import Purpose, trajectory_keys
+from fedhpg.common.staircase import ordered_sums
+from fedhpg.envs.base import BatchEnv, EnvVariant
+from fedhpg.envs.device import DeviceFamily, device_family, put_distinct
+
+TILE = 64
+"""Steps per tile of the policy's maths. Every per-row reduction over steps is made of
+fixed-size tiles summed in order, so its floats never depend on the batch's shape (a matrix
+product's blocking over a longer reduction would change the order of the additions)."""
+
+
+RECENT_LISTS = 8
+"""Lists of agents whose sampling settings are kept (a round's iterations repeat them)."""
+
+
+@dataclass(frozen=True)
+class _Tiles:
+    """A batch's alive steps cut into tiles of :data:`TILE` steps of one group each."""
+
+    obs: torch.Tensor
+    """[tiles, TILE, *obs_shape] (zeros past a group's last step)."""
+    act: torch.Tensor
+    tile: torch.Tensor
+    """Each alive step's tile."""
+    slot: torch.Tensor
+    """Its place in the tile."""
+    flat: torch.Tensor
+    """Its (t, n) as a flat index of [T, N]."""
+    cell: torch.Tensor
+    """Its cell of the batch's layout (where its coefficient is)."""
+    tile_group: torch.Tensor
+    """Each tile's group."""
+    tile_start: torch.Tensor
+    """Each group's first tile."""
+    tiles_per_group: torch.Tensor
+
+
+@dataclass(frozen=True)
+class _RowSettings:
+    """What sampling reads of each row of a list of agents, [A] on the device."""
+
+    family_row: torch.Tensor
+    random_actions: torch.Tensor
+    flipped_rewards: torch.Tensor
+
+
+class TorchBackend:
+    """:class:`~fedhpg.common.engine.backend.Backend` in torch for the agents ``variants``
+    (see the module docstring)."""
+
+    def __init__(
+        self,
+        run: RunConfig,
+        variants: dict[int, EnvVariant],
+        policy: PolicyRows,
+        spaces: tuple[gym.Space[Any], gym.Space[Any]],
+        device: torch.device,
+    ) -> None:
+        self.run = run
+        self.variants = variants
+        self.policy = policy
+        self.observation_space, self.action_space = spaces
+        self.device = device
+        self.tiles_per_call = max(packed_elements(device) // (TILE * policy.num_params), 1)
+        """Tiles one autograd call of the gradient pass takes (off the CPU, every call takes
+        exactly so many, padded with empty tiles: a GPU library may pick its kernels, and so
+        its order of additions, by a call's shape, which must then not depend on the
+        company)."""
+        self.act_tiles_per_call = act_tiles_per_call(
+            device, policy.num_params, run.agents.num_agents
+        )
+        """Tiles of :data:`~fedhpg.common.engine.sampling.ACT_TILE` copies one policy call
+        takes while sampling: off the CPU exactly so many (padded), for the same reason; None
+        on the CPU (one call a step)."""
+        self._envs: dict[tuple[int, int], BatchEnv] = {}
+        self._family: DeviceFamily | None = None
+        self._family_rows: dict[int, int] | None = None
+        """Each agent's row of :attr:`_family` (None: not built yet)."""
+        self._settings: dict[tuple[int, ...], _RowSettings] = {}
+        """The settings of recent lists of agents (a round's iterations repeat them)."""
+
+    def family(self) -> DeviceFamily | None:
+        """Every agent's variant as a table on the device, built once (None: the family has
+        no torch implementation, or ``algo.envs=gymnasium``)."""
+        if self._family_rows is None:
+            order = sorted(self.variants)
+            self._family_rows = {k: row for row, k in enumerate(order)}
+            if self.run.algo.envs == "auto":
+                self._family = device_family([self.variants[k] for k in order], self.device)
+        return self._family
+
+    def _batch_env(self, k: int, copies: int) -> BatchEnv:
+        if (k, copies) not in self._envs:
+            self._envs[(k, copies)] = self.variants[k].make_batch_env(copies)
+        return self._envs[(k, copies)]
+
+    def _row_settings(self, agents: Sequence[int]) -> _RowSettings:
+        key = tuple(agents)
+        if key not in self._settings:
+            if len(self._settings) >= RECENT_LISTS:
+                self._settings.clear()
+            self.family()
+            assert self._family_rows is not None
+            kinds = [attack_of(self.run.attack, k) for k in agents]
+
+            def row(values: list[object], dtype: torch.dtype) -> torch.Tensor:
+                return torch.tensor(values, dtype=dtype).to(self.device)
+
+            self._settings[key] = _RowSettings(
+                family_row=row([self._family_rows[k] for k in agents], torch.int64),
+                random_actions=row([a == "random_action" for a in kinds], torch.bool),
+                flipped_rewards=row([a == "reward_flip" for a in kinds], torch.bool),
+            )
+        return self._settings[key]
+
+    def prepare(self) -> None:
+        self.family()
+
+    def close(self) -> None:
+        for env in self._envs.values():
+            env.close()
+        self._envs.clear()
+
+    # -- sampling ----------------------------------------------------------------------------
+
+    def keys(
+        self,
+        seed: int,
+        agents: torch.Tensor,
+        counts: torch.Tensor,
+        round_index: int,
+        purpose: Purpose,
+        iteration: int,
+    ) -> torch.Tensor:
+        counts = counts.to(self.device)
+        owner = torch.repeat_interleave(torch.arange(len(counts), device=self.device), counts)
+        starts = torch.cumsum(counts, 0) - counts
+        index = torch.arange(int(counts.sum()), device=self.device) - starts[owner]
+        return trajectory_keys(seed, agents, round_index, purpose, iteration, index, owner)
+
+    def sample(
+        self,
+        theta: torch.Tensor,
+        counts: torch.Tensor,
+        keys: torch.Tensor,
+        horizons: torch.Tensor,
+        agents: Sequence[int],
+        *,
+        greedy: bool,
+    ) -> Trajectories:
+        settings = self._row_settings(agents)
+        counts = counts.to(self.device)
+        copies = make_copies(
+            self.family(), settings.family_row, counts, self._batch_env, agents, self.device
+        )
+        faults = None
+        if not greedy and bool((settings.random_actions | settings.flipped_rewards).any()):
+            faults = Faults(
+                random_actions=settings.random_actions, flipped_rewards=settings.flipped_rewards
+            )
+        try:
+            return sample(
+                self.policy,
+                copies,
+                theta.to(self.device),
+                counts,
+                keys,
+                horizons.to(self.device),
+                greedy=greedy,
+                faults=faults,
+                action_space=self.action_space,
+                tiles_per_call=self.act_tiles_per_call,
+            )
+        finally:
+            copies.close()
+
+    def coefficients(
+        self,
+        batch: Trajectories,
+        options: EstimatorOptions,
+        gammas: torch.Tensor,
+        weights: torch.Tensor | None,
+    ) -> torch.Tensor:
+        """One per cell of ``batch.layout``, [S] float64."""
+        return batch_coefficients(batch, options, gammas, weights)
+
+    # -- the policy's maths per row ----------------------------------------------------------
+
+    def _tiles(self, batch: Trajectories, group: torch.Tensor) -> _Tiles:
+        """The alive steps of ``batch`` cut into tiles of :data:`TILE` steps, each tile the
+        steps of one group (``group`` [N]: each column's; a group's columns contiguous)."""
+        cells = torch.nonzero(batch.alive.T)  # (n, t): by column, columns grouped
+        column, step = cells[:, 0], cells[:, 1]
+        owner = group[column]
+        groups = int(group.max()) + 1 if len(group) else 0
+        per_group = torch.bincount(owner, minlength=groups)
+        slot = (
+            torch.arange(len(owner), device=owner.device)
+            - (torch.cumsum(per_group, 0) - per_group)[owner]
+        )
+        tiles_per_group = (per_group + TILE - 1) // TILE
+        tile_start = torch.cumsum(tiles_per_group, 0) - tiles_per_group
+        tile = tile_start[owner] + slot // TILE
+        total = int(tiles_per_group.sum())
+        if self.device.type != "cpu" and total:  # whole calls only (``tiles_per_call``)
+            total = -(-total // self.tiles_per_call) * self.tiles_per_call
+        flat = step * batch.alive.shape[1] + column
+        cell = batch.layout.cell(step, column)
+        obs_flat = batch.obs.reshape(-1, *batch.obs.shape[2:])
+        act_flat = batch.actions.reshape(-1, *batch.actions.shape[2:])
+        obs = obs_flat.new_zeros((total, TILE, *batch.obs.shape[2:]))
+        act = act_flat.new_zeros((total, TILE, *batch.actions.shape[2:]))
+        put_distinct(obs, (tile, slot % TILE), obs_flat[flat])
+        put_distinct(act, (tile, slot % TILE), act_flat[flat])
+        tile_group = torch.repeat_interleave(
+            torch.arange(groups, device=owner.device), tiles_per_group
+        )
+        if total > tile_group.shape[0]:  # empty tiles (no coefficient) of group 0
+            tile_group = torch.cat([tile_group, tile_group.new_zeros(total - tile_group.shape[0])])
+        return _Tiles(
+            obs, act, tile, slot % TILE, flat, cell, tile_group, tile_start, tiles_per_group
+        )
+
+    def _tile_gradients(
+        self, theta: torch.Tensor, row_of_tile: torch.Tensor, tiles: _Tiles, values: torch.Tensor
+    ) -> torch.Tensor:
+        """Each tile's Σ coef ∇ log π under its θ row ``theta[row_of_tile]``, [tiles, d], in
+        chunks (the θ rows of one chunk's tiles at a time)."""
+        coef = torch.zeros(tiles.obs.shape[:2], dtype=torch.float64, device=self.device)
+        put_distinct(coef, (tiles.tile, tiles.slot), values[tiles.cell].to(torch.float64))
+        out = theta.new_empty((tiles.obs.shape[0], self.policy.num_params))
+        return self._over_tiles(tiles, out, lambda block: self.policy.score_gradients(
+            theta[row_of_tile[block]], tiles.obs[block], tiles.act[block], coef[block]
+        ))  # fmt: skip
+
+    def _over_tiles(
+        self, tiles: _Tiles, out: torch.Tensor, compute: Callable[[slice], torch.Tensor]
+    ) -> torch.Tensor:
+        """``out[block] = compute(block)`` over the tiles, as many at once as memory allows."""
+        chunked(
+            tiles.obs.shape[0],
+            1,
+            self.tiles_per_call,
+            lambda block: out.__setitem__(block, compute(block)),
+        )
+        return out
+
+    @staticmethod
+    def _group_sums(tiles: _Tiles, per_tile: torch.Tensor, groups: int) -> torch.Tensor:
+        """Each group's tile gradients summed in tile order (the same sums in any company);
+        the empty tiles that pad a GPU's last call are left out."""
+        real = int(tiles.tiles_per_group.sum())
+        return ordered_sums(tiles.tile_group[:real], per_tile[:real], groups)
+
+    def gradients(
+        self, theta: torch.Tensor, batch: Trajectories, coefficients: torch.Tensor
+    ) -> torch.Tensor:
+        """Σ_n Σ_t coef[t, n] ∇ log π_θa(a_t|s_t) over each row a's trajectories n, [A, d]
+        (zero for a row without trajectories; ``coefficients`` per cell of ``batch.layout``)."""
+        tiles = self._tiles(batch, batch.owner)
+        per_tile = self._tile_gradients(theta, tiles.tile_group, tiles, coefficients)
+        return self._group_sums(tiles, per_tile, theta.shape[0])
+
+    def log_probs(self, theta: torch.Tensor, batch: Trajectories) -> torch.Tensor:
+        """log π_θa(a_t|s_t) of every alive step under its row's θ row, [T, N] float64 (0
+        elsewhere)."""
+        tiles = self._tiles(batch, batch.owner)
+        values = tiles.obs.new_zeros(tiles.obs.shape[:2], dtype=torch.float64)
+        self._over_tiles(tiles, values, lambda block: self.policy.log_probs(
+            theta[tiles.tile_group[block]], tiles.obs[block], tiles.act[block]
+        ).double())  # fmt: skip
+        out = torch.zeros(batch.alive.numel(), dtype=torch.float64, device=self.device)
+        put_distinct(out, tiles.flat, values[tiles.tile, tiles.slot])
+        return out.reshape(batch.alive.shape)
+
+    def trajectory_gradients(
+        self, theta: torch.Tensor, batch: Trajectories, coefficients: torch.Tensor
+    ) -> torch.Tensor:
+        """g(τ_n | θ_{owner(n)}) of every trajectory, [N, d]."""
+        columns = torch.arange(batch.alive.shape[1], device=self.device)
+        tiles = self._tiles(batch, columns)
+        per_tile = self._tile_gradients(theta, batch.owner[tiles.tile_group], tiles, coefficients)
+        return self._group_sums(tiles, per_tile, len(columns))
