@@ -153,10 +153,10 @@ class EngineGroup:
             if interrupt is not None:
                 interrupt()
             columns = IterationColumns(
-                positions=work.rows.numpy() + offset,
-                compute_s=work.compute_s.numpy(),
-                env_steps=work.env_steps.numpy(),
-                grad_steps=work.grad_steps.numpy(),
+                positions=work.rows + offset,
+                compute_s=work.compute_s,
+                env_steps=work.env_steps,
+                grad_steps=work.grad_steps,
             )
             works.append(columns)
             if on_work is not None:
@@ -183,15 +183,14 @@ class EngineGroup:
             round_index=round_index,
         )
         tally = Tally.concatenated(tallies)
-        trajectories = tally.trajectories.clamp_min(1).double()
         return TrainedColumns(
             agents=order,
             thetas=sent.detach().numpy().astype(np.float32, copy=False),
-            trajectories=tally.trajectories.numpy(),
-            env_steps=tally.env_steps.numpy(),
-            compute_s=tally.compute_s.numpy(),
-            train_return=(tally.return_sum / trajectories).numpy(),
-            grad_clipped=tally.clipped.numpy(),
+            trajectories=tally.trajectories,
+            env_steps=tally.env_steps,
+            compute_s=tally.compute_s,
+            train_return=tally.return_sum / np.maximum(tally.trajectories, 1),
+            grad_clipped=tally.clipped,
             algorithm={
                 **{
                     name: [None if math.isnan(v) else v for v in values.tolist()]

@@ -165,9 +165,8 @@ class FedHPGVR(Algorithm[FedHPGVRParams, FedHPGVRBudget]):
         theta = theta_0.clone()
         ascent = make_optimizer(algo)
         inner_steps, mini_batch = rows.budget("inner_steps"), rows.budget("mini_batch_size")
-        weight_sum = torch.zeros(rows.size, dtype=torch.float64)
-        weight_max = torch.zeros(rows.size, dtype=torch.float64)
-        clipped_sum = torch.zeros(rows.size, dtype=torch.float64)
+        # the weights' statistics stay where the rows are until the round reports them
+        weight_sum, weight_max, clipped_sum = theta.new_zeros((3, rows.size), dtype=torch.float64)
         for step in range(int(inner_steps.max())):
             active = inner_steps > step
             batch = rows.sample(theta, torch.where(active, mini_batch, 0), iteration=step + 1)
@@ -177,21 +176,20 @@ class FedHPGVR(Algorithm[FedHPGVRParams, FedHPGVRBudget]):
             direction, clipped = clip_rows(direction, algo.grad_clip)
             theta += ascent.direction(direction, active.to(theta.device))
             rows.finished(batch, clipped=clipped, grad_steps=2 * batch.steps_per_row())
-            final = weights.final.double().cpu()
-            owner = batch.owner.cpu()
-            weight_sum += batch.per_row(final.to(batch.owner.device)).cpu()
+            final = weights.final.double()
+            weight_sum += batch.per_row(final)
             weight_max = torch.maximum(
                 weight_max,
-                torch.zeros(rows.size, dtype=torch.float64).scatter_reduce(
-                    0, owner, final, "amax", include_self=False
+                torch.zeros_like(weight_max).scatter_reduce(
+                    0, batch.owner, final, "amax", include_self=False
                 ),
             )
-            clipped_sum += weights.clipped.cpu()
+            clipped_sum += weights.clipped
             del batch, weights  # back to the sampler before the next step's batch
-        trajectories = (inner_steps * mini_batch).double()
+        trajectories = (inner_steps * mini_batch).double().to(theta.device)
         rows.report("iw_mean", weight_sum / trajectories)
         rows.report("iw_max", weight_max)
-        rows.report("iw_clipped_fraction", clipped_sum / inner_steps.double())
+        rows.report("iw_clipped_fraction", clipped_sum / inner_steps.double().to(theta.device))
         return theta
 
     def check(self, settings: AlgoConfig, params: FedHPGVRParams) -> None:

@@ -133,25 +133,28 @@ class CompiledBackend:
             np.ascontiguousarray(theta.numpy(), dtype=np.float32), self.sizes, physics, count,
             limits, keys.numpy(), greedy, rows_obs, rows_action, rows_column, rows_time, lengths,
         )  # fmt: skip
-        owner = torch.repeat_interleave(torch.arange(len(count)), counts)
-        per_row = counts.new_zeros(len(count)).index_add_(0, owner, torch.from_numpy(lengths))
+        rows = len(count)
+        ends = np.cumsum(count)  # every count >= 1: row a's columns end at ends[a]
+        row_start = np.zeros(rows + 1, dtype=np.int64)
+        row_start[1:] = np.cumsum(lengths)[ends - 1]
+        steps = torch.from_numpy(lengths)
         packed = StepRows(
             obs=torch.from_numpy(rows_obs[:written]),
             actions=torch.from_numpy(rows_action[:written]),
             rewards=torch.ones(written, dtype=torch.float64),  # CartPole: 1 a step, the last too
             time=torch.from_numpy(rows_time[:written]),
             column=torch.from_numpy(rows_column[:written]),
-            rows=torch.arange(len(count)),
-            row_start=torch.cat([torch.zeros(1, dtype=torch.int64), torch.cumsum(per_row, 0)]),
+            rows=torch.arange(rows),
+            row_start=torch.from_numpy(row_start),
         )
         return Trajectories(
             success=torch.zeros(total, dtype=torch.bool),  # CartPole has no goal
-            owner=owner,
+            owner=torch.from_numpy(np.repeat(np.arange(rows), count)),
             counts=counts.clone(),
-            lengths=torch.from_numpy(lengths),
+            lengths=steps,
             steps=packed,
             scans=SCANS,
-            returns=torch.from_numpy(lengths).double(),  # a reward of 1 a step, summed exactly
+            returns=steps.double(),  # a reward of 1 a step, summed exactly
         )
 
     def gradients(

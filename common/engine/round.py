@@ -26,6 +26,7 @@ from collections.abc import Callable, Iterator, Sequence
 from contextlib import contextmanager
 from dataclasses import dataclass, field, fields, replace
 
+import numpy as np
 import torch
 
 from fedhpg.common.engine.backend import Backend
@@ -36,38 +37,42 @@ from fedhpg.common.randomness import Purpose
 
 @dataclass
 class RowWork:
-    """What one iteration cost each row: what the device emulation prices."""
+    """What one iteration cost each row: what the device emulation prices (host arrays)."""
 
-    rows: torch.Tensor
-    """Positions of the rows that ran it."""
-    iterations: torch.Tensor
-    """Each one's iteration number (its own count of iterations this round)."""
-    compute_s: torch.Tensor
-    env_steps: torch.Tensor
-    grad_steps: torch.Tensor
+    rows: np.ndarray
+    """int64 positions of the rows that ran it."""
+    iterations: np.ndarray
+    """int64: each one's iteration number (its own count of iterations this round)."""
+    compute_s: np.ndarray
+    """float64."""
+    env_steps: np.ndarray
+    """int64."""
+    grad_steps: np.ndarray
+    """int64."""
 
 
 @dataclass
 class Tally:
-    """Per-row totals of a round (``UpdateStats``), and its work per iteration."""
+    """Per-row totals of a round (``UpdateStats``) as host arrays, and its work per
+    iteration."""
 
-    trajectories: torch.Tensor
-    env_steps: torch.Tensor
-    return_sum: torch.Tensor
-    compute_s: torch.Tensor
-    clipped: torch.Tensor
-    iterations: torch.Tensor
-    sample_s: torch.Tensor
+    trajectories: np.ndarray
+    env_steps: np.ndarray
+    return_sum: np.ndarray
+    compute_s: np.ndarray
+    clipped: np.ndarray
+    iterations: np.ndarray
+    sample_s: np.ndarray
     """Each row's share of the CPU time spent sampling (the rest of ``compute_s`` went to
     its gradients and steps)."""
-    algorithm: dict[str, torch.Tensor] = field(default_factory=dict)
-    """Per-row algorithm statistics; NaN where a row has none."""
+    algorithm: dict[str, np.ndarray] = field(default_factory=dict)
+    """Per-row algorithm statistics (float64); NaN where a row has none."""
     work: list[RowWork] = field(default_factory=list)
 
     @classmethod
     def zeros(cls, rows: int) -> Tally:
-        trajectories, env_steps, clipped, iterations = torch.zeros((4, rows), dtype=torch.int64)
-        return_sum, compute_s, sample_s = torch.zeros((3, rows), dtype=torch.float64)
+        trajectories, env_steps, clipped, iterations = np.zeros((4, rows), dtype=np.int64)
+        return_sum, compute_s, sample_s = np.zeros((3, rows), dtype=np.float64)
         return cls(trajectories, env_steps, return_sum, compute_s, clipped, iterations, sample_s)
 
     @classmethod
@@ -78,20 +83,20 @@ class Tally:
             return parts[0]
         names = list(dict.fromkeys(name for part in parts for name in part.algorithm))
 
-        def stat(part: Tally, name: str) -> torch.Tensor:
+        def stat(part: Tally, name: str) -> np.ndarray:
             values = part.algorithm.get(name)
-            return values if values is not None else torch.full_like(part.sample_s, math.nan)
+            return values if values is not None else np.full_like(part.sample_s, math.nan)
 
         starts = [0]
         for part in parts[:-1]:
             starts.append(starts[-1] + int(part.trajectories.shape[0]))
         return cls(
             **{
-                name: torch.cat([getattr(p, name) for p in parts])
+                name: np.concatenate([getattr(p, name) for p in parts])
                 for name in (f.name for f in fields(cls))
                 if name not in ("algorithm", "work")
             },
-            algorithm={name: torch.cat([stat(p, name) for p in parts]) for name in names},
+            algorithm={name: np.concatenate([stat(p, name) for p in parts]) for name in names},
             work=[
                 replace(work, rows=work.rows + start)
                 for part, start in zip(parts, starts, strict=True)
@@ -113,6 +118,13 @@ class RowConstants:
     gamma: torch.Tensor
     """float64."""
     horizon: torch.Tensor
+
+
+def _on_host(columns: list[torch.Tensor]) -> list[np.ndarray]:
+    """The [A] ``columns`` as host arrays: views on the CPU, one copy from a device."""
+    if columns[0].device.type == "cpu":
+        return [column.numpy() for column in columns]
+    return list(torch.stack([c.to(torch.float64) for c in columns]).cpu().numpy())
 
 
 class Round:
@@ -237,33 +249,34 @@ class Round:
         grad_steps: torch.Tensor | None = None,
     ) -> None:
         """An iteration is done for the rows that sampled ``batch``: their totals, and the
-        work each row did (its share of the iteration's CPU time, by env steps) to the hook."""
-        tally = self.tally
+        work each row did (its share of the iteration's CPU time, by env steps) to the hook.
+        The rows' numbers come to the host in one copy."""
         now = time.thread_time()
         elapsed, self._clock = now - self._clock, now
         sampled, self._sampling_s = min(self._sampling_s, elapsed), 0.0
-        counts = batch.counts.cpu()
-        steps = batch.steps_per_row().cpu()
-        share = steps.double() / max(int(steps.sum()), 1)
+        steps_per_row = batch.steps_per_row()
+        columns = [batch.counts, steps_per_row, batch.per_row(batch.returns())]
+        columns.append(steps_per_row if grad_steps is None else grad_steps)
+        if clipped is not None:
+            columns.append(clipped)
+        host = _on_host(columns)
+        counts, steps, grads = (host[i].astype(np.int64) for i in (0, 1, 3))
+        tally = self.tally
+        share = steps / max(int(steps.sum()), 1)
         compute = share * elapsed
         tally.trajectories += counts
         tally.env_steps += steps
-        tally.return_sum += batch.per_row(batch.returns()).cpu()
+        tally.return_sum += host[2]
         tally.compute_s += compute
         tally.sample_s += share * sampled
         if clipped is not None:
-            tally.clipped += clipped.cpu().long()
-        grads = steps if grad_steps is None else grad_steps.cpu().clone()
-        ran = counts > 0
-        if bool(ran.all()):  # every row ran: whole tensors, no indexing
-            work = RowWork(
-                torch.arange(len(counts)), tally.iterations.clone(), compute, steps, grads
-            )
-            tally.iterations += 1
+            tally.clipped += host[4].astype(np.int64)
+        ran = np.flatnonzero(counts)
+        if len(ran) == len(counts):  # every row ran: whole arrays, no indexing
+            work = RowWork(ran, tally.iterations.copy(), compute, steps, grads)
         else:
-            rows = torch.nonzero(ran).squeeze(1)
-            work = RowWork(rows, tally.iterations[rows], compute[rows], steps[rows], grads[rows])
-            tally.iterations[rows] += 1
+            work = RowWork(ran, tally.iterations[ran], compute[ran], steps[ran], grads[ran])
+        tally.iterations[ran] += 1
         tally.work.append(work)
         if self._hook is not None:
             self._hook(work)
@@ -280,4 +293,4 @@ class Round:
 
     def report(self, name: str, values: torch.Tensor) -> None:
         """An algorithm statistic of every row, [A] (NaN: none for that row)."""
-        self.tally.algorithm[name] = values.detach().double().cpu()
+        self.tally.algorithm[name] = values.detach().double().cpu().numpy()
