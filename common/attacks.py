@@ -45,6 +45,8 @@ def corrupt_rows(
     """The θ_k rows the agents send: ``honest`` [A, d] where the agent is honest or attacks
     its sampling, the corrupted update where it attacks its update (from θ̃ = ``start``).
     ``random_noise`` draws from the agent's (seed, agent, round) attack stream."""
+    if attack.kind not in UPDATE_ATTACKS or not attack.agents:
+        return honest
     kinds = [attack_of(attack, k) for k in agents]
     if not any(kind in UPDATE_ATTACKS for kind in kinds):
         return honest

@@ -15,6 +15,7 @@ and slice, pick and build from records without leaving the columnar form. Pure P
 from __future__ import annotations
 
 import dataclasses
+import functools
 import typing
 from collections.abc import Callable, Iterator, Sequence
 from typing import TYPE_CHECKING, Annotated, Any, ClassVar, Generic, Self, TypeVar, overload
@@ -23,6 +24,11 @@ from fedhpg.common.limits import Bound, bounds_of
 
 R = TypeVar("R")
 C = TypeVar("C", bound="type[Columns[Any]]")
+
+
+@functools.cache
+def _fields_of(record: type) -> dict[str, dataclasses.Field[Any]]:
+    return {f.name: f for f in dataclasses.fields(record)}
 
 
 class Columns(Sequence[R], Generic[R]):
@@ -62,7 +68,7 @@ class Columns(Sequence[R], Generic[R]):
     def filled(cls, rows: int, **given: Any) -> Self:
         """``rows`` rows of the ``given`` columns (lists, or anything with ``tolist``: numpy
         arrays), every other field at the record's default."""
-        defaults = {f.name: f for f in dataclasses.fields(cls.record)}
+        defaults = _fields_of(cls.record)
         columns: dict[str, Any] = {}
         for name in (*cls.scalar_fields, *cls.map_fields):
             if name in given:

@@ -41,6 +41,9 @@ GroupHook = Callable[[int, IterationWork], None]
 It may raise to cancel the round (the agent process's cancellation does)."""
 
 
+RECENT_PLANS = 8
+"""Round plans a group keeps (the lists of agents its rounds repeat)."""
+
 TIMING_STATS = ("engine_sample_s", "engine_gradient_s")
 """Algorithm statistics that are CPU times (of ``compute_s``: sampling, the rest): they vary
 from run to run like ``compute_s`` itself."""
@@ -100,6 +103,8 @@ class EngineGroup:
         self.variants = variants
         self.engine = Engine(run, variants, compiled=compiled)
         self.algorithm, self.params = resolve_algorithm(run)
+        self._plans: dict[tuple[int, ...], RoundPlan] = {}
+        """The plans of rounds of agents running their own budgets (a round repeats them)."""
 
     @property
     def indices(self) -> Sequence[int]:
@@ -115,6 +120,9 @@ class EngineGroup:
         """The round's ``agents`` (ascending) in chunks that fit the device's memory: each
         holds its budget's trajectories at once (``episodes`` each for an evaluation)."""
         engine = self.engine
+        own = episodes is None and not budgets
+        if own and tuple(agents) in self._plans:
+            return self._plans[tuple(agents)]
         if episodes is None:
             chosen = engine.round_budgets(agents, budgets)
             copies = [self.algorithm.held_trajectories(budget) for budget in chosen]
@@ -122,7 +130,12 @@ class EngineGroup:
         else:
             copies = [episodes] * len(agents)
             horizons = [self.run.eval.horizon or engine.horizon(k) for k in agents]
-        return engine.plan(agents, copies, horizons)
+        plan = engine.plan(agents, copies, horizons)
+        if own:
+            if len(self._plans) >= RECENT_PLANS:
+                self._plans.clear()
+            self._plans[tuple(agents)] = plan
+        return plan
 
     def train_columns(
         self,
@@ -177,7 +190,7 @@ class EngineGroup:
         sent = corrupt_rows(
             self.run.attack,
             theta.detach().to(torch.float32),
-            torch.cat(honest),
+            honest[0] if len(honest) == 1 else torch.cat(honest),
             order,
             seed=self.run.seed,
             round_index=round_index,

@@ -14,17 +14,14 @@ from fedhpg.common.types import SavedState
 
 
 def _masked(direction: torch.Tensor, active: torch.Tensor | None) -> torch.Tensor:
-    """``direction`` (a fresh tensor: written in place) with the rows not ``active`` zero."""
+    """``direction`` with the rows not ``active`` zero."""
     return direction if active is None else _rows_from(direction, 0.0, active)
 
 
 def _rows_from(new: torch.Tensor, old: torch.Tensor | float, taken: torch.Tensor) -> torch.Tensor:
-    """``new`` (written in place) with the rows not ``taken`` from ``old`` (rows, or one
-    value): where(taken, new, old), writing only the rows that differ."""
-    left = torch.nonzero(~taken).squeeze(1)
-    if left.numel():
-        new[left] = old[left] if isinstance(old, torch.Tensor) else old
-    return new
+    """where(taken, new, old) by rows (``old``: rows, or one value), without waiting for the
+    device to count the rows."""
+    return torch.where(taken.unsqueeze(1), new, old)
 
 
 class PlainAscent:

@@ -15,15 +15,16 @@ from __future__ import annotations
 import sys
 import time
 from collections.abc import Sequence
+from dataclasses import replace
 
 import numpy as np
 import torch
 
 from fedhpg.common import randomness
 from fedhpg.common.batched import kernels
+from fedhpg.common.batched.estimator import packed_coefficients
 from fedhpg.common.batched.mlp import MLPShape
-from fedhpg.common.batched.scans import SCANS
-from fedhpg.common.engine.estimate import EstimatorOptions, batch_coefficients
+from fedhpg.common.engine.estimate import EstimatorOptions
 from fedhpg.common.engine.torch_backend import TorchBackend
 from fedhpg.common.engine.trajectories import StepRows, Trajectories
 from fedhpg.common.randomness import Purpose
@@ -59,6 +60,7 @@ class CompiledBackend:
         self._recent: dict[tuple[int, ...], np.ndarray] = {}
         """The physics rows of recent calls' agents (a round's iterations repeat them)."""
         self._buffers = _RowBuffers()
+        self._arange = torch.arange(0)
 
     def _physics_rows(self, agents: Sequence[int]) -> np.ndarray:
         """The rows' physics tables, [A, P] (each agent's built once, kept in one array; the
@@ -107,8 +109,21 @@ class CompiledBackend:
         gammas: torch.Tensor,
         weights: torch.Tensor | None,
     ) -> torch.Tensor:
-        """One per cell of ``batch.layout``, [S] float64."""
-        return batch_coefficients(batch, options, gammas, weights)
+        """One per packed step of the batch, [R] float64, in the order of its steps (the torch
+        definition's bits: :mod:`fedhpg.common.batched.estimator`)."""
+        steps = self._packed_steps(batch)
+        return torch.from_numpy(
+            packed_coefficients(
+                options,
+                steps.rewards.numpy(),
+                steps.time.numpy(),
+                steps.column.numpy(),
+                batch.lengths().numpy(),
+                batch.owner.numpy(),
+                gammas.numpy(),
+                None if weights is None else weights.detach().double().numpy(),
+            )
+        )
 
     def sample(
         self,
@@ -153,7 +168,6 @@ class CompiledBackend:
             counts=counts.clone(),
             lengths=steps,
             steps=packed,
-            scans=SCANS,
             returns=steps.double(),  # a reward of 1 a step, summed exactly
         )
 
@@ -161,12 +175,15 @@ class CompiledBackend:
         self, theta: torch.Tensor, batch: Trajectories, coefficients: torch.Tensor
     ) -> torch.Tensor:
         """Σ_n Σ_t coef[t, n] ∇ log π_θa(a_t|s_t) over each row a's trajectories, [A, d], from
-        the batch's packed steps (the order the sampler wrote them); ``coefficients`` per cell
-        of ``batch.layout``."""
-        steps, at = self._packed_steps(batch)
+        the batch's packed steps (``coefficients``: one per step, :meth:`coefficients`)."""
+        steps = self._packed_steps(batch)
         every_row = len(steps.rows) == theta.shape[0]  # then the rows are 0 … A − 1 in order
         part = self._gradients(
-            theta if every_row else theta[steps.rows], steps, coefficients, at, steps.row_start
+            theta if every_row else theta[steps.rows],
+            steps,
+            coefficients,
+            self._identity(len(coefficients)),
+            steps.row_start,
         )
         if every_row:
             return part
@@ -179,17 +196,13 @@ class CompiledBackend:
     ) -> torch.Tensor:
         """g(τ_n | θ_{owner(n)}) of every trajectory, [N, d]: the steps regrouped by trajectory
         (each one's in time order), a trajectory a row of the gradient kernel."""
-        steps, at = self._packed_steps(batch)
+        steps = self._packed_steps(batch)
         order = torch.from_numpy(np.lexsort((steps.time.numpy(), steps.column.numpy())))
         columns = int(batch.owner.shape[0])
         per_column = torch.bincount(steps.column, minlength=columns)
         starts = torch.cat([per_column.new_zeros(1), torch.cumsum(per_column, 0)])
-        by_column = StepRows(
-            obs=steps.obs[order], actions=steps.actions[order], rewards=steps.rewards[order],
-            time=steps.time[order], column=steps.column[order], rows=torch.arange(columns),
-            row_start=starts,
-        )  # fmt: skip
-        return self._gradients(theta[batch.owner], by_column, coefficients, at[order], starts)
+        by_column = replace(steps, obs=steps.obs[order], actions=steps.actions[order])
+        return self._gradients(theta[batch.owner], by_column, coefficients, order, starts)
 
     def _gradients(
         self,
@@ -199,28 +212,31 @@ class CompiledBackend:
         at: torch.Tensor,
         row_start: torch.Tensor,
     ) -> torch.Tensor:
-        """Row i of ``thetas`` against steps ``row_start[i]`` … ``row_start[i + 1]`` − 1, step
-        r's coefficient ``coefficients[at[r]]``."""
+        """Row i of ``thetas`` against steps ``row_start[i]`` … ``row_start[i + 1]`` − 1 of
+        ``steps``' observations and actions, step r's coefficient ``coefficients[at[r]]``."""
         out = np.zeros((thetas.shape[0], thetas.shape[1]), dtype=np.float32)
         kernels.row_gradients(
             np.ascontiguousarray(thetas.detach().numpy(), dtype=np.float32),
             self.sizes,
             steps.obs.numpy(),
             steps.actions.numpy(),
-            coefficients.contiguous().numpy(),
-            at.contiguous().numpy(),
+            coefficients.numpy(),
+            at.numpy(),
             row_start.numpy(),
             out,
         )
         return torch.from_numpy(out)
 
+    def _identity(self, size: int) -> torch.Tensor:
+        """0 … ``size`` − 1 (kept: each step's coefficient is its own)."""
+        if self._arange.shape[0] < size:
+            self._arange = torch.arange(max(size, 2 * self._arange.shape[0]))
+        return self._arange[:size]
+
     @staticmethod
-    def _packed_steps(batch: Trajectories) -> tuple[StepRows, torch.Tensor]:
-        """The batch's alive steps packed, and each one's cell of ``batch.layout``."""
-        if batch.steps is not None:
-            return batch.steps, batch.step_cells
-        steps = _packed(batch)
-        return steps, batch.layout.cell(steps.time, steps.column)
+    def _packed_steps(batch: Trajectories) -> StepRows:
+        """The batch's alive steps packed row after row (as the sampler wrote them)."""
+        return batch.steps if batch.steps is not None else _packed(batch)
 
     def prepare(self) -> None:
         self._physics_rows(sorted(self.variants))
@@ -298,9 +314,6 @@ def warm_up() -> float:
     of seconds; ``make setup`` and the image build run this once so that runs load the cache,
     and ``fedhpg-run`` runs it before it forks agents, so that they inherit the compiled code
     instead of compiling it each."""
-    from fedhpg.common.estimators import RewardToGoName, coefficients
-    from fedhpg.common.staircase import Staircase
-
     started = time.perf_counter()
     backend = CompiledBackend(MLPShape((4, 2, 2)))
     backend._row_of, backend._tables = {0: 0}, [np.asarray(CARTPOLE_DEFAULTS, dtype=np.float64)]
@@ -311,20 +324,13 @@ def warm_up() -> float:
             theta, torch.tensor([1, 2]), torch.arange(3), torch.tensor([3, 3]), [0, 0],
             greedy=greedy,
         )  # fmt: skip
-    # the estimator on the batch's layouts: the scans, sums and indices it calls compiled
-    layouts: list[tuple[Staircase, RewardToGoName]] = [
-        (batch.layout, "from_start"),
-        (batch.grouped_layout, "from_step"),
-    ]
-    for layout, to_go in layouts:
-        rewards, alive = batch.cells_on(layout)
-        coefficients(
-            "gpomdp", layout, rewards, alive, gamma=torch.full((3,), 0.99, dtype=torch.float64),
-            reward_to_go=to_go, groups=batch.owner,
-        )  # fmt: skip
-    batch.returns(torch.full((2,), 0.99))
-    SCANS.cells(batch.layout)  # the cells' indices (a weighted estimate translates by them)
-    backend.gradients(theta, batch, batch.cells[0])
+    # the estimator, plain and standardised (its second kernel), and both gradient kernels
+    gammas = torch.full((2,), 0.99, dtype=torch.float64)
+    for normalize in ("none", "batch"):
+        options = EstimatorOptions(normalize=normalize)  # type: ignore[arg-type]
+        coefficients = backend.coefficients(batch, options, gammas, None)
+    backend.gradients(theta, batch, coefficients)
+    backend.trajectory_gradients(theta, batch, coefficients)
     return time.perf_counter() - started
 
 
