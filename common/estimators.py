@@ -86,7 +86,7 @@ def _less_step_baseline(
     others = (torch.bincount(groups, minlength=size) - 1).clamp_min(1).to(values.dtype)
     extents = layout.extents
     longest = extents.new_zeros(size).scatter_reduce(0, groups, extents, "amax")
-    table = Staircase(longest, scans=layout.scans)  # (t, g) for each group's steps
+    table = Staircase(longest)  # (t, g) for each group's steps
     shares = layout.step_group_sums(values, groups, table) / table.per_cell(others)
     out = values * layout.per_cell((1.0 + 1.0 / others).index_select(0, groups))
     out.sub_(layout.per_step_group(shares, groups, table))

@@ -19,54 +19,10 @@ depend on which columns share the batch.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from functools import cached_property
-from typing import Protocol
 
-import numpy as np
 import torch
-
-
-class Scans(Protocol):
-    """Another implementation of the staircase's primitives: its scans along time and sums
-    over an agent's columns (the same additions in the same order, so the same bits), its
-    arrangement, cell indices and spreads of values to cells, for the layouts it can take.
-    A method that answers None leaves it to the staircase's own torch code (a backend's,
-    e.g. ``common/batched/scans.py``)."""
-
-    def cells(self, layout: Staircase) -> tuple[torch.Tensor, torch.Tensor] | None: ...
-
-    def tail_sums(
-        self, layout: Staircase, values: torch.Tensor, scale: torch.Tensor | None
-    ) -> torch.Tensor | None: ...
-
-    def step_powers(self, layout: Staircase, bases: torch.Tensor) -> torch.Tensor | None: ...
-
-    def cell(
-        self, layout: Staircase, time: torch.Tensor, column: torch.Tensor
-    ) -> torch.Tensor | None: ...
-
-    def arrangement(
-        self, layout: Staircase
-    ) -> tuple[torch.Tensor, torch.Tensor, np.ndarray, np.ndarray] | None:
-        """(:attr:`~Staircase.order`, :attr:`~Staircase.rank`, widths, starts)."""
-        ...
-
-    def per_cell(self, layout: Staircase, values: torch.Tensor) -> torch.Tensor | None: ...
-
-    def placed(
-        self, layout: Staircase, cells: torch.Tensor, values: torch.Tensor
-    ) -> torch.Tensor | None: ...
-
-    def column_totals(self, layout: Staircase, values: torch.Tensor) -> torch.Tensor | None: ...
-
-    def step_group_sums(
-        self, layout: Staircase, values: torch.Tensor, groups: torch.Tensor, table: Staircase
-    ) -> torch.Tensor | None: ...
-
-    def per_step_group(
-        self, layout: Staircase, values: torch.Tensor, groups: torch.Tensor, table: Staircase
-    ) -> torch.Tensor | None: ...
 
 
 @dataclass(frozen=True)
@@ -78,53 +34,35 @@ class Staircase:
     dense: bool = False
     """Every column has the same extent, in column order: the cells are a padded [T, N]
     tensor's memory, row-major."""
-    scans: Scans | None = field(default=None, compare=False)
-    """A backend's implementation of the scans, sums and indices below (None: torch's)."""
     grouped: bool = False
     """Every column has the extent of its group's longest (:meth:`of_groups`): at each step a
     group's cells are adjacent, in column order."""
 
     @classmethod
-    def padded(
-        cls,
-        steps: int,
-        columns: int,
-        device: torch.device | str = "cpu",
-        scans: Scans | None = None,
-    ) -> Staircase:
+    def padded(cls, steps: int, columns: int, device: torch.device | str = "cpu") -> Staircase:
         """The layout of a padded [steps, columns] batch."""
         full = torch.full((columns,), steps, dtype=torch.int64, device=device)
-        return cls(full, dense=True, scans=scans)
+        return cls(full, dense=True)
 
     @classmethod
-    def of_groups(
-        cls, lengths: torch.Tensor, groups: torch.Tensor, scans: Scans | None = None
-    ) -> Staircase:
+    def of_groups(cls, lengths: torch.Tensor, groups: torch.Tensor) -> Staircase:
         """Each column extended to the longest trajectory of its group (``groups`` [N]: each
         column's agent): past that, an estimator's every term is zero."""
         if lengths.numel() == 0:
-            return cls(lengths.clone(), scans=scans)
+            return cls(lengths.clone())
         size = int(groups.max()) + 1
         longest = lengths.new_zeros(size).scatter_reduce(0, groups, lengths, "amax")
-        return cls(longest[groups], scans=scans, grouped=True)
+        return cls(longest[groups], grouped=True)
 
     @property
     def columns(self) -> int:
         return int(self.extents.shape[0])
 
     @cached_property
-    def _arranged(self) -> tuple[torch.Tensor, torch.Tensor, np.ndarray, np.ndarray] | None:
-        if self.scans is None or self.dense:
-            return None
-        return self.scans.arrangement(self)
-
-    @cached_property
     def order(self) -> torch.Tensor:
         """[N]: the column at each position (longest first, ties in column order)."""
         if self.dense:
             return torch.arange(self.columns, device=self.extents.device)
-        if self._arranged is not None:
-            return self._arranged[0]
         return torch.argsort(self.extents, descending=True, stable=True)
 
     @cached_property
@@ -132,8 +70,6 @@ class Staircase:
         """[N]: each column's position."""
         if self.dense:
             return self.order
-        if self._arranged is not None:
-            return self._arranged[1]
         return torch.empty_like(self.order).scatter_(
             0, self.order, torch.arange(self.columns, device=self.order.device)
         )
@@ -143,8 +79,6 @@ class Staircase:
         """Cells at each step t (the columns whose extent passes t)."""
         if self.columns == 0:
             return []
-        if self._arranged is not None:
-            return self._arranged[2].tolist()
         steps = int(self.extents.max())
         if self.dense:
             return [self.columns] * steps
@@ -161,43 +95,18 @@ class Staircase:
         return out
 
     @cached_property
-    def width_array(self) -> np.ndarray:
-        """:attr:`widths` as an int64 array (for compiled scans)."""
-        if self._arranged is not None:
-            return self._arranged[2]
-        return np.asarray(self.widths, dtype=np.int64)
-
-    @cached_property
-    def start_array(self) -> np.ndarray:
-        """:attr:`starts` as an int64 array."""
-        if self._arranged is not None:
-            return self._arranged[3]
-        return np.asarray(self.starts, dtype=np.int64)
-
-    @cached_property
     def steps(self) -> int:
         """T: the longest extent."""
-        if self._arranged is not None:
-            return int(self._arranged[2].shape[0])
         return len(self.widths)
 
     @cached_property
     def size(self) -> int:
         """S: the number of cells."""
-        if self._arranged is not None:
-            widths = self._arranged[2]
-            return int(widths.sum())
         return sum(self.widths)
-
-    @cached_property
-    def _indexed(self) -> tuple[torch.Tensor, torch.Tensor] | None:
-        return None if self.scans is None else self.scans.cells(self)
 
     @cached_property
     def time(self) -> torch.Tensor:
         """[S]: each cell's step."""
-        if self._indexed is not None:
-            return self._indexed[0]
         device = self.extents.device
         widths = torch.tensor(self.widths, dtype=torch.int64, device=device)
         return torch.repeat_interleave(torch.arange(self.steps, device=device), widths)
@@ -211,17 +120,11 @@ class Staircase:
         ``widths[t]`` positions: one copy of each prefix)."""
         if self.columns == 0:
             return values[:0]
-        if self.scans is not None and "column" not in self.__dict__:
-            done = self.scans.per_cell(self, values)
-            if done is not None:
-                return done
         return values.index_select(0, self.column)
 
     @cached_property
     def column(self) -> torch.Tensor:
         """[S]: each cell's column (step t's cells: the first ``widths[t]`` positions)."""
-        if self._indexed is not None:
-            return self._indexed[1]
         cells = torch.arange(self.size, device=self.extents.device)
         position = cells - self._step_start.index_select(0, self.time)
         return position if self.dense else self.order.index_select(0, position)
@@ -230,18 +133,10 @@ class Staircase:
         """The cell of step ``time`` of column ``column`` (inside its extent)."""
         if self.dense:
             return time * self.columns + column
-        if self.scans is not None:
-            done = self.scans.cell(self, time, column)
-            if done is not None:
-                return done
         return self._step_start.index_select(0, time) + self.rank.index_select(0, column)
 
     def placed(self, cells: torch.Tensor, values: torch.Tensor) -> torch.Tensor:
         """``values`` [R] at ``cells`` [R] (distinct cells), zero in every other cell: [S]."""
-        if self.scans is not None:
-            done = self.scans.placed(self, cells, values)
-            if done is not None:
-                return done
         out = values.new_zeros((self.size, *values.shape[1:]))
         return out.index_copy_(0, cells, values)
 
@@ -265,10 +160,6 @@ class Staircase:
         (``factors`` [N], f = 1 without): Σ_{h ≥ t} values[h] or, with γ, Σ_{h ≥ t} γ^{h−t}
         values[h], one step at a time so no γ^{−t} is formed."""
         scale = None if factors is None else factors.to(values.dtype)[self.order]
-        if self.scans is not None:
-            done = self.scans.tail_sums(self, values, scale)
-            if done is not None:
-                return done
         out = torch.empty_like(values)
         later: torch.Tensor | None = None
         for t in range(self.steps - 1, -1, -1):
@@ -285,10 +176,6 @@ class Staircase:
         """b_n^t at every cell (``bases`` [N]), each column's powers by repeated products
         along its own cells, so no cell's value depends on the batch's shape."""
         by_position = bases if self.dense else bases.index_select(0, self.order)
-        if self.scans is not None:
-            done = self.scans.step_powers(self, by_position)
-            if done is not None:
-                return done
         out = bases.new_empty(self.size)
         earlier: torch.Tensor | None = None
         for t in range(self.steps):
@@ -309,10 +196,6 @@ class Staircase:
         per group, each as long as its longest column here). A column past its extent adds
         nothing, so a layout that stops each column early gives the same bits as one that
         pads it with zeros."""
-        if self.scans is not None:
-            done = self.scans.step_group_sums(self, values, groups, table)
-            if done is not None:
-                return done
         time = self.time
         key = table.cell(time, self.per_cell(groups))
         if not (self.dense or self.grouped):  # visit the cells column by column
@@ -325,20 +208,12 @@ class Staircase:
     ) -> torch.Tensor:
         """Each cell's entry (its step, its column's group) of ``values`` on the cells of
         ``table`` (as :meth:`step_group_sums` gives them), [S]."""
-        if self.scans is not None:
-            done = self.scans.per_step_group(self, values, groups, table)
-            if done is not None:
-                return done
         return values.index_select(0, table.cell(self.time, self.per_cell(groups)))
 
     def column_totals(self, values: torch.Tensor) -> torch.Tensor:
         """Σ_t values[t, n] of each column, [N] (a column's cells added from its last)."""
         if self.columns == 0:
             return values.new_zeros(0)
-        if self.scans is not None:
-            done = self.scans.column_totals(self, values)
-            if done is not None:
-                return done
         return self.tail_sums(values)[: self.columns].index_select(0, self.rank)
 
 

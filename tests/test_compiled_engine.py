@@ -323,60 +323,6 @@ def test_an_algorithm_holds_one_batch_at_a_time(algo: list[str]) -> None:
     assert len(group.engine.backend._buffers.sets)  # type: ignore[attr-defined] == 1
 
 
-@pytest.mark.parametrize("shape", ["ragged", "dense"])
-def test_the_compiled_scans_give_the_staircases_own_bits(shape: str) -> None:
-    """The backend's scans (tail sums with and without factors, step powers) and cell indices
-    against the staircase's torch code on a ragged and a padded layout, equal to the bit
-    (float32 cells are left to the loop)."""
-    from fedhpg.common.batched.scans import SCANS
-    from fedhpg.common.staircase import Staircase
-
-    generator = torch.Generator().manual_seed(5)
-    if shape == "ragged":
-        groups = torch.repeat_interleave(torch.arange(6), torch.tensor([4, 1, 7, 2, 3, 5]))
-        lengths = torch.randint(1, 60, (len(groups),), generator=generator)
-        plain = Staircase.of_groups(lengths, groups)
-        compiled = Staircase.of_groups(lengths, groups, SCANS)
-    else:
-        groups = torch.repeat_interleave(torch.arange(3), torch.tensor([2, 1, 6]))
-        plain = Staircase.padded(37, 9)
-        compiled = Staircase(plain.extents, dense=True, scans=SCANS)
-    values = torch.randn(plain.size, generator=generator, dtype=torch.float64)
-    values *= torch.exp(6 * torch.rand(plain.size, generator=generator, dtype=torch.float64))
-    factors = 0.9 + 0.1 * torch.rand(plain.columns, generator=generator, dtype=torch.float64)
-    for expected, got in [
-        (plain.tail_sums(values), compiled.tail_sums(values)),
-        (plain.tail_sums(values, factors), compiled.tail_sums(values, factors)),
-        (plain.step_powers(factors), compiled.step_powers(factors)),
-        (plain.column_totals(values), compiled.column_totals(values)),
-    ]:
-        assert torch.equal(got, expected) and torch.equal(got.signbit(), expected.signbit())
-    per_column = torch.randn(plain.columns, generator=generator, dtype=torch.float64)
-    assert torch.equal(compiled.per_cell(per_column), plain.per_cell(per_column))
-    assert torch.equal(compiled.order, plain.order) and torch.equal(compiled.rank, plain.rank)
-    assert compiled.widths == plain.widths and compiled.starts == plain.starts
-    assert (compiled.steps, compiled.size) == (plain.steps, plain.size)
-    for cells in (torch.randperm(plain.size, generator=generator), torch.arange(0, plain.size, 3)):
-        assert torch.equal(
-            compiled.placed(cells, values[: len(cells)]), plain.placed(cells, values[: len(cells)])
-        )
-    assert torch.equal(compiled.time, plain.time) and torch.equal(compiled.column, plain.column)
-    assert compiled.tail_sums(values.float()).dtype == torch.float32  # the loop takes float32
-    # the indices of cells, each group's sums at each step and their spread back to the cells
-    time, column = plain.time.flip(0), plain.column.flip(0)
-    assert torch.equal(compiled.cell(time, column), plain.cell(time, column))
-    size = int(groups.max()) + 1
-    longest = plain.extents.new_zeros(size).scatter_reduce(0, groups, plain.extents, "amax")
-    table = Staircase(longest)
-    sums = plain.step_group_sums(values, groups, table)
-    got = compiled.step_group_sums(values, groups, Staircase(longest, scans=SCANS))
-    assert torch.equal(got, sums) and torch.equal(got.signbit(), sums.signbit())
-    assert torch.equal(
-        compiled.per_step_group(sums, groups, Staircase(longest, scans=SCANS)),
-        plain.per_step_group(sums, groups, table),
-    )
-
-
 def test_episode_statistics_match_the_torch_engine() -> None:
     """The same θ̃_0 and population, 300 agents: the compiled backend's and the torch engine's
     mean training episode length agree within four standard errors (their floats differ,

@@ -1,6 +1,6 @@
 """The compiled estimator (common/batched/estimator.py) against its definition, the torch
-estimator (common/estimators.py through common/engine/estimate.py) on the padded batch without
-any backend's scans: the same bits (``np.array_equal`` on float64) for every option the torch
+estimator (common/estimators.py through common/engine/estimate.py) on the padded batch: the
+same bits (``np.array_equal`` on float64) for every option the torch
 code takes, on random staircases of rows (single trajectories, empty rows between others, a
 lone row), CartPole's rewards and signed ones, per-row discounts, importance weights, and any
 order of the packed steps; the same ValueErrors where it refuses; a row's numbers the same in
@@ -16,7 +16,6 @@ import pytest
 import torch
 
 from fedhpg.common.batched.estimator import packed_coefficients
-from fedhpg.common.batched.scans import SCANS
 from fedhpg.common.engine.estimate import EstimatorOptions, batch_coefficients
 from fedhpg.common.engine.trajectories import StepRows, Trajectories
 
@@ -119,7 +118,7 @@ def _random_batch(rng: np.random.Generator, permute: bool = True) -> Batch:
 
 
 def _padded(batch: Batch) -> Trajectories:
-    """The batch padded to its longest trajectory, without any backend's scans."""
+    """The batch padded to its longest trajectory (the torch definition's own input)."""
     steps, columns = int(batch.lengths.max()), batch.lengths.shape[0]
     rewards = torch.zeros((steps, columns), dtype=torch.float64)
     alive = torch.zeros((steps, columns), dtype=torch.bool)
@@ -138,7 +137,8 @@ def _padded(batch: Batch) -> Trajectories:
 
 
 def _packed(batch: Batch) -> Trajectories:
-    """The batch as the compiled backend hands it over: packed steps, its scans."""
+    """The batch as the compiled backend hands it over: packed steps (the padded tensors
+    built from them)."""
     packed = len(batch.time)
     per_row = np.bincount(batch.owner, weights=batch.lengths, minlength=len(batch.counts))
     steps = StepRows(
@@ -156,7 +156,6 @@ def _packed(batch: Batch) -> Trajectories:
         counts=torch.from_numpy(batch.counts),
         lengths=torch.from_numpy(batch.lengths),
         steps=steps,
-        scans=SCANS,
     )
 
 
@@ -228,9 +227,9 @@ def test_every_option_gives_the_torch_definitions_bits(seed: int) -> None:
 
 
 @pytest.mark.parametrize("seed", range(100, 120))
-def test_the_backends_scans_path_agrees(seed: int) -> None:
-    """The path the compiled backend takes today (packed steps, compiled scans, each
-    trajectory's cells stopping at its own end) gives the same bits too."""
+def test_the_packed_batchs_torch_path_agrees(seed: int) -> None:
+    """The torch definition on the batch as the compiled sampler packs it (its cells placed
+    from the packed steps) gives the same bits too."""
     rng = np.random.default_rng(seed)
     batch = _random_batch(rng, permute=False)
     for options, weighting in COMBINATIONS:

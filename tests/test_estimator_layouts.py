@@ -1,7 +1,7 @@
 """The estimator on two layouts of one batch: each trajectory extended to its agent's longest
 (the dead cells a per-step baseline reaches) or stopped at its own last step (the dead tail
 carried in once per agent). The coefficients of the steps that happened must be the same
-bits on both, with the staircase's torch code and with the compiled backend's scans."""
+bits on both."""
 
 from __future__ import annotations
 
@@ -11,7 +11,7 @@ import pytest
 import torch
 
 from fedhpg.common import estimators
-from fedhpg.common.staircase import Scans, Staircase
+from fedhpg.common.staircase import Staircase
 
 OPTIONS = [
     (estimator, baseline, to_go, normalize)
@@ -20,14 +20,6 @@ OPTIONS = [
     )
     if not (estimator == "reinforce" and to_go == "from_step")
 ]
-
-
-def _scans(kind: str) -> Scans | None:
-    if kind == "torch":
-        return None
-    from fedhpg.common.batched.scans import SCANS
-
-    return SCANS
 
 
 def _batch(seed: int) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
@@ -54,15 +46,14 @@ def _on(
     return torch.zeros(layout.size, dtype=torch.float64).index_copy_(0, cells, rewards), cells
 
 
-@pytest.mark.parametrize("scans", ["torch", "compiled"])
 @pytest.mark.parametrize(("estimator", "baseline", "to_go", "normalize"), OPTIONS)
 def test_stopping_each_trajectory_at_its_end_changes_no_bit(
-    scans: str, estimator: str, baseline: str, to_go: str, normalize: str
+    estimator: str, baseline: str, to_go: str, normalize: str
 ) -> None:
     for seed in range(3):
         groups, lengths, rewards, gamma = _batch(seed)
-        grouped = Staircase.of_groups(lengths, groups, _scans(scans))
-        own = Staircase(lengths, scans=_scans(scans))
+        grouped = Staircase.of_groups(lengths, groups)
+        own = Staircase(lengths)
         assert own.size == int(lengths.sum()) < grouped.size  # the check has dead cells to skip
         results = []
         for layout in (grouped, own):
@@ -79,16 +70,12 @@ def test_stopping_each_trajectory_at_its_end_changes_no_bit(
         assert bool(expected.ne(0).any())
 
 
-@pytest.mark.parametrize("scans", ["torch", "compiled"])
-def test_without_the_carried_tail_the_check_fails(
-    scans: str, monkeypatch: pytest.MonkeyPatch
-) -> None:
+def test_without_the_carried_tail_the_check_fails(monkeypatch: pytest.MonkeyPatch) -> None:
     """The stopped layout with its dead tails dropped gives other GPOMDP coefficients: the
     comparison above can tell."""
     groups, lengths, rewards, gamma = _batch(0)
     results = []
-    for layout in (Staircase.of_groups(lengths, groups, _scans(scans)),
-                   Staircase(lengths, scans=_scans(scans))):  # fmt: skip
+    for layout in (Staircase.of_groups(lengths, groups), Staircase(lengths)):
         cell_rewards, cells = _on(layout, lengths, rewards)
         alive = torch.zeros(layout.size, dtype=torch.bool).index_fill_(0, cells, True)
         monkeypatch.setattr(estimators, "_carry_dead_tails", lambda *args: None)

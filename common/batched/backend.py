@@ -326,8 +326,7 @@ def warm_up() -> float:
         )  # fmt: skip
     # the estimator, plain and standardised (its second kernel), and both gradient kernels
     gammas = torch.full((2,), 0.99, dtype=torch.float64)
-    for normalize in ("none", "batch"):
-        options = EstimatorOptions(normalize=normalize)  # type: ignore[arg-type]
+    for options in (EstimatorOptions(), EstimatorOptions(normalize="batch")):
         coefficients = backend.coefficients(batch, options, gammas, None)
     backend.gradients(theta, batch, coefficients)
     backend.trajectory_gradients(theta, batch, coefficients)

@@ -41,17 +41,11 @@ def batch_coefficients(
     """The estimator's coefficients of ``batch``, one per cell of ``batch.layout``, [S]
     float64: each row's trajectories its baselines' group, discounted by its γ (``gammas``
     [A]); ``weights``: importance weights, [N] per trajectory or [T, N] per decision."""
-    # weights past a trajectory's end, and a batch's standardisation in its cells' order,
-    # need every cell the terms reach
-    layout = (
-        batch.grouped_layout
-        if weights is not None or options.normalize == "batch"
-        else batch.layout
-    )
-    rewards, alive = batch.cells if layout is batch.layout else batch.cells_on(layout)
+    layout = batch.layout
+    rewards, alive = batch.cells
     if weights is not None and weights.dim() == 2:
         weights = layout.gather(weights)
-    coefficients = estimators.coefficients(
+    return estimators.coefficients(
         options.estimator,
         layout,
         rewards,
@@ -63,6 +57,3 @@ def batch_coefficients(
         normalize=options.normalize,
         groups=batch.owner,
     )
-    if layout is batch.layout:
-        return coefficients
-    return coefficients.index_select(0, layout.cell(batch.layout.time, batch.layout.column))

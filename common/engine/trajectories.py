@@ -6,12 +6,9 @@ columns are contiguous. The torch backend records steps padded to the longest tr
 padding (reward 0). The compiled backend hands over the alive steps packed row by row
 (:class:`StepRows`), and the padded tensors are built only if a primitive asks for them.
 
-The estimator computes on :attr:`Trajectories.layout`, a :class:`~fedhpg.common.staircase.Staircase`
-without the padding to the batch's longest: on the torch backend each trajectory reaches as
-far as its row's longest (every cell an estimator's terms reach), on the compiled backend it
-stops at its own last step (the estimator carries the rest once per row: the same bits, on
-fewer cells). Importance weights and a batch's standardisation take the longer layout,
-:attr:`Trajectories.grouped_layout`, on either.
+The torch estimator computes on :attr:`Trajectories.layout`, a
+:class:`~fedhpg.common.staircase.Staircase` without the padding to the batch's longest: each
+trajectory reaches as far as its row's longest (every cell an estimator's terms reach).
 """
 
 from __future__ import annotations
@@ -21,7 +18,7 @@ from functools import cached_property
 
 import torch
 
-from fedhpg.common.staircase import Scans, Staircase, ordered_sums
+from fedhpg.common.staircase import Staircase, ordered_sums
 
 
 @dataclass(frozen=True)
@@ -59,7 +56,6 @@ class Trajectories:
         obs: torch.Tensor | None = None,
         actions: torch.Tensor | None = None,
         steps: StepRows | None = None,
-        scans: Scans | None = None,
         returns: torch.Tensor | None = None,
     ) -> None:
         padded = rewards is not None and alive is not None and obs is not None
@@ -72,8 +68,6 @@ class Trajectories:
         self.counts = counts
         """[A] int64: trajectories per row (0 for a row that sampled none)."""
         self.steps = steps
-        self.scans = scans
-        """The backend's scans for :attr:`layout` (None: the staircase's own)."""
         self._lengths = lengths
         self._returns = returns
         """Each trajectory's undiscounted return, where the backend knows it as it samples
@@ -132,47 +126,20 @@ class Trajectories:
     # -- the estimator's cells ----------------------------------------------------------------
 
     @cached_property
-    def grouped_layout(self) -> Staircase:
-        """Each trajectory's cells up to its row's longest trajectory: every cell an
-        estimator's terms reach."""
-        return Staircase.of_groups(self.lengths(), self.owner, self.scans)
-
-    @cached_property
     def layout(self) -> Staircase:
-        """The cells the batch's coefficients are on: with a backend's scans, each trajectory's
-        own steps (the estimator carries what lies past them); else :attr:`grouped_layout`."""
-        if self.scans is None:
-            return self.grouped_layout
-        return Staircase(self.lengths(), scans=self.scans)
+        """Each trajectory's cells up to its row's longest trajectory: every cell an
+        estimator's terms reach (:meth:`Staircase.of_groups`)."""
+        return Staircase.of_groups(self.lengths(), self.owner)
 
     @cached_property
-    def step_cells(self) -> torch.Tensor:
-        """The cell of each of :attr:`steps` in :attr:`layout`, [R]."""
-        assert self.steps is not None
-        return self.layout.cell(self.steps.time, self.steps.column)
-
-    @cached_property
-    def cells(self) -> tuple[torch.Tensor, torch.Tensor | None]:
-        """(rewards, alive) of every cell of :attr:`layout`, [S] each (alive None: every cell
-        is a step)."""
-        return self.cells_on(self.layout)
-
-    def cells_on(self, layout: Staircase) -> tuple[torch.Tensor, torch.Tensor | None]:
-        """(rewards, alive) of every cell of ``layout`` (:attr:`layout` or
-        :attr:`grouped_layout`)."""
+    def cells(self) -> tuple[torch.Tensor, torch.Tensor]:
+        """(rewards, alive) of every cell of :attr:`layout`, [S] each."""
+        layout = self.layout
         if self.steps is None:
             return layout.gather(self.rewards), layout.gather(self.alive)
-        every_step = layout is self.layout and not layout.grouped
-        at = (
-            self.step_cells
-            if layout is self.layout
-            else layout.cell(self.steps.time, self.steps.column)
-        )
-        rewards = layout.placed(at, self.steps.rewards)
-        if every_step:
-            return rewards, None
+        at = layout.cell(self.steps.time, self.steps.column)
         alive = torch.zeros(layout.size, dtype=torch.bool, device=at.device)
-        return rewards, alive.index_fill_(0, at, True)
+        return layout.placed(at, self.steps.rewards), alive.index_fill_(0, at, True)
 
     # -- per row and per trajectory -----------------------------------------------------------
 
@@ -189,9 +156,9 @@ class Trajectories:
         out = Trajectories(success=self.success, owner=positions[self.owner], counts=counts,
                            lengths=self._lengths, rewards=self._rewards, alive=self._alive,
                            obs=self._obs, actions=self._actions, steps=steps,
-                           scans=self.scans, returns=self._returns)  # fmt: skip
+                           returns=self._returns)  # fmt: skip
         # renaming rows moves no cell
-        for kept in ("grouped_layout", "layout", "step_cells", "cells"):
+        for kept in ("layout", "cells"):
             if kept in self.__dict__:
                 out.__dict__[kept] = self.__dict__[kept]
         return out
