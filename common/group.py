@@ -248,6 +248,8 @@ class EngineGroup:
             budgets=budgets,
             on_work=interrupt_free if on_iteration is not None else None,
         )
+        if len(order) == 1:
+            return {order[0]: columns.lone_result()}
         return {k: columns.result(i) for i, k in enumerate(order)}
 
     def evaluate(

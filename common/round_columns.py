@@ -86,6 +86,24 @@ class TrainedColumns:
     def result(self, i: int) -> LocalResult:
         return LocalResult(theta=torch.from_numpy(self.thetas[i]), stats=self.record(i))
 
+    def lone_result(self) -> LocalResult:
+        """:meth:`result` of a round of one agent, without the columns' records (a lone agent
+        pays for one record, not for the machinery of many)."""
+        assert len(self.agents) == 1
+        stats = UpdateStats(
+            trajectories=int(self.trajectories[0]),
+            env_steps=int(self.env_steps[0]),
+            compute_s=float(self.compute_s[0]),
+            train_return=float(self.train_return[0]),
+            grad_clipped=int(self.grad_clipped[0]),
+            algorithm={
+                name: value
+                for name, column in self.algorithm.items()
+                if (value := column[0]) is not None
+            },
+        )
+        return LocalResult(theta=torch.from_numpy(self.thetas[0]), stats=stats)
+
 
 @runtime_checkable
 class ColumnGroup(Protocol):

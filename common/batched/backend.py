@@ -12,9 +12,10 @@ placements of one run they never differ.
 
 from __future__ import annotations
 
+import functools
 import sys
 import time
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import replace
 
 import numpy as np
@@ -33,6 +34,12 @@ from fedhpg.envs.compiled import CARTPOLE_DEFAULTS, CARTPOLE_STEP_LIMIT, cartpol
 
 RECENT_ROWS = 8
 """Sets of rows :meth:`CompiledBackend._physics_rows` keeps (a round's local iterations)."""
+
+
+@functools.cache
+def _run_key(seed: int, purpose: int) -> int:
+    """The (seed, purpose) part of every trajectory key, hashed once."""
+    return randomness.key_of(seed, purpose)
 
 
 def covers(variant: EnvVariant) -> bool:
@@ -60,7 +67,7 @@ class CompiledBackend:
         self._recent: dict[tuple[int, ...], np.ndarray] = {}
         """The physics rows of recent calls' agents (a round's iterations repeat them)."""
         self._buffers = _RowBuffers()
-        self._arange = torch.arange(0)
+        self._constants = _Constants()
 
     def _physics_rows(self, agents: Sequence[int]) -> np.ndarray:
         """The rows' physics tables, [A, P] (each agent's built once, kept in one array; the
@@ -95,9 +102,10 @@ class CompiledBackend:
     ) -> torch.Tensor:
         """:func:`~fedhpg.common.randomness.trajectory_keys` of trajectories 0 … ``counts[a]``
         − 1 of every agent ``agents[a]``, row after row: the same words, in one compiled call."""
-        out = np.empty(int(counts.sum()), dtype=np.int64)
+        wanted = counts.numpy()
+        out = np.empty(int(wanted.sum()), dtype=np.int64)
         kernels.trajectory_keys(
-            randomness.key_of(seed, int(purpose)), agents.numpy(), counts.numpy(),
+            _run_key(seed, int(purpose)), agents.numpy(), wanted,
             randomness.signed(round_index), randomness.signed(iteration), out,
         )  # fmt: skip
         return torch.from_numpy(out)
@@ -156,19 +164,21 @@ class CompiledBackend:
         packed = StepRows(
             obs=torch.from_numpy(rows_obs[:written]),
             actions=torch.from_numpy(rows_action[:written]),
-            rewards=torch.ones(written, dtype=torch.float64),  # CartPole: 1 a step, the last too
+            rewards=self._constants.ones(written),  # CartPole: 1 a step, the last too
             time=torch.from_numpy(rows_time[:written]),
             column=torch.from_numpy(rows_column[:written]),
-            rows=torch.arange(rows),
+            rows=self._constants.arange(rows),
             row_start=torch.from_numpy(row_start),
         )
+        per_row = torch.from_numpy(np.diff(row_start))
         return Trajectories(
-            success=torch.zeros(total, dtype=torch.bool),  # CartPole has no goal
+            success=self._constants.false(total),  # CartPole has no goal
             owner=torch.from_numpy(np.repeat(np.arange(rows), count)),
-            counts=counts.clone(),
+            counts=counts,
             lengths=steps,
             steps=packed,
             returns=steps.double(),  # a reward of 1 a step, summed exactly
+            row_sums=(per_row, per_row.double()),
         )
 
     def gradients(
@@ -182,7 +192,7 @@ class CompiledBackend:
             theta if every_row else theta[steps.rows],
             steps,
             coefficients,
-            self._identity(len(coefficients)),
+            self._constants.arange(len(coefficients)),
             steps.row_start,
         )
         if every_row:
@@ -227,12 +237,6 @@ class CompiledBackend:
         )
         return torch.from_numpy(out)
 
-    def _identity(self, size: int) -> torch.Tensor:
-        """0 … ``size`` − 1 (kept: each step's coefficient is its own)."""
-        if self._arange.shape[0] < size:
-            self._arange = torch.arange(max(size, 2 * self._arange.shape[0]))
-        return self._arange[:size]
-
     @staticmethod
     def _packed_steps(batch: Trajectories) -> StepRows:
         """The batch's alive steps packed row after row (as the sampler wrote them)."""
@@ -250,6 +254,32 @@ class CompiledBackend:
     def close(self) -> None:
         if self._torch is not None:
             self._torch.close()
+
+
+class _Constants:
+    """Read-only tensors a batch shares with the next (ones, falses, 0 … n − 1), grown as
+    needed and handed out as prefixes: a batch never writes into its own."""
+
+    def __init__(self) -> None:
+        self._ones = torch.ones(0, dtype=torch.float64)
+        self._false = torch.zeros(0, dtype=torch.bool)
+        self._arange = torch.arange(0)
+
+    @staticmethod
+    def _grown(kept: torch.Tensor, size: int, make: Callable[[int], torch.Tensor]) -> torch.Tensor:
+        return kept if kept.shape[0] >= size else make(max(size, 2 * kept.shape[0]))
+
+    def ones(self, size: int) -> torch.Tensor:
+        self._ones = self._grown(self._ones, size, lambda n: torch.ones(n, dtype=torch.float64))
+        return self._ones[:size]
+
+    def false(self, size: int) -> torch.Tensor:
+        self._false = self._grown(self._false, size, lambda n: torch.zeros(n, dtype=torch.bool))
+        return self._false[:size]
+
+    def arange(self, size: int) -> torch.Tensor:
+        self._arange = self._grown(self._arange, size, torch.arange)
+        return self._arange[:size]
 
 
 class _RowBuffers:

@@ -189,7 +189,7 @@ class Round:
         constants = self.constants
         limit = constants.horizon if horizons is None else horizons
         wanted = counts
-        if bool((counts > 0).all()):  # every row samples: no row to leave out
+        if int(counts.min()) > 0:  # every row samples: no row to leave out
             positions = None
             agents, agent_ids, rows = self.agents, constants.agent, theta
         else:
@@ -226,7 +226,7 @@ class Round:
     ) -> torch.Tensor:
         """(1/B_a) Σ_n g(τ_n | θ_a) with the run's estimator, per row [A, d]."""
         gradient = self.gradients(theta, batch, self.coefficients(batch, weights))
-        return gradient / batch.counts.clamp_min(1).to(gradient.dtype).unsqueeze(1)
+        return gradient.div_(batch.counts.clamp_min(1).unsqueeze(1))
 
     def log_probs(self, theta: torch.Tensor, batch: Trajectories) -> torch.Tensor:
         """log π_θa(a_t|s_t) of every alive step under its row's θ row, [T, N] float64 (0
@@ -255,14 +255,14 @@ class Round:
         elapsed, self._clock = now - self._clock, now
         sampled, self._sampling_s = min(self._sampling_s, elapsed), 0.0
         steps_per_row = batch.steps_per_row()
-        columns = [batch.counts, steps_per_row, batch.per_row(batch.returns())]
+        columns = [batch.counts, steps_per_row, batch.returns_per_row()]
         columns.append(steps_per_row if grad_steps is None else grad_steps)
         if clipped is not None:
             columns.append(clipped)
         host = _on_host(columns)
         counts, steps, grads = (host[i].astype(np.int64) for i in (0, 1, 3))
         tally = self.tally
-        share = steps / max(int(steps.sum()), 1)
+        share = steps / max(steps.sum(), 1)
         compute = share * elapsed
         tally.trajectories += counts
         tally.env_steps += steps

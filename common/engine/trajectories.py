@@ -57,6 +57,7 @@ class Trajectories:
         actions: torch.Tensor | None = None,
         steps: StepRows | None = None,
         returns: torch.Tensor | None = None,
+        row_sums: tuple[torch.Tensor, torch.Tensor] | None = None,
     ) -> None:
         padded = rewards is not None and alive is not None and obs is not None
         if not padded and (steps is None or lengths is None):
@@ -70,6 +71,9 @@ class Trajectories:
         self.steps = steps
         self._lengths = lengths
         self._returns = returns
+        self._row_sums = row_sums
+        """(steps, undiscounted returns) of each row, where the backend knows them as it
+        samples (the sums :meth:`steps_per_row` and :meth:`per_row` would add, to the bit)."""
         """Each trajectory's undiscounted return, where the backend knows it as it samples
         (the sum :meth:`returns` would add, to the bit)."""
         self._rewards, self._alive = rewards, alive
@@ -175,6 +179,8 @@ class Trajectories:
 
     def steps_per_row(self) -> torch.Tensor:
         """Alive steps of each row, [A] int64."""
+        if self._row_sums is not None:
+            return self._row_sums[0]
         return torch.zeros_like(self.counts).index_add_(0, self.owner, self.lengths())
 
     def returns(self, gammas: torch.Tensor | None = None) -> torch.Tensor:
@@ -191,3 +197,9 @@ class Trajectories:
     def per_row(self, values: torch.Tensor) -> torch.Tensor:
         """Sum of a per-trajectory [N] quantity over each row's trajectories, [A]."""
         return ordered_sums(self.owner, values, self.num_rows)
+
+    def returns_per_row(self) -> torch.Tensor:
+        """Each row's sum of its trajectories' undiscounted returns, [A] float64."""
+        if self._row_sums is not None:
+            return self._row_sums[1]
+        return self.per_row(self.returns())
