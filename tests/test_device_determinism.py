@@ -10,14 +10,16 @@ deterministic setting is the caller's again afterwards.
 
 from __future__ import annotations
 
+from collections.abc import Callable
+
 import pytest
 import torch
 
 from fedhpg.common.engine.devices import deterministic_off_cpu
 from fedhpg.common.engine.memory import packed_elements
-from fedhpg.common.engine.policy_rows import PolicyRows
 from fedhpg.common.engine.sampling import ACT_TILE, act_tiles_per_call
 from fedhpg.common.group import EngineGroup
+from fedhpg.common.policies import Params
 from fedhpg.common.runtime.cli import compose
 from fedhpg.common.variants import variants_of
 from fedhpg.common.worker import initial_theta
@@ -29,6 +31,16 @@ FAMILIES = {
 }
 
 
+def _recorded(act: Callable[..., torch.Tensor], calls: list[int]) -> Callable[..., torch.Tensor]:
+    """A policy's ``act_with`` that records each call's tiles in ``calls``."""
+
+    def recorded(params: Params, obs: torch.Tensor, noise: torch.Tensor | None) -> torch.Tensor:
+        calls.append(obs.shape[0])
+        return act(params, obs, noise)
+
+    return recorded
+
+
 @pytest.mark.parametrize("family", sorted(FAMILIES))
 def test_fixed_shape_policy_calls_give_the_same_theta_in_any_company(
     family: str, monkeypatch: pytest.MonkeyPatch
@@ -38,18 +50,11 @@ def test_fixed_shape_policy_calls_give_the_same_theta_in_any_company(
     theta = initial_theta(variants_of(run, [0])[0], run)
     plain = EngineGroup(run, variants_of(run, [4])).train(3, theta, [4])[4].theta
     calls: list[int] = []
-    act = PolicyRows.act
-
-    def recorded(
-        self: PolicyRows, theta: torch.Tensor, obs: torch.Tensor, noise: torch.Tensor | None
-    ) -> torch.Tensor:
-        calls.append(theta.shape[0])
-        return act(self, theta, obs, noise)
-
-    monkeypatch.setattr(PolicyRows, "act", recorded)
     for company in ([4], list(range(9)), [8, 4, 1]):
         group = EngineGroup(run, variants_of(run, company))
         group.engine.backend.act_tiles_per_call = 3  # what a GPU gets, forced on
+        policy = group.engine.backend.policy.policy  # the sampler calls its act_with
+        monkeypatch.setattr(policy, "act_with", _recorded(policy.act_with, calls))
         assert torch.equal(group.train(3, theta, company)[4].theta, plain)
     assert calls and set(calls) == {3}, "every policy call takes exactly 3 tiles"
 

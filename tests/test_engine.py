@@ -231,36 +231,3 @@ def test_trajectory_keys_are_the_same_hashed_per_agent_or_per_trajectory(agents:
         each = trajectory_keys(11, ids[owner], round_index, purpose, iteration, index)
         assert torch.equal(spread, each)
         assert len(set(each.tolist())) == len(each)  # distinct keys: the check can tell
-
-
-def test_ended_copies_leave_the_stepping() -> None:
-    """Torch copies that have ended stop being stepped: at every step the running copies are
-    more than three quarters of those the environment steps, however the ended ones fall
-    across the agents' blocks (a block with one copy still running is not stepped whole)."""
-    from fedhpg.common.engine import copies as copies_module
-
-    run = compose([
-        "env=cartpole", "algo.engine=torch", "policy.hidden=[8]", "agents.num_agents=6",
-        "agents.budget.batch_size=[16]", "agents.speeds=[1]", "agents.step_delays_s=[0]",
-    ])  # fmt: skip
-    agents = list(range(6))
-    engine = Engine(run, variants_of(run, agents))
-    rows = engine.begin(1, initial_theta(variants_of(run, [0])[0], run), agents)
-    widths: list[int] = []
-    step = copies_module.DeviceBlocks.step
-
-    def spy(self, actions, blocks, columns, noise=None):  # type: ignore[no-untyped-def]
-        widths.append(len(actions))
-        return step(self, actions, blocks, columns, noise)
-
-    copies_module.DeviceBlocks.step = spy  # type: ignore[method-assign]
-    try:
-        batch = rows.sample(rows.theta, torch.full((6,), 16), iteration=0)
-    finally:
-        copies_module.DeviceBlocks.step = step  # type: ignore[method-assign]
-    lengths = batch.alive.sum(0)
-    assert int(lengths.min()) < int(lengths.max()) // 2  # episodes of very different lengths
-    assert len(widths) == int(lengths.max()) and widths[0] == 96
-    for t, width in enumerate(widths):
-        running = int((lengths > t).sum())
-        assert 4 * running > 3 * width, (t, width, running)

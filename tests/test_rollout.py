@@ -10,8 +10,7 @@ import torch
 from engine_mdp import mdp_engine
 
 from fedhpg.common.engine.engine import Engine
-from fedhpg.common.engine.policy_rows import PolicyRows
-from fedhpg.common.engine.sampling import ACT_TILE
+from fedhpg.common.engine.sampling import ACT_TILE, END_CHECK
 from fedhpg.common.randomness import Purpose
 from fedhpg.envs.base import BatchStep
 
@@ -87,16 +86,19 @@ def test_each_row_keeps_its_own_horizon_and_discount() -> None:
 def test_one_policy_call_per_time_step_for_every_agent(monkeypatch: pytest.MonkeyPatch) -> None:
     engine = _countdown(rows=3)
     calls: list[tuple[int, ...]] = []
-    original = PolicyRows.act
+    policy = engine.backend.policy.policy  # the sampler calls its act_with on θ's parameters
+    original = policy.act_with
 
-    def counting(self: PolicyRows, theta, obs, noise):  # type: ignore[no-untyped-def]
+    def counting(params, obs, noise):  # type: ignore[no-untyped-def]
         calls.append(tuple(obs.shape))
-        return original(self, theta, obs, noise)
+        return original(params, obs, noise)
 
-    monkeypatch.setattr(PolicyRows, "act", counting)
+    monkeypatch.setattr(policy, "act_with", counting)
     batch = _sample(engine, [4, 2, 3])
-    assert len(calls) == batch.obs.shape[0], "one call per time step"
-    assert calls[0] == (3, ACT_TILE), "all three agents' copies in one call (a tile each)"
+    longest, horizon = batch.obs.shape[0], 10
+    stepped = min(horizon, -(-longest // END_CHECK) * END_CHECK)  # up to the next end check
+    assert len(calls) == stepped, "one call per time step"
+    assert set(calls) == {(3, ACT_TILE)}, "all three agents' copies in every call (a tile each)"
 
 
 def test_the_same_keys_give_the_same_batch_and_others_another() -> None:

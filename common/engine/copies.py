@@ -13,7 +13,6 @@ from __future__ import annotations
 from collections.abc import Callable, Sequence
 from typing import Protocol
 
-import gymnasium as gym
 import numpy as np
 import torch
 
@@ -43,110 +42,107 @@ class Copies(Protocol):
     offsets: torch.Tensor
     step_noise: int
     """Uniforms each copy's environment draws per step (0: none)."""
-    any_copies: bool
-    """Whether :meth:`step` takes any subset of the copies (else whole blocks only)."""
 
-    def reset(self, blocks: torch.Tensor, keys: torch.Tensor) -> torch.Tensor:
-        """Start an episode in every copy of ``blocks``, their copies' keys ``keys``; the
-        first observations of those copies, in order."""
+    def reset(self, keys: torch.Tensor) -> torch.Tensor:
+        """Start an episode in every copy, the copies' keys ``keys`` [N]; their first
+        observations, in order."""
         ...
 
     def step(
-        self,
-        actions: torch.Tensor,
-        blocks: torch.Tensor,
-        columns: torch.Tensor | None,
-        noise: torch.Tensor | None = None,
+        self, actions: torch.Tensor, running: torch.Tensor, noise: torch.Tensor | None = None
     ) -> CopyStep:
-        """One action per copy in ``columns`` (None: every copy), ``blocks`` the blocks they
-        belong to (whole blocks unless :attr:`any_copies`); ``noise`` [copies, step_noise]
-        their environments' uniforms (None when none)."""
+        """One step of every copy from ``actions`` [N] (one per copy), ``running`` [N] the
+        copies whose episode goes on, ``noise`` [N, step_noise] the environments' uniforms
+        (None when none). The result has every copy's row; a copy that is not running may
+        be stepped or not (its row is then any value): the sampler masks it out."""
         ...
 
     def close(self) -> None: ...
 
 
-def columns_of(offsets: torch.Tensor, blocks: torch.Tensor) -> torch.Tensor:
-    """The columns of ``blocks`` (increasing), in order."""
-    starts, ends = offsets[blocks], offsets[blocks + 1]
-    sizes = ends - starts
-    first = torch.repeat_interleave(starts - torch.cumsum(sizes, 0) + sizes, sizes)
-    return first + torch.arange(int(sizes.sum()), device=offsets.device)
-
-
 class DeviceBlocks:
-    """Blocks over a family's torch copies."""
+    """Blocks over a family's torch copies, every copy stepped at every step: a step's shapes
+    are the batch's, whatever has ended (no count, no index to wait for)."""
 
     def __init__(self, copies: DeviceCopies, offsets: torch.Tensor) -> None:
         self.copies = copies
         self.offsets = offsets.to(copies.device)
         self.step_noise = int(copies.step_noise)
-        self.any_copies = True
 
-    def reset(self, blocks: torch.Tensor, keys: torch.Tensor) -> torch.Tensor:
-        return self.copies.reset(columns_of(self.offsets, blocks), KeyedReset(keys))
+    def reset(self, keys: torch.Tensor) -> torch.Tensor:
+        columns = torch.arange(len(keys), device=self.offsets.device)
+        return self.copies.reset(columns, KeyedReset(keys))
 
     def step(
-        self,
-        actions: torch.Tensor,
-        blocks: torch.Tensor,
-        columns: torch.Tensor | None,
-        noise: torch.Tensor | None = None,
+        self, actions: torch.Tensor, running: torch.Tensor, noise: torch.Tensor | None = None
     ) -> CopyStep:
-        return self.copies.step(actions, columns, noise)
+        return self.copies.step(actions, None, noise)
 
     def close(self) -> None:
         pass
 
 
 class GymBlocks:
-    """Blocks over gymnasium batch environments, one per block, on the CPU."""
+    """Blocks over gymnasium batch environments, one per block, on the CPU. A step steps the
+    blocks that still hold a running copy (a block whose copies have all ended is left
+    alone: a gymnasium environment stepped past its episode's end would pay for steps, and
+    autoresets, no one reads); the other blocks' rows repeat their last observation."""
 
     step_noise = 0  # gymnasium environments draw from their own generators
-    any_copies = False  # a batch environment steps all its copies
 
     def __init__(self, envs: Sequence[BatchEnv], device: torch.device) -> None:
         self.envs = list(envs)
-        counts = torch.tensor([env.num_envs for env in self.envs], dtype=torch.int64)
-        self.offsets = torch.cat([torch.zeros(1, dtype=torch.int64), counts.cumsum(0)]).to(device)
+        sizes = [env.num_envs for env in self.envs]
+        self.starts = np.concatenate([[0], np.cumsum(sizes, dtype=np.int64)])
+        self.offsets = torch.from_numpy(self.starts.copy()).to(device)
         self.device = device
-        space = self.envs[0].single_action_space
-        self.discrete = isinstance(space, gym.spaces.Discrete)
+        self.last: np.ndarray | None = None
+        """Every copy's latest observation."""
 
-    def reset(self, blocks: torch.Tensor, keys: torch.Tensor) -> torch.Tensor:
+    def reset(self, keys: torch.Tensor) -> torch.Tensor:
+        """Each block seeded by its first copy's key."""
         block_seeds = seeds(keys, -1)
-        sizes = self.offsets[blocks + 1] - self.offsets[blocks]
-        starts = (torch.cumsum(sizes, 0) - sizes).tolist()
         parts = [
-            np.asarray(self.envs[b].reset(seed=block_seeds[start]))
-            for b, start in zip(blocks.tolist(), starts, strict=True)
+            np.asarray(env.reset(seed=block_seeds[int(start)]))
+            for env, start in zip(self.envs, self.starts[:-1], strict=True)
         ]
-        return torch.from_numpy(np.concatenate(parts)).to(self.device)
+        first = np.concatenate(parts)
+        self.last = first.copy()
+        return torch.from_numpy(first).to(self.device)
 
     def step(
-        self,
-        actions: torch.Tensor,
-        blocks: torch.Tensor,
-        columns: torch.Tensor | None,
-        noise: torch.Tensor | None = None,
+        self, actions: torch.Tensor, running: torch.Tensor, noise: torch.Tensor | None = None
     ) -> CopyStep:
+        assert self.last is not None, "reset every block first"
         chosen = actions.cpu().numpy()
-        parts, at = [], 0
-        for b in blocks.tolist():
-            env = self.envs[b]
-            parts.append(env.step(chosen[at : at + env.num_envs]))
-            at += env.num_envs
-        cat = np.concatenate
+        going = running.cpu().numpy()
+        total = len(going)
+        obs = self.last
+        reward = np.zeros(total, dtype=np.float64)
+        terminated = np.ones(total, dtype=bool)
+        truncated = np.zeros(total, dtype=bool)
+        success = np.zeros(total, dtype=bool)
+        for b, env in enumerate(self.envs):
+            start, end = int(self.starts[b]), int(self.starts[b + 1])
+            if not going[start:end].any():
+                continue
+            part = env.step(chosen[start:end])
+            obs[start:end] = part.obs
+            reward[start:end] = part.reward
+            terminated[start:end] = part.terminated
+            truncated[start:end] = part.truncated
+            success[start:end] = part.success
+        self.last = obs.copy()
 
         def tensor(values: np.ndarray) -> torch.Tensor:
             return torch.from_numpy(values).to(self.device)
 
         return CopyStep(
-            obs=tensor(cat([p.obs for p in parts])),
-            reward=tensor(cat([p.reward for p in parts]).astype(np.float64)),
-            terminated=tensor(cat([p.terminated for p in parts]).astype(bool)),
-            truncated=tensor(cat([p.truncated for p in parts]).astype(bool)),
-            success=tensor(cat([p.success for p in parts]).astype(bool)),
+            obs=tensor(obs),
+            reward=tensor(reward),
+            terminated=tensor(terminated),
+            truncated=tensor(truncated),
+            success=tensor(success),
         )
 
     def close(self) -> None:

@@ -4,12 +4,17 @@ Block b holds ``counts[b]`` copies of one row's environment (its trajectories th
 iteration); every copy's randomness comes from its own trajectory key (its reset from counters
 −1, −2, …, its decisions from counters t · noise_size + j, its environment's own draws at step
 t, where a family has them, from :data:`ENV_COUNTERS` − t · step_noise − j), so a trajectory
-is the same in any company and any layout. Every stepped copy acts in one call of the policy
-(``PolicyRows.act`` on a grid of tiles, each of one block's copies under its θ row). Episode
-lengths vary a lot and a batch lasts as long as its longest episode, so copies that have
-ended leave the stepping: once the running copies are three quarters of those stepped or
-fewer, only they are stepped from then on (whole blocks, where the environments step a block
-at once: gymnasium's batch environments).
+is the same in any company and any layout.
+
+Every step is the same function of the batch's shapes alone: every copy acts, in one call of
+the policy on a grid of tiles built once per call (:class:`_Grid`, each tile one block's
+copies under its θ row), every copy is stepped (the torch families; gymnasium's batch
+environments skip the blocks whose copies have all ended), and a copy whose episode has ended
+is masked out (``running``), never recorded as alive. Nothing inside a step waits for the
+device: whether any copy still runs is asked every :data:`END_CHECK` steps, and the batch's
+length (its longest episode) is read once at the end. A step holds no data-dependent shape, no
+index found on the host and no allocation (the record buffers grow at those checks only), so
+a GPU runs it without waiting, and it could be captured as one graph.
 """
 
 from __future__ import annotations
@@ -17,14 +22,14 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import gymnasium as gym
+import numpy as np
 import torch
 
-from fedhpg.common.engine.copies import Copies, columns_of
+from fedhpg.common.engine.copies import Copies
 from fedhpg.common.engine.memory import packed_elements
 from fedhpg.common.engine.policy_rows import PolicyRows
 from fedhpg.common.engine.trajectories import Trajectories
 from fedhpg.common.randomness import uniforms, uniforms64
-from fedhpg.envs.device import put_distinct
 
 
 @dataclass(frozen=True)
@@ -38,9 +43,16 @@ class Faults:
 
 
 NOISE_CHUNK = 32
-"""Time steps of decision draws made at once for every stepped copy."""
+"""Time steps of decision draws made at once for every copy."""
 ENV_COUNTERS = -(1 << 40)
 """Where the counters of an environment's own draws start (downwards), far below a reset's."""
+END_CHECK = 16
+"""Steps between two checks whether any copy still runs (the sampler's only waits for the
+device while it steps). A batch steps at most ``END_CHECK − 1`` steps past its longest
+episode, whose results are masked and cut off; :data:`RECORD_START` is a multiple of it, so
+the record buffers grow at checks only."""
+RECORD_START = 64
+"""Steps of the first record buffers (``memory.RECORD_START`` plans for them)."""
 
 
 ACT_TILE = 16
@@ -65,61 +77,82 @@ def act_tiles_per_call(device: torch.device, num_params: int, agents: int) -> in
     return -(-agents // calls)
 
 
-class _Plan:
-    """The copies still stepped (``columns``, increasing, so each block's are adjacent), the
-    same as a padded [tiles, ACT_TILE] grid: each stepped block's copies cut into tiles of
-    exactly :data:`ACT_TILE` (its last one padded with its first copy), one policy call for
-    all of them, or calls of exactly ``tiles_per_call`` tiles (the grid then padded with empty
-    tiles to whole calls), and each tile's θ row. A copy's action depends on its own
-    observation, draws and θ row alone: which copies share its tile does not change it."""
+class _Grid:
+    """Every copy as a padded [tiles, ACT_TILE] grid, built once per batch: each block's
+    copies cut into tiles of exactly :data:`ACT_TILE` (its last one padded with its first
+    copy), one policy call for all of them, or calls of exactly ``tiles_per_call`` tiles (the
+    grid then padded with empty tiles, copy 0 under the first block's θ, to whole calls), and
+    each call's θ rows, split into the policy's parameters once. A copy's action depends on
+    its own observation, draws and θ row alone: which copies share its tile does not change
+    it."""
 
     def __init__(
         self,
-        columns: torch.Tensor,
-        owner: torch.Tensor,
+        policy: PolicyRows,
+        counts: list[int],
         theta: torch.Tensor,
-        tiles_per_call: int | None = None,
+        tiles_per_call: int | None,
     ) -> None:
-        self.columns = columns
-        device = columns.device
-        blocks, sizes = torch.unique_consecutive(owner[columns], return_counts=True)
-        self.blocks = blocks
+        device = theta.device
+        sizes = np.asarray(counts, dtype=np.int64)
         tiles = (sizes + ACT_TILE - 1) // ACT_TILE
-        block_of_tile = torch.repeat_interleave(torch.arange(len(blocks), device=device), tiles)
-        first_tile = torch.cumsum(tiles, 0) - tiles
-        start = (torch.arange(len(block_of_tile), device=device) - first_tile[block_of_tile]) * (
-            ACT_TILE
-        )
-        slots = start.unsqueeze(1) + torch.arange(ACT_TILE, device=device).unsqueeze(0)
-        self.valid = slots < sizes[block_of_tile].unsqueeze(1)
-        base = (torch.cumsum(sizes, 0) - sizes)[block_of_tile].unsqueeze(1)
-        self.grid = columns[torch.where(self.valid, base + slots, base)]
-        self.theta = theta[blocks][block_of_tile]
-        self.tiles_per_call = tiles_per_call
-        if tiles_per_call is not None:  # empty tiles (copy 0, the first block's θ) to whole calls
-            extra = -len(block_of_tile) % tiles_per_call
-            self.valid = torch.cat([self.valid, self.valid.new_zeros((extra, ACT_TILE))])
-            self.grid = torch.cat([self.grid, self.grid.new_zeros((extra, ACT_TILE))])
-            self.theta = torch.cat([self.theta, self.theta[:1].expand(extra, -1)])
-        self.everyone = len(columns) == len(owner)
-        self.slots = None if bool(self.valid.all()) else torch.nonzero(self.valid.flatten())[:, 0]
-        """The grid's slots that hold a copy, in order; None when none is padding (the grid's
-        actions are then the copies'). Found once per plan: selecting by a mask at every step
-        would wait for the device to count it."""
+        block_of_tile = np.repeat(np.arange(len(sizes)), tiles)
+        first_tile = np.cumsum(tiles) - tiles
+        start = (np.arange(len(block_of_tile)) - first_tile[block_of_tile]) * ACT_TILE
+        slots = start[:, None] + np.arange(ACT_TILE)[None, :]
+        valid = slots < sizes[block_of_tile][:, None]
+        base = (np.cumsum(sizes) - sizes)[block_of_tile][:, None]
+        grid = np.where(valid, base + slots, base)
+        extra = 0 if tiles_per_call is None else -len(block_of_tile) % tiles_per_call
+        if extra:  # empty tiles (copy 0, the first block's θ) to whole calls
+            valid = np.concatenate([valid, np.zeros((extra, ACT_TILE), dtype=bool)])
+            grid = np.concatenate([grid, np.zeros((extra, ACT_TILE), dtype=np.int64)])
+            block_of_tile = np.concatenate([block_of_tile, np.zeros(extra, dtype=np.int64)])
+        self.policy = policy
+        self.tiles = len(block_of_tile)
+        per_call = tiles_per_call or max(self.tiles, 1)
+        self.calls = [slice(at, at + per_call) for at in range(0, self.tiles, per_call)]
+        """The tiles of each policy call."""
+        rows = theta[torch.from_numpy(block_of_tile).to(device)]
+        self.theta = [rows[call] for call in self.calls]
+        """Each call's tiles' θ rows."""
+        self.params = [policy.params(part) for part in self.theta] if policy.batched else None
+        """The same as the policy's parameters (a policy whose maths broadcast over rows);
+        None: each call goes through :meth:`PolicyRows.act`."""
+        padded = not bool(valid.all())
+        self.index = torch.from_numpy(grid).to(device) if padded else None
+        """The copy in each slot; None when the grid is every copy in order (a view)."""
+        self.slots = torch.from_numpy(np.flatnonzero(valid)).to(device) if padded else None
+        """The slots that hold a copy, in order (None: every slot)."""
 
-    def act(
-        self, policy: PolicyRows, obs: torch.Tensor, noise: torch.Tensor | None
-    ) -> torch.Tensor:
-        """The grid's actions [tiles, ACT_TILE, ...] from every copy's ``obs`` and decision draws
-        ``noise`` [N, k] (None: greedy): one policy call, or calls of ``tiles_per_call`` tiles
-        each."""
-        per_call = self.tiles_per_call or self.grid.shape[0]
-        calls = []
-        for start in range(0, self.grid.shape[0], per_call):
-            grid = self.grid[start : start + per_call]
-            theta = self.theta[start : start + per_call]
-            calls.append(policy.act(theta, obs[grid], None if noise is None else noise[grid]))
-        return calls[0] if len(calls) == 1 else torch.cat(calls)
+    def draws(self, noise: torch.Tensor) -> torch.Tensor:
+        """Decision draws [..., N, k] of every copy as the grid's [..., tiles, ACT_TILE, k]."""
+        if self.index is None:
+            return noise.unflatten(-2, (self.tiles, ACT_TILE))
+        return noise[..., self.index, :]
+
+    def _call(self, i: int, obs: torch.Tensor, noise: torch.Tensor | None) -> torch.Tensor:
+        if self.params is None:
+            return self.policy.act(self.theta[i], obs, noise)
+        return self.policy.policy.act_with(self.params[i], obs, noise)
+
+    def act(self, obs: torch.Tensor, noise: torch.Tensor | None) -> torch.Tensor:
+        """Every copy's action [N, ...] from every copy's ``obs`` and the grid's decision
+        draws ``noise`` [tiles, ACT_TILE, k] (:meth:`draws`; None: greedy): one policy call,
+        or calls of ``tiles_per_call`` tiles each."""
+        if self.index is None:
+            grid_obs = obs.view(self.tiles, ACT_TILE, *obs.shape[1:])
+        else:
+            grid_obs = obs[self.index]
+        if len(self.calls) == 1:
+            acted = self._call(0, grid_obs, noise)
+        else:
+            acted = torch.cat([
+                self._call(i, grid_obs[call], None if noise is None else noise[call])
+                for i, call in enumerate(self.calls)
+            ])  # fmt: skip
+        acted = acted.flatten(0, 1)
+        return acted if self.slots is None else acted.index_select(0, self.slots)
 
 
 def sample(
@@ -134,79 +167,75 @@ def sample(
     faults: Faults | None = None,
     action_space: gym.Space | None = None,
     tiles_per_call: int | None = None,
+    end_check: int = END_CHECK,
 ) -> Trajectories:
     """One episode in each copy: block b is row b (θ row ``theta[b]``, ``counts[b]`` ≥ 1
     copies, at most ``horizons[b]`` steps); ``keys`` [N] are the copies' trajectory keys.
 
-    ``tiles_per_call``: None, one policy call per step for every stepped copy (the CPU); else
-    calls of exactly so many tiles of :data:`ACT_TILE` copies (a GPU library may pick its
-    kernel, and so its rounding, by a call's shape, which must then not depend on the
-    company)."""
+    ``tiles_per_call``: None, one policy call per step for every copy (the CPU); else calls
+    of exactly so many tiles of :data:`ACT_TILE` copies (a GPU library may pick its kernel,
+    and so its rounding, by a call's shape, which must then not depend on the company).
+    ``end_check``: steps between two checks whether any copy still runs (a divisor of
+    :data:`RECORD_START`)."""
+    assert RECORD_START % end_check == 0, "the record grows at checks only"
     device = theta.device
-    num_blocks = int(counts.shape[0])
-    offsets = copies.offsets
-    total = int(offsets[-1])
+    sizes = counts.tolist()
+    num_blocks, total = len(sizes), sum(sizes)
     owner = torch.repeat_interleave(torch.arange(num_blocks, device=device), counts)
-    everyone = torch.arange(num_blocks, device=device)
-    obs = copies.reset(everyone, keys)
+    grid = _Grid(policy, sizes, theta, tiles_per_call)
+    obs = copies.reset(keys)
     horizon = int(horizons.max())
-    stop_at = horizons[owner]
+    # each copy's horizon, where the rows' differ (else the loop's bound is every row's)
+    stop_at = horizons[owner] if bool((horizons < horizon).any()) else None
     record = _Record(total, obs, device)
     success = torch.zeros(total, dtype=torch.bool, device=device)
     running = torch.ones(total, dtype=torch.bool, device=device)
-    flipped = faults.flipped_rewards[owner] if faults is not None else None
-    random_columns = faults.random_actions[owner] if faults is not None and not greedy else None
+    lengths = torch.zeros(total, dtype=torch.int64, device=device)
+    flipped = None
+    if faults is not None and bool(faults.flipped_rewards.any()):
+        flipped = faults.flipped_rewards[owner]
+    randomised = None
+    if faults is not None and not greedy and bool(faults.random_actions.any()):
+        randomised = _RandomActions(faults.random_actions[owner], action_space, device)
     k = policy.noise_size
-    noise: torch.Tensor | None = None  # [N, NOISE_CHUNK, k], from the first chunk's draws
-    plan = _Plan(torch.arange(total, device=device), owner, theta, tiles_per_call)
-    t = 0
+    keyed = keys.unsqueeze(1)
+    draws_at = torch.arange(NOISE_CHUNK * k, device=device).unsqueeze(0)
     env_noise = copies.step_noise
-    while t < horizon:
-        narrowed = _narrowed(plan, running, owner, offsets, copies.any_copies)
-        if narrowed is None:
-            break
-        if isinstance(narrowed, torch.Tensor):
-            plan = _Plan(narrowed, owner, theta, tiles_per_call)
-        columns = plan.columns
-        if not greedy and t % NOISE_CHUNK == 0:
-            counters = t * k + torch.arange(NOISE_CHUNK * k, device=device)
-            draws = uniforms(keys[columns].unsqueeze(1), counters.unsqueeze(0))
-            drawn = draws.reshape(-1, NOISE_CHUNK, k)
-            if plan.everyone:
-                noise = drawn
-            else:  # the first chunk stepped every copy, so the buffer is whole
-                assert noise is not None
-                put_distinct(noise, columns, drawn)
-        acted = plan.act(policy, obs, None if noise is None else noise[:, t % NOISE_CHUNK])
-        actions = acted.flatten(0, 1)
-        if plan.slots is not None:
-            actions = actions.index_select(0, plan.slots)
-        if random_columns is not None and bool(random_columns[columns].any()):
-            actions = _random_actions(
-                actions, random_columns[columns], keys[columns], t, k, action_space
-            )
-        env_draws = None
-        if env_noise:
-            counters = ENV_COUNTERS - t * env_noise - torch.arange(env_noise, device=device)
-            env_draws = uniforms64(keys[columns].unsqueeze(1), counters.unsqueeze(0))
-        step = copies.step(actions, plan.blocks, None if plan.everyone else columns, env_draws)
-        live = running if plan.everyone else running[columns]
-        reward = step.reward.to(torch.float64) * live
-        if flipped is not None:
-            reward = torch.where(flipped[columns], -reward, reward)
-        record.add(t, None if plan.everyone else columns, obs, actions, reward, running)
-        going = live & ~(step.terminated | step.truncated)
-        if plan.everyone:  # whole tensors: no indexed write
-            success |= live & step.success
-            running = going
-            obs.copy_(step.obs)
-        else:
-            put_distinct(success, columns, success[columns] | (live & step.success))
-            put_distinct(running, columns, going)
-            put_distinct(obs, columns, step.obs.to(obs.dtype))
-        t += 1
-        running &= stop_at > t
-    obs_seen, actions_taken, rewards, alive = record.taken(t)
+    env_at = ENV_COUNTERS - torch.arange(env_noise, device=device).unsqueeze(0)
+    noise: tuple[torch.Tensor, ...] = ()  # the chunk's decision draws, a grid per step
+    copy_noise: tuple[torch.Tensor, ...] = ()  # the same, [N, k] per step (attackers' draws)
+    t = 0
+    with torch.no_grad():
+        while t < horizon:
+            if t % end_check == 0:
+                if t and not bool(running.any()):  # the step's only wait, every end_check
+                    break
+                record.reserve(t + end_check)
+            if not greedy and t % NOISE_CHUNK == 0:
+                drawn = uniforms(keyed, draws_at + t * k).view(total, NOISE_CHUNK, k)
+                noise = grid.draws(drawn.transpose(0, 1)).unbind(0)
+                if randomised is not None:
+                    copy_noise = drawn.unbind(1)
+            decisions = noise[t % NOISE_CHUNK] if noise else None
+            actions = grid.act(obs, decisions)
+            if randomised is not None:
+                actions = randomised(actions, copy_noise[t % NOISE_CHUNK])
+            env_draws = uniforms64(keyed, env_at - t * env_noise) if env_noise else None
+            step = copies.step(actions, running, env_draws)
+            record.add(t, obs, actions, step.reward)
+            lengths += running
+            success |= running & step.success
+            running.masked_fill_(step.terminated | step.truncated, False)
+            t += 1
+            if stop_at is not None:
+                running &= stop_at > t
+            obs = step.obs
+    steps = int(lengths.max())  # the batch's longest episode: its length
+    alive = torch.arange(steps, device=device).unsqueeze(1) < lengths
+    obs_seen, actions_taken, rewards = record.taken(steps)
+    rewards.masked_fill_(~alive, 0.0)  # the record's own buffer: zeroed where nothing ran
+    if flipped is not None:
+        rewards.mul_(torch.where(flipped, -1.0, 1.0).to(rewards.dtype))
     return Trajectories(
         obs=obs_seen,
         actions=actions_taken,
@@ -215,92 +244,90 @@ def sample(
         success=success,
         owner=owner,
         counts=counts.clone(),
+        lengths=lengths,
     )
-
-
-def _narrowed(
-    plan: _Plan,
-    running: torch.Tensor,
-    owner: torch.Tensor,
-    offsets: torch.Tensor,
-    any_copies: bool,
-) -> torch.Tensor | _Plan | None:
-    """The copies the next step steps: ``plan`` itself while it still holds enough running
-    copies (or blocks), the running ones once they have shrunk to three quarters of it, None
-    when none runs. Copies that step one by one (``any_copies``) are narrowed to the running
-    copies; blocks stepped whole (gymnasium's batch environments), to the running blocks."""
-    if any_copies:
-        live = int(running.sum())  # the step's one wait for the device
-        if live == 0:
-            return None
-        if 4 * live > 3 * len(plan.columns):
-            return plan
-        return torch.nonzero(running).squeeze(1)
-    live_copies = torch.zeros(len(offsets) - 1, dtype=torch.int64, device=running.device)
-    block_running = live_copies.index_add_(0, owner, running.long()) > 0
-    live = int(block_running.sum())
-    if live == 0:
-        return None
-    if 4 * live > 3 * len(plan.blocks):
-        return plan
-    return columns_of(offsets, torch.nonzero(block_running).squeeze(1))
 
 
 class _Record:
     """The steps taken so far, time-major, in buffers that double as episodes grow (a batch
-    of short episodes never holds a horizon's worth of memory). Each step's row is written
-    whole when the step comes (zeros where no copy was stepped), so the buffers are never
-    filled beforehand."""
-
-    START = 64
+    of short episodes never holds a horizon's worth of memory), at the end checks only. Each
+    step's row is written whole, a stepped copy's raw results whether it runs or not (the
+    rewards of the steps that did not happen are zeroed at the end), so the buffers are never
+    filled beforehand. Every step's rows are views made when the buffers are (a step writes
+    into its views: no indexing)."""
 
     def __init__(self, total: int, obs: torch.Tensor, device: torch.device) -> None:
         self.total, self.device = total, device
-        self.obs = torch.empty((self.START, *obs.shape), dtype=obs.dtype, device=device)
+        self.obs = torch.empty((RECORD_START, *obs.shape), dtype=obs.dtype, device=device)
         self.actions: torch.Tensor | None = None
-        self.rewards = torch.empty((self.START, total), dtype=torch.float64, device=device)
-        self.alive = torch.empty((self.START, total), dtype=torch.bool, device=device)
+        self.rewards = torch.empty((RECORD_START, total), dtype=torch.float64, device=device)
+        self.rows: list[tuple[torch.Tensor, ...]] = []
+        """Each buffer's rows (obs, rewards, then actions once their type is known)."""
 
-    def _grow(self, steps: int) -> None:
-        def grown(buffer: torch.Tensor) -> torch.Tensor:
-            bigger = buffer.new_empty((steps, *buffer.shape[1:]))
-            bigger[: buffer.shape[0]] = buffer
-            return bigger
+    def reserve(self, steps: int) -> None:
+        """Room for ``steps`` steps (doubling)."""
+        size = self.obs.shape[0]
+        while size < steps:
+            size *= 2
+        if size != self.obs.shape[0]:
 
-        self.obs, self.rewards, self.alive = grown(self.obs), grown(self.rewards), grown(self.alive)
-        if self.actions is not None:
-            self.actions = grown(self.actions)
+            def grown(buffer: torch.Tensor) -> torch.Tensor:
+                bigger = buffer.new_empty((size, *buffer.shape[1:]))
+                bigger[: buffer.shape[0]] = buffer
+                return bigger
 
-    def add(
-        self,
-        t: int,
-        columns: torch.Tensor | None,
-        obs: torch.Tensor,
-        actions: torch.Tensor,
-        reward: torch.Tensor,
-        running: torch.Tensor,
-    ) -> None:
-        if t >= self.obs.shape[0]:
-            self._grow(2 * self.obs.shape[0])
-        if self.actions is None:
+            self.obs, self.rewards = grown(self.obs), grown(self.rewards)
+            if self.actions is not None:
+                self.actions = grown(self.actions)
+            self.rows = []
+        if not self.rows:
+            self.rows = [self.obs.unbind(0), self.rewards.unbind(0)]
+            if self.actions is not None:
+                self.rows.append(self.actions.unbind(0))
+
+    def add(self, t: int, obs: torch.Tensor, actions: torch.Tensor, reward: torch.Tensor) -> None:
+        if self.actions is None:  # the first step (an end check's)
             self.actions = torch.empty(
                 (self.obs.shape[0], self.total, *actions.shape[1:]),
                 dtype=actions.dtype,
                 device=self.device,
             )
-        if columns is None:
-            self.obs[t], self.actions[t], self.rewards[t] = obs, actions, reward
-        else:
-            for row in (self.obs[t], self.actions[t], self.rewards[t]):
-                row.zero_()
-            put_distinct(self.obs[t], columns, obs[columns])
-            put_distinct(self.actions[t], columns, actions)
-            put_distinct(self.rewards[t], columns, reward)
-        self.alive[t] = running
+            self.rows.append(self.actions.unbind(0))
+        obs_rows, reward_rows, action_rows = self.rows
+        obs_rows[t].copy_(obs)
+        action_rows[t].copy_(actions)
+        reward_rows[t].copy_(reward)
 
-    def taken(self, steps: int) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+    def taken(self, steps: int) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         assert self.actions is not None, "a batch takes at least one step"
-        return self.obs[:steps], self.actions[:steps], self.rewards[:steps], self.alive[:steps]
+        return self.obs[:steps], self.actions[:steps], self.rewards[:steps]
+
+
+class _RandomActions:
+    """Uniformly random actions for the copies ``chosen`` [N] from their own decision draws
+    (a faulty actuator), the others' actions kept: a mask, the same shapes at every step."""
+
+    def __init__(self, chosen: torch.Tensor, space: gym.Space | None, device: torch.device):
+        self.chosen = chosen
+        self.space = space
+        self.low = self.high = None
+        if isinstance(space, gym.spaces.Box) and space.is_bounded():
+            self.low = torch.as_tensor(space.low, dtype=torch.float32, device=device)
+            self.high = torch.as_tensor(space.high, dtype=torch.float32, device=device)
+        elif not isinstance(space, gym.spaces.Discrete):
+            raise ValueError(f"random actions need a Discrete or bounded Box space, got {space}")
+
+    def __call__(self, actions: torch.Tensor, u: torch.Tensor) -> torch.Tensor:
+        """``actions`` [N, ...] with the chosen copies' replaced, from ``u`` [N, k]."""
+        if self.low is not None and self.high is not None:
+            low, high = self.low, self.high
+            drawn = low + u[:, : low.numel()].reshape(-1, *low.shape) * (high - low)
+        else:
+            assert isinstance(self.space, gym.spaces.Discrete)
+            n, first = int(self.space.n), int(self.space.start)
+            drawn = (u[:, 0] * n).long().clamp_max(n - 1) + first
+        mask = self.chosen.reshape(-1, *([1] * (actions.dim() - 1)))
+        return torch.where(mask, drawn.to(actions.dtype), actions)
 
 
 def _random_actions(
@@ -311,15 +338,7 @@ def _random_actions(
     k: int,
     space: gym.Space | None,
 ) -> torch.Tensor:
-    """Uniformly random actions for the columns ``chosen`` (from their own decision draws)."""
+    """Uniformly random actions for the columns ``chosen`` at time ``step``, from the copies'
+    decision draws (keys ``keys``, ``k`` draws a step): what the sampler's attackers take."""
     u = uniforms(keys.unsqueeze(1), (step * k + torch.arange(k, device=keys.device)).unsqueeze(0))
-    if isinstance(space, gym.spaces.Discrete):
-        drawn = (u[:, 0] * int(space.n)).long().clamp_max(int(space.n) - 1) + int(space.start)
-    elif isinstance(space, gym.spaces.Box) and space.is_bounded():
-        low = torch.as_tensor(space.low, dtype=torch.float32, device=keys.device)
-        high = torch.as_tensor(space.high, dtype=torch.float32, device=keys.device)
-        drawn = low + u[:, : low.numel()].reshape(-1, *low.shape) * (high - low)
-    else:
-        raise ValueError(f"random actions need a Discrete or bounded Box space, got {space}")
-    mask = chosen.reshape(-1, *([1] * (actions.dim() - 1)))
-    return torch.where(mask, drawn.to(actions.dtype), actions)
+    return _RandomActions(chosen, space, keys.device)(actions, u)
