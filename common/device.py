@@ -32,7 +32,7 @@ import math
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, TypeVar
 
 import numpy as np
 
@@ -56,6 +56,55 @@ encoded length so that the in-process pool, which encodes nothing, charges the s
 def message_bytes(num_params: int) -> int:
     """Bytes the counted clock charges for a message carrying a θ of ``num_params``."""
     return 4 * num_params + MESSAGE_HEADER_BYTES
+
+
+Number = TypeVar("Number", float, np.ndarray)
+"""One device's value (a Python float) or a column of devices' (a float64 array): the prices
+below are one formula for both, and IEEE 754 rounds each elementwise operation exactly as the
+same operation on one float, so a host's column of agents prices each exactly as its own
+device would."""
+
+
+def compute_seconds(
+    counted: bool,
+    real_s: Number,
+    env_steps: Number,
+    grad_steps: Number,
+    step_cost_s: Number,
+    grad_cost_s: Number,
+    num_params: int,
+) -> Number:
+    """An iteration's compute seconds at speed 1: measured (``real_s``), or priced from the
+    counts on the counted clock."""
+    if not counted:
+        return real_s
+    gradient_s = grad_steps * grad_cost_s * num_params / GRAD_PARAMS_UNIT
+    return env_steps * step_cost_s + gradient_s
+
+
+def iteration_seconds(
+    compute_s: Number, speed: Number, env_steps: Number, step_delay_s: Number
+) -> Number:
+    """An iteration's emulated seconds: its compute stretched by the speed, plus the env-step
+    throttle."""
+    return compute_s / speed + env_steps * step_delay_s
+
+
+def transfer_seconds(
+    counted: bool, latency_s: Number, bandwidth_mbps: Number, num_bytes: int
+) -> Number:
+    """One-way seconds of a message of ``num_bytes`` (the bytes count on the counted clock,
+    through a link of ``bandwidth_mbps``; 0 = unlimited)."""
+    if not counted:
+        return latency_s
+    if isinstance(bandwidth_mbps, np.ndarray):
+        # where the bandwidth is 0 the quotient is not used (np.where), only silenced
+        with np.errstate(divide="ignore"):
+            priced = latency_s + 8.0 * num_bytes / (bandwidth_mbps * 1e6)
+        return np.where(bandwidth_mbps > 0, priced, latency_s)
+    if bandwidth_mbps <= 0:
+        return latency_s
+    return latency_s + 8.0 * num_bytes / (bandwidth_mbps * 1e6)
 
 
 @dataclass(kw_only=True)
@@ -118,11 +167,9 @@ class DeviceModel:
     def compute_s(
         self, real_s: float, env_steps: int, grad_steps: int = 0, num_params: int = 0
     ) -> float:
-        """Compute seconds of an iteration at speed 1: measured, or priced from the counts."""
-        if not self.counted:
-            return real_s
-        gradient_s = grad_steps * self.grad_cost_s * num_params / GRAD_PARAMS_UNIT
-        return env_steps * self.step_cost_s + gradient_s
+        """Compute seconds of an iteration at speed 1 (:func:`compute_seconds`)."""
+        return compute_seconds(self.counted, real_s, float(env_steps), float(grad_steps),
+                               self.step_cost_s, self.grad_cost_s, num_params)  # fmt: skip
 
     def spend(
         self,
@@ -139,16 +186,16 @@ class DeviceModel:
         ``grad_steps`` and ``num_params`` only matter to the counted clock.
         """
         compute = self.compute_s(real_s, env_steps, grad_steps, num_params)
-        emulated = compute / self.speed_at(round_index) + env_steps * self.step_delay_s
+        emulated = iteration_seconds(
+            compute, self.speed_at(round_index), float(env_steps), self.step_delay_s
+        )
         self._wait(emulated - real_s)
         self.emulated_s += emulated
         return emulated
 
     def transfer_s(self, num_bytes: int) -> float:
-        """One-way time of a message of ``num_bytes`` (bytes count on the counted clock only)."""
-        if not self.counted or self.bandwidth_mbps <= 0:
-            return self.latency_s
-        return self.latency_s + 8.0 * num_bytes / (self.bandwidth_mbps * 1e6)
+        """One-way time of a message of ``num_bytes`` (:func:`transfer_seconds`)."""
+        return transfer_seconds(self.counted, self.latency_s, self.bandwidth_mbps, num_bytes)
 
     def transmit(self, num_bytes: int = 0) -> None:
         """Emulate the one-way latency (and, on the counted clock, transfer) of a message
@@ -198,11 +245,11 @@ def device_for(run: RunConfig, index: int) -> DeviceModel:
 class DeviceColumns:
     """The devices of an agent host's agents on the virtual clock, emulated a column at a time.
 
-    :meth:`round` applies :class:`DeviceModel`'s arithmetic (the request's transfer, each
-    iteration's ``spend``, the answer's transfer, in that order) elementwise over float64
-    arrays. IEEE 754 rounds each elementwise operation exactly as the same operation on one
-    Python float, so every agent's emulated time is, bit for bit, what its own DeviceModel
-    gives in a one-agent process or the in-process pool (tests/test_counted_clock.py)."""
+    :meth:`round` applies the prices :class:`DeviceModel` applies one agent at a time (the
+    request's transfer, each iteration's, the answer's transfer, in that order) to float64
+    columns: the same functions, so every agent's emulated time is, bit for bit, what its
+    own DeviceModel gives in a one-agent process or the in-process pool
+    (tests/test_counted_clock.py)."""
 
     def __init__(self, devices: Sequence[DeviceModel]) -> None:
         if any(not d.virtual_clock for d in devices):
@@ -220,15 +267,9 @@ class DeviceColumns:
 
     def transfer_s(self, rows: np.ndarray, num_bytes: int) -> np.ndarray:
         """:meth:`DeviceModel.transfer_s` of the devices at ``rows``."""
-        latency = self.latency_s[rows]
-        if not self.counted:
-            return latency
-        bandwidth = self.bandwidth_mbps[rows]
-        limited = bandwidth > 0
-        # where the bandwidth is 0 the quotient is not used (np.where), only silenced
-        with np.errstate(divide="ignore"):
-            transfer = latency + 8.0 * num_bytes / (bandwidth * 1e6)
-        return np.where(limited, transfer, latency)
+        return transfer_seconds(
+            self.counted, self.latency_s[rows], self.bandwidth_mbps[rows], num_bytes
+        )
 
     def round(
         self,
@@ -248,12 +289,11 @@ class DeviceColumns:
         emulated = np.zeros(len(rows), dtype=np.float64)
         emulated += message
         for ran in iterations:
-            at, env_steps = ran.positions, ran.env_steps
-            if self.counted:  # DeviceModel.compute_s's order of operations
-                gradient = ran.grad_steps * grad_cost[at] * num_params / GRAD_PARAMS_UNIT
-                compute = env_steps * step_cost[at] + gradient
-            else:
-                compute = ran.compute_s
-            emulated[at] += compute / speeds[at] + env_steps * delay[at]
+            at = ran.positions
+            steps = ran.env_steps.astype(np.float64)
+            compute = compute_seconds(self.counted, ran.compute_s, steps,
+                                      ran.grad_steps.astype(np.float64), step_cost[at],
+                                      grad_cost[at], num_params)  # fmt: skip
+            emulated[at] += iteration_seconds(compute, speeds[at], steps, delay[at])
         emulated += message
         return emulated, speeds
