@@ -40,24 +40,59 @@ RECENT_LISTS = 8
 
 
 @dataclass(frozen=True)
+class _Places:
+    """Where a batch's alive steps go in tiles of :data:`TILE` steps of one group each: each
+    group's steps packed column after column (a column's in time order) from its first tile
+    on, its last tile padded with zeros; the tiles past ``real`` (a GPU's last call's
+    padding) hold nothing."""
+
+    place: torch.Tensor | None
+    """Each cell of the padded [T, N] batch (time-major, [T·N]): its slot in the tiles' flat
+    [tiles · TILE] slots, or the one slot past them where no step happened. None: the tiles
+    are the batch's columns in order, cut in tiles (every step happened and every group
+    fills whole tiles): a transpose, no index."""
+    tiles: int
+    real: int
+    """Tiles that hold a group's steps."""
+
+    def into(self, padded: torch.Tensor) -> torch.Tensor:
+        """A padded [T, N, ...] tensor's alive cells in the tiles, [tiles, TILE, ...] (zero in
+        the slots that hold no step)."""
+        steps, columns, *rest = padded.shape
+        if self.place is None:
+            # contiguous, as the indexed tiles are: a reduction's order follows the strides
+            out = padded.transpose(0, 1).contiguous().view(self.real, TILE, *rest)
+            if self.tiles > self.real:
+                out = torch.cat([out, out.new_zeros((self.tiles - self.real, TILE, *rest))])
+            return out
+        slots = self.tiles * TILE
+        out = padded.new_zeros((slots + 1, *rest))  # the last slot takes every dead cell
+        flat = padded.reshape(steps * columns, *rest)
+        if out.device.type == "cpu":
+            out.index_copy_(0, self.place, flat)
+        else:  # each slot but the last is named once: no deterministic sort needed
+            put_distinct(out, self.place, flat)
+        return out[:slots].view(self.tiles, TILE, *rest)
+
+    def out_of(self, values: torch.Tensor, steps: int, columns: int) -> torch.Tensor:
+        """Per-slot ``values`` [tiles, TILE] as the padded batch's [T, N] (zero where no step
+        happened)."""
+        if self.place is None:
+            return values[: self.real].reshape(columns, steps).T.contiguous()
+        flat = torch.cat([values.reshape(-1), values.new_zeros(1)])
+        return flat.index_select(0, self.place).view(steps, columns)
+
+
+@dataclass(frozen=True)
 class _Tiles:
     """A batch's alive steps cut into tiles of :data:`TILE` steps of one group each."""
 
     obs: torch.Tensor
     """[tiles, TILE, *obs_shape] (zeros past a group's last step)."""
     act: torch.Tensor
-    tile: torch.Tensor
-    """Each alive step's tile."""
-    slot: torch.Tensor
-    """Its place in the tile."""
-    flat: torch.Tensor
-    """Its (t, n) as a flat index of [T, N]."""
-    cell: torch.Tensor
-    """Its cell of the batch's layout (where its coefficient is)."""
+    places: _Places
     tile_group: torch.Tensor
     """Each tile's group."""
-    tile_start: torch.Tensor
-    """Each group's first tile."""
     tiles_per_group: torch.Tensor
 
 
@@ -214,46 +249,51 @@ class TorchBackend:
 
     def _tiles(self, batch: Trajectories, group: torch.Tensor) -> _Tiles:
         """The alive steps of ``batch`` cut into tiles of :data:`TILE` steps, each tile the
-        steps of one group (``group`` [N]: each column's; a group's columns contiguous)."""
-        cells = torch.nonzero(batch.alive.T)  # (n, t): by column, columns grouped
-        column, step = cells[:, 0], cells[:, 1]
-        owner = group[column]
-        groups = int(group.max()) + 1 if len(group) else 0
-        per_group = torch.bincount(owner, minlength=groups)
-        slot = (
-            torch.arange(len(owner), device=owner.device)
-            - (torch.cumsum(per_group, 0) - per_group)[owner]
-        )
+        steps of one group (``group`` [N]: each column's; a group's columns contiguous, the
+        groups in order)."""
+        alive = batch.alive
+        steps, columns = alive.shape
+        groups = int(group.max()) + 1 if columns else 0
+        columns_per_group = torch.bincount(group, minlength=groups)
+        group_end = torch.cumsum(columns_per_group, 0)
+        taken = torch.cat([group_end.new_zeros(1), torch.cumsum(batch.lengths(), 0)])
+        per_group = taken[group_end] - taken[group_end - columns_per_group]
         tiles_per_group = (per_group + TILE - 1) // TILE
         tile_start = torch.cumsum(tiles_per_group, 0) - tiles_per_group
-        tile = tile_start[owner] + slot // TILE
-        total = int(tiles_per_group.sum())
+        real, alive_steps = torch.stack([tiles_per_group.sum(), taken[-1]]).tolist()
+        total = real
         if self.device.type != "cpu" and total:  # whole calls only (``tiles_per_call``)
             total = -(-total // self.tiles_per_call) * self.tiles_per_call
-        flat = step * batch.alive.shape[1] + column
-        cell = batch.layout.cell(step, column)
-        obs_flat = batch.obs.reshape(-1, *batch.obs.shape[2:])
-        act_flat = batch.actions.reshape(-1, *batch.actions.shape[2:])
-        obs = obs_flat.new_zeros((total, TILE, *batch.obs.shape[2:]))
-        act = act_flat.new_zeros((total, TILE, *batch.actions.shape[2:]))
-        put_distinct(obs, (tile, slot % TILE), obs_flat[flat])
-        put_distinct(act, (tile, slot % TILE), act_flat[flat])
+        place = None
+        if alive_steps != steps * columns or real * TILE != alive_steps:
+            # each alive cell's rank among the alive cells, column after column
+            rank = torch.cumsum(alive.T.reshape(-1), 0).view(columns, steps) - 1
+            shift = TILE * tile_start - (torch.cumsum(per_group, 0) - per_group)
+            slot = rank + shift.index_select(0, group).unsqueeze(1)
+            place = torch.where(alive.T, slot, total * TILE).T.reshape(-1)
+        places = _Places(place, total, real)
         tile_group = torch.repeat_interleave(
-            torch.arange(groups, device=owner.device), tiles_per_group
+            torch.arange(groups, device=alive.device), tiles_per_group
         )
-        if total > tile_group.shape[0]:  # empty tiles (no coefficient) of group 0
-            tile_group = torch.cat([tile_group, tile_group.new_zeros(total - tile_group.shape[0])])
+        if total > real:  # empty tiles (no coefficient) of group 0
+            tile_group = torch.cat([tile_group, tile_group.new_zeros(total - real)])
         return _Tiles(
-            obs, act, tile, slot % TILE, flat, cell, tile_group, tile_start, tiles_per_group
-        )
+            places.into(batch.obs), places.into(batch.actions), places, tile_group,
+            tiles_per_group,
+        )  # fmt: skip
 
     def _tile_gradients(
-        self, theta: torch.Tensor, row_of_tile: torch.Tensor, tiles: _Tiles, values: torch.Tensor
+        self,
+        theta: torch.Tensor,
+        row_of_tile: torch.Tensor,
+        tiles: _Tiles,
+        values: torch.Tensor,
+        batch: Trajectories,
     ) -> torch.Tensor:
         """Each tile's Σ coef ∇ log π under its θ row ``theta[row_of_tile]``, [tiles, d], in
-        chunks (the θ rows of one chunk's tiles at a time)."""
-        coef = torch.zeros(tiles.obs.shape[:2], dtype=torch.float64, device=self.device)
-        put_distinct(coef, (tiles.tile, tiles.slot), values[tiles.cell].to(torch.float64))
+        chunks (the θ rows of one chunk's tiles at a time); ``values`` per cell of
+        ``batch.layout``."""
+        coef = tiles.places.into(_padded(batch, values.to(torch.float64)))
         out = theta.new_empty((tiles.obs.shape[0], self.policy.num_params))
         return self._over_tiles(tiles, out, lambda block: self.policy.score_gradients(
             theta[row_of_tile[block]], tiles.obs[block], tiles.act[block], coef[block]
@@ -275,7 +315,7 @@ class TorchBackend:
     def _group_sums(tiles: _Tiles, per_tile: torch.Tensor, groups: int) -> torch.Tensor:
         """Each group's tile gradients summed in tile order (the same sums in any company);
         the empty tiles that pad a GPU's last call are left out."""
-        real = int(tiles.tiles_per_group.sum())
+        real = tiles.places.real
         return ordered_sums(tiles.tile_group[:real], per_tile[:real], groups)
 
     def gradients(
@@ -284,20 +324,18 @@ class TorchBackend:
         """Σ_n Σ_t coef[t, n] ∇ log π_θa(a_t|s_t) over each row a's trajectories n, [A, d]
         (zero for a row without trajectories; ``coefficients`` per cell of ``batch.layout``)."""
         tiles = self._tiles(batch, batch.owner)
-        per_tile = self._tile_gradients(theta, tiles.tile_group, tiles, coefficients)
+        per_tile = self._tile_gradients(theta, tiles.tile_group, tiles, coefficients, batch)
         return self._group_sums(tiles, per_tile, theta.shape[0])
 
     def log_probs(self, theta: torch.Tensor, batch: Trajectories) -> torch.Tensor:
         """log π_θa(a_t|s_t) of every alive step under its row's θ row, [T, N] float64 (0
         elsewhere)."""
         tiles = self._tiles(batch, batch.owner)
-        values = tiles.obs.new_zeros(tiles.obs.shape[:2], dtype=torch.float64)
+        values = tiles.obs.new_empty(tiles.obs.shape[:2], dtype=torch.float64)
         self._over_tiles(tiles, values, lambda block: self.policy.log_probs(
             theta[tiles.tile_group[block]], tiles.obs[block], tiles.act[block]
         ).double())  # fmt: skip
-        out = torch.zeros(batch.alive.numel(), dtype=torch.float64, device=self.device)
-        put_distinct(out, tiles.flat, values[tiles.tile, tiles.slot])
-        return out.reshape(batch.alive.shape)
+        return tiles.places.out_of(values, *batch.alive.shape)
 
     def trajectory_gradients(
         self, theta: torch.Tensor, batch: Trajectories, coefficients: torch.Tensor
@@ -305,5 +343,23 @@ class TorchBackend:
         """g(τ_n | θ_{owner(n)}) of every trajectory, [N, d]."""
         columns = torch.arange(batch.alive.shape[1], device=self.device)
         tiles = self._tiles(batch, columns)
-        per_tile = self._tile_gradients(theta, batch.owner[tiles.tile_group], tiles, coefficients)
+        per_tile = self._tile_gradients(
+            theta, batch.owner[tiles.tile_group], tiles, coefficients, batch
+        )
         return self._group_sums(tiles, per_tile, len(columns))
+
+
+def _padded(batch: Trajectories, values: torch.Tensor) -> torch.Tensor:
+    """Per-cell ``values`` of ``batch.layout`` as the padded batch's [T, N] (zero past each
+    column's cells)."""
+    layout = batch.layout
+    steps, columns = batch.alive.shape
+    if layout.size == steps * columns:  # every column T cells: the cells in [T, N] order
+        return values.view(steps, columns)
+    out = values.new_zeros(steps * columns)
+    cells = layout.time * columns + layout.column
+    if out.device.type == "cpu":
+        out.index_copy_(0, cells, values)
+    else:
+        put_distinct(out, cells, values)
+    return out.view(steps, columns)
