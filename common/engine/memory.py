@@ -40,7 +40,8 @@ CUDA_SHARE = 0.8
 """The share of a CUDA device's free memory a round plans for by default (the allocator's
 fragmentation and the CUDA context take the rest)."""
 RECORD_START = 64
-"""Steps of the sampler's first record buffers (``sampling._Record.START``)."""
+"""Steps of the sampler's first record buffers (they double from there: the plan and the
+sampler read this one number)."""
 TILE = 64
 PER_COPY = 256
 """Bytes of the sampler's own state per copy, besides its observation and decision draws."""

@@ -26,7 +26,7 @@ import numpy as np
 import torch
 
 from fedhpg.common.engine.copies import Copies
-from fedhpg.common.engine.memory import packed_elements
+from fedhpg.common.engine.memory import RECORD_START, packed_elements
 from fedhpg.common.engine.policy_rows import PolicyRows
 from fedhpg.common.engine.trajectories import Trajectories
 from fedhpg.common.randomness import uniforms, uniforms64
@@ -51,8 +51,6 @@ END_CHECK = 16
 device while it steps). A batch steps at most ``END_CHECK − 1`` steps past its longest
 episode, whose results are masked and cut off; :data:`RECORD_START` is a multiple of it, so
 the record buffers grow at checks only."""
-RECORD_START = 64
-"""Steps of the first record buffers (``memory.RECORD_START`` plans for them)."""
 
 
 ACT_TILE = 16
