@@ -239,8 +239,11 @@ class CompiledBackend:
 
     @staticmethod
     def _packed_steps(batch: Trajectories) -> StepRows:
-        """The batch's alive steps packed row after row (as the sampler wrote them)."""
-        return batch.steps if batch.steps is not None else _packed(batch)
+        """The batch's alive steps packed row after row (as the sampler wrote them: this
+        backend's batches are always packed)."""
+        if batch.steps is None:
+            raise ValueError("the compiled backend takes the batches its own sampler packed")
+        return batch.steps
 
     def prepare(self) -> None:
         self._physics_rows(sorted(self.variants))
@@ -320,22 +323,6 @@ def _holders(arrays: tuple[np.ndarray, ...]) -> list[int]:
 
 _UNREFERENCED = _holders((np.empty(0),))[0]
 """What :func:`_holders` counts for an array that only its tuple holds."""
-
-
-def _packed(batch: Trajectories) -> StepRows:
-    """The alive steps of a padded batch, row after row, each trajectory's in time order."""
-    cells = torch.nonzero(batch.alive.T)  # (n, t): columns grouped by row
-    column, step = cells[:, 0], cells[:, 1]
-    per_row = torch.bincount(batch.owner[column], minlength=batch.num_rows)
-    return StepRows(
-        obs=batch.obs[step, column],
-        actions=batch.actions[step, column],
-        rewards=batch.rewards[step, column],
-        time=step,
-        column=column,
-        rows=torch.arange(batch.num_rows),
-        row_start=torch.cat([torch.zeros(1, dtype=torch.int64), torch.cumsum(per_row, 0)]),
-    )
 
 
 def warm_up() -> float:
