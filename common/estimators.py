@@ -65,23 +65,19 @@ def _leave_one_out_mean(values: torch.Tensor, groups: torch.Tensor | None) -> to
 
 
 def _less_step_baseline(
-    layout: Staircase,
-    values: torch.Tensor,
-    groups: torch.Tensor,
-    factors: torch.Tensor | None,
-    weighted: bool = False,
+    layout: Staircase, values: torch.Tensor, groups: torch.Tensor
 ) -> torch.Tensor:
-    """x = values − C per cell [S], ready for :meth:`Staircase.tail_sums` (``factors`` [N] its
-    discounts, or None), with C[t, n] the mean of ``values`` at step t over the other columns
-    of n's group, every column of the group counted (a column past its end holds 0):
-    x = v − (S_t − v)/o = v (1 + 1/o) − S_t/o, S_t the group's sum at step t, o its other
-    columns (a group of one column keeps v exactly: 2v − v).
-
-    Past a column's end, up to its group's longest, x = −S_t/o is the same for every column
-    of the group. Where ``layout`` stops a column before that (its last step, not its group's
-    longest), that dead tail's sum D is computed once per group, by the same recurrence, and
-    carried into the column's last cell: x + f·D there is what the tail sum over the dead
-    cells would have added, bit for bit."""
+    """x = values − C per cell [S], ready for :meth:`Staircase.tail_sums`, with C[t, n] the
+    mean of ``values`` at step t over the other columns of n's group, every column of the
+    group counted (a column past its end holds 0): x = v − (S_t − v)/o = v (1 + 1/o) − S_t/o,
+    S_t the group's sum at step t, o its other columns (a group of one column keeps v
+    exactly: 2v − v). Every column must reach its group's longest (past its end x = −S_t/o,
+    which its tail sum needs)."""
+    if not (layout.grouped or layout.dense):
+        raise ValueError(
+            "a per-step baseline needs every column to its group's longest "
+            "(Staircase.of_groups or a padded layout)"
+        )
     size = int(groups.max()) + 1
     others = (torch.bincount(groups, minlength=size) - 1).clamp_min(1).to(values.dtype)
     extents = layout.extents
@@ -90,37 +86,7 @@ def _less_step_baseline(
     shares = layout.step_group_sums(values, groups, table) / table.per_cell(others)
     out = values * layout.per_cell((1.0 + 1.0 / others).index_select(0, groups))
     out.sub_(layout.per_step_group(shares, groups, table))
-    short = torch.nonzero(extents < longest.index_select(0, groups)).squeeze(1)
-    if short.numel():
-        if weighted:  # weights make each column's dead tail its own
-            raise ValueError("importance weights need every column to its group's longest")
-        _carry_dead_tails(layout, table, out, shares, groups, short, factors)
     return out
-
-
-def _carry_dead_tails(
-    layout: Staircase,
-    table: Staircase,
-    out: torch.Tensor,
-    shares: torch.Tensor,
-    groups: torch.Tensor,
-    short: torch.Tensor,
-    factors: torch.Tensor | None,
-) -> None:
-    """Add to the last cell of each column of ``short`` (columns that stop before their
-    group's longest) f·D, D its group's Σ_{h ≥ end} f^{h−end} (−S_h/o): the tail sum of the
-    cells past its end, by the same recurrence (``shares``: S/o on the cells of ``table``)."""
-    size = table.columns
-    group_factors = None
-    if factors is not None:  # a group's columns share its agent's γ
-        group_factors = factors.new_zeros(size).index_copy_(0, groups, factors)
-    tails = table.tail_sums(shares.neg(), group_factors)
-    ends, owners = layout.extents.index_select(0, short), groups.index_select(0, short)
-    carried = tails.index_select(0, table.cell(ends, owners))
-    if factors is not None:
-        carried = factors.index_select(0, short) * carried
-    last = layout.cell(ends - 1, short)
-    out.index_copy_(0, last, out.index_select(0, last) + carried)
 
 
 def _discounts(gamma: Gamma, layout: Staircase, like: torch.Tensor) -> torch.Tensor:
@@ -153,9 +119,8 @@ def coefficients(
     [N]: each column's agent, whose other trajectories make its baselines; ``weights``:
     importance weights, [N] per trajectory or [S] per cell).
 
-    ``layout`` may extend each column to its group's longest (:meth:`Staircase.of_groups`)
-    or stop it at its own last step: the coefficients of the steps that happened are the
-    same bits (with ``weights`` and a mean baseline, only the former).
+    ``layout`` extends each column to its group's longest (:meth:`Staircase.of_groups`):
+    GPOMDP's per-step baseline reaches every such cell (ValueError otherwise).
 
     REINFORCE, eq. (5): coef[t, n] = w_n · (Σ_h γ^h r_{h,n} − C_n) on alive steps, C_n the
     mean return of the other trajectories of n's agent.
@@ -202,7 +167,7 @@ def coefficients(
                 )
             )
         if baseline == "mean":
-            values = _less_step_baseline(layout, values, group, factors, weights is not None)
+            values = _less_step_baseline(layout, values, group)
         if weights is not None:
             values = values * _cell_weights(layout, weights)
         coef = layout.tail_sums(values, factors)

@@ -71,11 +71,12 @@ class Trajectories:
         self.steps = steps
         self._lengths = lengths
         self._returns = returns
-        self._row_sums = row_sums
-        """(steps, undiscounted returns) of each row, where the backend knows them as it
-        samples (the sums :meth:`steps_per_row` and :meth:`per_row` would add, to the bit)."""
         """Each trajectory's undiscounted return, where the backend knows it as it samples
         (the sum :meth:`returns` would add, to the bit)."""
+        self._row_sums = row_sums
+        """(steps, undiscounted returns) of each row, where the backend knows them as it
+        samples (the sums :meth:`steps_per_row` and :meth:`returns_per_row` would add, to the
+        bit)."""
         self._rewards, self._alive = rewards, alive
         self._obs, self._actions = obs, actions
 
