@@ -215,6 +215,9 @@ def _say_how_to_resume(out_dir: Path) -> None:
 
 
 def _launch(run: RunConfig, out_dir: Path, supervisor: Supervisor) -> int:
+    # Before the server is forked: its clock for registrations (server.register_timeout_s)
+    # starts when it listens, and a cold numba cache takes tens of seconds to fill.
+    prepare_compiled_engine(run)
     receive, send = multiprocessing.Pipe(duplex=False)
     server = supervisor.start(_server_child, (run, str(out_dir), send), "server")
     endpoint = None
@@ -233,7 +236,6 @@ def _launch(run: RunConfig, out_dir: Path, supervisor: Supervisor) -> int:
             return 1
     if run.server.transport == "tcp":
         run = replace(run, server=replace(run.server, port=_port_of(endpoint)))
-    prepare_compiled_engine(run)
     agents = agent_processes(run)
     if run.agents.per_host == AUTO and len(agents) < run.agents.num_agents:
         logger.info(
@@ -253,8 +255,9 @@ def _launch(run: RunConfig, out_dir: Path, supervisor: Supervisor) -> int:
 
 def prepare_compiled_engine(run: RunConfig) -> None:
     """Compile the compiled engine's kernels here, or load them from numba's cache, when the
-    run's agents use it: forked after this, they inherit the machine code instead of each
-    compiling it (tens of seconds on a machine whose cache is cold)."""
+    run's agents use it: forked after this, the server and the agents inherit the machine code
+    instead of each compiling it (tens of seconds on a machine whose cache is cold), and no
+    clock of the run (the server's for registrations) runs while it compiles."""
     from fedhpg.common.batched import uses_compiled_engine
 
     if not uses_compiled_engine(run):

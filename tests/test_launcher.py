@@ -171,3 +171,27 @@ def test_a_stopped_server_says_how_to_continue(tmp_path: Path) -> None:
     assert lines[-1] == "interrupted"
     assert lines[-2].endswith("continue it with: fedhpg-server resume=true server.out_dir=run")
     assert agent.returncode == 3, "the agent is told the run was stopped"
+
+
+def test_the_kernels_are_compiled_before_the_server_starts_its_clock(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The server's clock for registrations starts when it listens: numba's compilation (tens
+    of seconds on a cold cache) happens before the server is forked, not while it waits."""
+    from fedhpg.server import launcher
+
+    events: list[str] = []
+
+    class Forked(Exception):
+        pass
+
+    def start(self, target, args, name):
+        events.append(f"start {name}")
+        raise Forked
+
+    monkeypatch.setattr(launcher, "prepare_compiled_engine", lambda run: events.append("compile"))
+    monkeypatch.setattr(launcher.Supervisor, "start", start)
+    run = compose(["env=cartpole", f"server.out_dir={tmp_path / 'run'}"])
+    with pytest.raises(Forked):
+        launcher._launch(run, tmp_path / "run", launcher.Supervisor())
+    assert events == ["compile", "start server"]
