@@ -222,14 +222,23 @@ def checkpoint_callback(
 
 def resume_point(
     run: RunConfig, run_dir: RunDirectory, strategy: Strategy[Any]
-) -> tuple[torch.Tensor, RunProgress, dict[str, int]]:
+) -> tuple[torch.Tensor, RunProgress, dict[str, int]] | None:
     """θ̃, the run's progress and its counters from the newest valid checkpoint. Everything is
     checked first (the config, rounds, the strategy's state, metrics.jsonl up to the
-    checkpoint); only then is metrics.jsonl cut back to the checkpoint."""
+    checkpoint); only then is metrics.jsonl cut back to the checkpoint. None for a run stopped
+    before its first round was saved (no round in metrics.jsonl, nothing in checkpoints/): it
+    starts from round 0, and nothing is lost."""
     out_dir = run_dir.path
     checkpoint = latest_valid_checkpoint(out_dir / "checkpoints")
     if checkpoint is None:
-        raise ConfigError("resume", f"no valid checkpoint in {out_dir / 'checkpoints'}")
+        if not run_dir.holds_rounds():
+            logger.warning("resuming %s: no round was saved, so it starts from round 0", out_dir)
+            return None
+        raise ConfigError(
+            "resume",
+            f"no valid checkpoint in {out_dir / 'checkpoints'}, but the run has recorded "
+            "rounds: restore a checkpoint, or start a new run in another directory",
+        )
     changed = fixed_difference(checkpoint.config, to_dict(run))
     if changed is not None:
         message = str(changed).split(": ", 1)[1]
@@ -396,10 +405,14 @@ def assemble(
             run.attack.kind,
             shown,
         )
+    resuming = False
     if run.resume:
         if run_dir is None:
             raise ConfigError("resume", "resuming needs the run directory: pass out_dir")
-        theta, progress, counters = resume_point(run, run_dir, checked.strategy)
+        point = resume_point(run, run_dir, checked.strategy)
+        if point is not None:
+            theta, progress, counters = point
+            resuming = True
     assembly = Assembly(
         checked=checked,
         theta=theta,
@@ -411,7 +424,7 @@ def assemble(
     if run_dir is not None:
         out_dir = run_dir.path
         if checked.privacy is not None:  # each round accounted here before θ̃ leaves
-            checked.privacy.keep_journal(out_dir / "checkpoints", resuming=bool(run.resume))
+            checked.privacy.keep_journal(out_dir / "checkpoints", resuming=resuming)
         write_atomic(out_dir / "config.json", json.dumps(to_dict(run), indent=2).encode())
         metrics = MetricsWriter(run_dir.metrics, marks=record_marks(run))
         assembly._closers.append(metrics.close)

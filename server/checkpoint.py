@@ -360,6 +360,11 @@ def complete_message(run_dir: Path, round_number: int) -> str:
 def interrupted_message(run_dir: Path, resume_command: str) -> str:
     """Where a stopped run is and how to continue it (one line)."""
     checkpoint = latest_valid_checkpoint(run_dir / "checkpoints") if run_dir.is_dir() else None
+    if checkpoint is None and (run_dir / "config.json").is_file():
+        return (
+            f"interrupted before the first round was saved; run directory: {run_dir.resolve()}; "
+            f"start it again from round 0 with: {resume_command}"
+        )
     if checkpoint is None:
         return f"interrupted before the first round was saved; nothing to resume in {run_dir}"
     return (

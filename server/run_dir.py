@@ -100,6 +100,17 @@ class RunDirectory:
     def holds_run(self) -> bool:
         return holds_run(self.path)
 
+    def holds_rounds(self) -> bool:
+        """Whether a round of the run was recorded: a line in metrics.jsonl, or anything in
+        checkpoints/ (a checkpoint, even a corrupt one, or the privacy journal)."""
+        try:
+            if self.metrics.is_file() and self.metrics.read_bytes().strip():
+                return True
+            checkpoints = self.path / "checkpoints"
+            return checkpoints.is_dir() and any(checkpoints.iterdir())
+        except OSError:
+            return True  # unreadable: treated as holding rounds, so nothing is overwritten
+
     def release(self) -> None:
         if self._lock_fd >= 0:
             with contextlib.suppress(OSError):

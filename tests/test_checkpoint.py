@@ -156,11 +156,11 @@ def test_resume_refuses_a_changed_run_and_a_missing_checkpoint(tmp_path: Path) -
     run = compose(["rounds=5", "seed=3"])
     strategy = make_strategy(run.strategy)
     run_dir = RunDirectory(tmp_path)
-    with pytest.raises(ConfigError, match="no valid checkpoint"):
-        resume_point(run, run_dir, strategy)
     (tmp_path / "metrics.jsonl").write_text(
         "".join(json.dumps({"round": r}) + "\n" for r in (1, 2, 3))  # round 3: after the kill
     )
+    with pytest.raises(ConfigError, match=r"no valid checkpoint .* but the run has recorded"):
+        resume_point(run, run_dir, strategy)
     checkpoint = _checkpoint(2)
     save_checkpoint(
         tmp_path / "checkpoints",
@@ -195,6 +195,25 @@ def test_resume_refuses_a_changed_run_and_a_missing_checkpoint(tmp_path: Path) -
     )  # fmt: skip
     with pytest.raises(ConfigError, match="holds no state of strategy 'fedadam'"):
         resume_point(fedadam, run_dir, make_strategy(fedadam.strategy))
+
+
+def test_a_run_stopped_before_its_first_round_was_saved_resumes_from_round_0(
+    tmp_path: Path,
+) -> None:
+    """Nothing recorded (an empty metrics.jsonl, no checkpoints/): nothing to lose, so the
+    resume starts the run from round 0 instead of refusing; a checkpoint file, even a corrupt
+    one, or a privacy journal counts as recorded."""
+    run = compose(["rounds=5", "seed=3"])
+    strategy = make_strategy(run.strategy)
+    (tmp_path / "config.json").write_text(json.dumps(to_dict(run)))
+    (tmp_path / "metrics.jsonl").write_text("")
+    (tmp_path / "checkpoints").mkdir()
+    said = interrupted_message(tmp_path, "fedhpg-run resume=DIR")
+    assert said.endswith("start it again from round 0 with: fedhpg-run resume=DIR"), said
+    assert resume_point(run, RunDirectory(tmp_path), strategy) is None
+    (tmp_path / "checkpoints" / "privacy_journal.json").write_text("{}")
+    with pytest.raises(ConfigError, match="no valid checkpoint"):
+        resume_point(run, RunDirectory(tmp_path), strategy)
 
 
 def test_a_checkpoint_of_a_non_finite_theta_is_never_valid(tmp_path: Path) -> None:
