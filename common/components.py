@@ -124,17 +124,23 @@ def _check_population_budgets(run: RunConfig, algorithm: Algorithm[Any, Any]) ->
 def validate_env_family(run: RunConfig) -> None:
     """``env.family`` and ``env.options``, checked by generating agent 0's variant through
     the family registry (whatever a family is: built in, a plugin's, a dotted path), and its
-    environment built once. A family without per-index variants makes (and caches) all K
-    here."""
+    environment built once, its spaces ones a built-in policy takes (with ``policy=auto``). A
+    family without per-index variants makes (and caches) all K here."""
     from gymnasium.error import DependencyNotInstalled
 
+    from fedhpg.common.policies import check_spaces
     from fedhpg.common.variants import variant_of
     from fedhpg.envs.registry import UnknownEnvFamilyError
 
     try:
         # One environment built too: a family whose library is missing (MuJoCo, Box2D without
-        # the envs extra) fails here in one line, not in a traceback once the run has started.
-        variant_of(run, 0).make_env().close()
+        # the envs extra) fails here in one line, not in a traceback once the run has started;
+        # so do spaces no built-in policy takes.
+        env = variant_of(run, 0).make_env()
+        try:
+            check_spaces(run.policy, env.observation_space, env.action_space)
+        finally:
+            env.close()
     except UnknownEnvFamilyError as error:
         raise ConfigError("env.family", str(error)) from None
     except (DependencyNotInstalled, ImportError) as error:

@@ -357,11 +357,13 @@ class PolicyConfig:
     """How to build the policy network for the run's spaces."""
 
     name: str = "auto"
-    """'auto' (the built-in policy that fits the spaces: tabular, MLP-categorical or Gaussian
-    MLP), a registered name ('tabular', 'mlp_categorical', 'gaussian_mlp', a plugin's), or a
-    dotted path 'package.module:Class' to a fedhpg Policy subclass."""
+    """'auto' (the built-in policy that fits the spaces: tabular, a CNN for images, else the
+    MLP the actions take), a registered name ('tabular', 'mlp_categorical', 'gaussian_mlp',
+    'mlp_multi_categorical', 'mlp_multi_binary', 'cnn', a plugin's), or a dotted path
+    'package.module:Class' to a fedhpg Policy subclass."""
     hidden: list[int] = field(default_factory=lambda: [64, 64])
-    """Hidden layer widths of the MLP policies (ignored by the tabular policy)."""
+    """Hidden layer widths of the MLP policies and of the CNN's head (ignored by the tabular
+    policy)."""
     log_std: str = "state_independent"
     """Gaussian policies: 'state_independent' or 'state_dependent' log σ."""
     init_log_std: float = -0.5

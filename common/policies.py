@@ -27,6 +27,7 @@ from torch import nn
 from torch.func import functional_call
 
 from fedhpg.common.config import LOG_STDS, ConfigError, PolicyConfig
+from fedhpg.envs.spaces import is_image
 
 Params = dict[str, torch.Tensor]
 """Parameter name → tensor: a policy's own (``named_parameters``), or several agents' at once
@@ -115,6 +116,12 @@ def mlp_with(params: Params, prefix: str, depth: int, x: torch.Tensor) -> torch.
     return x
 
 
+def categorical_log_prob(logits: torch.Tensor, act: torch.Tensor) -> torch.Tensor:
+    """log softmax(logits)[act]: logits [..., n], act [...] → [...]."""
+    log_pi = torch.log_softmax(logits, dim=-1)
+    return log_pi.gather(-1, act.long().unsqueeze(-1)).squeeze(-1)
+
+
 def categorical_act(logits: torch.Tensor, noise: torch.Tensor | None) -> torch.Tensor:
     """Draw from softmax(logits) by inverting its CDF with one uniform (``noise[..., 0]``);
     the argmax where ``noise`` is None. The last action is never past the end: rounding in
@@ -140,8 +147,7 @@ class _Categorical(Policy):
     def _logits(self, params: Params, obs: torch.Tensor) -> torch.Tensor: ...
 
     def log_prob_with(self, params: Params, obs: torch.Tensor, act: torch.Tensor) -> torch.Tensor:
-        log_pi = torch.log_softmax(self._logits(params, obs), dim=-1)
-        return log_pi.gather(-1, act.long().unsqueeze(-1)).squeeze(-1)
+        return categorical_log_prob(self._logits(params, obs), act)
 
     def act_with(
         self, params: Params, obs: torch.Tensor, noise: torch.Tensor | None
@@ -207,7 +213,96 @@ class MLPCategoricalPolicy(_Categorical):
         return self.act_with(self.own_params(), obs, noise)
 
 
+class MLPMultiCategoricalPolicy(_Categorical):
+    """Box observations, several discrete choices per step (MultiDiscrete, MultiBinary): one
+    independent softmax per component over its ``nvec[i]`` values, logits = MLP(s) with tanh
+    hidden layers. log π(a|s) sums the components'; each component is drawn from its own
+    uniform (``noise_size`` = the number of components) as :func:`categorical_act` draws. A
+    MultiBinary action is the case ``nvec`` = 2, …, 2: a Bernoulli per component."""
+
+    slots: torch.Tensor
+    """Where each entry of the [components, width] grid of logits is in the MLP's output."""
+    padding: torch.Tensor
+    """[components, width]: True past a component's last value (its logit is −∞)."""
+    start: torch.Tensor
+    """[components]: each component's first value (MultiDiscrete's ``start``)."""
+
+    def __init__(
+        self,
+        *,
+        obs_dim: int,
+        nvec: Sequence[int],
+        start: Sequence[int] | None = None,
+        hidden: Sequence[int] = (64, 64),
+    ) -> None:
+        super().__init__()
+        sizes = [int(n) for n in nvec]
+        if not sizes or min(sizes) < 1:
+            raise ValueError(f"every component needs at least one value, got nvec={sizes}")
+        self.components, self.width = len(sizes), max(sizes)
+        self.net = _mlp([obs_dim, *hidden, sum(sizes)])
+        self.depth = len(hidden) + 1
+        with torch.no_grad():  # small last layer: a near-uniform initial policy
+            _last_linear(self.net).weight.mul_(0.01)
+            _last_linear(self.net).bias.zero_()
+        # component i's logits at slots [i, :nvec[i]] of a [components, width] grid; the
+        # rest padded with −∞ (probability 0: never drawn, never the argmax)
+        offsets = np.concatenate([[0], np.cumsum(sizes)[:-1]])
+        columns = np.arange(self.width)
+        padding = columns[None, :] >= np.asarray(sizes)[:, None]
+        slots = np.where(padding, 0, offsets[:, None] + columns[None, :])
+        self.register_buffer("slots", torch.as_tensor(slots.reshape(-1)), persistent=False)
+        self.register_buffer("padding", torch.as_tensor(padding), persistent=False)
+        first = torch.as_tensor(np.zeros(len(sizes)) if start is None else np.asarray(start))
+        self.register_buffer("start", first.long(), persistent=False)
+
+    rows_batched = True
+
+    @property
+    def noise_size(self) -> int:  # type: ignore[override]
+        return self.components
+
+    def _logits(self, params: Params, obs: torch.Tensor) -> torch.Tensor:
+        """[..., components, width]."""
+        flat = mlp_with(params, "net", self.depth, obs.float())
+        grid = flat.index_select(-1, self.slots).unflatten(-1, (self.components, self.width))
+        return grid.masked_fill(self.padding, float("-inf"))
+
+    def log_prob_with(self, params: Params, obs: torch.Tensor, act: torch.Tensor) -> torch.Tensor:
+        return categorical_log_prob(self._logits(params, obs), act.long() - self.start).sum(-1)
+
+    def act_with(
+        self, params: Params, obs: torch.Tensor, noise: torch.Tensor | None
+    ) -> torch.Tensor:
+        per_component = None if noise is None else noise.unsqueeze(-1)
+        return categorical_act(self._logits(params, obs), per_component) + self.start
+
+    def log_prob(self, obs: torch.Tensor, act: torch.Tensor) -> torch.Tensor:
+        return self.log_prob_with(self.own_params(), obs, act)
+
+    def act(self, obs: torch.Tensor, noise: torch.Tensor | None) -> torch.Tensor:
+        return self.act_with(self.own_params(), obs, noise)
+
+
 LogStdMode = Literal["state_independent", "state_dependent"]
+
+
+def gaussian_log_prob(mean: torch.Tensor, log_std: torch.Tensor, act: torch.Tensor) -> torch.Tensor:
+    """log N(act; mean, diag exp(log_std)²), summed over the last dimension."""
+    z = (act.float() - mean) / log_std.exp()
+    per_dim = -0.5 * z.pow(2) - log_std - 0.5 * float(np.log(2.0 * np.pi))
+    return per_dim.sum(dim=-1)
+
+
+def gaussian_act(
+    mean: torch.Tensor, log_std: torch.Tensor, noise: torch.Tensor | None
+) -> torch.Tensor:
+    """mean + σ·z, z a standard normal per dimension from ``noise`` by inverting its CDF
+    (the uniform kept off 0 and 1); the mean where ``noise`` is None."""
+    if noise is None:
+        return mean
+    z = torch.special.ndtri(noise.double().clamp(2.0**-54, 1.0 - 2.0**-53)).to(mean.dtype)
+    return mean + log_std.exp() * z
 
 
 class GaussianMLPPolicy(Policy):
@@ -273,19 +368,12 @@ class GaussianMLPPolicy(Policy):
 
     def log_prob_with(self, params: Params, obs: torch.Tensor, act: torch.Tensor) -> torch.Tensor:
         mean, log_std = self._mean_and_log_std_with(params, obs)
-        z = (act.float() - mean) / log_std.exp()
-        per_dim = -0.5 * z.pow(2) - log_std - 0.5 * float(np.log(2.0 * np.pi))
-        return per_dim.sum(dim=-1)
+        return gaussian_log_prob(mean, log_std, act)
 
     def act_with(
         self, params: Params, obs: torch.Tensor, noise: torch.Tensor | None
     ) -> torch.Tensor:
-        mean, log_std = self._mean_and_log_std_with(params, obs)
-        if noise is None:
-            return mean
-        # a standard normal per dimension by inverting its CDF (the uniform kept off 0 and 1)
-        z = torch.special.ndtri(noise.double().clamp(2.0**-54, 1.0 - 2.0**-53)).to(mean.dtype)
-        return mean + log_std.exp() * z
+        return gaussian_act(*self._mean_and_log_std_with(params, obs), noise)
 
     def log_prob(self, obs: torch.Tensor, act: torch.Tensor) -> torch.Tensor:
         return self.log_prob_with(self.own_params(), obs, act)
@@ -296,6 +384,54 @@ class GaussianMLPPolicy(Policy):
 
     def act(self, obs: torch.Tensor, noise: torch.Tensor | None) -> torch.Tensor:
         return self.act_with(self.own_params(), obs, noise)
+
+
+class CNNPolicy(Policy):
+    """Image observations (a 3-D uint8 Box, channels last or first): two strided ReLU
+    convolutions (8 filters 8×8 stride 4, 16 filters 4×4 stride 2: a 96×96 image becomes 1,600
+    features), then ``head``, the MLP policy the action space takes, on those features.
+
+    The convolutions' parameters come first in θ, the head's after them. Its maths are the
+    head's on the features, so every head keeps its contract (log π differentiable, actions
+    from the caller's uniforms); the engine vmaps it over agents (``rows_batched`` False).
+    """
+
+    def __init__(self, *, image_shape: Sequence[int], head: Callable[[int], Policy]) -> None:
+        super().__init__()
+        shape = tuple(int(n) for n in image_shape)
+        if len(shape) != 3:
+            raise ValueError(f"an image is height × width × channels, got shape {shape}")
+        self.channels_last = shape[-1] <= shape[0]
+        channels, height, width = (shape[2], *shape[:2]) if self.channels_last else shape
+        self.image_shape = shape
+        self.conv = nn.Sequential(
+            nn.Conv2d(channels, 8, kernel_size=8, stride=4),
+            nn.ReLU(),
+            nn.Conv2d(8, 16, kernel_size=4, stride=2),
+            nn.ReLU(),
+            nn.Flatten(),
+        )
+        with torch.no_grad():
+            features = int(self.conv(torch.zeros(1, channels, height, width)).shape[-1])
+        self.head = head(features)
+
+    def features(self, obs: torch.Tensor) -> torch.Tensor:
+        """[..., *image_shape] uint8 → [..., features]; pixels scaled to [0, 1]."""
+        leading = obs.shape[:-3]
+        images = obs.reshape(-1, *self.image_shape).float() / 255.0
+        if self.channels_last:
+            images = images.permute(0, 3, 1, 2)
+        return self.conv(images).reshape(*leading, -1)
+
+    @property
+    def noise_size(self) -> int:  # type: ignore[override]
+        return int(self.head.noise_size)
+
+    def log_prob(self, obs: torch.Tensor, act: torch.Tensor) -> torch.Tensor:
+        return self.head.log_prob(self.features(obs), act)
+
+    def act(self, obs: torch.Tensor, noise: torch.Tensor | None) -> torch.Tensor:
+        return self.head.act(self.features(obs), noise)
 
 
 PolicyFactory = Callable[[gym.Space, gym.Space, PolicyConfig], Policy]
@@ -326,9 +462,14 @@ def _box_dim(observation_space: gym.Space, policy: str | None = None) -> int:
                 f"policy {policy!r} needs 1-D Box observations, got {observation_space}"
             )
         raise ValueError(
-            f"unsupported observation space {observation_space}: need Discrete or 1-D Box"
+            f"unsupported observation space {observation_space}: need Discrete, a 1-D Box or "
+            "an image (a 3-D uint8 Box)"
         )
     return int(observation_space.shape[0])
+
+
+def _features_space(size: int) -> gym.spaces.Box:
+    return gym.spaces.Box(-np.inf, np.inf, shape=(size,), dtype=np.float32)
 
 
 def _mlp_categorical(
@@ -362,11 +503,55 @@ def _gaussian_mlp(
     )
 
 
+def _mlp_multi_categorical(
+    observation_space: gym.Space, action_space: gym.Space, config: PolicyConfig
+) -> Policy:
+    obs_dim = _box_dim(observation_space, "mlp_multi_categorical")
+    if not isinstance(action_space, gym.spaces.MultiDiscrete) or action_space.nvec.ndim != 1:
+        raise ValueError(
+            f"policy 'mlp_multi_categorical' needs 1-D MultiDiscrete actions, got {action_space}"
+        )
+    return MLPMultiCategoricalPolicy(
+        obs_dim=obs_dim,
+        nvec=action_space.nvec.tolist(),
+        start=action_space.start.tolist(),
+        hidden=config.hidden,
+    )
+
+
+def _mlp_multi_binary(
+    observation_space: gym.Space, action_space: gym.Space, config: PolicyConfig
+) -> Policy:
+    obs_dim = _box_dim(observation_space, "mlp_multi_binary")
+    if not isinstance(action_space, gym.spaces.MultiBinary) or len(action_space.shape) != 1:
+        raise ValueError(
+            f"policy 'mlp_multi_binary' needs 1-D MultiBinary actions, got {action_space}"
+        )
+    components = int(action_space.shape[0])
+    return MLPMultiCategoricalPolicy(obs_dim=obs_dim, nvec=[2] * components, hidden=config.hidden)
+
+
+def _cnn(observation_space: gym.Space, action_space: gym.Space, config: PolicyConfig) -> Policy:
+    if not is_image(observation_space):
+        raise ValueError(
+            f"policy 'cnn' needs image observations (a 3-D uint8 Box), got {observation_space}"
+        )
+    head_name = _auto_name(_features_space(1), action_space)
+
+    def head(size: int) -> Policy:
+        return POLICIES[head_name](_features_space(size), action_space, config)
+
+    return CNNPolicy(image_shape=observation_space.shape or (), head=head)
+
+
 MLP_CATEGORICAL = "mlp_categorical"
 POLICIES: dict[str, PolicyFactory] = {
     "tabular": _tabular,
     MLP_CATEGORICAL: _mlp_categorical,
     "gaussian_mlp": _gaussian_mlp,
+    "mlp_multi_categorical": _mlp_multi_categorical,
+    "mlp_multi_binary": _mlp_multi_binary,
+    "cnn": _cnn,
 }
 
 
@@ -385,17 +570,37 @@ def register_policy(name: str) -> Callable[[PolicyFactory], PolicyFactory]:
 
 
 def _auto_name(observation_space: gym.Space, action_space: gym.Space) -> str:
-    """The built-in policy for the spaces: tabular, MLP-categorical or Gaussian MLP."""
+    """The built-in policy for the spaces: tabular for Discrete observations and actions, a
+    CNN for images, else the MLP the action space takes (categorical, multi-categorical,
+    Bernoulli or Gaussian)."""
     if isinstance(observation_space, gym.spaces.Discrete) and isinstance(
         action_space, gym.spaces.Discrete
     ):
         return "tabular"
+    if is_image(observation_space):
+        return "cnn"
     _box_dim(observation_space)
     if isinstance(action_space, gym.spaces.Discrete):
         return "mlp_categorical"
+    if isinstance(action_space, gym.spaces.MultiDiscrete) and action_space.nvec.ndim == 1:
+        return "mlp_multi_categorical"
+    if isinstance(action_space, gym.spaces.MultiBinary) and len(action_space.shape) == 1:
+        return "mlp_multi_binary"
     if isinstance(action_space, gym.spaces.Box) and len(action_space.shape) == 1:
         return "gaussian_mlp"
-    raise ValueError(f"unsupported action space {action_space}: need Discrete or 1-D Box")
+    raise ValueError(
+        f"unsupported action space {action_space}: need Discrete, a 1-D Box, a 1-D "
+        "MultiDiscrete or a 1-D MultiBinary"
+    )
+
+
+def check_spaces(
+    config: PolicyConfig, observation_space: gym.Space, action_space: gym.Space
+) -> None:
+    """ValueError where ``policy.name=auto`` finds no built-in policy for the spaces (a
+    policy named by the user is checked when it is built)."""
+    if config.name == AUTO_POLICY:
+        _auto_name(observation_space, action_space)
 
 
 def resolve_policy(name: str) -> PolicyFactory:
@@ -443,7 +648,7 @@ def make_policy(
     observation_space: gym.Space, action_space: gym.Space, config: PolicyConfig
 ) -> Policy:
     """The policy ``config.name`` names, built for the spaces; 'auto' = the built-in one that
-    fits them (tabular, MLP-categorical or Gaussian MLP)."""
+    fits them (:func:`_auto_name`)."""
     name = config.name
     if name == AUTO_POLICY:
         name = _auto_name(observation_space, action_space)

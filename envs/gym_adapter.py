@@ -10,6 +10,7 @@ import gymnasium as gym
 import numpy as np
 
 from fedhpg.envs.base import BatchStep
+from fedhpg.envs.spaces import is_flattened, policy_observation_space
 
 
 class ActionBounds:
@@ -41,7 +42,8 @@ class GymVectorBatchEnv:
     Uses the env's own numpy-vectorised implementation when it has one (CartPole does) and
     ``SyncVectorEnv`` otherwise (:class:`GymLoopBatchEnv` is faster there; this path stays for
     comparison). Copies whose episode ended are auto-reset by gymnasium; the sampler masks
-    those steps, so no bookkeeping is needed here.
+    those steps, so no bookkeeping is needed here. Observations a policy does not take as
+    they are (Dict, Tuple, ...) are flattened (:mod:`fedhpg.envs.spaces`).
     """
 
     def __init__(
@@ -59,6 +61,8 @@ class GymVectorBatchEnv:
         spec = gym.spec(env_id)
         mode = "vector_entry_point" if spec.vector_entry_point is not None else "sync"
         self._env = gym.make_vec(env_id, num_envs=num_envs, vectorization_mode=mode, **kwargs)
+        if is_flattened(self._env.single_observation_space):
+            self._env = gym.wrappers.vector.FlattenObservation(self._env)
         if configure is not None:
             self._configure(configure)
         self.action_cost = action_cost
@@ -111,7 +115,8 @@ class GymLoopBatchEnv:
     e.g. LunarLander range from ~70 to 1000 steps, so skipping finished copies saves most of
     the work. Copy i is reset with ``seed + i``, as ``SyncVectorEnv`` does, so both produce the
     same steps for the running copies; ``step_limit`` (default: the registered one) truncates
-    episodes.
+    episodes. Observations a policy does not take as they are (Dict, Tuple, ...) are
+    flattened (:mod:`fedhpg.envs.spaces`).
     A frozen copy repeats its last observation with reward 0 and its final flags.
     """
 
@@ -136,7 +141,9 @@ class GymLoopBatchEnv:
         self._limit = int(limit) if limit is not None else None
         self.action_cost = action_cost
         self.num_envs = num_envs
-        self.single_observation_space = self._envs[0].observation_space
+        raw_space = self._envs[0].observation_space
+        self._flattened_from = raw_space if is_flattened(raw_space) else None
+        self.single_observation_space = policy_observation_space(raw_space)
         self.single_action_space = self._envs[0].action_space
         self._bound = ActionBounds(self.single_action_space)
         shape, dtype = self.single_observation_space.shape, self.single_observation_space.dtype
@@ -148,12 +155,18 @@ class GymLoopBatchEnv:
 
     def reset(self, *, seed: int) -> np.ndarray:
         for i, env in enumerate(self._envs):
-            self._obs[i], _ = env.reset(seed=seed + i)
+            obs, _ = env.reset(seed=seed + i)
+            self._obs[i] = self._observed(obs)
         self._running[:] = True
         self._terminated[:] = False
         self._truncated[:] = False
         self._steps[:] = 0
         return self._obs.copy()
+
+    def _observed(self, obs: Any) -> Any:
+        if self._flattened_from is None:
+            return obs
+        return gym.spaces.flatten(self._flattened_from, obs)
 
     def step(self, actions: np.ndarray) -> BatchStep:
         actions = self._bound(actions)
@@ -162,7 +175,7 @@ class GymLoopBatchEnv:
         running = np.flatnonzero(self._running)
         for i in running:
             obs, r, terminated, truncated, info = self._envs[i].step(actions[i])
-            self._obs[i] = obs
+            self._obs[i] = self._observed(obs)
             reward[i] = r
             self._steps[i] += 1
             if self._limit is not None and self._steps[i] >= self._limit:

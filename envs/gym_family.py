@@ -178,7 +178,9 @@ def gym_variants_at(
     for name, spec in declared.items():
         _check_spec(name, spec)
     kwargs_json = json.dumps(fixed, sort_keys=True)
-    _creator(id)  # a registered id, even with nothing varied
+    spec, _ = _creator(id)  # a registered id, even with nothing varied
+    if not max_episode_steps and spec.max_episode_steps is None:
+        raise VariationError("env.horizon", f"{id} has no step limit: set env.horizon=<steps>")
     knobs = _knobs(id, tuple(sorted(declared)), kwargs_json)
     variants: list[EnvVariant] = []
     for k in indices:

@@ -10,6 +10,7 @@ import numpy as np
 
 from fedhpg.envs.base import BatchEnv, EnvVariant
 from fedhpg.envs.gym_adapter import ActionBounds, GymLoopBatchEnv, GymVectorBatchEnv
+from fedhpg.envs.spaces import is_flattened, policy_observation_space
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -48,6 +49,8 @@ class GymVariant(EnvVariant):
             model.body_mass[:] = model.body_mass * self.mujoco_scales.get("mass", 1.0)
 
     def make_env(self, *, render_mode: str | None = None) -> gym.Env:
+        """One copy of this agent's environment: observations a policy does not take as they
+        are (Dict, Tuple, ...) flattened, Box actions clipped to their bounds."""
         env = gym.make(
             self.env_id,
             max_episode_steps=self.step_limit or None,
@@ -55,6 +58,9 @@ class GymVariant(EnvVariant):
             **self.env_kwargs,
         )
         self.configure(env.unwrapped)
+        if is_flattened(env.observation_space):
+            policy_observation_space(env.observation_space)  # one that cannot is refused here
+            env = gym.wrappers.FlattenObservation(env)
         if isinstance(env.action_space, gym.spaces.Box) or self.action_cost:
             return _ClippedActions(env, self.action_cost)
         return env
@@ -85,7 +91,7 @@ class GymVariant(EnvVariant):
             return self.step_limit
         limit = gym.spec(self.env_id).max_episode_steps
         if limit is None:
-            raise ValueError(f"{self.env_id} has no step limit: set env.horizon")
+            raise ValueError(f"{self.env_id} has no step limit: set env.horizon=<steps>")
         return int(limit)
 
 

@@ -229,6 +229,11 @@ CASES: dict[str, tuple[str, list[str], str]] = {
         ["env=gym"],
         "env.id: env=gym needs a registered gymnasium id, e.g. env.id=MountainCar-v0",
     ),
+    "gym-without-a-step-limit": (
+        "fedhpg-run",
+        ["env=gym", "env.id=CliffWalking-v1"],
+        "env.horizon: CliffWalking-v1 has no step limit: set env.horizon=<steps>",
+    ),
     "bounds-for-vr": (
         "fedhpg-run",
         ["algo=fedhpgvr", "algo.bound_estimates=true"],
