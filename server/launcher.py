@@ -9,6 +9,7 @@ launcher exits non-zero.
 
 from __future__ import annotations
 
+import contextlib
 import ctypes
 import gc
 import logging
@@ -351,6 +352,13 @@ def run_federation(run: RunConfig, *, port: bool = False) -> int:
     return launch(run, _resolve_out_dir(run))
 
 
+_RUN_DIR_EXISTED = True
+"""Whether the run directory existed before this command (Hydra makes its job's directory
+before the job starts; one it made for a run that fails is removed if the run left it empty).
+Unnamed, it is new: :func:`~fedhpg.common.runtime.run_files.hydra_run_dir` never names one
+that exists."""
+
+
 def _hydra_task(cfg: object) -> None:
     from hydra.core.hydra_config import HydraConfig
 
@@ -379,6 +387,9 @@ def _hydra_task(cfg: object) -> None:
     limit_threads()
     status = run_federation(run, port=port_named(task))
     if status != 0:
+        if not _RUN_DIR_EXISTED:  # Hydra made it for this job: gone if nothing was written
+            with contextlib.suppress(OSError):
+                _resolve_out_dir(run).rmdir()
         sys.exit(status)
 
 
@@ -454,6 +465,8 @@ def main() -> None:
     named = [o.split("=", 1)[1] for o in overrides if o.split("=", 1)[0] == "server.out_dir"]
     if named and not any(a.split("=", 1)[0] == "hydra.run.dir" for a in args) and not multirun:
         sys.argv.append(f"hydra.run.dir={named[-1]}")  # Hydra's job directory is the run's
+    global _RUN_DIR_EXISTED
+    _RUN_DIR_EXISTED = multirun or (bool(named) and Path(named[-1]).exists())
     app = hydra.main(config_path="pkg://fedhpg.conf", config_name="config", version_base=None)(
         _hydra_task
     )

@@ -13,13 +13,16 @@ import contextlib
 import fcntl
 import json
 import os
+import shutil
 from collections.abc import Iterator
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 from fedhpg.common.config import ConfigError, RunConfig
 from fedhpg.common.runtime.run_files import (
+    CONFIG_NAME,
     METRICS_NAME,
+    RUN_FILES,
     RUNS_ROOT,
     holds_run,
     new_run_path,
@@ -27,6 +30,15 @@ from fedhpg.common.runtime.run_files import (
 )
 
 LOCK_NAME = ".lock"
+
+
+def written_names() -> frozenset[str]:
+    """What a server writes in its run directory (beside ``.lock``): what
+    :meth:`RunDirectory.discard` may remove."""
+    from fedhpg.server.metrics import TENSORBOARD_DIR  # both import this module
+    from fedhpg.server.sinks import PROGRESS_NAME, WANDB_DIR
+
+    return frozenset({*RUN_FILES, CONFIG_NAME, PROGRESS_NAME, TENSORBOARD_DIR, WANDB_DIR})
 
 
 def new_run_dir(run: RunConfig, *, root: Path = RUNS_ROOT, now: float | None = None) -> Path:
@@ -43,26 +55,39 @@ class RunDirectoryError(RuntimeError):
 class RunDirectory:
     path: Path
     _lock_fd: int = -1
+    made: list[Path] = field(default_factory=list)
+    """The directories :meth:`claim` made (``path`` and missing parents), deepest first."""
+    found: frozenset[str] = frozenset()
+    """What ``path`` held when it was claimed: never removed by :meth:`discard`."""
+    _made_lock: bool = False
 
     @classmethod
     def claim(cls, path: Path, *, resume: bool, key: str = "server.out_dir") -> RunDirectory:
         """Own ``path`` for this server, or raise ConfigError without having changed it."""
         if path.exists() and not path.is_dir():
             raise ConfigError(key, f"{path} is a file, not a directory")
+        made = [d for d in (path, *path.parents) if not d.exists()]
         try:
             path.mkdir(parents=True, exist_ok=True)
+            found = frozenset(os.listdir(path))
             fd = os.open(path / LOCK_NAME, os.O_RDWR | os.O_CREAT, 0o644)
         except OSError as error:
+            cls(path, made=made, found=written_names()).discard()  # its directories alone
             raise ConfigError(key, f"cannot use {path}: {error.strerror or error}") from None
         try:
             fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            # the lock file may have been removed by its releasing owner after the open above
+            replaced = os.fstat(fd).st_ino != os.stat(path / LOCK_NAME).st_ino
         except OSError:
             holder = os.pread(fd, 32, 0).decode("ascii", "replace").strip() or "?"
             os.close(fd)
             raise ConfigError(
                 key, f"{path} is in use by another fedhpg-server (pid {holder}); wait for it"
             ) from None
-        directory = cls(path, fd)
+        if replaced:
+            os.close(fd)
+            raise ConfigError(key, f"{path} was taken by another fedhpg-server; wait for it")
+        directory = cls(path, fd, made=made, found=found, _made_lock=LOCK_NAME not in found)
         try:
             if not resume and directory.holds_run():
                 raise ConfigError(
@@ -73,7 +98,7 @@ class RunDirectory:
             os.ftruncate(fd, 0)
             os.pwrite(fd, f"{os.getpid()}\n".encode(), 0)
         except BaseException:
-            directory.release()
+            directory.discard()
             raise
         return directory
 
@@ -112,11 +137,38 @@ class RunDirectory:
             return True  # unreadable: treated as holding rounds, so nothing is overwritten
 
     def release(self) -> None:
+        """Give the directory up: its ``.lock`` is removed if the claim made it (while still
+        held, so no other server takes a lock on a removed file), else emptied."""
         if self._lock_fd >= 0:
             with contextlib.suppress(OSError):
-                os.ftruncate(self._lock_fd, 0)
+                if self._made_lock:
+                    os.unlink(self.path / LOCK_NAME)
+                else:
+                    os.ftruncate(self._lock_fd, 0)
             os.close(self._lock_fd)  # closing drops the flock
             self._lock_fd = -1
+
+    def discard(self) -> None:
+        """Release, and remove what this start made, for a start that failed before any round
+        was recorded: the run files the server writes that were not there when it claimed
+        the directory, then the directories the claim made, if that left them empty. What
+        the directory held before, and anything else written into it, stays."""
+        if self._lock_fd >= 0 and self.holds_rounds():
+            self.release()
+            return
+        for name in sorted(written_names() - self.found):
+            target = self.path / name
+            with contextlib.suppress(OSError):
+                if target.is_dir() and not target.is_symlink():
+                    shutil.rmtree(target)
+                elif target.exists():
+                    target.unlink()
+        self.release()
+        for made in self.made:
+            try:
+                made.rmdir()
+            except OSError:  # not empty (something else was written there), or gone
+                break
 
     @property
     def metrics(self) -> Path:
@@ -177,11 +229,17 @@ def _check_creatable(path: Path, key: str) -> None:
 @contextlib.contextmanager
 def claimed(path: Path, *, resume: bool, key: str = "server.out_dir") -> Iterator[RunDirectory]:
     """:meth:`RunDirectory.claim` for a block: released at its end, and a disk or descriptor
-    failure inside it becomes one RunDirectoryError line."""
+    failure inside it becomes one RunDirectoryError line. A block that fails (not one that is
+    interrupted: that run can be resumed) before a round was recorded leaves nothing of its
+    own behind (:meth:`RunDirectory.discard`)."""
     run_dir = RunDirectory.claim(path, resume=resume, key=key)
     try:
         yield run_dir
     except OSError as error:
+        run_dir.discard()
         raise RunDirectoryError(f"cannot write {path}: {error.strerror or error}") from None
+    except Exception:
+        run_dir.discard()
+        raise
     finally:
         run_dir.release()

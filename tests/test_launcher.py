@@ -195,3 +195,25 @@ def test_the_kernels_are_compiled_before_the_server_starts_its_clock(
     with pytest.raises(Forked):
         launcher._launch(run, tmp_path / "run", launcher.Supervisor())
     assert events == ["compile", "start server"]
+
+
+@pytest.mark.parametrize("existed", [False, True], ids=["made-by-hydra", "named-existing"])
+def test_a_failed_start_removes_the_run_directory_hydra_made_for_it(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, existed: bool
+) -> None:
+    """Hydra makes the job's directory before the job starts: a run that fails before it
+    writes anything there takes it away, unless it was there before the command."""
+    import sys
+
+    from fedhpg.server import launcher
+
+    out_dir = tmp_path / "run"
+    if existed:
+        out_dir.mkdir()
+    monkeypatch.chdir(tmp_path)
+    monkeypatch.setattr(sys, "argv", ["fedhpg-run", "rounds=1", f"server.out_dir={out_dir}"])
+    monkeypatch.setattr(launcher, "run_federation", lambda run, port: 1)
+    with pytest.raises(SystemExit) as exit_:
+        launcher.main()
+    assert exit_.value.code == 1
+    assert out_dir.exists() == existed
