@@ -122,6 +122,40 @@ def test_truncation_at_the_step_limit_and_a_reset_from_its_own_stream(name: str)
     assert bool(step.truncated.all())
 
 
+def test_acrobot_wraps_angles_of_any_magnitude() -> None:
+    """Both angles land in [−π, π] after any step, even from states whose speeds carry them
+    dozens of turns (the velocities are bounded only after the step); angles within three
+    turns wrap as gymnasium's loop of subtractions does, bit for bit."""
+    from fedhpg.envs.device.acrobot import _wrap
+
+    count = 20_000
+    copies = device_copies(_variants("acrobot", 2), [count // 2] * 2, CPU)
+    assert isinstance(copies, TensorCopies)
+    rng = np.random.default_rng(3)
+    states = rng.uniform([-math.pi, -math.pi, -2e3, -2e3], [math.pi, math.pi, 2e3, 2e3],
+                         size=(count, 4))  # fmt: skip
+    copies.state[:] = torch.from_numpy(states.T).float()
+    copies.steps[:] = 0
+    actions = torch.from_numpy(rng.integers(0, 3, size=count))
+    copies.step(actions, torch.arange(count), None)
+    angles = copies.state[:2]
+    assert bool(((angles >= -math.pi) & (angles <= math.pi)).all())
+
+    extreme = torch.tensor([1e3, -1e3, 12345.678, -7e6, 3e7, 5 * math.pi, -9.5 * math.pi])
+    wrapped = _wrap(extreme)
+    assert bool(((wrapped >= -math.pi) & (wrapped <= math.pi)).all())
+    turns = (extreme.double() - wrapped.double()) / (2 * math.pi)
+    ulp = torch.finfo(torch.float32).eps * extreme.double().abs()
+    assert bool(((turns - turns.round()).abs() * 2 * math.pi <= 4 * ulp + 1e-6).all())
+
+    near = torch.from_numpy(rng.uniform(-7 * math.pi, 7 * math.pi, size=1000)).float()
+    looped = near.clone()
+    for _ in range(3):  # gymnasium's wrap: whole turns subtracted one at a time
+        looped = torch.where(looped > math.pi, looped - 2 * math.pi, looped)
+        looped = torch.where(looped < -math.pi, looped + 2 * math.pi, looped)
+    assert torch.equal(_wrap(near), looped)
+
+
 def test_cartpole_starts_in_gymnasiums_interval() -> None:
     copies = device_copies(_variants("cartpole", 2), [3, 3], CPU)
     assert isinstance(copies, CartPoleCopies)

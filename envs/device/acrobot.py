@@ -73,12 +73,15 @@ def _derivatives(s: torch.Tensor, torque: torch.Tensor, p: Params) -> torch.Tens
 
 
 def _wrap(x: torch.Tensor) -> torch.Tensor:
-    """x wrapped into [−π, π] by whole turns, as gymnasium's ``wrap`` (a loop of subtractions:
-    three turns cover any angle one bounded step reaches)."""
+    """x wrapped into [−π, π] by whole turns, for any magnitude. Up to three turns are
+    subtracted one at a time, as gymnasium's ``wrap`` does (so every angle a step from a
+    bounded state reaches rounds as there); an angle still outside (a state set with extreme
+    velocities, say) is reduced by ``torch.remainder``."""
     for _ in range(3):
         x = torch.where(x > math.pi, x - 2 * math.pi, x)
         x = torch.where(x < -math.pi, x + 2 * math.pi, x)
-    return x
+    outside = (x > math.pi) | (x < -math.pi)
+    return torch.where(outside, torch.remainder(x + math.pi, 2 * math.pi) - math.pi, x)
 
 
 class AcrobotCopies(TensorCopies):
