@@ -577,6 +577,11 @@ def _auto_name(observation_space: gym.Space, action_space: gym.Space) -> str:
         action_space, gym.spaces.Discrete
     ):
         return "tabular"
+    if isinstance(observation_space, gym.spaces.Discrete):
+        raise ValueError(
+            f"Discrete observations take Discrete actions (a table of logits per state), got "
+            f"{action_space}"
+        )
     if is_image(observation_space):
         return "cnn"
     _box_dim(observation_space)

@@ -193,6 +193,8 @@ def test_auto_picks_a_policy_for_every_action_space() -> None:
     )
     with pytest.raises(ConfigError, match="policy 'cnn' needs image observations"):
         make_policy(box, gym.spaces.Discrete(2), PolicyConfig(name="cnn"))
+    with pytest.raises(ValueError, match="Discrete observations take Discrete actions"):
+        make_policy(gym.spaces.Discrete(4), gym.spaces.Box(-1, 1, (2,)), config)
     with pytest.raises(ValueError, match="unsupported action space"):
         make_policy(box, gym.spaces.MultiDiscrete(np.full((2, 2), 2)), config)
 
