@@ -8,8 +8,9 @@ messages and checks. What its agents compute, and how their devices are emulated
 
 Two threads, one socket. The main thread owns the DEALER socket: it answers the server, sends
 a heartbeat every ``server.heartbeat_interval_s`` and watches the server's heartbeats. Local
-updates and evaluations run on a job thread, so the program stays audibly alive during a round
-that takes minutes. A new request from the server supersedes the one in flight (the server has
+updates and evaluations run on a job thread, and so does the building of the agents once the
+server has welcomed them, so the program stays audibly alive during a round that takes
+minutes and while a host builds thousands of agents. A new request from the server supersedes the one in flight (the server has
 one open request per agent): the old job is cancelled at its next iteration or emulated-device
 sleep. A request the program already answered (its answer was lost: it rejoined) is answered
 again from the last answers, for the agents asked. If the server falls silent for
@@ -29,8 +30,9 @@ import os
 import queue
 import threading
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, Generic, TypeVar, cast
 
 import numpy as np
 import zmq
@@ -72,6 +74,7 @@ from fedhpg.common.wire.transport import (
 )
 
 logger = logging.getLogger(__name__)
+T = TypeVar("T")
 
 HANDSHAKE_TIMEOUT_S = 3.0
 BACKOFF_INITIAL_S = 0.1
@@ -87,6 +90,17 @@ class AgentFailure(RuntimeError):
 
 class RunAborted(AgentFailure):
     """The server ended the run before its last round (it says why, and exits non-zero)."""
+
+
+@dataclass
+class Setup(Generic[T]):
+    """A long set-up run on the job thread (building the agents of a host), so that the main
+    thread stays audibly alive meanwhile."""
+
+    task: Callable[[], T]
+    done: threading.Event = field(default_factory=threading.Event)
+    result: T | None = None
+    error: BaseException | None = None
 
 
 @dataclass
@@ -155,7 +169,9 @@ class AgentHost:
         self.context = zmq.Context()
         self.socket = self._new_socket()
         self._wake_read, self._wake_write = os.pipe()
-        self._jobs: queue.SimpleQueue[Job | None] = queue.SimpleQueue()
+        self._jobs: queue.SimpleQueue[Job | Setup[Any] | None] = queue.SimpleQueue()
+        self._deferred: list[Message] = []
+        """The server's messages received during a set-up, dispatched after it."""
         self._job_thread = threading.Thread(
             target=self._job_loop, name=f"{self.agent_id}-jobs", daemon=True
         )
@@ -206,7 +222,11 @@ class AgentHost:
         return True
 
     def _receive(self) -> Message | None:
-        """One queued message, if any (never blocks)."""
+        """One message, if any (never blocks): those deferred during a set-up first."""
+        return self._deferred.pop(0) if self._deferred else self._read()
+
+    def _read(self) -> Message | None:
+        """One message queued on the socket, if any (never blocks)."""
         try:
             frames = self.socket.recv_multipart(copy=False, flags=zmq.NOBLOCK)
         except zmq.Again:
@@ -303,7 +323,7 @@ class AgentHost:
             raise AgentFailure(f"cannot take the server's settings: {error}") from None
         self._retire_job()
         try:
-            group = self.work.build(run)
+            group = self._set_up(lambda: self.work.build(run))
         except DeviceUnavailable as error:
             raise AgentFailure(str(error)) from None
         freeze_setup()  # the program's setup is done: the rounds' collections skip it
@@ -335,12 +355,35 @@ class AgentHost:
             profile.speed,
         )
 
+    def _set_up(self, task: Callable[[], T]) -> T:
+        """Run ``task`` on the job thread (no job in flight) while this thread heartbeats
+        every ``server.heartbeat_interval_s``: building thousands of agents takes seconds,
+        and the server counts a silent host as dead. What the server sends meanwhile is
+        kept for after (:meth:`_receive`)."""
+        setup = Setup(task=task)
+        self._jobs.put(setup)
+        while not setup.done.is_set():
+            now = time.monotonic()
+            if now - self.last_sent >= self.interval_s:
+                self._send(Heartbeat())
+                self.last_sent = now
+            wait_s = max(self.last_sent + self.interval_s - now, 0.0)
+            if self.socket.poll(int(wait_s * 1000) + 1, zmq.POLLIN):
+                while (message := self._read()) is not None:
+                    self._deferred.append(message)
+        os.read(self._wake_read, 64)
+        self.last_heard = time.monotonic()  # the server's heartbeats were taken meanwhile
+        if setup.error is not None:
+            raise setup.error
+        return cast(T, setup.result)
+
     def _reconnect(self, silent_s: float) -> None:
         logger.warning(
             "%s: no word from the server for %.1f s; reconnecting", self.agent_id, silent_s
         )
         self._cancel_job()
         self.pending = None
+        self._deferred.clear()  # meant for the old connection
         self._close_socket()
         self.socket = self._new_socket()
         self.adopt(self.register())
@@ -352,7 +395,10 @@ class AgentHost:
         thread rather than one per job keeps torch's and the allocator's per-thread state.)"""
         while (job := self._jobs.get()) is not None:
             try:
-                job.answers = self.work.answer(job.request, job.cancel, self.max_bytes)
+                if isinstance(job, Setup):
+                    job.result = job.task()
+                else:
+                    job.answers = self.work.answer(job.request, job.cancel, self.max_bytes)
             except BaseException as error:  # handed to the main thread, which decides
                 job.error = error
             finally:
@@ -456,7 +502,7 @@ class AgentHost:
                 ready = dict(poller.poll(int(wait_s * 1000) + 1))
                 if self._wake_read in ready:
                     self._on_job_done()
-                if socket in ready:
+                if socket in ready or self._deferred:
                     while (message := self._receive()) is not None:
                         if not self._dispatch(message):
                             return
