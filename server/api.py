@@ -35,6 +35,7 @@ from fedhpg.server.coordinator import RoundCallback, RoundRecord
 from fedhpg.server.metrics import metrics_line, read_metrics, record_marks
 from fedhpg.server.pools import FederationError
 from fedhpg.server.pools.inprocess import make_in_process_pool
+from fedhpg.server.report import evaluation_of
 from fedhpg.server.run_dir import RunDirectoryError, claimed, holds_run, new_run_dir
 
 __all__ = [
@@ -232,12 +233,7 @@ def _run_distributed(checked: CheckedRun, directory: Path | None) -> RunResult:
         theta=checkpoint.theta,
         records=read_metrics(where / "metrics.jsonl"),
         out_dir=where,
-        last_evaluation={
-            a: EvaluationStats(**{**e, "success_rate": e["success_rate"] or 0.0})
-            for a, e in summary["eval"].items()
-        }
-        if summary.get("eval")
-        else None,
+        last_evaluation=evaluation_of(summary["eval"]) if summary.get("eval") else None,
     )
 
 

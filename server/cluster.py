@@ -5,14 +5,16 @@ The server is one job and the agent-side processes one job array: on SLURM throu
 running Ray cluster (``cluster=ray``). Agents find the server through its endpoint file in the
 run directory, which every node must see (a shared filesystem, as on SLURM clusters): the
 server binds a free port and writes host and port there. This process only submits and
-watches, the same way on every engine (:mod:`.cluster_engines`): it ends with the server job's
-status, reports each failed agent job in one line, restarts a crashed agent job up to
-``agent.max_restarts`` times, and stops whatever is still running when the server job ends or
-it is interrupted, waiting until the engine reports it gone.
+watches, the same way on every engine (:mod:`.cluster_engines`): it shows each round as the
+server writes it to the run directory and the final table of the unified policy's evaluation,
+ends with the server job's status, reports each failed agent job in one line, restarts a
+crashed agent job up to ``agent.max_restarts`` times, and stops whatever is still running when
+the server job ends or it is interrupted, waiting until the engine reports it gone.
 """
 
 from __future__ import annotations
 
+import json
 import logging
 import os
 import shutil
@@ -24,6 +26,8 @@ from pathlib import Path
 
 from fedhpg.common.config import ConfigError, RunConfig
 from fedhpg.common.runtime.cli import EXIT_RUN_ABORTED, EXIT_USAGE, Interrupted, stop_signals
+from fedhpg.common.runtime.progress import Progress
+from fedhpg.common.runtime.run_files import METRICS_NAME
 from fedhpg.server.cluster_engines import (
     Engine,
     Job,
@@ -169,12 +173,83 @@ def _watch_agents(run: RunConfig, placement: Placement) -> bool:
     return True
 
 
-def supervise(run: RunConfig, placement: Placement) -> int:
-    """Until the server job ends: its status (1 if it failed or an agent job did)."""
+class RoundProgress:
+    """The server job's rounds as they land in the run directory's metrics.jsonl (which this
+    node sees, as every node does), on the progress display ``fedhpg-run`` shows."""
+
+    def __init__(self, run: RunConfig, run_dir: Path) -> None:
+        from fedhpg.common.variants import variant_of
+
+        self.run = run
+        self.metrics = run_dir / METRICS_NAME
+        self.has_goal = bool(variant_of(run, 0).has_goal)
+        self._offset = 0
+        self._bar: Progress | None = None
+
+    def poll(self) -> None:
+        """Show the rounds written since the last poll (whole lines only)."""
+        from fedhpg.server.report import evaluation_of
+        from fedhpg.server.serving import round_status
+
+        try:
+            with self.metrics.open("rb") as handle:
+                handle.seek(self._offset)
+                written = handle.read()
+        except OSError:  # not written yet
+            return
+        end = written.rfind(b"\n") + 1
+        self._offset += end
+        for line in written[:end].splitlines():
+            try:
+                record = json.loads(line)
+                number, round_time_s = int(record["round"]), float(record["round_time_s"])
+                evaluation = evaluation_of(record["eval"]) if record.get("eval") else None
+            except (ValueError, KeyError, TypeError):  # not a round's record: not ours to judge
+                continue
+            if self._bar is None:
+                self._bar = Progress(self.run.rounds, "rounds", done=number - 1)
+            self._bar.update(1, round_status(round_time_s, evaluation, has_goal=self.has_goal))
+
+    def close(self) -> None:
+        if self._bar is not None:
+            self._bar.close()
+
+    def report(self) -> None:
+        """The unified policy's last evaluation per agent from summary.json, as the server
+        prints it, then where the run directory is."""
+        from fedhpg.server.report import evaluation_of
+        from fedhpg.server.serving import print_report
+
+        run_dir = self.metrics.parent
+        try:
+            summary = json.loads((run_dir / "summary.json").read_text(encoding="utf-8"))
+            evaluation = evaluation_of(summary["eval"]) if summary.get("eval") else None
+            last_round, agent_ids = int(summary["final_eval_round"]), list(summary["variants"])
+        except (OSError, ValueError, KeyError, TypeError) as error:
+            logger.warning("cannot read the run's summary.json: %s", error)
+            evaluation, last_round, agent_ids = None, 0, []
+        print_report(
+            self.run,
+            last_round=last_round,
+            evaluation=evaluation,
+            agent_ids=agent_ids,
+            has_goal=self.has_goal,
+            out_dir=run_dir,
+        )
+
+
+def supervise(run: RunConfig, placement: Placement, rounds: RoundProgress | None = None) -> int:
+    """Until the server job ends: its status (1 if it failed or an agent job did); the rounds
+    are shown as they complete."""
     while not placement.server.done():
         if not _watch_agents(run, placement):
             return 1
+        if rounds is not None:
+            rounds.poll()
         time.sleep(POLL_S)
+    if rounds is not None:
+        rounds.poll()
+        rounds.close()
     status, why = placement.server.status()
     server = f"the server job {placement.server.job_id}"
     if status is None:
@@ -242,12 +317,13 @@ def place(run: RunConfig, overrides: Sequence[str], run_dir: Path, engine: Engin
     new = not run_dir.exists()
     run_dir.mkdir(parents=True, exist_ok=True)
     placement: Placement | None = None
+    rounds = RoundProgress(run, run_dir)
     with stop_signals():
         try:
             placement = submit(run, overrides, run_dir, engine)
-            status = supervise(run, placement)
+            status = supervise(run, placement, rounds)
             if status == 0:
-                sys.stdout.write(f"run directory: {run_dir}\n")
+                rounds.report()
             return status
         except SubmitError as error:
             sys.stderr.write(f"error: {error}\n")

@@ -25,6 +25,15 @@ Describe = Callable[[str], tuple[str, dict[str, Any]]]
 """Agent id → (its compute budget, its environment variant's parameters), for a table row."""
 
 
+def evaluation_of(records: dict[str, dict[str, Any]]) -> dict[str, EvaluationStats]:
+    """An evaluation as metrics.jsonl and summary.json hold it (agent id → its statistics;
+    ``success_rate`` null where the environment has no goal), as the server had it."""
+    return {
+        agent: EvaluationStats(**{**stats, "success_rate": stats["success_rate"] or 0.0})
+        for agent, stats in records.items()
+    }
+
+
 def evaluation_table(
     evaluation: dict[str, EvaluationStats],
     variants_params: dict[str, dict[str, Any]],

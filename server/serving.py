@@ -259,19 +259,27 @@ def _serve(assembly: Assembly, pool: ZmqAgentPool, show_progress: bool) -> torch
             bar.close()
 
 
+def round_status(
+    round_time_s: float, evaluation: dict[str, EvaluationStats] | None, *, has_goal: bool
+) -> str:
+    """A round's line on the progress bar: its time, and its evaluation's worst success rate
+    (with a goal) and mean return when it was evaluated."""
+    status = f"round {round_time_s:.2f}s"
+    if evaluation:
+        success = [e.success_rate for e in evaluation.values()]
+        returns = [e.return_mean for e in evaluation.values()]
+        mean_return = sum(returns) / len(returns)
+        status += " | eval "
+        status += f"success min {min(success):.2f}, " if has_goal else ""
+        status += f"mean return {mean_return:.3f}"
+    return status
+
+
 def _progress_callback(
     progress: Progress, *, has_goal: bool
 ) -> Callable[[RoundRecord, torch.Tensor], None]:
     def update(record: RoundRecord, _: torch.Tensor) -> None:
-        status = f"round {record.round_time_s:.2f}s"
-        if record.eval:
-            success = [e.success_rate for e in record.eval.values()]
-            returns = [e.return_mean for e in record.eval.values()]
-            mean_return = sum(returns) / len(returns)
-            status += " | eval "
-            status += f"success min {min(success):.2f}, " if has_goal else ""
-            status += f"mean return {mean_return:.3f}"
-        progress.update(1, status)
+        progress.update(1, round_status(record.round_time_s, record.eval, has_goal=has_goal))
 
     return update
 
@@ -279,14 +287,34 @@ def _progress_callback(
 def _print_report(
     checked: CheckedRun, assembly: Assembly, agent_ids: list[str], out_dir: Path
 ) -> None:
-    """The unified policy's last evaluation per agent, then where the run directory is."""
-    run, last = checked.run, assembly.last
-    if last.eval:
+    last = assembly.last
+    print_report(
+        checked.run,
+        last_round=last.round,
+        evaluation=last.eval,
+        agent_ids=agent_ids,
+        has_goal=checked.first.has_goal,
+        out_dir=out_dir,
+    )
+
+
+def print_report(
+    run: RunConfig,
+    *,
+    last_round: int | None,
+    evaluation: dict[str, EvaluationStats] | None,
+    agent_ids: list[str],
+    has_goal: bool,
+    out_dir: Path,
+) -> None:
+    """The unified policy's last evaluation (of round ``last_round``) per agent, then where the
+    run directory is."""
+    if evaluation:
         sys.stdout.write(
-            f"\nUnified policy after round {last.round} "
+            f"\nUnified policy after round {last_round} "
             f"({run.eval.episodes} {'greedy' if run.eval.greedy else 'sampled'} episodes "
             "per environment):\n"
-            + final_report(run, last.eval, agent_ids, has_goal=checked.first.has_goal)
+            + final_report(run, evaluation, agent_ids, has_goal=has_goal)
             + "\n"
         )
     sys.stdout.write(f"run directory: {out_dir.resolve()}\n")

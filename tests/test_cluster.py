@@ -102,6 +102,46 @@ def _ports(stderr: str) -> set[str]:
             if "server listening on tcp://" in line}  # fmt: skip
 
 
+def test_the_driver_shows_each_round_and_ends_with_the_servers_final_table(
+    tmp_path: Path, caplog: pytest.LogCaptureFixture, capsys: pytest.CaptureFixture
+) -> None:
+    """fedhpg-cluster follows the server job's metrics.jsonl in the shared run directory: a
+    progress line per round as fedhpg-run shows them, whole lines only, then the final table
+    the server prints, from summary.json."""
+    import logging
+
+    from fedhpg.server.cluster import RoundProgress
+    from fedhpg.server.serving import final_report
+
+    run_dir = tmp_path / "run"
+    result = api.run(overrides=TINY, out_dir=run_dir)
+    run = compose(TINY)
+    lines = (run_dir / "metrics.jsonl").read_bytes().splitlines(keepends=True)
+    shared = tmp_path / "shared"
+    shared.mkdir()
+    rounds = RoundProgress(run, shared)
+    with caplog.at_level(logging.INFO, logger="fedhpg.common.runtime.progress"):
+        rounds.poll()  # the server has not written it yet
+        (shared / "metrics.jsonl").write_bytes(lines[0] + lines[1][:40])  # round 2 half-written
+        rounds.poll()
+        with (shared / "metrics.jsonl").open("ab") as handle:
+            handle.write(lines[1][40:])
+        rounds.poll()
+        rounds.close()
+    said = [r.getMessage() for r in caplog.records if r.getMessage().startswith("progress")]
+    assert [s.split(" [")[0] for s in said] == ["progress 1/2 rounds", "progress 2/2 rounds"]
+    assert "| eval success min" in said[1], said
+
+    (shared / "summary.json").write_bytes((run_dir / "summary.json").read_bytes())
+    capsys.readouterr()
+    rounds.report()
+    out = capsys.readouterr().out
+    assert result.last_evaluation is not None
+    table = final_report(run, result.last_evaluation, ["agent-0", "agent-1"], has_goal=True)
+    assert "Unified policy after round 2 (2 greedy episodes per environment):" in out
+    assert table in out and f"run directory: {shared.resolve()}" in out
+
+
 def test_reaper_sees_a_process_left_behind(tmp_path: Path) -> None:
     process = _run(["sh", "-c", "sleep 30 & exit 0"], tmp_path)
     _, err = process.communicate(timeout=30)
@@ -145,6 +185,7 @@ def test_a_federation_placed_through_submitit_equals_the_same_run_here(tmp_path:
     assert status == 0, err[-3000:]
     print(f"fedhpg-cluster cluster=local: {time.monotonic() - started:.1f} s")
     assert f"run directory: {run_dir}" in out
+    assert "progress 2/2 rounds" in err and "Unified policy after round 2" in out, (out, err)
     assert torch.equal(_theta(run_dir), _in_process(0))
     endpoint = json.loads((run_dir / "endpoint.json").read_text())
     assert endpoint["host"] == "127.0.0.1" and endpoint["port"] > 0
