@@ -311,3 +311,23 @@ def test_fedpgbr_brings_its_strategy_unless_one_is_named() -> None:
     assert compose(["-m", "env=cartpole", "algo=fedpgbr"][1:]).strategy.params["step_size"] == 0.01
     with pytest.raises(ConfigError, match="algo=fedpgbr sends what only strategy=fedpgbr"):
         compose(["env=cartpole", "algo=fedpgbr", "strategy=median"])
+
+
+def test_a_server_of_very_many_agents_says_what_it_computes_before_listening(
+    monkeypatch: pytest.MonkeyPatch, caplog: pytest.LogCaptureFixture
+) -> None:
+    """The agents' digests are O(K) before the server listens (half an hour at K = 10⁷): from
+    DIGESTS_SHOWN_FROM agents on, a line says so and a progress line follows, the digests
+    unchanged."""
+    from fedhpg.common.runtime.cli import compose
+    from fedhpg.server import serving
+
+    run = compose(["agents=population", "agents.num_agents=50"])
+    quiet = serving.run_digests(run)
+    monkeypatch.setattr(serving, "DIGESTS_SHOWN_FROM", 50)
+    monkeypatch.setattr(serving, "DIGESTS_PER_UPDATE", 20)
+    with caplog.at_level(logging.INFO):
+        assert serving.run_digests(run) == quiet
+    said = [r.getMessage() for r in caplog.records]
+    assert said[0].startswith("computing the environment digests of 50 agents"), said
+    assert said[-1].startswith("progress 50/50 agents' digests"), said
