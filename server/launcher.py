@@ -38,6 +38,8 @@ logger = logging.getLogger(__name__)
 
 PR_SET_PDEATHSIG = 1
 STOP_GRACE_S = 3.0
+FINISH_GRACE_S = 10.0
+"""After the server completed the run, how long the agent processes may take to end."""
 EXIT_INTERRUPTED = 130
 BIND_FAILED = b"!"
 """Prefix of the server child's message on the ready pipe when it could not bind."""
@@ -142,6 +144,28 @@ class Supervisor:
         self.start(target, args, child.name)
         return True
 
+    def _finish(self) -> int:
+        """The server completed the run: give the agent processes FINISH_GRACE_S to end.
+        One still running then is stopped with a warning (the run's results are all written;
+        a host that missed the server's shutdown, busy reconnecting, would otherwise wait for
+        ``agent.connect_timeout_s``); one that ended with an error fails the launch."""
+        deadline = time.monotonic() + FINISH_GRACE_S
+        for child in self.children:
+            child.join(max(deadline - time.monotonic(), 0.0))
+        lingering = [c.name for c in self.children if c.exitcode is None]
+        failed = [c.name for c in self.children if c.exitcode not in (None, 0)]
+        self.stop_all()
+        if lingering:
+            logger.warning(
+                "the run is complete, but %s had not ended %g s after the server; stopped",
+                ", ".join(lingering),
+                FINISH_GRACE_S,
+            )
+        if failed:
+            logger.error("processes did not finish cleanly: %s", ", ".join(failed))
+            return 1
+        return 0
+
     def wait(self, server: multiprocessing.process.BaseProcess) -> int:
         """Until the server ends: 0 if every process ended well, else 1."""
         while True:
@@ -157,15 +181,7 @@ class Supervisor:
                     self.stop_all()
                     return 1
             if server.exitcode == 0:
-                deadline = time.monotonic() + 10.0
-                for child in self.children:
-                    child.join(max(deadline - time.monotonic(), 0.0))
-                failed = [c.name for c in self.children if c.exitcode != 0]
-                self.stop_all()
-                if failed:
-                    logger.error("processes did not finish cleanly: %s", ", ".join(failed))
-                    return 1
-                return 0
+                return self._finish()
             time.sleep(0.05)
 
 

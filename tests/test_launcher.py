@@ -217,3 +217,35 @@ def test_a_failed_start_removes_the_run_directory_hydra_made_for_it(
         launcher.main()
     assert exit_.value.code == 1
     assert out_dir.exists() == existed
+
+
+def _exit_after(seconds: float, status: int) -> None:
+    import sys
+    import time
+
+    time.sleep(seconds)
+    sys.exit(status)
+
+
+@pytest.mark.parametrize(
+    ("agent_s", "agent_status", "launch_status"),
+    [(60.0, 0, 0), (0.5, 1, 1)],
+    ids=["lingering-is-stopped", "failed-counts"],
+)
+def test_after_a_completed_run_the_agents_get_a_grace_then_are_stopped(
+    monkeypatch: pytest.MonkeyPatch, agent_s: float, agent_status: int, launch_status: int
+) -> None:
+    """The server ended the run well: an agent process still running after FINISH_GRACE_S
+    (a host that missed the shutdown while reconnecting) is stopped with a warning, and the
+    launch succeeds; one that ended with an error fails it."""
+    from fedhpg.server import launcher
+
+    monkeypatch.setattr(launcher, "FINISH_GRACE_S", 1.0)
+    supervisor = launcher.Supervisor()
+    agent = supervisor.start(_exit_after, (agent_s, agent_status), "host-0-1")
+    server = supervisor.start(_exit_after, (0.1, 0), "server")
+    try:
+        assert supervisor.wait(server) == launch_status
+        assert not agent.is_alive()
+    finally:
+        supervisor.stop_all()
