@@ -8,18 +8,17 @@ never depends on where an agent runs) and their emulated devices, and turns a ``
 Device emulation prices the same arithmetic in one of two ways:
 
 - A lone agent whose device sleeps (``agents.virtual_clock=false``) is priced iteration by
-  iteration through its own :class:`~fedhpg.common.device.DeviceModel` while it trains, and
-  sleeps what the round owes once, before the answer leaves; a superseded request cuts the
-  sleep short. Only a process of one agent can sleep its device's time.
+  iteration through its own :class:`~fedhpg.common.device.DeviceModel`, and sleeps what the
+  round owes once, before the answer leaves; a superseded request cuts the sleep short. Only
+  a process of one agent can sleep its device's time.
 - Every other range (an agent host's agents are always on the virtual clock: a host of 500
-  agents cannot sleep 500 devices' time on one thread) takes its round as columns
-  (:func:`~fedhpg.common.round_columns.train_columns`) and prices all its agents' iterations
-  at once (:class:`~fedhpg.common.device.DeviceColumns`), to the bit what each agent's own
+  agents cannot sleep 500 devices' time on one thread) prices all its agents' iterations at
+  once (:class:`~fedhpg.common.device.DeviceColumns`), to the bit what each agent's own
   ``DeviceModel`` gives.
 
-Either way the round's statistics leave as one :class:`~fedhpg.common.types.UpdateColumns`,
-cut into ceil(A / :func:`~fedhpg.common.wire.transport.answers_per_message`) ``Update``
-messages.
+Either way the group's :class:`~fedhpg.common.types.RoundResult` leaves as it is, its device
+columns filled in, cut into ceil(A / :func:`~fedhpg.common.wire.transport.answers_per_message`)
+slices of itself (the ``update`` message).
 """
 
 from __future__ import annotations
@@ -37,11 +36,10 @@ import torch
 from fedhpg.common.config import RunConfig
 from fedhpg.common.device import DeviceColumns, DeviceModel, device_for, message_bytes
 from fedhpg.common.group import AgentGroup, make_agent_group
-from fedhpg.common.privacy.contribution import EXTRA, contribution
-from fedhpg.common.round_columns import train_columns
+from fedhpg.common.privacy.contribution import EXTRA, contribution, redacted
 from fedhpg.common.runtime import timeline
 from fedhpg.common.runtime.memory import tune_malloc_for
-from fedhpg.common.types import UpdateColumns, UpdateStats
+from fedhpg.common.types import RoundResult, UpdateColumns, UpdateStats
 from fedhpg.common.variants import range_digest, variant_digest, variants_of
 from fedhpg.common.wire.protocol import (
     KEY_BYTES,
@@ -58,11 +56,9 @@ from fedhpg.common.wire.protocol import (
     Train,
     Unmasking,
     UnmaskRequest,
-    Update,
     no_keys,
 )
 from fedhpg.common.wire.transport import answers_per_message, batch_message_cap
-from fedhpg.common.worker import IterationWork
 
 logger = logging.getLogger(__name__)
 SECURE_MODES = ("secagg", "dp_secagg")
@@ -166,29 +162,21 @@ class AgentWork:
         timeline.mark(self.label, "work-start", request.round)
         started = time.perf_counter()
         if self.sleeps:
-            thetas, stats = self._train_sleeping(group, request, theta, planned, cancel)
+            result = self._train_sleeping(group, request, theta, planned, cancel)
         else:
-            thetas, stats = self._train_columns(group, request, theta, agents, planned, cancel)
+            result = self._train_columns(group, request, theta, agents, planned, cancel)
             # each answer leaves with the batch: the round's wall time is each agent's
-            stats = stats.replaced(local_wall_s=[time.perf_counter() - started] * len(stats))
+            result = result.with_stats(local_wall_s=[time.perf_counter() - started] * len(result))
         timeline.mark(self.label, "trained", request.round)
         if self.private:  # what the agents' data decides directly stays here
-            stats = stats.replaced(train_return=[0.0] * len(stats), algorithm={})
+            result = redacted(result)
         if request.private is not None:
             if self.secure is None:
                 raise OutsideRange(f"{self.label} was asked to mask without channel keys")
-            return self.secure.share(request, agents, theta, thetas, stats, max_bytes)
-        num_params = thetas.shape[1]
+            return self.secure.share(request, theta, result, max_bytes)
+        num_params = result.thetas.shape[1]
         per_message = answers_per_message(batch_message_cap(max_bytes, num_params), num_params)
-        return [
-            Update(
-                round=request.round,
-                agents=agents[start : start + per_message],
-                thetas=thetas[start : start + per_message],
-                stats=stats[start : start + per_message],
-            )
-            for start in range(0, len(agents), per_message)
-        ]
+        return [result[start : start + per_message] for start in range(0, len(result), per_message)]
 
     def _train_columns(
         self,
@@ -198,7 +186,7 @@ class AgentWork:
         agents: list[int],
         planned: Mapping[int, Mapping[str, int]],
         cancel: threading.Event,
-    ) -> tuple[np.ndarray, UpdateColumns]:
+    ) -> RoundResult:
         """The round as columns, every agent's device priced at once (the virtual clock)."""
         assert self._columns is not None
 
@@ -206,15 +194,14 @@ class AgentWork:
             if cancel.is_set():
                 raise Cancelled
 
-        trained = train_columns(
-            group, request.round, theta, agents, budgets=planned, interrupt=interrupt
-        )
-        num_params = trained.thetas.shape[1]
-        rows = np.asarray(trained.agents, dtype=np.int64) - self.indices.start
+        trained = group.train(request.round, theta, agents, budgets=planned, interrupt=interrupt)
+        result = trained.result
+        num_params = result.thetas.shape[1]
+        rows = np.asarray(result.agents, dtype=np.int64) - self.indices.start
         emulated, speeds = self._columns.round(
             rows, request.round, message_bytes(num_params), trained.iterations, num_params
         )
-        return trained.thetas, trained.stats(emulated_s=emulated, speed=speeds)
+        return result.with_stats(emulated_s=emulated.tolist(), speed=speeds.tolist())
 
     def _train_sleeping(
         self,
@@ -223,43 +210,40 @@ class AgentWork:
         theta: torch.Tensor,
         planned: Mapping[int, Mapping[str, int]],
         cancel: threading.Event,
-    ) -> tuple[np.ndarray, UpdateColumns]:
-        """A lone agent's round on its own device, priced as it runs; the sleep it owes is
-        paid once, at the end, and cut short by ``cancel``."""
+    ) -> RoundResult:
+        """A lone agent's round on its own device: its iterations priced in order once it
+        trained, and the sleep they owe paid once, at the end, cut short by ``cancel``."""
         k = self.indices.start
         device = self.devices[k]
         device.sleep = lambda seconds: _sleep_unless(cancel, seconds)
         started = time.perf_counter()
+
+        def interrupt() -> None:
+            if cancel.is_set():
+                raise Cancelled
+
+        trained = group.train(request.round, theta, [k], budgets=planned, interrupt=interrupt)
         num_params = group.num_params
         # The counted clock charges θ's float32 bytes plus a fixed header for the request and
         # for the answer (not the encoded lengths), exactly what the in-process pool charges.
         message = message_bytes(num_params)
         device.take_emulated()
         device.transmit(message)  # the request's one-way latency (and transfer)
-
-        def on_iteration(_: int, work: IterationWork) -> None:
-            if cancel.is_set():
-                raise Cancelled
+        for ran in trained.iterations:
             device.spend(
-                work.compute_s,
-                work.env_steps,
+                float(ran.compute_s[0]),
+                int(ran.env_steps[0]),
                 request.round,
-                grad_steps=work.grad_steps,
+                grad_steps=int(ran.grad_steps[0]),
                 num_params=num_params,
             )
-
-        result = group.train(request.round, theta, [k], on_iteration=on_iteration, budgets=planned)[
-            k
-        ]
         device.transmit(message)  # the answer's
         device.settle()
-        stats = dataclasses.replace(
-            result.stats,
-            emulated_s=device.take_emulated(),
-            local_wall_s=time.perf_counter() - started,
-            speed=device.speed_at(request.round),
+        return trained.result.with_stats(
+            emulated_s=[device.take_emulated()],
+            local_wall_s=[time.perf_counter() - started],
+            speed=[device.speed_at(request.round)],
         )
-        return result.theta.detach().numpy()[None], UpdateColumns.of([stats])
 
 
 class SecureAgents:
@@ -301,13 +285,7 @@ class SecureAgents:
         self.keys.settings = run.privacy
 
     def share(
-        self,
-        request: Train,
-        agents: list[int],
-        theta: torch.Tensor,
-        thetas: np.ndarray,
-        stats: UpdateColumns,
-        max_bytes: int,
+        self, request: Train, theta: torch.Tensor, result: RoundResult, max_bytes: int
     ) -> list[Message]:
         """After training: each agent's contribution kept, its round mask key advertised."""
         from fedhpg.common.privacy import fixedpoint
@@ -339,7 +317,7 @@ class SecureAgents:
             return []
         bound = max(private.bound, 1.0)
         scale = fixedpoint.scale_for(len(keys), bound)
-        records = stats.records()
+        agents, thetas, records = result.agents, result.thetas, result.stats.records()
         self._round, self._inputs, self._stats = request.round, {}, {}
         self._channel_keys, self._planned = keys, len(keys)
         self._num_params = thetas.shape[1]

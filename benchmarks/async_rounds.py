@@ -183,7 +183,7 @@ class _Watch:
         self.figures: list[Any] = []
 
     def round_time(self, record: RoundRecord) -> float:
-        slowest = max((u.stats.emulated_s for u in record.agents), default=0.0)
+        slowest = max(record.result.stats.emulated_s, default=0.0)
         if self.deadline_s is not None and record.stragglers:
             return max(slowest, self.deadline_s)
         return slowest

@@ -52,14 +52,25 @@ def main() -> None:
     for line in sys.stdin:
         index = int(line)
         started = time.perf_counter()
-        results = group.train(index, theta, agents)
+        trained = group.train(index, theta, agents)
         seconds = time.perf_counter() - started
-        steps = sum(r.stats.env_steps for r in results.values())
-        phases = {
-            name: sum(r.stats.algorithm.get(name) or 0.0 for r in results.values())
-            for name in ("engine_sample_s", "engine_gradient_s")
-        }  # the engine's own split of its CPU time, where the revision reports it
-        print(json.dumps({"seconds": seconds, "steps": steps, **phases}), flush=True)
+        print(json.dumps({"seconds": seconds, **_measured(trained)}), flush=True)
+
+
+PHASES = ("engine_sample_s", "engine_gradient_s")
+"""The engine's own split of its CPU time, where the revision reports it."""
+
+
+def _measured(trained):  # type: ignore[no-untyped-def]
+    """A round's env steps and phases: from its result's columns, or (older revisions) from
+    its per-agent results."""
+    if hasattr(trained, "result"):
+        stats = trained.result.stats
+        phases = {name: sum(v or 0.0 for v in stats.algorithm.get(name, [])) for name in PHASES}
+        return {"steps": sum(stats.env_steps), **phases}
+    results = trained.values()
+    phases = {name: sum(r.stats.algorithm.get(name) or 0.0 for r in results) for name in PHASES}
+    return {"steps": sum(r.stats.env_steps for r in results), **phases}
 
 
 def _variant(run):  # type: ignore[no-untyped-def]

@@ -204,7 +204,7 @@ def _run_to_threshold(
     state: dict[str, Any] = {}
 
     def watch(record: RoundRecord, _: torch.Tensor) -> None:
-        spent[0] += max(u.stats.emulated_s for u in record.agents)
+        spent[0] += max(record.result.stats.emulated_s)
         state.update(rounds=record.round, traj=record.trajectories_per_agent)
         if setting.solved(record):
             state["reached"] = True

@@ -189,9 +189,9 @@ def timed_round(
     seconds and env steps."""
     _sync(device)
     started = time.perf_counter()
-    results = group.train(index, theta, agents)
+    trained = group.train(index, theta, agents)
     _sync(device)
-    return time.perf_counter() - started, sum(r.stats.env_steps for r in results.values())
+    return time.perf_counter() - started, sum(trained.result.stats.env_steps)
 
 
 def _rounds(
@@ -303,7 +303,8 @@ def placement_check(device: str, family: str) -> dict[str, bool]:
     def train(company: list[int]) -> dict[int, torch.Tensor]:
         group = make_agent_group(run, company, variants_of(run, company))
         assert isinstance(group, EngineGroup)
-        return {k: r.theta for k, r in group.train(3, theta, company).items()}
+        result = group.train(3, theta, company).result
+        return {k: torch.from_numpy(result.theta_of(k)) for k in company}
 
     everyone = train(list(range(9)))
     companies = [train(c) for c in ([4], [8, 0], [7, 2, 5], [6, 1, 3, 0, 8, 2, 4])]

@@ -226,10 +226,10 @@ def run_curve(task: Task, label: str, seed: int, budget: int, stop: bool = True)
 
     def watch(record: Any, _: Any) -> None:
         nonlocal steps
-        steps += sum(update.stats.env_steps for update in record.agents)
+        steps += sum(record.result.stats.env_steps)
         curve.train_trajectories.append(record.trajectories_per_agent)
         curve.train_returns.append(
-            statistics.mean(update.stats.train_return for update in record.agents)
+            statistics.mean(record.result.stats.train_return)
         )
         if record.eval:
             curve.trajectories.append(record.trajectories_per_agent)

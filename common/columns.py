@@ -102,6 +102,44 @@ class Columns(Sequence[R], Generic[R]):
         """The columns of ``rows`` only, in that order."""
         return self._picked(lambda column: [column[i] for i in rows])
 
+    @classmethod
+    def gathered(cls, rows: Sequence[tuple[Self, int]]) -> Self:
+        """Row ``j`` of ``rows[i][0]`` as row i, for each i (a map column None where that
+        part has none)."""
+        columns: dict[str, Any] = {
+            name: [getattr(part, name)[j] for part, j in rows] for name in cls.scalar_fields
+        }
+        for name in cls.map_fields:
+            keys = dict.fromkeys(key for part, _ in rows for key in getattr(part, name))
+            columns[name] = {
+                key: [
+                    None if (column := getattr(part, name).get(key)) is None else column[j]
+                    for part, j in rows
+                ]
+                for key in keys
+            }
+        return cls(**columns)
+
+    @classmethod
+    def concatenated(cls, parts: Sequence[Self]) -> Self:
+        """The rows of ``parts`` one after another (a map column None where a part has none)."""
+        columns: dict[str, Any] = {
+            name: [value for part in parts for value in getattr(part, name)]
+            for name in cls.scalar_fields
+        }
+        for name in cls.map_fields:
+            maps = [getattr(part, name) for part in parts]
+            keys = dict.fromkeys(key for own in maps for key in own)
+            columns[name] = {
+                key: [
+                    value
+                    for part, own in zip(parts, maps, strict=True)
+                    for value in own.get(key, [None] * len(part))
+                ]
+                for key in keys
+            }
+        return cls(**columns)
+
     def __len__(self) -> int:
         if self.scalar_fields:
             return len(getattr(self, self.scalar_fields[0]))

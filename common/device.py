@@ -278,14 +278,16 @@ class DeviceColumns:
         num_bytes: int,
         iterations: Sequence[IterationColumns],
         num_params: int,
+        *,
+        messages: bool = True,
     ) -> tuple[np.ndarray, np.ndarray]:
         """The emulated seconds and the speed of the devices at ``rows`` over one round: a
-        message of ``num_bytes`` each way around ``iterations`` (their ``positions`` index
-        ``rows``)."""
+        message of ``num_bytes`` each way (``messages``; none where the server is in the
+        same process) around ``iterations`` (their ``positions`` index ``rows``)."""
         speeds = np.array([self.devices[r].speed_at(round_index) for r in rows.tolist()])
         delay = self.step_delay_s[rows]
         step_cost, grad_cost = self.step_cost_s[rows], self.grad_cost_s[rows]
-        message = self.transfer_s(rows, num_bytes)
+        message = self.transfer_s(rows, num_bytes) if messages else np.zeros(len(rows))
         emulated = np.zeros(len(rows), dtype=np.float64)
         emulated += message
         for ran in iterations:

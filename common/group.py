@@ -3,8 +3,8 @@ pool drive, and what the one-agent process drives with a group of one.
 
 Every placement of an agent (one per process, many per host, all in-process) trains it through
 :func:`make_agent_group`, so its θ̃ never depends on where it runs. A group computes only the
-learning results; device emulation (clocks, sleeping, message costs) stays with its caller,
-fed per agent and per local iteration through ``on_iteration``.
+learning results (a :class:`~fedhpg.common.round_columns.TrainedRound`); device emulation
+(clocks, sleeping, message costs) stays with its caller, which prices the round's iterations.
 
 :class:`EngineGroup` runs the run's algorithm over rows of agents on the engine
 (:mod:`fedhpg.common.engine`: every algorithm, policy and environment family); the compiled
@@ -22,23 +22,22 @@ import numpy as np
 import torch
 
 from fedhpg.common.config import RunConfig
-from fedhpg.common.types import EvaluationStats, LocalResult
+from fedhpg.common.round_columns import IterationColumns, TrainedRound
+from fedhpg.common.types import EvaluationStats, RoundResult, UpdateColumns
 from fedhpg.common.variants import variants_of
-from fedhpg.common.worker import IterationWork
 from fedhpg.envs.base import EnvVariant
 
 if TYPE_CHECKING:
     from fedhpg.common.engine.memory import RoundPlan
     from fedhpg.common.engine.round import RowWork
-    from fedhpg.common.round_columns import IterationColumns, TrainedColumns
 
 logger = logging.getLogger(__name__)
 
 Budgets = Mapping[int, Mapping[str, int]]
 """Agent index -> the fields of its budget the round's plan sets (``agents.plan``)."""
-GroupHook = Callable[[int, IterationWork], None]
-"""(agent index, that agent's iteration) -> None, after each local iteration of each agent.
-It may raise to cancel the round (the agent process's cancellation does)."""
+Interrupt = Callable[[], None]
+"""Called after each local iteration; it may raise to cancel the round (an agent process's
+does when the server supersedes the request)."""
 
 
 RECENT_PLANS = 8
@@ -64,11 +63,12 @@ class AgentGroup(Protocol):
         theta: torch.Tensor,
         agents: Sequence[int],
         *,
-        on_iteration: GroupHook | None = None,
         budgets: Budgets | None = None,
-    ) -> dict[int, LocalResult]:
+        interrupt: Interrupt | None = None,
+    ) -> TrainedRound:
         """The round's local updates of ``agents`` (a subset of ``indices``) from θ̃;
-        ``budgets``: the server's plan for some of them (fields of their configured budget)."""
+        ``budgets``: the server's plan for some of them (fields of their configured budget);
+        ``interrupt``: called after each local iteration, it may raise to cancel the round."""
         ...
 
     def evaluate(
@@ -137,23 +137,21 @@ class EngineGroup:
             self._plans[tuple(agents)] = plan
         return plan
 
-    def train_columns(
+    def train(
         self,
         round_index: int,
         theta: torch.Tensor,
         agents: Sequence[int],
         *,
         budgets: Budgets | None = None,
-        interrupt: Callable[[], None] | None = None,
-        on_work: Callable[[IterationColumns], None] | None = None,
-    ) -> TrainedColumns:
+        interrupt: Interrupt | None = None,
+    ) -> TrainedRound:
         """The round of ``agents``, chunk after chunk of :meth:`plan` (an agent's numbers do
         not depend on the chunk it is in); only the θ rows and the statistics leave the
         device."""
         from fedhpg.common.attacks import corrupt_rows
         from fedhpg.common.engine.engine import engine_settings
         from fedhpg.common.engine.round import Tally
-        from fedhpg.common.round_columns import IterationColumns, TrainedColumns
 
         order = sorted(agents)
         plan = self.plan(order, budgets)
@@ -163,17 +161,16 @@ class EngineGroup:
         offset = 0
 
         def hook(work: RowWork) -> None:
+            works.append(
+                IterationColumns(
+                    positions=work.rows + offset,
+                    compute_s=work.compute_s,
+                    env_steps=work.env_steps,
+                    grad_steps=work.grad_steps,
+                )
+            )
             if interrupt is not None:
                 interrupt()
-            columns = IterationColumns(
-                positions=work.rows + offset,
-                compute_s=work.compute_s,
-                env_steps=work.env_steps,
-                grad_steps=work.grad_steps,
-            )
-            works.append(columns)
-            if on_work is not None:
-                on_work(columns)
 
         engine = self.engine
         honest: list[torch.Tensor] = []
@@ -196,9 +193,8 @@ class EngineGroup:
             round_index=round_index,
         )
         tally = Tally.concatenated(tallies)
-        return TrainedColumns(
-            agents=order,
-            thetas=sent.detach().numpy().astype(np.float32, copy=False),
+        stats = UpdateColumns.filled(
+            len(order),
             trajectories=tally.trajectories,
             env_steps=tally.env_steps,
             compute_s=tally.compute_s,
@@ -213,44 +209,14 @@ class EngineGroup:
                 TIMING_STATS[0]: tally.sample_s.tolist(),
                 TIMING_STATS[1]: (tally.compute_s - tally.sample_s).tolist(),
             },
-            iterations=works,
         )
-
-    def train(
-        self,
-        round_index: int,
-        theta: torch.Tensor,
-        agents: Sequence[int],
-        *,
-        on_iteration: GroupHook | None = None,
-        budgets: Budgets | None = None,
-    ) -> dict[int, LocalResult]:
-        order = sorted(agents)
-        done = dict.fromkeys(order, 0)
-
-        def interrupt_free(work: IterationColumns) -> None:
-            assert on_iteration is not None
-            for position, compute, steps, grads in zip(
-                work.positions.tolist(),
-                work.compute_s.tolist(),
-                work.env_steps.tolist(),
-                work.grad_steps.tolist(),
-                strict=True,
-            ):
-                k = order[position]
-                on_iteration(k, IterationWork(done[k], compute, steps, grads))
-                done[k] += 1
-
-        columns = self.train_columns(
-            round_index,
-            theta,
-            order,
-            budgets=budgets,
-            on_work=interrupt_free if on_iteration is not None else None,
+        result = RoundResult(
+            round=round_index,
+            agents=order,
+            thetas=sent.detach().numpy().astype(np.float32, copy=False),
+            stats=stats,
         )
-        if len(order) == 1:
-            return {order[0]: columns.lone_result()}
-        return {k: columns.result(i) for i, k in enumerate(order)}
+        return TrainedRound(result=result, iterations=works)
 
     def evaluate(
         self, round_index: int, theta: torch.Tensor, episodes: int, agents: Sequence[int]
@@ -300,18 +266,16 @@ class SplitGroup:
         theta: torch.Tensor,
         agents: Sequence[int],
         *,
-        on_iteration: GroupHook | None = None,
         budgets: Budgets | None = None,
-    ) -> dict[int, LocalResult]:
-        results: dict[int, LocalResult] = {}
-        for part, chosen in self._split(agents):
-            if chosen:
-                results.update(
-                    part.train(
-                        round_index, theta, chosen, on_iteration=on_iteration, budgets=budgets
-                    )
-                )
-        return dict(sorted(results.items()))
+        interrupt: Interrupt | None = None,
+    ) -> TrainedRound:
+        return TrainedRound.concatenated(
+            [
+                part.train(round_index, theta, chosen, budgets=budgets, interrupt=interrupt)
+                for part, chosen in self._split(agents)
+                if chosen
+            ]
+        )
 
     def evaluate(
         self, round_index: int, theta: torch.Tensor, episodes: int, agents: Sequence[int]

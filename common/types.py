@@ -1,37 +1,36 @@
-"""One agent's work in one round, typed end to end.
+"""Agents' work in one round, typed end to end.
 
-The algorithm returns a :class:`LocalResult` (θ_k and :class:`UpdateStats`); the agent that
-emulates the device fills in the device fields; several agents' stats travel together as
-:class:`UpdateColumns`, whose columns are generated from ``UpdateStats``'s fields (the codec
-checks every column against these annotations); the server holds an :class:`AgentUpdate` per
-agent, which strategies aggregate and ``metrics.jsonl`` records. An evaluation travels as
-:class:`EvaluationStats`. torch is imported for type checking only.
+A round's local updates are one :class:`RoundResult` from the engine to the strategy: θ rows
+and the :class:`UpdateColumns` of their statistics, whose columns are generated from
+:class:`UpdateStats`'s fields (the codec checks every column against these annotations);
+``metrics.jsonl`` records an :class:`UpdateStats` per agent. An evaluation travels as
+:class:`EvaluationStats`.
 """
 
 from __future__ import annotations
 
 import dataclasses
 import operator
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Annotated, Any
+
+import numpy as np
 
 from fedhpg.common.columns import Columns, columns_of
 from fedhpg.common.limits import (
     MAX_BATCH_ANSWERS,
     MAX_COUNT,
+    AgentIndex,
     Bound,
     Count,
     Finite,
     Fraction,
+    Round,
     Seconds,
     Speed,
     record_problems,
 )
-
-if TYPE_CHECKING:
-    import numpy as np
-    import torch
-
 
 ALGORITHM_STATS = 32
 """Most entries an algorithm may report per round (``UpdateStats.algorithm``)."""
@@ -94,6 +93,17 @@ class UpdateColumns(Columns[UpdateStats]):
     ``Update.stats`` on the wire, where the codec checks a whole column in a few C-level
     passes instead of one record at a time."""
 
+    if TYPE_CHECKING:  # the columns columns_of generates, for the type checker
+        trajectories: list[int]
+        env_steps: list[int]
+        compute_s: list[float]
+        train_return: list[float]
+        grad_clipped: list[int]
+        emulated_s: list[float]
+        speed: list[float]
+        local_wall_s: list[float | None]
+        algorithm: dict[str, list[float | None]]
+
 
 _STATS_FIELDS = tuple(f.name for f in dataclasses.fields(UpdateStats))
 _OPTIONAL_FIELDS = ("local_wall_s", "algorithm")
@@ -124,28 +134,111 @@ class EvaluationStats:
         return dataclasses.asdict(self)
 
 
-@dataclass(frozen=True, kw_only=True)
-class LocalResult:
-    """What an algorithm's local update returns: θ_k (a flat float32 tensor) and its stats."""
+@dataclass(frozen=True, kw_only=True, eq=False)
+class RoundResult:
+    """Several agents' local updates of one round: row i of ``thetas`` is agent
+    ``agents[i]``'s θ_k, ``stats[i]`` what it cost.
 
-    theta: torch.Tensor
-    stats: UpdateStats
+    The one shape of a round's result from the engine to the strategy: a group's round
+    returns it (:mod:`fedhpg.common.group`), the agent's device pricing fills in its device
+    columns, the wire carries it as the ``update`` message (at most ``MAX_BATCH_ANSWERS`` rows
+    a message: a larger result travels as slices of itself), the server concatenates a
+    round's accepted rows into one, and ``Strategy.aggregate`` takes that whole. Per-agent
+    records are made from it only for ``metrics.jsonl``."""
 
+    round: Round
+    agents: Annotated[list[AgentIndex], Bound(max_len=MAX_BATCH_ANSWERS)]
+    """Ascending (a message's own rows; a concatenation's rows too)."""
+    thetas: np.ndarray
+    """float32 [A, d]."""
+    stats: UpdateColumns
 
-@dataclass(frozen=True, kw_only=True)
-class AgentUpdate:
-    """One agent's accepted answer to a round's train request, as the server holds it."""
+    def __len__(self) -> int:
+        return len(self.agents)
 
-    agent_index: int
-    agent_id: str
-    theta: torch.Tensor
-    """θ_k, a flat float32 vector."""
-    stats: UpdateStats
+    def __getitem__(self, rows: slice) -> RoundResult:
+        """The rows ``rows`` (a slice) as a result of their own, their θ_k a view."""
+        if not isinstance(rows, slice):
+            raise TypeError("a RoundResult is cut by slices; theta_of / stats_of read one agent")
+        return RoundResult(
+            round=self.round,
+            agents=self.agents[rows],
+            thetas=self.thetas[rows],
+            stats=self.stats[rows],
+        )
 
-    def to_json(self) -> dict[str, Any]:
-        row = self.stats.to_json()
-        row["id"], row["index"] = self.agent_id, self.agent_index
-        return row
+    def taking(self, rows: Sequence[int]) -> RoundResult:
+        """The rows at positions ``rows`` only, in that order (all of them: this result)."""
+        if len(rows) == len(self.agents) and list(rows) == list(range(len(self.agents))):
+            return self
+        return RoundResult(
+            round=self.round,
+            agents=[self.agents[i] for i in rows],
+            thetas=np.take(self.thetas, np.asarray(rows, dtype=np.int64), axis=0),
+            stats=self.stats.take(rows),
+        )
+
+    def position(self, agent: int) -> int:
+        """The row of agent ``agent`` (ValueError if it has none)."""
+        return self.agents.index(agent)
+
+    def theta_of(self, agent: int) -> np.ndarray:
+        """Agent ``agent``'s θ_k (a view)."""
+        return self.thetas[self.position(agent)]
+
+    def stats_of(self, agent: int) -> UpdateStats:
+        """Agent ``agent``'s statistics as a record."""
+        return self.stats[self.position(agent)]
+
+    @staticmethod
+    def empty(round_index: int, num_params: int) -> RoundResult:
+        """A round's result of no agent."""
+        return RoundResult(
+            round=round_index,
+            agents=[],
+            thetas=np.zeros((0, num_params), dtype=np.float32),
+            stats=UpdateColumns.of([]),
+        )
+
+    def without_thetas(self, theta: np.ndarray) -> RoundResult:
+        """These statistics with θ̃ (``theta``, [d]) in every row: what the server keeps of
+        a securely summed round, whose θ_k it never sees (a read-only view)."""
+        rows = np.broadcast_to(theta.astype(np.float32), (len(self.agents), theta.shape[0]))
+        return dataclasses.replace(self, thetas=rows)
+
+    @staticmethod
+    def of_stats(
+        round_index: int, stats: dict[int, UpdateStats], theta: np.ndarray
+    ) -> RoundResult:
+        """The statistics of agents ``stats`` (by index) with θ̃ in every row
+        (:meth:`without_thetas`)."""
+        agents = sorted(stats)
+        return RoundResult(
+            round=round_index,
+            agents=agents,
+            thetas=np.zeros((len(agents), 0), dtype=np.float32),
+            stats=UpdateColumns.of([stats[k] for k in agents]),
+        ).without_thetas(theta)
+
+    def with_stats(self, **columns: Any) -> RoundResult:
+        """This result with ``columns`` in place of those of its statistics."""
+        return dataclasses.replace(self, stats=self.stats.replaced(**columns))
+
+    @staticmethod
+    def concatenated(parts: Sequence[RoundResult]) -> RoundResult:
+        """The rows of ``parts`` (results of one round, of distinct agents) in agent order."""
+        assert parts, "nothing to concatenate"
+        if len(parts) == 1:
+            return parts[0]
+        agents = [k for part in parts for k in part.agents]
+        whole = RoundResult(
+            round=parts[0].round,
+            agents=agents,
+            thetas=np.concatenate([part.thetas for part in parts]),
+            stats=UpdateColumns.concatenated([part.stats for part in parts]),
+        )
+        order = sorted(range(len(agents)), key=agents.__getitem__)
+        return whole.taking(order)
 
 
 @dataclass(frozen=True, kw_only=True)

@@ -3,8 +3,6 @@ work record of one local iteration that the device emulation prices."""
 
 from __future__ import annotations
 
-from dataclasses import dataclass
-
 import gymnasium as gym
 import torch
 
@@ -40,14 +38,3 @@ def initial_theta(variant: EnvVariant, run: RunConfig) -> torch.Tensor:
     """θ̃_0, the server's starting point: deterministic in the run seed."""
     return get_flat_params(build_policy(variant, run))
 
-
-@dataclass(frozen=True)
-class IterationWork:
-    """The work of one local iteration, as the device emulation prices it."""
-
-    iteration: int
-    compute_s: float
-    """Thread CPU time the iteration took here (what the measured clock stretches)."""
-    env_steps: int
-    grad_steps: int
-    """Trajectory steps differentiated (a VR step differentiates its mini-batch twice)."""

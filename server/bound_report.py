@@ -14,43 +14,47 @@ all the same, for what they say about the variance and drift.
 
 from __future__ import annotations
 
-from collections.abc import Mapping, Sequence
+from collections.abc import Mapping
 from typing import Any
 
 from fedhpg.common.bounds import theorem1_terms
 from fedhpg.common.components import agent_profile, planned_budget
 from fedhpg.common.config import RunConfig
-from fedhpg.common.types import AgentUpdate
+from fedhpg.common.types import RoundResult
 
 
 def round_bound(
     run: RunConfig,
-    updates: Sequence[AgentUpdate],
+    result: RoundResult,
     planned: Mapping[int, Mapping[str, int]] | None = None,
 ) -> dict[str, Any] | None:
     """The ``bound`` field of a round record, or None when the agents measured nothing;
     ``planned``: the round's planned budgets (``agents.plan``), else the configured ones."""
-    measured = [u for u in updates if "bound_variance" in u.stats.algorithm]
+    algorithm = result.stats.algorithm
+    measured = [i for i, v in enumerate(algorithm.get("bound_variance", [])) if v is not None]
     if not measured:
         return None
-    variances = [float(u.stats.algorithm["bound_variance"]) for u in measured]
+
+    def column(name: str) -> list[float]:
+        values = algorithm.get(name, [None] * len(result))
+        return [float(v) for i in measured if (v := values[i]) is not None]
+
+    variances = column("bound_variance")
     budgets = [
-        planned_budget(agent_profile(run, u.agent_index).budget, (planned or {}).get(u.agent_index))
-        for u in measured
+        planned_budget(
+            agent_profile(run, result.agents[i]).budget, (planned or {}).get(result.agents[i])
+        )
+        for i in measured
     ]
-    second_moment = max(float(u.stats.algorithm["bound_second_moment"]) for u in measured)
-    secants = [
-        float(u.stats.algorithm["bound_smoothness"])
-        for u in measured
-        if "bound_smoothness" in u.stats.algorithm
-    ]
+    second_moment = max(column("bound_second_moment"))
+    secants = column("bound_smoothness")
     smoothness = max(secants) if secants else None
+    grad_norms = column("bound_grad_norm_sq")
     record: dict[str, Any] = {
         "agents": len(measured),
         "variance_mean": sum(variances) / len(variances),
         "second_moment": second_moment,
-        "grad_norm_sq_mean": sum(float(u.stats.algorithm["bound_grad_norm_sq"]) for u in measured)
-        / len(measured),
+        "grad_norm_sq_mean": sum(grad_norms) / len(measured),
         "smoothness": smoothness,
     }
     terms = theorem1_terms(

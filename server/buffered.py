@@ -53,7 +53,13 @@ import numpy as np
 import torch
 
 from fedhpg.common.config import RunConfig, ServerConfig, agent_id_of
-from fedhpg.common.types import AgentUpdate, EvaluationStats, SavedState, UpdateStats
+from fedhpg.common.types import (
+    EvaluationStats,
+    RoundResult,
+    SavedState,
+    UpdateColumns,
+    UpdateStats,
+)
 from fedhpg.server.bound_report import round_bound
 from fedhpg.server.coordinator import (
     Coordinator,
@@ -90,7 +96,10 @@ class InFlight:
     dispatch: int
     """The agent's dispatch count: its n-th update (the round index of its random streams)."""
     arrival_s: float
-    update: AgentUpdate
+    agent_id: str
+    theta: torch.Tensor
+    """θ_k."""
+    stats: UpdateStats
     delta: torch.Tensor
     """Δ_k = θ_k − θ̃_version."""
     problem: Rejection | None = None
@@ -108,20 +117,34 @@ def _weighted_row(
     return (theta + weight * delta).to(theta.dtype)
 
 
+Row = tuple[int, torch.Tensor, UpdateStats]
+"""An agent index, the θ row the strategy aggregates for it, the stats of its update."""
+
+
 def buffer_rows(
     server: ServerConfig, theta: torch.Tensor, buffer: Sequence[InFlight], current: int
-) -> list[AgentUpdate]:
+) -> list[Row]:
     """The rows the strategy aggregates into the next θ̃ from θ̃ = ``theta`` (version
     ``current``): θ̃ + w(s_k) Δ_k, or θ_k itself where that is the same number (a fresh update,
     w = 1), in agent order."""
     rows = []
-    for item in buffer:
+    for item in sorted(buffer, key=lambda i: i.agent):
         if item.version == current:  # w(0) = 1 under every weighting
-            row = item.update.theta
+            row = item.theta
         else:
             row = _weighted_row(server, theta, item.version, item.delta, current)
-        rows.append(dataclasses.replace(item.update, theta=row))
-    return sorted(rows, key=lambda u: u.agent_index)
+        rows.append((item.agent, row, item.stats))
+    return rows
+
+
+def rows_result(version: int, rows: Sequence[Row]) -> RoundResult:
+    """``rows`` as the result the strategy aggregates into θ̃ version ``version``."""
+    return RoundResult(
+        round=version,
+        agents=[k for k, _, _ in rows],
+        thetas=torch.stack([row for _, row, _ in rows]).numpy(),
+        stats=UpdateColumns.of([stats for _, _, stats in rows]),
+    )
 
 
 @dataclass(frozen=True)
@@ -143,7 +166,7 @@ def robust_rows(
     latest: dict[int, Contribution],
     agents: Sequence[int],
     current: int,
-) -> list[AgentUpdate]:
+) -> list[Row]:
     """A robust rule's set in buffered rounds: one row per agent, never one per arrival, so
     agents that answer fastest cannot fill the set. The buffer's updates as in
     :func:`buffer_rows`; every other agent's latest aggregated change Δ again, weighted by its
@@ -161,7 +184,7 @@ def robust_rows(
         row = theta
         if kept is not None and (limit is None or current - kept.version <= limit):
             row = _weighted_row(server, theta, kept.version, kept.delta, current)
-        rows.append(AgentUpdate(agent_index=k, agent_id=agent_id_of(k), theta=row, stats=NO_WORK))
+        rows.append((k, row, NO_WORK))
     return rows
 
 
@@ -191,7 +214,7 @@ class BufferedSchedule:
         arrays: dict[str, np.ndarray] = {}
         flights = []
         for agent, item in sorted(self.in_flight.items()):
-            arrays[f"theta.{agent}"] = item.update.theta.numpy().copy()
+            arrays[f"theta.{agent}"] = item.theta.numpy().copy()
             arrays[f"delta.{agent}"] = item.delta.numpy().copy()
             flights.append(
                 {
@@ -200,7 +223,7 @@ class BufferedSchedule:
                     "dispatch": item.dispatch,
                     "arrival_s": item.arrival_s,
                     "problem": None if item.problem is None else item.problem.saved(),
-                    "stats": dataclasses.asdict(item.update.stats),
+                    "stats": dataclasses.asdict(item.stats),
                 }
             )
         for agent, kept in sorted(self.latest.items()):
@@ -225,19 +248,15 @@ class BufferedSchedule:
         )
         for flight in state.scalars["in_flight"]:
             agent = int(flight["agent"])
-            update = AgentUpdate(
-                agent_index=agent,
-                agent_id=agent_id_of(agent),
-                theta=torch.from_numpy(state.arrays[f"theta.{agent}"].copy()),
-                stats=UpdateStats(**flight["stats"]),
-            )
             schedule.push(
                 InFlight(
                     agent=agent,
                     version=int(flight["version"]),
                     dispatch=int(flight["dispatch"]),
                     arrival_s=float(flight["arrival_s"]),
-                    update=update,
+                    agent_id=agent_id_of(agent),
+                    theta=torch.from_numpy(state.arrays[f"theta.{agent}"].copy()),
+                    stats=UpdateStats(**flight["stats"]),
                     delta=torch.from_numpy(state.arrays[f"delta.{agent}"].copy()),
                     problem=None
                     if flight["problem"] is None
@@ -250,9 +269,9 @@ class BufferedSchedule:
 class CheckingPool(Protocol):
     """A pool whose updates are computed at once, checked (the in-process pool)."""
 
-    def checked_updates(
+    def checked_result(
         self, round_index: int, theta: torch.Tensor, agents: Sequence[int]
-    ) -> list[tuple[AgentUpdate, Rejection | None]]: ...
+    ) -> tuple[RoundResult, list[Rejection | None]]: ...
 
     def evaluate(
         self, round_index: int, theta: torch.Tensor, episodes: int
@@ -283,15 +302,20 @@ class BufferedCoordinator(Coordinator):
         # Agents of one dispatch count train as one group call (the batched engine's batch);
         # an agent's result never depends on whom it is batched with.
         for count, chosen in sorted(by_count.items()):
-            for update, problem in self.pool.checked_updates(count, self.theta, chosen):
+            result, problems = self.pool.checked_result(count, self.theta, chosen)
+            records = result.stats.records()
+            for i, (k, problem) in enumerate(zip(result.agents, problems, strict=True)):
+                theta = torch.from_numpy(result.thetas[i])
                 self.schedule.push(
                     InFlight(
-                        agent=update.agent_index,
+                        agent=k,
                         version=version,
                         dispatch=count,
-                        arrival_s=at_s + update.stats.emulated_s,
-                        update=update,
-                        delta=update.theta - self.theta,
+                        arrival_s=at_s + records[i].emulated_s,
+                        agent_id=agent_id_of(k),
+                        theta=theta,
+                        stats=records[i],
+                        delta=theta - self.theta,
                         problem=problem,
                     )
                 )
@@ -312,18 +336,18 @@ class BufferedCoordinator(Coordinator):
                 raise FederationError(self._unfillable(version, len(buffer), failures))
             item = self._next_arrival()
             self.progress.trajectories_per_agent += (
-                item.update.stats.trajectories / self.run.agents.num_agents
+                item.stats.trajectories / self.run.agents.num_agents
             )
             staleness = version - 1 - item.version
             if item.problem is not None:
-                failures[item.update.agent_id] = item.problem
+                failures[item.agent_id] = item.problem
                 self.parked.append(item.agent)
                 if len(self.parked) > self.run.server.diverged_share * self.run.agents.num_agents:
                     raise FederationError(self._diverged(version, failures))
                 continue
             if limit is not None and staleness > limit:
-                logger.debug("dropped %s's update: staleness %d", item.update.agent_id, staleness)
-                stale[item.update.agent_id] = staleness
+                logger.debug("dropped %s's update: staleness %d", item.agent_id, staleness)
+                stale[item.agent_id] = staleness
                 self._dispatch([item.agent], version - 1, item.arrival_s)
                 continue
             buffer.append(item)
@@ -352,18 +376,18 @@ class BufferedCoordinator(Coordinator):
         assert self.schedule is not None
         return len(self.schedule.in_flight)
 
-    def _rows(self, buffer: Sequence[InFlight], current: int) -> list[AgentUpdate]:
+    def _rows(self, buffer: Sequence[InFlight], current: int) -> RoundResult:
         """What the strategy aggregates: the buffer, or for a robust rule (one that states a
         tolerance) one row per agent, its latest change (:func:`robust_rows`)."""
         assert self.schedule is not None
         server = self.run.server
         if self.strategy.tolerance(len(buffer)) is None:
-            return buffer_rows(server, self.theta, buffer, current)
+            return rows_result(current + 1, buffer_rows(server, self.theta, buffer, current))
         latest = self.schedule.latest
         rows = robust_rows(server, self.theta, buffer, latest, self._agents(), current)
         for item in buffer:
             latest[item.agent] = Contribution(item.version, item.delta)
-        return rows
+        return rows_result(current + 1, rows)
 
     def _next_arrival(self) -> InFlight:
         assert self.schedule is not None
@@ -394,7 +418,7 @@ class BufferedCoordinator(Coordinator):
             round_started = time.perf_counter()
             buffer, stale, failures = self._fill_buffer(version)
             rows = self._rows(buffer, version - 1)
-            self._aggregate(version, RoundAnswers(updates=rows, failures=failures), len(rows))
+            self._aggregate(version, RoundAnswers(result=rows, failures=failures), len(rows))
             restarted, self.parked = sorted([i.agent for i in buffer] + self.parked), []
             self._restart(version, restarted)
             round_time = time.perf_counter() - round_started
@@ -406,11 +430,14 @@ class BufferedCoordinator(Coordinator):
             progress.strategy_state = self.strategy.state()
             progress.schedule_state = self.schedule.state()
             ordered = sorted(buffer, key=lambda i: i.agent)
+            aggregated = rows_result(version, [(i.agent, i.theta, i.stats) for i in ordered])
+            names = {i.agent: i.agent_id for i in ordered}
             record = RoundRecord(
                 round=version,
                 wall_time_s=wall_time,
                 round_time_s=round_time,
-                agents=[i.update for i in ordered],
+                result=aggregated,
+                name=names.__getitem__,
                 trajectories_per_agent=progress.trajectories_per_agent,
                 eval=evaluation,
                 failures=reasons(failures),
@@ -418,7 +445,7 @@ class BufferedCoordinator(Coordinator):
                 emulated_clock_s=self.schedule.clock_s,
                 staleness=[version - 1 - i.version for i in ordered],
                 stale=stale,
-                bound=round_bound(self.run, [i.update for i in ordered])
+                bound=round_bound(self.run, aggregated)
                 if self.run.algo.bound_estimates
                 else None,
                 strategy=self.strategy.round_stats(),

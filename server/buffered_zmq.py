@@ -78,17 +78,18 @@ class ZmqBufferedCoordinator(BufferedCoordinator):
         k = arrival.index
         self.schedule.dispatches[k] = arrival.round
         base = torch.from_numpy(arrival.base)
-        update = arrival.update
         # a rejected θ_k may not even have θ̃'s shape: it is never aggregated
-        delta = torch.zeros_like(base) if arrival.problem is not None else update.theta - base
-        arrival_s = self._dispatched_at.get(k, self.schedule.clock_s) + update.stats.emulated_s
+        delta = torch.zeros_like(base) if arrival.problem is not None else arrival.theta - base
+        arrival_s = self._dispatched_at.get(k, self.schedule.clock_s) + arrival.stats.emulated_s
         self.schedule.clock_s = max(self.schedule.clock_s, arrival_s)
         return InFlight(
             agent=k,
             version=arrival.version,
             dispatch=arrival.round,
             arrival_s=arrival_s,
-            update=update,
+            agent_id=arrival.agent_id,
+            theta=arrival.theta,
+            stats=arrival.stats,
             delta=delta,
             problem=arrival.problem,
         )

@@ -19,9 +19,9 @@ from typing import Any
 import numpy as np
 import torch
 
-from fedhpg.common.config import RunConfig
+from fedhpg.common.config import RunConfig, agent_id_of
 from fedhpg.common.runtime import timeline
-from fedhpg.common.types import AgentUpdate, EvaluationStats, SavedState
+from fedhpg.common.types import EvaluationStats, RoundResult, SavedState
 from fedhpg.server.bound_report import round_bound
 from fedhpg.server.participation import make_participation
 from fedhpg.server.pools import AgentPool, FederationError, RoundAnswers, SkippedRound
@@ -42,8 +42,10 @@ class RoundRecord:
     round: int
     wall_time_s: float
     round_time_s: float
-    agents: list[AgentUpdate]
-    """The aggregated updates, in agent-index order."""
+    result: RoundResult
+    """The aggregated updates (rows in agent-index order; none where the round was skipped)."""
+    name: Callable[[int], str] = agent_id_of
+    """Each agent's id."""
     trajectories_per_agent: float = 0.0
     """Cumulative trajectories sampled so far, the agents' and the strategy's own (fedpgbr's
     server), divided by K (the x-axis of published curves)."""
@@ -78,13 +80,18 @@ class RoundRecord:
     @property
     def update_count(self) -> int:
         """How many updates the round aggregated."""
-        return len(self.agents) if self.aggregated is None else self.aggregated
+        return len(self.result) if self.aggregated is None else self.aggregated
 
     @functools.cached_property
     def agent_rows(self) -> list[dict[str, Any]]:
         """``agents[]`` of metrics.jsonl, built once for every writer of the record (metrics,
         TensorBoard): read them, never change them."""
-        return [update.to_json() for update in self.agents]
+        rows = []
+        for index, stats in zip(self.result.agents, self.result.stats.records(), strict=True):
+            row = stats.to_json()
+            row["id"], row["index"] = self.name(index), index
+            rows.append(row)
+        return rows
 
     def to_json(self) -> dict[str, Any]:
         record: dict[str, Any] = {
@@ -230,9 +237,9 @@ class Coordinator:
         return None
 
     def _aggregate(self, round_number: int, answers: RoundAnswers, selected: int) -> None:
-        updates, failures = answers.updates, answers.failures
+        result, failures = answers.result, answers.failures
         failed = answers.secure is not None and answers.secure.failed is not None
-        if not updates and not failed:  # a failed secure round: the privacy step says why
+        if not len(result) and not failed:  # a failed secure round: the privacy step says why
             if diverged(failures):
                 raise FederationError(diverged_message(self.run, round_number))
             raise FederationError(
@@ -250,7 +257,7 @@ class Coordinator:
             theta = self.strategy.from_average(round_number, self.theta, average).detach()
         else:
             theta = self.strategy.aggregate(
-                round_number, self.theta, updates, reasons(failures)
+                round_number, self.theta, result, reasons(failures)
             ).detach()
         fits = theta.shape == self.theta.shape and theta.dtype == self.theta.dtype
         # numpy's isfinite: torch's allocates a bool tensor and costs ~14x as much per round
@@ -318,7 +325,7 @@ class Coordinator:
         wall_time = time.perf_counter() - started
         progress = self.progress
         progress.next_round = round_number + 1
-        sampled = sum(u.stats.trajectories for u in answers.updates)
+        sampled = sum(answers.result.stats.trajectories)
         sampled += self.strategy.sampled_trajectories()  # the server's own (fedpgbr's)
         progress.trajectories_per_agent += sampled / self.run.agents.num_agents
         progress.elapsed_s = wall_time
@@ -327,20 +334,21 @@ class Coordinator:
             progress.privacy_state = self.privacy.state()
         plan = None
         if self.replanner is not None:
-            plan = self.replanner.observe(round_number, answers.updates)
+            plan = self.replanner.observe(round_number, answers.result)
             progress.plan_state = self.replanner.saved()
         record = RoundRecord(
             round=round_number,
             wall_time_s=wall_time,
             round_time_s=round_time,
-            agents=[] if skipped else sorted(answers.updates, key=lambda u: u.agent_index),
+            result=answers.result if skipped is None else _nothing(answers.result),
+            name=answers.name,
             trajectories_per_agent=progress.trajectories_per_agent,
             eval=evaluation,
             eval_time_s=eval_time,
             failures=reasons(answers.failures),
             stragglers=answers.stragglers,
             selected=sorted(selected),
-            bound=round_bound(self.run, answers.updates, budgets)
+            bound=round_bound(self.run, answers.result, budgets)
             if self.run.algo.bound_estimates
             else None,
             plan=plan,
@@ -352,12 +360,12 @@ class Coordinator:
             # the accounted ε is amplified by a sample nobody else may learn: no record of it
             record = dataclasses.replace(
                 record,
-                agents=[],
+                result=_nothing(answers.result),
                 failures={},
                 stragglers=[],
                 selected=[],
                 bound=None,
-                aggregated=len(answers.updates),
+                aggregated=len(answers.result),
             )
         self._unwritten = (record, self.theta)
 
@@ -370,3 +378,8 @@ class Coordinator:
         for callback in self.on_round:
             callback(record, theta)
         timeline.mark("server", "recorded", record.round)
+
+
+def _nothing(result: RoundResult) -> RoundResult:
+    """A record's result of no update (a skipped round's; one whose sample is secret)."""
+    return RoundResult.empty(result.round, result.thetas.shape[1])

@@ -10,7 +10,6 @@ import operator
 import os
 import socket
 import time
-from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
@@ -19,10 +18,9 @@ import orjson
 import torch
 
 from fedhpg.common.config import RunConfig, attacking_agents
-from fedhpg.common.types import ALWAYS_FIELDS, AgentUpdate
+from fedhpg.common.types import ALWAYS_FIELDS, RoundResult
 from fedhpg.server.coordinator import RoundRecord
 from fedhpg.server.run_dir import RunDirectoryError
-from fedhpg.server.strategies import stacked
 
 logger = logging.getLogger(__name__)
 
@@ -85,23 +83,20 @@ NORM_ROWS = 256
 at K = 1,000 and d = 10⁴ that copy would be 80 MB)."""
 
 
-def _update_norms(updates: Sequence[AgentUpdate], before: np.ndarray) -> dict[int, float]:
+def _update_norms(result: RoundResult, before: np.ndarray) -> dict[int, float]:
     """‖θ_k − θ̃_before‖ per agent index, a slab of rows per numpy call rather than a call per
-    agent, over the round's [K, d] block where the pool gathered one (``stacked``)."""
-    if not updates:
-        return {}
-    block = stacked(updates).numpy()
-    order = sorted(u.agent_index for u in updates)  # stacked's row order
+    agent, over the round's [K, d] block."""
     norms: dict[int, float] = {}
+    order = result.agents
     for start in range(0, len(order), NORM_ROWS):
-        slab = block[start : start + NORM_ROWS].astype(np.float64)
+        slab = result.thetas[start : start + NORM_ROWS].astype(np.float64)
         slab -= before
         rows = np.sqrt(np.einsum("ij,ij->i", slab, slab)).tolist()  # no temporaries per slab
         norms.update(zip(order[start : start + NORM_ROWS], rows, strict=True))
     return norms
 
 
-def _columns(updates: Sequence[AgentUpdate], rows: list[dict[str, Any]]) -> dict[str, Any]:
+def _columns(result: RoundResult, rows: list[dict[str, Any]]) -> dict[str, Any]:
     """Each statistic of the round's ``agents[]`` rows as a column, without its missing values
     (rows differ in keys: an algorithm's own, ``local_wall_s`` where measured). A column per
     statistic, not a loop over every agent's every value: the record is written while the next
@@ -110,12 +105,9 @@ def _columns(updates: Sequence[AgentUpdate], rows: list[dict[str, Any]]) -> dict
         name: np.fromiter(map(operator.itemgetter(name), rows), np.float64, len(rows))
         for name in ALWAYS_FIELDS
     }
-    optional = dict.fromkeys(
-        itertools.chain(
-            ["local_wall_s"] if any(u.stats.local_wall_s is not None for u in updates) else [],
-            itertools.chain.from_iterable(u.stats.algorithm for u in updates),
-        )
-    )
+    stats = result.stats
+    measured = any(v is not None for v in stats.local_wall_s)
+    optional = dict.fromkeys(itertools.chain(["local_wall_s"] if measured else [], stats.algorithm))
     for name in optional:
         columns[name] = [v for row in rows if (v := row.get(name)) is not None]
     return columns
@@ -157,20 +149,20 @@ class RoundValues:
             "fed/theta_norm": float(np.linalg.norm(after)),
             "fed/theta_step_norm": float(np.linalg.norm(after - before)),
         }
-        if record.agents:
-            stats = [u.stats for u in record.agents]
+        if len(record.result):
+            stats = record.result.stats
             # The round's emulated duration is its slowest agent's emulated time.
-            values["fed/emulated_round_s"] = max(s.emulated_s for s in stats)
-            values["fed/trajectories"] = sum(s.trajectories for s in stats)
+            values["fed/emulated_round_s"] = max(stats.emulated_s)
+            values["fed/trajectories"] = sum(stats.trajectories)
         if record.privacy is not None:
             for key in ("epsilon", "epsilon_server", "delta", "noise_multiplier", "clip", "inputs"):
                 if key in record.privacy:
                     values[f"privacy/{key}"] = record.privacy[key]
         # under secure aggregation the server holds no θ_k: there are no update norms
         secure = record.privacy is not None and record.privacy["mode"] in SECURE_MODES
-        norms = {} if secure else _update_norms(record.agents, before)
+        norms = {} if secure else _update_norms(record.result, before)
         rows = record.agent_rows
-        across = _columns(record.agents, rows)
+        across = _columns(record.result, rows)
         if not secure:
             across["update_norm"] = [norms[row["index"]] for row in rows]
         across = {name: column for name, column in across.items() if len(column)}

@@ -51,7 +51,7 @@ from fedhpg.common.privacy import accounting, dp
 from fedhpg.common.privacy.accounting import Sampling
 from fedhpg.common.privacy.contribution import EXTRA, RoundPrivacy, average, contribution
 from fedhpg.common.privacy.secagg import fewest_inputs, noise_shares
-from fedhpg.common.types import AgentUpdate
+from fedhpg.common.types import RoundResult
 from fedhpg.server.checkpoint import write_atomic
 from fedhpg.server.pools import FederationError, RoundAnswers, SkippedRound
 from fedhpg.server.run_dir import RunDirectoryError
@@ -239,7 +239,7 @@ class PrivateRounds:
                     "(privacy.secagg.dropout)"
                 )
         else:
-            total, inputs = self._central_sum(round_number, theta, answers.updates, selected)
+            total, inputs = self._central_sum(round_number, theta, answers.result, selected)
         denominator = self.sampling.expected if self.dp else None
         step, unclipped = average(total, denominator)
         clip_used = self.clip
@@ -256,19 +256,19 @@ class PrivateRounds:
         return theta + torch.from_numpy(step).to(theta.dtype)
 
     def _central_sum(
-        self, round_number: int, theta: torch.Tensor, updates: list[AgentUpdate], selected: int
+        self, round_number: int, theta: torch.Tensor, result: RoundResult, selected: int
     ) -> tuple[np.ndarray, int]:
         settings = self.round_privacy(selected)
         total = np.zeros(theta.numel() + EXTRA)
-        for update in updates:
-            total += contribution(update.theta - theta, update.stats.trajectories, settings)
+        for row, trajectories in zip(result.thetas, result.stats.trajectories, strict=True):
+            total += contribution(torch.from_numpy(row) - theta, trajectories, settings)
         noise = dp.noise_stream(
             self._seed, round_number, None, secure=self.settings.secure_noise_on
         )
         total[:-EXTRA] += dp.gaussian(noise, theta.numel(), self.update_multiplier * self.clip)
         if self.count_std is not None:
             total[-1] += dp.gaussian(noise, 1, self.count_std)[0]
-        return total, len(updates)
+        return total, len(result)
 
     def round_stats(self) -> dict[str, Any]:
         """metrics.jsonl's ``epsilon``, ``epsilon_server``, ``delta`` and ``privacy`` of the

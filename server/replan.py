@@ -34,13 +34,13 @@ from __future__ import annotations
 
 import logging
 import statistics
-from collections.abc import Mapping, Sequence
+from collections.abc import Mapping
 from dataclasses import asdict, dataclass, field
 from typing import Any
 
 from fedhpg.common.config import RunConfig
 from fedhpg.common.planning import Constants, Limits, plan_for_rounds
-from fedhpg.common.types import AgentUpdate
+from fedhpg.common.types import RoundResult
 
 logger = logging.getLogger(__name__)
 
@@ -109,18 +109,18 @@ class Replanner:
     def saved(self) -> dict[str, Any]:
         return asdict(self.state)
 
-    def observe(self, round_number: int, updates: Sequence[AgentUpdate]) -> dict[str, Any] | None:
+    def observe(self, round_number: int, result: RoundResult) -> dict[str, Any] | None:
         """Take in round ``round_number``'s accepted updates; after every ``plan_every`` rounds
         re-plan and return the round record's ``plan`` entry (None when no plan is made)."""
         s = self.state
-        if s.initial_return is None and updates:
-            s.initial_return = statistics.fmean(u.stats.train_return for u in updates)
-        s.window_s = max(s.window_s, max((u.stats.emulated_s for u in updates), default=0.0))
-        for update in updates:
-            k, stats = update.agent_index, update.stats
-            s.seconds[k] += max(stats.emulated_s - self.overhead[k], 0.0)
-            s.trajectories[k] += stats.trajectories
-            algorithm = stats.algorithm
+        stats = result.stats
+        if s.initial_return is None and len(result):
+            s.initial_return = statistics.fmean(stats.train_return)
+        s.window_s = max(s.window_s, max(stats.emulated_s, default=0.0))
+        for k, update in zip(result.agents, stats.records(), strict=True):
+            s.seconds[k] += max(update.emulated_s - self.overhead[k], 0.0)
+            s.trajectories[k] += update.trajectories
+            algorithm = update.algorithm
             if "bound_variance" in algorithm:
                 s.variance_sums[k] += float(algorithm["bound_variance"])
                 s.variance_counts[k] += 1

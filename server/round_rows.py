@@ -1,20 +1,16 @@
 """A round's accepted θ_k, gathered as they arrive into the one [K, d] matrix strategies use.
 
 At d = 10⁴ and K = 1,000 the round's updates are 40 MB: copied once, from the received frames
-into their agent's row, and handed on as views of that matrix, so that
-:func:`fedhpg.server.strategies.stacked` has nothing left to stack. Rows are in agent-index
-order, as ``stacked`` orders them; the matrix is 64-byte aligned, as torch allocates its own.
+into their agent's row (the frames are then let go), while other hosts still train. Rows are
+in agent-index order, the round result's; the matrix is 64-byte aligned, as torch allocates
+its own.
 """
 
 from __future__ import annotations
 
-import dataclasses
 from collections.abc import Iterable, Sequence
 
 import numpy as np
-import torch
-
-from fedhpg.common.types import AgentUpdate
 
 ALIGNMENT = 64
 """Bytes: torch's CPU allocator aligns every tensor so (a torch.stack's result included)."""
@@ -51,30 +47,12 @@ class RoundRows:
     def __init__(self, agents: Iterable[int], num_params: int) -> None:
         self.place = {index: row for row, index in enumerate(sorted(agents))}
         self.matrix = aligned_empty(len(self.place), num_params)
-        self._views: tuple[torch.Tensor, ...] | None = None
 
-    def put(
-        self, indices: Sequence[int], thetas: np.ndarray, rows: Sequence[int]
-    ) -> list[torch.Tensor]:
-        """Copy ``thetas[rows[j]]`` into agent ``indices[j]``'s row; the rows as tensor views
-        of the matrix (made at the first batch, which usually arrives while another host is
-        still training, not after the last one)."""
+    def put(self, indices: Sequence[int], thetas: np.ndarray, rows: Sequence[int]) -> None:
+        """Copy ``thetas[rows[j]]`` into agent ``indices[j]``'s row."""
         pairs = sorted(zip(rows, (self.place[k] for k in indices), strict=True))
         for source, target, length in _runs(pairs):
             self.matrix[target : target + length] = thetas[source : source + length]
-        if self._views is None:
-            self._views = torch.from_numpy(self.matrix).unbind(0)
-        views = self._views
-        return [views[self.place[k]] for k in indices]
-
-    def compacted(self, updates: Sequence[AgentUpdate]) -> list[AgentUpdate]:
-        """The accepted ``updates`` (ascending indices, θ_k views of this matrix) with θ_k as
-        consecutive rows of one matrix: as they are when every agent asked was accepted,
-        else on the rows of a compact copy (:meth:`block`)."""
-        if len(updates) == len(self.place):
-            return list(updates)
-        block = torch.from_numpy(self.block([u.agent_index for u in updates])).unbind(0)
-        return [dataclasses.replace(u, theta=t) for u, t in zip(updates, block, strict=True)]
 
     def block(self, accepted: Sequence[int]) -> np.ndarray:
         """The [len(accepted), d] matrix of the accepted agents' rows (ascending indices):

@@ -62,15 +62,15 @@ class ProgressCsv:
         self._file.flush()
 
     def __call__(self, record: RoundRecord, _: torch.Tensor) -> None:
-        stats = [u.stats for u in record.agents]
+        stats = record.result.stats
         row: dict[str, Any] = {
             "round": record.round,
             "wall_time_s": record.wall_time_s,
             "round_time_s": record.round_time_s,
-            "emulated_round_s": max((s.emulated_s for s in stats), default=None),
+            "emulated_round_s": max(stats.emulated_s, default=None),
             "trajectories_per_agent": record.trajectories_per_agent,
             "updates": record.update_count,
-            "train_return_mean": _mean([s.train_return for s in stats]),
+            "train_return_mean": _mean(stats.train_return),
         }
         if record.eval:
             returns = [e.return_mean for e in record.eval.values()]

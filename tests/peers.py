@@ -24,7 +24,7 @@ import zmq
 
 from fedhpg.common.config import RunConfig
 from fedhpg.common.group import make_agent_group
-from fedhpg.common.types import EvaluationStats, UpdateColumns
+from fedhpg.common.types import EvaluationStats
 from fedhpg.common.variants import range_digest, run_variants, variant_digest
 from fedhpg.common.wire.codec import decode, encode
 from fedhpg.common.wire.protocol import (
@@ -38,7 +38,6 @@ from fedhpg.common.wire.protocol import (
     Message,
     Shutdown,
     Train,
-    Update,
     Welcome,
 )
 
@@ -182,15 +181,7 @@ class HonestAgent(ScriptedAgent):
 
     def _train(self, request: Train) -> list[Reply]:
         theta = torch.from_numpy(np.array(request.theta))
-        result = self.group.train(request.round, theta, [self.index])[self.index]
-        return [
-            Update(
-                round=request.round,
-                agents=[self.index],
-                thetas=result.theta.numpy()[None],
-                stats=UpdateColumns.of([result.stats]),
-            )
-        ]
+        return [self.group.train(request.round, theta, [self.index]).result]
 
     def tick(self) -> None:
         if self.release.is_set() and self.held:

@@ -23,7 +23,7 @@ import torch
 from fedhpg.agent.work import SecureAgents
 from fedhpg.common.config import RunConfig
 from fedhpg.common.privacy.contribution import RoundPrivacy
-from fedhpg.common.types import UpdateColumns, UpdateStats
+from fedhpg.common.types import RoundResult, UpdateColumns, UpdateStats
 from fedhpg.common.wire.codec import ProtocolError, decode, encode
 from fedhpg.common.wire.protocol import (
     KeyShares,
@@ -69,9 +69,13 @@ class HonestSide:
     def answer(self, request: Message) -> list[Reply]:
         if isinstance(request, Train):
             theta = torch.from_numpy(np.array(request.theta))
-            thetas = (theta.numpy() + step_of(self.k, theta.numel()))[None]
-            stats = UpdateColumns.of([stats_of(self.k)])
-            return list(self.agents.share(request, [self.k], theta, thetas, stats, MAX_BYTES))
+            result = RoundResult(
+                round=request.round,
+                agents=[self.k],
+                thetas=(theta.numpy() + step_of(self.k, theta.numel()))[None],
+                stats=UpdateColumns.of([stats_of(self.k)]),
+            )
+            return list(self.agents.share(request, theta, result, MAX_BYTES))
         if isinstance(request, ShareRequest):
             return list(self.agents.share_keys(request, MAX_BYTES))
         if isinstance(request, MaskRequest):

@@ -105,7 +105,7 @@ def test_only_the_listed_agents_attack_and_attacks_are_reproducible(kind: str) -
     def thetas(overrides: list[str]) -> list[torch.Tensor]:
         records: list[RoundRecord] = []
         run_in_process(compose(overrides), on_round=[lambda r, _: records.append(r)])
-        return [a.theta for a in records[0].agents]
+        return list(torch.from_numpy(records[0].result.thetas.copy()))
 
     honest = thetas(keys)
     attacked = thetas([*keys, f"attack.kind={kind}", "attack.agents=[1]"])

@@ -15,7 +15,7 @@ import torch
 
 from fedhpg.common.config import ConfigError, ServerConfig
 from fedhpg.common.group import TIMING_STATS
-from fedhpg.common.types import AgentUpdate, UpdateStats
+from fedhpg.common.types import UpdateStats
 from fedhpg.server import api
 from fedhpg.server.buffered import BufferedSchedule, InFlight, buffer_rows
 from fedhpg.server.coordinator import RoundRecord
@@ -50,13 +50,14 @@ def _item(
 ) -> InFlight:
     """An in-flight update θ_k = ``theta`` started from θ̃_version = ``base`` (default 0)."""
     stats = UpdateStats(trajectories=1, env_steps=1, compute_s=0.0, train_return=0.0)
-    update = AgentUpdate(agent_index=agent, agent_id=f"agent-{agent}", theta=theta, stats=stats)
     return InFlight(
         agent=agent,
         version=version,
         dispatch=1,
         arrival_s=arrival_s,
-        update=update,
+        agent_id=f"agent-{agent}",
+        theta=theta,
+        stats=stats,
         delta=theta - (torch.zeros_like(theta) if base is None else base),
     )
 
@@ -108,13 +109,13 @@ def test_staleness_weights_make_fedbuffs_mean_change() -> None:
     fresh = _item(0, 5, 1.0, torch.tensor([1.0, 0.0, 0.0]), base=theta)
     old = _item(1, 2, 1.0, theta * 3)
     rows = buffer_rows(ServerConfig(), theta, [old, fresh], current=5)
-    assert [r.agent_index for r in rows] == [0, 1]
+    assert [k for k, _, _ in rows] == [0, 1]
     expected = theta + (fresh.delta + old.delta / math.sqrt(1.0 + 3)) / 2
-    mean = torch.stack([r.theta for r in rows]).mean(dim=0)
+    mean = torch.stack([row for _, row, _ in rows]).mean(dim=0)
     assert torch.allclose(mean, expected, rtol=1e-6, atol=1e-6)
-    assert torch.equal(rows[0].theta, fresh.update.theta)
+    assert torch.equal(rows[0][1], fresh.theta)
     constant = buffer_rows(ServerConfig(staleness_weight="constant"), theta, [fresh, old], 5)
-    assert torch.equal(constant[1].theta, theta + old.delta)
+    assert torch.equal(constant[1][1], theta + old.delta)
 
 
 def test_staleness_bound_drops_old_updates_and_restarts_their_agents() -> None:

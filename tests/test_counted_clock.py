@@ -26,7 +26,7 @@ from fedhpg.common.group import make_agent_group
 from fedhpg.common.round_columns import IterationColumns
 from fedhpg.common.runtime.cli import compose
 from fedhpg.common.variants import run_variants
-from fedhpg.common.worker import IterationWork, initial_theta
+from fedhpg.common.worker import initial_theta
 from fedhpg.server.assembly import run_in_process
 from fedhpg.server.coordinator import RoundRecord
 
@@ -64,7 +64,7 @@ def _in_process(run: RunConfig) -> tuple[torch.Tensor, list[RoundRecord]]:
 
 
 def _emulated(records: list[RoundRecord]) -> list[list[float]]:
-    return [[a.stats.emulated_s for a in r.agents] for r in records]
+    return [list(r.result.stats.emulated_s) for r in records]
 
 
 @contextmanager
@@ -134,16 +134,16 @@ def test_gradient_steps_are_counted_per_iteration(algo: str, gradients_per_step:
     θ and at the snapshot (its iteration 0, the snapshot's large batch, once)."""
     run = compose(_overrides(algo))
     group = make_agent_group(run, [0])
-    work: list[IterationWork] = []
     try:
         theta = initial_theta(run_variants(run)[0], run)
-        group.train(1, theta, [0], on_iteration=lambda _, w: work.append(w))
+        work = group.train(1, theta, [0]).iterations
     finally:
         group.close()
-    assert len(work) >= 2 and all(w.env_steps > 0 for w in work)
-    for w in work:
-        per_step = 1 if (algo == "fedhpgvr" and w.iteration == 0) else gradients_per_step
-        assert w.grad_steps == per_step * w.env_steps, (algo, w)
+    assert len(work) >= 2 and all(w.env_steps.tolist() == [w.env_steps[0]] for w in work)
+    assert all(w.env_steps[0] > 0 for w in work)
+    for n, w in enumerate(work):
+        per_step = 1 if (algo == "fedhpgvr" and n == 0) else gradients_per_step
+        assert w.grad_steps[0] == per_step * w.env_steps[0], (algo, n)
 
 
 def test_emulated_times_identical_across_runs_and_under_load() -> None:
@@ -160,10 +160,10 @@ def test_emulated_times_identical_across_runs_and_under_load() -> None:
     num_params = (4 * 64 + 64) + (64 * 64 + 64) + (64 * 2 + 2)  # the 4-64-64-2 MLP
     messages = 2 * (LATENCY_S + 8 * message_bytes(num_params) / (BANDWIDTH_MBPS * 1e6))
     for record in plain:
-        for agent, speed in zip(record.agents, (1.0, 0.5), strict=True):
-            steps = agent.stats.env_steps
+        for stats, speed in zip(record.result.stats, (1.0, 0.5), strict=True):
+            steps = stats.env_steps
             compute = steps * STEP_S + steps * GRAD_S * num_params / GRAD_PARAMS_UNIT
-            assert agent.stats.emulated_s == pytest.approx(compute / speed + messages, rel=1e-12)
+            assert stats.emulated_s == pytest.approx(compute / speed + messages, rel=1e-12)
     measured_theta, _ = _in_process(compose(_overrides(clock="measured")))
     assert torch.equal(theta, measured_theta), "the clock changes no θ"
 

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 from collections.abc import Callable
 
+import numpy as np
 import pytest
 import torch
 
@@ -48,14 +49,14 @@ def test_fixed_shape_policy_calls_give_the_same_theta_in_any_company(
     run = compose([*FAMILIES[family], "agents=population", "agents.num_agents=9",
                    "algo.engine=torch", "algo.device=cpu"])  # fmt: skip
     theta = initial_theta(variants_of(run, [0])[0], run)
-    plain = EngineGroup(run, variants_of(run, [4])).train(3, theta, [4])[4].theta
+    plain = EngineGroup(run, variants_of(run, [4])).train(3, theta, [4]).result.theta_of(4)
     calls: list[int] = []
     for company in ([4], list(range(9)), [8, 4, 1]):
         group = EngineGroup(run, variants_of(run, company))
         group.engine.backend.act_tiles_per_call = 3  # what a GPU gets, forced on
         policy = group.engine.backend.policy.policy  # the sampler calls its act_with
         monkeypatch.setattr(policy, "act_with", _recorded(policy.act_with, calls))
-        assert torch.equal(group.train(3, theta, company)[4].theta, plain)
+        assert np.array_equal(group.train(3, theta, company).result.theta_of(4), plain)
     assert calls and set(calls) == {3}, "every policy call takes exactly 3 tiles"
 
 

@@ -203,13 +203,15 @@ def test_an_agents_theta_does_not_depend_on_its_company(overrides: list[str]) ->
     trained = {}
     for company in ([2], [0, 1, 2, 3, 4], [3, 2, 1]):
         group = EngineGroup(run, variants_of(run, company))
-        trained[tuple(company)] = group.train(4, theta, company)[2]
+        trained[tuple(company)] = group.train(4, theta, company).result
         group.close()
     first, *others = (
-        (result.theta, dataclasses.replace(result.stats, compute_s=0.0, algorithm={
-            name: value for name, value in result.stats.algorithm.items()
-            if name not in TIMING_STATS
-        }))  # CPU times vary between any two runs
+        (torch.from_numpy(result.theta_of(2)), dataclasses.replace(
+            result.stats_of(2), compute_s=0.0, algorithm={
+                name: value for name, value in result.stats_of(2).algorithm.items()
+                if name not in TIMING_STATS
+            },
+        ))  # CPU times vary between any two runs
         for result in trained.values()
     )  # fmt: skip
     for other in others:

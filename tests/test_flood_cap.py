@@ -222,7 +222,7 @@ def _round(
         wire.burst(answer(request))
 
     answers = wire.pool.train(0, torch.zeros(D), agents, while_training=respond)
-    return [u.agent_index for u in answers.updates]
+    return answers.result.agents
 
 
 def test_an_honest_burst_beyond_the_cap_is_handled_whole(wire: Wire) -> None:

@@ -105,8 +105,8 @@ def test_theta_does_not_depend_on_the_placement_of_the_agents(
     records: list = []
     expected = run_in_process(run, on_round=[lambda record, _: records.append(record)])
     assert not torch.equal(expected, initial_theta(variant_of(run, 0), run))
-    emulated = [{a.agent_index: a.stats.emulated_s for a in r.agents} for r in records]
-    speeds = [{a.agent_index: a.stats.speed for a in r.agents} for r in records]
+    emulated = [dict(zip(r.result.agents, r.result.stats.emulated_s, strict=True)) for r in records]
+    speeds = [dict(zip(r.result.agents, r.result.stats.speed, strict=True)) for r in records]
     assert len({e for r in emulated for e in r.values()}) > 7, "the agents' times differ"
     for per_host in (1, 3, 7):  # 7 processes; hosts of 3 + 3 + 1; one host of 7
         keys = [*keys_of_run, f"agents.per_host={per_host}"]
@@ -274,9 +274,9 @@ def test_a_host_claiming_foreign_agents_or_a_huge_batch_is_refused_and_the_run_g
                 refusals.append(message.code)
             elif isinstance(message, Train):
                 theta = torch.from_numpy(np.array(message.theta))
-                results = group.train(message.round, theta, message.agents)
-                stats = results[0].stats
-                row = results[0].theta.numpy()[None]
+                results = group.train(message.round, theta, message.agents).result
+                stats = results.stats_of(0)
+                row = results.theta_of(0)[None]
                 foreign = Update(
                     round=message.round, agents=[5], thetas=row, stats=UpdateColumns.of([stats])
                 )
@@ -297,14 +297,7 @@ def test_a_host_claiming_foreign_agents_or_a_huge_batch_is_refused_and_the_run_g
                 )
                 for frames in (encode(foreign), huge, raw_frames(mismatch)):
                     host.send_multipart(frames)
-                agents = sorted(results)
-                honest = Update(
-                    round=message.round,
-                    agents=agents,
-                    thetas=np.stack([results[k].theta.numpy() for k in agents]),
-                    stats=UpdateColumns.of([results[k].stats for k in agents]),
-                )
-                host.send_multipart(encode(honest))
+                host.send_multipart(encode(results))
             elif isinstance(message, Evaluate):
                 theta = torch.from_numpy(np.array(message.theta))
                 evaluations = group.evaluate(message.round, theta, message.episodes, message.agents)

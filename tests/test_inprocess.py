@@ -54,9 +54,9 @@ def test_records_count_the_work() -> None:
     run = _cartpole_run("fedhpg")
     run_in_process(run, on_round=[lambda record, _: records.append(record)])
     assert [r.round for r in records] == [1, 2, 3]
-    trajectories = [a.stats.trajectories for a in records[0].agents]
+    trajectories = records[0].result.stats.trajectories
     assert trajectories == [4 * 1, 6 * 2, 8 * 1], "B_k × τ_k trajectories per round"
-    assert all(a.stats.env_steps >= a.stats.trajectories for a in records[0].agents)
+    assert all(a.env_steps >= a.trajectories for a in records[0].result.stats)
     per_round = (4 + 12 + 8) / 3
     assert [r.trajectories_per_agent for r in records] == [per_round * t for t in (1, 2, 3)]
     assert all(r.to_json()["updates"] == 3 for r in records)
@@ -67,8 +67,8 @@ def test_records_count_the_work() -> None:
     }
     vr_records: list[RoundRecord] = []
     run_in_process(_cartpole_run("fedhpgvr"), on_round=[lambda r, _: vr_records.append(r)])
-    assert [a.stats.trajectories for a in vr_records[0].agents] == [4 + 2 * 3, 6 + 2 * 3, 8 + 2 * 3]
-    assert {"iw_mean", "iw_max", "iw_clipped_fraction"} <= set(vr_records[0].agents[0].to_json())
+    assert vr_records[0].result.stats.trajectories == [4 + 2 * 3, 6 + 2 * 3, 8 + 2 * 3]
+    assert {"iw_mean", "iw_max", "iw_clipped_fraction"} <= set(vr_records[0].agent_rows[0])
 
 
 def test_unknown_env_family_is_named() -> None:
@@ -117,7 +117,7 @@ def test_continuous_actions_run_through_both_algorithms(algo: str, estimator: st
     start = initial_theta(run_variants(run)[0], run)
     assert torch.isfinite(theta).all() and not torch.equal(theta, start)
     assert records[-1].eval is not None
-    assert all(a.stats.env_steps == a.stats.trajectories * 50 for a in records[0].agents)
+    assert all(a.env_steps == a.trajectories * 50 for a in records[0].result.stats)
 
 
 @pytest.mark.parametrize(("eval_horizon", "length"), [(None, 20), (50, 50)])
@@ -131,7 +131,7 @@ def test_evaluation_horizon(eval_horizon: int | None, length: int) -> None:
     )
     records: list[RoundRecord] = []
     run_in_process(run, on_round=[lambda record, _: records.append(record)])
-    assert records[0].agents[0].stats.env_steps == 2 * 20, "training keeps env.horizon"
+    assert records[0].result.stats.env_steps[0] == 2 * 20, "training keeps env.horizon"
     assert records[0].eval is not None
     assert records[0].eval["agent-0"].length_mean == length
 

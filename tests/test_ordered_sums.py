@@ -119,7 +119,7 @@ def test_the_engines_gradients_give_the_cpus_bits_without_atomics(
 
     def thetas() -> list[torch.Tensor]:
         trained = EngineGroup(run, variants_of(run, agents)).train(1, theta, agents)
-        return [trained[k].theta for k in agents]
+        return [torch.from_numpy(trained.result.theta_of(k)) for k in agents]
 
     expected = thetas()
     _columns_everywhere(monkeypatch)

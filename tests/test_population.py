@@ -193,7 +193,7 @@ def test_population_run_in_process_equals_fedhpg_run(tmp_path: Path) -> None:
     records: list[list[float]] = []
     theta = run_in_process(
         compose(RUN),
-        on_round=[lambda record, _: records.append([a.stats.emulated_s for a in record.agents])],
+        on_round=[lambda record, _: records.append(list(record.result.stats.emulated_s))],
     )
     assert len(records) == 2 and len(set(records[0])) > 1, "the drawn devices differ"
     out_dir = tmp_path / "run"

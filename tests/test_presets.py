@@ -129,8 +129,8 @@ def test_preset_learns(name: str) -> None:
     assert bool(np.isfinite(theta.numpy()).all()), "θ̃ is not finite"
     for record in records:
         assert not record.failures, f"round {record.round}: rejected updates {record.failures}"
-        for update in record.agents:
-            assert math.isfinite(update.stats.train_return), f"round {record.round}: NaN return"
+        for train_return in record.result.stats.train_return:
+            assert math.isfinite(train_return), f"round {record.round}: NaN return"
     final_eval = records[-1].eval
     assert final_eval is not None
     final = statistics.mean(e.return_mean for e in final_eval.values())
@@ -138,7 +138,7 @@ def test_preset_learns(name: str) -> None:
     what = "greedy return"
     if case.by_training:
         what = "training return over the second half"
-        trained = [statistics.mean(u.stats.train_return for u in r.agents) for r in records]
+        trained = [statistics.mean(r.result.stats.train_return) for r in records]
         control = trained[0]
         final = statistics.mean(trained[case.rounds // 2 :])
     else:

@@ -160,10 +160,12 @@ def _expected_theta(overrides: list[str], included: list[int]) -> torch.Tensor:
     theta = api._checked(run, (), distributed=False).initial_theta
     group = make_agent_group(run, list(range(run.agents.num_agents)))
     try:
-        results = group.train(1, theta, included)
+        results = group.train(1, theta, included).result
     finally:
         group.close()
-    deltas = torch.stack([results[k].theta.double() - theta.double() for k in included])
+    deltas = torch.stack(
+        [torch.from_numpy(results.theta_of(k)).double() - theta.double() for k in included]
+    )
     return (theta.double() + deltas.mean(dim=0)).float()
 
 

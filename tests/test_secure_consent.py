@@ -51,12 +51,12 @@ def test_an_honest_servers_round_is_accepted_and_a_quieter_one_refused(extra: li
     assert asked.noise_std >= least
     honest = secure_round(run, {k: HonestSide(run, k) for k in range(K)}, private=asked)
     assert honest.secure is not None and honest.secure.failed is None
-    assert sorted(u.agent_index for u in honest.updates) == list(range(K))
+    assert honest.result.agents == list(range(K))
     quieter = dataclasses.replace(asked, noise_std=least * 0.99)
     refused = secure_round(run, {k: HonestSide(run, k) for k in range(K)}, private=quieter)
     assert refused.secure is not None and refused.secure.failed is not None
     assert "0 agents advertised keys" in refused.secure.failed
-    assert refused.updates == []
+    assert refused.result.agents == []
 
 
 def test_an_agent_refuses_another_clip_or_no_noise_at_all() -> None:
@@ -115,7 +115,7 @@ def test_signed_rounds_complete_and_a_substituted_key_is_refused(keys_dir: Path)
     run = _run(f"security.keys_dir={keys_dir}", mode="secagg")
     honest = secure_round(run, {k: HonestSide(run, k) for k in range(K)})
     assert honest.secure is not None and honest.secure.failed is None
-    assert sorted(u.agent_index for u in honest.updates) == list(range(K))
+    assert honest.result.agents == list(range(K))
     for how in ("key", "signatures"):
         sides = {k: _Substituting(run, k, how) for k in range(K)}
         answers = secure_round(run, sides)
@@ -131,4 +131,4 @@ def test_without_a_roster_the_same_substitution_goes_unseen() -> None:
     assert answers.secure is not None and answers.secure.failed is None
     # the others masked with a key only the server holds, and their round went through
     # (agent 2 alone saw its own key replaced and dropped out)
-    assert sorted(u.agent_index for u in answers.updates) == [0, 1, 3, 4]
+    assert answers.result.agents == [0, 1, 3, 4]

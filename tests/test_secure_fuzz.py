@@ -168,7 +168,7 @@ def _check_round(rogue: int, plans: dict[type, tuple]) -> None:
     if secure.failed is not None:  # only the rogue's own secret may be what is missing
         assert f"agent {rogue}'s" in secure.failed, secure.failed
         return
-    summed = sorted(u.agent_index for u in answers.updates)
+    summed = answers.result.agents
     assert set(honest) <= set(summed), (summed, answers.failures)
     assert np.isfinite(secure.total).all()
     own_input_honest = all(

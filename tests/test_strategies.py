@@ -10,34 +10,33 @@ import pytest
 import torch
 
 from fedhpg.common.config import ConfigError, StrategyConfig
-from fedhpg.common.types import AgentUpdate, UpdateStats
+from fedhpg.common.types import RoundResult, UpdateColumns, UpdateStats
 from fedhpg.server.strategies import STRATEGIES, make_strategy
 
 SHIPPED = ["fedadam", "mean", "median", "trimmed_mean", "weighted"]
 
 
-def _updates(count: int = 5, size: int = 300, seed: int = 0) -> list[AgentUpdate]:
+def _updates(count: int = 5, size: int = 300, seed: int = 0) -> RoundResult:
     generator = torch.Generator().manual_seed(seed)
-    return [
-        AgentUpdate(
-            agent_index=k,
-            agent_id=f"agent-{k}",
-            theta=torch.randn(size, generator=generator),
-            stats=UpdateStats(
-                trajectories=10 * (k + 1), env_steps=1, compute_s=0.0, train_return=0
-            ),
-        )
+    stats = [
+        UpdateStats(trajectories=10 * (k + 1), env_steps=1, compute_s=0.0, train_return=0)
         for k in range(count)
     ]
+    return RoundResult(
+        round=1,
+        agents=list(range(count)),
+        thetas=torch.randn(count, size, generator=generator).numpy(),
+        stats=UpdateColumns.of(stats),
+    )
 
 
-def _aggregate(name: str, updates: list[AgentUpdate], **params: object) -> torch.Tensor:
+def _aggregate(name: str, updates: RoundResult, **params: object) -> torch.Tensor:
     strategy = make_strategy(StrategyConfig(name=name, params=dict(params)))
-    return strategy.aggregate(1, torch.zeros_like(updates[0].theta), updates, {})
+    return strategy.aggregate(1, torch.zeros(updates.thetas.shape[1]), updates, {})
 
 
-def _rows(updates: list[AgentUpdate]) -> np.ndarray:
-    return np.stack([u.theta.numpy() for u in updates]).astype(np.float64)
+def _rows(updates: RoundResult) -> np.ndarray:
+    return updates.thetas.astype(np.float64)
 
 
 def test_every_shipped_strategy_is_registered() -> None:
@@ -70,24 +69,24 @@ def test_trimmed_mean_drops_the_extremes(count: int, fraction: float, cut: int) 
 
 @pytest.mark.parametrize("name", SHIPPED)
 def test_arrival_order_cannot_change_a_bit(name: str) -> None:
+    """Whatever order the rows arrive in, the server's concatenation puts them in agent
+    order: θ̃ is the same to the bit."""
     updates = _updates(4)
     reference = _aggregate(name, updates)
-    for order in itertools.permutations(updates):
-        assert torch.equal(_aggregate(name, list(order)), reference)
+    rows = [updates[k : k + 1] for k in range(len(updates))]
+    for order in itertools.permutations(rows):
+        arrived = RoundResult.concatenated(list(order))
+        assert arrived.agents == updates.agents
+        assert torch.equal(_aggregate(name, arrived), reference)
 
 
 def test_robust_rules_ignore_a_minority_of_huge_updates() -> None:
     """3 of 10 send 1e6 · their update: median and a trim of 0.3 stay inside the honest
     values of every coordinate; the mean is dragged far outside."""
     updates = _updates(10)
-    attacked = [
-        AgentUpdate(
-            agent_index=u.agent_index, agent_id=u.agent_id, theta=u.theta * 1e6, stats=u.stats
-        )
-        if u.agent_index < 3
-        else u
-        for u in updates
-    ]
+    thetas = updates.thetas.copy()
+    thetas[:3] *= 1e6
+    attacked = RoundResult(round=1, agents=updates.agents, thetas=thetas, stats=updates.stats)
     honest = _rows(updates[3:])
     low, high = honest.min(0) - 1e-6, honest.max(0) + 1e-6
     for name, params in [("median", {}), ("trimmed_mean", {"trim_fraction": 0.3})]:
@@ -99,19 +98,10 @@ def test_robust_rules_ignore_a_minority_of_huge_updates() -> None:
 def test_weighted_survives_counts_beyond_float32() -> None:
     """Counts are normalised in float64: 3e38 trajectories do not overflow to inf/NaN."""
     updates = _updates(3)
-    huge = [
-        AgentUpdate(
-            agent_index=u.agent_index,
-            agent_id=u.agent_id,
-            theta=u.theta,
-            stats=UpdateStats(trajectories=int(3e38) if u.agent_index == 0 else 1, env_steps=1,
-                              compute_s=0.0, train_return=0.0),
-        )
-        for u in updates
-    ]  # fmt: skip
+    huge = updates.with_stats(trajectories=[int(3e38), 1, 1])
     result = _aggregate("weighted", huge)
     assert torch.isfinite(result).all()
-    torch.testing.assert_close(result, updates[0].theta)
+    torch.testing.assert_close(result, torch.from_numpy(updates.thetas[0]))
 
 
 def test_fedadam_first_step_is_sign_sized_and_its_state_resumes_exactly() -> None:
@@ -121,7 +111,7 @@ def test_fedadam_first_step_is_sign_sized_and_its_state_resumes_exactly() -> Non
     theta = torch.zeros(300)
     first = strategy.aggregate(1, theta, updates, {})
     # Adam's first step is η·m̂/(√v̂ + ε) = η·g/(|g| + ε) with g the mean update: ±η.
-    mean = torch.stack([u.theta for u in updates]).mean(0)
+    mean = torch.from_numpy(updates.thetas).mean(0)
     torch.testing.assert_close(first, 0.01 * mean / (mean.abs() + 1e-8))
     assert bool(((first.abs() - 0.01).abs() < 1e-6)[mean.abs() > 1e-3].all())
     second = strategy.aggregate(2, first, updates, {})

@@ -186,25 +186,26 @@ def test_the_records_are_framed_by_tensorboards_own_writer(
 
 
 def test_update_norms_are_each_agents_own(monkeypatch: pytest.MonkeyPatch) -> None:
-    """‖θ_k − θ̃‖ per agent, taken a slab of rows at a time (2 here) over the stacked block,
-    whatever order the updates come in: each agent's norm is its own row's."""
-    import torch
+    """‖θ_k − θ̃‖ per agent, taken a slab of rows at a time (2 here) over the result's rows:
+    each agent's norm is its own row's."""
 
-    from fedhpg.common.types import AgentUpdate, UpdateStats
+    from fedhpg.common.types import RoundResult, UpdateColumns, UpdateStats
     from fedhpg.server import metrics
 
     monkeypatch.setattr(metrics, "NORM_ROWS", 2)
     rng = np.random.default_rng(0)
     before = rng.standard_normal(7)
     stats = UpdateStats(trajectories=1, env_steps=1, compute_s=0.0, train_return=0.0)
-    thetas = {k: rng.standard_normal(7).astype(np.float32) for k in (4, 0, 9, 2, 7)}
-    updates = [
-        AgentUpdate(agent_index=k, agent_id=f"agent-{k}", theta=torch.from_numpy(t), stats=stats)
-        for k, t in thetas.items()
-    ]
+    thetas = {k: rng.standard_normal(7).astype(np.float32) for k in (0, 2, 4, 7, 9)}
+    updates = RoundResult(
+        round=1,
+        agents=list(thetas),
+        thetas=np.stack(list(thetas.values())),
+        stats=UpdateColumns.of([stats] * len(thetas)),
+    )
     norms = metrics._update_norms(updates, before)
     assert norms == {
         k: pytest.approx(float(np.linalg.norm(t.astype(np.float64) - before)), rel=1e-12)
         for k, t in thetas.items()
     }
-    assert metrics._update_norms([], before) == {}
+    assert metrics._update_norms(RoundResult.empty(1, 7), before) == {}

@@ -10,14 +10,13 @@ contributions gives the average and the clip's next value (:func:`average`).
 
 from __future__ import annotations
 
-import dataclasses
 from dataclasses import dataclass
 
 import numpy as np
 import torch
 
 from fedhpg.common.privacy import dp
-from fedhpg.common.types import UpdateStats
+from fedhpg.common.types import RoundResult
 
 WEIGHT_UNIT = float(1 << 20)
 """Weighted averages: an agent's weight is its trajectories over this (so w ≤ 1 for any
@@ -79,8 +78,8 @@ def average(total: np.ndarray, denominator: float | None) -> tuple[np.ndarray, f
     return total[:-EXTRA] / divide, min(max(fraction, 0.0), 1.0)
 
 
-def redacted(stats: UpdateStats) -> UpdateStats:
-    """An agent's statistics without what its data decides directly (its training return and
-    its algorithm's statistics): under a privacy mode they never leave the agent. Its counts
-    and times do (docs/privacy.md says what they may reveal)."""
-    return dataclasses.replace(stats, train_return=0.0, algorithm={})
+def redacted(result: RoundResult) -> RoundResult:
+    """Agents' statistics without what their data decides directly (their training return and
+    their algorithm's statistics): under a privacy mode they never leave the agent. Their
+    counts and times do (docs/privacy.md says what they may reveal)."""
+    return result.with_stats(train_return=[0.0] * len(result), algorithm={})

@@ -30,7 +30,7 @@ from fedhpg.common.limits import (
     Text,
 )
 from fedhpg.common.privacy.contribution import RoundPrivacy
-from fedhpg.common.types import EvaluationStats, UpdateColumns
+from fedhpg.common.types import EvaluationStats, RoundResult, UpdateColumns
 
 PROTOCOL_VERSION = 10
 """Bumped whenever a message changes; a peer of another version is refused with a reason."""
@@ -147,15 +147,9 @@ class Train:
             )
 
 
-@dataclass(frozen=True, kw_only=True, eq=False)
-class Update:
-    """Agent → server: the results of ``agents`` for ``round``: row i of ``thetas`` (an
-    [A, d] float32 array) and ``stats[i]`` are agent ``agents[i]``'s θ_k and what it cost."""
-
-    round: Round
-    agents: AnswerList
-    thetas: np.ndarray
-    stats: UpdateColumns
+Update = RoundResult
+"""Agent → server: the results of ``agents`` for ``round``, the engine's
+:class:`~fedhpg.common.types.RoundResult` itself (at most ``MAX_BATCH_ANSWERS`` rows)."""
 
 
 # --- secure aggregation: the exchanges of a private round (common/privacy/secagg.py) ---------

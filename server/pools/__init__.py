@@ -14,8 +14,9 @@ from typing import Protocol
 import numpy as np
 import torch
 
+from fedhpg.common.config import agent_id_of
 from fedhpg.common.privacy.contribution import RoundPrivacy
-from fedhpg.common.types import AgentUpdate, EvaluationStats
+from fedhpg.common.types import EvaluationStats, RoundResult
 from fedhpg.server.validation import Rejection
 
 
@@ -37,14 +38,16 @@ class SkippedRound(FederationError):
 class RoundAnswers:
     """What a pool collected for one round's train request."""
 
-    updates: list[AgentUpdate]
-    """Accepted updates, in agent-index order."""
+    result: RoundResult
+    """The accepted updates (rows in agent-index order; none, when none was accepted)."""
+    name: Callable[[int], str] = agent_id_of
+    """Each agent's id (its registered one)."""
     failures: dict[str, Rejection] = field(default_factory=dict)
     """Agent id → why its update was rejected (it answered, but is not aggregated)."""
     stragglers: list[str] = field(default_factory=list)
     """Selected agents whose update never arrived in time (late or dead)."""
     secure: SecureSum | None = None
-    """Secure aggregation: the round's sum (``updates`` then carry statistics, θ̃ as θ)."""
+    """Secure aggregation: the round's sum (``result`` then carries statistics, θ̃ as θ)."""
 
 
 @dataclass(frozen=True, kw_only=True)

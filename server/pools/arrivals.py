@@ -21,7 +21,7 @@ import numpy as np
 import torch
 
 from fedhpg.common.config import ServerConfig
-from fedhpg.common.types import AgentUpdate
+from fedhpg.common.types import UpdateStats
 from fedhpg.common.wire.protocol import Train, Update
 from fedhpg.server.pools import FederationError
 from fedhpg.server.pools.links import Link, Links, Outbox
@@ -49,7 +49,10 @@ class Arrival:
     version: int
     base: np.ndarray
     """The θ̃ it started from."""
-    update: AgentUpdate
+    agent_id: str
+    theta: torch.Tensor
+    """θ_k (its own copy: the frame it came in is let go)."""
+    stats: UpdateStats
     problem: Rejection | None
     """Why the update check rejected it (None: accepted)."""
 
@@ -139,12 +142,9 @@ class Arrivals:
                     round=update.round,
                     version=train.version,
                     base=base,
-                    update=AgentUpdate(
-                        agent_index=index,
-                        agent_id=self.links.name(index),
-                        theta=theta,
-                        stats=stats,
-                    ),
+                    agent_id=self.links.name(index),
+                    theta=theta,
+                    stats=stats,
                     problem=problem,
                 )
             )

@@ -12,8 +12,9 @@ collection is complete.
 Every row of an ``Update`` passes the same :class:`~fedhpg.server.validation.UpdateCheck` as
 in the in-process pool, each pass over the [A, d] matrix made once for all its rows; a bad row
 rejects that agent only. Accepted θ_k are copied once, on arrival, into the round's
-:class:`~fedhpg.server.round_rows.RoundRows` (the frames are then let go); the updates the
-round returns are views of that matrix, which the strategies use without restacking.
+:class:`~fedhpg.server.round_rows.RoundRows` (the frames are then let go); the round's
+:class:`~fedhpg.common.types.RoundResult` holds that matrix (or a compact copy of its accepted
+rows) and the statistics of its rows, gathered from each message's columns.
 """
 
 from __future__ import annotations
@@ -26,7 +27,7 @@ from typing import Any
 
 from fedhpg.common.config import ServerConfig
 from fedhpg.common.runtime import timeline
-from fedhpg.common.types import AgentUpdate
+from fedhpg.common.types import RoundResult, UpdateColumns
 from fedhpg.common.wire.protocol import (
     Evaluation,
     KeyShares,
@@ -58,12 +59,12 @@ class Collection:
     """The agents asked (the strategy's selection; every agent for an evaluation)."""
     started: float = field(default_factory=time.monotonic)
     answers: dict[int, Any] = field(default_factory=dict)
-    """Agent index → its answer: an ``AgentUpdate`` (a round), ``EvaluationStats``, or one
-    row of a secure aggregation's answer (:data:`SECURE_ANSWER`)."""
+    """Agent index → its answer: (an ``Update``'s stats, its row) for a round,
+    ``EvaluationStats``, or one row of a secure aggregation's answer (:data:`SECURE_ANSWER`)."""
     failures: dict[int, Rejection] = field(default_factory=dict)
     """Agents whose answer was rejected (it counts as their answer: they are not waited for)."""
     rows: RoundRows | None = None
-    """A round's accepted θ_k (None for an evaluation): ``answers`` hold views of its rows."""
+    """A round's accepted θ_k (None for an evaluation), copied in as they arrive."""
     budgets: Mapping[int, Mapping[str, int]] = field(default_factory=dict)
     """A round's planned budgets (``agents.plan``), by agent index; empty: their own."""
     rows_for: Callable[[list[int]], Request] | None = None
@@ -217,15 +218,23 @@ class Collector:
         """A collected round as the coordinator takes it (stragglers named in a log line)."""
         name = self.links.name
         stragglers = [name(k) for k in sorted(collection.expected) if not collection.answered(k)]
-        accepted = [
-            update
-            for _, update in sorted(collection.answers.items())
-            if isinstance(update, AgentUpdate)
-        ]
+        accepted = sorted(collection.answers.items())
         assert collection.rows is not None
+        if not accepted:
+            result = RoundResult.empty(collection.round, collection.rows.matrix.shape[1])
+        else:
+            parts = [stats_row for _, stats_row in accepted]
+            agents = [k for k, _ in accepted]
+            result = RoundResult(
+                round=collection.round,
+                agents=agents,
+                # the one [K, d] matrix the rows were copied into as they arrived
+                thetas=collection.rows.block(agents),
+                stats=UpdateColumns.gathered(parts),
+            )
         return RoundAnswers(
-            # views of one [K, d] matrix: strategies.stacked hands it on as it is
-            updates=collection.rows.compacted(accepted),
+            result=result,
+            name=name,
             failures={name(k): r for k, r in sorted(collection.failures.items())},
             stragglers=stragglers,
         )
@@ -285,12 +294,9 @@ class Collector:
         if not indices:
             return
         assert self.open is not None and self.open.rows is not None
-        records = update.stats.records()
-        views = self.open.rows.put(indices, update.thetas, rows)
-        for index, theta, i in zip(indices, views, rows, strict=True):
-            self.open.answers[index] = AgentUpdate(
-                agent_index=index, agent_id=self.links.name(index), theta=theta, stats=records[i]
-            )
+        self.open.rows.put(indices, update.thetas, rows)  # the frames can then be let go
+        for index, i in zip(indices, rows, strict=True):
+            self.open.answers[index] = (update.stats, i)
 
     def on_secure(self, link: Link, answer: SecureAnswer) -> None:
         """A secure aggregation's answer: each row filed for its own agent (the values are

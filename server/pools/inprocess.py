@@ -17,16 +17,15 @@ import numpy as np
 import torch
 
 from fedhpg.common.config import RunConfig, agent_id_of
-from fedhpg.common.device import DeviceModel, device_for, message_bytes
+from fedhpg.common.device import DeviceColumns, DeviceModel, device_for, message_bytes
 from fedhpg.common.group import AgentGroup, make_agent_group
 from fedhpg.common.privacy import fixedpoint
 from fedhpg.common.privacy.contribution import EXTRA, RoundPrivacy, contribution, redacted
 from fedhpg.common.privacy.secagg import SecAggError, SecAggRound, fewest_inputs
 from fedhpg.common.privacy.session import LocalSecAgg
 from fedhpg.common.runtime.memory import pin_malloc_mmap_threshold, tune_malloc_for
-from fedhpg.common.types import AgentUpdate, EvaluationStats, LocalResult
+from fedhpg.common.types import EvaluationStats, RoundResult
 from fedhpg.common.variants import variants_of
-from fedhpg.common.worker import IterationWork
 from fedhpg.envs.base import EnvVariant
 from fedhpg.server.pools import RoundAnswers, SecureSum
 from fedhpg.server.validation import Rejection, UpdateCheck
@@ -72,21 +71,18 @@ class InProcessPool:
     ) -> RoundAnswers:
         if while_training is not None:  # the agents train on this thread: nothing overlaps
             while_training()
-        updates: list[AgentUpdate] = []
-        failures: dict[str, Rejection] = {}
-        for update, problem in self.checked_updates(round_index, theta, agents, budgets=budgets):
-            if problem is None:
-                updates.append(update)
-            else:
-                failures[update.agent_id] = problem
-        answers = RoundAnswers(updates=updates, failures=failures)
+        result, problems = self.checked_result(round_index, theta, agents, budgets=budgets)
+        accepted = [i for i, problem in enumerate(problems) if problem is None]
+        failures = {
+            agent_id_of(k): problem
+            for k, problem in zip(result.agents, problems, strict=True)
+            if problem is not None
+        }
+        answers = RoundAnswers(result=result.taking(accepted), failures=failures)
         if self.run.server.round_policy == "deadline":
-            answers = self._at_deadline(updates, failures)
+            answers = self._at_deadline(answers)
         if self.run.privacy.mode != "none":
-            answers = dataclasses.replace(
-                answers,
-                updates=[dataclasses.replace(u, stats=redacted(u.stats)) for u in answers.updates],
-            )
+            answers = dataclasses.replace(answers, result=redacted(answers.result))
         if private is not None:
             return self._securely(round_index, theta, answers, sorted(agents), private)
         return answers
@@ -103,7 +99,9 @@ class InProcessPool:
         (each agent's keys, shares, masked input and unmasking, here on one thread): the
         server's side sees the sum only. A rejected update or a straggler takes part in the
         key exchange and drops out before its input, as over the wire."""
-        contributing = {u.agent_index: u for u in answers.updates}
+        accepted = answers.result
+        stripped = accepted.without_thetas(theta.detach().numpy())
+        contributing = {k: i for i, k in enumerate(accepted.agents)}
         length = theta.numel() + EXTRA
         advertised = {k: self.secure.advertise(round_index, k) for k in selected}
         try:
@@ -117,11 +115,10 @@ class InProcessPool:
                 {k: advert[2] for k, advert in advertised.items()},
             )
         except SecAggError as error:
-            stripped = [dataclasses.replace(u, theta=theta) for u in answers.updates]
             empty = SecureSum(
                 total=np.zeros(0), inputs=0, participants=len(selected), failed=str(error)
             )
-            return dataclasses.replace(answers, updates=stripped, secure=empty)
+            return dataclasses.replace(answers, result=stripped, secure=empty)
         server = SecAggRound(setup)
         for k in selected:
             server.add_keys(k, self.secure.agent(k).share_keys(setup))
@@ -130,10 +127,10 @@ class InProcessPool:
         for k in selected:
             if k not in contributing:
                 continue
-            update = contributing[k]
+            i = contributing[k]
             row = contribution(
-                update.theta - theta,
-                update.stats.trajectories,
+                torch.from_numpy(accepted.thetas[i]) - theta,
+                accepted.stats.trajectories[i],
                 private,
                 noise(round_index, k),
             )
@@ -142,13 +139,12 @@ class InProcessPool:
         dropped, included = server.unmask_request()
         privacy = self.run.privacy
         fewest = fewest_inputs(privacy.mode, privacy.secagg, len(selected))
-        stripped = [dataclasses.replace(u, theta=theta) for u in answers.updates]
 
         def failed(reason: str) -> RoundAnswers:
             empty = SecureSum(
                 total=np.zeros(0), inputs=0, participants=len(selected), failed=reason
             )
-            return dataclasses.replace(answers, updates=stripped, secure=empty)
+            return dataclasses.replace(answers, result=stripped, secure=empty)
 
         if len(included) < fewest:  # checked before any input is unmasked
             return failed(
@@ -163,76 +159,54 @@ class InProcessPool:
             return failed(f"secure aggregation failed: {error}")
         return dataclasses.replace(
             answers,
-            updates=stripped,
+            result=stripped,
             secure=SecureSum(total=total, inputs=len(included), participants=len(selected)),
         )
 
-    def _at_deadline(
-        self, updates: list[AgentUpdate], failures: dict[str, Rejection]
-    ) -> RoundAnswers:
+    def _at_deadline(self, answers: RoundAnswers) -> RoundAnswers:
         """The deadline policy on the emulated clock (nothing here waits on the wall clock):
         the round closes at ``round_deadline_s`` emulated seconds, or later when fewer than
         ``min_agents`` updates had arrived by then, at the arrival that makes them enough;
         updates arriving after it are stragglers, as with agent processes."""
         settings = self.run.server
-        arrivals = sorted(u.stats.emulated_s for u in updates)
+        result = answers.result
+        emulated = result.stats.emulated_s
+        arrivals = sorted(emulated)
         enough = arrivals[min(settings.min_agents, len(arrivals)) - 1] if arrivals else 0.0
         closes = max(settings.round_deadline_s, enough)
-        kept = [u for u in updates if u.stats.emulated_s <= closes]
-        late = [u.agent_id for u in updates if u.stats.emulated_s > closes]
-        return RoundAnswers(updates=kept, failures=failures, stragglers=late)
+        kept = [i for i, seconds in enumerate(emulated) if seconds <= closes]
+        late = [agent_id_of(k) for k, s in zip(result.agents, emulated, strict=True) if s > closes]
+        return dataclasses.replace(answers, result=result.taking(kept), stragglers=late)
 
-    def checked_updates(
+    def checked_result(
         self,
         round_index: int,
         theta: torch.Tensor,
         agents: Sequence[int],
         *,
         budgets: Mapping[int, Mapping[str, int]] | None = None,
-    ) -> list[tuple[AgentUpdate, Rejection | None]]:
-        """Every selected agent's update of ``round_index`` from θ̃, in agent order, with why
-        the update check rejects it (None: accepted)."""
-        broadcast = theta.detach().numpy()
+    ) -> tuple[RoundResult, list[Rejection | None]]:
+        """Every selected agent's update of ``round_index`` from θ̃, rows in agent order,
+        with why the update check rejects each (None: accepted)."""
         selected = sorted(agents)
+        trained = self.group.train(round_index, theta, selected, budgets=budgets)
+        devices = DeviceColumns([self.device(k) for k in selected])
         # The counted clock charges the two messages an agent process would exchange (θ̃
-        # down, θ up), so both runtimes agree; the measured clock charges none here, as before.
-        message = message_bytes(self.num_params)
-        for k in selected:
-            device = self.device(k)
-            device.take_emulated()
-            if device.counted:
-                device.transmit(message)
-
-        def on_iteration(k: int, work: IterationWork) -> None:
-            self.device(k).spend(
-                work.compute_s,
-                work.env_steps,
-                round_index,
-                grad_steps=work.grad_steps,
-                num_params=self.num_params,
-            )
-
-        results = self.group.train(
-            round_index, theta, selected, on_iteration=on_iteration, budgets=budgets
+        # down, θ up), so both runtimes agree; the measured clock charges none here.
+        emulated, speeds = devices.round(
+            np.arange(len(selected)),
+            round_index,
+            message_bytes(self.num_params),
+            trained.iterations,
+            self.num_params,
+            messages=devices.counted,
         )
-        checked: list[tuple[AgentUpdate, Rejection | None]] = []
-        for k in selected:
-            update = self._update(k, round_index, results[k], message)
-            problem = self.check.problem(update.theta.numpy(), update.stats, broadcast)
+        result = trained.result.with_stats(emulated_s=emulated.tolist(), speed=speeds.tolist())
+        problems = self.check.problems(result.thetas, result.stats, theta.detach().numpy())
+        for k, problem in zip(selected, problems, strict=True):
             if problem is not None:
-                logger.warning("rejected the update of %s: %s", update.agent_id, problem)
-            checked.append((update, problem))
-        return checked
-
-    def _update(self, k: int, round_index: int, result: LocalResult, message: int) -> AgentUpdate:
-        device = self.device(k)
-        if device.counted:
-            device.transmit(message)
-        device.settle()
-        stats = dataclasses.replace(
-            result.stats, emulated_s=device.take_emulated(), speed=device.speed_at(round_index)
-        )
-        return AgentUpdate(agent_index=k, agent_id=agent_id_of(k), theta=result.theta, stats=stats)
+                logger.warning("rejected the update of %s: %s", agent_id_of(k), problem)
+        return result, problems
 
     def evaluate(
         self, round_index: int, theta: torch.Tensor, episodes: int

@@ -41,7 +41,7 @@ from fedhpg.common.privacy.secagg import (
     SecAggRound,
     fewest_inputs,
 )
-from fedhpg.common.types import AgentUpdate, UpdateStats
+from fedhpg.common.types import RoundResult, UpdateStats
 from fedhpg.common.wire import secure_rows as read
 from fedhpg.common.wire.protocol import (
     KEY_BYTES,
@@ -202,12 +202,9 @@ class SecureExchange:
             return outcome.failed(f"secure aggregation failed: {error}")
         outcome.unmasked(server)
         scale = fixedpoint.scale_for(len(participants), max(private.bound, 1.0))
-        updates = [
-            AgentUpdate(agent_index=k, agent_id=links.name(k), theta=theta, stats=stats[k])
-            for k in server.summed
-        ]
+        summed = {k: stats[k] for k in server.summed}
         return outcome.answers(
-            updates,
+            RoundResult.of_stats(round_index, summed, theta.detach().numpy()),
             SecureSum(
                 total=fixedpoint.decode(words, scale),
                 inputs=len(server.summed),
@@ -304,23 +301,24 @@ class _Outcome:
     def failed(self, reason: str) -> RoundAnswers:
         """A round with no sum: θ̃ stays, the coordinator records the round as skipped."""
         return self.answers(
-            [],
+            RoundResult.of_stats(self.round, {}, np.zeros(0, dtype=np.float32)),
             SecureSum(total=np.zeros(0), inputs=0, participants=self.participants, failed=reason),
         )
 
-    def answers(self, updates: list[AgentUpdate], secure: SecureSum) -> RoundAnswers:
-        summed = {u.agent_index for u in updates}
+    def answers(self, result: RoundResult, secure: SecureSum) -> RoundAnswers:
+        summed = set(result.agents)
         missing = [self.name(k) for k in self.selected if k not in summed and k not in self.refused]
         if secure.failed is None and (missing or self.refused):
             logger.warning(
                 "round %d aggregated %d of %d masked inputs; dropped out: %s",
                 self.round,
-                len(updates),
+                len(result),
                 len(self.selected),
                 ", ".join(missing + [self.name(k) for k in sorted(self.refused)]),
             )
         return RoundAnswers(
-            updates=updates,
+            result=result,
+            name=self.name,
             failures={self.name(k): r for k, r in sorted(self.refused.items())},
             stragglers=missing,
             secure=secure,

@@ -449,7 +449,7 @@ class ZmqAgentPool:
             logger.warning(
                 "round %d aggregated %d of %d updates; stragglers: %s",
                 round_index,
-                len(answers.updates),
+                len(answers.result),
                 len(collection.expected),
                 ", ".join(answers.stragglers),
             )

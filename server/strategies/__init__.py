@@ -8,7 +8,7 @@ A strategy is one module of this package (or of a plugin) and a YAML in ``conf/s
         name = "mine"
         Params = MyParams            # its options, from strategy.params
 
-        def aggregate(self, round_index, theta, results, failures) -> torch.Tensor: ...
+        def aggregate(self, round_index, theta, result, failures) -> torch.Tensor: ...
 
 A rule of the θ_k alone subclasses :class:`CoordinateRule` and writes ``combine(rows)`` on the
 round's [K, d] matrix of updates (on ``strategy.device``: a GPU where K·d is large), without
@@ -18,10 +18,12 @@ A strategy declares what it can take instead of being named in checks elsewhere:
 :attr:`Strategy.takes` (the kind of update it aggregates, matched against what the run's
 algorithm sends, :func:`sent_by`) and :attr:`Strategy.buffered` (whether it can aggregate
 buffered, asynchronous rounds' updates).
-``results`` are the round's accepted updates in agent-index order (arrival order never
-changes a bit of θ̃); ``failures`` names the agents whose update was rejected, and why. A
-strategy with state across rounds (fedadam's moments) returns it from :meth:`Strategy.state`;
-checkpoints save it and :meth:`Strategy.restore` takes it back on resume.
+``result`` is the round's accepted updates, one :class:`~fedhpg.common.types.RoundResult`
+whose rows are in agent-index order (arrival order never changes a bit of θ̃; :func:`rows_of`
+gives its θ_k as a [K, d] tensor); ``failures`` names the agents whose update was rejected,
+and why. A strategy with state across rounds (fedadam's moments) returns it from
+:meth:`Strategy.state`; checkpoints save it and :meth:`Strategy.restore` takes it back on
+resume.
 """
 
 from __future__ import annotations
@@ -37,7 +39,7 @@ from fedhpg.common.algorithms import PARAMETERS
 from fedhpg.common.components import resolve_algorithm
 from fedhpg.common.config import ConfigError, RunConfig, StrategyConfig
 from fedhpg.common.registry import Registry, import_plugins, parse_options
-from fedhpg.common.types import AgentUpdate, SavedState
+from fedhpg.common.types import RoundResult, SavedState
 from fedhpg.server.participation import validate_participation
 
 if TYPE_CHECKING:
@@ -81,10 +83,10 @@ class Strategy(abc.ABC, Generic[P]):
         self,
         round_index: int,
         theta: torch.Tensor,
-        results: Sequence[AgentUpdate],
+        result: RoundResult,
         failures: Mapping[str, str],
     ) -> torch.Tensor:
-        """θ̃_{t+1} from θ̃_t and the accepted updates (never empty)."""
+        """θ̃_{t+1} from θ̃_t and the accepted updates (never none)."""
 
     def bind(self, run: RunConfig) -> None:
         """Called once with the run before the first round, for a strategy that needs more of
@@ -142,11 +144,11 @@ class CoordinateRule(Strategy[P]):
         self,
         round_index: int,
         theta: torch.Tensor,
-        results: Sequence[AgentUpdate],
+        result: RoundResult,
         failures: Mapping[str, str],
     ) -> torch.Tensor:
-        self._aggregated = len(results)
-        return self.combine(stacked(results).to(self.device)).cpu()
+        self._aggregated = len(result)
+        return self.combine(rows_of(result).to(self.device)).cpu()
 
     @abc.abstractmethod
     def combine(self, rows: torch.Tensor) -> torch.Tensor:
@@ -248,46 +250,8 @@ def by_columns(
     return out
 
 
-def stacked(results: Sequence[AgentUpdate]) -> torch.Tensor:
-    """The updates' θ_k as rows of a [K, d] matrix, in agent-index order.
-
-    Where those rows already are consecutive rows of one matrix (the zmq pool gathers a
-    round's updates so, :mod:`fedhpg.server.round_rows`), that matrix itself: a view sharing
-    the updates' memory, equal to what ``torch.stack`` would build. Do not modify it in place.
-    """
-    rows = [r.theta for r in sorted(results, key=lambda r: r.agent_index)]
-    block = _consecutive_rows(rows)
-    return block if block is not None else torch.stack(rows)
-
-
-ROW_CHECK_BYTES = 4096
-"""Rows shorter than this are stacked without looking: copying one costs less than the
-~0.5 µs of checking where it lies."""
-
-
-def _consecutive_rows(rows: Sequence[torch.Tensor]) -> torch.Tensor | None:
-    """The [K, d] view covering ``rows`` if they are contiguous vectors laid end to end, in
-    order, in one storage; else None."""
-    if not rows:
-        return None
-    first, last = rows[0], rows[-1]
-    shape, dtype, device = first.shape, first.dtype, first.device
-    step = first.numel() * first.element_size()
-    if (
-        len(shape) != 1
-        or step < ROW_CHECK_BYTES
-        or first.untyped_storage().data_ptr() != last.untyped_storage().data_ptr()
-    ):
-        return None
-    start = first.data_ptr()
-    for i, row in enumerate(rows):
-        if (
-            row.data_ptr() != start + i * step
-            or row.shape != shape
-            or row.stride() != (1,)
-            or row.dtype != dtype
-            or row.device != device
-        ):
-            return None
-    # every row lies in the first's storage: between its first and its last row
-    return first.as_strided((len(rows), shape[0]), (shape[0], 1))
+def rows_of(result: RoundResult) -> torch.Tensor:
+    """The result's θ_k as the rows of a [K, d] tensor, in agent-index order: the result's own
+    memory (a strategy reads it, never writes it), a copy only of a read-only array."""
+    thetas = result.thetas
+    return torch.from_numpy(thetas if thetas.flags.writeable else thetas.copy())

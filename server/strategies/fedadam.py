@@ -18,7 +18,7 @@ import torch
 from fedhpg.common.config import StrategyConfig
 from fedhpg.common.optim import AdamAscent
 from fedhpg.common.registry import OptionError
-from fedhpg.common.types import AgentUpdate, SavedState
+from fedhpg.common.types import RoundResult, SavedState
 from fedhpg.server.strategies import Strategy, make_strategy, register_strategy
 
 INNER = "inner."
@@ -87,10 +87,10 @@ class FedAdam(Strategy[FedAdamParams]):
         self,
         round_index: int,
         theta: torch.Tensor,
-        results: Sequence[AgentUpdate],
+        result: RoundResult,
         failures: Mapping[str, str],
     ) -> torch.Tensor:
-        target = self.inner.aggregate(round_index, theta, results, failures)
+        target = self.inner.aggregate(round_index, theta, result, failures)
         return self.from_average(round_index, theta, target)
 
     def state(self) -> SavedState:

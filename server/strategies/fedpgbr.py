@@ -22,7 +22,7 @@ the same).
 from __future__ import annotations
 
 import logging
-from collections.abc import Mapping, Sequence
+from collections.abc import Mapping
 from dataclasses import dataclass
 from typing import Any, Literal
 
@@ -37,9 +37,9 @@ from fedhpg.common.engine.engine import Engine, engine_settings
 from fedhpg.common.optim import AdamAscent
 from fedhpg.common.randomness import Purpose
 from fedhpg.common.registry import OptionError, parse_options
-from fedhpg.common.types import AgentUpdate, SavedState
+from fedhpg.common.types import RoundResult, SavedState
 from fedhpg.common.variants import variant_of
-from fedhpg.server.strategies import Strategy, register_strategy, stacked
+from fedhpg.server.strategies import Strategy, register_strategy, rows_of
 
 logger = logging.getLogger(__name__)
 
@@ -138,14 +138,14 @@ class FedPGBR(Strategy[FedPGBRStrategyParams]):
         self,
         round_index: int,
         theta: torch.Tensor,
-        results: Sequence[AgentUpdate],
+        result: RoundResult,
         failures: Mapping[str, str],
     ) -> torch.Tensor:
         side = self.side
         if side is None:
             raise RuntimeError("the fedpgbr strategy was not bound to its run (bind(run))")
         plan = round_schedule(side.run.seed, round_index, side.schedule)
-        gradients = stacked(results) - theta
+        gradients = rows_of(result) - theta
         found = byzantine_filter(
             gradients,
             batch_size=plan.batch_size,
@@ -154,7 +154,7 @@ class FedPGBR(Strategy[FedPGBRStrategyParams]):
             alpha=self.params.alpha,
             margin=self.params.margin,
         )
-        order = sorted(u.agent_index for u in results)
+        order = result.agents
         kept = [order[i] for i in found.kept]
         if not kept:
             logger.warning("round %d: the Byzantine filter kept no gradient", round_index)

@@ -2,12 +2,12 @@
 
 from __future__ import annotations
 
-from collections.abc import Mapping, Sequence
+from collections.abc import Mapping
 
 import torch
 
-from fedhpg.common.types import AgentUpdate
-from fedhpg.server.strategies import NoParams, Strategy, register_strategy, stacked
+from fedhpg.common.types import RoundResult
+from fedhpg.server.strategies import NoParams, Strategy, register_strategy, rows_of
 
 
 @register_strategy
@@ -23,13 +23,12 @@ class Weighted(Strategy[NoParams]):
         self,
         round_index: int,
         theta: torch.Tensor,
-        results: Sequence[AgentUpdate],
+        result: RoundResult,
         failures: Mapping[str, str],
     ) -> torch.Tensor:
-        ordered = sorted(results, key=lambda r: r.agent_index)
         # Normalised in float64: counts near float32's range must not overflow to inf/NaN.
-        counts = torch.tensor([float(r.stats.trajectories) for r in ordered], dtype=torch.float64)
+        counts = torch.tensor(result.stats.trajectories, dtype=torch.float64)
         if not bool(counts.sum() > 0):
-            return stacked(ordered).mean(dim=0)
+            return rows_of(result).mean(dim=0)
         weights = (counts / counts.sum()).to(torch.float32)
-        return (weights.to(self.device) @ stacked(ordered).to(self.device)).cpu()
+        return (weights.to(self.device) @ rows_of(result).to(self.device)).cpu()
