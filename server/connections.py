@@ -4,9 +4,9 @@ libzmq accepts every TCP connection and hands a multipart message to the applica
 all of its frames have arrived, so a single peer could make the server hold gigabytes (frames
 each under ``ZMQ_MAXMSGSIZE``, as many as it likes) before any check of ours runs. This guard
 sees the connections through a socket monitor (accepted, closed, failed handshakes) and reads
-each one's received byte count from the kernel (``TCP_INFO``). It closes, with
-``shutdown(2)`` on libzmq's own descriptor (libzmq then drops the connection and what it
-buffered):
+how many bytes libzmq has read on each one from the kernel (``TCP_INFO`` less the receive
+queue). It closes, with ``shutdown(2)`` on libzmq's own descriptor (libzmq then drops the
+connection and what it buffered):
 
 - a connection that has received more than ``max_inflight_bytes`` since its last message was
   delivered (a message larger than any this run sends, still arriving). A registered peer's
@@ -59,6 +59,7 @@ FD_RESERVE = 64
 """Descriptors kept free of connections: files, the ZAP and monitor sockets, libzmq's own."""
 _TCP_INFO = 11
 _BYTES_RECEIVED_OFFSET = 128  # struct tcp_info.tcpi_bytes_received (Linux >= 4.1)
+_FIONREAD = 0x541B  # bytes in a socket's receive buffer (Linux)
 _EVENTS = (
     zmq.EVENT_ACCEPTED
     | zmq.EVENT_DISCONNECTED
@@ -75,7 +76,10 @@ if sys.platform.startswith("linux"):
 
 
 def _bytes_received(fd: int) -> int | None:
-    """Bytes the kernel has received on this TCP socket (None if not TCP, or not Linux)."""
+    """Bytes libzmq has read from this TCP socket: what the kernel has received, less what
+    still waits in its receive buffer (None if not TCP, or not Linux). Bytes libzmq's I/O
+    thread has not read yet (it lags on a loaded machine while a host's answers pour in) may
+    hold whole messages: they are judged once read."""
     if _libc is None:
         return None
     buffer = ctypes.create_string_buffer(256)
@@ -84,7 +88,11 @@ def _bytes_received(fd: int) -> int | None:
         return None
     if length.value < _BYTES_RECEIVED_OFFSET + 8:
         return None
-    return int(struct.unpack_from("Q", buffer.raw, _BYTES_RECEIVED_OFFSET)[0])
+    received = int(struct.unpack_from("Q", buffer.raw, _BYTES_RECEIVED_OFFSET)[0])
+    unread = ctypes.c_int(0)
+    if _libc.ioctl(fd, _FIONREAD, ctypes.byref(unread)):
+        return received
+    return received - unread.value
 
 
 def _peer_name(fd: int) -> bytes | None:

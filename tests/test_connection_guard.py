@@ -345,3 +345,25 @@ def test_a_registration_before_the_accept_event_is_kept() -> None:
     guard._on_event({"event": zmq.EVENT_CLOSED, "value": 7})
     guard._on_event({"event": zmq.EVENT_ACCEPTED, "value": 7})  # another connection, same fd
     assert not guard._connections[7].registered
+
+
+def test_bytes_still_in_the_kernel_are_not_counted_as_read() -> None:
+    """What the guard counts on a connection is what libzmq has read: bytes waiting in the
+    kernel's receive buffer (libzmq's I/O thread lagging on a loaded machine) may be whole
+    messages it has not reached yet, so they are not yet "in flight"."""
+    from fedhpg.server.connections import _bytes_received
+
+    listener = pysocket.create_server(("127.0.0.1", 0))
+    sender = pysocket.create_connection(listener.getsockname())
+    receiver, _ = listener.accept()
+    try:
+        sender.sendall(bytes(100_000))
+        time.sleep(0.1)  # arrived in the receive buffer, not read
+        assert _bytes_received(receiver.fileno()) == 0
+        read = 0
+        while read < 40_000:
+            read += len(receiver.recv(40_000 - read))
+        assert _bytes_received(receiver.fileno()) == 40_000
+    finally:
+        for end in (sender, receiver, listener):
+            end.close()
