@@ -6,16 +6,17 @@ f .. f+n-1 (an agent host): a lone agent is a host of one, with the same socket,
 messages and checks. What its agents compute, and how their devices are emulated, is
 :mod:`fedhpg.agent.work`'s.
 
-Two threads, one socket. The main thread owns the DEALER socket: it answers the server, sends
-a heartbeat every ``server.heartbeat_interval_s`` and watches the server's heartbeats. Local
+Two threads, one socket. The main thread owns the DEALER socket: it answers the server, sends a
+heartbeat every ``server.heartbeat_interval_s`` and watches the server's heartbeats. Local
 updates and evaluations run on a job thread, and so does the building of the agents once the
-server has welcomed them, so the program stays audibly alive during a round that takes
-minutes and while a host builds thousands of agents. A new request from the server supersedes the one in flight (the server has
-one open request per agent): the old job is cancelled at its next iteration or emulated-device
-sleep. A request the program already answered (its answer was lost: it rejoined) is answered
-again from the last answers, for the agents asked. If the server falls silent for
-``heartbeat_liveness`` intervals, the program drops its work, opens a new socket and registers
-again with capped exponential backoff, giving up after ``agent.connect_timeout_s``.
+server has welcomed them, so the program stays audibly alive during a round that takes minutes
+and while a host builds thousands of agents. A new request from the server supersedes the one
+in flight (the server has one open request per agent): the old job is cancelled at its next
+iteration or emulated-device sleep. A request the program already answered (its answer was
+lost: it rejoined) is answered again from the last answers, for the agents asked. If the server
+falls silent for ``heartbeat_liveness`` intervals, the program drops its work, opens a new
+socket and registers again with capped exponential backoff, giving up after
+``agent.connect_timeout_s``.
 
 The routing identity is ``<id>#<nonce>``, a fresh nonce per socket: the server can tell a
 second process (or a restarted one) claiming an id from the one it knows, which libzmq would
