@@ -383,6 +383,22 @@ class EvalConfig:
     horizon: int | None = None
     """Episode step limit when evaluating; None = the training horizon (``env.horizon``).
     FedPG-BR trains HalfCheetah with H=500 but validates over up to 1000 steps."""
+    stop_at: float | None = None
+    """Stop the run after an evaluation whose mean return over the agents reaches this target
+    (a complete run: summary.json's ``stopped_early`` names the round); None = run every
+    round."""
+
+
+@dataclass(kw_only=True)
+class CheckpointConfig:
+    """Which checkpoints the run directory keeps besides the rolling newest two."""
+
+    keep_best: bool = False
+    """Also keep the checkpoint of the best evaluation so far (mean return over the agents)
+    as ``checkpoints/best.safetensors``; summary.json's ``best`` names its round and return."""
+    every: int | None = None
+    """Also keep every N-th round's checkpoint, never rotated away, in
+    ``checkpoints/kept/``; None = only the rolling newest two."""
 
 
 @dataclass(kw_only=True)
@@ -723,6 +739,7 @@ class RunConfig:
     attack: AttackConfig = field(default_factory=AttackConfig)
     policy: PolicyConfig = field(default_factory=PolicyConfig)
     eval: EvalConfig = field(default_factory=EvalConfig)
+    checkpoint: CheckpointConfig = field(default_factory=CheckpointConfig)
     server: ServerConfig = field(default_factory=ServerConfig)
     agent: AgentConfig = field(default_factory=AgentConfig)
     security: SecurityConfig = field(default_factory=SecurityConfig)
@@ -761,6 +778,7 @@ GROUPS: dict[str, GroupRole] = {
     "attack": GroupRole(dictated=False, fixed=True, compared=True),  # attackers decide
     "policy": GroupRole(dictated=True, fixed=True, compared=True),
     "eval": GroupRole(dictated=True, fixed=False, compared=True),
+    "checkpoint": GroupRole(dictated=False, fixed=False, compared=False),  # the server's files
     "server": GroupRole(dictated=False, fixed=False, compared=False),
     "agent": GroupRole(dictated=False, fixed=False, compared=False),
     "security": GroupRole(dictated=False, fixed=False, compared=False),  # paths stay on host
@@ -1089,6 +1107,22 @@ def validate(config: RunConfig) -> RunConfig:
     _check_int(config.eval.episodes, "eval.episodes", low=1)
     if config.eval.horizon is not None:
         _check_int(config.eval.horizon, "eval.horizon", low=1)
+    if config.eval.stop_at is not None:
+        stop_at = config.eval.stop_at
+        _require(
+            isinstance(stop_at, int | float)
+            and not isinstance(stop_at, bool)
+            and math.isfinite(stop_at),
+            "eval.stop_at",
+            f"got {stop_at!r}, must be a finite return (or null: run every round)",
+        )
+    _require(
+        isinstance(config.checkpoint.keep_best, bool),
+        "checkpoint.keep_best",
+        f"got {config.checkpoint.keep_best!r}, must be true or false",
+    )
+    if config.checkpoint.every is not None:
+        _check_int(config.checkpoint.every, "checkpoint.every", low=1)
 
     _validate_server(config.server, config.agents.num_agents)
     _check_int(config.agent.index, "agent.index", low=0)

@@ -316,6 +316,8 @@ class Assembly:
     """Called after every round, in order: the run directory's, then the caller's."""
     last: LastEvaluation = field(default_factory=LastEvaluation)
     pool: AgentPool | None = None
+    stopped_early: int | None = None
+    """The round whose evaluation reached ``eval.stop_at``, where one did."""
     _closers: list[Callable[[], None]] = field(default_factory=list)
 
     @property
@@ -349,8 +351,11 @@ class Assembly:
     def run_rounds(
         self, pool: AgentPool, *, buffered: type[BufferedCoordinator] = BufferedCoordinator
     ) -> torch.Tensor:
-        """Every round left, over ``pool``; the final θ̃."""
-        self.theta = self.coordinator(pool, buffered=buffered).run_rounds()
+        """Every round left, over ``pool`` (up to one that reached ``eval.stop_at``); the final
+        θ̃."""
+        coordinator = self.coordinator(pool, buffered=buffered)
+        self.theta = coordinator.run_rounds()
+        self.stopped_early = coordinator.stopped_early
         return self.theta
 
     def finish(self, agent_ids: Sequence[str], **extra: Any) -> dict[str, Any]:
@@ -368,6 +373,7 @@ class Assembly:
             "eval": {a: evaluation_json(e, has_goal=has_goal) for a, e in last.eval.items()}
             if last.eval
             else None,
+            **self._stopped_early(),
             **self.pool_counters(),
             **extra,
             **({"privacy": self.checked.privacy.summary()} if self.checked.privacy else {}),
@@ -377,6 +383,16 @@ class Assembly:
             path = self.run_dir.path / "summary.json"
             write_atomic(path, json.dumps(summary, indent=2).encode())
         return summary
+
+    def _stopped_early(self) -> dict[str, Any]:
+        """summary.json's ``stopped_early`` (with ``eval.stop_at``): the round whose evaluation
+        reached the target, or null when the run went to ``rounds``."""
+        target = self.run.eval.stop_at
+        if target is None:
+            return {}
+        if self.stopped_early is None:
+            return {"stopped_early": None}
+        return {"stopped_early": {"round": self.stopped_early, "stop_at": target}}
 
     def close(self) -> None:
         """Close the sinks (metrics.jsonl, TensorBoard)."""

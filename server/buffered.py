@@ -65,6 +65,7 @@ from fedhpg.server.coordinator import (
     Coordinator,
     RoundRecord,
     diverged_message,
+    reached_target,
     should_evaluate,
 )
 from fedhpg.server.pools import FederationError, RoundAnswers
@@ -452,4 +453,7 @@ class BufferedCoordinator(Coordinator):
             )
             for callback in self.on_round:
                 callback(record, self.theta)
+            if reached_target(self.run, version, evaluation):
+                self.stopped_early = version
+                break
         return self.theta

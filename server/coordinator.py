@@ -162,6 +162,30 @@ def should_evaluate(run: RunConfig, round_number: int) -> bool:
     return round_number % run.eval.every == 0 or round_number == run.rounds
 
 
+def mean_return(evaluation: dict[str, EvaluationStats]) -> float:
+    """An evaluation's mean return over the agents (``eval.stop_at``, the best checkpoint)."""
+    return sum(stats.return_mean for stats in evaluation.values()) / len(evaluation)
+
+
+def reached_target(
+    run: RunConfig, round_number: int, evaluation: dict[str, EvaluationStats] | None
+) -> bool:
+    """Whether this round's evaluation reached ``eval.stop_at`` (logged when it did)."""
+    target = run.eval.stop_at
+    if target is None or not evaluation:
+        return False
+    value = mean_return(evaluation)
+    if value < target:
+        return False
+    logger.info(
+        "round %d: mean evaluation return %.4g reached eval.stop_at=%g: the run stops",
+        round_number,
+        value,
+        target,
+    )
+    return True
+
+
 @dataclass
 class RunProgress:
     """Where a run stands between rounds: what a checkpoint must hold to continue it."""
@@ -205,6 +229,8 @@ class Coordinator:
         self.participation = make_participation(run)
         self.failed_in_a_row = 0
         """Secure rounds skipped since the last one aggregated (``server.max_failed_rounds``)."""
+        self.stopped_early: int | None = None
+        """The round whose evaluation reached ``eval.stop_at``, where one did."""
         self.replanner = make_replanner(run, self.progress.plan_state)
         shortfall = tolerance_shortfall(run, strategy)  # refused at validation unless 'warn'
         if shortfall is not None:
@@ -284,6 +310,8 @@ class Coordinator:
             with hiding:
                 for round_number in range(self.progress.next_round, self.run.rounds + 1):
                     self._round(round_number, started)
+                    if self.stopped_early is not None:
+                        break
         finally:
             self._write_record()
         return self.theta
@@ -322,6 +350,8 @@ class Coordinator:
             evaluated = time.perf_counter()
             evaluation = self.pool.evaluate(round_number, self.theta, self.run.eval.episodes)
             eval_time = time.perf_counter() - evaluated
+            if reached_target(self.run, round_number, evaluation):
+                self.stopped_early = round_number
         wall_time = time.perf_counter() - started
         progress = self.progress
         progress.next_round = round_number + 1
