@@ -30,7 +30,7 @@ from fedhpg.common.variants import variant_of
 from fedhpg.common.worker import build_policy
 from fedhpg.envs.registry import register_family
 from fedhpg.server.assembly import CheckedRun, assemble, check_run
-from fedhpg.server.checkpoint import latest_valid_checkpoint
+from fedhpg.server.checkpoint import CheckpointError, best_checkpoint, latest_valid_checkpoint
 from fedhpg.server.coordinator import RoundCallback, RoundRecord
 from fedhpg.server.metrics import metrics_line, read_metrics, record_marks
 from fedhpg.server.pools import FederationError
@@ -252,8 +252,9 @@ def load_run_config(run_dir: str | Path) -> RunConfig:
     return config
 
 
-def load_policy(run_dir: str | Path) -> Policy:
-    """The run's policy (a ``torch.nn.Module``) with θ̃ of its newest valid checkpoint.
+def load_policy(run_dir: str | Path, *, best: bool = False) -> Policy:
+    """The run's policy (a ``torch.nn.Module``) with θ̃ of its newest valid checkpoint, or with
+    ``best`` of its best evaluation's (a run with ``checkpoint.keep_best=true``).
 
     Built for the run's spaces from ``run_dir/config.json`` (its plugins imported first). Act
     with :func:`act`, or for batches ``policy.act(obs[B, ...], noise)`` (``noise`` [B,
@@ -261,9 +262,20 @@ def load_policy(run_dir: str | Path) -> Policy:
     ``policy.log_prob(obs, actions)`` is differentiable.
     """
     config = load_run_config(run_dir)
-    checkpoint = latest_valid_checkpoint(Path(run_dir) / "checkpoints")
-    if checkpoint is None:
-        raise RunDirectoryError(f"no valid checkpoint in {Path(run_dir) / 'checkpoints'}")
+    directory = Path(run_dir) / "checkpoints"
+    if best:
+        try:
+            checkpoint = best_checkpoint(directory)
+        except CheckpointError as error:
+            raise RunDirectoryError(str(error)) from None
+        if checkpoint is None:
+            raise RunDirectoryError(
+                f"no best checkpoint in {directory} (the run needs checkpoint.keep_best=true)"
+            )
+    else:
+        checkpoint = latest_valid_checkpoint(directory)
+        if checkpoint is None:
+            raise RunDirectoryError(f"no valid checkpoint in {directory}")
     policy = build_policy(variant_of(config, 0), config)
     set_flat_params(policy, checkpoint.theta)
     return policy

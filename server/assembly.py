@@ -46,12 +46,22 @@ from fedhpg.common.worker import initial_theta
 from fedhpg.envs.base import EnvVariant
 from fedhpg.server.buffered import BufferedCoordinator
 from fedhpg.server.checkpoint import (
+    BEST_RETURN,
     Checkpoint,
+    CheckpointError,
+    best_checkpoint,
     latest_valid_checkpoint,
+    save_best,
     save_checkpoint,
     write_atomic,
 )
-from fedhpg.server.coordinator import Coordinator, RoundCallback, RoundRecord, RunProgress
+from fedhpg.server.coordinator import (
+    Coordinator,
+    RoundCallback,
+    RoundRecord,
+    RunProgress,
+    mean_return,
+)
 from fedhpg.server.metrics import MetricsWriter, record_marks, tensorboard_sink
 from fedhpg.server.pools import AgentPool
 from fedhpg.server.pools.inprocess import make_in_process_pool
@@ -184,25 +194,36 @@ def _check_round_policy(run: RunConfig, strategy: Strategy[Any], *, distributed:
 # --- checkpoints --------------------------------------------------------------------------------
 
 
-def checkpoint_callback(
-    run: RunConfig,
-    directory: Path,
-    progress: RunProgress,
-    counters: Callable[[], dict[str, int]],
-) -> RoundCallback:
-    """Write a checkpoint after every round: θ̃, the config, the progress and ``counters()``."""
-    settings = to_dict(run)
+class CheckpointSink:
+    """Write a checkpoint after every round: θ̃, the config, the progress and ``counters()``;
+    with ``checkpoint.every`` N every N-th round's is also kept, with ``checkpoint.keep_best``
+    the best evaluation's so far (mean return over the agents) as ``best.safetensors``."""
 
-    def save(record: RoundRecord, theta: torch.Tensor) -> None:
+    def __init__(
+        self,
+        run: RunConfig,
+        directory: Path,
+        progress: RunProgress,
+        counters: Callable[[], dict[str, int]],
+    ) -> None:
+        self.run, self.directory, self.progress, self.counters = run, directory, progress, counters
+        self.settings = to_dict(run)
+        self.best: tuple[int, float] | None = None
+        """The best checkpoint's round and mean evaluation return (``checkpoint.keep_best``)."""
+        if run.checkpoint.keep_best:
+            self.best = _best_so_far(directory)
+
+    def __call__(self, record: RoundRecord, theta: torch.Tensor) -> None:
+        progress = self.progress
         checkpoint = Checkpoint(
             round=record.round,
             theta=theta,
-            config=settings,
+            config=self.settings,
             metrics_lines=record.round,
             state={
                 "trajectories_per_agent": progress.trajectories_per_agent,
                 "elapsed_s": progress.elapsed_s,
-                "counters": counters(),
+                "counters": self.counters(),
                 **({"plan": progress.plan_state} if progress.plan_state else {}),
                 **({"privacy": progress.privacy_state} if progress.privacy_state else {}),
             },
@@ -210,14 +231,38 @@ def checkpoint_callback(
             schedule=progress.schedule_state,
         )
         try:
-            save_checkpoint(directory, checkpoint)
+            save_checkpoint(self.directory, checkpoint, keep_every=self.run.checkpoint.every)
+            if self.run.checkpoint.keep_best and record.eval:
+                value = mean_return(record.eval)
+                if self.best is None or value > self.best[1]:
+                    save_best(self.directory, checkpoint, value)
+                    self.best = (record.round, value)
         except OSError as error:
             raise RunDirectoryError(
-                f"cannot write the checkpoint of round {record.round} in {directory}: "
+                f"cannot write the checkpoint of round {record.round} in {self.directory}: "
                 f"{error.strerror or error}; the newest complete checkpoint is kept"
             ) from None
 
-    return save
+    def summary(self) -> dict[str, Any]:
+        """summary.json's ``best`` (with ``checkpoint.keep_best``): its round and return."""
+        if not self.run.checkpoint.keep_best:
+            return {}
+        if self.best is None:
+            return {"best": None}
+        return {"best": {"round": self.best[0], "return_mean": self.best[1]}}
+
+
+def _best_so_far(directory: Path) -> tuple[int, float] | None:
+    """A resumed run's best checkpoint: its round and return; None where there is none (a
+    damaged one is replaced by the next evaluation)."""
+    try:
+        best = best_checkpoint(directory)
+    except CheckpointError as error:
+        logger.warning("the best checkpoint is replaced at the next evaluation: %s", error)
+        return None
+    if best is None or BEST_RETURN not in best.state:
+        return None
+    return best.round, float(best.state[BEST_RETURN])
 
 
 def resume_point(
@@ -318,6 +363,8 @@ class Assembly:
     pool: AgentPool | None = None
     stopped_early: int | None = None
     """The round whose evaluation reached ``eval.stop_at``, where one did."""
+    checkpoints: CheckpointSink | None = None
+    """With a run directory: its checkpoints (the best one's round and return)."""
     _closers: list[Callable[[], None]] = field(default_factory=list)
 
     @property
@@ -374,6 +421,7 @@ class Assembly:
             if last.eval
             else None,
             **self._stopped_early(),
+            **(self.checkpoints.summary() if self.checkpoints is not None else {}),
             **self.pool_counters(),
             **extra,
             **({"privacy": self.checked.privacy.summary()} if self.checked.privacy else {}),
@@ -444,10 +492,10 @@ def assemble(
         write_atomic(out_dir / "config.json", json.dumps(to_dict(run), indent=2).encode())
         metrics = MetricsWriter(run_dir.metrics, marks=record_marks(run))
         assembly._closers.append(metrics.close)
-        assembly.sinks += [
-            metrics,
-            checkpoint_callback(run, out_dir / "checkpoints", progress, assembly.pool_counters),
-        ]
+        assembly.checkpoints = CheckpointSink(
+            run, out_dir / "checkpoints", progress, assembly.pool_counters
+        )
+        assembly.sinks += [metrics, assembly.checkpoints]
         board = tensorboard_sink(run, out_dir, first_round=progress.next_round, theta=theta)
         progress_csv = ProgressCsv(
             out_dir / PROGRESS_NAME,

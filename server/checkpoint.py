@@ -17,6 +17,7 @@ kind is the one taken.
 
 from __future__ import annotations
 
+import dataclasses
 import errno
 import hashlib
 import json
@@ -48,6 +49,13 @@ READABLE_VERSIONS = (1, 2, 3)
 KEEP_CHECKPOINTS = 2
 SUFFIX = ".safetensors"
 LEGACY_SUFFIX = ".ckpt"
+BEST_NAME = f"best{SUFFIX}"
+"""``checkpoint.keep_best``: the best evaluation's checkpoint, beside the rolling ones."""
+KEPT_DIR = "kept"
+"""``checkpoint.every``: every N-th round's checkpoint, in this folder of the checkpoints'
+(never rotated away)."""
+BEST_RETURN = "best_return"
+"""The best checkpoint's ``state`` key: its evaluation's mean return over the agents."""
 
 
 class CheckpointError(ValueError):
@@ -173,14 +181,39 @@ def _safetensors_bytes(checkpoint: Checkpoint) -> bytes:
     return bytes(save(tensors, metadata=metadata))
 
 
-def save_checkpoint(directory: Path, checkpoint: Checkpoint) -> Path:
-    """Write this round's checkpoint atomically and prune all but the newest few."""
+def save_checkpoint(
+    directory: Path, checkpoint: Checkpoint, *, keep_every: int | None = None
+) -> Path:
+    """Write this round's checkpoint atomically and prune all but the newest few; with
+    ``keep_every`` N, a round that is a multiple of N is also written to ``kept/`` (written
+    before anything is pruned)."""
     directory.mkdir(parents=True, exist_ok=True)
     path = checkpoint_path(directory, checkpoint.round)
-    write_atomic(path, _safetensors_bytes(checkpoint))
+    data = _safetensors_bytes(checkpoint)
+    write_atomic(path, data)
+    if keep_every is not None and checkpoint.round % keep_every == 0:
+        (directory / KEPT_DIR).mkdir(exist_ok=True)
+        write_atomic(checkpoint_path(directory / KEPT_DIR, checkpoint.round), data)
     for old in checkpoint_files(directory)[:-KEEP_CHECKPOINTS]:
         old.unlink(missing_ok=True)
     return path
+
+
+def save_best(directory: Path, checkpoint: Checkpoint, mean_return: float) -> Path:
+    """Write ``checkpoint`` atomically as the best so far (``best.safetensors``), its mean
+    evaluation return in its state (:data:`BEST_RETURN`)."""
+    directory.mkdir(parents=True, exist_ok=True)
+    best = dataclasses.replace(checkpoint, state={**checkpoint.state, BEST_RETURN: mean_return})
+    path = directory / BEST_NAME
+    write_atomic(path, _safetensors_bytes(best))
+    return path
+
+
+def best_checkpoint(directory: Path) -> Checkpoint | None:
+    """The best evaluation's checkpoint (``checkpoint.keep_best``), None where there is none;
+    CheckpointError where it is damaged."""
+    path = directory / BEST_NAME
+    return load_checkpoint(path) if path.exists() else None
 
 
 def _header(raw: bytes, path: Path) -> dict[str, Any]:

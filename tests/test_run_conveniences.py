@@ -10,8 +10,11 @@ import subprocess
 from pathlib import Path
 
 import pytest
+import torch
 
 from fedhpg.server import api
+from fedhpg.server.checkpoint import BEST_NAME, KEPT_DIR, load_checkpoint
+from fedhpg.server.run_dir import RunDirectoryError
 from tests.procs import BIN, QUIET
 
 SHORT = ["rounds=6", "eval.every=2", "eval.episodes=2", "agents.virtual_clock=true"]
@@ -79,3 +82,42 @@ def test_a_bad_value_is_one_line_naming_its_key(tmp_path: Path, override: str, k
     assert len(done.stderr.strip().splitlines()) == 1, done.stderr
     assert key in done.stderr
     assert list(tmp_path.iterdir()) == []
+
+
+def test_the_best_evaluations_checkpoint_is_kept_and_loads(tmp_path: Path) -> None:
+    out_dir = tmp_path / "run"
+    keys = [*SHORT, "checkpoint.keep_best=true", "checkpoint.every=2"]
+    result = api.run(overrides=keys, out_dir=out_dir)
+    returns = {
+        r["round"]: sum(e["return_mean"] for e in r["eval"].values()) / len(r["eval"])
+        for r in result.records
+        if r.get("eval")
+    }
+    best_round = max(returns, key=lambda r: (returns[r], -r))  # the first of the best
+    summary = _summary(out_dir)["best"]
+    assert summary["round"] == best_round
+    assert summary["return_mean"] == pytest.approx(returns[best_round])
+    best = load_checkpoint(out_dir / "checkpoints" / BEST_NAME)
+    assert best.round == best_round
+    policy = api.load_policy(out_dir, best=True)
+    theta = torch.nn.utils.parameters_to_vector(policy.parameters())
+    assert torch.equal(theta, best.theta)
+    newest = torch.nn.utils.parameters_to_vector(api.load_policy(out_dir).parameters())
+    assert torch.equal(newest, result.theta)  # the newest stays the default
+    # checkpoint.every=2: rounds 2, 4, 6 kept besides the rolling newest two
+    names = sorted(p.name for p in (out_dir / "checkpoints").glob("round-*"))
+    assert names == ["round-000005.safetensors", "round-000006.safetensors"]
+    kept = sorted(p.name for p in (out_dir / "checkpoints" / KEPT_DIR).iterdir())
+    assert kept == [f"round-00000{r}.safetensors" for r in (2, 4, 6)]
+    assert load_checkpoint(out_dir / "checkpoints" / KEPT_DIR / kept[0]).round == 2
+
+
+def test_without_keep_best_there_is_no_best_to_load(tmp_path: Path) -> None:
+    out_dir = tmp_path / "run"
+    api.run(overrides=[*SHORT, "rounds=1"], out_dir=out_dir)
+    assert sorted(p.name for p in (out_dir / "checkpoints").iterdir()) == [
+        "round-000001.safetensors"
+    ]
+    assert "best" not in _summary(out_dir)
+    with pytest.raises(RunDirectoryError, match=r"checkpoint\.keep_best=true"):
+        api.load_policy(out_dir, best=True)
