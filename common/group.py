@@ -29,7 +29,6 @@ from fedhpg.envs.base import EnvVariant
 
 if TYPE_CHECKING:
     from fedhpg.common.engine.memory import RoundPlan
-    from fedhpg.common.engine.round import RowWork
 
 logger = logging.getLogger(__name__)
 
@@ -157,29 +156,13 @@ class EngineGroup:
         plan = self.plan(order, budgets)
         if len(plan.chunks) > 1:
             logger.debug("round %d: %s", round_index, plan.describe())
-        works: list[IterationColumns] = []
-        offset = 0
-
-        def hook(work: RowWork) -> None:
-            works.append(
-                IterationColumns(
-                    positions=work.rows + offset,
-                    compute_s=work.compute_s,
-                    env_steps=work.env_steps,
-                    grad_steps=work.grad_steps,
-                )
-            )
-            if interrupt is not None:
-                interrupt()
-
         engine = self.engine
         honest: list[torch.Tensor] = []
         tallies: list[Tally] = []
         for chunk in plan.chunks:
-            offset = chunk.start
             with engine_settings(engine.device):
                 rows = engine.begin(
-                    round_index, theta, order[chunk.start : chunk.stop], budgets, hook
+                    round_index, theta, order[chunk.start : chunk.stop], budgets, interrupt
                 )
                 update = self.algorithm.local_update(rows, self.run.algo, self.params)
                 honest.append(update.detach().cpu())
@@ -216,7 +199,16 @@ class EngineGroup:
             thetas=sent.detach().numpy().astype(np.float32, copy=False),
             stats=stats,
         )
-        return TrainedRound(result=result, iterations=works)
+        iterations = [
+            IterationColumns(
+                positions=work.rows,
+                compute_s=work.compute_s,
+                env_steps=work.env_steps,
+                grad_steps=work.grad_steps,
+            )
+            for work in tally.work
+        ]
+        return TrainedRound(result=result, iterations=iterations)
 
     def evaluate(
         self, round_index: int, theta: torch.Tensor, episodes: int, agents: Sequence[int]

@@ -21,7 +21,7 @@ from fedhpg.common.engine.devices import check_device, deterministic_off_cpu
 from fedhpg.common.engine.estimate import EstimatorOptions
 from fedhpg.common.engine.memory import RoundPlan, StepBytes, memory_budget, plan_round
 from fedhpg.common.engine.policy_rows import PolicyRows
-from fedhpg.common.engine.round import Round, RowConstants, WorkHook
+from fedhpg.common.engine.round import Interrupt, Round, RowConstants
 from fedhpg.common.engine.torch_backend import TorchBackend
 from fedhpg.common.randomness import Purpose
 from fedhpg.common.types import EvaluationStats
@@ -131,7 +131,7 @@ class Engine:
         theta: torch.Tensor,
         agents: Sequence[int],
         budgets: Mapping[int, Mapping[str, int]] | None = None,
-        hook: WorkHook | None = None,
+        interrupt: Interrupt | None = None,
     ) -> Round:
         """The round of ``agents`` from θ̃ (their budgets planned or their own)."""
         chosen = self.round_budgets(agents, budgets)
@@ -152,7 +152,7 @@ class Engine:
             theta=theta.detach().to(self.device, torch.float32).expand(len(agents), -1).clone(),
             budgets={name: values.clone() for name, values in budget_rows.items()},
             constants=constants,
-            hook=hook,
+            interrupt=interrupt,
         )
 
     def plan(

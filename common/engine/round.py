@@ -10,8 +10,12 @@ with:
 - :meth:`Round.coefficients`: the run's estimator (``common/engine/estimate.py``) for them;
 - :meth:`Round.gradients`, :meth:`Round.log_probs`, :meth:`Round.trajectory_gradients`: the
   policy's score-function maths per row;
-- :meth:`Round.finished`: the bookkeeping of an iteration (statistics, the device emulation's
-  hook, cancellation), and :meth:`Round.report` for the algorithm's own statistics.
+- :meth:`Round.finished`: the bookkeeping of an iteration (its statistics, kept where the rows
+  are; cancellation), and :meth:`Round.report` for the algorithm's own statistics.
+
+What the round did comes to the host once, when the round's :attr:`Round.tally` is first read
+after its loop: every iteration's per-row numbers in one copy (nothing waits on a device
+inside the loop).
 
 The primitives are the backend's (:class:`~fedhpg.common.engine.backend.Backend`), chosen once
 per group; the round adds the keys and the tally. Rows are placement-free: what a row computes
@@ -105,8 +109,8 @@ class Tally:
         )
 
 
-WorkHook = Callable[[RowWork], None]
-"""Called after each iteration with what it cost each row (it may raise: cancellation)."""
+Interrupt = Callable[[], None]
+"""Called after each iteration; it may raise to cancel the round."""
 
 
 @dataclass(frozen=True)
@@ -118,13 +122,6 @@ class RowConstants:
     gamma: torch.Tensor
     """float64."""
     horizon: torch.Tensor
-
-
-def _on_host(columns: list[torch.Tensor]) -> list[np.ndarray]:
-    """The [A] ``columns`` as host arrays: views on the CPU, one copy from a device."""
-    if columns[0].device.type == "cpu":
-        return [column.numpy() for column in columns]
-    return list(torch.stack([c.to(torch.float64) for c in columns]).cpu().numpy())
 
 
 class Round:
@@ -142,7 +139,7 @@ class Round:
         theta: torch.Tensor,
         budgets: dict[str, torch.Tensor],
         constants: RowConstants,
-        hook: WorkHook | None = None,
+        interrupt: Interrupt | None = None,
     ) -> None:
         self.backend = backend
         self.options = options
@@ -155,8 +152,13 @@ class Round:
         self.budgets = budgets
         """Each budget field as [A] int64 (the configured budget, or the round's plan)."""
         self.constants = constants
-        self.tally = Tally.zeros(len(self.agents))
-        self._hook = hook
+        self._tally = Tally.zeros(len(self.agents))
+        self._interrupt = interrupt
+        self._pending: list[torch.Tensor] = []
+        """Each finished iteration's per-row numbers, [5, A] float64 where the rows are."""
+        self._times: list[tuple[float, float]] = []
+        """Each finished iteration's CPU seconds, and those of them spent sampling."""
+        self._reported: dict[str, torch.Tensor] = {}
         self._clock = time.thread_time()
         self._sampling_s = 0.0
         """Thread CPU seconds spent sampling since the last :meth:`finished`."""
@@ -248,29 +250,54 @@ class Round:
         clipped: torch.Tensor | None = None,
         grad_steps: torch.Tensor | None = None,
     ) -> None:
-        """An iteration is done for the rows that sampled ``batch``: their totals, and the
-        work each row did (its share of the iteration's CPU time, by env steps) to the hook.
-        The rows' numbers come to the host in one copy."""
+        """An iteration is done for the rows that sampled ``batch``: its per-row numbers are
+        kept where the rows are (the :attr:`tally` takes them to the host once), its CPU time
+        noted; then the round may be cancelled."""
         now = time.thread_time()
         elapsed, self._clock = now - self._clock, now
         sampled, self._sampling_s = min(self._sampling_s, elapsed), 0.0
-        steps_per_row = batch.steps_per_row()
-        columns = [batch.counts, steps_per_row, batch.returns_per_row()]
-        columns.append(steps_per_row if grad_steps is None else grad_steps)
-        if clipped is not None:
-            columns.append(clipped)
-        host = _on_host(columns)
-        counts, steps, grads = (host[i].astype(np.int64) for i in (0, 1, 3))
-        tally = self.tally
+        steps = batch.steps_per_row()
+        columns = [
+            batch.counts,
+            steps,
+            batch.returns_per_row(),
+            steps if grad_steps is None else grad_steps,
+            torch.zeros_like(steps) if clipped is None else clipped,
+        ]
+        self._pending.append(torch.stack([c.to(torch.float64) for c in columns]))
+        self._times.append((elapsed, sampled))
+        if self._interrupt is not None:
+            self._interrupt()
+        self._clock = time.thread_time()
+
+    @property
+    def tally(self) -> Tally:
+        """What the round did so far: the finished iterations' numbers brought to the host in
+        one copy, added to the totals in the order they ran, and each one's work per row
+        (its share of the iteration's CPU time, by env steps)."""
+        if self._pending:
+            host = torch.stack(self._pending).cpu().numpy()  # [iterations, 5, A]
+            self._pending = []
+            for (elapsed, sampled), numbers in zip(self._times, host, strict=True):
+                self._add(numbers, elapsed, sampled)
+            self._times = []
+        if self._reported:
+            for name, values in self._reported.items():
+                self._tally.algorithm[name] = values.cpu().numpy()
+            self._reported = {}
+        return self._tally
+
+    def _add(self, numbers: np.ndarray, elapsed: float, sampled: float) -> None:
+        counts, steps, grads, clipped = (numbers[i].astype(np.int64) for i in (0, 1, 3, 4))
+        tally = self._tally
         share = steps / max(steps.sum(), 1)
         compute = share * elapsed
         tally.trajectories += counts
         tally.env_steps += steps
-        tally.return_sum += host[2]
+        tally.return_sum += numbers[2]
         tally.compute_s += compute
         tally.sample_s += share * sampled
-        if clipped is not None:
-            tally.clipped += host[4].astype(np.int64)
+        tally.clipped += clipped
         ran = np.flatnonzero(counts)
         if len(ran) == len(counts):  # every row ran: whole arrays, no indexing
             work = RowWork(ran, tally.iterations.copy(), compute, steps, grads)
@@ -278,9 +305,6 @@ class Round:
             work = RowWork(ran, tally.iterations[ran], compute[ran], steps[ran], grads[ran])
         tally.iterations[ran] += 1
         tally.work.append(work)
-        if self._hook is not None:
-            self._hook(work)
-        self._clock = time.thread_time()
 
     @contextmanager
     def untimed(self) -> Iterator[None]:
@@ -292,5 +316,6 @@ class Round:
             self._clock += time.thread_time() - started
 
     def report(self, name: str, values: torch.Tensor) -> None:
-        """An algorithm statistic of every row, [A] (NaN: none for that row)."""
-        self.tally.algorithm[name] = values.detach().double().cpu().numpy()
+        """An algorithm statistic of every row, [A] (NaN: none for that row); it reaches the
+        host with the :attr:`tally`."""
+        self._reported[name] = values.detach().double()
