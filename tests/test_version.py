@@ -20,6 +20,7 @@ SCRIPTS = [
     "fedhpg-keys",
     "fedhpg-cluster",
     "fedhpg-plan",
+    "fedhpg-record",
 ]
 
 
