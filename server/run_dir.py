@@ -12,6 +12,7 @@ from __future__ import annotations
 import contextlib
 import fcntl
 import json
+import logging
 import os
 import shutil
 from collections.abc import Iterator
@@ -19,10 +20,12 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from fedhpg.common.config import ConfigError, RunConfig
+from fedhpg.common.runtime.cli import LOG_FORMAT
 from fedhpg.common.runtime.run_files import (
     CONFIG_NAME,
     METRICS_NAME,
     RUN_FILES,
+    RUN_LOG_NAME,
     RUNS_ROOT,
     holds_run,
     new_run_path,
@@ -30,6 +33,8 @@ from fedhpg.common.runtime.run_files import (
 )
 
 LOCK_NAME = ".lock"
+RUN_LOG_DATE_FORMAT = "%Y-%m-%d %H:%M:%S"
+"""run.log's times: with the date, as a run may span days and resumes."""
 
 
 def written_names() -> frozenset[str]:
@@ -38,7 +43,9 @@ def written_names() -> frozenset[str]:
     from fedhpg.server.metrics import TENSORBOARD_DIR  # both import this module
     from fedhpg.server.sinks import PROGRESS_NAME, WANDB_DIR
 
-    return frozenset({*RUN_FILES, CONFIG_NAME, PROGRESS_NAME, TENSORBOARD_DIR, WANDB_DIR})
+    return frozenset(
+        {*RUN_FILES, CONFIG_NAME, RUN_LOG_NAME, PROGRESS_NAME, TENSORBOARD_DIR, WANDB_DIR}
+    )
 
 
 def new_run_dir(run: RunConfig, *, root: Path = RUNS_ROOT, now: float | None = None) -> Path:
@@ -204,6 +211,33 @@ class RunDirectory:
         return lines[:rounds]
 
 
+@contextlib.contextmanager
+def _run_log(path: Path) -> Iterator[None]:
+    """This process's log lines at INFO and above also go to ``path`` (appended: a resumed run
+    continues its log) while the block runs; what the other handlers show is unchanged."""
+    root = logging.getLogger()
+    handler = logging.FileHandler(path, encoding="utf-8", delay=True)  # made by its first line
+    handler.setLevel(logging.INFO)
+    handler.setFormatter(logging.Formatter(LOG_FORMAT, datefmt=RUN_LOG_DATE_FORMAT))
+    before = root.level
+    raised: list[tuple[logging.Handler, int]] = []
+    if root.getEffectiveLevel() > logging.INFO:  # let INFO through to the file alone
+        for other in root.handlers:
+            if other.level < before:
+                raised.append((other, other.level))
+                other.setLevel(before)
+        root.setLevel(logging.INFO)
+    root.addHandler(handler)
+    try:
+        yield
+    finally:
+        root.removeHandler(handler)
+        handler.close()
+        root.setLevel(before)
+        for other, level in raised:
+            other.setLevel(level)
+
+
 def _check_creatable(path: Path, key: str) -> None:
     """ConfigError unless ``path`` (absent) can be made: its nearest existing ancestor is a
     directory that takes a new directory. The probe is an empty directory made there and
@@ -228,16 +262,24 @@ def _check_creatable(path: Path, key: str) -> None:
 
 @contextlib.contextmanager
 def claimed(path: Path, *, resume: bool, key: str = "server.out_dir") -> Iterator[RunDirectory]:
-    """:meth:`RunDirectory.claim` for a block: released at its end, and a disk or descriptor
-    failure inside it becomes one RunDirectoryError line. A block that fails (not one that is
+    """:meth:`RunDirectory.claim` for a block: released at its end, this process's log lines
+    appended to its ``run.log`` meanwhile, and a disk or descriptor failure inside it becomes
+    one RunDirectoryError line. A block that fails (not one that is
     interrupted: that run can be resumed) before a round was recorded leaves nothing of its
     own behind (:meth:`RunDirectory.discard`)."""
     run_dir = RunDirectory.claim(path, resume=resume, key=key)
     try:
-        yield run_dir
+        with _run_log(run_dir.path / RUN_LOG_NAME):
+            yield run_dir
     except OSError as error:
         run_dir.discard()
         raise RunDirectoryError(f"cannot write {path}: {error.strerror or error}") from None
+    except ConfigError:  # a refused resume of a run with rounds: nothing of the refusal stays
+        if RUN_LOG_NAME not in run_dir.found:
+            with contextlib.suppress(OSError):
+                (run_dir.path / RUN_LOG_NAME).unlink(missing_ok=True)
+        run_dir.discard()
+        raise
     except Exception:
         run_dir.discard()
         raise

@@ -5,6 +5,7 @@ round's checkpoint (``checkpoint.every``)."""
 from __future__ import annotations
 
 import json
+import logging
 import os
 import subprocess
 from pathlib import Path
@@ -14,7 +15,7 @@ import torch
 
 from fedhpg.server import api
 from fedhpg.server.checkpoint import BEST_NAME, KEPT_DIR, load_checkpoint
-from fedhpg.server.run_dir import RunDirectoryError
+from fedhpg.server.run_dir import RunDirectoryError, claimed
 from tests.procs import BIN, QUIET
 
 SHORT = ["rounds=6", "eval.every=2", "eval.episodes=2", "agents.virtual_clock=true"]
@@ -121,3 +122,24 @@ def test_without_keep_best_there_is_no_best_to_load(tmp_path: Path) -> None:
     assert "best" not in _summary(out_dir)
     with pytest.raises(RunDirectoryError, match=r"checkpoint\.keep_best=true"):
         api.load_policy(out_dir, best=True)
+
+
+def test_the_servers_log_lines_go_to_run_log_beside_metrics(tmp_path: Path) -> None:
+    out_dir = tmp_path / "run"
+    api.run(overrides=[*SHORT, REACHED], out_dir=out_dir)
+    log = (out_dir / "run.log").read_text(encoding="utf-8")
+    assert "INFO fedhpg.server.coordinator: round 2: mean evaluation return" in log
+    api.run(overrides=[*SHORT, "resume=true"], out_dir=out_dir)
+    resumed = (out_dir / "run.log").read_text(encoding="utf-8")
+    assert resumed.startswith(log) and "resuming" in resumed[len(log) :]  # appended
+
+
+def test_a_start_that_fails_before_its_first_round_leaves_no_run_log(tmp_path: Path) -> None:
+    out_dir = tmp_path / "run"
+    with pytest.raises(RuntimeError), claimed(out_dir, resume=False):
+        logging.getLogger("fedhpg.server").info("starting")
+        assert "starting" in (out_dir / "run.log").read_text(encoding="utf-8")
+        raise RuntimeError("a start that fails")
+    assert not out_dir.exists()
+    files = [getattr(h, "baseFilename", "") for h in logging.getLogger().handlers]
+    assert not [name for name in files if name.endswith("run.log")]  # the handler is gone
