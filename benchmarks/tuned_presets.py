@@ -228,9 +228,7 @@ def run_curve(task: Task, label: str, seed: int, budget: int, stop: bool = True)
         nonlocal steps
         steps += sum(record.result.stats.env_steps)
         curve.train_trajectories.append(record.trajectories_per_agent)
-        curve.train_returns.append(
-            statistics.mean(record.result.stats.train_return)
-        )
+        curve.train_returns.append(statistics.mean(record.result.stats.train_return))
         if record.eval:
             curve.trajectories.append(record.trajectories_per_agent)
             curve.returns.append(statistics.mean(e.return_mean for e in record.eval.values()))

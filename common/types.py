@@ -207,9 +207,7 @@ class RoundResult:
         return dataclasses.replace(self, thetas=rows)
 
     @staticmethod
-    def of_stats(
-        round_index: int, stats: dict[int, UpdateStats], theta: np.ndarray
-    ) -> RoundResult:
+    def of_stats(round_index: int, stats: dict[int, UpdateStats], theta: np.ndarray) -> RoundResult:
         """The statistics of agents ``stats`` (by index) with θ̃ in every row
         (:meth:`without_thetas`)."""
         agents = sorted(stats)

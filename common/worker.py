@@ -37,4 +37,3 @@ def policy_and_spaces(variant: EnvVariant, run: RunConfig) -> tuple[Policy, gym.
 def initial_theta(variant: EnvVariant, run: RunConfig) -> torch.Tensor:
     """θ̃_0, the server's starting point: deterministic in the run seed."""
     return get_flat_params(build_policy(variant, run))
-

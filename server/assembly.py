@@ -40,6 +40,7 @@ from fedhpg.common.config import (
     fixed_difference,
     to_dict,
 )
+from fedhpg.common.runtime.run_files import PROGRESS_NAME
 from fedhpg.common.types import EvaluationStats
 from fedhpg.common.variants import discount, run_variants, variant_of
 from fedhpg.common.worker import initial_theta
@@ -67,7 +68,7 @@ from fedhpg.server.pools import AgentPool
 from fedhpg.server.pools.inprocess import make_in_process_pool
 from fedhpg.server.privacy import PrivateRounds
 from fedhpg.server.run_dir import RunDirectory, RunDirectoryError
-from fedhpg.server.sinks import PROGRESS_NAME, ProgressCsv, wandb_sink
+from fedhpg.server.sinks import ProgressCsv, wandb_sink
 from fedhpg.server.strategies import Strategy, validate_strategy
 
 logger = logging.getLogger(__name__)

@@ -446,9 +446,7 @@ class BufferedCoordinator(Coordinator):
                 emulated_clock_s=self.schedule.clock_s,
                 staleness=[version - 1 - i.version for i in ordered],
                 stale=stale,
-                bound=round_bound(self.run, aggregated)
-                if self.run.algo.bound_estimates
-                else None,
+                bound=round_bound(self.run, aggregated) if self.run.algo.bound_estimates else None,
                 strategy=self.strategy.round_stats(),
             )
             for callback in self.on_round:

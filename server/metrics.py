@@ -18,6 +18,7 @@ import orjson
 import torch
 
 from fedhpg.common.config import RunConfig, attacking_agents
+from fedhpg.common.runtime.run_files import TENSORBOARD_DIR
 from fedhpg.common.types import ALWAYS_FIELDS, RoundResult
 from fedhpg.server.coordinator import RoundRecord
 from fedhpg.server.run_dir import RunDirectoryError
@@ -74,8 +75,6 @@ def read_metrics(path: Path) -> list[dict[str, Any]]:
 
 
 # --- TensorBoard, CSV, W&B: views of the same records (metrics.jsonl stays the truth) -----
-
-TENSORBOARD_DIR = "tensorboard"
 
 
 NORM_ROWS = 256

@@ -24,9 +24,12 @@ from fedhpg.common.runtime.cli import LOG_FORMAT
 from fedhpg.common.runtime.run_files import (
     CONFIG_NAME,
     METRICS_NAME,
+    PROGRESS_NAME,
     RUN_FILES,
     RUN_LOG_NAME,
     RUNS_ROOT,
+    TENSORBOARD_DIR,
+    WANDB_DIR,
     holds_run,
     new_run_path,
     run_label,
@@ -40,9 +43,6 @@ RUN_LOG_DATE_FORMAT = "%Y-%m-%d %H:%M:%S"
 def written_names() -> frozenset[str]:
     """What a server writes in its run directory (beside ``.lock``): what
     :meth:`RunDirectory.discard` may remove."""
-    from fedhpg.server.metrics import TENSORBOARD_DIR  # both import this module
-    from fedhpg.server.sinks import PROGRESS_NAME, WANDB_DIR
-
     return frozenset(
         {*RUN_FILES, CONFIG_NAME, RUN_LOG_NAME, PROGRESS_NAME, TENSORBOARD_DIR, WANDB_DIR}
     )

@@ -17,14 +17,12 @@ from typing import Any
 import torch
 
 from fedhpg.common.config import RunConfig, flatten, to_dict
+from fedhpg.common.runtime.run_files import WANDB_DIR
 from fedhpg.server.coordinator import RoundRecord
 from fedhpg.server.metrics import RoundValues
 from fedhpg.server.run_dir import RunDirectoryError
 
 logger = logging.getLogger(__name__)
-
-PROGRESS_NAME = "progress.csv"
-WANDB_DIR = "wandb"
 
 
 class ProgressCsv:

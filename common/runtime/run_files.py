@@ -11,6 +11,9 @@ CONFIG_NAME = "config.json"
 """The resolved config a run ran with, what ``resume=`` starts from."""
 RUN_LOG_NAME = "run.log"
 """The server's log lines (INFO and above) of every start of the run, appended."""
+PROGRESS_NAME = "progress.csv"
+TENSORBOARD_DIR = "tensorboard"
+WANDB_DIR = "wandb"
 RUN_FILES = (METRICS_NAME, "summary.json", "checkpoints")
 """What makes a directory hold a run: rounds or results. (A ``config.json`` alone, left by a
 server that could not bind, does not; nor do Hydra's ``.hydra/`` and logs.)"""
