@@ -190,11 +190,9 @@ class AgentWork:
         """The round as columns, every agent's device priced at once (the virtual clock)."""
         assert self._columns is not None
 
-        def interrupt() -> None:
-            if cancel.is_set():
-                raise Cancelled
-
-        trained = group.train(request.round, theta, agents, budgets=planned, interrupt=interrupt)
+        trained = group.train(
+            request.round, theta, agents, budgets=planned, interrupt=_raiser(cancel)
+        )
         result = trained.result
         num_params = result.thetas.shape[1]
         rows = np.asarray(result.agents, dtype=np.int64) - self.indices.start
@@ -218,11 +216,7 @@ class AgentWork:
         device.sleep = lambda seconds: _sleep_unless(cancel, seconds)
         started = time.perf_counter()
 
-        def interrupt() -> None:
-            if cancel.is_set():
-                raise Cancelled
-
-        trained = group.train(request.round, theta, [k], budgets=planned, interrupt=interrupt)
+        trained = group.train(request.round, theta, [k], budgets=planned, interrupt=_raiser(cancel))
         num_params = group.num_params
         # The counted clock charges θ's float32 bytes plus a fixed header for the request and
         # for the answer (not the encoded lengths), exactly what the in-process pool charges.
@@ -492,6 +486,16 @@ def _rows_per_message(max_bytes: int, num_params: int, row_bytes: int) -> int:
 
     room = batch_message_cap(max_bytes, num_params) - MAX_HEADER_BYTES - 4096
     return max(1, min(MAX_BATCH_ANSWERS, room // max(row_bytes, 1)))
+
+
+def _raiser(cancel: threading.Event) -> Callable[[], None]:
+    """Called between local iterations: raises :class:`Cancelled` once ``cancel`` is set."""
+
+    def interrupt() -> None:
+        if cancel.is_set():
+            raise Cancelled
+
+    return interrupt
 
 
 def _sleep_unless(cancel: threading.Event, seconds: float) -> None:

@@ -123,22 +123,7 @@ class Columns(Sequence[R], Generic[R]):
     @classmethod
     def concatenated(cls, parts: Sequence[Self]) -> Self:
         """The rows of ``parts`` one after another (a map column None where a part has none)."""
-        columns: dict[str, Any] = {
-            name: [value for part in parts for value in getattr(part, name)]
-            for name in cls.scalar_fields
-        }
-        for name in cls.map_fields:
-            maps = [getattr(part, name) for part in parts]
-            keys = dict.fromkeys(key for own in maps for key in own)
-            columns[name] = {
-                key: [
-                    value
-                    for part, own in zip(parts, maps, strict=True)
-                    for value in own.get(key, [None] * len(part))
-                ]
-                for key in keys
-            }
-        return cls(**columns)
+        return cls.gathered([(part, j) for part in parts for j in range(len(part))])
 
     def __len__(self) -> int:
         if self.scalar_fields:
