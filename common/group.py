@@ -22,7 +22,7 @@ import numpy as np
 import torch
 
 from fedhpg.common.config import RunConfig
-from fedhpg.common.round_columns import IterationColumns, TrainedRound
+from fedhpg.common.round_columns import TrainedRound
 from fedhpg.common.types import EvaluationStats, RoundResult, UpdateColumns
 from fedhpg.common.variants import variants_of
 from fedhpg.envs.base import EnvVariant
@@ -199,16 +199,7 @@ class EngineGroup:
             thetas=sent.detach().numpy().astype(np.float32, copy=False),
             stats=stats,
         )
-        iterations = [
-            IterationColumns(
-                positions=work.rows,
-                compute_s=work.compute_s,
-                env_steps=work.env_steps,
-                grad_steps=work.grad_steps,
-            )
-            for work in tally.work
-        ]
-        return TrainedRound(result=result, iterations=iterations)
+        return TrainedRound(result=result, iterations=tally.work)
 
     def evaluate(
         self, round_index: int, theta: torch.Tensor, episodes: int, agents: Sequence[int]

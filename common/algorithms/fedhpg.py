@@ -52,13 +52,15 @@ class FedHPG(Algorithm[NoParams, FedHPGBudget]):
         local_iters, batch_size = rows.budget("local_iters"), rows.budget("batch_size")
         bounds = row_bound_statistics(rows.size) if algo.bound_estimates else None
         for iteration in range(int(local_iters.max())):
-            active = local_iters > iteration
-            batch = rows.sample(theta, torch.where(active, batch_size, 0), iteration=iteration)
+            active = local_iters > iteration  # the budgets are host rows: no device wait
+            every = bool(active.all())
+            counts = batch_size if every else torch.where(active, batch_size, 0)
+            batch = rows.sample(theta, counts, iteration=iteration)
             gradient = rows.mean_gradients(theta, batch)
             if bounds is not None and iteration < 2:  # at θ̃, and the secant for L
                 bounds.measure(rows, theta, batch, gradient, first=iteration == 0)
             gradient, clipped = clip_rows(gradient, algo.grad_clip)
-            theta += ascent.direction(gradient, active.to(theta.device))
+            theta += ascent.direction(gradient, None if every else active.to(theta.device))
             rows.finished(batch, clipped=clipped)
             del batch  # its memory goes back to the sampler (one batch held at a time)
         if bounds is not None:

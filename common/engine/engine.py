@@ -9,7 +9,7 @@ with, on the group's backend (:class:`~fedhpg.common.engine.backend.Backend`: to
 from __future__ import annotations
 
 from collections.abc import Iterator, Mapping, Sequence
-from contextlib import contextmanager
+from contextlib import AbstractContextManager, contextmanager, nullcontext
 from typing import Any
 
 import torch
@@ -46,12 +46,18 @@ def one_thread() -> Iterator[None]:
         torch.set_num_threads(threads)
 
 
-@contextmanager
-def engine_settings(device: torch.device) -> Iterator[None]:
+def engine_settings(device: torch.device) -> AbstractContextManager[None]:
     """What every use of the engine runs under: one CPU thread (:func:`one_thread`) and, off
     the CPU, torch's deterministic algorithms (:func:`deterministic_off_cpu`), so that an
     agent's floats depend neither on the process nor on its company; the caller's settings
-    come back after."""
+    come back after. An agent process already runs so on the CPU: nothing to change."""
+    if device.type == "cpu" and torch.get_num_threads() == 1:
+        return nullcontext()
+    return _settings(device)
+
+
+@contextmanager
+def _settings(device: torch.device) -> Iterator[None]:
     with one_thread(), deterministic_off_cpu(device):
         yield
 

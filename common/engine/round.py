@@ -37,22 +37,7 @@ from fedhpg.common.engine.backend import Backend
 from fedhpg.common.engine.estimate import EstimatorOptions
 from fedhpg.common.engine.trajectories import Trajectories
 from fedhpg.common.randomness import Purpose
-
-
-@dataclass
-class RowWork:
-    """What one iteration cost each row: what the device emulation prices (host arrays)."""
-
-    rows: np.ndarray
-    """int64 positions of the rows that ran it."""
-    iterations: np.ndarray
-    """int64: each one's iteration number (its own count of iterations this round)."""
-    compute_s: np.ndarray
-    """float64."""
-    env_steps: np.ndarray
-    """int64."""
-    grad_steps: np.ndarray
-    """int64."""
+from fedhpg.common.round_columns import IterationColumns
 
 
 @dataclass
@@ -65,19 +50,18 @@ class Tally:
     return_sum: np.ndarray
     compute_s: np.ndarray
     clipped: np.ndarray
-    iterations: np.ndarray
     sample_s: np.ndarray
     """Each row's share of the CPU time spent sampling (the rest of ``compute_s`` went to
     its gradients and steps)."""
     algorithm: dict[str, np.ndarray] = field(default_factory=dict)
     """Per-row algorithm statistics (float64); NaN where a row has none."""
-    work: list[RowWork] = field(default_factory=list)
+    work: list[IterationColumns] = field(default_factory=list)
 
     @classmethod
     def zeros(cls, rows: int) -> Tally:
-        trajectories, env_steps, clipped, iterations = np.zeros((4, rows), dtype=np.int64)
+        trajectories, env_steps, clipped = np.zeros((3, rows), dtype=np.int64)
         return_sum, compute_s, sample_s = np.zeros((3, rows), dtype=np.float64)
-        return cls(trajectories, env_steps, return_sum, compute_s, clipped, iterations, sample_s)
+        return cls(trajectories, env_steps, return_sum, compute_s, clipped, sample_s)
 
     @classmethod
     def concatenated(cls, parts: Sequence[Tally]) -> Tally:
@@ -102,7 +86,7 @@ class Tally:
             },
             algorithm={name: np.concatenate([stat(p, name) for p in parts]) for name in names},
             work=[
-                replace(work, rows=work.rows + start)
+                replace(work, positions=work.positions + start)
                 for part, start in zip(parts, starts, strict=True)
                 for work in part.work
             ],
@@ -155,7 +139,10 @@ class Round:
         self._tally = Tally.zeros(len(self.agents))
         self._interrupt = interrupt
         self._pending: list[torch.Tensor] = []
-        """Each finished iteration's per-row numbers, [5, A] float64 where the rows are."""
+        """Each finished iteration's per-row counts where the rows are: [4, A] int64 (its
+        trajectories, env steps, differentiated steps, and whether its gradient was clipped)."""
+        self._pending_returns: list[torch.Tensor] = []
+        """And each one's sum of undiscounted returns per row, [A] float64."""
         self._times: list[tuple[float, float]] = []
         """Each finished iteration's CPU seconds, and those of them spent sampling."""
         self._reported: dict[str, torch.Tensor] = {}
@@ -257,14 +244,11 @@ class Round:
         elapsed, self._clock = now - self._clock, now
         sampled, self._sampling_s = min(self._sampling_s, elapsed), 0.0
         steps = batch.steps_per_row()
-        columns = [
-            batch.counts,
-            steps,
-            batch.returns_per_row(),
-            steps if grad_steps is None else grad_steps,
-            torch.zeros_like(steps) if clipped is None else clipped,
-        ]
-        self._pending.append(torch.stack([c.to(torch.float64) for c in columns]))
+        self._pending.append(torch.stack([
+            batch.counts, steps, steps if grad_steps is None else grad_steps,
+            torch.zeros_like(steps) if clipped is None else clipped.to(steps.dtype),
+        ]))  # fmt: skip
+        self._pending_returns.append(batch.returns_per_row())
         self._times.append((elapsed, sampled))
         if self._interrupt is not None:
             self._interrupt()
@@ -276,35 +260,38 @@ class Round:
         one copy, added to the totals in the order they ran, and each one's work per row
         (its share of the iteration's CPU time, by env steps)."""
         if self._pending:
-            host = torch.stack(self._pending).cpu().numpy()  # [iterations, 5, A]
-            self._pending = []
-            for (elapsed, sampled), numbers in zip(self._times, host, strict=True):
-                self._add(numbers, elapsed, sampled)
-            self._times = []
+            counts = torch.stack(self._pending).cpu().numpy()  # [iterations, 4, A]
+            returns = torch.stack(self._pending_returns).cpu().numpy()  # [iterations, A]
+            self._add(counts, returns, np.asarray(self._times))
+            self._pending, self._pending_returns, self._times = [], [], []
         if self._reported:
             for name, values in self._reported.items():
                 self._tally.algorithm[name] = values.cpu().numpy()
             self._reported = {}
         return self._tally
 
-    def _add(self, numbers: np.ndarray, elapsed: float, sampled: float) -> None:
-        counts, steps, grads, clipped = (numbers[i].astype(np.int64) for i in (0, 1, 3, 4))
+    def _add(self, numbers: np.ndarray, returns: np.ndarray, times: np.ndarray) -> None:
+        """Iterations' per-row counts [I, 4, A] and return sums [I, A] and their (elapsed,
+        sampling) CPU seconds [I, 2] into the totals, iteration after iteration in the order
+        they ran (the float totals' order of additions)."""
+        counts, steps, grads, clipped = numbers.transpose(1, 0, 2)
+        shares = steps / np.maximum(steps.sum(axis=1, keepdims=True), 1)
+        compute, sampled = shares * times[:, :1], shares * times[:, 1:]
         tally = self._tally
-        share = steps / max(steps.sum(), 1)
-        compute = share * elapsed
-        tally.trajectories += counts
-        tally.env_steps += steps
-        tally.return_sum += numbers[2]
-        tally.compute_s += compute
-        tally.sample_s += share * sampled
-        tally.clipped += clipped
-        ran = np.flatnonzero(counts)
-        if len(ran) == len(counts):  # every row ran: whole arrays, no indexing
-            work = RowWork(ran, tally.iterations.copy(), compute, steps, grads)
-        else:
-            work = RowWork(ran, tally.iterations[ran], compute[ran], steps[ran], grads[ran])
-        tally.iterations[ran] += 1
-        tally.work.append(work)
+        everyone = np.arange(counts.shape[1])
+        for i in range(len(numbers)):
+            tally.trajectories += counts[i]
+            tally.env_steps += steps[i]
+            tally.clipped += clipped[i]
+            tally.return_sum += returns[i]
+            tally.compute_s += compute[i]
+            tally.sample_s += sampled[i]
+            if counts[i].all():  # every row ran: whole rows, no indexing
+                work = IterationColumns(everyone, compute[i], steps[i], grads[i])
+            else:
+                at = np.flatnonzero(counts[i])
+                work = IterationColumns(at, compute[i][at], steps[i][at], grads[i][at])
+            tally.work.append(work)
 
     @contextmanager
     def untimed(self) -> Iterator[None]:
