@@ -22,8 +22,8 @@ emulated time is only accounted. The sleeping is owed through the round and paid
 :meth:`DeviceModel.settle` before the answer leaves, not after each iteration: compute that
 follows a sleep can run on cold caches and a clocked-down core, so sleeping between iterations
 would charge a slow device for the emulation's own disturbance. The measured clock moves with
-the machine's load (two equal-work devices of speeds 1 and 0.25 measure 3.7-5.2× apart on two
-busy cores, not 4×); the counted clock does not move.
+the machine's load (on busy cores two equal-work devices of speeds 1 and 0.25 do not measure
+exactly 4× apart); the counted clock does not move.
 """
 
 from __future__ import annotations

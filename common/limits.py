@@ -92,7 +92,7 @@ def bounds_of(hint: Any) -> tuple[Any, tuple[Bound, ...]]:
 @functools.cache
 def _record_bounds(cls: type) -> tuple[tuple[str, tuple[Bound, ...], tuple[Bound, ...]], ...]:
     """(field, its bounds, its map items' bounds) per field of a record class, read once: the
-    server checks every agent's stats every round, and ``get_type_hints`` costs ~0.1 ms."""
+    server checks every agent's stats every round, and ``get_type_hints`` is slow."""
     hints = typing.get_type_hints(cls, include_extras=True)
     layout = []
     for field in dataclasses.fields(cls):

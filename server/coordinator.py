@@ -297,7 +297,7 @@ class Coordinator:
 
     def run_rounds(self) -> torch.Tensor:
         """The rounds from the progress's next on. A round's record (metrics.jsonl, TensorBoard,
-        its checkpoint: ~10 ms at K = 1,000) is written while the next round's agents train,
+        its checkpoint) is written while the next round's agents train,
         not between the rounds, where the agents would wait for it; always before anything
         else of the next round is recorded, and before this returns or raises."""
         started = time.perf_counter() - self.progress.elapsed_s

@@ -20,7 +20,7 @@ def aligned_empty(rows: int, columns: int) -> np.ndarray:
     """An uninitialised float32 [rows, columns] array whose data starts on ALIGNMENT bytes.
 
     numpy, not torch, allocates it: numpy asks the kernel for huge pages for large arrays,
-    and faulting 40 MB in 4 KiB pages costs ~4× the copy into them."""
+    and faulting a large array in 4 KiB pages costs several times the copy into it."""
     nbytes = rows * columns * 4
     raw = np.empty(nbytes + ALIGNMENT, dtype=np.uint8)
     start = -raw.ctypes.data % ALIGNMENT

@@ -112,7 +112,7 @@ def message_cap(run: RunConfig, num_params: int) -> int:
 
 DIGESTS_SHOWN_FROM = 100_000
 """Agents from which the server shows its progress through their digests before it listens
-(about 0.2 ms an agent on a loaded 2-core machine: 20 s at K = 100,000)."""
+(O(K): long enough at that size that a silent server would look hung)."""
 DIGESTS_PER_UPDATE = 10_000
 
 
@@ -125,7 +125,7 @@ def run_digests(run: RunConfig) -> list[str]:
         return [variant_digest(run, variant) for variant in run_variants(run)]
     logger.info(
         "computing the environment digests of %d agents before listening (each agent's "
-        "registration is checked against its own): O(K), ~0.2 ms an agent",
+        "registration is checked against its own): O(K)",
         count,
     )
     progress = Progress(count, "agents' digests")
@@ -351,8 +351,8 @@ def final_report(
     has_goal: bool,
 ) -> str:
     """The final table of ``evaluation`` (agent id → stats; ``agent_ids`` in index order): each
-    row's compute budget and environment variant are made only for the rows shown (~1 ms an
-    agent where a population draws it)."""
+    row's compute budget and environment variant are made only for the rows shown (a
+    population draws them, which is slow for many agents)."""
     index = {agent: k for k, agent in enumerate(agent_ids)}
     algorithm, _ = resolve_algorithm(run)
 

@@ -4,12 +4,13 @@
 :func:`fedhpg.common.engine.estimate.batch_coefficients`, is the definition: REINFORCE and
 GPOMDP, the leave-one-out mean baselines, both rewards-to-go, both standardisations,
 importance weights. On the CPU it costs a few dozen torch calls per batch (and a few per step
-of its longest trajectory), ~0.3-0.7 ms for a lone agent's ~400 steps, paid at every local
-iteration. :func:`packed_coefficients` is the same computation on the compiled sampler's
-packed steps in one compiled call (two with a standardisation, torch's square roots between
-them), a few microseconds; ``tests/test_compiled_estimator.py``
-holds it bit-equal to the torch definition (``np.array_equal`` on float64, for every option,
-any company of rows and any order of the packed steps).
+of its longest trajectory), which a lone agent's round pays at every local iteration and
+which outweighs the sampling of a short batch. :func:`packed_coefficients` is the same
+computation on the compiled sampler's packed steps in one compiled call (two with a
+standardisation, torch's square roots between them), a few microseconds;
+``tests/test_compiled_estimator.py`` holds it bit-equal to the torch definition
+(``np.array_equal`` on float64, for every option, any company of rows and any order of the
+packed steps).
 
 How the bits are kept. Each row (an agent's trajectories) is laid out as the torch oracle's
 grouped staircase (:meth:`~fedhpg.common.staircase.Staircase.of_groups`) lays it out: every
