@@ -1,0 +1,231 @@
+"""The one shape of a benchmark's result: what ``python -m benchmarks.render`` turns into a
+section of BENCHMARKS.md.
+
+A result file is ``benchmarks/results/tables/<name>.json``, one per benchmark section::
+
+    {
+      "title": "Defaults at K = 1,000",          # the section's heading
+      "order": 10,                               # where the section goes (ascending)
+      "command": "python -m benchmarks.defaults",# what a user runs to measure it again
+      "date": "2026-12-04",                      # when it was measured
+      "commit": "f37e761",                       # the commit it was measured at
+      "machine": "Intel Xeon, 2 cores",          # CPU model and cores; the GPU where one
+      "measures": ["server", "agent"],           # the paths whose change makes it stale
+      "setup": "What was run, in prose.",        # optional: how to read the tables
+      "data": ["benchmarks/results/defaults.json"],  # optional: the raw data beside it
+      "tables": [{
+        "title": "optional heading of one table",
+        "command": "optional: this table's own command",
+        "columns": ["K", "seconds"],
+        "rows": [["1,000", "16.5"]],
+        "summary": "One or two sentences a user reads the table by.",
+        "figure": {"path": "docs/figures/x.png", "caption": "...", "ref": "x"}  # optional
+      }]
+    }
+
+Every table of a file was measured with the same date, commit and machine: results from two
+machines are two files, so no table mixes them. A figure with a ``ref`` is drawn as a
+reference-style image (``![caption][ref]``) whose reference the docs site's page defines again
+relative to docs/; without one the figure's path is named.
+
+The raw data a benchmark keeps (curves, per-seed runs, what its tests and figures read) stays
+in ``benchmarks/results/<name>.json`` in the shape its readers expect; ``data`` names it.
+A benchmark script calls :func:`write` with its tables; :func:`write` stamps the date, the
+commit (``git rev-parse --short HEAD``) and the machine, unless they are given (a result
+transcribed from an earlier run keeps the ones it was measured with).
+"""
+
+from __future__ import annotations
+
+import datetime
+import json
+import os
+import platform
+import shutil
+import subprocess
+from pathlib import Path
+from typing import Any, NotRequired, TypedDict
+
+ROOT = Path(__file__).resolve().parents[1]
+TABLES = ROOT / "benchmarks" / "results" / "tables"
+
+
+class Figure(TypedDict):
+    path: str
+    caption: str
+    ref: NotRequired[str]
+
+
+class Table(TypedDict):
+    columns: list[str]
+    rows: list[list[str]]
+    summary: str
+    title: NotRequired[str]
+    command: NotRequired[str]
+    figure: NotRequired[Figure]
+
+
+class Result(TypedDict):
+    title: str
+    order: int
+    command: str
+    date: str
+    commit: str
+    machine: str
+    measures: list[str]
+    tables: list[Table]
+    setup: NotRequired[str]
+    data: NotRequired[list[str]]
+
+
+class ResultError(ValueError):
+    """A result file that does not have the shape above; the message is one line."""
+
+
+_REQUIRED: dict[str, type] = {
+    "title": str,
+    "order": int,
+    "command": str,
+    "date": str,
+    "commit": str,
+    "machine": str,
+    "measures": list,
+    "tables": list,
+}
+_OPTIONAL: dict[str, type] = {"setup": str, "data": list}
+_TABLE_REQUIRED: dict[str, type] = {"columns": list, "rows": list, "summary": str}
+_TABLE_OPTIONAL: dict[str, type] = {"title": str, "command": str, "figure": dict}
+
+
+def commit(root: Path = ROOT) -> str:
+    """The short hash of the checked-out commit."""
+    return subprocess.run(
+        ["git", "rev-parse", "--short", "HEAD"],
+        cwd=root,
+        capture_output=True,
+        text=True,
+        check=True,
+    ).stdout.strip()
+
+
+def _cpu_model() -> str:
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                return line.split(":", 1)[1].strip()
+    except OSError:
+        pass
+    return platform.processor() or platform.machine()
+
+
+def _gpus() -> list[str]:
+    if shutil.which("nvidia-smi") is None:
+        return []
+    listed = subprocess.run(
+        ["nvidia-smi", "--query-gpu=name,memory.total", "--format=csv,noheader"],
+        capture_output=True,
+        text=True,
+        check=False,
+    )
+    return [line.strip() for line in listed.stdout.splitlines() if line.strip()]
+
+
+def machine() -> str:
+    """This machine in words: the CPU model and cores, and each GPU with its memory."""
+    described = f"{_cpu_model()}, {os.cpu_count()} cores"
+    gpus = _gpus()
+    return described + (f"; {', '.join(gpus)}" if gpus else ", no GPU")
+
+
+def _check_fields(
+    where: str, found: dict[str, Any], required: dict[str, type], optional: dict[str, type]
+) -> None:
+    for key, kind in required.items():
+        if key not in found:
+            raise ResultError(f"{where}: no {key!r}")
+        if not isinstance(found[key], kind) or isinstance(found[key], bool):
+            raise ResultError(f"{where}: {key!r} is not a {kind.__name__}")
+    for key, kind in optional.items():
+        if key in found and not isinstance(found[key], kind):
+            raise ResultError(f"{where}: {key!r} is not a {kind.__name__}")
+    unknown = sorted(set(found) - set(required) - set(optional))
+    if unknown:
+        raise ResultError(f"{where}: unknown key {unknown[0]!r}")
+
+
+def validate(found: object, where: str) -> Result:
+    """``found`` as a :class:`Result`, or :class:`ResultError` naming the first fault."""
+    if not isinstance(found, dict):
+        raise ResultError(f"{where}: not a JSON object")
+    _check_fields(where, found, _REQUIRED, _OPTIONAL)
+    if not found["measures"] or not all(isinstance(p, str) and p for p in found["measures"]):
+        raise ResultError(f"{where}: 'measures' must list the measured paths")
+    if not found["tables"]:
+        raise ResultError(f"{where}: no tables")
+    for number, table in enumerate(found["tables"], 1):
+        place = f"{where}: table {number}"
+        if not isinstance(table, dict):
+            raise ResultError(f"{place}: not a JSON object")
+        _check_fields(place, table, _TABLE_REQUIRED, _TABLE_OPTIONAL)
+        width = len(table["columns"])
+        for row_number, row in enumerate(table["rows"], 1):
+            if not isinstance(row, list) or len(row) != width:
+                raise ResultError(f"{place}: row {row_number} does not have {width} cells")
+            if not all(isinstance(cell, str) for cell in row):
+                raise ResultError(f"{place}: row {row_number} has a cell that is not text")
+        if "figure" in table:
+            figure = table["figure"]
+            if not isinstance(figure.get("path"), str) or not isinstance(
+                figure.get("caption"), str
+            ):
+                raise ResultError(f"{place}: a figure needs a 'path' and a 'caption'")
+    return found  # type: ignore[return-value]
+
+
+def load(path: Path) -> Result:
+    """The result in ``path``; :class:`ResultError` with one line if it cannot be read."""
+    try:
+        found = json.loads(path.read_text())
+    except OSError as error:
+        raise ResultError(f"{path}: {error.strerror}") from None
+    except json.JSONDecodeError as error:
+        raise ResultError(f"{path}: not JSON ({error.msg}, line {error.lineno})") from None
+    return validate(found, str(path))
+
+
+def write(
+    name: str,
+    *,
+    title: str,
+    order: int,
+    command: str,
+    measures: list[str],
+    tables: list[Table],
+    setup: str | None = None,
+    data: list[str] | None = None,
+    date: str | None = None,
+    commit_hash: str | None = None,
+    machine_name: str | None = None,
+    folder: Path = TABLES,
+) -> Path:
+    """Write ``<folder>/<name>.json``, stamped with today's date, this commit and this machine
+    unless they are given, and checked against the shape above before anything is written."""
+    result: dict[str, Any] = {
+        "title": title,
+        "order": order,
+        "command": command,
+        "date": date or datetime.datetime.now(datetime.UTC).strftime("%Y-%m-%d"),
+        "commit": commit_hash or commit(),
+        "machine": machine_name or machine(),
+        "measures": measures,
+    }
+    if setup is not None:
+        result["setup"] = setup
+    if data is not None:
+        result["data"] = data
+    result["tables"] = tables
+    path = folder / f"{name}.json"
+    validate(result, str(path))
+    folder.mkdir(parents=True, exist_ok=True)
+    path.write_text(json.dumps(result, indent=2, ensure_ascii=False) + "\n")
+    return path
