@@ -40,7 +40,6 @@ from __future__ import annotations
 import datetime
 import json
 import os
-import platform
 import shutil
 import subprocess
 from pathlib import Path
@@ -98,24 +97,36 @@ _TABLE_OPTIONAL: dict[str, type] = {"title": str, "command": str, "figure": dict
 
 
 def commit(root: Path = ROOT) -> str:
-    """The short hash of the checked-out commit."""
-    return subprocess.run(
-        ["git", "rev-parse", "--short", "HEAD"],
-        cwd=root,
-        capture_output=True,
-        text=True,
-        check=True,
-    ).stdout.strip()
-
-
-def _cpu_model() -> str:
+    """The short hash of the checked-out commit, ``unknown`` outside a git checkout (the
+    renderer then refuses the result in one line)."""
     try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                return line.split(":", 1)[1].strip()
+        return subprocess.run(
+            ["git", "rev-parse", "--short", "HEAD"],
+            cwd=root,
+            capture_output=True,
+            text=True,
+            check=True,
+        ).stdout.strip()
+    except (OSError, subprocess.CalledProcessError):
+        return "unknown"
+
+
+def cpu_description(cpuinfo: Path = Path("/proc/cpuinfo")) -> str:
+    """The CPU the figures were measured on, e.g. ``AMD EPYC, 2 cores, AVX2``: ratios against
+    a numpy or torch reference depend on it, since stacked matmuls and compiled kernels gain
+    unequally from wider vectors (AVX-512 against AVX2)."""
+    model, flags = "unknown CPU", set[str]()
+    try:
+        for line in cpuinfo.read_text(encoding="utf-8", errors="replace").splitlines():
+            key, _, value = line.partition(":")
+            if key.strip() == "model name" and model == "unknown CPU":
+                model = value.strip()
+            elif key.strip() == "flags" and not flags:
+                flags = set(value.split())
     except OSError:
         pass
-    return platform.processor() or platform.machine()
+    vectors = "AVX-512" if "avx512f" in flags else "AVX2" if "avx2" in flags else "no AVX2"
+    return f"{model}, {os.cpu_count() or 1} cores, {vectors}"
 
 
 def _gpus() -> list[str]:
@@ -131,10 +142,33 @@ def _gpus() -> list[str]:
 
 
 def machine() -> str:
-    """This machine in words: the CPU model and cores, and each GPU with its memory."""
-    described = f"{_cpu_model()}, {os.cpu_count()} cores"
+    """This machine in words: the CPU (:func:`cpu_description`) and each GPU with its memory."""
     gpus = _gpus()
-    return described + (f"; {', '.join(gpus)}" if gpus else ", no GPU")
+    return cpu_description() + (f"; {', '.join(gpus)}" if gpus else ", no GPU")
+
+
+def table_from_markdown(markdown: str, summary: str, **extra: Any) -> Table:
+    """A :class:`Table` from the first markdown table in ``markdown`` (what a benchmark prints),
+    with ``summary`` and any of the optional keys (``title``, ``command``, ``figure``)."""
+    lines: list[str] = []
+    for line in markdown.splitlines():
+        if line.strip().startswith("|"):
+            lines.append(line.strip())
+        elif lines:
+            break
+    if len(lines) < 2:
+        raise ResultError("no markdown table to store")
+
+    def cells(line: str) -> list[str]:
+        return [cell.strip() for cell in line.strip("|").split(" | ")]
+
+    table: dict[str, Any] = {
+        "columns": cells(lines[0]),
+        "rows": [cells(line) for line in lines[2:]],
+    }
+    table["summary"] = summary
+    table.update(extra)
+    return table  # type: ignore[return-value]
 
 
 def _check_fields(
