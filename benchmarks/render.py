@@ -18,7 +18,8 @@ in the same commit: edit the code, run ``python -m benchmarks.render``, commit b
 again.
 
 A result file that does not have the shape is one line and exit 2; so is a result whose commit
-is not in this repository's history (a shallow clone: fetch the history first).
+is not in this repository's history (a shallow clone: fetch the history first), and one that
+measures a path the repository does not have (moved code: update its ``measures``).
 """
 
 from __future__ import annotations
@@ -78,6 +79,10 @@ def is_stale(root: Path, commit: str, measures: list[str]) -> bool:
         raise RenderError(
             f"commit {commit} is not in the history of {root} (a shallow clone? fetch it)"
         )
+    tracked = _git(root, "ls-tree", "-r", "--name-only", "HEAD", "--", *measures).stdout.split()
+    for path in measures:
+        if not any(name == path or name.startswith(path.rstrip("/") + "/") for name in tracked):
+            raise RenderError(f"{path}, a measured path, is not in the repository at HEAD")
     later = _git(root, "log", "--format=%h", "-1", f"{commit}..HEAD", "--", *measures)
     if later.returncode != 0:
         raise RenderError(f"git log failed in {root}: {later.stderr.strip().splitlines()[-1]}")
@@ -152,6 +157,9 @@ def render(folder: Path = TABLES, root: Path = ROOT) -> str:
     ``root``."""
     parts = [INTRO]
     for result in load_all(folder):
+        for path in result.get("data", []):
+            if not (root / path).exists():
+                raise RenderError(f"{result['title']}: its data {path} is not in {root}")
         parts.append(section(result, is_stale(root, result["commit"], result["measures"])))
     return "\n".join(parts).rstrip("\n") + "\n"
 

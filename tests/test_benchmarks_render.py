@@ -90,7 +90,9 @@ def test_stale_once_a_later_commit_changes_the_measured_code(repo: Path, tmp_pat
     assert "**Stale**" not in render.render(results, repo)
 
 
-def test_check_gives_a_diff_and_exit_1(repo: Path, tmp_path: Path, capsys) -> None:
+def test_check_gives_a_diff_and_exit_1(
+    repo: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
     results = tmp_path / "results"
     _result(results, _git(repo, "rev-parse", "--short", "HEAD"), ["code"])
     page = tmp_path / "BENCHMARKS.md"
@@ -113,7 +115,7 @@ def test_check_gives_a_diff_and_exit_1(repo: Path, tmp_path: Path, capsys) -> No
     ],
 )
 def test_a_malformed_result_is_one_line_and_exit_2(
-    repo: Path, tmp_path: Path, capsys, content: str, message: str
+    repo: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str], content: str, message: str
 ) -> None:
     results = tmp_path / "results"
     _result(results, _git(repo, "rev-parse", "--short", "HEAD"), ["code"])
@@ -132,7 +134,7 @@ def test_a_malformed_result_is_one_line_and_exit_2(
 
 
 def test_a_commit_missing_from_the_history_is_one_line_and_exit_2(
-    repo: Path, tmp_path: Path, capsys
+    repo: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
     results = tmp_path / "results"
     _result(results, "0123abc", ["code"])
@@ -140,3 +142,14 @@ def test_a_commit_missing_from_the_history_is_one_line_and_exit_2(
     assert render.main(args) == 2
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and "0123abc is not in the history" in err
+
+
+def test_a_measured_path_missing_from_the_repository_is_one_line_and_exit_2(
+    repo: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    results = tmp_path / "results"
+    _result(results, _git(repo, "rev-parse", "--short", "HEAD"), ["code", "cod"])
+    args = ["--results", str(results), "--root", str(repo), "--output", str(tmp_path / "B.md")]
+    assert render.main(args) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "cod, a measured path, is not in the repository" in err
