@@ -49,14 +49,18 @@ the next (±30 % on some days), so speed is compared against a baseline measured
 run; learning results are counts of trajectories or returns, which do not depend on the
 machine. The tests never assert wall-clock times.
 
-**Stale.** A section marked **stale** was measured before the code it measures last changed:
-its figures describe an earlier version of that code. Re-run its command to refresh it. Why the
-figures come out as they do is explained in the guide's "How it works", section "Performance"
-(`docs/how-it-works.md`).
+**Stale.** A section marked **stale** was measured before the code it measures last changed
+(a later commit, or the working tree, changes one of the paths it names): its figures describe
+an earlier version of that code. Re-run its command to refresh it. The mark names only those
+paths, so this page changes when a result turns stale or is measured again, not with every
+commit; a change to measured code is committed together with the page rendered after it.
+
+Why the figures come out as they do is explained in the guide's "How it works", section
+"Performance" (`docs/how-it-works.md`).
 
 **Figures** are drawn by `fedhpg.server.plot` (mean over seeds, band = 95 % percentile-bootstrap
-interval of that mean, 2,000 resamples); every figure is in `docs/figures/` with its data in
-`benchmarks/results/`.
+interval of that mean, 2,000 resamples); they are in `docs/figures/` (bench-scale's in `docs/`)
+with their data in `benchmarks/results/`.
 """
 
 
