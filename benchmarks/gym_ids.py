@@ -193,6 +193,14 @@ def main() -> None:
                     flush=True,
                 )
     print(table(stored["runs"]))
+    measured_now = {(env_id, seed) for env_id in CASES for seed in args.seeds}
+    if (
+        args.only
+        or args.table_only
+        or any((r["env_id"], r["seed"]) not in measured_now for r in stored["runs"])
+    ):
+        print(f"{RESULTS} holds earlier runs: the table is not stored as one run's result")
+        return
     results_file.write(
         "gym_ids",
         title=TITLE,

@@ -32,7 +32,9 @@ The raw data a benchmark keeps (curves, per-seed runs, what its tests and figure
 in ``benchmarks/results/<name>.json`` in the shape its readers expect; ``data`` names it.
 A benchmark script calls :func:`write` with its tables; :func:`write` stamps the date, the
 commit (``git rev-parse --short HEAD``) and the machine, unless they are given (a result
-transcribed from an earlier run keeps the ones it was measured with).
+transcribed from an earlier run keeps the ones it was measured with). A script whose section
+is described once in its result file (title, measured paths, set-up) calls :func:`refresh`
+instead, which keeps that description and replaces the tables and the stamps.
 """
 
 from __future__ import annotations
@@ -40,8 +42,10 @@ from __future__ import annotations
 import datetime
 import json
 import os
+import shlex
 import shutil
 import subprocess
+import sys
 from pathlib import Path
 from typing import Any, NotRequired, TypedDict
 
@@ -263,3 +267,29 @@ def write(
     folder.mkdir(parents=True, exist_ok=True)
     path.write_text(json.dumps(result, indent=2, ensure_ascii=False) + "\n")
     return path
+
+
+def command_line(module: str) -> str:
+    """How this process was started, as a user types it: ``python -m <module> <arguments>``."""
+    return shlex.join(["python", "-m", module, *sys.argv[1:]])
+
+
+def refresh(name: str, tables: list[Table], command: str, folder: Path = TABLES) -> Path:
+    """Replace the tables of the stored result ``<folder>/<name>.json`` with this run's,
+    stamped now; its title, order, measured paths, set-up and data stay. A table given without
+    a figure keeps the stored table's figure at the same place."""
+    stored = load(folder / f"{name}.json")
+    for given, old in zip(tables, stored["tables"], strict=False):
+        if "figure" not in given and "figure" in old:
+            given["figure"] = old["figure"]
+    return write(
+        name,
+        title=stored["title"],
+        order=stored["order"],
+        command=command,
+        measures=stored["measures"],
+        tables=tables,
+        setup=stored.get("setup"),
+        data=stored.get("data"),
+        folder=folder,
+    )

@@ -11,7 +11,7 @@ from pathlib import Path
 import pytest
 
 from benchmarks import render
-from benchmarks.results_file import ROOT, TABLES, Table, write
+from benchmarks.results_file import ROOT, TABLES, Table, load, refresh, write
 
 
 def _git(repo: Path, *args: str) -> str:
@@ -153,3 +153,35 @@ def test_a_measured_path_missing_from_the_repository_is_one_line_and_exit_2(
     assert render.main(args) == 2
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and "cod, a measured path, is not in the repository" in err
+
+
+def test_a_refreshed_result_keeps_its_description_and_takes_the_new_stamps(tmp_path: Path) -> None:
+    write(
+        "tiny",
+        title="Tiny",
+        order=1,
+        command="python -m benchmarks.tiny",
+        measures=["code"],
+        setup="What was run.",
+        tables=[{**TABLE, "figure": {"path": "docs/figures/tiny.png", "caption": "a curve"}}],
+        date="2026-01-01",
+        commit_hash="abc1234",
+        machine_name="an old machine",
+        folder=tmp_path,
+    )
+    new: Table = {"columns": ["K", "s"], "rows": [["10", "1.2"]], "summary": "Faster."}
+    refresh("tiny", [new], "python -m benchmarks.tiny --rounds 3", folder=tmp_path)
+    result = load(tmp_path / "tiny.json")
+    assert (result["title"], result["measures"], result.get("setup")) == (
+        "Tiny",
+        ["code"],
+        "What was run.",
+    )
+    assert result["command"] == "python -m benchmarks.tiny --rounds 3"
+    assert result["tables"][0]["rows"] == [["10", "1.2"]]
+    assert result["tables"][0]["figure"]["path"] == "docs/figures/tiny.png"
+    assert (result["date"], result["commit"], result["machine"]) != (
+        "2026-01-01",
+        "abc1234",
+        "an old machine",
+    )
