@@ -102,7 +102,6 @@ contracts: $(STAMP)
 
 lint: $(STAMP)
 	$(BIN)/ruff check .
-	$(BIN)/python -m benchmarks.render --check
 	$(BIN)/ruff format --check .
 
 figures: $(STAMP)
