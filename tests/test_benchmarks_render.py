@@ -16,7 +16,7 @@ from benchmarks.results_file import ROOT, TABLES, Table, load, refresh, write
 
 def _git(repo: Path, *args: str) -> str:
     return subprocess.run(
-        ["git", "-c", "user.name=t", "-c", "user.email=t@t", *args],
+        ["git", "-c", "user.name=t", "-c", "user.email=t@t", "-c", "commit.gpgsign=false", *args],
         cwd=repo,
         capture_output=True,
         text=True,
