@@ -35,6 +35,7 @@ docs: $(STAMP)
 # (tests/conftest.py). Measured on 2 cores: 11.2 min, against 13.9 in one worker.
 test: $(STAMP) typecheck contracts docs
 	$(BIN)/ruff check .
+	$(BIN)/python -m benchmarks.render --check
 	$(BIN)/python -m pytest -q -m "not slow" -n 2 --dist loadscope
 
 # The long tier (marked slow): every shipped env preset learns, every docs page's code runs as

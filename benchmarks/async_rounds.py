@@ -37,6 +37,7 @@ from typing import Any
 import numpy as np
 import torch
 
+from benchmarks import results_file
 from fedhpg.common.runtime.cli import compose
 from fedhpg.server.assembly import run_in_process
 from fedhpg.server.coordinator import RoundRecord
@@ -423,6 +424,16 @@ def main() -> None:
     print(table(rows))
     plot(rows, args.figure)
     print(f"\nresults: {args.results}; figure: {args.figure}")
+    if (results_file.TABLES / f"{args.results.stem}.json").exists():
+        described = (
+            "Each round policy on each set-up: how many seeds reach the threshold, the emulated "
+            "time and trajectories it takes, and how stale the updates it aggregates are."
+        )
+        results_file.refresh(
+            args.results.stem,
+            [results_file.table_from_markdown(table(rows), described)],
+            results_file.command_line("benchmarks.async_rounds"),
+        )
 
 
 if __name__ == "__main__":

@@ -26,9 +26,9 @@ import time
 from pathlib import Path
 from typing import Any
 
-from benchmarks.gym_ids import _commit, random_return
+from benchmarks import results_file
+from benchmarks.gym_ids import random_return
 from benchmarks.presets import initial_return
-from benchmarks.scale_refs import cpu_description
 
 RESULTS = Path("benchmarks/results/car_racing.json")
 FIGURE = Path("docs/figures/car_racing.png")
@@ -44,6 +44,21 @@ OVERRIDES = [
 ]
 WINDOW = 5
 """Rounds averaged at each end of the training curve."""
+MEASURES = [
+    "common/algorithms",
+    "common/estimators.py",
+    "common/engine",
+    "common/batched",
+    "common/policies.py",
+    "common/optim.py",
+    "envs",
+    "conf",
+]
+SETUP = (
+    "`{command}`, in process. Training return: the sampled episodes' mean over the 4 agents; "
+    "greedy returns over {episodes} episodes per agent; the random policy's in the same "
+    "environments, horizon and episode count."
+)
 
 
 def overrides_of(seed: int, rounds: int) -> list[str]:
@@ -67,8 +82,8 @@ def measure(seed: int, rounds: int, out_dir: Path) -> dict[str, Any]:
     return {
         "command": "fedhpg-run " + " ".join(overrides),
         "date": time.strftime("%Y-%m-%d"),
-        "commit": _commit(),
-        "machine": cpu_description(),
+        "commit": results_file.commit(),
+        "machine": results_file.machine(),
         "seed": seed,
         "rounds": rounds,
         "seconds": round(seconds, 1),
@@ -93,6 +108,7 @@ def main() -> None:
     outcome = measure(args.seed, args.rounds, out_dir)
     RESULTS.parent.mkdir(parents=True, exist_ok=True)
     RESULTS.write_text(json.dumps(outcome, indent=2) + "\n")
+    report(outcome)
     subprocess.run(
         [
             str(Path(sys.executable).parent / "fedhpg-plot"),
@@ -110,6 +126,49 @@ def main() -> None:
         f"{outcome['train_return_last']:.1f} (last {WINDOW}); greedy θ̃₀ "
         f"{outcome['initial_greedy_return']:.1f} → {outcome['final_greedy_return']:.1f}; "
         f"random policy {outcome['random_return']:.1f}; {outcome['seconds']:.0f} s"
+    )
+
+
+def report(outcome: dict[str, Any], summary: str | None = None) -> None:
+    """The run's table, as a result for BENCHMARKS.md (stamped with the run's own date,
+    commit and machine)."""
+    rounds = int(outcome["rounds"])
+    row = [
+        str(outcome["seed"]),
+        f"{outcome['random_return']:.1f}",
+        f"{outcome['train_return_first']:.1f} → {outcome['train_return_last']:.1f}",
+        f"{outcome['initial_greedy_return']:.1f} → {outcome['final_greedy_return']:.1f}",
+        f"{outcome['seconds']:,.0f}",
+    ]
+    last = f"{rounds - WINDOW + 1}–{rounds}"
+    results_file.write(
+        "car_racing",
+        title="Images: `CarRacing-v3` with the CNN policy",
+        order=30,
+        command="python -m benchmarks.car_racing" + (f" --rounds {rounds}" if rounds != 40 else ""),
+        measures=MEASURES,
+        setup=SETUP.format(command=outcome["command"], episodes=outcome["episodes"]),
+        data=[str(RESULTS)],
+        date=outcome["date"],
+        commit_hash=outcome["commit"],
+        machine_name=outcome["machine"],
+        tables=[
+            {
+                "columns": [
+                    "seed",
+                    "random policy",
+                    f"training return, rounds 1–{WINDOW} → {last}",
+                    f"greedy θ̃₀ → θ̃ after round {rounds}",
+                    "wall (s)",
+                ],
+                "rows": [row],
+                "summary": summary
+                or "The CNN policy on image observations against a uniformly random policy in "
+                "the same environments: its sampled training return over the run and its greedy "
+                "return before and after.",
+                "figure": {"path": str(FIGURE), "caption": "sampled training return per round"},
+            }
+        ],
     )
 
 

@@ -11,8 +11,9 @@ here if none runs and stopped again; ``fedhpg-run`` runs on this machine's loopb
     python -m benchmarks.cluster_overhead                     # both cases, every engine, twice
     python -m benchmarks.cluster_overhead --cases demo --engines run,ray --repeats 1
 
-Results in benchmarks/results/cluster_overhead.json, the table on stdout (BENCHMARKS.md
-"Clusters"). The machine is shared: the load average is recorded beside every run.
+Results in benchmarks/results/cluster_overhead.json, the table on stdout and in
+benchmarks/results/tables/cluster_overhead.json (BENCHMARKS.md "Clusters"). The machine is
+shared: the load average is recorded beside every run.
 """
 
 from __future__ import annotations
@@ -29,6 +30,8 @@ import time
 from pathlib import Path
 from typing import Any
 
+from benchmarks import results_file
+
 ROOT = Path(__file__).parents[1]
 BIN = Path(sys.executable).parent
 SCRIPTS = {"slurm": ROOT / "cluster" / "slurm.sh", "ray": ROOT / "cluster" / "ray.sh"}
@@ -44,6 +47,17 @@ rounds, and K = 1,000 on 2 agent hosts of 500, 10 rounds."""
 COMMON = ["server.tensorboard=false"]
 POLL_S = 0.02
 TIMEOUT_S = 900.0
+SETUP = (
+    "The same runs through `fedhpg-run` on loopback, `fedhpg-cluster cluster=slurm` and "
+    "`fedhpg-cluster cluster=ray` on the two-node clusters of `make test-cluster` (each node a "
+    "network namespace of this machine, so every engine shares the same cores), the engines "
+    "interleaved. demo: the default run (4 GridWorld agents with their emulated devices, one "
+    "process each) for 20 rounds; k1000: `agents=population agents.num_agents=1000 "
+    "agents.per_host=500`, 10 rounds, 2 agent hosts. Start-up: from the command's start to the "
+    "start of round 1; per round: the server's clock over rounds 2 to the last; end: from the "
+    "last round to the command's exit. Median of the runs (range); load: the 1-minute load "
+    "average at the start, from other work on the same machine. `make bench-cluster` runs it."
+)
 
 
 def _free_port() -> int:
@@ -182,12 +196,35 @@ def main() -> None:
     finally:
         for engine in started:
             subprocess.run(["bash", str(SCRIPTS[engine]), "stop"], timeout=300, check=False)
-    commit = subprocess.run(
-        ["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True, cwd=ROOT
-    ).stdout.strip()
-    record = {"date": time.strftime("%Y-%m-%d"), "commit": commit, "runs": results}
+    record = {"date": time.strftime("%Y-%m-%d"), "commit": results_file.commit(), "runs": results}
     Path(args.results).write_text(json.dumps(record, indent=2) + "\n")
     print(table(results))
+    report(record, f"python -m benchmarks.cluster_overhead --repeats {args.repeats}")
+
+
+def report(
+    record: dict[str, Any], command: str, summary: str | None = None, machine: str | None = None
+) -> None:
+    """The runs' table as a result for BENCHMARKS.md, stamped with the runs' date and commit."""
+    results_file.write(
+        "cluster_overhead",
+        title="Clusters: fedhpg-cluster on SLURM and on Ray",
+        order=240,
+        command=command,
+        measures=["cluster", "server"],
+        setup=SETUP,
+        data=["benchmarks/results/cluster_overhead.json"],
+        date=record["date"],
+        commit_hash=record["commit"],
+        machine_name=machine,
+        tables=[
+            results_file.table_from_markdown(
+                table(record["runs"]),
+                summary
+                or "Each cluster engine's start-up, per-round and end times against fedhpg-run's.",
+            )
+        ],
+    )
 
 
 if __name__ == "__main__":

@@ -6,7 +6,9 @@ server and the agent hosts).
     python -m benchmarks.defaults                # 3 runs, results/defaults.json
     python -m benchmarks.defaults --runs 1 --agents 200
 
-Run it at the lowest priority on a shared machine; the figures it stores are the median run's.
+Run it at the lowest priority on a shared machine. The runs go to ``results/defaults.json``
+(the median run's details beside every run's time and memory) and their table to
+``results/tables/defaults.json`` (BENCHMARKS.md, ``python -m benchmarks.render``).
 """
 
 from __future__ import annotations
@@ -15,13 +17,32 @@ import argparse
 import json
 import statistics
 import subprocess
+import sys
 import tempfile
 import time
 from pathlib import Path
 
+from benchmarks import results_file
 from benchmarks.runtime import BIN, _children, _pss_bytes
 
 RESULTS = Path("benchmarks/results/defaults.json")
+TITLE = "Defaults at K = 1,000"
+MEASURES = [
+    "server",
+    "agent",
+    "common/runtime",
+    "common/wire",
+    "common/engine",
+    "common/batched",
+    "common/population.py",
+    "conf",
+]
+SETUP = (
+    "{runs} runs of `fedhpg-run agents=population agents.num_agents={agents} rounds={rounds}` "
+    "with nothing else: `agents.per_host=auto` picks the agent hosts (two of 500 for 1,000 "
+    "agents on a 2-core machine). PSS is the whole process tree's (launcher, server, hosts), "
+    "sampled every 50 ms."
+)
 
 
 def _tree(pid: int) -> list[int]:
@@ -75,13 +96,10 @@ def main() -> None:
             f"{run['peak_pss_mib']:.0f} MiB, {run['table_lines']} lines of output",
             flush=True,
         )
-    commit = subprocess.run(
-        ["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True, check=False
-    ).stdout.strip()
     median = sorted(runs, key=lambda r: float(r["seconds"]))[len(runs) // 2]
     result = {
         "date": time.strftime("%Y-%m-%d"),
-        "commit": commit,
+        "commit": results_file.commit(),
         "median": median,
         "seconds": [r["seconds"] for r in runs],
         "peak_pss_mib": [r["peak_pss_mib"] for r in runs],
@@ -89,6 +107,33 @@ def main() -> None:
     }
     RESULTS.parent.mkdir(parents=True, exist_ok=True)
     RESULTS.write_text(json.dumps(result, indent=2) + "\n")
+    report(runs, args.agents, args.rounds, " ".join(sys.argv[1:]))
+
+
+def report(runs: list[dict[str, float | int | str]], agents: int, rounds: int, args: str) -> None:
+    """The runs' table, as a result for BENCHMARKS.md."""
+    seconds = ", ".join(f"{float(r['seconds']):.1f}" for r in runs)
+    pss = ", ".join(f"{float(r['peak_pss_mib']):.0f}" for r in runs)
+    statuses = ", ".join(str(r["exit_status"]) for r in runs)
+    lines = sorted({int(r["table_lines"]) for r in runs})
+    row = [seconds, pss, statuses, f"a {'/'.join(map(str, lines))}-line summary"]
+    results_file.write(
+        "defaults",
+        title=TITLE,
+        order=10,
+        command=f"python -m benchmarks.defaults {args}".strip(),
+        measures=MEASURES,
+        setup=SETUP.format(runs=len(runs), agents=agents, rounds=rounds),
+        data=[str(RESULTS)],
+        tables=[
+            {
+                "columns": ["launch → exit (s)", "peak PSS (MiB)", "exit status", "output"],
+                "rows": [row],
+                "summary": f"K = {agents:,} with the defaults, launch to exit and the peak "
+                "memory of the whole process tree, run by run.",
+            }
+        ],
+    )
 
 
 if __name__ == "__main__":

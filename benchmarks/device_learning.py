@@ -25,6 +25,7 @@ from pathlib import Path
 
 import torch
 
+from benchmarks import results_file
 from fedhpg.common.runtime.cli import compose
 from fedhpg.server.assembly import run_in_process
 from fedhpg.server.coordinator import RoundRecord
@@ -116,6 +117,16 @@ def main(argv: list[str] | None = None) -> None:
         "summary": rows,
     }, indent=1) + "\n")  # fmt: skip
     print(f"wrote {args.out}")
+    if args.out == RESULTS:
+        described = (
+            "The greedy return of θ̃ on both paths at the same trajectory counts; the difference "
+            "in units of the seeds' pooled standard deviation."
+        )
+        results_file.refresh(
+            "device_learning",
+            [results_file.table_from_markdown(table(rows, args.seeds), described)],
+            results_file.command_line("benchmarks.device_learning"),
+        )
 
 
 if __name__ == "__main__":

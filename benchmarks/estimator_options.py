@@ -23,6 +23,7 @@ from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any
 
+from benchmarks import results_file
 from benchmarks.learning import TARGET
 
 RESULTS = Path("benchmarks/results/estimator_options.json")
@@ -239,6 +240,18 @@ def main() -> None:
                 args.out.parent.mkdir(parents=True, exist_ok=True)
                 write_outcomes(args.out, outcomes)
     print(table(outcomes, args.max_trajectories))
+    if known and not args.table_only:
+        print(f"{args.out} held earlier outcomes: the table is not stored as one run's result")
+    elif not args.table_only and args.out == RESULTS:
+        summary = (
+            "Trajectories per agent to the first and to a sustained greedy ≥ 475 for each "
+            "estimator option and batch size, at both server steps."
+        )
+        results_file.refresh(
+            "estimator_options",
+            [results_file.table_from_markdown(table(outcomes, args.max_trajectories), summary)],
+            results_file.command_line("benchmarks.estimator_options"),
+        )
 
 
 if __name__ == "__main__":

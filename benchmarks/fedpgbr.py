@@ -26,6 +26,7 @@ from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any
 
+from benchmarks import results_file
 from benchmarks.thresholds import TARGET
 
 FIGURE = Path("docs/figures/fedpgbr_byzantine.png")
@@ -166,6 +167,15 @@ def main() -> None:
                     RESULTS.write_text(json.dumps([asdict(r) for r in runs], indent=1))
     print(table(runs))
     plot(runs, FIGURE)
+    if args.resume:
+        print(f"{RESULTS} held earlier runs: the table is not stored as one run's result")
+    elif not args.plot_only:
+        summary = "Each aggregation rule under each attack by agents 0–2, over the seeds."
+        results_file.refresh(
+            "fedpgbr",
+            [results_file.table_from_markdown(table(runs), summary)],
+            results_file.command_line("benchmarks.fedpgbr"),
+        )
     print(f"\nfigure: {FIGURE}; results: {RESULTS}")
 
 

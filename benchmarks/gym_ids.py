@@ -10,7 +10,8 @@ Each run is ``fedhpg-run env=gym env.id=ID <its overrides>`` computed in this pr
 (``api.run``: the same θ̃ as the agent processes, bit for bit) on the counted virtual clock.
 The random policy's return is measured in each agent's own variant (its ``make_env()``, the
 run's horizon), over as many episodes as the final evaluation, from fixed seeds. Results go to
-``benchmarks/results/gym_ids.json`` as each run ends; run it at the lowest priority.
+``benchmarks/results/gym_ids.json`` as each run ends, their table to
+``benchmarks/results/tables/gym_ids.json`` (BENCHMARKS.md); run it at the lowest priority.
 """
 
 from __future__ import annotations
@@ -18,7 +19,6 @@ from __future__ import annotations
 import argparse
 import json
 import statistics
-import subprocess
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -26,8 +26,30 @@ from typing import Any
 
 import numpy as np
 
+from benchmarks import results_file
+
 RESULTS = Path("benchmarks/results/gym_ids.json")
 COMMON = ["env=gym", "agents=homogeneous4", "agents.budget.batch_size=[16]", "agents.clock=counted"]
+TITLE = "Any gymnasium id (`env=gym`)"
+MEASURES = [
+    "common/algorithms",
+    "common/estimators.py",
+    "common/engine",
+    "common/batched",
+    "common/policies.py",
+    "common/optim.py",
+    "envs",
+    "conf",
+]
+SETUP = (
+    "Three ids the project ships no family for, each `fedhpg-run env=gym env.id=ID` with the "
+    "variation below, K = 4 (`agents=homogeneous4`, B = 16, τ = 1, server Adam 0.01, GPOMDP "
+    "with mean baseline, 32-32 MLP), in process on the counted clock (the same θ̃ as agent "
+    "processes). The learned return is the unified policy's greedy return averaged over the 4 "
+    "agents' environments; the random return is a uniformly random policy's in the same "
+    "environments, same horizon and episode count. `make test-long` runs seed 0 of each "
+    "(`tests/test_gym_family.py`)."
+)
 
 
 @dataclass(frozen=True)
@@ -124,15 +146,6 @@ def measure(case: Case, seed: int) -> dict[str, Any]:
     }
 
 
-def _commit() -> str:
-    try:
-        return subprocess.run(
-            ["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True, check=True
-        ).stdout.strip()
-    except (OSError, subprocess.CalledProcessError):
-        return "unknown"
-
-
 def table(results: list[dict[str, Any]]) -> str:
     lines = [
         "| env.id | trajectories per agent | random policy | learned (3 seeds) | above random |"
@@ -171,7 +184,7 @@ def main() -> None:
                     r for r in stored["runs"] if (r["env_id"], r["seed"]) != (env_id, seed)
                 ] + [outcome]
                 stored["date"] = time.strftime("%Y-%m-%d")
-                stored["commit"] = _commit()
+                stored["commit"] = results_file.commit()
                 RESULTS.parent.mkdir(parents=True, exist_ok=True)
                 RESULTS.write_text(json.dumps(stored, indent=2) + "\n")
                 print(
@@ -180,6 +193,32 @@ def main() -> None:
                     flush=True,
                 )
     print(table(stored["runs"]))
+    measured_now = {(env_id, seed) for env_id in CASES for seed in args.seeds}
+    if (
+        args.only
+        or args.table_only
+        or any((r["env_id"], r["seed"]) not in measured_now for r in stored["runs"])
+    ):
+        print(f"{RESULTS} holds earlier runs: the table is not stored as one run's result")
+        return
+    results_file.write(
+        "gym_ids",
+        title=TITLE,
+        order=20,
+        command="python -m benchmarks.gym_ids",
+        measures=MEASURES,
+        setup=SETUP,
+        data=[str(RESULTS)],
+        date=stored.get("date"),
+        commit_hash=stored.get("commit"),
+        tables=[
+            results_file.table_from_markdown(
+                table(stored["runs"]),
+                summary="Each id's unified policy against a uniformly random policy in the "
+                'same environments; "above random" counts the seeds where it is higher.',
+            )
+        ],
+    )
 
 
 if __name__ == "__main__":

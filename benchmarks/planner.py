@@ -35,6 +35,7 @@ from typing import Any
 import numpy as np
 import torch
 
+from benchmarks import results_file
 from fedhpg.common.config import RunConfig
 from fedhpg.common.device import device_for
 from fedhpg.common.planning import Constants, Limits, plan_budgets
@@ -387,6 +388,18 @@ def main() -> None:
     figure(outcomes, FIGURE)
     print(table(outcomes))
     print(f"\n{RESULTS}, {FIGURE}")
+    if len(outcomes) != sum(1 for o in outcomes if o.setting in names):
+        print(f"{RESULTS} holds other settings' earlier outcomes: the table is not stored")
+        return
+    summary = (
+        "Each set of budgets on each setting at the same emulated-time budget: how many seeds "
+        "reach the threshold, and the emulated time and trajectories it takes."
+    )
+    results_file.refresh(
+        "planner",
+        [results_file.table_from_markdown(table(outcomes), summary)],
+        results_file.command_line("benchmarks.planner"),
+    )
 
 
 if __name__ == "__main__":

@@ -8,7 +8,8 @@ is the whole server: ``mean`` (the paper), ``median`` and ``trimmed_mean`` (β =
 Greedy evaluation, 10 episodes per agent every 2 rounds; the curve is the mean over agents.
 
 ``python -m benchmarks.robustness [--seeds 3] [--rounds 30]`` prints a table and writes
-``docs/figures/robustness.png`` (and ``benchmarks/results/robustness.json``).
+``docs/figures/robustness.png``, ``benchmarks/results/robustness.json`` (the curves) and
+``benchmarks/results/tables/robustness.json`` (the table, for BENCHMARKS.md).
 """
 
 from __future__ import annotations
@@ -19,7 +20,9 @@ import statistics
 import tempfile
 from dataclasses import asdict, dataclass
 from pathlib import Path
+from typing import Any
 
+from benchmarks import results_file
 from benchmarks.runtime import _federation
 
 TARGET = 400.0
@@ -103,6 +106,53 @@ def table(curves: list[Curve]) -> str:
     return "\n".join(lines)
 
 
+DESCRIPTION = (
+    "Real `fedhpg-run` federations, homogeneous CartPole, K = 10, B = 16, γ = 0.999, 16-16 MLP; "
+    "agents 0–2 send −2.5 × their update (`attack=sign_flip`); τ = 3 local Adam steps of 0.01; "
+    "`trimmed_mean` with β = 0.3; {rounds} rounds, seeds {seeds}. `make bench-robustness` runs it."
+)
+
+
+def report(curves: list[Curve], rounds: int, summary: str | None = None, **stamp: Any) -> None:
+    """The table as a result for BENCHMARKS.md; ``stamp`` gives ``date``, ``commit_hash`` and
+    ``machine_name`` where they are not this run's."""
+    seeds = sorted({c.seed for c in curves})
+    results_file.write(
+        "robustness",
+        title="Robust strategies against sign-flipping agents",
+        order=120,
+        command="python -m benchmarks.robustness"
+        + (f" --seeds {len(seeds)}" if len(seeds) != 3 else "")
+        + (f" --rounds {rounds}" if rounds != 30 else ""),
+        measures=[
+            "common/algorithms",
+            "common/estimators.py",
+            "common/engine",
+            "common/batched",
+            "common/policies.py",
+            "common/optim.py",
+            "envs",
+            "server",
+            "agent",
+            "common/runtime",
+            "common/wire",
+            "common/attacks.py",
+            "common/byzantine_filter.py",
+        ],
+        setup=DESCRIPTION.format(rounds=rounds, seeds=", ".join(map(str, seeds))),
+        data=[str(RESULTS)],
+        tables=[
+            results_file.table_from_markdown(
+                table(curves),
+                summary
+                or "Each strategy with and without the sign-flipping agents, over the seeds.",
+                figure={"path": str(FIGURE), "caption": "greedy return against trajectories"},
+            )
+        ],
+        **stamp,
+    )
+
+
 def plot(curves: list[Curve], path: Path) -> None:
     """Each strategy with and without the attack: the mean over seeds and its 95%
     percentile-bootstrap band (the project's one convention, :mod:`fedhpg.server.plot`)."""
@@ -161,6 +211,7 @@ def main() -> None:
     plot(curves, FIGURE)
     RESULTS.parent.mkdir(parents=True, exist_ok=True)
     RESULTS.write_text(json.dumps([asdict(c) for c in curves], indent=1))
+    report(curves, args.rounds)
     print(f"\nfigure: {FIGURE}; results: {RESULTS}")
 
 

@@ -4,32 +4,13 @@ and action draw of every agent's own MLP per step (the unavoidable work)."""
 
 from __future__ import annotations
 
-import os
 import time
-from pathlib import Path
 
 import gymnasium as gym
 import numpy as np
 
+from benchmarks.results_file import cpu_description as cpu_description
 from fedhpg.common.batched.mlp import MLPShape
-
-
-def cpu_description(cpuinfo: Path = Path("/proc/cpuinfo")) -> str:
-    """The CPU the figures were measured on, e.g. ``AMD EPYC, 2 cores, AVX2``: the ratios
-    against (b) depend on it, since (b)'s stacked numpy matmuls and the engine's compiled
-    kernels gain unequally from wider vectors (AVX-512 against AVX2)."""
-    model, flags = "unknown CPU", set[str]()
-    try:
-        for line in cpuinfo.read_text(encoding="utf-8", errors="replace").splitlines():
-            key, _, value = line.partition(":")
-            if key.strip() == "model name" and model == "unknown CPU":
-                model = value.strip()
-            elif key.strip() == "flags" and not flags:
-                flags = set(value.split())
-    except OSError:
-        pass
-    vectors = "AVX-512" if "avx512f" in flags else "AVX2" if "avx2" in flags else "no AVX2"
-    return f"{model}, {os.cpu_count() or 1} cores, {vectors}"
 
 
 def bare_loop(num_envs: int, steps: int, seed: int = 0) -> float:
