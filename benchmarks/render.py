@@ -19,7 +19,9 @@ again.
 
 A result file that does not have the shape is one line and exit 2; so is a result whose commit
 is not in this repository's history (a shallow clone: fetch the history first), and one that
-measures a path the repository does not have (moved code: update its ``measures``).
+measures a path the repository does not have (moved code: update its ``measures``). Only
+``--check`` goes on without the history: it checks everything but the stale marks of such
+results, and says so.
 """
 
 from __future__ import annotations
@@ -75,12 +77,16 @@ def _git(root: Path, *args: str) -> subprocess.CompletedProcess[str]:
         raise RenderError("git is not installed; the stale marks need the history") from None
 
 
+class UnknownCommit(RenderError):
+    """The result's commit is not in the history (a shallow clone)."""
+
+
 def is_stale(root: Path, commit: str, measures: list[str]) -> bool:
     """Whether any of ``measures`` changed after ``commit``, in a later commit or in the
     working tree."""
     known = _git(root, "cat-file", "-e", f"{commit}^{{commit}}")
     if known.returncode != 0:
-        raise RenderError(
+        raise UnknownCommit(
             f"commit {commit} is not in the history of {root} (a shallow clone? fetch it)"
         )
     tracked = _git(root, "ls-tree", "-r", "--name-only", "HEAD", "--", *measures).stdout.split()
@@ -156,16 +162,31 @@ def section(result: Result, stale: bool) -> str:
     return "\n".join(lines)
 
 
-def render(folder: Path = TABLES, root: Path = ROOT) -> str:
+def render(folder: Path = TABLES, root: Path = ROOT, committed: str | None = None) -> str:
     """BENCHMARKS.md from the results in ``folder``, stale marks against the history of
-    ``root``."""
+    ``root``. Given the ``committed`` page (a check), a result whose commit the history lacks
+    keeps the mark the page gives it, and a line on stderr says so: a shallow clone checks
+    every table but cannot judge staleness."""
     parts = [INTRO]
     for result in load_all(folder):
         for path in result.get("data", []):
             if not (root / path).exists():
                 raise RenderError(f"{result['title']}: its data {path} is not in {root}")
-        parts.append(section(result, is_stale(root, result["commit"], result["measures"])))
+        try:
+            stale = is_stale(root, result["commit"], result["measures"])
+        except UnknownCommit as error:
+            if committed is None:
+                raise
+            print(f"benchmarks.render: stale mark not checked: {error}", file=sys.stderr)
+            stale = _marked_stale(committed, result["title"])
+        parts.append(section(result, stale))
     return "\n".join(parts).rstrip("\n") + "\n"
+
+
+def _marked_stale(page: str, title: str) -> bool:
+    """Whether ``page``'s section ``title`` carries the stale mark."""
+    _, found, rest = page.partition(f"\n## {title}\n")
+    return bool(found) and "\n**Stale**: " in rest.split("\n## ", 1)[0]
 
 
 def check(rendered: str, output: Path) -> str:
@@ -195,7 +216,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--output", type=Path, default=OUTPUT, help=argparse.SUPPRESS)
     args = parser.parse_args(argv)
     try:
-        rendered = render(args.results, args.root)
+        committed = args.output.read_text() if args.check and args.output.exists() else None
+        rendered = render(args.results, args.root, committed)
     except (ResultError, RenderError) as error:
         print(f"benchmarks.render: {error}", file=sys.stderr)
         return 2

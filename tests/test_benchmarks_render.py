@@ -144,6 +144,24 @@ def test_a_commit_missing_from_the_history_is_one_line_and_exit_2(
     assert err.count("\n") == 1 and "0123abc is not in the history" in err
 
 
+@pytest.mark.parametrize("marked", [True, False])
+def test_a_check_without_the_history_keeps_the_pages_stale_marks(
+    repo: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str], marked: bool
+) -> None:
+    """A shallow clone lacks the result's commit: ``--check`` still compares every table, takes
+    the stale mark as the page has it, and says so in one line."""
+    results = tmp_path / "results"
+    _result(results, "0123abc", ["code"])
+    page = tmp_path / "B.md"
+    args = ["--results", str(results), "--root", str(repo), "--output", str(page)]
+    sections = render.load_all(results)
+    page.write_text("\n".join([render.INTRO, render.section(sections[0], marked)]).rstrip() + "\n")
+    assert render.main([*args, "--check"]) == 0
+    assert "stale mark not checked" in capsys.readouterr().err
+    page.write_text(page.read_text().replace("1.5", "1.4"))
+    assert render.main([*args, "--check"]) == 1
+
+
 def test_a_measured_path_missing_from_the_repository_is_one_line_and_exit_2(
     repo: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
