@@ -25,7 +25,21 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from fedhpg.common.config import ConfigError, RunConfig
-from fedhpg.common.runtime.cli import EXIT_RUN_ABORTED, EXIT_USAGE, Interrupted, stop_signals
+from fedhpg.common.runtime.cli import (
+    EXIT_RUN_ABORTED,
+    EXIT_USAGE,
+    HELP_FLAGS,
+    Interrupted,
+    answer_version,
+    compose,
+    fail,
+    repeated_key,
+    setup_logging,
+    stop_signals,
+    unknown_flag,
+)
+from fedhpg.common.runtime.composition import own_overrides
+from fedhpg.common.runtime.help import help_text
 from fedhpg.common.runtime.progress import Progress
 from fedhpg.common.runtime.run_files import METRICS_NAME
 from fedhpg.server.cluster_engines import (
@@ -341,21 +355,9 @@ def place(run: RunConfig, overrides: Sequence[str], run_dir: Path, engine: Engin
 
 def main(argv: Sequence[str] | None = None) -> None:
     """Check everything (one-line errors, exit 2, nothing submitted), then place the run."""
-    from fedhpg.common.runtime.cli import (
-        HELP_FLAGS,
-        answer_version,
-        compose,
-        fail,
-        own_overrides,
-        setup_logging,
-        unknown_flag,
-    )
-
     args = list(sys.argv[1:] if argv is None else argv)
     answer_version("fedhpg-cluster", args)
     if any(a in HELP_FLAGS for a in args):
-        from fedhpg.common.runtime.help import help_text
-
         sys.stdout.write(help_text("fedhpg-cluster"))
         sys.exit(0)
     if any(a in ("-m", "--multirun") for a in args):
@@ -368,7 +370,7 @@ def main(argv: Sequence[str] | None = None) -> None:
                 )
             )
         )
-    flag = unknown_flag(args, known=())
+    flag = unknown_flag(args, known=()) or repeated_key(args)
     if flag is not None:
         sys.exit(fail(flag))
     setup_logging()
