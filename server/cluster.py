@@ -94,6 +94,10 @@ class Placement:
         return [self.server, *(a.job for a in self.agents)]
 
 
+AGENT_PLACED_KEYS = ("agent.index", "agent.first", "agent.count")
+"""Keys that :func:`~fedhpg.server.cluster_units.agent_commands` gives each agent unit."""
+
+
 def check_placement(run: RunConfig, overrides: Sequence[str]) -> Path:
     """What ``fedhpg-cluster`` checks before it submits anything; returns the run directory."""
     from fedhpg.common.wire.security import check_launch_keys
@@ -106,6 +110,10 @@ def check_placement(run: RunConfig, overrides: Sequence[str]) -> Path:
             "fedhpg-cluster starts new runs; resume one with fedhpg-server resume=true "
             "server.out_dir=DIR and its agents (docs/running.md, Resuming)",
         )
+    placed = [o.split("=", 1)[0].lstrip("+") for o in overrides]
+    for key in AGENT_PLACED_KEYS:
+        if key in placed:  # each agent job's command line gives it once: its own
+            raise ConfigError(key, "fedhpg-cluster sets it for each agent job; leave it out")
     check_run(run, distributed=True)
     check_launch_keys(run)
     units = len(agent_commands(run, overrides))

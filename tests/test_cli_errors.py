@@ -319,6 +319,11 @@ CASES: dict[str, tuple[str, list[str], str]] = {
         ["cluster=local", "agents.num_agents=2", "agents.num_agents=3"],
         "agents.num_agents: given twice (agents.num_agents=2, agents.num_agents=3); give it once",
     ),
+    "cluster-agent-index": (  # each agent job gets its own: a second one would be refused there
+        "fedhpg-cluster",
+        ["cluster=local", "agent.index=1"],
+        "agent.index: fedhpg-cluster sets it for each agent job; leave it out",
+    ),
     "plan-key-given-twice": (
         "fedhpg-plan",
         ["rounds=3", "rounds=4"],

@@ -12,15 +12,12 @@ from __future__ import annotations
 import contextlib
 import dataclasses
 import difflib
-import logging
 from collections.abc import Iterator, Sequence
 from typing import Any
 
 from fedhpg.common.config import FREE_DICTS, ConfigError, RunConfig, all_keys, flatten, unknown_key
 from fedhpg.common.registry import import_plugins
 from fedhpg.common.runtime.run_files import hydra_run_dir
-
-logger = logging.getLogger(__name__)
 
 CONFIG_MODULE = "fedhpg.conf"
 CONFIG_NAME = "config"
