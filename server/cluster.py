@@ -58,6 +58,7 @@ from fedhpg.server.cluster_units import (
     describe,
     server_command,
 )
+from fedhpg.server.run_dir import RunDirectory
 
 logger = logging.getLogger(__name__)
 
@@ -102,7 +103,6 @@ def check_placement(run: RunConfig, overrides: Sequence[str]) -> Path:
     """What ``fedhpg-cluster`` checks before it submits anything; returns the run directory."""
     from fedhpg.common.wire.security import check_launch_keys
     from fedhpg.server.assembly import check_run
-    from fedhpg.server.run_dir import RunDirectory
 
     if run.resume:
         raise ConfigError(
