@@ -266,19 +266,18 @@ def _best_so_far(directory: Path) -> tuple[int, float] | None:
     return best.round, float(best.state[BEST_RETURN])
 
 
-def resume_point(
+def resume_checkpoint(
     run: RunConfig, run_dir: RunDirectory, strategy: Strategy[Any]
-) -> tuple[torch.Tensor, RunProgress, dict[str, int]] | None:
-    """θ̃, the run's progress and its counters from the newest valid checkpoint. Everything is
-    checked first (the config, rounds, the strategy's state, metrics.jsonl up to the
-    checkpoint); only then is metrics.jsonl cut back to the checkpoint. None for a run stopped
-    before its first round was saved (no round in metrics.jsonl, nothing in checkpoints/): it
-    starts from round 0, and nothing is lost."""
+) -> Checkpoint | None:
+    """The newest valid checkpoint a resume of ``run`` continues from, after every check a
+    resume makes (the config, rounds, the strategy's state, metrics.jsonl up to the
+    checkpoint), with nothing changed: entry points ask it before they start anything. None
+    for a run stopped before its first round was saved (no round in metrics.jsonl, nothing in
+    checkpoints/): it starts from round 0, and nothing is lost."""
     out_dir = run_dir.path
     checkpoint = latest_valid_checkpoint(out_dir / "checkpoints")
     if checkpoint is None:
         if not run_dir.holds_rounds():
-            logger.warning("resuming %s: no round was saved, so it starts from round 0", out_dir)
             return None
         raise ConfigError(
             "resume",
@@ -307,6 +306,22 @@ def resume_point(
             "got 'buffered', but the checkpoint was written by synchronous rounds (it holds no "
             "buffered schedule); resume with the run's own round policy",
         )
+    run_dir.checked_metrics(checkpoint.metrics_lines)
+    return checkpoint
+
+
+def resume_point(
+    run: RunConfig, run_dir: RunDirectory, strategy: Strategy[Any]
+) -> tuple[torch.Tensor, RunProgress, dict[str, int]] | None:
+    """θ̃, the run's progress and its counters from the newest valid checkpoint. Everything is
+    checked first (:func:`resume_checkpoint`); only then is metrics.jsonl cut back to the
+    checkpoint. None for a run stopped before its first round was saved: it starts from
+    round 0."""
+    out_dir = run_dir.path
+    checkpoint = resume_checkpoint(run, run_dir, strategy)
+    if checkpoint is None:
+        logger.warning("resuming %s: no round was saved, so it starts from round 0", out_dir)
+        return None
     kept = run_dir.checked_metrics(checkpoint.metrics_lines)
     write_atomic(run_dir.metrics, "".join(line + "\n" for line in kept).encode())
     logger.warning("resuming %s after round %d", out_dir, checkpoint.round)

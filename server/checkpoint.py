@@ -390,6 +390,38 @@ def complete_message(run_dir: Path, round_number: int) -> str:
     )
 
 
+def nothing_to_run(run_dir: Path, rounds: int, stop_at: float | None) -> str | None:
+    """What a resume of the run in ``run_dir`` with ``rounds`` and ``eval.stop_at`` says
+    instead of starting anything (one line): the run is complete, or stopped at the target the
+    resume keeps. None when there is a round to run."""
+    done = completed_round(run_dir / "checkpoints", rounds)
+    if done is not None:
+        return complete_message(run_dir, done)
+    return stopped_early_message(run_dir, stop_at)
+
+
+def stopped_early_message(run_dir: Path, stop_at: float | None) -> str | None:
+    """What a resume says instead of starting anything when the run stopped at
+    ``eval.stop_at`` (``summary.json``'s ``stopped_early``, at its newest valid checkpoint) and
+    the resume keeps that target; None otherwise. As with a complete run, one line and
+    nothing run: the target is reached."""
+    try:
+        summary = json.loads((run_dir / "summary.json").read_text(encoding="utf-8"))
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError):
+        return None
+    stopped = summary.get("stopped_early") if isinstance(summary, dict) else None
+    if not isinstance(stopped, dict) or stopped.get("stop_at") != stop_at:
+        return None
+    checkpoint = latest_valid_checkpoint(run_dir / "checkpoints")
+    if checkpoint is None or checkpoint.round != stopped.get("round"):
+        return None  # resumed since, past the round it stopped at
+    return (
+        f"{run_dir} stopped early: round {checkpoint.round}'s evaluation reached "
+        f"eval.stop_at={stop_at:g}, nothing to run (resume with another eval.stop_at, or "
+        "eval.stop_at=null, to continue it)\n"
+    )
+
+
 def interrupted_message(run_dir: Path, resume_command: str) -> str:
     """Where a stopped run is and how to continue it (one line)."""
     checkpoint = latest_valid_checkpoint(run_dir / "checkpoints") if run_dir.is_dir() else None

@@ -25,7 +25,21 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from fedhpg.common.config import ConfigError, RunConfig
-from fedhpg.common.runtime.cli import EXIT_RUN_ABORTED, EXIT_USAGE, Interrupted, stop_signals
+from fedhpg.common.runtime.cli import (
+    EXIT_RUN_ABORTED,
+    EXIT_USAGE,
+    HELP_FLAGS,
+    Interrupted,
+    answer_version,
+    compose,
+    fail,
+    repeated_key,
+    setup_logging,
+    stop_signals,
+    unknown_flag,
+)
+from fedhpg.common.runtime.composition import own_overrides
+from fedhpg.common.runtime.help import help_text
 from fedhpg.common.runtime.progress import Progress
 from fedhpg.common.runtime.run_files import METRICS_NAME
 from fedhpg.server.cluster_engines import (
@@ -44,6 +58,7 @@ from fedhpg.server.cluster_units import (
     describe,
     server_command,
 )
+from fedhpg.server.run_dir import RunDirectory
 
 logger = logging.getLogger(__name__)
 
@@ -80,11 +95,14 @@ class Placement:
         return [self.server, *(a.job for a in self.agents)]
 
 
+AGENT_PLACED_KEYS = ("agent.index", "agent.first", "agent.count")
+"""Keys that :func:`~fedhpg.server.cluster_units.agent_commands` gives each agent unit."""
+
+
 def check_placement(run: RunConfig, overrides: Sequence[str]) -> Path:
     """What ``fedhpg-cluster`` checks before it submits anything; returns the run directory."""
     from fedhpg.common.wire.security import check_launch_keys
     from fedhpg.server.assembly import check_run
-    from fedhpg.server.run_dir import RunDirectory
 
     if run.resume:
         raise ConfigError(
@@ -92,6 +110,10 @@ def check_placement(run: RunConfig, overrides: Sequence[str]) -> Path:
             "fedhpg-cluster starts new runs; resume one with fedhpg-server resume=true "
             "server.out_dir=DIR and its agents (docs/running.md, Resuming)",
         )
+    placed = [o.split("=", 1)[0].lstrip("+") for o in overrides]
+    for key in AGENT_PLACED_KEYS:
+        if key in placed:  # each agent job's command line gives it once: its own
+            raise ConfigError(key, "fedhpg-cluster sets it for each agent job; leave it out")
     check_run(run, distributed=True)
     check_launch_keys(run)
     units = len(agent_commands(run, overrides))
@@ -341,21 +363,9 @@ def place(run: RunConfig, overrides: Sequence[str], run_dir: Path, engine: Engin
 
 def main(argv: Sequence[str] | None = None) -> None:
     """Check everything (one-line errors, exit 2, nothing submitted), then place the run."""
-    from fedhpg.common.runtime.cli import (
-        HELP_FLAGS,
-        answer_version,
-        compose,
-        fail,
-        own_overrides,
-        setup_logging,
-        unknown_flag,
-    )
-
     args = list(sys.argv[1:] if argv is None else argv)
     answer_version("fedhpg-cluster", args)
     if any(a in HELP_FLAGS for a in args):
-        from fedhpg.common.runtime.help import help_text
-
         sys.stdout.write(help_text("fedhpg-cluster"))
         sys.exit(0)
     if any(a in ("-m", "--multirun") for a in args):
@@ -368,7 +378,7 @@ def main(argv: Sequence[str] | None = None) -> None:
                 )
             )
         )
-    flag = unknown_flag(args, known=())
+    flag = unknown_flag(args, known=()) or repeated_key(args)
     if flag is not None:
         sys.exit(fail(flag))
     setup_logging()

@@ -11,11 +11,13 @@ from __future__ import annotations
 
 import contextlib
 import ctypes
+import errno
 import gc
 import logging
 import multiprocessing
 import os
 import signal
+import socket
 import sys
 import time
 from collections.abc import Callable
@@ -32,7 +34,34 @@ from fedhpg.common.config import (
     host_id_of,
     host_ranges,
 )
-from fedhpg.common.runtime.cli import EXIT_RUN_ABORTED
+from fedhpg.common.engine.devices import check_device_before_fork
+from fedhpg.common.runtime.cli import (
+    EXIT_RUN_ABORTED,
+    EXIT_USAGE,
+    HELP_FLAGS,
+    PRINTING_FLAGS,
+    Interrupted,
+    answer_version,
+    compose,
+    compose_sweep,
+    limit_threads,
+    repeated_key,
+    report_presets,
+    setup_logging,
+    stop_signals,
+    unknown_flag,
+)
+from fedhpg.common.runtime.composition import (
+    compose_cfg,
+    own_overrides,
+    register_schema,
+    to_run_config,
+    with_algorithm_strategy,
+)
+from fedhpg.common.runtime.help import help_text
+from fedhpg.common.runtime.progress import announced_if_slow
+from fedhpg.common.runtime.resume import resume_value
+from fedhpg.server.run_dir import RunDirectory, RunDirectoryError, new_run_dir
 
 logger = logging.getLogger(__name__)
 
@@ -64,7 +93,6 @@ def _server_child(run: RunConfig, out_dir: str, ready: Connection) -> None:
     import zmq
 
     from fedhpg.server.pools import FederationError
-    from fedhpg.server.run_dir import RunDirectoryError
     from fedhpg.server.serving import bind_error, serve
 
     try:
@@ -186,15 +214,16 @@ class Supervisor:
 
 
 def check_launch(run: RunConfig) -> None:
-    """What fedhpg-run checks of a composed run before starting anything: the run as its
-    server will (:func:`~fedhpg.server.assembly.check_run`), every agent's key files,
-    loopback."""
-    from fedhpg.common.engine.devices import check_device_before_fork
+    """What fedhpg-run checks of a composed run before starting anything (no compile, no
+    fork): the run as its server will (:func:`~fedhpg.server.assembly.check_run`), a resume's
+    run directory and checkpoint as its server will (a refusal is immediate, not after the
+    compiled engine's kernels are compiled), every agent's key files, loopback."""
     from fedhpg.common.wire.security import check_launch_keys
-    from fedhpg.server.assembly import check_run
-    from fedhpg.server.run_dir import RunDirectory
+    from fedhpg.server.assembly import check_run, resume_checkpoint
 
-    check_run(run, distributed=True)
+    checked = check_run(run, distributed=True)
+    if run.resume:
+        resume_checkpoint(run, RunDirectory(_resolve_out_dir(run)), checked.strategy)
     if run.server.transport == "tcp" and run.server.bind_all:
         raise ConfigError("server.bind_all", "fedhpg-run runs every process here: keep loopback")
     check_launch_keys(run)  # security: every agent's key, before anything is forked
@@ -206,8 +235,6 @@ def check_launch(run: RunConfig) -> None:
 def launch(run: RunConfig, out_dir: Path) -> int:
     """Run a whole federation on loopback; returns the process exit status (128 + the
     signal's number when SIGINT or SIGTERM stopped it, after saying how to continue)."""
-    from fedhpg.common.runtime.cli import Interrupted, stop_signals
-
     supervisor = Supervisor(max_restarts=run.agent.max_restarts)
     try:
         with stop_signals():
@@ -280,7 +307,6 @@ def prepare_compiled_engine(run: RunConfig) -> None:
     if not uses_compiled_engine(run):
         return
     from fedhpg.common.batched.backend import warm_up
-    from fedhpg.common.runtime.progress import announced_if_slow
 
     with announced_if_slow(
         "compiling the compiled engine's CartPole kernels (numba): the first run after an "
@@ -321,8 +347,6 @@ def _resolve_out_dir(run: RunConfig) -> Path:
 
         return Path(HydraConfig.get().runtime.output_dir)
     except ValueError:  # not under Hydra's job machinery (a resume, the API)
-        from fedhpg.server.run_dir import new_run_dir
-
         return new_run_dir(run)
 
 
@@ -337,9 +361,6 @@ def check_endpoint(run: RunConfig) -> None:
     cannot listen on is a setting: one line, exit 2. A named port that something else holds
     is one line and exit 1: the setting is valid, the machine's state is what fails (as with
     a full disk), and the same command may work a minute later."""
-    import errno
-    import socket
-
     if run.server.transport != "tcp":
         return
     host, port = run.server.host, run.server.port
@@ -378,15 +399,6 @@ that exists."""
 def _hydra_task(cfg: object) -> None:
     from hydra.core.hydra_config import HydraConfig
 
-    from fedhpg.common.runtime.cli import (
-        compose_cfg,
-        limit_threads,
-        own_overrides,
-        setup_logging,
-        to_run_config,
-        with_algorithm_strategy,
-    )
-
     setup_logging()  # a sweep job may run in a fresh process (joblib's, submitit's launchers)
     overrides = HydraConfig.get().overrides
     task = list(overrides.task)
@@ -415,30 +427,12 @@ def main() -> None:
     job machinery, so no outputs/ directory appears). Then Hydra runs the job(s)."""
     import hydra
 
-    from fedhpg.common.runtime.cli import (
-        EXIT_USAGE,
-        HELP_FLAGS,
-        PRINTING_FLAGS,
-        answer_version,
-        compose,
-        compose_sweep,
-        limit_threads,
-        own_overrides,
-        register_schema,
-        report_presets,
-        setup_logging,
-        unknown_flag,
-    )
-    from fedhpg.common.runtime.resume import resume_value
-
     args = sys.argv[1:]
     answer_version("fedhpg-run", args)
     if any(a in HELP_FLAGS for a in args):
-        from fedhpg.common.runtime.help import help_text
-
         sys.stdout.write(help_text("fedhpg-run"))
         sys.exit(0)
-    flag = unknown_flag(args)
+    flag = unknown_flag(args) or repeated_key(args)  # as typed, before hydra.run.dir is added
     if flag is not None:
         sys.stderr.write(f"error: {flag}\n")
         sys.exit(EXIT_USAGE)
@@ -468,12 +462,12 @@ def main() -> None:
     if runs and not multirun:
         report_presets(overrides)
     if resume:
-        from fedhpg.server.checkpoint import complete_message, completed_round
+        from fedhpg.server.checkpoint import nothing_to_run
 
-        directory = _resolve_out_dir(runs[0])
-        done = completed_round(directory / "checkpoints", runs[0].rounds)
-        if done is not None:  # nothing to run: say so rather than start agents for nothing
-            sys.stdout.write(complete_message(directory, done))
+        run = runs[0]
+        finished = nothing_to_run(_resolve_out_dir(run), run.rounds, run.eval.stop_at)
+        if finished is not None:  # say so rather than start agents for nothing
+            sys.stdout.write(finished)
             sys.exit(0)
         limit_threads()
         sys.exit(run_federation(runs[0], port=port))

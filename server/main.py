@@ -15,9 +15,8 @@ import zmq
 from fedhpg.common.config import RunConfig
 from fedhpg.common.runtime.cli import run_entry
 from fedhpg.server.checkpoint import (
-    complete_message,
-    completed_round,
     interrupted_message,
+    nothing_to_run,
     write_atomic,
 )
 from fedhpg.server.pools import FederationError
@@ -31,8 +30,9 @@ def _main(run: RunConfig) -> int:
     out_dir = Path(run.server.out_dir) if run.server.out_dir else new_run_dir(run)
     if run.resume and run.resume.lower() != "true":
         out_dir = Path(run.resume)
-    if run.resume and (done := completed_round(out_dir / "checkpoints", run.rounds)) is not None:
-        sys.stdout.write(complete_message(out_dir, done))
+    finished = nothing_to_run(out_dir, run.rounds, run.eval.stop_at) if run.resume else None
+    if finished is not None:
+        sys.stdout.write(finished)
         return 0
     on_bound = None
     if run.server.endpoint_file:

@@ -35,6 +35,7 @@ from fedhpg.common.runtime.cli import (
     compose,
     fail,
     limit_threads,
+    repeated_key,
     setup_logging,
     version_text,
 )
@@ -232,6 +233,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     stray = next((o for o in overrides if o.startswith("-")), None)
     if stray is not None:
         return fail(ConfigError(stray, "not an option; see fedhpg-plan --help"))
+    repeated = repeated_key(overrides)
+    if repeated is not None:
+        return fail(repeated)
     setup_logging()
     # Imported past the argument check: a mistyped flag answers without torch's start-up.
     from fedhpg.common.planning import (

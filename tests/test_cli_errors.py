@@ -278,6 +278,57 @@ CASES: dict[str, tuple[str, list[str], str]] = {
         ["server.out_dir=/sys/fedhpg/run"],
         "server.out_dir: cannot create /sys/fedhpg/run: no directory can be made in /sys (",
     ),
+    # a key the user typed twice with different values: Hydra took the last one silently
+    "key-given-twice": (
+        "fedhpg-run",
+        ["rounds=3", "rounds=4"],
+        "rounds: given twice (rounds=3, rounds=4); give it once",
+    ),
+    "group-given-twice": (
+        "fedhpg-run",
+        ["env=cartpole", "env=acrobot"],
+        "env: given twice (env=cartpole, env=acrobot); give it once",
+    ),
+    "key-given-twice-with-a-hydra-flag": (
+        "fedhpg-run",
+        ["--cfg", "job", "rounds=3", "rounds=4"],
+        "rounds: given twice (rounds=3, rounds=4); give it once",
+    ),
+    "key-given-twice-in-a-sweep": (
+        "fedhpg-run",
+        ["-m", "seed=0,1", "+rounds=3", "rounds=4"],
+        "rounds: given twice (+rounds=3, rounds=4); give it once",
+    ),
+    "resume-given-twice": (
+        "fedhpg-run",
+        [f"resume={RUN_DIR}", "resume=elsewhere"],
+        f"resume: given twice (resume={RUN_DIR}, resume=elsewhere); give it once",
+    ),
+    "server-key-given-twice": (
+        "fedhpg-server",
+        ["seed=1", "seed=2"],
+        "seed: given twice (seed=1, seed=2); give it once",
+    ),
+    "agent-key-given-twice": (
+        "fedhpg-agent",
+        ["agent.index=0", "agent.index=1"],
+        "agent.index: given twice (agent.index=0, agent.index=1); give it once",
+    ),
+    "cluster-key-given-twice": (
+        "fedhpg-cluster",
+        ["cluster=local", "agents.num_agents=2", "agents.num_agents=3"],
+        "agents.num_agents: given twice (agents.num_agents=2, agents.num_agents=3); give it once",
+    ),
+    "cluster-agent-index": (  # each agent job gets its own: a second one would be refused there
+        "fedhpg-cluster",
+        ["cluster=local", "agent.index=1"],
+        "agent.index: fedhpg-cluster sets it for each agent job; leave it out",
+    ),
+    "plan-key-given-twice": (
+        "fedhpg-plan",
+        ["rounds=3", "rounds=4"],
+        "rounds: given twice (rounds=3, rounds=4); give it once",
+    ),
     # a section's name where a config group goes: an OmegaConf type message before
     "section-for-group": (
         "fedhpg-run",

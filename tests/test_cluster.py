@@ -39,6 +39,12 @@ TINY = [
 ]  # fmt: skip
 
 
+def tiny(*overrides: str) -> list[str]:
+    """TINY with ``overrides`` in place of its own values: a command line gives a key once."""
+    keys = {o.split("=", 1)[0] for o in overrides}
+    return [*(o for o in TINY if o.split("=", 1)[0] not in keys), *overrides]
+
+
 def _run(args: list[str], cwd: Path, *, env: dict[str, str] | None = None) -> subprocess.Popen:
     """The command under the reaper, in a process group of its own (submitit's local jobs stay
     in it), so that a failing test can end all of it."""
@@ -204,7 +210,7 @@ def test_a_federation_placed_through_submitit_equals_the_same_run_here(tmp_path:
 def test_agent_hosts_placed_through_submitit_equal_the_same_run_here(tmp_path: Path) -> None:
     """With agents.per_host the job array holds the hosts: agents 0..1 and agent 2."""
     run_dir = tmp_path / "run"
-    keys = [*TINY, "agents.num_agents=3", "agents.per_host=2"]
+    keys = tiny("agents.num_agents=3", "agents.per_host=2")
     process = _run(
         [str(BIN / "fedhpg-cluster"), "cluster=local", f"server.out_dir={run_dir}", *keys],
         tmp_path,
@@ -246,7 +252,7 @@ def test_a_crashed_agent_job_is_resubmitted_and_a_dead_server_ends_all(tmp_path:
     process = _run(
         [
             str(BIN / "fedhpg-cluster"), "cluster=local", f"server.out_dir={run_dir}",
-            *TINY, "rounds=1000000", "eval.every=1000000",
+            *tiny("rounds=1000000", "eval.every=1000000"),
         ],
         tmp_path,
         env={"FEDHPG_LOG_LEVEL": "WARNING"},
@@ -284,7 +290,7 @@ def test_ctrl_c_stops_the_jobs_of_a_driver_started_with_sigint_ignored(tmp_path:
         process = _run(
             [
                 str(BIN / "fedhpg-cluster"), "cluster=local", f"server.out_dir={run_dir}",
-                *TINY, "rounds=1000000", "eval.every=1000000",
+                *tiny("rounds=1000000", "eval.every=1000000"),
             ],
             tmp_path,
         )  # fmt: skip

@@ -20,7 +20,7 @@ from fedhpg.common.config import (
     to_dict,
     unknown_key,
 )
-from fedhpg.common.runtime.cli import compose, compose_sweep
+from fedhpg.common.runtime.cli import compose, compose_sweep, repeated_key
 
 
 def test_default_config_composes_and_validates() -> None:
@@ -184,3 +184,29 @@ def test_an_integer_beyond_64_bits_is_refused_by_its_key() -> None:
         compose([f"agents.budget.batch_size=[4,{2**63}]"])
     assert error.value.key == "agents.budget.batch_size[1]"
     assert compose([f"seed={2**63 - 1}"]).seed == 2**63 - 1
+
+
+def test_a_key_typed_twice_with_different_values_is_refused() -> None:
+    """The rule every entry point applies to its own argv, as typed."""
+    for args, key, first, second in [
+        (["rounds=3", "rounds=4"], "rounds", "rounds=3", "rounds=4"),
+        (["env=cartpole", "env=acrobot"], "env", "env=cartpole", "env=acrobot"),
+        (["+algo.step_size=0.1", "algo.step_size=0.2"], "algo.step_size", "+algo.step_size=0.1",
+         "algo.step_size=0.2"),
+        (["-m", "seed=0,1", "rounds=3", "seed=2"], "seed", "seed=0,1", "seed=2"),
+        (["hydra.run.dir=a", "hydra.run.dir=b"], "hydra.run.dir", "hydra.run.dir=a",
+         "hydra.run.dir=b"),
+    ]:  # fmt: skip
+        error = repeated_key(args)
+        assert error is not None, args
+        assert str(error) == f"{key}: given twice ({first}, {second}); give it once"
+    # the same value twice loses nothing; flags, their values and deletions are no keys
+    assert repeated_key(["server.out_dir=run", "rounds=3", "server.out_dir=run"]) is None
+    assert repeated_key(["--cfg", "job", "-cn", "config", "~eval.stop_at", "rounds=3"]) is None
+
+
+def test_a_programs_own_list_of_overrides_keeps_hydras_last_wins() -> None:
+    """compose (and the Python API on it) takes a list a program built, where appending an
+    override to replace a base one is deliberate."""
+    assert compose(["rounds=3", "rounds=4"]).rounds == 4
+    assert compose(["env=cartpole", "env=acrobot"]).env.family == "acrobot"

@@ -156,7 +156,8 @@ def test_agents_of_a_run_the_server_aborts_are_not_restarted(tmp_path: Path) -> 
 def test_a_stopped_server_says_how_to_continue(tmp_path: Path) -> None:
     from procs import free_port
 
-    keys = [*LONG_RUN, "agents.num_agents=1", f"server.port={free_port()}", "server.out_dir=run"]
+    one = [k if not k.startswith("agents.num_agents=") else "agents.num_agents=1" for k in LONG_RUN]
+    keys = [*one, f"server.port={free_port()}", "server.out_dir=run"]
     with processes() as started:
         server = start(started, "fedhpg-server", keys, cwd=tmp_path)
         agent = start(started, "fedhpg-agent", [*keys, "agent.index=0"], cwd=tmp_path)

@@ -129,7 +129,8 @@ def test_a_plugin_strategy_selects_among_the_participating_agents() -> None:
 
 
 def test_distributed_uniform_sampling_equals_in_process_bit_for_bit(tmp_path: Path) -> None:
-    keys = [*UNIFORM, "rounds=4", "seed=9", "agents.num_agents=4"]
+    # a command line as typed: agents.num_agents once (UNIFORM has 5)
+    keys = [k.replace("num_agents=5", "num_agents=4") for k in UNIFORM] + ["rounds=4", "seed=9"]
     out_dir = tmp_path / "run"
     with processes() as started:
         launcher = start(

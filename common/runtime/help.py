@@ -8,10 +8,14 @@ from __future__ import annotations
 import ast
 import dataclasses
 import inspect
+import re
+import shutil
+import textwrap
 from typing import Any
 
 from fedhpg.common import config as config_module
 from fedhpg.common.config import RunConfig, flatten
+from fedhpg.common.runtime.composition import hydra_context
 
 USAGE = {
     "fedhpg-run": "[-m] [group=option ...] [key=value ...]",
@@ -59,8 +63,6 @@ MORE = (
 
 def line_width() -> int:
     """The terminal's width (``COLUMNS`` where set), within :data:`WIDTHS`."""
-    import shutil
-
     columns = shutil.get_terminal_size((100, 24)).columns
     return min(max(columns, WIDTHS[0]), WIDTHS[1])
 
@@ -68,8 +70,6 @@ def line_width() -> int:
 def _entry(left: str, doc: str, width: int) -> list[str]:
     """A key and its description, wrapped at words into a column beside it (below it when the
     key is wider than the column): nothing is cut."""
-    import textwrap
-
     column = KEY_COLUMN if width - KEY_COLUMN >= 30 else 8
     if not doc:
         return [left]
@@ -102,8 +102,6 @@ def field_docs() -> dict[str, dict[str, str]]:
 
 def _first_sentence(text: str) -> str:
     """The docstring's first sentence (a period before a capital), on one line."""
-    import re
-
     text = " ".join(text.replace("``", "").split())
     first = re.split(r"(?<!e\.g)(?<!i\.e)(?<=[a-z0-9)'\]])\. (?=[A-Z])", text, maxsplit=1)[0]
     return first.rstrip(".")
@@ -130,8 +128,6 @@ def _defaults() -> tuple[dict[str, Any], dict[str, list[str]], dict[str, str]]:
     from hydra.core.global_hydra import GlobalHydra
     from omegaconf import OmegaConf
 
-    from fedhpg.common.runtime.cli import hydra_context
-
     with hydra_context():
         loader = GlobalHydra.instance().config_loader()
         groups = {
@@ -153,8 +149,6 @@ def help_text(program: str, width: int | None = None) -> str:
     """The help of ``program``, at most ``width`` columns (default: :func:`line_width`); only a
     key's default longer than that runs past it."""
     width = line_width() if width is None else width
-    import textwrap
-
     values, groups, chosen = _defaults()
     about = (
         f"{WHAT.get(program, '')} Settings are Hydra overrides of conf/config.yaml, typed by "
@@ -197,8 +191,6 @@ def help_text(program: str, width: int | None = None) -> str:
 
 
 def _group_entry(name: str, options: list[str], width: int) -> list[str]:
-    import textwrap
-
     head = f"  {name + '=':<12} "
     wrapped = textwrap.wrap(
         ", ".join(options),

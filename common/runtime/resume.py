@@ -8,8 +8,8 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
-from fedhpg.common.config import ConfigError, RunConfig, fixed_difference, to_dict
-from fedhpg.common.runtime.cli import NO_RESUME, compose_cfg, hydra_errors, to_run_config
+from fedhpg.common.config import ConfigError, RunConfig, fixed_difference, flatten, to_dict
+from fedhpg.common.runtime.composition import NO_RESUME, compose_cfg, hydra_errors, to_run_config
 from fedhpg.common.runtime.run_files import holds_run
 
 
@@ -66,8 +66,6 @@ def compose_resume(overrides: list[str]) -> RunConfig:
     from hydra.core.global_hydra import GlobalHydra
     from hydra.core.override_parser.overrides_parser import OverridesParser
     from omegaconf import DictConfig, OmegaConf
-
-    from fedhpg.common.config import flatten
 
     directory = resume_directory(overrides)
     before = run_config_file(directory)
