@@ -21,6 +21,7 @@ from fedhpg.common.population import (
     validate_population,
 )
 from fedhpg.common.registry import OptionError, import_plugins, parse_options
+from fedhpg.common.vocabularies import ROUND_POLICIES
 
 logger = logging.getLogger(__name__)
 
@@ -169,7 +170,7 @@ def _check_plan(run: RunConfig, algorithm: Algorithm[Any, Any]) -> None:
             "agents.plan",
             "theorem1 plans from Theorem 1's estimated constants: set algo.bound_estimates=true",
         )
-    if run.server.round_policy == "buffered":
+    if ROUND_POLICIES.get(run.server.round_policy).asynchronous:
         # the planner prices wait-all rounds (a round lasts as long as its slowest agent)
         raise ConfigError(
             "agents.plan",

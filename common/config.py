@@ -22,10 +22,11 @@ import re
 from dataclasses import dataclass, field
 from typing import Any
 
+from fedhpg.common.config_error import ConfigError
 from fedhpg.common.limits import MAX_HOST_AGENTS
+from fedhpg.common.registry import Registry, import_plugins
+from fedhpg.common.vocabularies import ATTACKS, BASELINES, CLOCKS, ESTIMATORS, ROUND_POLICIES
 
-ESTIMATORS: tuple[str, ...] = ("reinforce", "gpomdp")
-BASELINES: tuple[str, ...] = ("none", "mean")
 REWARD_TO_GO: tuple[str, ...] = ("from_start", "from_step")
 NORMALIZE: tuple[str, ...] = ("none", "batch", "episode")
 OPTIMIZERS = ("sgd", "adam")
@@ -33,12 +34,9 @@ ENGINES = ("auto", "torch")
 ENV_PATHS = ("auto", "gymnasium")
 DEVICE_PATTERN = re.compile(r"cpu|cuda(:\d+)?")
 """``algo.device``: a torch device name the torch engine accepts."""
-ATTACKS = ("none", "zero_gradient", "random_noise", "sign_flip", "reward_flip", "random_action")
 SCHEDULES = ("constant", "periodic", "random_walk")
 PLANS = ("none", "theorem1")
-CLOCKS = ("measured", "counted")
 TRANSPORTS = ("tcp", "ipc")
-ROUND_POLICIES = ("wait_all", "deadline", "buffered")
 STALENESS_WEIGHTS = ("inverse_sqrt", "constant")
 PARTICIPATION_MODES = ("all", "uniform", "trace")
 TOLERANCE_CHECKS = ("refuse", "warn")
@@ -51,14 +49,6 @@ LOG_STDS = ("state_independent", "state_dependent")
 # dead. (Defaults of ServerConfig; fedhpg.common.wire.protocol re-exports them.)
 HEARTBEAT_INTERVAL_S = 1.0
 HEARTBEAT_LIVENESS = 5
-
-
-class ConfigError(ValueError):
-    """A configuration value is wrong; ``key`` is its dotted path."""
-
-    def __init__(self, key: str, message: str) -> None:
-        super().__init__(f"{key}: {message}")
-        self.key = key
 
 
 GYM_FAMILY = "gym"
@@ -851,8 +841,10 @@ def _require(condition: bool, key: str, message: str) -> None:
         raise ConfigError(key, message)
 
 
-def _check_choice(value: str, key: str, allowed: tuple[str, ...]) -> None:
-    _require(value in allowed, key, f"got {value!r}, allowed: {', '.join(allowed)}")
+def _check_choice(value: str, key: str, allowed: tuple[str, ...] | Registry[Any]) -> None:
+    """``value`` one of ``allowed``: a closed tuple, or an open vocabulary's names."""
+    names = allowed.names() if isinstance(allowed, Registry) else allowed
+    _require(value in names, key, f"got {value!r}, allowed: {', '.join(names)}")
 
 
 def _check_number(value: Any, key: str, *, low: float, low_open: bool = False) -> None:
@@ -921,7 +913,7 @@ def _validate_algo(algo: AlgoConfig) -> None:
     _check_choice(algo.baseline, "algo.baseline", BASELINES)
     _check_choice(algo.reward_to_go, "algo.reward_to_go", REWARD_TO_GO)
     _check_choice(algo.normalize, "algo.normalize", NORMALIZE)
-    if algo.estimator != "gpomdp":
+    if not ESTIMATORS.get(algo.estimator).per_step:
         _require(
             algo.reward_to_go == "from_start",
             "algo.reward_to_go",
@@ -1072,7 +1064,9 @@ def _validate_host_range(agent: AgentConfig, num_agents: int) -> None:
 
 def validate(config: RunConfig) -> RunConfig:
     """Check every value this module can judge; raise :class:`ConfigError` naming the first bad
-    key. (Names and options of registry entries: :func:`fedhpg.common.components.validate_run`.)"""
+    key. The ``plugins`` are imported first, so the names they register in the vocabularies
+    (:mod:`fedhpg.common.vocabularies`) are known. (Names and options of the algorithm and
+    strategy registries: :func:`fedhpg.common.components.validate_run`.)"""
     _check_wire_ints(to_dict(config), "")
     _check_int(config.seed, "seed", low=0)
     _check_int(config.rounds, "rounds", low=1)
@@ -1082,6 +1076,8 @@ def validate(config: RunConfig) -> RunConfig:
             f"plugins[{i}]",
             f"got {module!r}, must be a module name",
         )
+    # before the names they may register (attacks, clocks, round policies, ...) are checked
+    import_plugins(list(config.plugins))
     _validate_env(config.env)
     _validate_algo(config.algo)
     _validate_agents(config.agents)
@@ -1211,7 +1207,9 @@ def agents_per_host(run: RunConfig, cores: int | None = None) -> int:
         return int(per_host)
     cores = available_cores() if cores is None else cores
     num_agents = run.agents.num_agents
-    if run.server.round_policy == "buffered" or num_agents <= max(AUTO_PROCESS_AGENTS, cores):
+    if ROUND_POLICIES.get(run.server.round_policy).asynchronous or num_agents <= max(
+        AUTO_PROCESS_AGENTS, cores
+    ):
         return 1
     return min(-(-num_agents // cores), MAX_HOST_AGENTS)
 

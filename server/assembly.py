@@ -43,6 +43,7 @@ from fedhpg.common.config import (
 from fedhpg.common.runtime.run_files import PROGRESS_NAME
 from fedhpg.common.types import EvaluationStats
 from fedhpg.common.variants import discount, run_variants, variant_of
+from fedhpg.common.vocabularies import ROUND_POLICIES
 from fedhpg.common.worker import initial_theta
 from fedhpg.envs.base import EnvVariant
 from fedhpg.server.buffered import BufferedCoordinator
@@ -132,11 +133,11 @@ def _check_privacy(run: RunConfig, strategy: Strategy[Any]) -> PrivateRounds | N
             f"got {mode!r} with weights by trajectories: one agent's weight would be unbounded "
             "in the sum DP protects; use strategy=mean (or fedadam over it)",
         )
-    if run.server.round_policy == "buffered":
+    if ROUND_POLICIES.get(run.server.round_policy).asynchronous:
         raise ConfigError(
             "server.round_policy",
-            f"got 'buffered'; privacy.mode={mode} accounts and masks synchronous rounds: use "
-            "wait_all or deadline",
+            f"got {run.server.round_policy!r}; privacy.mode={mode} accounts and masks "
+            "synchronous rounds: use wait_all or deadline",
         )
     if mode in ("secagg", "dp_secagg"):
         _check_secure_rounds(run)
@@ -170,7 +171,7 @@ def _check_secure_rounds(run: RunConfig) -> None:
 def _check_round_policy(run: RunConfig, strategy: Strategy[Any], *, distributed: bool) -> None:
     """What ``server.round_policy=buffered`` cannot combine with (config.py checks the keys'
     own ranges)."""
-    if run.server.round_policy != "buffered":
+    if not ROUND_POLICIES.get(run.server.round_policy).asynchronous:
         return
     if run.strategy.participation.mode != "all":
         raise ConfigError(
@@ -181,8 +182,9 @@ def _check_round_policy(run: RunConfig, strategy: Strategy[Any], *, distributed:
     if not strategy.buffered:
         raise ConfigError(
             "server.round_policy",
-            f"got 'buffered'; strategy={strategy.name} aggregates every agent's update at one "
-            "θ̃ each round, not buffered updates of different ages: use wait_all",
+            f"got {run.server.round_policy!r}; strategy={strategy.name} aggregates every "
+            "agent's update at one θ̃ each round, not buffered updates of different ages: "
+            "use wait_all",
         )
     if distributed and agents_per_host(run) > 1:
         raise ConfigError(
@@ -301,11 +303,11 @@ def resume_point(
             "resume",
             f"the checkpoint holds no state of strategy {strategy.name!r}; it cannot be resumed",
         )
-    if run.server.round_policy == "buffered" and checkpoint.schedule is None:
+    if ROUND_POLICIES.get(run.server.round_policy).asynchronous and checkpoint.schedule is None:
         raise ConfigError(
             "server.round_policy",
-            "got 'buffered', but the checkpoint was written by synchronous rounds (it holds no "
-            "buffered schedule); resume with the run's own round policy",
+            f"got {run.server.round_policy!r}, but the checkpoint was written by synchronous "
+            "rounds (it holds no buffered schedule); resume with the run's own round policy",
         )
     kept = run_dir.checked_metrics(checkpoint.metrics_lines)
     write_atomic(run_dir.metrics, "".join(line + "\n" for line in kept).encode())
@@ -385,7 +387,8 @@ class Assembly:
         """The round loop over ``pool``: ``buffered`` (the kind that reaches the pool's agents)
         with ``server.round_policy=buffered``, else the synchronous one."""
         self.pool = pool
-        kind = buffered if self.run.server.round_policy == "buffered" else Coordinator
+        asynchronous = ROUND_POLICIES.get(self.run.server.round_policy).asynchronous
+        kind = buffered if asynchronous else Coordinator
         return kind(
             run=self.run,
             pool=pool,

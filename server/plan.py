@@ -38,6 +38,7 @@ from fedhpg.common.runtime.cli import (
     setup_logging,
     version_text,
 )
+from fedhpg.common.vocabularies import CLOCKS
 from fedhpg.server.replan import round_overhead_s
 
 if TYPE_CHECKING:
@@ -260,8 +261,9 @@ def main(argv: Sequence[str] | None = None) -> int:
             )
     except ValueError as error:  # ConfigError is one
         return fail(error if isinstance(error, ConfigError) else ConfigError("plan", str(error)))
-    cost = args.cost or ("horizon" if run.agents.clock == "counted" else "pilot")
-    if cost == "horizon" and run.agents.clock != "counted":
+    counted = CLOCKS.get(run.agents.clock).counts_work
+    cost = args.cost or ("horizon" if counted else "pilot")
+    if cost == "horizon" and not counted:
         return fail(
             ConfigError("--cost", "'horizon' prices the counted clock: agents.clock=counted")
         )

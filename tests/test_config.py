@@ -133,7 +133,8 @@ def test_the_config_module_imports_no_heavy_library() -> None:
     """Every process imports the config first: it must not pull torch, zmq or gymnasium
     (import-linter checks the static imports; this checks what really gets loaded)."""
     probe = (
-        "import sys, fedhpg.common.config, fedhpg.common.registry, fedhpg.common.types; "
+        "import sys, fedhpg.common.config, fedhpg.common.registry, fedhpg.common.types, "
+        "fedhpg.common.vocabularies; "
         "print([m for m in ('torch', 'zmq', 'gymnasium', 'hydra') if m in sys.modules])"
     )
     result = subprocess.run(

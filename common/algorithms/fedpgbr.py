@@ -22,6 +22,7 @@ from fedhpg.common.algorithms import GRADIENTS, Algorithm, register_algorithm
 from fedhpg.common.config import AlgoConfig, ConfigError
 from fedhpg.common.engine.round import Round
 from fedhpg.common.registry import OptionError
+from fedhpg.common.vocabularies import ESTIMATORS
 
 SCHEDULE_KEY = 0x46504252
 """Third word of the (seed, round, key) seed of a round's B_t and N_t: no agent stream
@@ -90,7 +91,7 @@ class FedPGBR(Algorithm[FedPGBRParams, FedPGBRBudget]):
         return rows.theta + mu
 
     def check(self, settings: AlgoConfig, params: FedPGBRParams) -> None:
-        if settings.estimator != "gpomdp":
+        if not ESTIMATORS.get(settings.estimator).per_step:
             raise ConfigError(
                 "algo.estimator",
                 f"FedPG-BR's gradients are GPOMDP's, got {settings.estimator!r}: set "
