@@ -22,8 +22,8 @@ from __future__ import annotations
 
 import torch
 
-from fedhpg.common.config import AttackConfig
 from fedhpg.common.randomness import Purpose, trajectory_keys, uniforms
+from fedhpg.common.settings.attack import AttackConfig
 from fedhpg.common.vocabularies import ATTACKS, Attack, UpdateToCorrupt
 
 HONEST = ATTACKS.get("none")

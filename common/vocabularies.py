@@ -25,7 +25,7 @@ from fedhpg.common.registry import Registry
 if TYPE_CHECKING:
     import torch
 
-    from fedhpg.common.config import AttackConfig
+    from fedhpg.common.settings.attack import AttackConfig
 
 
 @dataclass(frozen=True)

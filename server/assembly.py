@@ -32,15 +32,11 @@ from typing import Any
 import torch
 
 from fedhpg.common.components import validate_run
-from fedhpg.common.config import (
-    ConfigError,
-    RunConfig,
-    agents_per_host,
-    attacking_agents,
-    fixed_difference,
-    to_dict,
-)
+from fedhpg.common.config import RunConfig, attacking_agents, to_dict
+from fedhpg.common.config_error import ConfigError
 from fedhpg.common.runtime.run_files import PROGRESS_NAME
+from fedhpg.common.settings.keys import fixed_difference
+from fedhpg.common.settings.placement import agents_per_host
 from fedhpg.common.types import EvaluationStats
 from fedhpg.common.variants import discount, run_variants, variant_of
 from fedhpg.common.vocabularies import ROUND_POLICIES

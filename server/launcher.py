@@ -23,16 +23,12 @@ from dataclasses import replace
 from multiprocessing.connection import Connection
 from pathlib import Path
 
-from fedhpg.common.config import (
-    AUTO,
-    ConfigError,
-    RunConfig,
-    agents_per_host,
-    available_cores,
-    host_id_of,
-    host_ranges,
-)
+from fedhpg.common.config import RunConfig
+from fedhpg.common.config_error import ConfigError
 from fedhpg.common.runtime.cli import EXIT_RUN_ABORTED
+from fedhpg.common.settings.agents import AUTO
+from fedhpg.common.settings.ids import host_id_of
+from fedhpg.common.settings.placement import agents_per_host, available_cores, host_ranges
 
 logger = logging.getLogger(__name__)
 

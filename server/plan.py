@@ -29,7 +29,8 @@ from dataclasses import dataclass
 from typing import TYPE_CHECKING, NoReturn
 
 from fedhpg.common.components import resolve_algorithm
-from fedhpg.common.config import ConfigError, RunConfig
+from fedhpg.common.config import RunConfig
+from fedhpg.common.config_error import ConfigError
 from fedhpg.common.runtime.cli import (
     EXIT_USAGE,
     compose,

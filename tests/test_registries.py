@@ -13,7 +13,9 @@ import torch
 
 from fedhpg.common import estimators
 from fedhpg.common.attacks import corrupt_rows
-from fedhpg.common.config import AttackConfig, ConfigError, RunConfig, validate
+from fedhpg.common.config import RunConfig, validate
+from fedhpg.common.config_error import ConfigError
+from fedhpg.common.settings.attack import AttackConfig
 from fedhpg.common.staircase import Staircase
 from fedhpg.common.vocabularies import (
     ATTACKS,

@@ -19,7 +19,7 @@ from typing import Literal
 import torch
 
 from fedhpg.common.algorithms import Algorithm, at_least_one, register_algorithm
-from fedhpg.common.config import AlgoConfig, ConfigError
+from fedhpg.common.config_error import ConfigError
 from fedhpg.common.engine.round import Round
 from fedhpg.common.engine.trajectories import Trajectories
 from fedhpg.common.estimators import clip_rows
@@ -31,6 +31,7 @@ from fedhpg.common.importance import (
 )
 from fedhpg.common.optim import make_optimizer
 from fedhpg.common.registry import OptionError
+from fedhpg.common.settings.algo import AlgoConfig
 from fedhpg.common.vocabularies import ESTIMATORS
 
 

@@ -19,9 +19,10 @@ import numpy as np
 import torch
 
 from fedhpg.common.algorithms import GRADIENTS, Algorithm, register_algorithm
-from fedhpg.common.config import AlgoConfig, ConfigError
+from fedhpg.common.config_error import ConfigError
 from fedhpg.common.engine.round import Round
 from fedhpg.common.registry import OptionError
+from fedhpg.common.settings.algo import AlgoConfig
 from fedhpg.common.vocabularies import ESTIMATORS
 
 SCHEDULE_KEY = 0x46504252

@@ -8,8 +8,8 @@ from dataclasses import dataclass
 import torch
 
 from fedhpg.common import estimators
-from fedhpg.common.config import AlgoConfig
 from fedhpg.common.engine.trajectories import Trajectories
+from fedhpg.common.settings.algo import AlgoConfig
 
 
 @dataclass(frozen=True)

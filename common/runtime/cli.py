@@ -15,8 +15,10 @@ import sys
 from collections.abc import Callable, Iterator, Sequence
 from typing import Any
 
-from fedhpg.common.config import ConfigError, RunConfig, unknown_key
+from fedhpg.common.config import RunConfig
+from fedhpg.common.config_error import ConfigError
 from fedhpg.common.runtime import timeline
+from fedhpg.common.settings.keys import unknown_key
 
 logger = logging.getLogger(__name__)
 
@@ -177,7 +179,7 @@ def _value_of(key: str, overrides: Sequence[str]) -> str | None:
 
 def _is_section(key: str) -> bool:
     """Whether ``key`` names a section of settings (``agent``, ``agents.population``)."""
-    from fedhpg.common.config import all_keys
+    from fedhpg.common.settings.keys import all_keys
 
     return any(k.startswith(f"{key}.") for k in all_keys())
 
@@ -206,7 +208,7 @@ def _closest_group(key: str, overrides: Sequence[str]) -> str | None:
 
 def _typo(key: str) -> str | None:
     """Why ``key`` is no fedhpg key (with the nearest one), or None if it could be one."""
-    from fedhpg.common.config import FREE_DICTS
+    from fedhpg.common.settings.keys import FREE_DICTS
 
     if any(key.startswith(f"{free}.") for free in FREE_DICTS):
         return None
@@ -344,7 +346,7 @@ def preset_changes(overrides: Sequence[str]) -> list[str]:
     from hydra.core.global_hydra import GlobalHydra
     from omegaconf import OmegaConf
 
-    from fedhpg.common.config import flatten
+    from fedhpg.common.settings.keys import flatten
 
     loader = GlobalHydra.instance().config_loader()
     group_names = {name for name in loader.list_groups("") if name != "hydra"}

@@ -8,9 +8,11 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
-from fedhpg.common.config import ConfigError, RunConfig, fixed_difference, to_dict
+from fedhpg.common.config import RunConfig, to_dict
+from fedhpg.common.config_error import ConfigError
 from fedhpg.common.runtime.cli import NO_RESUME, compose_cfg, hydra_errors, to_run_config
 from fedhpg.common.runtime.run_files import holds_run
+from fedhpg.common.settings.keys import fixed_difference
 
 
 def settle_auto(overrides: Sequence[str]) -> list[str]:
@@ -67,7 +69,7 @@ def compose_resume(overrides: list[str]) -> RunConfig:
     from hydra.core.override_parser.overrides_parser import OverridesParser
     from omegaconf import DictConfig, OmegaConf
 
-    from fedhpg.common.config import flatten
+    from fedhpg.common.settings.keys import flatten
 
     directory = resume_directory(overrides)
     before = run_config_file(directory)

@@ -13,7 +13,7 @@ from __future__ import annotations
 
 from collections.abc import Callable, Collection, Mapping
 
-from fedhpg.common.config import ServerConfig
+from fedhpg.common.settings.server import ServerConfig
 from fedhpg.common.vocabularies import ROUND_POLICIES
 from fedhpg.server.pools import FederationError
 

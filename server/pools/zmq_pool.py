@@ -34,8 +34,8 @@ from typing import Any
 import torch
 import zmq
 
-from fedhpg.common.config import ServerConfig
 from fedhpg.common.privacy.contribution import RoundPrivacy
+from fedhpg.common.settings.server import ServerConfig
 from fedhpg.common.types import EvaluationStats
 from fedhpg.common.vocabularies import ROUND_POLICIES
 from fedhpg.common.wire.codec import ProtocolError
