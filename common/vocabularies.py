@@ -18,14 +18,20 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import dataclass
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Protocol
 
 from fedhpg.common.registry import Registry
 
 if TYPE_CHECKING:
     import torch
 
-    from fedhpg.common.settings.attack import AttackConfig
+
+class AttackScales(Protocol):
+    """The scales of the run's ``attack`` section an attack may read
+    (:class:`~fedhpg.common.settings.attack.AttackConfig`)."""
+
+    sign_flip_scale: float
+    noise_scale: float
 
 
 @dataclass(frozen=True)
@@ -36,7 +42,7 @@ class UpdateToCorrupt:
     """θ̃, the round's starting parameters [d]."""
     delta: torch.Tensor
     """Δ_k = θ_k − θ̃, the update the agent would honestly send [d]."""
-    options: AttackConfig
+    options: AttackScales
     """The run's ``attack`` section (its scales)."""
     uniforms: Callable[[], torch.Tensor]
     """U[0, 1) draws, one per coordinate, from the agent's (seed, agent, round) attack

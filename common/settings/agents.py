@@ -133,6 +133,9 @@ def validate_agents(agents: AgentsConfig) -> None:
         check_number(agents.plan_max_return, "agents.plan_max_return", low=-math.inf)
     check_int(agents.plan_batch_max, "agents.plan_batch_max", low=2)
     check_int(agents.plan_local_iters_max, "agents.plan_local_iters_max", low=1)
+    # agents.population: fedhpg.common.components.validate_run (its distributions are numpy's)
 
 
 AUTO = "auto"
+"""``agents.per_host=auto``: as many agents per process as
+:func:`fedhpg.common.settings.placement.agents_per_host` chooses."""

@@ -22,14 +22,14 @@ class AttackConfig:
     """'none', 'zero_gradient' (send θ̃ back), 'random_noise' (add uniform noise of
     ``noise_scale`` × the update's range), 'sign_flip' (send −``sign_flip_scale`` × the
     update), 'reward_flip' (learn from negated rewards), 'random_action' (act uniformly at
-    random while sampling)."""
+    random while sampling), or a name a plugin registers in
+    :data:`~fedhpg.common.vocabularies.ATTACKS`."""
     agents: list[int] = field(default_factory=list)
     """Indices of the attacking agents."""
     sign_flip_scale: float = 2.5
     """'sign_flip': the update sent is −scale × the honest one (FedPG-BR: 2.5)."""
     noise_scale: float = 3.0
     """'random_noise': noise U(−1, 1) × scale × (max − min of the honest update) (FedPG-BR: 3)."""
-    # agents.population: fedhpg.common.components.validate_run (its distributions are numpy's)
 
 
 def validate_attack(attack: AttackConfig, num_agents: int) -> None:

@@ -10,8 +10,6 @@ from typing import Any
 from fedhpg.common.config_error import ConfigError
 from fedhpg.common.registry import Registry
 
-# --- checks -----------------------------------------------------------------------------------
-
 
 def per_agent(values: list[Any], index: int) -> Any:
     """Agent ``index``'s entry of a per-agent list (one entry = every agent's)."""

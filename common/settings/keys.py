@@ -12,8 +12,6 @@ from fedhpg.common.config import RunConfig
 from fedhpg.common.config_error import ConfigError
 from fedhpg.common.settings.roles import DIAGNOSTIC_KEYS, PLACEMENT_KEYS, groups
 
-# --- keys: typos, and what a resume may change -------------------------------------------------
-
 FREE_DICTS = (
     "env.options",
     "env.kwargs",

@@ -10,8 +10,6 @@ from typing import Any
 from fedhpg.common.config import RunConfig, from_dict, to_dict
 from fedhpg.common.config_error import ConfigError
 
-# --- what each top-level key is for: the one declaration --------------------------------------
-
 
 @dataclass(frozen=True, kw_only=True)
 class GroupRole:
