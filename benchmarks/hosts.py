@@ -71,7 +71,7 @@ def server_side_us(num_params: int, rounds: int = 5) -> list[float]:
     import torch
     import zmq
 
-    from fedhpg.common.config import ServerConfig
+    from fedhpg.common.settings.server import ServerConfig
     from fedhpg.common.types import UpdateColumns, UpdateStats
     from fedhpg.common.variants import range_digest
     from fedhpg.common.wire.codec import encode

@@ -50,12 +50,13 @@ import torch
 from benchmarks.device_reference import measure as reference
 from benchmarks.scale_refs import cpu_description
 from fedhpg.common.batched.backend import CompiledBackend
-from fedhpg.common.config import DEVICE_PATTERN, RunConfig
+from fedhpg.common.config import RunConfig
 from fedhpg.common.engine.devices import device_problem
 from fedhpg.common.group import EngineGroup, make_agent_group
 from fedhpg.common.policies import get_flat_params
 from fedhpg.common.runtime.cli import compose
 from fedhpg.common.runtime.memory import pin_malloc_mmap_threshold
+from fedhpg.common.settings.algo import DEVICE_PATTERN
 from fedhpg.common.variants import variants_of
 from fedhpg.common.worker import build_policy, initial_theta
 

@@ -13,24 +13,26 @@ Only agents listed in ``attack.agents`` attack, and only when ``attack.kind`` is
 - ``random_action``: the agent acts uniformly at random while sampling (a faulty actuator),
   and computes its gradient for those actions.
 
-Every random draw comes from the agent's (seed, agent, round) stream, so attacks are as
-reproducible as honest work, in one process or many.
+Each is an entry of :data:`~fedhpg.common.vocabularies.ATTACKS`, which declares what it does;
+a plugin registers more. Every random draw comes from the agent's (seed, agent, round)
+stream, so attacks are as reproducible as honest work, in one process or many.
 """
 
 from __future__ import annotations
 
 import torch
 
-from fedhpg.common.config import AttackConfig
 from fedhpg.common.randomness import Purpose, trajectory_keys, uniforms
+from fedhpg.common.settings.attack import AttackConfig
+from fedhpg.common.vocabularies import ATTACKS, Attack, UpdateToCorrupt
 
-UPDATE_ATTACKS = ("zero_gradient", "random_noise", "sign_flip")
-SAMPLING_ATTACKS = ("reward_flip", "random_action")
+HONEST = ATTACKS.get("none")
+"""What an agent that does not attack does."""
 
 
-def attack_of(attack: AttackConfig, agent_index: int) -> str:
-    """The attack agent ``agent_index`` carries out ('none' for an honest agent)."""
-    return attack.kind if agent_index in attack.agents else "none"
+def attack_of(attack: AttackConfig, agent_index: int) -> Attack:
+    """The attack agent ``agent_index`` carries out (:data:`HONEST` for an honest agent)."""
+    return ATTACKS.get(attack.kind) if agent_index in attack.agents else HONEST
 
 
 def corrupt_rows(
@@ -43,31 +45,30 @@ def corrupt_rows(
     round_index: int,
 ) -> torch.Tensor:
     """The θ_k rows the agents send: ``honest`` [A, d] where the agent is honest or attacks
-    its sampling, the corrupted update where it attacks its update (from θ̃ = ``start``).
-    ``random_noise`` draws from the agent's (seed, agent, round) attack stream."""
-    if attack.kind not in UPDATE_ATTACKS or not attack.agents:
+    its sampling, the corrupted update where it poisons its update (from θ̃ = ``start``).
+    Random draws come from the agent's (seed, agent, round) attack stream."""
+    if not attack.agents or not ATTACKS.get(attack.kind).poisons_update:
         return honest
     kinds = [attack_of(attack, k) for k in agents]
-    if not any(kind in UPDATE_ATTACKS for kind in kinds):
+    if not any(kind.poisons_update for kind in kinds):
         return honest
     sent = honest.clone()
     delta = honest - start
     for row, kind in enumerate(kinds):
-        if kind == "zero_gradient":
-            sent[row] = start
-        elif kind == "sign_flip":
-            sent[row] = start - attack.sign_flip_scale * delta[row]
-        elif kind == "random_noise":
-            spread = float(delta[row].max() - delta[row].min()) if delta.shape[1] else 0.0
+        if kind.corrupt is None:
+            continue
+
+        def draws(agent: int = agents[row]) -> torch.Tensor:
             key = trajectory_keys(
                 seed,
-                torch.tensor([agents[row]]),
+                torch.tensor([agent]),
                 round_index,
                 Purpose.ATTACK,
                 0,
                 torch.zeros(1, dtype=torch.int64),
             )
-            coordinates = torch.arange(delta.shape[1], device=key.device)
-            noise = (2.0 * uniforms(key, coordinates) - 1.0) * attack.noise_scale * spread
-            sent[row] = start + delta[row] + noise.to(sent.device, sent.dtype)
+            return uniforms(key, torch.arange(delta.shape[1], device=key.device))
+
+        update = UpdateToCorrupt(start=start, delta=delta[row], options=attack, uniforms=draws)
+        sent[row] = kind.corrupt(update)
     return sent

@@ -11,7 +11,8 @@ from dataclasses import dataclass
 from typing import Any
 
 from fedhpg.common.algorithms import ALGORITHMS, Algorithm
-from fedhpg.common.config import ConfigError, RunConfig, per_agent, validate
+from fedhpg.common.config import RunConfig, validate
+from fedhpg.common.config_error import ConfigError
 from fedhpg.common.population import (
     DEVICE_FIELDS,
     budget_domain,
@@ -21,6 +22,8 @@ from fedhpg.common.population import (
     validate_population,
 )
 from fedhpg.common.registry import OptionError, import_plugins, parse_options
+from fedhpg.common.settings.checks import per_agent
+from fedhpg.common.vocabularies import ROUND_POLICIES
 
 logger = logging.getLogger(__name__)
 
@@ -169,7 +172,7 @@ def _check_plan(run: RunConfig, algorithm: Algorithm[Any, Any]) -> None:
             "agents.plan",
             "theorem1 plans from Theorem 1's estimated constants: set algo.bound_estimates=true",
         )
-    if run.server.round_policy == "buffered":
+    if ROUND_POLICIES.get(run.server.round_policy).asynchronous:
         # the planner prices wait-all rounds (a round lasts as long as its slowest agent)
         raise ConfigError(
             "agents.plan",

@@ -38,6 +38,7 @@ import numpy as np
 
 from fedhpg.common.config import RunConfig
 from fedhpg.common.population import device_value
+from fedhpg.common.vocabularies import CLOCKS
 
 if TYPE_CHECKING:
     from fedhpg.common.round_columns import IterationColumns
@@ -138,7 +139,7 @@ class DeviceModel:
 
     @property
     def counted(self) -> bool:
-        return self.clock == "counted"
+        return CLOCKS.get(self.clock).counts_work
 
     def speed_at(self, round_index: int) -> float:
         """The device speed during ``round_index`` (rounds count from 1)."""
@@ -258,7 +259,7 @@ class DeviceColumns:
         if len(clocks) > 1:
             raise ValueError(f"one clock per run, not {sorted(clocks)}")
         self.devices = list(devices)
-        self.counted = clocks == {"counted"}
+        self.counted = bool(clocks) and CLOCKS.get(next(iter(clocks))).counts_work
         self.step_delay_s = np.array([d.step_delay_s for d in devices], dtype=np.float64)
         self.latency_s = np.array([d.latency_s for d in devices], dtype=np.float64)
         self.step_cost_s = np.array([d.step_cost_s for d in devices], dtype=np.float64)

@@ -31,12 +31,14 @@ from typing import Literal
 import torch
 from torch.func import functional_call, grad, vmap
 
-from fedhpg.common.config import ESTIMATORS
 from fedhpg.common.policies import Policy, flat_grad
 from fedhpg.common.staircase import Staircase, ordered_sums
+from fedhpg.common.vocabularies import BASELINES, ESTIMATORS
 
-EstimatorName = Literal["reinforce", "gpomdp"]
-BaselineName = Literal["none", "mean"]
+EstimatorName = str
+"""A name in :data:`~fedhpg.common.vocabularies.ESTIMATORS` (an open vocabulary)."""
+BaselineName = str
+"""A name in :data:`~fedhpg.common.vocabularies.BASELINES`."""
 RewardToGoName = Literal["from_start", "from_step"]
 NormalizeName = Literal["none", "batch", "episode"]
 
@@ -134,19 +136,19 @@ def coefficients(
     Then ``normalize`` (a departure, biased): the coefficients standardised over the alive
     cells of each agent's batch (``"batch"``) or of each trajectory (``"episode"``).
     """
-    if estimator not in ESTIMATORS:
-        raise ValueError(f"estimator must be one of {ESTIMATORS}, got {estimator!r}")
+    per_step = ESTIMATORS.get(estimator).per_step  # a ConfigError (a ValueError) if unknown
+    subtracts_mean = BASELINES.get(baseline).subtracts_mean
     group = (
         groups
         if groups is not None
         else torch.zeros(layout.columns, dtype=torch.int64, device=rewards.device)
     )
     mask = None if alive is None else alive.to(rewards.dtype)
-    if estimator == "reinforce":
+    if not per_step:
         if reward_to_go != "from_start":
             raise ValueError("reward_to_go='from_step' needs estimator 'gpomdp'")
         totals = layout.column_totals(_discounts(gamma, layout, rewards).mul_(rewards))
-        centred = totals - _leave_one_out_mean(totals, group) if baseline == "mean" else totals
+        centred = totals - _leave_one_out_mean(totals, group) if subtracts_mean else totals
         if weights is not None:
             if weights.shape[0] != layout.columns:
                 raise ValueError("REINFORCE takes one importance weight per trajectory")
@@ -166,7 +168,7 @@ def coefficients(
                     (layout.columns,), gamma, dtype=rewards.dtype, device=rewards.device
                 )
             )
-        if baseline == "mean":
+        if subtracts_mean:
             values = _less_step_baseline(layout, values, group)
         if weights is not None:
             values = values * _cell_weights(layout, weights)

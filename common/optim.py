@@ -9,7 +9,7 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-from fedhpg.common.config import AlgoConfig
+from fedhpg.common.settings.algo import AlgoConfig
 from fedhpg.common.types import SavedState
 
 

@@ -26,7 +26,8 @@ import torch
 from torch import nn
 from torch.func import functional_call
 
-from fedhpg.common.config import LOG_STDS, ConfigError, PolicyConfig
+from fedhpg.common.config_error import ConfigError
+from fedhpg.common.settings.policy import LOG_STDS, PolicyConfig
 from fedhpg.envs.spaces import is_image
 
 Params = dict[str, torch.Tensor]

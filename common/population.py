@@ -20,7 +20,10 @@ from typing import Any
 
 import numpy as np
 
-from fedhpg.common.config import ConfigError, PopulationConfig, RunConfig, per_agent
+from fedhpg.common.config import RunConfig
+from fedhpg.common.config_error import ConfigError
+from fedhpg.common.settings.agents import PopulationConfig
+from fedhpg.common.settings.checks import per_agent
 from fedhpg.envs import distributions
 
 KINDS = ("none", "drawn", "trace")

@@ -1,13 +1,16 @@
 """Names in the config that pick code: a small registry, and typed options parsed from plain maps.
 
 Algorithms (``algo.name``), server strategies (``strategy.name``) and environment families
-(``env.family``) are registry entries. The package's own entries are the modules of one
-sub-package (found with :mod:`pkgutil`, so adding one is adding its file); a user adds more
-from outside by importing a module that registers them, named in ``plugins=[my.module]``.
+(``env.family``) are registry entries; so are the choices of :mod:`fedhpg.common.vocabularies`
+(attacks, estimators, baselines, clocks, round policies). The package's own algorithms and
+strategies are the modules of one sub-package (found with :mod:`pkgutil`, so adding one is
+adding its file); a user adds more from outside by importing a module that registers them,
+named in ``plugins=[my.module]``.
 
 Options of an entry (``algo.params``, ``strategy.params``, one agent's ``agents.budget``) are a
 frozen dataclass of the entry's own; :func:`parse_options` builds it from the composed map and
-names the first bad key in a :class:`~fedhpg.common.config.ConfigError`. Pure Python: no torch.
+names the first bad key in a :class:`~fedhpg.common.config_error.ConfigError`. Pure Python:
+no torch.
 """
 
 from __future__ import annotations
@@ -21,7 +24,7 @@ import typing
 from collections.abc import Callable, Iterator, Mapping
 from typing import Any, Generic, TypeVar
 
-from fedhpg.common.config import ConfigError
+from fedhpg.common.config_error import ConfigError
 
 T = TypeVar("T")
 OptionsT = TypeVar("OptionsT")
@@ -30,7 +33,9 @@ OptionsT = TypeVar("OptionsT")
 class Registry(Generic[T]):
     """Entries by name; the package's own are imported from ``package`` on first use."""
 
-    def __init__(self, what: str, key: str, package: str | None = None) -> None:
+    def __init__(
+        self, what: str, key: str, package: str | None = None, *, in_order: bool = False
+    ) -> None:
         self.what = what
         """What an entry is, for messages ('algorithm')."""
         self.key = key
@@ -38,6 +43,9 @@ class Registry(Generic[T]):
         self._package = package
         self._entries: dict[str, T] = {}
         self._discovered = package is None
+        self._in_order = in_order
+        """Names listed in the order they were registered (a vocabulary lists its built-in
+        choices first, in the order its messages always gave them), not sorted."""
 
     def register(self, name: str) -> Callable[[T], T]:
         """Decorator: ``@ALGORITHMS.register("fedhpg")``. A name is taken once."""
@@ -62,7 +70,7 @@ class Registry(Generic[T]):
 
     def names(self) -> list[str]:
         self._discover()
-        return sorted(self._entries)
+        return list(self._entries) if self._in_order else sorted(self._entries)
 
     def get(self, name: str) -> T:
         """The entry, or a ConfigError naming ``key`` and the known names."""
@@ -77,8 +85,7 @@ class Registry(Generic[T]):
         return entry
 
     def __iter__(self) -> Iterator[tuple[str, T]]:
-        self._discover()
-        return iter(sorted(self._entries.items()))
+        return iter([(name, self._entries[name]) for name in self.names()])
 
 
 def import_plugins(modules: list[str]) -> None:

@@ -11,7 +11,8 @@ import hashlib
 from collections.abc import Iterable, Iterator, Sequence
 from typing import Any, overload
 
-from fedhpg.common.config import GYM_FAMILY, RunConfig
+from fedhpg.common.config import RunConfig
+from fedhpg.common.settings.env import GYM_FAMILY
 from fedhpg.envs.base import EnvVariant
 from fedhpg.envs.registry import make_variants_at
 

@@ -20,7 +20,8 @@ from typing import Any
 import numpy as np
 import torch
 
-from fedhpg.common.config import ConfigError, RunConfig, from_dict, to_dict
+from fedhpg.common.config import RunConfig, from_dict, to_dict
+from fedhpg.common.config_error import ConfigError
 from fedhpg.common.group import make_agent_group
 from fedhpg.common.policies import Policy, get_flat_params, register_policy, set_flat_params
 from fedhpg.common.registry import import_plugins

@@ -52,7 +52,9 @@ from typing import Any, Protocol
 import numpy as np
 import torch
 
-from fedhpg.common.config import RunConfig, ServerConfig, agent_id_of
+from fedhpg.common.config import RunConfig
+from fedhpg.common.settings.ids import agent_id_of
+from fedhpg.common.settings.server import ServerConfig
 from fedhpg.common.types import (
     EvaluationStats,
     RoundResult,

@@ -19,8 +19,9 @@ from typing import Any
 import numpy as np
 import torch
 
-from fedhpg.common.config import RunConfig, agent_id_of
+from fedhpg.common.config import RunConfig
 from fedhpg.common.runtime import timeline
+from fedhpg.common.settings.ids import agent_id_of
 from fedhpg.common.types import EvaluationStats, RoundResult, SavedState
 from fedhpg.server.bound_report import round_bound
 from fedhpg.server.participation import make_participation

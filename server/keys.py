@@ -36,7 +36,6 @@ from typing import NoReturn
 import zmq
 import zmq.auth
 
-from fedhpg.common.config import host_id_of, host_ranges
 from fedhpg.common.key_names import BIND, parse_binding
 from fedhpg.common.privacy.signing import (
     SIGN_SECRET_SUFFIX,
@@ -45,6 +44,8 @@ from fedhpg.common.privacy.signing import (
     write_key_pair,
 )
 from fedhpg.common.runtime.cli import version_text
+from fedhpg.common.settings.ids import host_id_of
+from fedhpg.common.settings.placement import host_ranges
 from fedhpg.common.wire.security import (
     ALLOWED_DIR,
     PUBLIC_SUFFIX,

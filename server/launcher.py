@@ -25,15 +25,8 @@ from dataclasses import replace
 from multiprocessing.connection import Connection
 from pathlib import Path
 
-from fedhpg.common.config import (
-    AUTO,
-    ConfigError,
-    RunConfig,
-    agents_per_host,
-    available_cores,
-    host_id_of,
-    host_ranges,
-)
+from fedhpg.common.config import RunConfig
+from fedhpg.common.config_error import ConfigError
 from fedhpg.common.engine.devices import check_device_before_fork
 from fedhpg.common.runtime.cli import (
     EXIT_RUN_ABORTED,
@@ -61,6 +54,9 @@ from fedhpg.common.runtime.composition import (
 from fedhpg.common.runtime.help import help_text
 from fedhpg.common.runtime.progress import announced_if_slow
 from fedhpg.common.runtime.resume import resume_value
+from fedhpg.common.settings.agents import AUTO
+from fedhpg.common.settings.ids import host_id_of
+from fedhpg.common.settings.placement import agents_per_host, available_cores, host_ranges
 from fedhpg.server.run_dir import RunDirectory, RunDirectoryError, new_run_dir
 
 logger = logging.getLogger(__name__)

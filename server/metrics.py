@@ -197,7 +197,9 @@ HPARAM_METRICS = ("eval/mean/return", "eval/min/return", "fed/trajectories_per_a
 def hyperparameters(run: RunConfig) -> dict[str, int | float | str | bool]:
     """What tells runs apart, for TensorBoard's HParams dashboard and W&B's config: every key
     of the groups plots compare runs by, and the seed (lists and dicts as text)."""
-    from fedhpg.common.config import flatten, groups, to_dict
+    from fedhpg.common.config import to_dict
+    from fedhpg.common.settings.keys import flatten
+    from fedhpg.common.settings.roles import groups
 
     values = to_dict(run)
     chosen = {key: values[key] for key in (*groups("compared"), "seed", "rounds")}

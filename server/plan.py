@@ -29,7 +29,8 @@ from dataclasses import dataclass
 from typing import TYPE_CHECKING, NoReturn
 
 from fedhpg.common.components import resolve_algorithm
-from fedhpg.common.config import ConfigError, RunConfig
+from fedhpg.common.config import RunConfig
+from fedhpg.common.config_error import ConfigError
 from fedhpg.common.runtime.cli import (
     EXIT_USAGE,
     compose,
@@ -39,6 +40,7 @@ from fedhpg.common.runtime.cli import (
     setup_logging,
     version_text,
 )
+from fedhpg.common.vocabularies import CLOCKS
 from fedhpg.server.replan import round_overhead_s
 
 if TYPE_CHECKING:
@@ -264,8 +266,9 @@ def main(argv: Sequence[str] | None = None) -> int:
             )
     except ValueError as error:  # ConfigError is one
         return fail(error if isinstance(error, ConfigError) else ConfigError("plan", str(error)))
-    cost = args.cost or ("horizon" if run.agents.clock == "counted" else "pilot")
-    if cost == "horizon" and run.agents.clock != "counted":
+    counted = CLOCKS.get(run.agents.clock).counts_work
+    cost = args.cost or ("horizon" if counted else "pilot")
+    if cost == "horizon" and not counted:
         return fail(
             ConfigError("--cost", "'horizon' prices the counted clock: agents.clock=counted")
         )

@@ -46,7 +46,8 @@ from typing import Any
 import numpy as np
 import torch
 
-from fedhpg.common.config import ConfigError, RunConfig
+from fedhpg.common.config import RunConfig
+from fedhpg.common.config_error import ConfigError
 from fedhpg.common.privacy import accounting, dp
 from fedhpg.common.privacy.accounting import Sampling
 from fedhpg.common.privacy.contribution import EXTRA, RoundPrivacy, average, contribution

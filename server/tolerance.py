@@ -20,6 +20,7 @@ from __future__ import annotations
 from typing import TYPE_CHECKING, Any
 
 from fedhpg.common.config import RunConfig
+from fedhpg.common.vocabularies import ROUND_POLICIES
 from fedhpg.server.participation import smallest_participation
 
 if TYPE_CHECKING:
@@ -28,12 +29,13 @@ if TYPE_CHECKING:
 
 def smallest_set(run: RunConfig) -> tuple[int, str]:
     """The fewest rows a round of ``run`` may aggregate, and the setting that makes it so."""
-    if run.server.round_policy == "buffered":
+    policy = ROUND_POLICIES.get(run.server.round_policy)
+    if policy.asynchronous:
         return run.agents.num_agents, "buffered rounds aggregate every agent's latest update"
     rows, why = smallest_participation(run)
-    if run.server.round_policy == "deadline" and run.server.min_agents < rows:
+    if policy.quorum and run.server.min_agents < rows:
         rows = run.server.min_agents
-        why = f"server.round_policy=deadline with server.min_agents={rows}"
+        why = f"server.round_policy={run.server.round_policy} with server.min_agents={rows}"
     return rows, why
 
 

@@ -18,9 +18,9 @@ from dataclasses import dataclass
 import torch
 
 from fedhpg.common.algorithms import Algorithm, at_least_one, register_algorithm
-from fedhpg.common.config import AlgoConfig
 from fedhpg.common.engine.round import Round
 from fedhpg.common.registry import OptionError
+from fedhpg.common.settings.algo import AlgoConfig
 from fedhpg.server.strategies import CoordinateRule, NoParams, register_strategy
 
 

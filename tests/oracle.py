@@ -14,13 +14,13 @@ import numpy as np
 import torch
 
 from fedhpg.common.bounds import bound_stats, gradient_moments
-from fedhpg.common.config import AlgoConfig
 from fedhpg.common.estimators import (
     estimate_gradient,
     estimator_coefficients,
     per_trajectory_gradients,
 )
 from fedhpg.common.policies import Policy
+from fedhpg.common.settings.algo import AlgoConfig
 from fedhpg.envs.base import BatchEnv
 
 

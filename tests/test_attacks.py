@@ -8,10 +8,10 @@ import pytest
 import torch
 
 from fedhpg.common.attacks import corrupt_rows
-from fedhpg.common.config import AttackConfig
 from fedhpg.common.engine.engine import Engine
 from fedhpg.common.engine.sampling import _random_actions
 from fedhpg.common.runtime.cli import compose
+from fedhpg.common.settings.attack import AttackConfig
 from fedhpg.common.variants import variants_of
 from fedhpg.common.worker import initial_theta
 from fedhpg.server.assembly import run_in_process

@@ -13,8 +13,9 @@ from typing import Any
 import pytest
 import torch
 
-from fedhpg.common.config import ConfigError, ServerConfig
+from fedhpg.common.config_error import ConfigError
 from fedhpg.common.group import TIMING_STATS
+from fedhpg.common.settings.server import ServerConfig
 from fedhpg.common.types import UpdateStats
 from fedhpg.server import api
 from fedhpg.server.buffered import BufferedSchedule, InFlight, buffer_rows

@@ -14,7 +14,8 @@ import numpy as np
 import pytest
 import torch
 
-from fedhpg.common.config import ConfigError, to_dict
+from fedhpg.common.config import to_dict
+from fedhpg.common.config_error import ConfigError
 from fedhpg.common.runtime.cli import compose
 from fedhpg.common.types import SavedState
 from fedhpg.server.assembly import resume_point

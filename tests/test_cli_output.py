@@ -303,7 +303,7 @@ def test_the_demo_says_it_sleeps_and_a_preset_says_what_it_changed(tmp_path: Pat
 
 
 def test_fedpgbr_brings_its_strategy_unless_one_is_named() -> None:
-    from fedhpg.common.config import ConfigError
+    from fedhpg.common.config_error import ConfigError
     from fedhpg.common.runtime.cli import compose
 
     assert compose(["algo=fedpgbr"]).strategy.name == "fedpgbr"

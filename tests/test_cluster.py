@@ -24,7 +24,7 @@ import pytest
 import torch
 from procs import BIN, child_pids, sigint_ignored, wait_until
 
-from fedhpg.common.config import ConfigError
+from fedhpg.common.config_error import ConfigError
 from fedhpg.common.runtime.cli import compose
 from fedhpg.server import api
 from fedhpg.server.checkpoint import latest_valid_checkpoint

@@ -20,7 +20,8 @@ import pytest
 import torch
 from procs import processes, start
 
-from fedhpg.common.config import ConfigError, RunConfig, validate
+from fedhpg.common.config import RunConfig, validate
+from fedhpg.common.config_error import ConfigError
 from fedhpg.common.device import GRAD_PARAMS_UNIT, DeviceColumns, DeviceModel, message_bytes
 from fedhpg.common.group import make_agent_group
 from fedhpg.common.round_columns import IterationColumns

@@ -8,7 +8,7 @@ from __future__ import annotations
 import pytest
 import torch
 
-from fedhpg.common.config import ConfigError
+from fedhpg.common.config_error import ConfigError
 from fedhpg.common.engine import devices as maths
 from fedhpg.common.engine.devices import DeviceUnavailable, check_device
 from fedhpg.server import api

@@ -39,7 +39,7 @@ from test_estimators_exact import (
     max_standard_errors,
 )
 
-from fedhpg.common.config import ConfigError
+from fedhpg.common.config_error import ConfigError
 from fedhpg.common.engine.engine import Engine
 from fedhpg.common.estimators import (
     estimate_gradient,

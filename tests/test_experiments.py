@@ -8,7 +8,8 @@ from pathlib import Path
 import pytest
 from procs import BIN, processes, start
 
-from fedhpg.common.config import ConfigError, to_dict
+from fedhpg.common.config import to_dict
+from fedhpg.common.config_error import ConfigError
 from fedhpg.common.runtime.cli import compose
 from fedhpg.server.api import resolve_config
 from fedhpg.server.plot import main as plot_main

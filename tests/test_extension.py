@@ -15,7 +15,7 @@ import pytest
 import torch
 from procs import processes, start
 
-from fedhpg.common.config import ConfigError
+from fedhpg.common.config_error import ConfigError
 from fedhpg.common.group import EngineGroup, make_agent_group
 from fedhpg.common.runtime.cli import compose
 from fedhpg.common.variants import run_variants

@@ -24,7 +24,7 @@ from exact_mdp import (
 from fedhpg.common.algorithms.fedhpgvr import FedHPGVRParams, semi_stochastic_gradient
 from fedhpg.common.algorithms.fedpgbr import FedPGBRParams, round_schedule
 from fedhpg.common.byzantine_filter import byzantine_filter, neighbour_distance
-from fedhpg.common.config import ConfigError
+from fedhpg.common.config_error import ConfigError
 from fedhpg.server import api
 
 K, DIM, BATCH = 10, 400, 16

@@ -27,8 +27,8 @@ import torch
 import zmq
 from procs import free_port, processes, start
 
-from fedhpg.common.config import ServerConfig
 from fedhpg.common.runtime.cli import compose
+from fedhpg.common.settings.server import ServerConfig
 from fedhpg.common.types import UpdateColumns, UpdateStats
 from fedhpg.common.variants import range_digest
 from fedhpg.common.wire.codec import MAX_HEADER_BYTES, decode, encode

@@ -7,15 +7,13 @@ import platform
 import pytest
 import torch
 
-from fedhpg.common.config import (
-    AgentsConfig,
-    AlgoConfig,
-    EnvConfig,
-    EvalConfig,
-    RunConfig,
-    StrategyConfig,
-)
+from fedhpg.common.config import RunConfig
 from fedhpg.common.runtime.memory import pin_malloc_mmap_threshold
+from fedhpg.common.settings.agents import AgentsConfig
+from fedhpg.common.settings.algo import AlgoConfig
+from fedhpg.common.settings.env import EnvConfig
+from fedhpg.common.settings.policy import EvalConfig
+from fedhpg.common.settings.strategy import StrategyConfig
 from fedhpg.common.variants import run_variants
 from fedhpg.common.worker import initial_theta
 from fedhpg.server.assembly import run_in_process

@@ -11,7 +11,7 @@ from collections.abc import Iterator
 import pytest
 import zmq
 
-from fedhpg.common.config import ServerConfig
+from fedhpg.common.settings.server import ServerConfig
 from fedhpg.common.variants import range_digest
 from fedhpg.common.wire.codec import decode, encode
 from fedhpg.common.wire.protocol import Error, Heartbeat, Hello, Message, Welcome

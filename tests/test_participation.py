@@ -21,8 +21,9 @@ import pytest
 import torch
 from procs import BIN, QUIET, processes, start
 
-from fedhpg.common.config import ConfigError, ParticipationConfig
+from fedhpg.common.config_error import ConfigError
 from fedhpg.common.runtime.cli import compose
+from fedhpg.common.settings.strategy import ParticipationConfig
 from fedhpg.server import api
 from fedhpg.server.assembly import run_in_process
 from fedhpg.server.checkpoint import latest_valid_checkpoint

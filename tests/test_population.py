@@ -16,7 +16,8 @@ import torch
 from procs import processes, start
 
 from fedhpg.common.components import agent_profile, validate_run
-from fedhpg.common.config import ConfigError, RunConfig
+from fedhpg.common.config import RunConfig
+from fedhpg.common.config_error import ConfigError
 from fedhpg.common.device import device_for
 from fedhpg.common.population import population_value
 from fedhpg.common.runtime.cli import compose

@@ -13,7 +13,7 @@ from pathlib import Path
 import pytest
 import torch
 
-from fedhpg.common.config import ConfigError
+from fedhpg.common.config_error import ConfigError
 from fedhpg.common.privacy import accounting
 from fedhpg.server import api
 from fedhpg.server.checkpoint import latest_valid_checkpoint

@@ -21,9 +21,10 @@ import torch
 from scipy.optimize import brentq
 from scipy.stats import kstest, norm
 
-from fedhpg.common.config import ConfigError, ParticipationConfig
+from fedhpg.common.config_error import ConfigError
 from fedhpg.common.privacy import accounting, dp
 from fedhpg.common.privacy.contribution import EXTRA, RoundPrivacy, contribution
+from fedhpg.common.settings.strategy import ParticipationConfig
 from fedhpg.server import api
 from fedhpg.server.checkpoint import latest_valid_checkpoint
 from fedhpg.server.participation import Participation

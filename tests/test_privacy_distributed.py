@@ -17,9 +17,9 @@ import zmq
 from procs import BIN, free_port, processes, start
 
 from fedhpg.agent.work import AgentWork
-from fedhpg.common.config import adopt_settings
 from fedhpg.common.group import make_agent_group
 from fedhpg.common.runtime.cli import compose
+from fedhpg.common.settings.roles import adopt_settings
 from fedhpg.common.wire.codec import decode, encode
 from fedhpg.common.wire.protocol import (
     Error,

@@ -12,7 +12,7 @@ import numpy as np
 import torch
 import zmq
 
-from fedhpg.common.config import ServerConfig
+from fedhpg.common.settings.server import ServerConfig
 from fedhpg.common.types import UpdateColumns, UpdateStats
 from fedhpg.common.variants import range_digest
 from fedhpg.common.wire.codec import decode, encode

@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 import torch
 
-from fedhpg.common.config import ConfigError, PolicyConfig
+from fedhpg.common.config_error import ConfigError
 from fedhpg.common.engine.policy_rows import PolicyRows
 from fedhpg.common.policies import (
     CNNPolicy,
@@ -26,6 +26,7 @@ from fedhpg.common.policies import (
     set_flat_params,
 )
 from fedhpg.common.runtime.cli import compose
+from fedhpg.common.settings.policy import PolicyConfig
 from fedhpg.common.variants import variant_of
 from fedhpg.common.worker import build_policy
 from fedhpg.envs.spaces import is_flattened, is_image, policy_observation_space

@@ -9,7 +9,8 @@ import numpy as np
 import pytest
 import torch
 
-from fedhpg.common.config import ConfigError, StrategyConfig
+from fedhpg.common.config_error import ConfigError
+from fedhpg.common.settings.strategy import StrategyConfig
 from fedhpg.common.types import RoundResult, UpdateColumns, UpdateStats
 from fedhpg.server.strategies import STRATEGIES, make_strategy
 

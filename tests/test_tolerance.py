@@ -17,7 +17,7 @@ import pytest
 import torch
 from procs import BIN
 
-from fedhpg.common.config import ConfigError
+from fedhpg.common.config_error import ConfigError
 from fedhpg.common.runtime.cli import compose
 from fedhpg.server import api
 from fedhpg.server.strategies import make_strategy, validate_strategy

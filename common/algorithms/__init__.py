@@ -25,8 +25,8 @@ from typing import TYPE_CHECKING, Any, ClassVar, Generic, TypeVar
 
 import torch
 
-from fedhpg.common.config import AlgoConfig
 from fedhpg.common.registry import OptionError, Registry
+from fedhpg.common.settings.algo import AlgoConfig
 
 if TYPE_CHECKING:
     from fedhpg.common.engine.round import Round

@@ -17,10 +17,10 @@ import torch
 
 from fedhpg.common.algorithms import Algorithm, NoParams, at_least_one, register_algorithm
 from fedhpg.common.bounds import row_bound_statistics
-from fedhpg.common.config import AlgoConfig
 from fedhpg.common.engine.round import Round
 from fedhpg.common.estimators import clip_rows
 from fedhpg.common.optim import make_optimizer
+from fedhpg.common.settings.algo import AlgoConfig
 
 
 @dataclass(frozen=True, kw_only=True)

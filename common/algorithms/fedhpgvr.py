@@ -19,7 +19,7 @@ from typing import Literal
 import torch
 
 from fedhpg.common.algorithms import Algorithm, at_least_one, register_algorithm
-from fedhpg.common.config import AlgoConfig, ConfigError
+from fedhpg.common.config_error import ConfigError
 from fedhpg.common.engine.round import Round
 from fedhpg.common.engine.trajectories import Trajectories
 from fedhpg.common.estimators import clip_rows
@@ -31,6 +31,8 @@ from fedhpg.common.importance import (
 )
 from fedhpg.common.optim import make_optimizer
 from fedhpg.common.registry import OptionError
+from fedhpg.common.settings.algo import AlgoConfig
+from fedhpg.common.vocabularies import ESTIMATORS
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -77,7 +79,7 @@ def importance_mode(params: FedHPGVRParams, algo: AlgoConfig) -> str:
     """'trajectory' weights pair with REINFORCE, per-decision weights with GPOMDP."""
     if params.iw_mode != "auto":
         return params.iw_mode
-    return "trajectory" if algo.estimator == "reinforce" else "per_decision"
+    return "per_decision" if ESTIMATORS.get(algo.estimator).per_step else "trajectory"
 
 
 @dataclass(frozen=True)
@@ -206,7 +208,7 @@ class FedHPGVR(Algorithm[FedHPGVRParams, FedHPGVRBudget]):
                     f"algo.{key}",
                     f"FedHPGVR takes {paper!r} only (the paper's estimators), got {value!r}",
                 )
-        if params.iw_mode == "per_decision" and settings.estimator == "reinforce":
+        if params.iw_mode == "per_decision" and not ESTIMATORS.get(settings.estimator).per_step:
             raise OptionError(
                 "iw_mode",
                 "per-decision weights need estimator 'gpomdp'; REINFORCE takes 'trajectory' "

@@ -19,9 +19,11 @@ import numpy as np
 import torch
 
 from fedhpg.common.algorithms import GRADIENTS, Algorithm, register_algorithm
-from fedhpg.common.config import AlgoConfig, ConfigError
+from fedhpg.common.config_error import ConfigError
 from fedhpg.common.engine.round import Round
 from fedhpg.common.registry import OptionError
+from fedhpg.common.settings.algo import AlgoConfig
+from fedhpg.common.vocabularies import ESTIMATORS
 
 SCHEDULE_KEY = 0x46504252
 """Third word of the (seed, round, key) seed of a round's B_t and N_t: no agent stream
@@ -90,7 +92,7 @@ class FedPGBR(Algorithm[FedPGBRParams, FedPGBRBudget]):
         return rows.theta + mu
 
     def check(self, settings: AlgoConfig, params: FedPGBRParams) -> None:
-        if settings.estimator != "gpomdp":
+        if not ESTIMATORS.get(settings.estimator).per_step:
             raise ConfigError(
                 "algo.estimator",
                 f"FedPG-BR's gradients are GPOMDP's, got {settings.estimator!r}: set "

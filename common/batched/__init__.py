@@ -13,7 +13,7 @@ from __future__ import annotations
 from collections.abc import Mapping
 from typing import TYPE_CHECKING
 
-from fedhpg.common.attacks import SAMPLING_ATTACKS, attack_of
+from fedhpg.common.attacks import attack_of
 from fedhpg.common.batched.mlp import MLPShape
 from fedhpg.common.config import RunConfig
 from fedhpg.common.policies import AUTO_POLICY, MLP_CATEGORICAL
@@ -41,7 +41,7 @@ def compiled_agents(run: RunConfig, variants: Mapping[int, EnvVariant]) -> set[i
     served = {
         k
         for k, variant in variants.items()
-        if attack_of(run.attack, k) not in SAMPLING_ATTACKS and covers(variant)
+        if not attack_of(run.attack, k).samples_differently and covers(variant)
     }
     # a CartPole variant's spaces (a Box of observations, Discrete actions) make 'auto' the
     # built-in MLP categorical policy, the one the kernels compute

@@ -44,9 +44,8 @@ import torch
 from fedhpg.common.batched.kernels import kernel
 from fedhpg.common.engine.estimate import EstimatorOptions
 from fedhpg.common.estimators import NORMALIZE_EPS
+from fedhpg.common.vocabularies import BASELINES, ESTIMATORS
 
-_ESTIMATOR = {"reinforce": 0, "gpomdp": 1}
-_BASELINE = {"none": 0, "mean": 1}
 _REWARD_TO_GO = {"from_start": 0, "from_step": 1}
 _NORMALIZE = {"none": 0, "batch": 1, "episode": 2}
 _NO_WEIGHTS = np.zeros((0, 0), dtype=np.float64)
@@ -318,8 +317,8 @@ def packed_coefficients(
     Raises ValueError where the torch definition does (REINFORCE with ``from_step`` or with
     per-decision weights), for an option outside the names it knows, and for inputs that are
     not such a batch (the checks cost one pass in the compiled call)."""
-    estimator = _option(_ESTIMATOR, options.estimator, "estimator")
-    baseline = _option(_BASELINE, options.baseline, "baseline")
+    estimator = int(ESTIMATORS.get(options.estimator).per_step)  # the kernels' 0/1 code
+    baseline = int(BASELINES.get(options.baseline).subtracts_mean)
     from_step = _option(_REWARD_TO_GO, options.reward_to_go, "reward_to_go")
     normalize = _option(_NORMALIZE, options.normalize, "normalize")
     if estimator == 0 and from_step:

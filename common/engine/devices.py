@@ -14,7 +14,8 @@ from collections.abc import Iterator
 from contextlib import contextmanager
 from typing import TYPE_CHECKING
 
-from fedhpg.common.config import ConfigError, RunConfig
+from fedhpg.common.config import RunConfig
+from fedhpg.common.config_error import ConfigError
 
 if TYPE_CHECKING:
     import torch

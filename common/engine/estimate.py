@@ -8,8 +8,8 @@ from dataclasses import dataclass
 import torch
 
 from fedhpg.common import estimators
-from fedhpg.common.config import AlgoConfig
 from fedhpg.common.engine.trajectories import Trajectories
+from fedhpg.common.settings.algo import AlgoConfig
 
 
 @dataclass(frozen=True)
@@ -25,8 +25,8 @@ class EstimatorOptions:
     @classmethod
     def of(cls, algo: AlgoConfig) -> EstimatorOptions:
         return cls(
-            estimator=algo.estimator,  # type: ignore[arg-type]
-            baseline=algo.baseline,  # type: ignore[arg-type]
+            estimator=algo.estimator,
+            baseline=algo.baseline,
             reward_to_go=algo.reward_to_go,  # type: ignore[arg-type]
             normalize=algo.normalize,  # type: ignore[arg-type]
         )

@@ -169,8 +169,8 @@ class TorchBackend:
 
             self._settings[key] = _RowSettings(
                 family_row=row([self._family_rows[k] for k in agents], torch.int64),
-                random_actions=row([a == "random_action" for a in kinds], torch.bool),
-                flipped_rewards=row([a == "reward_flip" for a in kinds], torch.bool),
+                random_actions=row([a.acts_randomly for a in kinds], torch.bool),
+                flipped_rewards=row([a.flips_rewards for a in kinds], torch.bool),
             )
         return self._settings[key]
 

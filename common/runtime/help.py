@@ -1,5 +1,6 @@
 """``--help`` of the entry points, generated at help time from the config itself: the
-docstring under each field of :mod:`fedhpg.common.config` (read with ``ast``), the defaults of
+docstring under each field of :mod:`fedhpg.common.config` and its sections
+(:mod:`fedhpg.common.settings`, read with ``ast``), the defaults of
 the composed ``conf/config.yaml`` and the config groups in ``conf/``. New fields, groups and
 options appear by themselves."""
 
@@ -11,11 +12,25 @@ import inspect
 import re
 import shutil
 import textwrap
+import typing
 from typing import Any
 
 from fedhpg.common import config as config_module
-from fedhpg.common.config import RunConfig, flatten
+from fedhpg.common.config import RunConfig
 from fedhpg.common.runtime.composition import hydra_context
+from fedhpg.common.settings import (
+    agent,
+    agents,
+    algo,
+    attack,
+    cluster,
+    env,
+    policy,
+    privacy,
+    server,
+    strategy,
+)
+from fedhpg.common.settings.keys import flatten
 
 USAGE = {
     "fedhpg-run": "[-m] [group=option ...] [key=value ...]",
@@ -80,11 +95,19 @@ def _entry(left: str, doc: str, width: int) -> list[str]:
     return [f"{left:<{column}}  {lines[0]}", *(pad + line for line in lines[1:])]
 
 
+SECTION_MODULES = (env, algo, strategy, agents, attack, policy, server, agent, privacy, cluster)
+"""The modules of the config's sections, whose field docstrings ``--help`` shows."""
+
+
 def field_docs() -> dict[str, dict[str, str]]:
     """``{class name: {field: first sentence of its docstring}}`` for every config dataclass."""
-    tree = ast.parse(inspect.getsource(config_module))
     docs: dict[str, dict[str, str]] = {}
-    for node in tree.body:
+    nodes = [
+        node
+        for module in (config_module, *SECTION_MODULES)
+        for node in ast.parse(inspect.getsource(module)).body
+    ]
+    for node in nodes:
         if not isinstance(node, ast.ClassDef):
             continue
         fields = docs.setdefault(node.name, {})
@@ -111,8 +134,9 @@ def _key_docs() -> dict[str, str]:
     """Dotted key → doc, following RunConfig's nested dataclasses."""
     docs = field_docs()
     keyed: dict[str, str] = {}
+    hints = typing.get_type_hints(RunConfig)
     for top in dataclasses.fields(RunConfig):
-        nested = getattr(config_module, str(top.type), None)
+        nested = hints[top.name]
         if isinstance(nested, type) and dataclasses.is_dataclass(nested):
             for inner in dataclasses.fields(nested):
                 keyed[f"{top.name}.{inner.name}"] = docs.get(nested.__name__, {}).get(

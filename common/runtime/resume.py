@@ -8,9 +8,11 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
-from fedhpg.common.config import ConfigError, RunConfig, fixed_difference, flatten, to_dict
+from fedhpg.common.config import RunConfig, to_dict
+from fedhpg.common.config_error import ConfigError
 from fedhpg.common.runtime.composition import NO_RESUME, compose_cfg, hydra_errors, to_run_config
 from fedhpg.common.runtime.run_files import holds_run
+from fedhpg.common.settings.keys import fixed_difference, flatten
 
 
 def settle_auto(overrides: Sequence[str]) -> list[str]:

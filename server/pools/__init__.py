@@ -14,8 +14,8 @@ from typing import Protocol
 import numpy as np
 import torch
 
-from fedhpg.common.config import agent_id_of
 from fedhpg.common.privacy.contribution import RoundPrivacy
+from fedhpg.common.settings.ids import agent_id_of
 from fedhpg.common.types import EvaluationStats, RoundResult
 from fedhpg.server.validation import Rejection
 

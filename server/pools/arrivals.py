@@ -20,7 +20,7 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from fedhpg.common.config import ServerConfig
+from fedhpg.common.settings.server import ServerConfig
 from fedhpg.common.types import UpdateStats
 from fedhpg.common.wire.protocol import Train, Update
 from fedhpg.server.pools import FederationError

@@ -25,8 +25,8 @@ from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
-from fedhpg.common.config import ServerConfig
 from fedhpg.common.runtime import timeline
+from fedhpg.common.settings.server import ServerConfig
 from fedhpg.common.types import RoundResult, UpdateColumns
 from fedhpg.common.wire.protocol import (
     Evaluation,

@@ -16,7 +16,7 @@ from collections.abc import Callable, Mapping, Sequence
 import numpy as np
 import torch
 
-from fedhpg.common.config import RunConfig, agent_id_of
+from fedhpg.common.config import RunConfig
 from fedhpg.common.device import DeviceColumns, DeviceModel, device_for, message_bytes
 from fedhpg.common.group import AgentGroup, make_agent_group
 from fedhpg.common.privacy import fixedpoint
@@ -24,8 +24,10 @@ from fedhpg.common.privacy.contribution import EXTRA, RoundPrivacy, contribution
 from fedhpg.common.privacy.secagg import SecAggError, SecAggRound, fewest_inputs
 from fedhpg.common.privacy.session import LocalSecAgg
 from fedhpg.common.runtime.memory import pin_malloc_mmap_threshold, tune_malloc_for
+from fedhpg.common.settings.ids import agent_id_of
 from fedhpg.common.types import EvaluationStats, RoundResult
 from fedhpg.common.variants import variants_of
+from fedhpg.common.vocabularies import ROUND_POLICIES
 from fedhpg.envs.base import EnvVariant
 from fedhpg.server.pools import RoundAnswers, SecureSum
 from fedhpg.server.validation import Rejection, UpdateCheck
@@ -79,7 +81,7 @@ class InProcessPool:
             if problem is not None
         }
         answers = RoundAnswers(result=result.taking(accepted), failures=failures)
-        if self.run.server.round_policy == "deadline":
+        if ROUND_POLICIES.get(self.run.server.round_policy).quorum:
             answers = self._at_deadline(answers)
         if self.run.privacy.mode != "none":
             answers = dataclasses.replace(answers, result=redacted(answers.result))

@@ -13,7 +13,8 @@ from __future__ import annotations
 
 from collections.abc import Callable, Collection, Mapping
 
-from fedhpg.common.config import ServerConfig
+from fedhpg.common.settings.server import ServerConfig
+from fedhpg.common.vocabularies import ROUND_POLICIES
 from fedhpg.server.pools import FederationError
 
 
@@ -40,13 +41,14 @@ def request_complete(
     pending = [k for k in expected if k not in answered]
     if not pending:
         return True
-    if settings.round_policy == "deadline" and accepted >= settings.min_agents:
+    policy = ROUND_POLICIES.get(settings.round_policy)
+    if policy.quorum and accepted >= settings.min_agents:
         live_done = all(k in answered for k in expected if k in live)
         if live_done or elapsed_s >= settings.round_deadline_s:
             return True
-    if settings.round_policy == "buffered" and all(k in answered for k in expected if k in live):
+    if policy.asynchronous and all(k in answered for k in expected if k in live):
         return True
-    if settings.round_policy == "wait_all":
+    if policy.waits_for_every_agent:
         for index in pending:
             since = absent_since.get(index)
             if since is not None and now - since > settings.rejoin_timeout_s:

@@ -34,9 +34,10 @@ from typing import Any
 import torch
 import zmq
 
-from fedhpg.common.config import ServerConfig
 from fedhpg.common.privacy.contribution import RoundPrivacy
+from fedhpg.common.settings.server import ServerConfig
 from fedhpg.common.types import EvaluationStats
+from fedhpg.common.vocabularies import ROUND_POLICIES
 from fedhpg.common.wire.codec import ProtocolError
 from fedhpg.common.wire.protocol import (
     Error,
@@ -133,7 +134,7 @@ class ZmqAgentPool:
         self.max_bytes = max_bytes
         self.settings = settings
         self.guard = guard
-        self.buffered = settings.round_policy == "buffered"
+        self.buffered = ROUND_POLICIES.get(settings.round_policy).asynchronous
         self.outbox = Outbox(socket)
         self.links = Links(
             outbox=self.outbox,

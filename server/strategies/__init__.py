@@ -37,8 +37,10 @@ import torch
 
 from fedhpg.common.algorithms import PARAMETERS
 from fedhpg.common.components import resolve_algorithm
-from fedhpg.common.config import ConfigError, RunConfig, StrategyConfig
+from fedhpg.common.config import RunConfig
+from fedhpg.common.config_error import ConfigError
 from fedhpg.common.registry import Registry, import_plugins, parse_options
+from fedhpg.common.settings.strategy import StrategyConfig
 from fedhpg.common.types import RoundResult, SavedState
 from fedhpg.server.participation import validate_participation
 

@@ -15,9 +15,9 @@ from typing import Any
 
 import torch
 
-from fedhpg.common.config import StrategyConfig
 from fedhpg.common.optim import AdamAscent
 from fedhpg.common.registry import OptionError
+from fedhpg.common.settings.strategy import StrategyConfig
 from fedhpg.common.types import RoundResult, SavedState
 from fedhpg.server.strategies import Strategy, make_strategy, register_strategy
 

@@ -32,7 +32,8 @@ from fedhpg.common.algorithms import GRADIENTS
 from fedhpg.common.algorithms.fedhpgvr import FedHPGVRParams, semi_stochastic_gradient
 from fedhpg.common.algorithms.fedpgbr import FedPGBRParams, round_schedule
 from fedhpg.common.byzantine_filter import byzantine_filter
-from fedhpg.common.config import ConfigError, RunConfig
+from fedhpg.common.config import RunConfig
+from fedhpg.common.config_error import ConfigError
 from fedhpg.common.engine.engine import Engine, engine_settings
 from fedhpg.common.optim import AdamAscent
 from fedhpg.common.randomness import Purpose
