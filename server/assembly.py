@@ -40,6 +40,7 @@ from fedhpg.common.config import (
     fixed_difference,
     to_dict,
 )
+from fedhpg.common.privacy.graph import GraphError, round_plan
 from fedhpg.common.runtime.run_files import PROGRESS_NAME
 from fedhpg.common.types import EvaluationStats
 from fedhpg.common.variants import discount, run_variants, variant_of
@@ -146,8 +147,6 @@ def _check_privacy(run: RunConfig, strategy: Strategy[Any]) -> PrivateRounds | N
 def _check_secure_rounds(run: RunConfig) -> None:
     """Every round size the run expects can meet ``privacy.secagg``'s own tolerance: a
     threshold or neighbour count that cannot is refused before anything starts."""
-    from fedhpg.common.privacy.graph import GraphError, round_plan
-
     participation = run.strategy.participation
     sizes = {run.agents.num_agents}
     if participation.mode == "uniform" and participation.per_round is not None:

@@ -25,9 +25,23 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from fedhpg.common.config import ConfigError, RunConfig
-from fedhpg.common.runtime.cli import EXIT_RUN_ABORTED, EXIT_USAGE, Interrupted, stop_signals
+from fedhpg.common.runtime.cli import (
+    EXIT_RUN_ABORTED,
+    EXIT_USAGE,
+    HELP_FLAGS,
+    Interrupted,
+    answer_version,
+    compose,
+    fail,
+    own_overrides,
+    setup_logging,
+    stop_signals,
+    unknown_flag,
+)
+from fedhpg.common.runtime.help import help_text
 from fedhpg.common.runtime.progress import Progress
 from fedhpg.common.runtime.run_files import METRICS_NAME
+from fedhpg.common.wire.security import check_launch_keys
 from fedhpg.server.cluster_engines import (
     Engine,
     Job,
@@ -37,6 +51,7 @@ from fedhpg.server.cluster_engines import (
     one_line,
     settle,
 )
+from fedhpg.server.cluster_ray import RayEngine
 from fedhpg.server.cluster_units import (
     ENDPOINT_NAME,
     STOP_NAME,
@@ -44,6 +59,8 @@ from fedhpg.server.cluster_units import (
     describe,
     server_command,
 )
+from fedhpg.server.report import evaluation_of
+from fedhpg.server.run_dir import RunDirectory
 
 logger = logging.getLogger(__name__)
 
@@ -82,9 +99,7 @@ class Placement:
 
 def check_placement(run: RunConfig, overrides: Sequence[str]) -> Path:
     """What ``fedhpg-cluster`` checks before it submits anything; returns the run directory."""
-    from fedhpg.common.wire.security import check_launch_keys
     from fedhpg.server.assembly import check_run
-    from fedhpg.server.run_dir import RunDirectory
 
     if run.resume:
         raise ConfigError(
@@ -118,8 +133,6 @@ def unit_files(run: RunConfig, run_dir: Path) -> UnitFiles:
 def make_engine(run: RunConfig, run_dir: Path) -> Engine:
     """The engine ``cluster.kind`` names, its files and logs under the run directory."""
     if run.cluster.kind == "ray":
-        from fedhpg.server.cluster_ray import RayEngine
-
         return RayEngine(run, run_dir, unit_files(run, run_dir))
     return SubmititEngine(run, run_dir, unit_files(run, run_dir))
 
@@ -188,7 +201,6 @@ class RoundProgress:
 
     def poll(self) -> None:
         """Show the rounds written since the last poll (whole lines only)."""
-        from fedhpg.server.report import evaluation_of
         from fedhpg.server.serving import round_status
 
         try:
@@ -217,7 +229,6 @@ class RoundProgress:
     def report(self) -> None:
         """The unified policy's last evaluation per agent from summary.json, as the server
         prints it, then where the run directory is."""
-        from fedhpg.server.report import evaluation_of
         from fedhpg.server.serving import print_report
 
         run_dir = self.metrics.parent
@@ -341,21 +352,9 @@ def place(run: RunConfig, overrides: Sequence[str], run_dir: Path, engine: Engin
 
 def main(argv: Sequence[str] | None = None) -> None:
     """Check everything (one-line errors, exit 2, nothing submitted), then place the run."""
-    from fedhpg.common.runtime.cli import (
-        HELP_FLAGS,
-        answer_version,
-        compose,
-        fail,
-        own_overrides,
-        setup_logging,
-        unknown_flag,
-    )
-
     args = list(sys.argv[1:] if argv is None else argv)
     answer_version("fedhpg-cluster", args)
     if any(a in HELP_FLAGS for a in args):
-        from fedhpg.common.runtime.help import help_text
-
         sys.stdout.write(help_text("fedhpg-cluster"))
         sys.exit(0)
     if any(a in ("-m", "--multirun") for a in args):

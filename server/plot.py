@@ -21,7 +21,15 @@ from typing import TYPE_CHECKING, Any, NoReturn
 
 import numpy as np
 
-from fedhpg.common.config import DIAGNOSTIC_KEYS, GROUPS, PLACEMENT_KEYS, REPLICATE_KEYS
+from fedhpg.common.config import (
+    DIAGNOSTIC_KEYS,
+    GROUPS,
+    PLACEMENT_KEYS,
+    REPLICATE_KEYS,
+    ConfigError,
+    from_dict,
+)
+from fedhpg.common.registry import import_plugins
 from fedhpg.common.runtime.cli import version_text
 from fedhpg.server.plot_stats import STATS, Band, band_over_seeds, caption
 
@@ -366,9 +374,6 @@ def records_success(run: Run) -> bool:
     then is its success rate a measurement (metrics.jsonl holds 0 where there is none, as a
     failed task would read). True where the family cannot be built here (a plugin that is not
     installed, a config of another version): its records are drawn as they are."""
-    from fedhpg.common.config import ConfigError, from_dict
-    from fedhpg.common.registry import import_plugins
-
     try:
         config = from_dict(run.config)
         import_plugins(list(config.plugins))
