@@ -36,11 +36,20 @@ import torch
 from fedhpg.common.config import RunConfig
 from fedhpg.common.device import DeviceColumns, DeviceModel, device_for, message_bytes
 from fedhpg.common.group import AgentGroup, make_agent_group
+from fedhpg.common.privacy import fixedpoint
+from fedhpg.common.privacy.consent import refusal
 from fedhpg.common.privacy.contribution import EXTRA, contribution, redacted
+from fedhpg.common.privacy.masks import PeerDataError
+from fedhpg.common.privacy.secagg import SEALED_BYTES, SecAggError
+from fedhpg.common.privacy.session import LocalSecAgg
+from fedhpg.common.privacy.shamir import SHARE_BYTES
+from fedhpg.common.privacy.signing import SIGNATURE_BYTES, agent_signing
 from fedhpg.common.runtime import timeline
 from fedhpg.common.runtime.memory import tune_malloc_for
 from fedhpg.common.types import RoundResult, UpdateColumns, UpdateStats
 from fedhpg.common.variants import range_digest, variant_digest, variants_of
+from fedhpg.common.wire import secure_rows
+from fedhpg.common.wire.codec import MAX_HEADER_BYTES
 from fedhpg.common.wire.protocol import (
     KEY_BYTES,
     MAX_BATCH_ANSWERS,
@@ -253,9 +262,6 @@ class SecureAgents:
     and never exits over another party's data."""
 
     def __init__(self, run: RunConfig, agent_id: str) -> None:
-        from fedhpg.common.privacy.session import LocalSecAgg
-        from fedhpg.common.privacy.signing import agent_signing
-
         signing = agent_signing(run.security, agent_id)
         if signing is None:
             logger.info(
@@ -282,11 +288,6 @@ class SecureAgents:
         self, request: Train, theta: torch.Tensor, result: RoundResult, max_bytes: int
     ) -> list[Message]:
         """After training: each agent's contribution kept, its round mask key advertised."""
-        from fedhpg.common.privacy import fixedpoint
-        from fedhpg.common.privacy.consent import refusal
-        from fedhpg.common.privacy.signing import SIGNATURE_BYTES
-        from fedhpg.common.wire import secure_rows
-
         private = request.private
         assert private is not None
         try:
@@ -345,9 +346,6 @@ class SecureAgents:
     def share_keys(self, request: ShareRequest, max_bytes: int) -> list[Message]:
         """Each agent's secrets shared among its neighbours of the graph drawn from every
         advertised mask key (checked against the roster, where there is one)."""
-        from fedhpg.common.privacy.secagg import SEALED_BYTES, SecAggError
-        from fedhpg.common.wire import secure_rows
-
         if request.round != self._round:
             logger.warning("round %d: no keys advertised for it", request.round)
             return []
@@ -399,9 +397,6 @@ class SecureAgents:
 
     def mask(self, request: MaskRequest, max_bytes: int) -> list[Message]:
         """Each agent's contribution, masked with its neighbours that shared keys."""
-        from fedhpg.common.privacy.secagg import SecAggError
-        from fedhpg.common.wire import secure_rows
-
         done, rows = [], []
         for i, k in enumerate(request.agents):
             if request.round != self._round or k not in self._inputs:
@@ -435,10 +430,6 @@ class SecureAgents:
     def reveal(self, request: UnmaskRequest, max_bytes: int) -> list[Message]:
         """Each agent's shares of its dropped neighbours' mask keys and of its included
         neighbours' self-mask seeds."""
-        from fedhpg.common.privacy.masks import PeerDataError
-        from fedhpg.common.privacy.secagg import SecAggError
-        from fedhpg.common.privacy.shamir import SHARE_BYTES
-
         answers: dict[int, dict] = {}
         for k in request.agents:
             try:
@@ -482,8 +473,6 @@ def _in_messages(
 def _rows_per_message(max_bytes: int, num_params: int, row_bytes: int) -> int:
     """Rows of ``row_bytes`` each that fit one message of a run of ``num_params`` parameters
     (the cap the server computes alike), one at least and at most ``MAX_BATCH_ANSWERS``."""
-    from fedhpg.common.wire.codec import MAX_HEADER_BYTES
-
     room = batch_message_cap(max_bytes, num_params) - MAX_HEADER_BYTES - 4096
     return max(1, min(MAX_BATCH_ANSWERS, room // max(row_bytes, 1)))
 

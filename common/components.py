@@ -10,9 +10,12 @@ from collections.abc import Mapping
 from dataclasses import dataclass
 from typing import Any
 
+from gymnasium.error import DependencyNotInstalled
+
 from fedhpg.common.algorithms import ALGORITHMS, Algorithm
 from fedhpg.common.config import RunConfig, validate
 from fedhpg.common.config_error import ConfigError
+from fedhpg.common.policies import check_spaces
 from fedhpg.common.population import (
     DEVICE_FIELDS,
     budget_domain,
@@ -23,7 +26,9 @@ from fedhpg.common.population import (
 )
 from fedhpg.common.registry import OptionError, import_plugins, parse_options
 from fedhpg.common.settings.checks import per_agent
+from fedhpg.common.variants import variant_of
 from fedhpg.common.vocabularies import ROUND_POLICIES
+from fedhpg.envs.registry import UnknownEnvFamilyError
 
 logger = logging.getLogger(__name__)
 
@@ -129,12 +134,6 @@ def validate_env_family(run: RunConfig) -> None:
     the family registry (whatever a family is: built in, a plugin's, a dotted path), and its
     environment built once, its spaces ones a built-in policy takes (with ``policy=auto``). A
     family without per-index variants makes (and caches) all K here."""
-    from gymnasium.error import DependencyNotInstalled
-
-    from fedhpg.common.policies import check_spaces
-    from fedhpg.common.variants import variant_of
-    from fedhpg.envs.registry import UnknownEnvFamilyError
-
     try:
         # One environment built too: a family whose library is missing (MuJoCo, Box2D without
         # the envs extra) fails here in one line, not in a traceback once the run has started;

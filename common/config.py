@@ -6,8 +6,8 @@ and the allowed values; entry points turn it into a one-line message and exit st
 
 :class:`RunConfig` assembles the sections, one module each under :mod:`fedhpg.common.settings`
 (each with its own validation); :func:`validate` runs them in order. What each top-level key
-is for is :data:`fedhpg.common.settings.roles.GROUPS`; the keys themselves (typos, defaults,
-what a resume may change) are :mod:`fedhpg.common.settings.keys`.
+is for is :data:`fedhpg.common.run_roles.GROUPS`; the keys themselves (typos, defaults,
+what a resume may change) are :mod:`fedhpg.common.run_keys`.
 
 This module is pure Python (no torch, zmq or gymnasium): every process imports it first, and
 the checks that need a registry (algorithm, strategy, their options) live beside the registry

@@ -21,7 +21,12 @@ from typing import TYPE_CHECKING, Protocol
 import numpy as np
 import torch
 
+from fedhpg.common.attacks import corrupt_rows
+from fedhpg.common.batched import compiled_agents
+from fedhpg.common.components import resolve_algorithm
 from fedhpg.common.config import RunConfig
+from fedhpg.common.engine.engine import Engine, engine_settings
+from fedhpg.common.engine.round import Tally
 from fedhpg.common.round_columns import TrainedRound
 from fedhpg.common.types import EvaluationStats, RoundResult, UpdateColumns
 from fedhpg.common.variants import variants_of
@@ -95,9 +100,6 @@ class EngineGroup:
     def __init__(
         self, run: RunConfig, variants: Mapping[int, EnvVariant], *, compiled: bool = False
     ) -> None:
-        from fedhpg.common.components import resolve_algorithm
-        from fedhpg.common.engine.engine import Engine
-
         self.run = run
         self.variants = variants
         self.engine = Engine(run, variants, compiled=compiled)
@@ -148,10 +150,6 @@ class EngineGroup:
         """The round of ``agents``, chunk after chunk of :meth:`plan` (an agent's numbers do
         not depend on the chunk it is in); only the θ rows and the statistics leave the
         device."""
-        from fedhpg.common.attacks import corrupt_rows
-        from fedhpg.common.engine.engine import engine_settings
-        from fedhpg.common.engine.round import Tally
-
         order = sorted(agents)
         plan = self.plan(order, budgets)
         if len(plan.chunks) > 1:
@@ -204,8 +202,6 @@ class EngineGroup:
     def evaluate(
         self, round_index: int, theta: torch.Tensor, episodes: int, agents: Sequence[int]
     ) -> dict[int, EvaluationStats]:
-        from fedhpg.common.engine.engine import engine_settings
-
         order = sorted(agents)
         stats: dict[int, EvaluationStats] = {}
         for chunk in self.plan(order, episodes=episodes).chunks:
@@ -287,8 +283,6 @@ def make_agent_group(
     if not indices:
         raise ValueError("an agent group needs at least one agent")
     variants = variants_of(run, indices) if variants is None else variants
-    from fedhpg.common.batched import compiled_agents
-
     compiled = compiled_agents(run, {k: variants[k] for k in indices})
     parts = [
         EngineGroup(run, {k: variants[k] for k in indices if (k in compiled) == on}, compiled=on)

@@ -34,6 +34,7 @@ from typing import Any
 
 import gymnasium as gym
 import numpy as np
+from gymnasium.envs.registration import load_env_creator
 
 from fedhpg.envs import distributions
 from fedhpg.envs.base import EnvVariant
@@ -69,8 +70,6 @@ def _check_spec(name: str, spec: Any) -> None:
 
 @functools.lru_cache(maxsize=16)
 def _creator(env_id: str) -> tuple[Any, Any]:
-    from gymnasium.envs.registration import load_env_creator
-
     try:
         spec = gym.spec(env_id)
     except gym.error.Error as error:

@@ -33,6 +33,7 @@ import gymnasium as gym
 
 from fedhpg.envs.base import EnvVariant
 from fedhpg.envs.families import GYM_FAMILIES
+from fedhpg.envs.gridworld import gridworld_variants_at
 from fedhpg.envs.gym_family import gym_family
 from fedhpg.envs.lazy import LazyFamily, VariantsAt, per_index_family
 
@@ -49,8 +50,6 @@ class UnknownEnvFamilyError(ValueError):
 def _gridworld_at(
     indices: Sequence[int], /, *, seed: int, num_agents: int, level: float, **options: Any
 ) -> list[EnvVariant]:
-    from fedhpg.envs.gridworld import gridworld_variants_at
-
     return list(
         gridworld_variants_at(indices, seed=seed, num_agents=num_agents, level=level, **options)
     )

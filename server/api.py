@@ -22,22 +22,26 @@ import torch
 
 from fedhpg.common.config import RunConfig, from_dict, to_dict
 from fedhpg.common.config_error import ConfigError
+from fedhpg.common.engine.devices import check_device_before_fork
 from fedhpg.common.group import make_agent_group
 from fedhpg.common.policies import Policy, get_flat_params, register_policy, set_flat_params
 from fedhpg.common.registry import import_plugins
 from fedhpg.common.runtime.cli import compose, validate_config
 from fedhpg.common.types import EvaluationStats
 from fedhpg.common.variants import variant_of
+from fedhpg.common.wire.security import check_launch_keys
 from fedhpg.common.worker import build_policy
 from fedhpg.envs.registry import register_family
 from fedhpg.server.assembly import CheckedRun, assemble, check_run
 from fedhpg.server.checkpoint import CheckpointError, best_checkpoint, latest_valid_checkpoint
 from fedhpg.server.coordinator import RoundCallback, RoundRecord
+from fedhpg.server.launcher import prepare_compiled_engine, run_federation
 from fedhpg.server.metrics import metrics_line, read_metrics, record_marks
 from fedhpg.server.pools import FederationError
 from fedhpg.server.pools.inprocess import make_in_process_pool
 from fedhpg.server.report import evaluation_of
 from fedhpg.server.run_dir import RunDirectoryError, claimed, holds_run, new_run_dir
+from fedhpg.server.serving import message_cap
 
 __all__ = [
     "ConfigError",
@@ -170,7 +174,6 @@ def _run_in_process(
     run_config = checked.run
     if directory is None and run_config.resume:
         raise ConfigError("resume", "resuming needs the run directory: pass out_dir")
-    from fedhpg.server.launcher import prepare_compiled_engine
 
     prepare_compiled_engine(run_config)  # says so when numba compiles (the first run: ~20 s)
     records = _Records(run_config)
@@ -201,11 +204,6 @@ def _run_in_process(
 
 
 def _run_distributed(checked: CheckedRun, directory: Path | None) -> RunResult:
-    from fedhpg.common.engine.devices import check_device_before_fork
-    from fedhpg.common.wire.security import check_launch_keys
-    from fedhpg.server.launcher import run_federation
-    from fedhpg.server.serving import message_cap
-
     # What the server would refuse in its own process (exit 2): found here, as an exception.
     run_config = checked.run
     message_cap(run_config, int(checked.initial_theta.numel()))

@@ -34,9 +34,10 @@ import torch
 from fedhpg.common.components import validate_run
 from fedhpg.common.config import RunConfig, attacking_agents, to_dict
 from fedhpg.common.config_error import ConfigError
+from fedhpg.common.placement import agents_per_host
+from fedhpg.common.privacy.graph import GraphError, round_plan
+from fedhpg.common.run_keys import fixed_difference
 from fedhpg.common.runtime.run_files import PROGRESS_NAME
-from fedhpg.common.settings.keys import fixed_difference
-from fedhpg.common.settings.placement import agents_per_host
 from fedhpg.common.types import EvaluationStats
 from fedhpg.common.variants import discount, run_variants, variant_of
 from fedhpg.common.vocabularies import ROUND_POLICIES
@@ -143,8 +144,6 @@ def _check_privacy(run: RunConfig, strategy: Strategy[Any]) -> PrivateRounds | N
 def _check_secure_rounds(run: RunConfig) -> None:
     """Every round size the run expects can meet ``privacy.secagg``'s own tolerance: a
     threshold or neighbour count that cannot is refused before anything starts."""
-    from fedhpg.common.privacy.graph import GraphError, round_plan
-
     participation = run.strategy.participation
     sizes = {run.agents.num_agents}
     if participation.mode == "uniform" and participation.per_round is not None:

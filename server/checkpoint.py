@@ -33,6 +33,8 @@ from typing import Any, TypeVar
 import msgpack
 import numpy as np
 import torch
+from safetensors import SafetensorError
+from safetensors.numpy import load, save
 
 from fedhpg.common.types import SavedState
 
@@ -160,8 +162,6 @@ def _digest(metadata: dict[str, str], tensors: dict[str, np.ndarray]) -> str:
 
 
 def _safetensors_bytes(checkpoint: Checkpoint) -> bytes:
-    from safetensors.numpy import save
-
     tensors = {"theta": checkpoint.theta.detach().cpu().numpy()}
     tensors |= {f"strategy/{k}": v for k, v in checkpoint.strategy.arrays.items()}
     metadata = {
@@ -233,9 +233,6 @@ def _header(raw: bytes, path: Path) -> dict[str, Any]:
 
 
 def _load_safetensors(path: Path, raw: bytes) -> Checkpoint:
-    from safetensors import SafetensorError
-    from safetensors.numpy import load
-
     metadata = _header(raw, path).get("__metadata__") or {}
     if metadata.get("format") != CHECKPOINT_FORMAT:
         raise CheckpointError(f"{path}: not a {CHECKPOINT_FORMAT} file")

@@ -43,6 +43,7 @@ from fedhpg.common.runtime.composition import own_overrides
 from fedhpg.common.runtime.help import help_text
 from fedhpg.common.runtime.progress import Progress
 from fedhpg.common.runtime.run_files import METRICS_NAME
+from fedhpg.common.wire.security import check_launch_keys
 from fedhpg.server.cluster_engines import (
     Engine,
     Job,
@@ -52,6 +53,7 @@ from fedhpg.server.cluster_engines import (
     one_line,
     settle,
 )
+from fedhpg.server.cluster_ray import RayEngine
 from fedhpg.server.cluster_units import (
     ENDPOINT_NAME,
     STOP_NAME,
@@ -59,6 +61,7 @@ from fedhpg.server.cluster_units import (
     describe,
     server_command,
 )
+from fedhpg.server.report import evaluation_of
 from fedhpg.server.run_dir import RunDirectory
 
 logger = logging.getLogger(__name__)
@@ -102,7 +105,6 @@ AGENT_PLACED_KEYS = ("agent.index", "agent.first", "agent.count")
 
 def check_placement(run: RunConfig, overrides: Sequence[str]) -> Path:
     """What ``fedhpg-cluster`` checks before it submits anything; returns the run directory."""
-    from fedhpg.common.wire.security import check_launch_keys
     from fedhpg.server.assembly import check_run
 
     if run.resume:
@@ -141,8 +143,6 @@ def unit_files(run: RunConfig, run_dir: Path) -> UnitFiles:
 def make_engine(run: RunConfig, run_dir: Path) -> Engine:
     """The engine ``cluster.kind`` names, its files and logs under the run directory."""
     if run.cluster.kind == "ray":
-        from fedhpg.server.cluster_ray import RayEngine
-
         return RayEngine(run, run_dir, unit_files(run, run_dir))
     return SubmititEngine(run, run_dir, unit_files(run, run_dir))
 
@@ -211,7 +211,6 @@ class RoundProgress:
 
     def poll(self) -> None:
         """Show the rounds written since the last poll (whole lines only)."""
-        from fedhpg.server.report import evaluation_of
         from fedhpg.server.serving import round_status
 
         try:
@@ -240,7 +239,6 @@ class RoundProgress:
     def report(self) -> None:
         """The unified policy's last evaluation per agent from summary.json, as the server
         prints it, then where the run directory is."""
-        from fedhpg.server.report import evaluation_of
         from fedhpg.server.serving import print_report
 
         run_dir = self.metrics.parent

@@ -28,8 +28,8 @@ from pathlib import Path
 from typing import IO
 
 from fedhpg.common.config import RunConfig
+from fedhpg.common.placement import agents_per_host, host_ranges
 from fedhpg.common.runtime.cli import LOG_DATE_FORMAT, LOG_FORMAT, setup_logging
-from fedhpg.common.settings.placement import agents_per_host, host_ranges
 
 logger = logging.getLogger(__name__)
 

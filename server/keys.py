@@ -37,6 +37,7 @@ import zmq
 import zmq.auth
 
 from fedhpg.common.key_names import BIND, parse_binding
+from fedhpg.common.placement import host_ranges
 from fedhpg.common.privacy.signing import (
     SIGN_SECRET_SUFFIX,
     SIGN_SUFFIX,
@@ -45,7 +46,6 @@ from fedhpg.common.privacy.signing import (
 )
 from fedhpg.common.runtime.cli import version_text
 from fedhpg.common.settings.ids import host_id_of
-from fedhpg.common.settings.placement import host_ranges
 from fedhpg.common.wire.security import (
     ALLOWED_DIR,
     PUBLIC_SUFFIX,

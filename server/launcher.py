@@ -28,6 +28,7 @@ from pathlib import Path
 from fedhpg.common.config import RunConfig
 from fedhpg.common.config_error import ConfigError
 from fedhpg.common.engine.devices import check_device_before_fork
+from fedhpg.common.placement import agents_per_host, available_cores, host_ranges
 from fedhpg.common.runtime.cli import (
     EXIT_RUN_ABORTED,
     EXIT_USAGE,
@@ -56,7 +57,6 @@ from fedhpg.common.runtime.progress import announced_if_slow
 from fedhpg.common.runtime.resume import resume_value
 from fedhpg.common.settings.agents import AUTO
 from fedhpg.common.settings.ids import host_id_of
-from fedhpg.common.settings.placement import agents_per_host, available_cores, host_ranges
 from fedhpg.server.run_dir import RunDirectory, RunDirectoryError, new_run_dir
 
 logger = logging.getLogger(__name__)

@@ -17,7 +17,9 @@ import numpy as np
 import orjson
 import torch
 
-from fedhpg.common.config import RunConfig, attacking_agents
+from fedhpg.common.config import RunConfig, attacking_agents, to_dict
+from fedhpg.common.run_keys import flatten
+from fedhpg.common.run_roles import groups
 from fedhpg.common.runtime.run_files import TENSORBOARD_DIR
 from fedhpg.common.types import ALWAYS_FIELDS, RoundResult
 from fedhpg.server.coordinator import RoundRecord
@@ -197,10 +199,6 @@ HPARAM_METRICS = ("eval/mean/return", "eval/min/return", "fed/trajectories_per_a
 def hyperparameters(run: RunConfig) -> dict[str, int | float | str | bool]:
     """What tells runs apart, for TensorBoard's HParams dashboard and W&B's config: every key
     of the groups plots compare runs by, and the seed (lists and dicts as text)."""
-    from fedhpg.common.config import to_dict
-    from fedhpg.common.settings.keys import flatten
-    from fedhpg.common.settings.roles import groups
-
     values = to_dict(run)
     chosen = {key: values[key] for key in (*groups("compared"), "seed", "rounds")}
     flat: dict[str, int | float | str | bool] = {}

@@ -28,9 +28,17 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, NoReturn
 
-from fedhpg.common.components import resolve_algorithm
+from fedhpg.common.components import agent_profile, resolve_algorithm
 from fedhpg.common.config import RunConfig
 from fedhpg.common.config_error import ConfigError
+from fedhpg.common.device import device_for
+from fedhpg.common.planning import (
+    Constants,
+    Limits,
+    agent_round_seconds,
+    plan_budgets,
+    score_budgets,
+)
 from fedhpg.common.runtime.cli import (
     EXIT_USAGE,
     compose,
@@ -40,7 +48,11 @@ from fedhpg.common.runtime.cli import (
     setup_logging,
     version_text,
 )
+from fedhpg.common.variants import training_horizon, variant_of
 from fedhpg.common.vocabularies import CLOCKS
+from fedhpg.common.worker import initial_theta
+from fedhpg.server.api import resolve_config
+from fedhpg.server.api import run as run_federation
 from fedhpg.server.replan import round_overhead_s
 
 if TYPE_CHECKING:
@@ -63,8 +75,6 @@ class Pilot:
 
 def pilot_config(run: RunConfig, rounds: int) -> RunConfig:
     """The pilot's run: the same federation, bound estimates on, τ_k = 2, no sleeping."""
-    from fedhpg.server.api import resolve_config
-
     batch = [max(2, b) for b in run.agents.budget.get("batch_size", [10])]
     return resolve_config(
         run,
@@ -84,8 +94,6 @@ def pilot_config(run: RunConfig, rounds: int) -> RunConfig:
 
 
 def run_pilot(run: RunConfig, rounds: int) -> Pilot:
-    from fedhpg.server.api import run as run_federation
-
     records = run_federation(pilot_config(run, rounds)).records
     k = run.agents.num_agents
     per_agent: dict[int, list[float]] = {i: [] for i in range(k)}
@@ -137,10 +145,6 @@ def observed_seconds_per_trajectory(
 def horizon_seconds_per_trajectory(run: RunConfig, round_index: int = 1) -> list[float]:
     """The counted clock's price of a full-horizon trajectory on each agent's device at the
     speed its schedule gives in ``round_index``: an upper bound on any trajectory's."""
-    from fedhpg.common.device import device_for
-    from fedhpg.common.variants import training_horizon, variant_of
-    from fedhpg.common.worker import initial_theta
-
     params = initial_theta(variant_of(run, 0), run).numel()
     seconds = []
     for k in range(run.agents.num_agents):
@@ -152,8 +156,6 @@ def horizon_seconds_per_trajectory(run: RunConfig, round_index: int = 1) -> list
 
 
 def configured_budgets(run: RunConfig) -> tuple[list[int], list[int]]:
-    from fedhpg.common.components import agent_profile
-
     budgets = [agent_profile(run, k).budget for k in range(run.agents.num_agents)]
     return [int(b.batch_size) for b in budgets], [int(b.local_iters) for b in budgets]
 
@@ -240,15 +242,6 @@ def main(argv: Sequence[str] | None = None) -> int:
         return fail(repeated)
     setup_logging()
     # Imported past the argument check: a mistyped flag answers without torch's start-up.
-    from fedhpg.common.planning import (
-        Constants,
-        Limits,
-        agent_round_seconds,
-        plan_budgets,
-        score_budgets,
-    )
-    from fedhpg.common.variants import training_horizon, variant_of
-
     try:
         run = compose(overrides)
         limits = Limits(

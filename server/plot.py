@@ -1,7 +1,7 @@
 """``fedhpg-plot``: learning curves from any set of run directories, with a 95% band.
 
 Runs are found by their ``metrics.jsonl`` (a sweep directory works as a whole) and grouped by
-the compared config keys that differ between them (``common/settings/roles.py`` GROUPS, seeds
+the compared config keys that differ between them (``common/run_roles.py`` GROUPS, seeds
 aside); each group is one curve: the mean (``--stat median`` or ``iqm``) over its seeds and a
 95% percentile-bootstrap confidence band around it (:mod:`fedhpg.server.plot_stats` says why
 not a t-interval). The drawing helpers (:func:`draw_band`, :func:`save`) are also what the
@@ -21,8 +21,16 @@ from typing import TYPE_CHECKING, Any, NoReturn
 
 import numpy as np
 
+from fedhpg.common.config import from_dict
+from fedhpg.common.config_error import ConfigError
+from fedhpg.common.registry import import_plugins
+from fedhpg.common.run_roles import (
+    DIAGNOSTIC_KEYS,
+    GROUPS,
+    PLACEMENT_KEYS,
+    REPLICATE_KEYS,
+)
 from fedhpg.common.runtime.cli import version_text
-from fedhpg.common.settings.roles import DIAGNOSTIC_KEYS, GROUPS, PLACEMENT_KEYS, REPLICATE_KEYS
 from fedhpg.server.plot_stats import STATS, Band, band_over_seeds, caption
 
 if TYPE_CHECKING:
@@ -366,10 +374,6 @@ def records_success(run: Run) -> bool:
     then is its success rate a measurement (metrics.jsonl holds 0 where there is none, as a
     failed task would read). True where the family cannot be built here (a plugin that is not
     installed, a config of another version): its records are drawn as they are."""
-    from fedhpg.common.config import from_dict
-    from fedhpg.common.config_error import ConfigError
-    from fedhpg.common.registry import import_plugins
-
     try:
         config = from_dict(run.config)
         import_plugins(list(config.plugins))

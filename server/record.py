@@ -19,6 +19,7 @@ from pathlib import Path
 from typing import NoReturn
 
 from fedhpg.common.runtime.cli import EXIT_USAGE, limit_threads, setup_logging, version_text
+from fedhpg.server.run_dir import RunDirectoryError
 
 logger = logging.getLogger(__name__)
 
@@ -38,7 +39,6 @@ def record(
 
     from fedhpg.common.variants import variant_of
     from fedhpg.server import api
-    from fedhpg.server.run_dir import RunDirectoryError
 
     if not (run_dir / "config.json").is_file():
         raise RecordError(f"{run_dir} is not a run directory (it holds no config.json)")

@@ -39,8 +39,11 @@ from dataclasses import asdict, dataclass, field
 from typing import Any
 
 from fedhpg.common.config import RunConfig
+from fedhpg.common.device import device_for, message_bytes
 from fedhpg.common.planning import Constants, Limits, plan_for_rounds
 from fedhpg.common.types import RoundResult
+from fedhpg.common.variants import training_horizon, variant_of
+from fedhpg.common.worker import initial_theta
 
 logger = logging.getLogger(__name__)
 
@@ -170,8 +173,6 @@ class Replanner:
             return None
         max_return = self.run.agents.plan_max_return
         if max_return is None:
-            from fedhpg.common.variants import training_horizon, variant_of
-
             max_return = float(training_horizon(self.run, variant_of(self.run, 0)))
         constants = Constants(
             gap=max(max_return - (s.initial_return or 0.0), 0.0),
@@ -223,10 +224,6 @@ def round_overhead_s(run: RunConfig, round_index: int = 1) -> list[float]:
     """Each agent's fixed cost per round: θ̃ down and θ up (the counted clock charges both;
     the measured clock charges the latency only in agent processes, the in-process pool none)."""
     del round_index  # messages do not depend on the speed schedule
-    from fedhpg.common.device import device_for, message_bytes
-    from fedhpg.common.variants import variant_of
-    from fedhpg.common.worker import initial_theta
-
     size = message_bytes(initial_theta(variant_of(run, 0), run).numel())
     devices = [device_for(run, k) for k in range(run.agents.num_agents)]
     return [2 * d.transfer_s(size) if d.counted else 0.0 for d in devices]

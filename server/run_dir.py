@@ -15,6 +15,7 @@ import json
 import logging
 import os
 import shutil
+import tempfile
 from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -244,8 +245,6 @@ def _check_creatable(path: Path, key: str) -> None:
     directory that takes a new directory. The probe is an empty directory made there and
     removed at once (only a try tells what /proc, /sys or a read-only mount refuse, even to
     root)."""
-    import tempfile
-
     ancestor = next((parent for parent in path.parents if parent.exists()), None)
     if ancestor is None:  # the working directory itself was removed
         raise ConfigError(key, f"cannot create {path}: no such directory")

@@ -17,8 +17,8 @@ from typing import Any
 import torch
 
 from fedhpg.common.config import RunConfig, to_dict
+from fedhpg.common.run_keys import flatten
 from fedhpg.common.runtime.run_files import WANDB_DIR
-from fedhpg.common.settings.keys import flatten
 from fedhpg.server.coordinator import RoundRecord
 from fedhpg.server.metrics import RoundValues
 from fedhpg.server.run_dir import RunDirectoryError

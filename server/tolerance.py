@@ -17,14 +17,24 @@ record carries the set actually aggregated and its tolerance (``strategy.aggrega
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING, Any
+from typing import Protocol
 
 from fedhpg.common.config import RunConfig
 from fedhpg.common.vocabularies import ROUND_POLICIES
 from fedhpg.server.participation import smallest_participation
 
-if TYPE_CHECKING:
-    from fedhpg.server.strategies import Strategy
+
+class RobustRule(Protocol):
+    """What the check asks of a strategy (:class:`fedhpg.server.strategies.Strategy` is one)."""
+
+    @property
+    def name(self) -> str:
+        """The rule's name in messages."""
+        ...
+
+    def tolerance(self, rows: int) -> int | None:
+        """How many arbitrary rows among ``rows`` it survives (None: it claims none)."""
+        ...
 
 
 def smallest_set(run: RunConfig) -> tuple[int, str]:
@@ -49,7 +59,7 @@ def to_tolerate(run: RunConfig) -> tuple[int, str]:
     return 1, "a robust rule should survive one"
 
 
-def tolerance_shortfall(run: RunConfig, strategy: Strategy[Any]) -> str | None:
+def tolerance_shortfall(run: RunConfig, strategy: RobustRule) -> str | None:
     """Why ``strategy`` cannot keep its robustness in ``run``'s smallest set, or None (also
     for a rule that claims none, such as the mean)."""
     rows, where = smallest_set(run)

@@ -10,8 +10,8 @@ import pytest
 from procs import free_port, processes, start
 
 from fedhpg.common.config_error import ConfigError
+from fedhpg.common.run_roles import adopt_settings, dictated_settings
 from fedhpg.common.runtime.cli import compose
-from fedhpg.common.settings.roles import adopt_settings, dictated_settings
 
 TIMEOUT_S = 90
 

@@ -11,11 +11,11 @@ import pytest
 from fedhpg.common.components import agent_profile, validate_run
 from fedhpg.common.config import RunConfig, from_dict, to_dict
 from fedhpg.common.config_error import ConfigError
+from fedhpg.common.run_keys import fixed_difference, unknown_key
+from fedhpg.common.run_roles import GROUPS
 from fedhpg.common.runtime.cli import compose, compose_sweep, repeated_key
 from fedhpg.common.settings.agents import AgentsConfig
 from fedhpg.common.settings.algo import AlgoConfig
-from fedhpg.common.settings.keys import fixed_difference, unknown_key
-from fedhpg.common.settings.roles import GROUPS
 
 
 def test_default_config_composes_and_validates() -> None:
@@ -129,8 +129,8 @@ def test_the_config_module_imports_no_heavy_library() -> None:
     (import-linter checks the static imports; this checks what really gets loaded)."""
     probe = (
         "import sys, fedhpg.common.config, fedhpg.common.registry, fedhpg.common.types, "
-        "fedhpg.common.vocabularies, fedhpg.common.settings.keys, fedhpg.common.settings.roles, "
-        "fedhpg.common.settings.placement; "
+        "fedhpg.common.vocabularies, fedhpg.common.run_keys, fedhpg.common.run_roles, "
+        "fedhpg.common.placement; "
         "print([m for m in ('torch', 'zmq', 'gymnasium', 'hydra') if m in sys.modules])"
     )
     result = subprocess.run(

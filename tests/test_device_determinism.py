@@ -24,7 +24,7 @@ from fedhpg.common.policies import Params
 from fedhpg.common.runtime.cli import compose
 from fedhpg.common.variants import variants_of
 from fedhpg.common.worker import initial_theta
-from fedhpg.envs.device import put_distinct
+from fedhpg.envs.tensor_writes import put_distinct
 
 FAMILIES = {
     "pendulum": ["env=pendulum", "policy.hidden=[16,16]", "env.horizon=40"],

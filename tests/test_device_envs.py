@@ -285,3 +285,34 @@ def test_both_environment_paths_give_returns_of_one_distribution(
     device, gym = returns["auto"], returns["gymnasium"]
     error = (device.var() / len(device) + gym.var() / len(gym)).sqrt().clamp_min(1e-9)
     assert float((device.mean() - gym.mean()).abs() / error) < 4.0, (device.mean(), gym.mean())
+
+
+def test_a_registered_family_is_asked_after_the_built_in_ones(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """The built-in families come first, in their listed order; a registered one models what
+    none of them does, and registering it twice asks it once."""
+    from fedhpg.envs.device import register_device_family, registry
+
+    monkeypatch.setattr(registry, "IMPLEMENTATIONS", list(registry.BUILT_IN))
+    asked: list[int] = []
+    theirs = object()
+
+    def plugin(variants, device):
+        asked.append(len(variants))
+        return theirs
+
+    assert register_device_family(plugin) is plugin
+    register_device_family(plugin)
+    assert tuple(registry.IMPLEMENTATIONS[:-1]) == registry.BUILT_IN
+    assert registry.IMPLEMENTATIONS[-1] is plugin
+
+    cartpoles = _variants("cartpole", 2)
+    assert isinstance(device_copies(cartpoles, [1, 1], CPU), CartPoleCopies)
+    assert asked == []
+
+    class Other:
+        pass
+
+    assert device_family([Other(), Other()], CPU) is theirs
+    assert asked == [2]

@@ -327,7 +327,7 @@ def test_a_host_claiming_foreign_agents_or_a_huge_batch_is_refused_and_the_run_g
 
 def test_placement_is_neither_fixed_on_resume_nor_an_experiment_difference() -> None:
     from fedhpg.common.config import to_dict
-    from fedhpg.common.settings.keys import fixed_difference
+    from fedhpg.common.run_keys import fixed_difference
     from fedhpg.server.plot import _compared
 
     run = to_dict(compose(["agents.per_host=1"]))

@@ -18,8 +18,8 @@ from procs import BIN, free_port, processes, start
 
 from fedhpg.agent.work import AgentWork
 from fedhpg.common.group import make_agent_group
+from fedhpg.common.run_roles import adopt_settings
 from fedhpg.common.runtime.cli import compose
-from fedhpg.common.settings.roles import adopt_settings
 from fedhpg.common.wire.codec import decode, encode
 from fedhpg.common.wire.protocol import (
     Error,

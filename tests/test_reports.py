@@ -11,8 +11,8 @@ from pathlib import Path
 
 import pytest
 
+from fedhpg.common.placement import agents_per_host
 from fedhpg.common.runtime.cli import compose
-from fedhpg.common.settings.placement import agents_per_host
 from fedhpg.common.types import EvaluationStats
 from fedhpg.server import api
 from fedhpg.server.launcher import agent_processes

@@ -13,10 +13,13 @@ from __future__ import annotations
 from collections.abc import Mapping
 from typing import TYPE_CHECKING
 
+from torch import nn
+
 from fedhpg.common.attacks import attack_of
 from fedhpg.common.batched.mlp import MLPShape
 from fedhpg.common.config import RunConfig
 from fedhpg.common.policies import AUTO_POLICY, MLP_CATEGORICAL
+from fedhpg.common.variants import variants_of
 from fedhpg.envs.base import EnvVariant
 
 if TYPE_CHECKING:
@@ -24,8 +27,6 @@ if TYPE_CHECKING:
 
 
 def mlp_shape(policy: Policy) -> MLPShape:
-    from torch import nn
-
     assert isinstance(policy, nn.Module)
     linear = [m for m in policy.modules() if isinstance(m, nn.Linear)]
     return MLPShape((linear[0].in_features, *(m.out_features for m in linear)))
@@ -51,6 +52,4 @@ def compiled_agents(run: RunConfig, variants: Mapping[int, EnvVariant]) -> set[i
 def uses_compiled_engine(run: RunConfig) -> bool:
     """Whether some of the run's agents train on the compiled backend (so a launcher can
     compile or load its kernels once, before it forks them)."""
-    from fedhpg.common.variants import variants_of
-
     return bool(compiled_agents(run, variants_of(run, [0])))

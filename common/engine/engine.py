@@ -14,6 +14,7 @@ from typing import Any
 
 import torch
 
+from fedhpg.common.batched import mlp_shape
 from fedhpg.common.components import AgentProfile, agent_profile, planned_budget
 from fedhpg.common.config import RunConfig
 from fedhpg.common.engine.backend import Backend
@@ -26,6 +27,7 @@ from fedhpg.common.engine.torch_backend import TorchBackend
 from fedhpg.common.randomness import Purpose
 from fedhpg.common.types import EvaluationStats
 from fedhpg.common.variants import discount, training_horizon
+from fedhpg.common.worker import policy_and_spaces
 from fedhpg.envs.base import EnvVariant
 
 
@@ -70,8 +72,6 @@ class Engine:
     def __init__(
         self, run: RunConfig, variants: Mapping[int, EnvVariant], *, compiled: bool = False
     ) -> None:
-        from fedhpg.common.worker import policy_and_spaces
-
         self.run = run
         self.variants = dict(variants)
         check_device(run.algo.device)
@@ -91,7 +91,6 @@ class Engine:
         )
         self.backend: Backend = torch_backend
         if compiled:
-            from fedhpg.common.batched import mlp_shape
             from fedhpg.common.batched.backend import CompiledBackend
 
             self.backend = CompiledBackend(mlp_shape(template), self.variants, torch_backend)

@@ -27,7 +27,8 @@ from fedhpg.common.engine.trajectories import Trajectories
 from fedhpg.common.randomness import Purpose, trajectory_keys
 from fedhpg.common.staircase import ordered_sums
 from fedhpg.envs.base import BatchEnv, EnvVariant
-from fedhpg.envs.device import DeviceFamily, device_family, put_distinct
+from fedhpg.envs.device import DeviceFamily, device_family
+from fedhpg.envs.tensor_writes import put_distinct
 
 TILE = 64
 """Steps per tile of the policy's maths. Every per-row reduction over steps is made of

@@ -18,8 +18,8 @@ from typing import Any
 from fedhpg.common.config import RunConfig
 from fedhpg.common.config_error import ConfigError
 from fedhpg.common.registry import import_plugins
+from fedhpg.common.run_keys import FREE_DICTS, all_keys, flatten, unknown_key
 from fedhpg.common.runtime.run_files import hydra_run_dir
-from fedhpg.common.settings.keys import FREE_DICTS, all_keys, flatten, unknown_key
 
 CONFIG_MODULE = "fedhpg.conf"
 CONFIG_NAME = "config"

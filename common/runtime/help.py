@@ -17,6 +17,7 @@ from typing import Any
 
 from fedhpg.common import config as config_module
 from fedhpg.common.config import RunConfig
+from fedhpg.common.run_keys import flatten
 from fedhpg.common.runtime.composition import hydra_context
 from fedhpg.common.settings import (
     agent,
@@ -30,7 +31,6 @@ from fedhpg.common.settings import (
     server,
     strategy,
 )
-from fedhpg.common.settings.keys import flatten
 
 USAGE = {
     "fedhpg-run": "[-m] [group=option ...] [key=value ...]",

@@ -7,6 +7,8 @@ import functools
 import gc
 import sys
 
+from fedhpg.common.group import SplitGroup
+
 M_TRIM_THRESHOLD = -1  # glibc's mallopt parameter numbers
 M_MMAP_THRESHOLD = -3
 
@@ -54,8 +56,6 @@ def tune_malloc_for(group: object) -> None:
     stacked from them): mmapped and faulted in each time at glibc's 128 KiB threshold, they
     are paid for again every iteration. Their processes take blocks below 16 MiB from the
     heap instead, and keep up to 64 MiB of it when freed, so the next batch reuses them."""
-    from fedhpg.common.group import SplitGroup
-
     parts = group.parts if isinstance(group, SplitGroup) else (group,)
     # an attribute, not isinstance: importing the compiled engine would import numba here
     if any(getattr(part, "LARGE_TEMPORARIES", False) for part in parts):

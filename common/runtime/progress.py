@@ -11,6 +11,17 @@ import time
 from collections.abc import Iterator
 from typing import Any, TextIO
 
+from rich.console import Console
+from rich.progress import (
+    BarColumn,
+    MofNCompleteColumn,
+    TextColumn,
+    TimeElapsedColumn,
+    TimeRemainingColumn,
+)
+from rich.progress import Progress as RichProgress
+from rich.table import Column
+
 logger = logging.getLogger(__name__)
 
 
@@ -69,17 +80,6 @@ class Progress:
 
 
 def _live_bar(stream: TextIO, total: int, done: int, unit: str) -> tuple[Any, Any]:
-    from rich.console import Console
-    from rich.progress import (
-        BarColumn,
-        MofNCompleteColumn,
-        TextColumn,
-        TimeElapsedColumn,
-        TimeRemainingColumn,
-    )
-    from rich.progress import Progress as RichProgress
-    from rich.table import Column
-
     bar = RichProgress(
         BarColumn(bar_width=20),
         MofNCompleteColumn(),

@@ -10,9 +10,9 @@ from typing import Any
 
 from fedhpg.common.config import RunConfig, to_dict
 from fedhpg.common.config_error import ConfigError
+from fedhpg.common.run_keys import fixed_difference, flatten
 from fedhpg.common.runtime.composition import NO_RESUME, compose_cfg, hydra_errors, to_run_config
 from fedhpg.common.runtime.run_files import holds_run
-from fedhpg.common.settings.keys import fixed_difference, flatten
 
 
 def settle_auto(overrides: Sequence[str]) -> list[str]:

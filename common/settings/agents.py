@@ -138,4 +138,4 @@ def validate_agents(agents: AgentsConfig) -> None:
 
 AUTO = "auto"
 """``agents.per_host=auto``: as many agents per process as
-:func:`fedhpg.common.settings.placement.agents_per_host` chooses."""
+:func:`fedhpg.common.placement.agents_per_host` chooses."""

@@ -109,7 +109,7 @@ def no_keys(rows: int = 0) -> np.ndarray:
 @dataclass(frozen=True, kw_only=True)
 class Welcome:
     """Server → agent: every agent of the range is registered; ``run`` holds the settings the
-    server dictates (``fedhpg.common.settings.roles.GROUPS``)."""
+    server dictates (``fedhpg.common.run_roles.GROUPS``)."""
 
     run_id: Name
     first: AgentIndex

@@ -41,8 +41,8 @@ from zmq.utils.monitor import recv_monitor_message
 from fedhpg.common.config import RunConfig
 from fedhpg.common.config_error import ConfigError
 from fedhpg.common.key_names import KeyBinding, parse_binding
+from fedhpg.common.placement import agents_per_host, host_ranges
 from fedhpg.common.settings.ids import agent_id_of, host_id_of
-from fedhpg.common.settings.placement import agents_per_host, host_ranges
 from fedhpg.common.settings.privacy import SecurityConfig
 
 logger = logging.getLogger(__name__)

@@ -17,7 +17,6 @@ from collections.abc import Sequence
 import torch
 
 from fedhpg.envs.base import EnvVariant
-from fedhpg.envs.device import register_device_family
 from fedhpg.envs.device.tensors import Params, TableFamily, TensorCopies, physics_family
 
 DT = 0.2
@@ -126,7 +125,6 @@ class AcrobotCopies(TensorCopies):
         )
 
 
-@register_device_family
 def acrobot_family(variants: Sequence[EnvVariant], device: torch.device) -> TableFamily | None:
     """The Acrobot variants' constants on ``device`` (None unless every one is an Acrobot this
     models)."""

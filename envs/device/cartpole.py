@@ -17,7 +17,6 @@ from typing import TypeVar
 import torch
 
 from fedhpg.envs.base import EnvVariant
-from fedhpg.envs.device import register_device_family
 from fedhpg.envs.device.tensors import Params, TableFamily, TensorCopies, physics_family
 
 TAU = 0.02
@@ -114,7 +113,6 @@ class CartPoleCopies(TensorCopies):
         return state.T.contiguous()
 
 
-@register_device_family
 def cartpole_family(variants: Sequence[EnvVariant], device: torch.device) -> TableFamily | None:
     """The CartPole variants' constants on ``device`` (None unless every one is a CartPole
     this models)."""

@@ -19,7 +19,6 @@ import numpy as np
 import torch
 
 from fedhpg.envs.base import EnvVariant
-from fedhpg.envs.device import register_device_family
 from fedhpg.envs.device.tensors import Params, TableFamily, TensorCopies
 from fedhpg.envs.gridworld import NUM_ACTIONS, GridWorldVariant, parse_layout
 
@@ -71,7 +70,6 @@ def _layout_tables(layouts: Sequence[tuple[str, ...]]) -> dict[str, torch.Tensor
     }
 
 
-@register_device_family
 def gridworld_family(variants: Sequence[EnvVariant], device: torch.device) -> TableFamily | None:
     """The GridWorld variants' grids and slips on ``device`` (None unless every one is a
     GridWorld)."""

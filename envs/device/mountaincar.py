@@ -14,7 +14,6 @@ from collections.abc import Sequence
 import torch
 
 from fedhpg.envs.base import EnvVariant
-from fedhpg.envs.device import register_device_family
 from fedhpg.envs.device.tensors import Params, TableFamily, TensorCopies, physics_family
 
 MIN_POSITION = -1.2
@@ -67,7 +66,6 @@ class MountainCarCopies(TensorCopies):
         return state.T.contiguous()
 
 
-@register_device_family
 def mountaincar_family(variants: Sequence[EnvVariant], device: torch.device) -> TableFamily | None:
     """The MountainCar variants' constants on ``device`` (None unless every one is a
     MountainCar this models)."""

@@ -17,7 +17,6 @@ from collections.abc import Sequence
 import torch
 
 from fedhpg.envs.base import EnvVariant
-from fedhpg.envs.device import register_device_family
 from fedhpg.envs.device.tensors import Params, TableFamily, TensorCopies, physics_family
 
 DT = 0.05
@@ -80,7 +79,6 @@ class PendulumCopies(TensorCopies):
         return torch.stack((torch.cos(theta), torch.sin(theta), theta_dot), dim=1)
 
 
-@register_device_family
 def pendulum_family(variants: Sequence[EnvVariant], device: torch.device) -> TableFamily | None:
     """The Pendulum variants' constants on ``device`` (None unless every one is a Pendulum this
     models)."""

@@ -15,7 +15,8 @@ from typing import Any, ClassVar
 
 import torch
 
-from fedhpg.envs.device import CopyStep, ResetStream, put_distinct
+from fedhpg.envs.device.protocols import CopyStep, ResetStream
+from fedhpg.envs.tensor_writes import put_distinct
 
 Params = dict[str, torch.Tensor]
 

@@ -35,14 +35,16 @@ from typing import TYPE_CHECKING, Any, ClassVar, Generic, TypeVar
 
 import torch
 
-from fedhpg.common.algorithms import PARAMETERS
+from fedhpg.common.algorithms import ALGORITHMS, PARAMETERS
 from fedhpg.common.components import resolve_algorithm
 from fedhpg.common.config import RunConfig
 from fedhpg.common.config_error import ConfigError
+from fedhpg.common.engine.devices import device_problem
 from fedhpg.common.registry import Registry, import_plugins, parse_options
 from fedhpg.common.settings.strategy import StrategyConfig
 from fedhpg.common.types import RoundResult, SavedState
 from fedhpg.server.participation import validate_participation
+from fedhpg.server.tolerance import REMEDY, tolerance_shortfall
 
 if TYPE_CHECKING:
     from fedhpg.common.algorithms import Algorithm
@@ -197,8 +199,6 @@ def sent_by(algorithm: Algorithm[Any, Any]) -> str:
 
 def check_takes(run: RunConfig, cls: type[Strategy[Any]]) -> None:
     """ConfigError unless the run's algorithm sends what the strategy ``cls`` takes."""
-    from fedhpg.common.algorithms import ALGORITHMS
-
     algorithm, _ = resolve_algorithm(run)
     sent = sent_by(algorithm)
     if sent == cls.takes:
@@ -215,8 +215,6 @@ def check_takes(run: RunConfig, cls: type[Strategy[Any]]) -> None:
 def validate_strategy(run: RunConfig) -> Strategy[Any]:
     """The server-side checks of a run config (the agents never see ``strategy``): the
     strategy built once, bound to the run and returned."""
-    from fedhpg.common.engine.devices import device_problem
-    from fedhpg.server.tolerance import REMEDY, tolerance_shortfall
 
     import_plugins(run.plugins)
     if run.strategy.device != "cpu":

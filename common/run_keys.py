@@ -5,12 +5,13 @@ schema, defaults filled in, and what a resumed run may not change.
 from __future__ import annotations
 
 import dataclasses
+import difflib
 import typing
 from typing import Any
 
 from fedhpg.common.config import RunConfig
 from fedhpg.common.config_error import ConfigError
-from fedhpg.common.settings.roles import DIAGNOSTIC_KEYS, PLACEMENT_KEYS, groups
+from fedhpg.common.run_roles import DIAGNOSTIC_KEYS, PLACEMENT_KEYS, groups
 
 FREE_DICTS = (
     "env.options",
@@ -29,8 +30,6 @@ def unknown_key(values: dict[str, Any], schema: type = RunConfig, prefix: str = 
     """The first key of ``values`` that ``schema`` (a config dataclass) has no field for, as a
     one-line message with the nearest known key; None when every key is known. Hydra's ``+``
     adds keys beyond the schema, which OmegaConf would drop without a word."""
-    import difflib
-
     fields = {f.name: f for f in dataclasses.fields(schema)}
     for name, value in values.items():
         key = f"{prefix}{name}"
