@@ -4,9 +4,9 @@ how ``make test`` shares the tests between its two pytest-xdist workers.
 ``make test`` runs ``pytest -n 2 --dist loadscope``; :func:`pytest_xdist_make_scheduler`
 makes every test that starts federations (tests/federation_tests.py reads which: tests/procs.py's
 servers and agents, the launcher, the API's distributed runs, submitit, multiprocessing) one
-work unit, ``federations``, which one worker runs in order, as a serial run would: two
-federations never share the two cores, and their deadlines keep the margins they were set
-with. The other tests (in-process tests, also those in a module that starts federations
+work unit, ``federations``, which one worker starts first and runs in order, as a serial run
+would: two federations never share the two cores, and their deadlines keep the margins they
+were set with. The other tests (in-process tests, also those in a module that starts federations
 elsewhere) are spread over both workers a module at a time, so a module's fixtures are built
 once per worker that runs it. xdist's own ``xdist_group`` mark would say the same, but with
 pytest 9 its nodeid suffix no longer takes effect.
@@ -36,5 +36,10 @@ def pytest_xdist_make_scheduler(config: pytest.Config, log: Any) -> Any:
         def _split_scope(self, nodeid: str) -> str:
             module = nodeid.split("::", 1)[0]
             return "federations" if starts_federations(root / module, nodeid) else module
+
+        def _assign_work_unit(self, node: Any) -> None:
+            if "federations" in self.workqueue:  # the longest serial chain starts first
+                self.workqueue.move_to_end("federations", last=False)
+            super()._assign_work_unit(node)
 
     return FederationsInOrder(config, log)

@@ -7,8 +7,10 @@ the tests that start federations one after another on one pytest-xdist worker an
 rest; this module tells the two apart per test. A test starts federations when its function,
 the module-level helpers, fixtures and constants it names (transitively) or its class use one
 of those means, or build a string that runs a federation's console script or code that does.
-The reading is conservative: a test that names such a helper counts even if
-it only reads a constant from it.
+In a module that names none of those means, its console scripts' quick runs (a mistake's one
+line, a round on the counted clock) are spread, and only a long-tier (``slow``) test that runs
+a federation's console script counts. The reading is conservative: a test that names such a
+helper counts even if it only reads a constant from it.
 """
 
 from __future__ import annotations
@@ -101,6 +103,15 @@ def module_source(path: Path) -> ModuleSource:
     )
 
 
+def _marked_slow(node: ast.AST) -> bool:
+    decorators = getattr(node, "decorator_list", [])
+    return any(
+        isinstance(sub, ast.Attribute) and sub.attr == "slow"
+        for deco in decorators
+        for sub in ast.walk(deco)
+    )
+
+
 def _uses_federations(node: ast.AST, module: ModuleSource, seen: set[str]) -> bool:
     """Whether ``node`` or a top-level definition it names (a helper, a fixture it takes as
     an argument, a constant) uses a means of starting processes."""
@@ -139,11 +150,11 @@ def starts_federations(path: Path, nodeid: str) -> bool:
     whose function cannot be found counts, as does a module that cannot be read: it fails
     the run here rather than being spread over both workers)."""
     module = module_source(path)
-    if not module.mentions_federations:
-        return False
     parts = nodeid.split("::")
     name = parts[1].split("[", 1)[0] if len(parts) > 1 else ""
     node = module.definitions.get(name)
+    if not module.mentions_federations:  # a long run of a console script is a federation
+        return node is not None and _marked_slow(node) and _uses_federations(node, module, set())
     if node is None:
         return True
     seen = {name}

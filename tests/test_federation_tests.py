@@ -20,6 +20,8 @@ TESTS = Path(__file__).parent
         "test_cuda_untouched.py::test_fedhpg_run_on_the_cpu_never_asks_cuda[demo]",  # a script
         "test_api.py::test_a_loaded_policy_reproduces_a_distributed_runs_summary",
         "test_connection_guard.py::test_a_failing_event_handler_does_not_stall_the_socket",  # fork
+        # a long-tier run of fedhpg-run in a module that otherwise runs console scripts quickly
+        "test_cli_output.py::test_the_first_cartpole_run_says_it_compiles_before_the_server_waits",
     ],
 )
 def test_a_test_that_starts_processes_runs_with_the_federations(nodeid: str) -> None:
@@ -39,6 +41,7 @@ def test_a_module_that_cannot_be_read_fails_the_run_rather_than_being_spread() -
         "test_experiments.py::test_bad_overrides_name_the_key[algo=nope-algo-allowed: fedhpg]",
         "test_tolerance.py::test_warn_runs_an_intolerant_rule_and_says_so",
         "test_codec.py::anything",  # a module that starts no process anywhere
+        "test_cli_output.py::test_the_demo_says_it_sleeps_and_a_preset_says_what_it_changed",
     ],
 )
 def test_an_in_process_test_is_spread(nodeid: str) -> None:
