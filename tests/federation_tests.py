@@ -116,6 +116,15 @@ def _uses_federations(node: ast.AST, module: ModuleSource, seen: set[str]) -> bo
     """Whether ``node`` or a top-level definition it names (a helper, a fixture it takes as
     an argument, a constant) uses a means of starting processes."""
     named: list[str] = []
+    other_scripts = {  # BIN / "fedhpg-keys": a console script that starts no federation
+        id(sub.left)
+        for sub in ast.walk(node)
+        if isinstance(sub, ast.BinOp)
+        and isinstance(sub.op, ast.Div)
+        and isinstance(sub.right, ast.Constant)
+        and isinstance(sub.right.value, str)
+        and not IN_A_STRING.search(sub.right.value)
+    }
     for sub in ast.walk(node):
         if isinstance(sub, ast.Import | ast.ImportFrom) and any(_bound_names(sub)):
             return True
@@ -127,7 +136,7 @@ def _uses_federations(node: ast.AST, module: ModuleSource, seen: set[str]) -> bo
             return True
         if isinstance(sub, ast.Attribute) and sub.attr == "Process":
             return True
-        if isinstance(sub, ast.Name):
+        if isinstance(sub, ast.Name) and id(sub) not in other_scripts:
             if sub.id in module.federation_names or sub.id == "Process":
                 return True
             named.append(sub.id)

@@ -42,6 +42,7 @@ def test_a_module_that_cannot_be_read_fails_the_run_rather_than_being_spread() -
         "test_tolerance.py::test_warn_runs_an_intolerant_rule_and_says_so",
         "test_codec.py::anything",  # a module that starts no process anywhere
         "test_cli_output.py::test_the_demo_says_it_sleeps_and_a_preset_says_what_it_changed",
+        "test_security.py::test_keys_command_writes_pairs_and_the_allow_list",  # BIN / fedhpg-keys
     ],
 )
 def test_an_in_process_test_is_spread(nodeid: str) -> None:
