@@ -9,7 +9,9 @@ the module-level helpers, fixtures and constants it names (transitively) or its 
 of those means, or build a string that runs a federation's console script or code that does.
 In a module that names none of those means, its console scripts' quick runs (a mistake's one
 line, a round on the counted clock) are spread, and only a long-tier (``slow``) test that runs
-a federation's console script counts. The reading is conservative: a test that names such a
+a federation's console script counts. A test that takes a fixture wider than a test (module
+or session scope) in a module that starts federations runs with them too, so that the fixture
+is built once, on one worker. The reading is conservative: a test that names such a
 helper counts even if it only reads a constant from it.
 """
 
@@ -44,12 +46,14 @@ may start federations."""
 class ModuleSource:
     """A test module: whether its text mentions a means of starting federations, its
     top-level definitions by name, the names it binds by importing one of
-    :data:`FEDERATION_MODULES`, and its autouse fixtures."""
+    :data:`FEDERATION_MODULES`, its autouse fixtures and its fixtures wider than a test
+    (module, package or session scope)."""
 
     mentions_federations: bool
     definitions: dict[str, ast.AST]
     federation_names: frozenset[str]
     autouse: tuple[str, ...]
+    shared: frozenset[str]
 
 
 def _is_federation_module(name: str | None) -> bool:
@@ -98,8 +102,25 @@ def module_source(path: Path) -> ModuleSource:
         elif isinstance(node, ast.Import | ast.ImportFrom):
             federation_names.update(_bound_names(node))
     autouse = tuple(name for name, node in definitions.items() if _is_autouse_fixture(node))
+    shared = frozenset(name for name, node in definitions.items() if _is_shared_fixture(node))
     return ModuleSource(
-        bool(STARTS_FEDERATIONS.search(text)), definitions, frozenset(federation_names), autouse
+        bool(STARTS_FEDERATIONS.search(text)),
+        definitions,
+        frozenset(federation_names),
+        autouse,
+        shared,
+    )
+
+
+def _is_shared_fixture(node: ast.AST) -> bool:
+    if not isinstance(node, ast.FunctionDef | ast.AsyncFunctionDef):
+        return False
+    return any(
+        kw.arg == "scope"
+        and not (isinstance(kw.value, ast.Constant) and kw.value.value in (None, "function"))
+        for deco in node.decorator_list
+        if isinstance(deco, ast.Call)
+        for kw in deco.keywords
     )
 
 
@@ -114,7 +135,8 @@ def _marked_slow(node: ast.AST) -> bool:
 
 def _uses_federations(node: ast.AST, module: ModuleSource, seen: set[str]) -> bool:
     """Whether ``node`` or a top-level definition it names (a helper, a fixture it takes as
-    an argument, a constant) uses a means of starting processes."""
+    an argument, a constant) uses a means of starting processes, or takes a fixture wider than
+    a test."""
     named: list[str] = []
     other_scripts = {  # BIN / "fedhpg-keys": a console script that starts no federation
         id(sub.left)
@@ -147,6 +169,8 @@ def _uses_federations(node: ast.AST, module: ModuleSource, seen: set[str]) -> bo
                 return True
             named.append(sub.value)  # pytest.mark.usefixtures("name")
     for name in named:
+        if name in module.shared:  # built once, on the worker that runs the federations
+            return True
         if name in module.definitions and name not in seen:
             seen.add(name)
             if _uses_federations(module.definitions[name], module, seen):

@@ -50,7 +50,7 @@ def test_an_in_process_test_is_spread(nodeid: str) -> None:
     assert not starts_federations(TESTS / module, f"tests/{nodeid}")
 
 
-def test_a_helper_or_fixture_that_starts_processes_makes_its_tests_federations(
+def test_a_helper_or_fixture_that_starts_processes_or_a_shared_fixture_makes_a_federation_test(
     tmp_path: Path,
 ) -> None:
     module = tmp_path / "test_sample.py"
@@ -63,17 +63,21 @@ def test_a_helper_or_fixture_that_starts_processes_makes_its_tests_federations(
         "def test_by_helper():\n    _federation()\n"
         "def test_by_fixture(served):\n    pass\n"
         "def test_by_constant_only():\n    assert RUN\n"
-        "class TestGroup:\n    def test_method(self):\n        _federation()\n",
+        "class TestGroup:\n    def test_method(self):\n        _federation()\n"
+        "@pytest.fixture(scope='module')\ndef built_once():\n    return 1\n"
+        "@pytest.fixture\ndef per_test(built_once):\n    return built_once\n"
+        "def test_by_shared_fixture(per_test):\n    assert per_test\n",
         encoding="utf-8",
     )
     verdicts = {
         name: starts_federations(module, f"tests/test_sample.py::{name}")
         for name in ("test_by_helper", "test_by_fixture", "test_by_constant_only",
-                     "TestGroup::test_method")
+                     "TestGroup::test_method", "test_by_shared_fixture")
     }  # fmt: skip
     assert verdicts == {
         "test_by_helper": True,
         "test_by_fixture": True,
         "test_by_constant_only": False,
         "TestGroup::test_method": True,
+        "test_by_shared_fixture": True,
     }
