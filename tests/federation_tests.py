@@ -34,6 +34,10 @@ STARTS_FEDERATIONS = re.compile(
 FEDERATION_MODULES = ("procs", "fedhpg.server.launcher", "multiprocessing", "submitit")
 """Modules whose names, in a test's code, mean it may start processes."""
 
+BESIDE_THE_TEST = ("Process", "Popen")
+"""Processes that run beside the test (a server, an agent, a CPU hog) rather than to their exit
+before it goes on."""
+
 IN_A_STRING = re.compile(
     r"\bfedhpg-(run|server|agent|cluster)\b|fedhpg\.server\.launcher|\bsubmitit\b"
     r"|\bmultiprocessing\b|distributed=True"
@@ -156,10 +160,10 @@ def _uses_federations(node: ast.AST, module: ModuleSource, seen: set[str]) -> bo
             and not (isinstance(sub.value, ast.Constant) and sub.value.value is False)
         ):
             return True
-        if isinstance(sub, ast.Attribute) and sub.attr == "Process":
+        if isinstance(sub, ast.Attribute) and sub.attr in BESIDE_THE_TEST:
             return True
         if isinstance(sub, ast.Name) and id(sub) not in other_scripts:
-            if sub.id in module.federation_names or sub.id == "Process":
+            if sub.id in module.federation_names or sub.id in BESIDE_THE_TEST:
                 return True
             named.append(sub.id)
         elif isinstance(sub, ast.arg):  # a fixture taken as an argument
