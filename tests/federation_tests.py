@@ -87,6 +87,18 @@ def _is_autouse_fixture(node: ast.AST) -> bool:
     )
 
 
+def _is_shared_fixture(node: ast.AST) -> bool:
+    if not isinstance(node, ast.FunctionDef | ast.AsyncFunctionDef):
+        return False
+    return any(
+        kw.arg == "scope"
+        and not (isinstance(kw.value, ast.Constant) and kw.value.value in (None, "function"))
+        for deco in node.decorator_list
+        if isinstance(deco, ast.Call)
+        for kw in deco.keywords
+    )
+
+
 @cache
 def module_source(path: Path) -> ModuleSource:
     """The definitions of the test module at ``path``."""
@@ -113,18 +125,6 @@ def module_source(path: Path) -> ModuleSource:
         frozenset(federation_names),
         autouse,
         shared,
-    )
-
-
-def _is_shared_fixture(node: ast.AST) -> bool:
-    if not isinstance(node, ast.FunctionDef | ast.AsyncFunctionDef):
-        return False
-    return any(
-        kw.arg == "scope"
-        and not (isinstance(kw.value, ast.Constant) and kw.value.value in (None, "function"))
-        for deco in node.decorator_list
-        if isinstance(deco, ast.Call)
-        for kw in deco.keywords
     )
 
 
