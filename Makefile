@@ -40,9 +40,10 @@ test: $(STAMP) typecheck contracts docs
 
 # The long tier (marked slow): every shipped env preset learns, every docs page's code runs as
 # printed, the longest integration runs, the resource attacks and the 10,000-frame fuzz of a
-# live server (~9 min on 2 cores). .ci/run runs it after make test.
+# live server. Two workers shared as in make test (tests/conftest.py): the federations in order
+# on one, the in-process learning runs on the other. .ci/run runs it after make test.
 test-long: $(STAMP)
-	$(BIN)/python -m pytest -q -m slow
+	$(BIN)/python -m pytest -q -m slow -n 2 --dist loadscope
 
 # The image without Docker Hub or an index: a debootstrap base, this machine's wheels, an offline
 # build (the running engine: DOCKER_HOST, or `docker/engine.sh start` prints one).

@@ -2,20 +2,19 @@
 how ``make test`` shares the tests between its two pytest-xdist workers.
 
 ``make test`` runs ``pytest -n 2 --dist loadscope``; :func:`pytest_xdist_make_scheduler`
-makes every test of a module that starts federations (through tests/procs.py, the launcher,
-the API's distributed runs, submitit, multiprocessing) one work unit, ``federations``, which
-one worker runs in order, as a serial run would: two federations never share the two cores,
-and their deadlines keep the margins they were set with. The other modules (in-process
-tests, console scripts run to their exit) are spread over both workers a module at a time,
-so a module's fixtures are built once. xdist's own ``xdist_group`` mark would say the same,
-but with pytest 9 its nodeid suffix no longer takes effect.
+makes every test that starts federations (tests/federation_tests.py reads which: tests/procs.py's
+servers and agents, the launcher, the API's distributed runs, submitit, multiprocessing) one
+work unit, ``federations``, which one worker starts first and runs in order, as a serial run
+would: two federations never share the two cores, and their deadlines keep the margins they
+were set with. The other tests (in-process tests, also those in a module that starts federations
+elsewhere) are spread over both workers a module at a time, so a module's fixtures are built
+once per worker that runs it. xdist's own ``xdist_group`` mark would say the same, but with
+pytest 9 its nodeid suffix no longer takes effect.
 """
 
 from __future__ import annotations
 
-import re
 import sys
-from functools import cache
 from pathlib import Path
 from typing import Any
 
@@ -25,24 +24,10 @@ import torch
 sys.path.insert(0, str(Path(__file__).parent))
 torch.set_num_threads(1)
 
-STARTS_FEDERATIONS = re.compile(
-    r"^from procs |^import procs\b|fedhpg\.server\.launcher|\bsubmitit\b|\bmultiprocessing\b"
-    r"|\bProcess\(|distributed=True",
-    re.MULTILINE,
-)
-"""What a test module that starts federations uses (tests/procs.py: servers, agents, kills;
-``api.run(..., distributed=True)`` forks one)."""
-
-
-@cache
-def starts_federations(path: Path) -> bool:
-    """Whether the test module at ``path`` starts federations (a module that cannot be read
-    fails the run here rather than being spread over both workers)."""
-    return bool(STARTS_FEDERATIONS.search(path.read_text(encoding="utf-8")))
-
 
 @pytest.hookimpl(optionalhook=True)  # a plain pytest without xdist does not know the hook
 def pytest_xdist_make_scheduler(config: pytest.Config, log: Any) -> Any:
+    from federation_tests import starts_federations  # tests/ is on sys.path from here on
     from xdist.scheduler import LoadScopeScheduling
 
     root = config.rootpath  # nodeids are relative to it
@@ -50,6 +35,11 @@ def pytest_xdist_make_scheduler(config: pytest.Config, log: Any) -> Any:
     class FederationsInOrder(LoadScopeScheduling):
         def _split_scope(self, nodeid: str) -> str:
             module = nodeid.split("::", 1)[0]
-            return "federations" if starts_federations(root / module) else module
+            return "federations" if starts_federations(root / module, nodeid) else module
+
+        def _assign_work_unit(self, node: Any) -> None:
+            if "federations" in self.workqueue:  # the longest serial chain starts first
+                self.workqueue.move_to_end("federations", last=False)
+            super()._assign_work_unit(node)
 
     return FederationsInOrder(config, log)
