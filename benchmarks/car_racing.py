@@ -44,16 +44,7 @@ OVERRIDES = [
 ]
 WINDOW = 5
 """Rounds averaged at each end of the training curve."""
-MEASURES = [
-    "common/algorithms",
-    "common/estimators.py",
-    "common/engine",
-    "common/batched",
-    "common/policies.py",
-    "common/optim.py",
-    "envs",
-    "conf",
-]
+MEASURES = [*results_file.LEARNING_CODE, "conf"]
 SETUP = (
     "`{command}`, in process. Training return: the sampled episodes' mean over the 4 agents; "
     "greedy returns over {episodes} episodes per agent; the random policy's in the same "

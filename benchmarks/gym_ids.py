@@ -31,16 +31,7 @@ from benchmarks import results_file
 RESULTS = Path("benchmarks/results/gym_ids.json")
 COMMON = ["env=gym", "agents=homogeneous4", "agents.budget.batch_size=[16]", "agents.clock=counted"]
 TITLE = "Any gymnasium id (`env=gym`)"
-MEASURES = [
-    "common/algorithms",
-    "common/estimators.py",
-    "common/engine",
-    "common/batched",
-    "common/policies.py",
-    "common/optim.py",
-    "envs",
-    "conf",
-]
+MEASURES = [*results_file.LEARNING_CODE, "conf"]
 SETUP = (
     "Three ids the project ships no family for, each `fedhpg-run env=gym env.id=ID` with the "
     "variation below, K = 4 (`agents=homogeneous4`, B = 16, τ = 1, server Adam 0.01, GPOMDP "

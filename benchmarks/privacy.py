@@ -67,15 +67,7 @@ DP = ["privacy=dp", "privacy.adaptive_clip=true", "privacy.clip=10", "privacy.cl
 EPSILONS = (1.0, 4.0, 8.0)
 
 
-LEARNING = [
-    "common/algorithms",
-    "common/estimators.py",
-    "common/engine",
-    "common/batched",
-    "common/policies.py",
-    "common/optim.py",
-    "envs",
-]
+LEARNING = list(results_file.LEARNING_CODE)
 FEDERATION = ["server", "agent", "common/runtime", "common/wire"]
 PARTS: dict[str, dict[str, Any]] = {
     "utility": {

@@ -125,13 +125,7 @@ def report(curves: list[Curve], rounds: int, summary: str | None = None, **stamp
         + (f" --seeds {len(seeds)}" if len(seeds) != 3 else "")
         + (f" --rounds {rounds}" if rounds != 30 else ""),
         measures=[
-            "common/algorithms",
-            "common/estimators.py",
-            "common/engine",
-            "common/batched",
-            "common/policies.py",
-            "common/optim.py",
-            "envs",
+            *results_file.LEARNING_CODE,
             "server",
             "agent",
             "common/runtime",
