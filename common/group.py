@@ -22,7 +22,7 @@ import numpy as np
 import torch
 
 from fedhpg.common.attacks import corrupt_rows
-from fedhpg.common.batched import compiled_agents
+from fedhpg.common.batched import compiled_agents, compiled_backend
 from fedhpg.common.components import resolve_algorithm
 from fedhpg.common.config import RunConfig
 from fedhpg.common.engine.engine import Engine, engine_settings
@@ -102,7 +102,7 @@ class EngineGroup:
     ) -> None:
         self.run = run
         self.variants = variants
-        self.engine = Engine(run, variants, compiled=compiled)
+        self.engine = Engine(run, variants, backend=compiled_backend if compiled else None)
         self.algorithm, self.params = resolve_algorithm(run)
         self._plans: dict[tuple[int, ...], RoundPlan] = {}
         """The plans of rounds of agents running their own budgets (a round repeats them)."""

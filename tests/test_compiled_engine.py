@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 import torch
 
-from fedhpg.common.batched import compiled_agents, kernels
+from fedhpg.common.batched import compiled_agents, compiled_backend, kernels
 from fedhpg.common.batched.backend import CompiledBackend
 from fedhpg.common.engine.engine import Engine
 from fedhpg.common.estimators import estimate_gradient, estimator_coefficients
@@ -36,7 +36,7 @@ def _run(*overrides: str, agents: int = 6):
 def _engine(run, indices) -> Engine:
     variants = variants_of(run, indices)
     assert compiled_agents(run, variants) == set(indices)
-    return Engine(run, variants, compiled=True)
+    return Engine(run, variants, backend=compiled_backend)
 
 
 def _away_from_the_start(run):

@@ -18,6 +18,8 @@ from torch import nn
 from fedhpg.common.attacks import attack_of
 from fedhpg.common.batched.mlp import MLPShape
 from fedhpg.common.config import RunConfig
+from fedhpg.common.engine.backend import Backend
+from fedhpg.common.engine.torch_backend import TorchBackend
 from fedhpg.common.policies import AUTO_POLICY, MLP_CATEGORICAL
 from fedhpg.common.variants import variants_of
 from fedhpg.envs.base import EnvVariant
@@ -30,6 +32,16 @@ def mlp_shape(policy: Policy) -> MLPShape:
     assert isinstance(policy, nn.Module)
     linear = [m for m in policy.modules() if isinstance(m, nn.Linear)]
     return MLPShape((linear[0].in_features, *(m.out_features for m in linear)))
+
+
+def compiled_backend(
+    template: Policy, variants: dict[int, EnvVariant], torch_backend: TorchBackend
+) -> Backend:
+    """The compiled backend of ``variants`` around the engine's ``torch_backend`` (an
+    :class:`~fedhpg.common.engine.engine.Engine`'s ``backend``)."""
+    from fedhpg.common.batched.backend import CompiledBackend  # numba's import
+
+    return CompiledBackend(mlp_shape(template), variants, torch_backend)
 
 
 def compiled_agents(run: RunConfig, variants: Mapping[int, EnvVariant]) -> set[int]:

@@ -8,13 +8,12 @@ with, on the group's backend (:class:`~fedhpg.common.engine.backend.Backend`: to
 
 from __future__ import annotations
 
-from collections.abc import Iterator, Mapping, Sequence
+from collections.abc import Callable, Iterator, Mapping, Sequence
 from contextlib import AbstractContextManager, contextmanager, nullcontext
 from typing import Any
 
 import torch
 
-from fedhpg.common.batched import mlp_shape
 from fedhpg.common.components import AgentProfile, agent_profile, planned_budget
 from fedhpg.common.config import RunConfig
 from fedhpg.common.engine.backend import Backend
@@ -24,6 +23,7 @@ from fedhpg.common.engine.memory import RoundPlan, StepBytes, memory_budget, pla
 from fedhpg.common.engine.policy_rows import PolicyRows
 from fedhpg.common.engine.round import Interrupt, Round, RowConstants
 from fedhpg.common.engine.torch_backend import TorchBackend
+from fedhpg.common.policies import Policy
 from fedhpg.common.randomness import Purpose
 from fedhpg.common.types import EvaluationStats
 from fedhpg.common.variants import discount, training_horizon
@@ -64,13 +64,22 @@ def _settings(device: torch.device) -> Iterator[None]:
         yield
 
 
+BackendAround = Callable[[Policy, dict[int, EnvVariant], TorchBackend], Backend]
+"""(the policy's template, the variants, the engine's torch backend) -> the backend the engine
+runs on instead (:func:`fedhpg.common.batched.compiled_backend`)."""
+
+
 class Engine:
-    """The rounds of the agents ``variants`` of one run on one backend (the compiled one where
-    ``compiled``: the caller checked it serves these agents,
-    :func:`fedhpg.common.batched.compiled_agents`)."""
+    """The rounds of the agents ``variants`` of one run on one backend: torch, or the one
+    ``backend`` builds around it (the compiled one, where the caller checked it serves these
+    agents: :func:`fedhpg.common.batched.compiled_agents`)."""
 
     def __init__(
-        self, run: RunConfig, variants: Mapping[int, EnvVariant], *, compiled: bool = False
+        self,
+        run: RunConfig,
+        variants: Mapping[int, EnvVariant],
+        *,
+        backend: BackendAround | None = None,
     ) -> None:
         self.run = run
         self.variants = dict(variants)
@@ -89,11 +98,9 @@ class Engine:
         torch_backend = TorchBackend(
             run, self.variants, self.policy, (observation_space, action_space), self.device
         )
-        self.backend: Backend = torch_backend
-        if compiled:
-            from fedhpg.common.batched.backend import CompiledBackend
-
-            self.backend = CompiledBackend(mlp_shape(template), self.variants, torch_backend)
+        self.backend: Backend = (
+            torch_backend if backend is None else backend(template, self.variants, torch_backend)
+        )
         self.options = EstimatorOptions.of(run.algo)
         self._profiles: dict[int, AgentProfile] = {}
         self._gamma: dict[int, float] = {}
