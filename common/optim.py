@@ -40,7 +40,7 @@ class AdamAscent:
     """Adam on the flat parameter vector (ascent).
 
     Written out rather than taken from ``torch.optim``: the first ``torch.optim`` step imports
-    torch's compiler stack (~1 s per process), and this keeps every operation explicit.
+    torch's compiler stack (slow, in every process), and this keeps every operation explicit.
     """
 
     def __init__(

@@ -160,7 +160,7 @@ _HINTS: dict[type, dict[str, Any]] = {}
 
 def _type_hints(cls: type) -> dict[str, Any]:
     """``typing.get_type_hints``, once per class: it evaluates every annotation string again
-    on each call (~40 µs), and a host of 5,000 agents parses options per agent it meets."""
+    on each call, and a host of thousands of agents parses options per agent it meets."""
     hints = _HINTS.get(cls)
     if hints is None:
         hints = _HINTS[cls] = typing.get_type_hints(cls)

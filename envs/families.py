@@ -38,7 +38,7 @@ FamilyFactory = LazyFamily
 
 SPAN_GAP = 4096
 """Rows asked for that lie closer than this are drawn in one span with the rows between them
-(cheaper than a new generator: ~14 µs); farther apart, the next span skips ahead."""
+(cheaper than a new generator); farther apart, the next span skips ahead."""
 
 
 def _rows(seed: int, tag: int, indices: Sequence[int], count: int) -> np.ndarray:

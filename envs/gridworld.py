@@ -264,7 +264,7 @@ class GridWorldBatchEnv:
     def step(self, actions: np.ndarray) -> BatchStep:
         """Copies that already ended keep moving; the sampler masks them (see BatchEnv).
 
-        Actions are checked (about 1 µs) because numpy would silently read a negative action as
+        Actions are checked (cheaply) because numpy would silently read a negative action as
         another one, and an action of 4 as the next cell's action 0.
         """
         actions = np.asarray(actions)

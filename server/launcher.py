@@ -2,7 +2,7 @@
 ``agents.per_host``) on this machine, supervised.
 
 torch and the package are imported once here; the server and agents are *forked* from this
-process, so K agents start in milliseconds instead of paying ~1.5 s of imports each. Children
+process, so K agents start in milliseconds instead of each paying the imports again. Children
 die with the launcher (PR_SET_PDEATHSIG); if any child fails, the rest are stopped and the
 launcher exits non-zero.
 """

@@ -113,7 +113,7 @@ class UpdateCheck:
         """Why the update cannot be aggregated, or None. ``broadcast`` is the round's θ̃
         (None when the update is for another round: the bound is then not checked).
         ``stats_bounded``: the stats came through the codec, which enforced these very bounds
-        on every field (the zmq pool's case: not checked twice, ~5 µs per agent)."""
+        on every field (the zmq pool's case: not checked twice, a cost per agent)."""
         problem = self.theta_problem(theta)
         if problem is not None:
             return problem
