@@ -211,10 +211,14 @@ class Placed:
 
 
 def _place(cluster: Cluster, tmp_path: Path, *extra: str) -> Placed:
+    """``fedhpg-cluster`` with ``RUN``, the keys of ``extra`` in place of RUN's own (a key
+    typed twice is refused)."""
     run_dir, log = tmp_path / "run", tmp_path / "fedhpg-cluster.log"
+    replaced = {override.split("=", 1)[0] for override in extra}
+    run = [override for override in RUN if override.split("=", 1)[0] not in replaced]
     command = cluster.client(
         str(BIN / "fedhpg-cluster"), f"cluster={cluster.kind}", f"server.out_dir={run_dir}",
-        *RUN, *extra,
+        *run, *extra,
     )  # fmt: skip
     with log.open("w") as output:
         process = subprocess.Popen(

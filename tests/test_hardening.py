@@ -121,9 +121,9 @@ def _finished_run(tmp_path: Path) -> Path:
     return out_dir
 
 
-def _server(tmp_path: Path, *args: str) -> subprocess.CompletedProcess:
+def _server(tmp_path: Path, *args: str, delays: str = FAST) -> subprocess.CompletedProcess:
     return subprocess.run(
-        [str(BIN / "fedhpg-server"), *RUN, FAST, f"server.port={free_port()}",
+        [str(BIN / "fedhpg-server"), *RUN, delays, f"server.port={free_port()}",
          "server.register_timeout_s=5", *args],
         capture_output=True, text=True, timeout=60, cwd=tmp_path, env={**os.environ, **QUIET},
     )  # fmt: skip
@@ -174,8 +174,8 @@ def test_a_second_server_cannot_take_a_live_run_directory(tmp_path: Path) -> Non
         assert wait_until(
             lambda: metrics.exists() and len(metrics.read_text().splitlines()) >= 3, 60
         )
-        second = _server(tmp_path, "rounds=30", "agents.step_delays_s=[0.004]",
-                         f"server.out_dir={out_dir}", "resume=true")  # fmt: skip
+        second = _server(tmp_path, "rounds=30", f"server.out_dir={out_dir}", "resume=true",
+                         delays=SLOW)  # fmt: skip
         _, server_err = server.communicate(timeout=TIMEOUT_S)
         for agent in agents:
             agent.wait(timeout=30)
