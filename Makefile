@@ -41,10 +41,11 @@ test: $(STAMP) typecheck contracts docs
 
 # The long tier (marked slow): every shipped env preset learns, every docs page's code runs as
 # printed, the longest integration runs, the resource attacks and the 10,000-frame fuzz of a
-# live server. Two workers shared as in make test (tests/conftest.py): the federations in order
-# on one, the in-process learning runs on the other. .ci/run runs it after make test.
+# live server (~14 min on 2 cores). One worker: the resource attacks time how many connections
+# a server sheds, which a learning run on the other core would starve. .ci/run runs it after
+# make test.
 test-long: $(STAMP)
-	$(BIN)/python -m pytest -q -m slow -n 2 --dist loadscope
+	$(BIN)/python -m pytest -q -m slow
 
 # The image without Docker Hub or an index: a debootstrap base, this machine's wheels, an offline
 # build (the running engine: DOCKER_HOST, or `docker/engine.sh start` prints one).
