@@ -45,13 +45,15 @@ def corrupt_rows(
     round_index: int,
 ) -> torch.Tensor:
     """The θ_k rows the agents send: ``honest`` [A, d] where the agent is honest or attacks
-    its sampling, the corrupted update where it poisons its update (from θ̃ = ``start``).
+    its sampling, the corrupted update where it poisons its update (from θ̃ = ``start``, [d]
+    of any float type).
     Random draws come from the agent's (seed, agent, round) attack stream."""
     if not attack.agents or not ATTACKS.get(attack.kind).poisons_update:
         return honest
     kinds = [attack_of(attack, k) for k in agents]
     if not any(kind.poisons_update for kind in kinds):
         return honest
+    start = start.detach().to(torch.float32)
     sent = honest.clone()
     delta = honest - start
     for row, kind in enumerate(kinds):

@@ -167,7 +167,7 @@ class EngineGroup:
             tallies.append(rows.tally)
         sent = corrupt_rows(
             self.run.attack,
-            theta.detach().to(torch.float32),
+            theta,
             honest[0] if len(honest) == 1 else torch.cat(honest),
             order,
             seed=self.run.seed,

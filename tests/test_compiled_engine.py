@@ -16,6 +16,8 @@ import torch
 
 from fedhpg.common.batched import compiled_agents, compiled_backend, kernels
 from fedhpg.common.batched.backend import CompiledBackend
+from fedhpg.common.batched.mlp import MLPShape
+from fedhpg.common.engine.backend import Draws
 from fedhpg.common.engine.engine import Engine
 from fedhpg.common.estimators import estimate_gradient, estimator_coefficients
 from fedhpg.common.group import EngineGroup, SplitGroup, make_agent_group
@@ -66,13 +68,14 @@ def test_the_compiled_keys_are_the_engines_words() -> None:
     index = torch.arange(int(counts.sum())) - (torch.cumsum(counts, 0) - counts)[owner]
     settings = [(0, 0, 0, Purpose.TRAIN), (2**40 + 7, 10**6, 9, Purpose.EVALUATE),
                 (5, 3, 1, Purpose.SERVER)]  # fmt: skip
+    backend = CompiledBackend(MLPShape((4, 2)))
     for seed, round_index, iteration, purpose in settings:
         expected = trajectory_keys(seed, agents, round_index, purpose, iteration, index, owner)
-        got = CompiledBackend.keys(seed, agents, counts, round_index, purpose, iteration)
+        got = backend.keys(Draws(seed, agents, round_index, purpose, iteration), counts)
         assert torch.equal(got, expected)
     assert not torch.equal(
-        CompiledBackend.keys(0, agents, counts, 0, Purpose.TRAIN, 1),
-        CompiledBackend.keys(0, agents, counts, 0, Purpose.TRAIN, 0),
+        backend.keys(Draws(0, agents, 0, Purpose.TRAIN, 1), counts),
+        backend.keys(Draws(0, agents, 0, Purpose.TRAIN, 0), counts),
     ), "an iteration's keys are its own"
 
 

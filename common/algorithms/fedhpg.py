@@ -51,16 +51,19 @@ class FedHPG(Algorithm[NoParams, FedHPGBudget]):
         ascent = make_optimizer(algo)
         local_iters, batch_size = rows.budget("local_iters"), rows.budget("batch_size")
         bounds = row_bound_statistics(rows.size) if algo.bound_estimates else None
+        fewest = int(local_iters.min())  # the budgets are host rows: no device wait
         for iteration in range(int(local_iters.max())):
-            active = local_iters > iteration  # the budgets are host rows: no device wait
-            every = bool(active.all())
-            counts = batch_size if every else torch.where(active, batch_size, 0)
+            if iteration < fewest:  # every row runs
+                counts, active = batch_size, None
+            else:
+                active = local_iters > iteration
+                counts = torch.where(active, batch_size, 0)
             batch = rows.sample(theta, counts, iteration=iteration)
             gradient = rows.mean_gradients(theta, batch)
             if bounds is not None and iteration < 2:  # at θ̃, and the secant for L
                 bounds.measure(rows, theta, batch, gradient, first=iteration == 0)
             gradient, clipped = clip_rows(gradient, algo.grad_clip)
-            theta += ascent.direction(gradient, None if every else active.to(theta.device))
+            theta += ascent.direction(gradient, None if active is None else active.to(theta.device))
             rows.finished(batch, clipped=clipped)
             del batch  # its memory goes back to the sampler (one batch held at a time)
         if bounds is not None:

@@ -17,14 +17,16 @@ import sys
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import replace
+from typing import NamedTuple
 
 import numpy as np
 import torch
 
 from fedhpg.common import randomness
-from fedhpg.common.batched import kernels
-from fedhpg.common.batched.estimator import packed_coefficients
+from fedhpg.common.batched import fused, kernels
+from fedhpg.common.batched.estimator import kernel_options, packed_coefficients
 from fedhpg.common.batched.mlp import MLPShape
+from fedhpg.common.engine.backend import Draws, coefficients_then_gradients
 from fedhpg.common.engine.estimate import EstimatorOptions
 from fedhpg.common.engine.torch_backend import TorchBackend
 from fedhpg.common.engine.trajectories import StepRows, Trajectories
@@ -40,6 +42,17 @@ RECENT_ROWS = 8
 def _run_key(seed: int, purpose: int) -> int:
     """The (seed, purpose) part of every trajectory key, hashed once."""
     return randomness.key_of(seed, purpose)
+
+
+def _key_words(draws: Draws) -> tuple[int, np.ndarray, int, int]:
+    """``draws`` as the key kernels take them: the run's key, the agents, the round and the
+    iteration as signed 64-bit words."""
+    return (
+        _run_key(draws.seed, int(draws.purpose)),
+        draws.agents.numpy(),
+        randomness.signed(draws.round_index),
+        randomness.signed(draws.iteration),
+    )
 
 
 def covers(variant: EnvVariant) -> bool:
@@ -91,23 +104,13 @@ class CompiledBackend:
         self._recent[key] = self._table[[self._row_of[k] for k in agents]]
         return self._recent[key]
 
-    @staticmethod
-    def keys(
-        seed: int,
-        agents: torch.Tensor,
-        counts: torch.Tensor,
-        round_index: int,
-        purpose: Purpose,
-        iteration: int,
-    ) -> torch.Tensor:
+    def keys(self, draws: Draws, counts: torch.Tensor) -> torch.Tensor:
         """:func:`~fedhpg.common.randomness.trajectory_keys` of trajectories 0 … ``counts[a]``
-        − 1 of every agent ``agents[a]``, row after row: the same words, in one compiled call."""
+        − 1 of every row a, row after row: the same words, in one compiled call."""
         wanted = counts.numpy()
         out = np.empty(int(wanted.sum()), dtype=np.int64)
-        kernels.trajectory_keys(
-            _run_key(seed, int(purpose)), agents.numpy(), wanted,
-            randomness.signed(round_index), randomness.signed(iteration), out,
-        )  # fmt: skip
+        base, agents, round_word, iteration_word = _key_words(draws)
+        kernels.trajectory_keys(base, agents, wanted, round_word, iteration_word, out)
         return torch.from_numpy(out)
 
     def coefficients(
@@ -137,49 +140,84 @@ class CompiledBackend:
         self,
         theta: torch.Tensor,
         counts: torch.Tensor,
-        keys: torch.Tensor,
+        draws: Draws,
         horizons: torch.Tensor,
         agents: Sequence[int],
         *,
         greedy: bool,
     ) -> Trajectories:
-        """One episode per copy of every row, as the engine's ``sample`` returns them."""
-        count = counts.numpy().astype(np.int64)
-        limits = np.minimum(horizons.numpy().astype(np.int64), CARTPOLE_STEP_LIMIT)
-        physics = self._physics_rows(agents)
-        rows_obs, rows_action, rows_column, rows_time = self._buffers.take(
-            int((count * limits).sum()), int(self.sizes[0])
-        )
-        total = int(count.sum())
-        lengths = np.zeros(total, dtype=np.int64)
-        written = kernels.sample_rows(
-            np.ascontiguousarray(theta.numpy(), dtype=np.float32), self.sizes, physics, count,
-            limits, keys.numpy(), greedy, rows_obs, rows_action, rows_column, rows_time, lengths,
+        """One episode per copy of every row, as the engine's ``sample`` returns them, drawn
+        with their keys in one compiled call (:func:`~fedhpg.common.batched.fused.
+        keyed_sample`)."""
+        count = counts.numpy()  # int64 rows, as the engine makes them
+        limits = np.minimum(horizons.numpy(), CARTPOLE_STEP_LIMIT)
+        obs, actions, columns, times = self._buffers.take(int(count @ limits), int(self.sizes[0]))
+        lengths = np.zeros(int(count.sum()), dtype=np.int64)
+        owner = np.empty(len(lengths), dtype=np.int64)
+        row_start = np.empty(len(count) + 1, dtype=np.int64)
+        written = fused.keyed_sample(
+            *_key_words(draws), np.ascontiguousarray(theta.numpy(), dtype=np.float32),
+            self.sizes, self._physics_rows(agents), count, limits, greedy, obs, actions,
+            columns, times, lengths, owner, row_start,
         )  # fmt: skip
-        rows = len(count)
-        ends = np.cumsum(count)  # every count >= 1: row a's columns end at ends[a]
-        row_start = np.zeros(rows + 1, dtype=np.int64)
-        row_start[1:] = np.cumsum(lengths)[ends - 1]
+        sampled = _Sampled(obs, actions, columns, times, written, lengths, owner, row_start)
         steps = torch.from_numpy(lengths)
-        packed = StepRows(
-            obs=torch.from_numpy(rows_obs[:written]),
-            actions=torch.from_numpy(rows_action[:written]),
-            rewards=self._constants.ones(written),  # CartPole: 1 a step, the last too
-            time=torch.from_numpy(rows_time[:written]),
-            column=torch.from_numpy(rows_column[:written]),
-            rows=self._constants.arange(rows),
-            row_start=torch.from_numpy(row_start),
-        )
-        per_row = torch.from_numpy(np.diff(row_start))
+        per_row = torch.from_numpy(row_start[1:] - row_start[:-1])
         return Trajectories(
-            success=self._constants.false(total),  # CartPole has no goal
-            owner=torch.from_numpy(np.repeat(np.arange(rows), count)),
+            success=self._constants.false(len(lengths)),  # CartPole has no goal
+            owner=torch.from_numpy(owner),
             counts=counts,
             lengths=steps,
-            steps=packed,
+            steps=lambda: self._packed(sampled),  # as tensors when first read
             returns=steps.double(),  # a reward of 1 a step, summed exactly
             row_sums=(per_row, per_row.double()),
+            native=sampled,
         )
+
+    def _packed(self, sampled: _Sampled) -> StepRows:
+        written = sampled.written
+        return StepRows(
+            obs=torch.from_numpy(sampled.obs[:written]),
+            actions=torch.from_numpy(sampled.actions[:written]),
+            rewards=self._constants.ones(written),  # CartPole: 1 a step, the last too
+            time=torch.from_numpy(sampled.times[:written]),
+            column=torch.from_numpy(sampled.columns[:written]),
+            rows=self._constants.arange(len(sampled.row_start) - 1),
+            row_start=torch.from_numpy(sampled.row_start),
+        )
+
+    def mean_gradient_sums(
+        self,
+        theta: torch.Tensor,
+        batch: Trajectories,
+        options: EstimatorOptions,
+        gammas: torch.Tensor,
+        weights: torch.Tensor | None,
+    ) -> torch.Tensor:
+        """:meth:`gradients` with :meth:`coefficients`, in one compiled call for a batch this
+        backend sampled and an unstandardised estimator
+        (:func:`~fedhpg.common.batched.fused.estimated_gradients`: the same kernels, so the
+        same bits); composed otherwise."""
+        sampled = batch.native
+        table = None if weights is None else weights.detach().double().numpy()
+        chosen = kernel_options(options, table)
+        if not isinstance(sampled, _Sampled) or not chosen.plain:
+            return coefficients_then_gradients(self, theta, batch, options, gammas, weights)
+        positions = None
+        if batch.num_rows != len(sampled.row_start) - 1:  # renamed rows: some sampled none
+            positions = torch.nonzero(batch.counts).squeeze(1)
+            theta, gammas = theta[positions], gammas[positions]
+        out = np.zeros((theta.shape[0], theta.shape[1]), dtype=np.float32)
+        fused.estimated_gradients(
+            chosen.gpomdp, chosen.mean_baseline, chosen.from_step, chosen.weighting,
+            chosen.weights, gammas.numpy(), sampled.times, sampled.columns, sampled.lengths,
+            sampled.owner, sampled.written, np.ascontiguousarray(theta.numpy(), dtype=np.float32),
+            self.sizes, sampled.obs, sampled.actions, sampled.row_start, out,
+        )  # fmt: skip
+        sums = torch.from_numpy(out)
+        if positions is None:
+            return sums
+        return sums.new_zeros((batch.num_rows, out.shape[1])).index_copy_(0, positions, sums)
 
     def gradients(
         self, theta: torch.Tensor, batch: Trajectories, coefficients: torch.Tensor
@@ -259,6 +297,21 @@ class CompiledBackend:
             self._torch.close()
 
 
+class _Sampled(NamedTuple):
+    """A batch as the sampler wrote it: the output arrays of its packed steps (reused by a
+    later call only once no batch holds them: :class:`_RowBuffers`), the steps written, each
+    trajectory's length and row, each row's first step."""
+
+    obs: np.ndarray
+    actions: np.ndarray
+    columns: np.ndarray
+    times: np.ndarray
+    written: int
+    lengths: np.ndarray
+    owner: np.ndarray
+    row_start: np.ndarray
+
+
 class _Constants:
     """Read-only tensors a batch shares with the next (ones, falses, 0 … n − 1), grown as
     needed and handed out as prefixes: a batch never writes into its own."""
@@ -335,18 +388,17 @@ def warm_up() -> float:
     backend = CompiledBackend(MLPShape((4, 2, 2)))
     backend._row_of, backend._tables = {0: 0}, [np.asarray(CARTPOLE_DEFAULTS, dtype=np.float64)]
     theta = torch.zeros((2, 16))
-    backend.keys(0, torch.tensor([0, 1]), torch.tensor([1, 2]), 0, Purpose.TRAIN, 0)
+    draws = Draws(0, torch.tensor([0, 1]), 0, Purpose.TRAIN, 0)
+    counts, horizons = torch.tensor([1, 2]), torch.tensor([3, 3])
     for greedy in (False, True):
-        batch = backend.sample(
-            theta, torch.tensor([1, 2]), torch.arange(3), torch.tensor([3, 3]), [0, 0],
-            greedy=greedy,
-        )  # fmt: skip
+        batch = backend.sample(theta, counts, draws, horizons, [0, 0], greedy=greedy)
     # the estimator, plain and standardised (its second kernel), and both gradient kernels
     gammas = torch.full((2,), 0.99, dtype=torch.float64)
     for options in (EstimatorOptions(), EstimatorOptions(normalize="batch")):
         coefficients = backend.coefficients(batch, options, gammas, None)
     backend.gradients(theta, batch, coefficients)
     backend.trajectory_gradients(theta, batch, coefficients)
+    backend.mean_gradient_sums(theta, batch, EstimatorOptions(), gammas, None)
     return time.perf_counter() - started
 
 

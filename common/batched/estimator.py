@@ -38,6 +38,8 @@ A row's numbers use its own cells only, so they never depend on the rows beside 
 
 from __future__ import annotations
 
+from typing import NamedTuple
+
 import numpy as np
 import torch
 
@@ -250,7 +252,7 @@ def _cells(
 
 
 @kernel()
-def _coefficients(
+def plain_coefficients(
     gpomdp: bool,
     mean_baseline: bool,
     from_step: bool,
@@ -264,7 +266,8 @@ def _coefficients(
     weights: np.ndarray,
 ) -> np.ndarray:
     """Each packed step's coefficient, without standardisation (one array back: boxing the
-    others would cost more than computing them)."""
+    others would cost more than computing them); :func:`packed_coefficients` checks the
+    options and inputs it is given."""
     grid, cell, _, _ = _cells(gpomdp, mean_baseline, from_step, _NONE, weighting, rewards,
                               time, column, lengths, owner, gammas, weights)  # fmt: skip
     out = np.empty(cell.shape[0], dtype=np.float64)
@@ -294,6 +297,49 @@ def _option(table: dict[str, int], value: str, name: str) -> int:
     return found
 
 
+class KernelOptions(NamedTuple):
+    """The estimator's options as the kernels take them."""
+
+    gpomdp: bool
+    mean_baseline: bool
+    from_step: bool
+    """Rewards-to-go from the step (discounted from t), else from the start."""
+    normalize: int
+    weighting: int
+    weights: np.ndarray
+    """Importance weights as [1, N] (per trajectory) or [T, N] (per decision); empty: none."""
+
+    @property
+    def plain(self) -> bool:
+        """No standardisation: the coefficients in one compiled pass
+        (:func:`plain_coefficients`)."""
+        return self.normalize == _NONE
+
+
+def kernel_options(options: EstimatorOptions, weights: np.ndarray | None = None) -> KernelOptions:
+    """``options`` and ``weights`` (None, [N] or [T, N]) as the kernels take them; ValueError
+    for an option outside the names the torch definition knows, or a combination it refuses
+    (REINFORCE with ``from_step`` or with per-decision weights)."""
+    gpomdp = ESTIMATORS.get(options.estimator).per_step
+    mean_baseline = BASELINES.get(options.baseline).subtracts_mean
+    from_step = _option(_REWARD_TO_GO, options.reward_to_go, "reward_to_go") == 1
+    normalize = _option(_NORMALIZE, options.normalize, "normalize")
+    if not gpomdp and from_step:
+        raise ValueError("reward_to_go='from_step' needs estimator 'gpomdp'")
+    weighting, table = _UNWEIGHTED, _NO_WEIGHTS
+    if weights is not None:
+        table = np.ascontiguousarray(weights, dtype=np.float64)
+        if table.ndim == 1:
+            weighting, table = _PER_TRAJECTORY, table.reshape(1, -1)
+        elif table.ndim == 2 and gpomdp:
+            weighting = _PER_DECISION
+        elif table.ndim == 2:
+            raise ValueError("REINFORCE takes one importance weight per trajectory")
+        else:
+            raise ValueError("importance weights are [N] or [T, N]")
+    return KernelOptions(gpomdp, mean_baseline, from_step, normalize, weighting, table)
+
+
 def packed_coefficients(
     options: EstimatorOptions,
     rewards: np.ndarray,
@@ -317,23 +363,7 @@ def packed_coefficients(
     Raises ValueError where the torch definition does (REINFORCE with ``from_step`` or with
     per-decision weights), for an option outside the names it knows, and for inputs that are
     not such a batch (the checks cost one pass in the compiled call)."""
-    estimator = int(ESTIMATORS.get(options.estimator).per_step)  # the kernels' 0/1 code
-    baseline = int(BASELINES.get(options.baseline).subtracts_mean)
-    from_step = _option(_REWARD_TO_GO, options.reward_to_go, "reward_to_go")
-    normalize = _option(_NORMALIZE, options.normalize, "normalize")
-    if estimator == 0 and from_step:
-        raise ValueError("reward_to_go='from_step' needs estimator 'gpomdp'")
-    weighting, table = _UNWEIGHTED, _NO_WEIGHTS
-    if weights is not None:
-        table = np.ascontiguousarray(weights, dtype=np.float64)
-        if table.ndim == 1:
-            weighting, table = _PER_TRAJECTORY, table.reshape(1, -1)
-        elif table.ndim == 2 and estimator == 1:
-            weighting = _PER_DECISION
-        elif table.ndim == 2:
-            raise ValueError("REINFORCE takes one importance weight per trajectory")
-        else:
-            raise ValueError("importance weights are [N] or [T, N]")
+    gpomdp, mean_baseline, from_step, normalize, weighting, table = kernel_options(options, weights)
     packed = (
         np.ascontiguousarray(rewards, dtype=np.float64),
         np.ascontiguousarray(time, dtype=np.int64),
@@ -343,12 +373,11 @@ def packed_coefficients(
         np.ascontiguousarray(gammas, dtype=np.float64),
         table,
     )
-    gpomdp, mean_baseline = estimator == 1, baseline == 1
     if normalize == _NONE:
-        out: np.ndarray = _coefficients(gpomdp, mean_baseline, from_step == 1, weighting, *packed)
+        out: np.ndarray = plain_coefficients(gpomdp, mean_baseline, from_step, weighting, *packed)
         return out
     grid, cell, means, spreads = _cells(
-        gpomdp, mean_baseline, from_step == 1, normalize, weighting, *packed
+        gpomdp, mean_baseline, from_step, normalize, weighting, *packed
     )
     # torch's sqrt on the CPU is MKL's (vdSqrt), which is not always the correctly rounded
     # root (~1 % of float64 inputs one ulp away): the definition's roots are torch's own

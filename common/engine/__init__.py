@@ -2,7 +2,7 @@
 
 - :mod:`.engine`: a group's per-agent constants and memory plan; ``begin`` starts a round;
 - :mod:`.round`: a round's rows and the primitives an algorithm's loop is written with
-  (sample, coefficients, gradients, log-probabilities, bookkeeping);
+  (sample, coefficients, gradients, mean gradients, log-probabilities, bookkeeping);
 - :mod:`.backend`: the protocol a backend implements (the compiled one is in
   ``common/batched``);
 - :mod:`.torch_backend`: torch on any device, every policy and family;

@@ -5,8 +5,8 @@ Two implement it, chosen once per agent group (``common/group.py``):
 - :class:`~fedhpg.common.engine.torch_backend.TorchBackend`: every policy, environment family
   and space, on ``algo.device`` (the CPU or a GPU), all rows stepped together;
 - :class:`~fedhpg.common.batched.backend.CompiledBackend`: the MLP categorical policy on
-  CartPole variants on the CPU, in numba, fused per agent (sampling, coefficients and
-  gradients a compiled call each).
+  CartPole variants on the CPU, in numba, an agent at a time (a sample with its keys one
+  compiled call, its coefficients and gradients another).
 
 The estimator's definition is torch's (``common/estimators.py``, applied to a batch by
 ``common/engine/estimate.py``); a backend's own form of it is held bit-equal to it by a test.
@@ -17,7 +17,7 @@ A backend's coefficients are in its own layout: only its own ``gradients`` and
 from __future__ import annotations
 
 from collections.abc import Sequence
-from typing import Protocol
+from typing import NamedTuple, Protocol
 
 import torch
 
@@ -26,34 +26,38 @@ from fedhpg.common.engine.trajectories import Trajectories
 from fedhpg.common.randomness import Purpose
 
 
+class Draws(NamedTuple):
+    """Whose random draws a sampling call makes: trajectory n of row a is keyed by (seed,
+    ``agents[a]``, round, purpose, iteration, n)."""
+
+    seed: int
+    agents: torch.Tensor
+    """[A] int64: each row's agent."""
+    round_index: int
+    purpose: Purpose
+    iteration: int
+
+
 class Backend(Protocol):
     """Sampling and the policy-gradient maths for rows of agents (θ rows [A, d])."""
 
-    def keys(
-        self,
-        seed: int,
-        agents: torch.Tensor,
-        counts: torch.Tensor,
-        round_index: int,
-        purpose: Purpose,
-        iteration: int,
-    ) -> torch.Tensor:
-        """The keys of trajectories 0 … ``counts[a]`` − 1 of each agent ``agents[a]``, row
-        after row (:func:`~fedhpg.common.randomness.trajectory_keys`)."""
+    def keys(self, draws: Draws, counts: torch.Tensor) -> torch.Tensor:
+        """The keys of trajectories 0 … ``counts[a]`` − 1 of each row a, row after row
+        (:func:`~fedhpg.common.randomness.trajectory_keys`)."""
         ...
 
     def sample(
         self,
         theta: torch.Tensor,
         counts: torch.Tensor,
-        keys: torch.Tensor,
+        draws: Draws,
         horizons: torch.Tensor,
         agents: Sequence[int],
         *,
         greedy: bool,
     ) -> Trajectories:
-        """One episode per key: ``counts[a]`` ≥ 1 of agent ``agents[a]`` at θ row ``theta[a]``,
-        each of at most ``horizons[a]`` steps."""
+        """``counts[a]`` ≥ 1 episodes of agent ``agents[a]`` at θ row ``theta[a]``, each of at
+        most ``horizons[a]`` steps, each drawn from its own key (:meth:`keys`)."""
         ...
 
     def coefficients(
@@ -73,6 +77,18 @@ class Backend(Protocol):
         """Σ_n Σ_t coef[t, n] ∇ log π_θa(a_t|s_t) per row a, [A, d]."""
         ...
 
+    def mean_gradient_sums(
+        self,
+        theta: torch.Tensor,
+        batch: Trajectories,
+        options: EstimatorOptions,
+        gammas: torch.Tensor,
+        weights: torch.Tensor | None,
+    ) -> torch.Tensor:
+        """:meth:`gradients` of ``batch`` at ``theta`` with its :meth:`coefficients`: exactly
+        :func:`coefficients_then_gradients`, which a backend may do in one call."""
+        ...
+
     def trajectory_gradients(
         self, theta: torch.Tensor, batch: Trajectories, coefficients: torch.Tensor
     ) -> torch.Tensor:
@@ -88,3 +104,16 @@ class Backend(Protocol):
         ...
 
     def close(self) -> None: ...
+
+
+def coefficients_then_gradients(
+    backend: Backend,
+    theta: torch.Tensor,
+    batch: Trajectories,
+    options: EstimatorOptions,
+    gammas: torch.Tensor,
+    weights: torch.Tensor | None,
+) -> torch.Tensor:
+    """:meth:`Backend.mean_gradient_sums` by its definition: Σ_n Σ_t coef[t, n]
+    ∇ log π_θa(a_t|s_t) of each row a's trajectories, [A, d], with the run's estimator."""
+    return backend.gradients(theta, batch, backend.coefficients(batch, options, gammas, weights))

@@ -161,8 +161,8 @@ class Engine:
             seed=self.run.seed,
             round_index=round_index,
             agents=agents,
-            theta=theta.detach().to(self.device, torch.float32).expand(len(agents), -1).clone(),
-            budgets={name: values.clone() for name, values in budget_rows.items()},
+            theta=theta.detach().to(self.device, torch.float32).repeat(len(agents), 1),
+            budgets=budget_rows,
             constants=constants,
             interrupt=interrupt,
         )

@@ -10,16 +10,18 @@ with:
 - :meth:`Round.coefficients`: the run's estimator (``common/engine/estimate.py``) for them;
 - :meth:`Round.gradients`, :meth:`Round.log_probs`, :meth:`Round.trajectory_gradients`: the
   policy's score-function maths per row;
+- :meth:`Round.mean_gradients`: a batch's mean gradient with the run's estimator (its
+  coefficients, then its gradients, in one backend call);
 - :meth:`Round.finished`: the bookkeeping of an iteration (its statistics, kept where the rows
   are; cancellation), and :meth:`Round.report` for the algorithm's own statistics.
 
 What the round did comes to the host once, when the round's :attr:`Round.tally` is first read
-after its loop: every iteration's per-row numbers in one copy (nothing waits on a device
-inside the loop).
+after its loop: every iteration's per-row counts in one copy and their returns in another
+(nothing waits on a device inside the loop).
 
 The primitives are the backend's (:class:`~fedhpg.common.engine.backend.Backend`), chosen once
-per group; the round adds the keys and the tally. Rows are placement-free: what a row computes
-depends on its agent, round and θ alone.
+per group; the round adds whose draws they are and the tally. Rows are placement-free: what a
+row computes depends on its agent, round and θ alone.
 """
 
 from __future__ import annotations
@@ -29,11 +31,12 @@ import time
 from collections.abc import Callable, Iterator, Sequence
 from contextlib import contextmanager
 from dataclasses import dataclass, field, fields, replace
+from typing import NamedTuple
 
 import numpy as np
 import torch
 
-from fedhpg.common.engine.backend import Backend
+from fedhpg.common.engine.backend import Backend, Draws
 from fedhpg.common.engine.estimate import EstimatorOptions
 from fedhpg.common.engine.trajectories import Trajectories
 from fedhpg.common.randomness import Purpose
@@ -108,6 +111,22 @@ class RowConstants:
     horizon: torch.Tensor
 
 
+class _Draw(NamedTuple):
+    """The rows of a :meth:`Round.sample` call that sample, and whose draws they make."""
+
+    theta: torch.Tensor
+    counts: torch.Tensor
+    horizons: torch.Tensor
+    agents: Sequence[int]
+    draws: Draws
+    positions: torch.Tensor | None
+    """Their rows in the round (None: all of them, in order)."""
+
+    def whole(self, batch: Trajectories, rows: int) -> Trajectories:
+        """``batch`` with its rows named as in the round."""
+        return batch if self.positions is None else batch.regrouped(self.positions, rows)
+
+
 class Round:
     """The rows of one round's agents and the primitives their algorithm's loop uses (see the
     module docstring)."""
@@ -134,15 +153,15 @@ class Round:
         self.theta = theta
         """[A, d]: every row starts from θ̃."""
         self.budgets = budgets
-        """Each budget field as [A] int64 (the configured budget, or the round's plan)."""
+        """Each budget field as [A] int64 (the configured budget, or the round's plan); read-only:
+        the next round of the same agents shares them."""
         self.constants = constants
         self._tally = Tally.zeros(len(self.agents))
         self._interrupt = interrupt
-        self._pending: list[torch.Tensor] = []
-        """Each finished iteration's per-row counts where the rows are: [4, A] int64 (its
-        trajectories, env steps, differentiated steps, and whether its gradient was clipped)."""
-        self._pending_returns: list[torch.Tensor] = []
-        """And each one's sum of undiscounted returns per row, [A] float64."""
+        self._pending: list[tuple[torch.Tensor, ...]] = []
+        """Each finished iteration's numbers per row, [A] each, where the rows are: its
+        trajectories, env steps, differentiated steps and whether its gradient was clipped
+        (int64), and its sum of undiscounted returns (float64)."""
         self._times: list[tuple[float, float]] = []
         """Each finished iteration's CPU seconds, and those of them spent sampling."""
         self._reported: dict[str, torch.Tensor] = {}
@@ -175,25 +194,35 @@ class Round:
         horizons: torch.Tensor | None = None,
     ) -> Trajectories:
         """``counts[a]`` trajectories of row a at θ row ``theta[a]`` (0: none)."""
-        constants = self.constants
-        limit = constants.horizon if horizons is None else horizons
-        wanted = counts
-        if int(counts.min()) > 0:  # every row samples: no row to leave out
-            positions = None
-            agents, agent_ids, rows = self.agents, constants.agent, theta
-        else:
-            positions = torch.nonzero(counts > 0).squeeze(1)
-            wanted, limit = counts[positions], limit[positions]
-            agents = [self.agents[i] for i in positions.tolist()]
-            agent_ids, rows = constants.agent[positions], theta[positions]
+        draw = self._draw(theta, counts, iteration, purpose, horizons)
         started = time.thread_time()
         try:
-            keys = self.backend.keys(self.seed, agent_ids, wanted, self.round_index, purpose,
-                                     iteration)  # fmt: skip
-            batch = self.backend.sample(rows, wanted, keys, limit, agents, greedy=greedy)
+            batch = self.backend.sample(draw.theta, draw.counts, draw.draws, draw.horizons,
+                                        draw.agents, greedy=greedy)  # fmt: skip
         finally:
             self._sampling_s += time.thread_time() - started
-        return batch if positions is None else batch.regrouped(positions, self.size)
+        return draw.whole(batch, self.size)
+
+    def _draw(
+        self,
+        theta: torch.Tensor,
+        counts: torch.Tensor,
+        iteration: int,
+        purpose: Purpose,
+        horizons: torch.Tensor | None,
+    ) -> _Draw:
+        """The rows that sample (``counts`` > 0) and whose draws they make."""
+        constants = self.constants
+        limit = constants.horizon if horizons is None else horizons
+        positions = None
+        agents, agent_ids = self.agents, constants.agent
+        if int(counts.min()) == 0:  # some rows sample nothing: the others only
+            positions = torch.nonzero(counts > 0).squeeze(1)
+            theta, counts, limit = theta[positions], counts[positions], limit[positions]
+            agents = [self.agents[i] for i in positions.tolist()]
+            agent_ids = agent_ids[positions]
+        draws = Draws(self.seed, agent_ids, self.round_index, purpose, iteration)
+        return _Draw(theta, counts, limit, agents, draws, positions)
 
     def coefficients(
         self, batch: Trajectories, weights: torch.Tensor | None = None
@@ -214,8 +243,8 @@ class Round:
         self, theta: torch.Tensor, batch: Trajectories, weights: torch.Tensor | None = None
     ) -> torch.Tensor:
         """(1/B_a) Σ_n g(τ_n | θ_a) with the run's estimator, per row [A, d]."""
-        gradient = self.gradients(theta, batch, self.coefficients(batch, weights))
-        return gradient.div_(batch.counts.clamp_min(1).unsqueeze(1))
+        sums = self.backend.mean_gradient_sums(theta, batch, self.options, self.gammas, weights)
+        return sums.div_(batch.counts.clamp_min(1).unsqueeze(1))
 
     def log_probs(self, theta: torch.Tensor, batch: Trajectories) -> torch.Tensor:
         """log π_θa(a_t|s_t) of every alive step under its row's θ row, [T, N] float64 (0
@@ -244,26 +273,28 @@ class Round:
         elapsed, self._clock = now - self._clock, now
         sampled, self._sampling_s = min(self._sampling_s, elapsed), 0.0
         steps = batch.steps_per_row()
-        self._pending.append(torch.stack([
+        self._pending.append((
             batch.counts, steps, steps if grad_steps is None else grad_steps,
             torch.zeros_like(steps) if clipped is None else clipped.to(steps.dtype),
-        ]))  # fmt: skip
-        self._pending_returns.append(batch.returns_per_row())
+            batch.returns_per_row(),
+        ))  # fmt: skip
         self._times.append((elapsed, sampled))
         if self._interrupt is not None:
             self._interrupt()
-        self._clock = time.thread_time()
+            self._clock = time.thread_time()
 
     @property
     def tally(self) -> Tally:
-        """What the round did so far: the finished iterations' numbers brought to the host in
-        one copy, added to the totals in the order they ran, and each one's work per row
-        (its share of the iteration's CPU time, by env steps)."""
+        """What the round did so far: the finished iterations' numbers brought to the host (the
+        counts in one copy, the returns in another), added to the totals in the order they
+        ran, and each one's work per row (its share of the iteration's CPU time, by env
+        steps)."""
         if self._pending:
-            counts = torch.stack(self._pending).cpu().numpy()  # [iterations, 4, A]
-            returns = torch.stack(self._pending_returns).cpu().numpy()  # [iterations, A]
-            self._add(counts, returns, np.asarray(self._times))
-            self._pending, self._pending_returns, self._times = [], [], []
+            counts = torch.stack([number for numbers in self._pending for number in numbers[:4]])
+            returns = torch.stack([numbers[4] for numbers in self._pending])
+            self._add(counts.numpy(force=True).reshape(len(self._pending), 4, -1),
+                      returns.numpy(force=True), np.asarray(self._times))  # fmt: skip
+            self._pending, self._times = [], []
         if self._reported:
             for name, values in self._reported.items():
                 self._tally.algorithm[name] = values.cpu().numpy()
@@ -274,19 +305,20 @@ class Round:
         """Iterations' per-row counts [I, 4, A] and return sums [I, A] and their (elapsed,
         sampling) CPU seconds [I, 2] into the totals, iteration after iteration in the order
         they ran (the float totals' order of additions)."""
-        counts, steps, grads, clipped = numbers.transpose(1, 0, 2)
+        counts, steps, grads, _ = numbers.transpose(1, 0, 2)
         shares = steps / np.maximum(steps.sum(axis=1, keepdims=True), 1)
         compute, sampled = shares * times[:, :1], shares * times[:, 1:]
         tally = self._tally
+        trajectories, env_steps, _, clips = numbers.sum(axis=0)  # integers: in any order
+        tally.trajectories += trajectories
+        tally.env_steps += env_steps
+        tally.clipped += clips
         everyone = np.arange(counts.shape[1])
-        for i in range(len(numbers)):
-            tally.trajectories += counts[i]
-            tally.env_steps += steps[i]
-            tally.clipped += clipped[i]
+        for i, every in enumerate(counts.all(axis=1).tolist()):
             tally.return_sum += returns[i]
             tally.compute_s += compute[i]
             tally.sample_s += sampled[i]
-            if counts[i].all():  # every row ran: whole rows, no indexing
+            if every:  # every row ran: whole rows, no indexing
                 work = IterationColumns(everyone, compute[i], steps[i], grads[i])
             else:
                 at = np.flatnonzero(counts[i])

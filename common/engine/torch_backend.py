@@ -18,13 +18,14 @@ import torch
 
 from fedhpg.common.attacks import attack_of
 from fedhpg.common.config import RunConfig
+from fedhpg.common.engine.backend import Draws, coefficients_then_gradients
 from fedhpg.common.engine.copies import make_copies
 from fedhpg.common.engine.estimate import EstimatorOptions, batch_coefficients
 from fedhpg.common.engine.memory import packed_elements
 from fedhpg.common.engine.policy_rows import PolicyRows, chunked
 from fedhpg.common.engine.sampling import Faults, act_tiles_per_call, sample
 from fedhpg.common.engine.trajectories import Trajectories
-from fedhpg.common.randomness import Purpose, trajectory_keys
+from fedhpg.common.randomness import trajectory_keys
 from fedhpg.common.staircase import ordered_sums
 from fedhpg.envs.base import BatchEnv, EnvVariant
 from fedhpg.envs.device import DeviceFamily, device_family
@@ -185,31 +186,25 @@ class TorchBackend:
 
     # -- sampling ----------------------------------------------------------------------------
 
-    def keys(
-        self,
-        seed: int,
-        agents: torch.Tensor,
-        counts: torch.Tensor,
-        round_index: int,
-        purpose: Purpose,
-        iteration: int,
-    ) -> torch.Tensor:
+    def keys(self, draws: Draws, counts: torch.Tensor) -> torch.Tensor:
         counts = counts.to(self.device)
         owner = torch.repeat_interleave(torch.arange(len(counts), device=self.device), counts)
         starts = torch.cumsum(counts, 0) - counts
         index = torch.arange(int(counts.sum()), device=self.device) - starts[owner]
-        return trajectory_keys(seed, agents, round_index, purpose, iteration, index, owner)
+        return trajectory_keys(draws.seed, draws.agents, draws.round_index, draws.purpose,
+                               draws.iteration, index, owner)  # fmt: skip
 
     def sample(
         self,
         theta: torch.Tensor,
         counts: torch.Tensor,
-        keys: torch.Tensor,
+        draws: Draws,
         horizons: torch.Tensor,
         agents: Sequence[int],
         *,
         greedy: bool,
     ) -> Trajectories:
+        keys = self.keys(draws, counts)
         settings = self._row_settings(agents)
         counts = counts.to(self.device)
         copies = make_copies(
@@ -235,6 +230,16 @@ class TorchBackend:
             )
         finally:
             copies.close()
+
+    def mean_gradient_sums(
+        self,
+        theta: torch.Tensor,
+        batch: Trajectories,
+        options: EstimatorOptions,
+        gammas: torch.Tensor,
+        weights: torch.Tensor | None,
+    ) -> torch.Tensor:
+        return coefficients_then_gradients(self, theta, batch, options, gammas, weights)
 
     def coefficients(
         self,

@@ -13,6 +13,7 @@ trajectory reaches as far as its row's longest (every cell an estimator's terms 
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass, replace
 from functools import cached_property
 
@@ -55,9 +56,10 @@ class Trajectories:
         alive: torch.Tensor | None = None,
         obs: torch.Tensor | None = None,
         actions: torch.Tensor | None = None,
-        steps: StepRows | None = None,
+        steps: StepRows | Callable[[], StepRows] | None = None,
         returns: torch.Tensor | None = None,
         row_sums: tuple[torch.Tensor, torch.Tensor] | None = None,
+        native: object = None,
     ) -> None:
         padded = rewards is not None and alive is not None and obs is not None
         if not padded and (steps is None or lengths is None):
@@ -68,7 +70,8 @@ class Trajectories:
         """[N] int64: the row each trajectory belongs to."""
         self.counts = counts
         """[A] int64: trajectories per row (0 for a row that sampled none)."""
-        self.steps = steps
+        self._steps = steps
+        """The packed steps, or what makes them when :attr:`steps` is first read."""
         self._lengths = lengths
         self._returns = returns
         """Each trajectory's undiscounted return, where the backend knows it as it samples
@@ -77,8 +80,17 @@ class Trajectories:
         """(steps, undiscounted returns) of each row, where the backend knows them as it
         samples (the sums :meth:`steps_per_row` and :meth:`returns_per_row` would add, to the
         bit)."""
+        self.native = native
+        """The batch in its backend's own form, which only that backend reads (None: none)."""
         self._rewards, self._alive = rewards, alive
         self._obs, self._actions = obs, actions
+
+    @property
+    def steps(self) -> StepRows | None:
+        """The alive steps packed row after row, where the backend packs them."""
+        if callable(self._steps):
+            self._steps = self._steps()
+        return self._steps
 
     # -- padded views ------------------------------------------------------------------------
 
@@ -155,13 +167,16 @@ class Trajectories:
             return self
         counts = self.counts.new_zeros(rows)
         counts[positions] = self.counts
-        steps = self.steps
-        if steps is not None:
-            steps = replace(steps, rows=positions[steps.rows])
+        steps = self._steps
+        if callable(steps):  # still to be made: renamed once made
+            make = steps
+            steps = lambda: _renamed(make(), positions)  # noqa: E731
+        elif steps is not None:
+            steps = _renamed(steps, positions)
         out = Trajectories(success=self.success, owner=positions[self.owner], counts=counts,
                            lengths=self._lengths, rewards=self._rewards, alive=self._alive,
                            obs=self._obs, actions=self._actions, steps=steps,
-                           returns=self._returns)  # fmt: skip
+                           returns=self._returns, native=self.native)  # fmt: skip
         # renaming rows moves no cell
         for kept in ("layout", "cells"):
             if kept in self.__dict__:
@@ -204,3 +219,7 @@ class Trajectories:
         if self._row_sums is not None:
             return self._row_sums[1]
         return self.per_row(self.returns())
+
+
+def _renamed(steps: StepRows, positions: torch.Tensor) -> StepRows:
+    return replace(steps, rows=positions[steps.rows])
