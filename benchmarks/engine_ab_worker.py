@@ -14,9 +14,9 @@ import time
 import torch
 
 import fedhpg.common
-from fedhpg.common.group import make_agent_group
+from fedhpg.common.learning.group import make_agent_group
+from fedhpg.common.learning.worker import initial_theta
 from fedhpg.common.runtime.cli import compose
-from fedhpg.common.worker import initial_theta
 
 
 def main() -> None:
@@ -74,7 +74,7 @@ def _measured(trained):  # type: ignore[no-untyped-def]
 
 
 def _variant(run):  # type: ignore[no-untyped-def]
-    from fedhpg.common.variants import variants_of
+    from fedhpg.common.heterogeneity.variants import variants_of
 
     return variants_of(run, [0])[0]
 
