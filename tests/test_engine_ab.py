@@ -37,7 +37,9 @@ def test_the_folder_holds_the_commits_package() -> None:
     found = "import importlib.util as u; print(u.find_spec('fedhpg.common.records.limits').origin)"
     worker = subprocess.run([sys.executable, "-c", found], env={"PYTHONPATH": str(folder)},
                             capture_output=True, text=True, cwd=folder)  # fmt: skip
-    assert worker.stdout.strip() == str(folder / "fedhpg" / "common" / "limits.py"), worker.stderr
+    assert worker.stdout.strip() == str(folder / "fedhpg" / "common" / "records" / "limits.py"), (
+        worker.stderr
+    )
 
 
 def test_an_unknown_revision_is_a_one_line_error() -> None:
