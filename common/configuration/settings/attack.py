@@ -28,8 +28,8 @@ class AttackConfig:
     """'none', 'zero_gradient' (send θ̃ back), 'random_noise' (add uniform noise of
     ``noise_scale`` × the update's range), 'sign_flip' (send −``sign_flip_scale`` × the
     update), 'reward_flip' (learn from negated rewards), 'random_action' (act uniformly at
-    random while sampling), or an attack a plugin registers (in
-    ``fedhpg.common.configuration.vocabularies``)."""
+    random while sampling), or an attack a plugin registers in ``vocabularies.ATTACKS``
+    (``fedhpg.common.configuration``)."""
     agents: list[int] = field(default_factory=list)
     """Indices of the attacking agents."""
     sign_flip_scale: float = 2.5
