@@ -54,7 +54,7 @@ COPY --from=build /dist /dist
 RUN /opt/fedhpg/bin/pip install --no-cache-dir --disable-pip-version-check --no-deps \
         --no-index /dist/*.whl \
  && rm -rf /dist \
- && /opt/fedhpg/bin/python -c "import fedhpg.server.main, fedhpg.agent.main, torch; \
+ && /opt/fedhpg/bin/python -c "import fedhpg.server.commands.server, fedhpg.agent.main, torch; \
 assert torch.version.cuda is None, 'a CUDA build of torch: the image is CPU only'"
 ENV PATH=/opt/fedhpg/bin:$PATH \
     OMP_NUM_THREADS=1 \
@@ -63,7 +63,7 @@ ENV PATH=/opt/fedhpg/bin:$PATH \
     NUMBA_CACHE_DIR=/opt/fedhpg-numba
 # The compiled engine's kernels, compiled once here (numba caches per CPU type: a host of
 # another type compiles them again on first use, into the same directory).
-RUN python -m fedhpg.common.batched.backend && chown -R fedhpg /opt/fedhpg-numba
+RUN python -m fedhpg.common.learning.batched.backend && chown -R fedhpg /opt/fedhpg-numba
 USER fedhpg
 WORKDIR /home/fedhpg
 EXPOSE 5555

@@ -14,7 +14,7 @@ $(STAMP): pyproject.toml constraints.txt
 	test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
 	$(BIN)/python -m pip install --quiet --upgrade pip
 	$(BIN)/python -m pip install --quiet -c constraints.txt -e ".[envs,dev]"
-	$(BIN)/python -m fedhpg.common.batched.backend
+	$(BIN)/python -m fedhpg.common.learning.batched.backend
 	touch $(STAMP)
 
 demo: $(STAMP)
@@ -139,7 +139,7 @@ bench-presets: $(STAMP)
 # numba's kernel cache, filled at setup, is emptied by any edit of kernels.py: refilled first,
 # or the first case's start-up would time a compilation.
 bench-scale: $(STAMP)
-	$(BIN)/python -m fedhpg.common.batched.backend
+	$(BIN)/python -m fedhpg.common.learning.batched.backend
 	OMP_NUM_THREADS=1 $(BIN)/python -m benchmarks.scale
 	OMP_NUM_THREADS=1 $(BIN)/python -m benchmarks.scale_gridworld
 

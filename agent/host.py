@@ -39,14 +39,14 @@ import numpy as np
 import zmq
 
 from fedhpg.agent.work import AgentWork, Cancelled, OutsideRange
-from fedhpg.common.components import agent_profile, validate_run
-from fedhpg.common.config import RunConfig
-from fedhpg.common.config_error import ConfigError
-from fedhpg.common.engine.devices import DeviceUnavailable
-from fedhpg.common.run_roles import adopt_settings
+from fedhpg.common.configuration.config import RunConfig
+from fedhpg.common.configuration.config_error import ConfigError
+from fedhpg.common.configuration.run_roles import adopt_settings
+from fedhpg.common.configuration.settings.ids import agent_id_of, host_id_of
+from fedhpg.common.learning.components import agent_profile, validate_run
+from fedhpg.common.learning.engine.devices import DeviceUnavailable
 from fedhpg.common.runtime import timeline
 from fedhpg.common.runtime.memory import freeze_setup, pin_malloc_mmap_threshold
-from fedhpg.common.settings.ids import agent_id_of, host_id_of
 from fedhpg.common.wire.codec import MAX_HEADER_BYTES, ProtocolError
 from fedhpg.common.wire.protocol import (
     Error,

@@ -7,7 +7,7 @@ import logging
 import sys
 
 from fedhpg.agent.host import AgentFailure, AgentHost, RunAborted
-from fedhpg.common.config import RunConfig
+from fedhpg.common.configuration.config import RunConfig
 from fedhpg.common.runtime.cli import EXIT_RUN_ABORTED, run_entry
 
 logger = logging.getLogger(__name__)

@@ -1,22 +1,22 @@
 """What an agent program computes for the server: its agents' rounds and evaluations.
 
 :class:`AgentWork` holds the learning side of the logical agents ``first`` .. ``first+count-1``
-(one :func:`~fedhpg.common.group.make_agent_group` of them all, as in every placement, so θ̃
+(one :func:`~fedhpg.common.learning.group.make_agent_group` of them all, as in every placement, so θ̃
 never depends on where an agent runs) and their emulated devices, and turns a ``Train`` or an
 ``Evaluate`` into the messages that answer it.
 
 Device emulation prices the same arithmetic in one of two ways:
 
 - A lone agent whose device sleeps (``agents.virtual_clock=false``) is priced iteration by
-  iteration through its own :class:`~fedhpg.common.device.DeviceModel`, and sleeps what the
-  round owes once, before the answer leaves; a superseded request cuts the sleep short. Only
-  a process of one agent can sleep its device's time.
+  iteration through its own :class:`~fedhpg.common.heterogeneity.device.DeviceModel`, and sleeps
+  what the round owes once, before the answer leaves; a superseded request cuts the sleep short.
+  Only a process of one agent can sleep its device's time.
 - Every other range (an agent host's agents are always on the virtual clock: a host of 500
   agents cannot sleep 500 devices' time on one thread) prices all its agents' iterations at
-  once (:class:`~fedhpg.common.device.DeviceColumns`), to the bit what each agent's own
-  ``DeviceModel`` gives.
+  once (:class:`~fedhpg.common.heterogeneity.device.DeviceColumns`), to the bit what each agent's
+  own ``DeviceModel`` gives.
 
-Either way the group's :class:`~fedhpg.common.types.RoundResult` leaves as it is, its device
+Either way the group's :class:`~fedhpg.common.records.types.RoundResult` leaves as it is, its device
 columns filled in, cut into ceil(A / :func:`~fedhpg.common.wire.transport.answers_per_message`)
 slices of itself (the ``update`` message).
 """
@@ -33,9 +33,10 @@ from typing import Any
 import numpy as np
 import torch
 
-from fedhpg.common.config import RunConfig
-from fedhpg.common.device import DeviceColumns, DeviceModel, device_for, message_bytes
-from fedhpg.common.group import AgentGroup, make_agent_group
+from fedhpg.common.configuration.config import RunConfig
+from fedhpg.common.heterogeneity.device import DeviceColumns, DeviceModel, device_for, message_bytes
+from fedhpg.common.heterogeneity.variants import range_digest, variant_digest, variants_of
+from fedhpg.common.learning.group import AgentGroup, make_agent_group
 from fedhpg.common.privacy import fixedpoint
 from fedhpg.common.privacy.consent import refusal
 from fedhpg.common.privacy.contribution import EXTRA, contribution, redacted
@@ -44,10 +45,9 @@ from fedhpg.common.privacy.secagg import SEALED_BYTES, SecAggError
 from fedhpg.common.privacy.session import LocalSecAgg
 from fedhpg.common.privacy.shamir import SHARE_BYTES
 from fedhpg.common.privacy.signing import SIGNATURE_BYTES, agent_signing
+from fedhpg.common.records.types import RoundResult, UpdateColumns, UpdateStats
 from fedhpg.common.runtime import timeline
 from fedhpg.common.runtime.memory import tune_malloc_for
-from fedhpg.common.types import RoundResult, UpdateColumns, UpdateStats
-from fedhpg.common.variants import range_digest, variant_digest, variants_of
 from fedhpg.common.wire import secure_rows
 from fedhpg.common.wire.codec import MAX_HEADER_BYTES
 from fedhpg.common.wire.protocol import (

@@ -40,8 +40,8 @@ import torch
 from benchmarks import results_file
 from fedhpg.common.runtime.cli import compose
 from fedhpg.server.assembly import run_in_process
+from fedhpg.server.commands.plot_stats import stratified_bootstrap_ci
 from fedhpg.server.coordinator import RoundRecord
-from fedhpg.server.plot_stats import stratified_bootstrap_ci
 
 RESULTS = Path("benchmarks/results/async_rounds.json")
 FIGURE = Path("docs/figures/async_rounds.png")
@@ -275,7 +275,8 @@ def measure(setups: list[Setup], seeds: range, repeat: bool) -> list[Outcome]:
 
 
 def interval(values: list[float]) -> tuple[float, float, float]:
-    """Mean and its 95% percentile-bootstrap interval (server/plot_stats.py's convention)."""
+    """Mean and its 95% percentile-bootstrap interval (server/commands/plot_stats.py's
+    convention)."""
     array = np.asarray(values, dtype=float)
     if array.size < 2:
         return float(array.mean()), float(array.mean()), float(array.mean())

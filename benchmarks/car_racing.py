@@ -58,7 +58,7 @@ def overrides_of(seed: int, rounds: int) -> list[str]:
 
 
 def measure(seed: int, rounds: int, out_dir: Path) -> dict[str, Any]:
-    from fedhpg.server import api
+    from fedhpg.server.commands import api
 
     overrides = overrides_of(seed, rounds)
     started = time.perf_counter()

@@ -32,9 +32,9 @@ MEASURES = [
     "agent",
     "common/runtime",
     "common/wire",
-    "common/engine",
-    "common/batched",
-    "common/population.py",
+    "common/learning/engine",
+    "common/learning/batched",
+    "common/heterogeneity/population.py",
     "conf",
 ]
 SETUP = (

@@ -39,11 +39,11 @@ from benchmarks.scale_device import (
     check_device_argument,
     timed_round,
 )
-from fedhpg.common.batched.backend import CompiledBackend
-from fedhpg.common.engine.torch_backend import TorchBackend
-from fedhpg.common.group import EngineGroup, make_agent_group
-from fedhpg.common.variants import variants_of
-from fedhpg.common.worker import initial_theta
+from fedhpg.common.heterogeneity.variants import variants_of
+from fedhpg.common.learning.batched.backend import CompiledBackend
+from fedhpg.common.learning.engine.torch_backend import TorchBackend
+from fedhpg.common.learning.group import EngineGroup, make_agent_group
+from fedhpg.common.learning.worker import initial_theta
 
 logger = logging.getLogger("benchmarks.device_profile")
 

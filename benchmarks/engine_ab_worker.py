@@ -1,7 +1,8 @@
 """One side of :mod:`benchmarks.engine_ab`: a group of CartPole agents that trains a round
 each time a round number arrives on stdin and answers its seconds and env steps as a JSON
 line. Run as a script with whichever ``fedhpg`` is first on the path; it imports only what
-every revision of the package has (the config, ``make_agent_group``, ``initial_theta``)."""
+every revision of the package has (the config, ``make_agent_group``, ``initial_theta``), from
+either layout of ``common/`` (before and after its split by role)."""
 
 from __future__ import annotations
 
@@ -14,9 +15,18 @@ import time
 import torch
 
 import fedhpg.common
-from fedhpg.common.group import make_agent_group
 from fedhpg.common.runtime.cli import compose
-from fedhpg.common.worker import initial_theta
+
+# The layout is read from the revision's own folder, not found by trying imports: under an
+# editable install a module this revision lacks would be found in the working tree instead.
+SPLIT = os.path.isdir(os.path.join(os.path.dirname(fedhpg.common.__file__), "learning"))
+"""Whether this revision's common/ is split by role (issue 55)."""
+if SPLIT:
+    from fedhpg.common.learning.group import make_agent_group
+    from fedhpg.common.learning.worker import initial_theta
+else:  # earlier revisions: the modules at the top of common/
+    from fedhpg.common.group import make_agent_group  # type: ignore[import-not-found,no-redef]
+    from fedhpg.common.worker import initial_theta  # type: ignore[import-not-found,no-redef]
 
 
 def main() -> None:
@@ -74,7 +84,10 @@ def _measured(trained):  # type: ignore[no-untyped-def]
 
 
 def _variant(run):  # type: ignore[no-untyped-def]
-    from fedhpg.common.variants import variants_of
+    if SPLIT:
+        from fedhpg.common.heterogeneity.variants import variants_of
+    else:
+        from fedhpg.common.variants import variants_of  # type: ignore[import-not-found,no-redef]
 
     return variants_of(run, [0])[0]
 

@@ -144,7 +144,7 @@ def overrides_of(label: str, seed: int, server_lr: float, max_trajectories: int)
 
 
 def run_one(label: str, server_lr: float, seed: int, max_trajectories: int) -> Outcome:
-    from fedhpg.server.api import run
+    from fedhpg.server.commands.api import run
 
     watch = _Watch()
     with contextlib.suppress(_Sustained):

@@ -65,7 +65,7 @@ class _Stop(Exception):
 
 
 def run(rule: str, attack: str, seed: int, budget: int) -> Run:
-    from fedhpg.server import api
+    from fedhpg.server.commands import api
 
     trajectories: list[float] = []
     returns: list[float] = []
@@ -117,7 +117,7 @@ def table(runs: list[Run]) -> str:
 def plot(runs: list[Run], path: Path) -> None:
     """Each rule under each attack: the mean greedy return of each seed's curve (runs stop at
     their sustained point, so a curve ends where its run did)."""
-    from fedhpg.server.plot import figure_and_axis, save
+    from fedhpg.server.commands.plot import figure_and_axis, save
 
     figure, axis = figure_and_axis()
     colours = {"fedpgbr": "tab:green", "mean": "tab:red", "median": "tab:blue"}

@@ -18,9 +18,9 @@ from pathlib import Path
 
 import numpy as np
 
-from fedhpg.server.plot import find_runs, group_runs
-from fedhpg.server.plot import main as plot_main
-from fedhpg.server.plot_stats import stratified_bootstrap_ci
+from fedhpg.server.commands.plot import find_runs, group_runs
+from fedhpg.server.commands.plot import main as plot_main
+from fedhpg.server.commands.plot_stats import stratified_bootstrap_ci
 
 BIN = Path(sys.prefix) / "bin"
 SEEDS = "0,1,2,3,4"
@@ -115,7 +115,7 @@ def main() -> None:
     )  # fmt: skip
     lines.append(
         "\nCI: 95% percentile bootstrap over the 5 seeds (2,000 resamples; "
-        "fedhpg.server.plot_stats), the band drawn in every figure."
+        "fedhpg.server.commands.plot_stats), the band drawn in every figure."
     )
     (FIGURES / "summary.md").write_text("\n".join(lines) + "\n")
     sys.stdout.write("\n".join(lines) + f"\n\nall figures in {time.monotonic() - started:.0f} s\n")

@@ -95,7 +95,7 @@ def overrides_of(case: Case, seed: int) -> list[str]:
 
 def random_return(run: Any, episodes: int, seed: int) -> float:
     """The mean over agents of a uniformly random policy's return in each agent's variant."""
-    from fedhpg.common.variants import run_variants, training_horizon
+    from fedhpg.common.heterogeneity.variants import run_variants, training_horizon
 
     means = []
     for variant in run_variants(run):
@@ -118,7 +118,7 @@ def random_return(run: Any, episodes: int, seed: int) -> float:
 
 
 def measure(case: Case, seed: int) -> dict[str, Any]:
-    from fedhpg.server import api
+    from fedhpg.server.commands import api
 
     overrides = overrides_of(case, seed)
     started = time.perf_counter()

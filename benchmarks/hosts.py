@@ -71,9 +71,9 @@ def server_side_us(num_params: int, rounds: int = 5) -> list[float]:
     import torch
     import zmq
 
-    from fedhpg.common.settings.server import ServerConfig
-    from fedhpg.common.types import UpdateColumns, UpdateStats
-    from fedhpg.common.variants import range_digest
+    from fedhpg.common.configuration.settings.server import ServerConfig
+    from fedhpg.common.heterogeneity.variants import range_digest
+    from fedhpg.common.records.types import UpdateColumns, UpdateStats
     from fedhpg.common.wire.codec import encode
     from fedhpg.common.wire.protocol import MAX_BATCH_ANSWERS, Hello, Update
     from fedhpg.server.pools.zmq_pool import ZmqAgentPool
@@ -146,7 +146,7 @@ def batch_codec_us(num_params: int = 386, agents: int = 256, repeats: int = 5) -
     ``repeats`` timings of 40 messages each; and the header's size."""
     import numpy as np
 
-    from fedhpg.common.types import UpdateColumns, UpdateStats
+    from fedhpg.common.records.types import UpdateColumns, UpdateStats
     from fedhpg.common.wire.codec import decode, encode
     from fedhpg.common.wire.protocol import Update
 
@@ -209,7 +209,7 @@ def host_round_us(agents: int = 1000, per_host: int = 500, rounds: int = 8) -> d
     import torch
 
     from fedhpg.agent.work import AgentWork
-    from fedhpg.common.batched import kernels
+    from fedhpg.common.learning.batched import kernels
     from fedhpg.common.runtime.cli import compose
     from fedhpg.common.wire.codec import encode
     from fedhpg.common.wire.protocol import Train

@@ -96,10 +96,10 @@ def run_curve(
 
 def plot(curves: list[Curve], path: Path, title: str, ylabel: str) -> None:
     """Mean over seeds and its 95% percentile-bootstrap band (the project's one convention,
-    :mod:`fedhpg.server.plot`), the target as a dashed line."""
+    :mod:`fedhpg.server.commands.plot`), the target as a dashed line."""
     import numpy as np
 
-    from fedhpg.server.plot import draw_band, figure_and_axis, legend, save
+    from fedhpg.server.commands.plot import draw_band, figure_and_axis, legend, save
 
     figure, axis = figure_and_axis()
     labels = list(dict.fromkeys(c.label for c in curves))

@@ -233,10 +233,10 @@ def table(task: Task, results: list[SeedResult]) -> str:
 
 def plot(task: Task, results: list[SeedResult], path: Path) -> None:
     """Greedy and stochastic return: the mean over seeds and its 95% percentile-bootstrap
-    band (the project's one convention, :mod:`fedhpg.server.plot`), FedPG-BR's return."""
+    band (the project's one convention, :mod:`fedhpg.server.commands.plot`), FedPG-BR's return."""
     import numpy as np
 
-    from fedhpg.server.plot import draw_band, figure_and_axis, legend, save
+    from fedhpg.server.commands.plot import draw_band, figure_and_axis, legend, save
 
     figure, axis = figure_and_axis()
     curves = (

@@ -91,7 +91,7 @@ bench() {
     export OMP_NUM_THREADS=1 PYTHONUNBUFFERED=1
     echo "[bench-device $(date -u +%T)] $device, K = $counts, federation of $agents agents;" \
         "within $TOTAL_S s; parts in $work, results in $out"
-    "$python" -c 'import sys, torch; from fedhpg.common.engine.devices import device_problem
+    "$python" -c 'import sys, torch; from fedhpg.common.learning.engine.devices import device_problem
 print("python", sys.version.split()[0], "torch", torch.__version__, "cuda", torch.cuda.is_available())
 problem = device_problem(sys.argv[1]); sys.exit(f"error: DEVICE: {problem}" if problem else 0)' \
         "$device" || return 1
@@ -109,7 +109,7 @@ problem = device_problem(sys.argv[1]); sys.exit(f"error: DEVICE: {problem}" if p
     rm -rf "$work/federation"
     local fed_started=$SECONDS
     part "federation of $agents agents" "$fed_limit" "$python" -c 'import sys
-from fedhpg.server.launcher import main
+from fedhpg.server.commands.launcher import main
 sys.argv[0] = "fedhpg-run"; main()' env=cartpole agents.num_agents="$agents" \
         agents.per_host="$agents" agents.budget.batch_size=[16] agents.speeds=[1] \
         agents.step_delays_s=[0] algo.engine=torch algo.device="$device" rounds=3 \

@@ -1,8 +1,8 @@
 """The Theorem 1 planner against the alternatives at the same emulated-time budget.
 
 For each setting and seed: the planner's constants come from the seeded pilot ``fedhpg-plan``
-runs (``server/plan.py``), its cost per trajectory from the counted clock's full-horizon price.
-Every alternative then runs in process on the counted, virtual clock (emulated time is priced
+runs (``server/commands/plan.py``), its cost per trajectory from the counted clock's full-horizon
+price. Every alternative then runs in process on the counted, virtual clock (emulated time is priced
 from counted work: identical on any machine, under any load) until the unified policy reaches
 the threshold or its emulated time (the sum over rounds of the slowest agent's emulated round
 time) passes the budget. Recorded: emulated seconds and trajectories per agent at the first
@@ -36,14 +36,14 @@ import numpy as np
 import torch
 
 from benchmarks import results_file
-from fedhpg.common.config import RunConfig
-from fedhpg.common.device import device_for
-from fedhpg.common.planning import Constants, Limits, plan_budgets
+from fedhpg.common.configuration.config import RunConfig
+from fedhpg.common.heterogeneity.device import device_for
+from fedhpg.common.learning.planning import Constants, Limits, plan_budgets
 from fedhpg.common.runtime.cli import compose
 from fedhpg.server.assembly import run_in_process
+from fedhpg.server.commands.plan import horizon_seconds_per_trajectory, round_overhead_s, run_pilot
+from fedhpg.server.commands.plot_stats import stratified_bootstrap_ci
 from fedhpg.server.coordinator import RoundRecord
-from fedhpg.server.plan import horizon_seconds_per_trajectory, round_overhead_s, run_pilot
-from fedhpg.server.plot_stats import stratified_bootstrap_ci
 
 RESULTS = Path("benchmarks/results/planner.json")
 FIGURE = Path("docs/figures/planner.png")

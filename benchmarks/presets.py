@@ -98,9 +98,9 @@ def overrides_for(plan: Plan, seed: int, kind: str) -> list[str]:
 
 
 def initial_return(overrides: list[str], round_index: int) -> float:
+    from fedhpg.common.heterogeneity.variants import run_variants
+    from fedhpg.common.learning.worker import initial_theta
     from fedhpg.common.runtime.cli import compose
-    from fedhpg.common.variants import run_variants
-    from fedhpg.common.worker import initial_theta
     from fedhpg.server.pools.inprocess import make_in_process_pool
 
     run = compose(overrides)

@@ -194,7 +194,7 @@ def utility(seeds: int) -> dict[str, Any]:
 
 
 def draw_utility(data: dict[str, Any]) -> None:
-    from fedhpg.server.plot import draw_band, figure_and_axis, legend, save
+    from fedhpg.server.commands.plot import draw_band, figure_and_axis, legend, save
 
     figure, axis = figure_and_axis()
     for label, runs in data["results"].items():

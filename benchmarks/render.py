@@ -60,9 +60,9 @@ commit; a change to measured code is committed together with the page rendered a
 Why the figures come out as they do is explained in the guide's "How it works", section
 "Performance" (`docs/how-it-works.md`).
 
-**Figures** are drawn by `fedhpg.server.plot` (mean over seeds, band = 95 % percentile-bootstrap
-interval of that mean, 2,000 resamples); they are in `docs/figures/` (bench-scale's in `docs/`)
-with their data in `benchmarks/results/`.
+**Figures** are drawn by `fedhpg.server.commands.plot` (mean over seeds, band = 95 %
+percentile-bootstrap interval of that mean, 2,000 resamples); they are in `docs/figures/`
+(bench-scale's in `docs/`) with their data in `benchmarks/results/`.
 """
 
 

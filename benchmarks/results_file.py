@@ -52,12 +52,12 @@ from typing import Any, NotRequired, TypedDict
 ROOT = Path(__file__).resolve().parents[1]
 TABLES = ROOT / "benchmarks" / "results" / "tables"
 LEARNING_CODE = (
-    "common/algorithms",
-    "common/estimators.py",
-    "common/engine",
-    "common/batched",
-    "common/policies.py",
-    "common/optim.py",
+    "common/learning/algorithms",
+    "common/learning/estimators.py",
+    "common/learning/engine",
+    "common/learning/batched",
+    "common/learning/policies.py",
+    "common/learning/optim.py",
     "envs",
 )
 """What a learning benchmark measures: a change here may change its returns."""

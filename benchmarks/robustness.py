@@ -130,8 +130,8 @@ def report(curves: list[Curve], rounds: int, summary: str | None = None, **stamp
             "agent",
             "common/runtime",
             "common/wire",
-            "common/attacks.py",
-            "common/byzantine_filter.py",
+            "common/learning/attacks.py",
+            "common/learning/byzantine_filter.py",
         ],
         setup=DESCRIPTION.format(rounds=rounds, seeds=", ".join(map(str, seeds))),
         data=[str(RESULTS)],
@@ -149,10 +149,10 @@ def report(curves: list[Curve], rounds: int, summary: str | None = None, **stamp
 
 def plot(curves: list[Curve], path: Path) -> None:
     """Each strategy with and without the attack: the mean over seeds and its 95%
-    percentile-bootstrap band (the project's one convention, :mod:`fedhpg.server.plot`)."""
+    percentile-bootstrap band (the project's one convention, :mod:`fedhpg.server.commands.plot`)."""
     import numpy as np
 
-    from fedhpg.server.plot import draw_band, figure_and_axis, legend, save
+    from fedhpg.server.commands.plot import draw_band, figure_and_axis, legend, save
 
     figure, axis = figure_and_axis()
     colours = {"mean": "tab:red", "median": "tab:blue", "trimmed_mean": "tab:green"}

@@ -16,11 +16,11 @@ import gymnasium as gym
 import numpy as np
 import torch
 
-from fedhpg.common.engine.copies import GymBlocks
-from fedhpg.common.engine.policy_rows import PolicyRows
-from fedhpg.common.engine.sampling import sample
-from fedhpg.common.policies import Policy, PolicyConfig, get_flat_params, make_policy
-from fedhpg.common.randomness import Purpose, trajectory_keys
+from fedhpg.common.learning.engine.copies import GymBlocks
+from fedhpg.common.learning.engine.policy_rows import PolicyRows
+from fedhpg.common.learning.engine.sampling import sample
+from fedhpg.common.learning.policies import Policy, PolicyConfig, get_flat_params, make_policy
+from fedhpg.common.learning.randomness import Purpose, trajectory_keys
 from fedhpg.envs.base import BatchEnv, EnvVariant
 from fedhpg.envs.gym_adapter import GymVectorBatchEnv
 from fedhpg.envs.gym_variant import GymVariant

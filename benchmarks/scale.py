@@ -38,7 +38,7 @@ import torch
 from benchmarks import engine_ab
 from benchmarks.runtime import _federation
 from benchmarks.scale_refs import bare_loop, cpu_description, forward_loop
-from fedhpg.common.components import agent_profile
+from fedhpg.common.learning.components import agent_profile
 from fedhpg.common.runtime.cli import compose
 from fedhpg.server.checkpoint import latest_valid_checkpoint
 

@@ -49,16 +49,16 @@ import torch
 
 from benchmarks.device_reference import measure as reference
 from benchmarks.scale_refs import cpu_description
-from fedhpg.common.batched.backend import CompiledBackend
-from fedhpg.common.config import RunConfig
-from fedhpg.common.engine.devices import device_problem
-from fedhpg.common.group import EngineGroup, make_agent_group
-from fedhpg.common.policies import get_flat_params
+from fedhpg.common.configuration.config import RunConfig
+from fedhpg.common.configuration.settings.algo import DEVICE_PATTERN
+from fedhpg.common.heterogeneity.variants import variants_of
+from fedhpg.common.learning.batched.backend import CompiledBackend
+from fedhpg.common.learning.engine.devices import device_problem
+from fedhpg.common.learning.group import EngineGroup, make_agent_group
+from fedhpg.common.learning.policies import get_flat_params
+from fedhpg.common.learning.worker import build_policy, initial_theta
 from fedhpg.common.runtime.cli import compose
 from fedhpg.common.runtime.memory import pin_malloc_mmap_threshold
-from fedhpg.common.settings.algo import DEVICE_PATTERN
-from fedhpg.common.variants import variants_of
-from fedhpg.common.worker import build_policy, initial_theta
 
 logger = logging.getLogger("benchmarks.scale_device")
 

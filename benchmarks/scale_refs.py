@@ -10,7 +10,7 @@ import gymnasium as gym
 import numpy as np
 
 from benchmarks.results_file import cpu_description as cpu_description
-from fedhpg.common.batched.mlp import MLPShape
+from fedhpg.common.learning.batched.mlp import MLPShape
 
 
 def bare_loop(num_envs: int, steps: int, seed: int = 0) -> float:

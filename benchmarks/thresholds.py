@@ -211,7 +211,7 @@ class _Stop(Exception):
 
 def run_curve(row: str, server_lr: float, seed: int, budget: int = BUDGET) -> Curve:
     """One of fedhpg's rows to ``budget`` trajectories per agent."""
-    from fedhpg.server import api
+    from fedhpg.server.commands import api
 
     spec = ROWS[row]
     trajectories: list[float] = []
@@ -437,7 +437,7 @@ def plot(curves: list[Curve], path: Path = FIGURE, rows: Sequence[str] = TABLE_R
     import matplotlib.pyplot as plt
     import numpy as np
 
-    from fedhpg.server.plot import save as save_figure
+    from fedhpg.server.commands.plot import save as save_figure
 
     steps = sorted({c.server_lr for c in curves})
     figure, axes = plt.subplots(

@@ -11,8 +11,8 @@ evaluations" spans the same trajectories whatever B is. The
 paper-faithful counts are read from the stored 10,000-trajectory curves
 (``benchmarks/results/<task>.json``), not re-run.
 
-Runs are in process (``fedhpg.server.api.run``: the agents compute what their processes would)
-on the counted clock, so every count and return is deterministic in the seed and may be
+Runs are in process (``fedhpg.server.commands.api.run``: the agents compute what their processes
+would) on the counted clock, so every count and return is deterministic in the seed and may be
 measured under load; a run stops once sustained (unless ``--no-stop``), or at ``--budget``
 trajectories per agent.
 
@@ -218,7 +218,7 @@ def overrides_of(task: Task, label: str, seed: int, budget: int) -> list[str]:
 
 def run_curve(task: Task, label: str, seed: int, budget: int, stop: bool = True) -> Curve:
     """One in-process run until sustained (if ``stop``) or ``budget`` trajectories per agent."""
-    from fedhpg.server import api
+    from fedhpg.server.commands import api
 
     overrides = overrides_of(task, label, seed, budget)
     curve = Curve(task.name, label, seed, overrides, [], [])
@@ -340,7 +340,7 @@ def plot(task: Task, curves: list[Curve], path: Path, budget: float) -> None:
     95% percentile-bootstrap band (the project's convention), up to ``budget``."""
     import numpy as np
 
-    from fedhpg.server.plot import draw_band, figure_and_axis, legend, save
+    from fedhpg.server.commands.plot import draw_band, figure_and_axis, legend, save
 
     figure, axis = figure_and_axis()
     for label in task.settings:

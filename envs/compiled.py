@@ -1,5 +1,5 @@
 """Compiled (numba) dynamics of the families that have them, for the compiled backend
-(common/batched/kernels.py), which steps one copy at a time inside a kernel.
+(common/learning/batched/kernels.py), which steps one copy at a time inside a kernel.
 
 CartPole: :func:`fedhpg.envs.device.cartpole.cartpole_update` itself, compiled, on one copy's
 float64 state with its variant's constants in a row of :data:`CARTPOLE_PHYSICS` order.

@@ -31,17 +31,17 @@ from typing import Any
 
 import torch
 
-from fedhpg.common.components import validate_run
-from fedhpg.common.config import RunConfig, attacking_agents, to_dict
-from fedhpg.common.config_error import ConfigError
-from fedhpg.common.placement import agents_per_host
+from fedhpg.common.configuration.config import RunConfig, attacking_agents, to_dict
+from fedhpg.common.configuration.config_error import ConfigError
+from fedhpg.common.configuration.placement import agents_per_host
+from fedhpg.common.configuration.run_keys import fixed_difference
+from fedhpg.common.configuration.vocabularies import ROUND_POLICIES
+from fedhpg.common.heterogeneity.variants import discount, run_variants, variant_of
+from fedhpg.common.learning.components import validate_run
+from fedhpg.common.learning.worker import initial_theta
 from fedhpg.common.privacy.graph import GraphError, round_plan
-from fedhpg.common.run_keys import fixed_difference
+from fedhpg.common.records.types import EvaluationStats
 from fedhpg.common.runtime.run_files import PROGRESS_NAME
-from fedhpg.common.types import EvaluationStats
-from fedhpg.common.variants import discount, run_variants, variant_of
-from fedhpg.common.vocabularies import ROUND_POLICIES
-from fedhpg.common.worker import initial_theta
 from fedhpg.envs.base import EnvVariant
 from fedhpg.server.buffered import BufferedCoordinator
 from fedhpg.server.checkpoint import (

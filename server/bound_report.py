@@ -1,5 +1,5 @@
 """The round's Theorem 1 bound (eq. 7) in ``metrics.jsonl`` when ``algo.bound_estimates`` is on:
-its four terms from the constants the round's agents estimated (``common/bounds.py``).
+its four terms from the constants the round's agents estimated (``common/learning/bounds.py``).
 
 Readings (the paper leaves these open; stated once here and in docs/metrics.md):
 - the K of eq. 7 is the round's participants, their σ̂_k², B_k and τ_k;
@@ -17,10 +17,10 @@ from __future__ import annotations
 from collections.abc import Mapping
 from typing import Any
 
-from fedhpg.common.bounds import theorem1_terms
-from fedhpg.common.components import agent_profile, planned_budget
-from fedhpg.common.config import RunConfig
-from fedhpg.common.types import RoundResult
+from fedhpg.common.configuration.config import RunConfig
+from fedhpg.common.learning.bounds import theorem1_terms
+from fedhpg.common.learning.components import agent_profile, planned_budget
+from fedhpg.common.records.types import RoundResult
 
 
 def round_bound(

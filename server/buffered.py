@@ -52,10 +52,10 @@ from typing import Any, Protocol
 import numpy as np
 import torch
 
-from fedhpg.common.config import RunConfig
-from fedhpg.common.settings.ids import agent_id_of
-from fedhpg.common.settings.server import ServerConfig
-from fedhpg.common.types import (
+from fedhpg.common.configuration.config import RunConfig
+from fedhpg.common.configuration.settings.ids import agent_id_of
+from fedhpg.common.configuration.settings.server import ServerConfig
+from fedhpg.common.records.types import (
     EvaluationStats,
     RoundResult,
     SavedState,

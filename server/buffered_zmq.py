@@ -31,7 +31,7 @@ from typing import Any
 
 import torch
 
-from fedhpg.common.types import EvaluationStats
+from fedhpg.common.records.types import EvaluationStats
 from fedhpg.server.buffered import BufferedCoordinator, BufferedSchedule, InFlight
 from fedhpg.server.coordinator import should_evaluate
 from fedhpg.server.pools.zmq_pool import ZmqAgentPool

@@ -36,7 +36,7 @@ import torch
 from safetensors import SafetensorError
 from safetensors.numpy import load, save
 
-from fedhpg.common.types import SavedState
+from fedhpg.common.records.types import SavedState
 
 logger = logging.getLogger(__name__)
 T = TypeVar("T")

@@ -19,10 +19,10 @@ from typing import Any
 import numpy as np
 import torch
 
-from fedhpg.common.config import RunConfig
+from fedhpg.common.configuration.config import RunConfig
+from fedhpg.common.configuration.settings.ids import agent_id_of
+from fedhpg.common.records.types import EvaluationStats, RoundResult, SavedState
 from fedhpg.common.runtime import timeline
-from fedhpg.common.settings.ids import agent_id_of
-from fedhpg.common.types import EvaluationStats, RoundResult, SavedState
 from fedhpg.server.bound_report import round_bound
 from fedhpg.server.participation import make_participation
 from fedhpg.server.pools import AgentPool, FederationError, RoundAnswers, SkippedRound

@@ -17,11 +17,11 @@ import numpy as np
 import orjson
 import torch
 
-from fedhpg.common.config import RunConfig, attacking_agents, to_dict
-from fedhpg.common.run_keys import flatten
-from fedhpg.common.run_roles import groups
+from fedhpg.common.configuration.config import RunConfig, attacking_agents, to_dict
+from fedhpg.common.configuration.run_keys import flatten
+from fedhpg.common.configuration.run_roles import groups
+from fedhpg.common.records.types import ALWAYS_FIELDS, RoundResult
 from fedhpg.common.runtime.run_files import TENSORBOARD_DIR
-from fedhpg.common.types import ALWAYS_FIELDS, RoundResult
 from fedhpg.server.coordinator import RoundRecord
 from fedhpg.server.run_dir import RunDirectoryError
 

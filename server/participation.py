@@ -29,9 +29,9 @@ from pathlib import Path
 
 import numpy as np
 
-from fedhpg.common.config import RunConfig
-from fedhpg.common.config_error import ConfigError
-from fedhpg.common.settings.strategy import ParticipationConfig
+from fedhpg.common.configuration.config import RunConfig
+from fedhpg.common.configuration.config_error import ConfigError
+from fedhpg.common.configuration.settings.strategy import ParticipationConfig
 
 TRACE_KEY = "strategy.participation.trace"
 TRACE_COLUMNS = ("agent", "offline_from", "offline_to")

@@ -46,13 +46,13 @@ from typing import Any
 import numpy as np
 import torch
 
-from fedhpg.common.config import RunConfig
-from fedhpg.common.config_error import ConfigError
+from fedhpg.common.configuration.config import RunConfig
+from fedhpg.common.configuration.config_error import ConfigError
 from fedhpg.common.privacy import accounting, dp
 from fedhpg.common.privacy.accounting import Sampling
 from fedhpg.common.privacy.contribution import EXTRA, RoundPrivacy, average, contribution
 from fedhpg.common.privacy.secagg import fewest_inputs, noise_shares
-from fedhpg.common.types import RoundResult
+from fedhpg.common.records.types import RoundResult
 from fedhpg.server.checkpoint import write_atomic
 from fedhpg.server.pools import FederationError, RoundAnswers, SkippedRound
 from fedhpg.server.run_dir import RunDirectoryError

@@ -14,7 +14,7 @@ showed. Then after every P rounds (P, 2P, ...) the plan is re-made from the last
   slowest agent), by default the slowest round of the first P rounds: the configured
   budgets' pace.
 
-:func:`fedhpg.common.planning.plan_for_rounds` then minimises eq. 7 for the rounds left
+:func:`fedhpg.common.learning.planning.plan_for_rounds` then minimises eq. 7 for the rounds left
 (T is the run's: it still ends after ``rounds`` rounds), every agent's round within the round
 time: a device that slows down gets less work, one that speeds up more. The round time, not
 a total, is what is held: a plan is priced at the last P rounds' speeds, so when the speeds
@@ -38,12 +38,12 @@ from collections.abc import Mapping
 from dataclasses import asdict, dataclass, field
 from typing import Any
 
-from fedhpg.common.config import RunConfig
-from fedhpg.common.device import device_for, message_bytes
-from fedhpg.common.planning import Constants, Limits, plan_for_rounds
-from fedhpg.common.types import RoundResult
-from fedhpg.common.variants import training_horizon, variant_of
-from fedhpg.common.worker import initial_theta
+from fedhpg.common.configuration.config import RunConfig
+from fedhpg.common.heterogeneity.device import device_for, message_bytes
+from fedhpg.common.heterogeneity.variants import training_horizon, variant_of
+from fedhpg.common.learning.planning import Constants, Limits, plan_for_rounds
+from fedhpg.common.learning.worker import initial_theta
+from fedhpg.common.records.types import RoundResult
 
 logger = logging.getLogger(__name__)
 

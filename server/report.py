@@ -12,7 +12,7 @@ from typing import Any
 
 import numpy as np
 
-from fedhpg.common.types import EvaluationStats
+from fedhpg.common.records.types import EvaluationStats
 
 TABLE_ROWS = 20
 """Agents up to which the final table shows every one; beyond, :func:`evaluation_summary`."""

@@ -3,8 +3,8 @@
 :meth:`RunDirectory.claim` takes an exclusive ``flock`` on ``<out_dir>/.lock`` (held until
 :meth:`release`, dropped by the kernel if the server dies), refuses an ``out_dir`` that is a
 file, one that another live server holds, and one that already holds a run unless the run is
-being resumed. Every refusal is a :class:`~fedhpg.common.config_error.ConfigError` naming the
-setting: the entry point prints one line and exits 2, and nothing has been written.
+being resumed. Every refusal is a :class:`~fedhpg.common.configuration.config_error.ConfigError`
+naming the setting: the entry point prints one line and exits 2, and nothing has been written.
 """
 
 from __future__ import annotations
@@ -20,8 +20,8 @@ from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from fedhpg.common.config import RunConfig
-from fedhpg.common.config_error import ConfigError
+from fedhpg.common.configuration.config import RunConfig
+from fedhpg.common.configuration.config_error import ConfigError
 from fedhpg.common.runtime.cli import LOG_FORMAT
 from fedhpg.common.runtime.run_files import (
     CONFIG_NAME,

@@ -23,7 +23,7 @@ import math
 
 import numpy as np
 
-from fedhpg.common.config import RunConfig
+from fedhpg.common.configuration.config import RunConfig
 from fedhpg.common.privacy import fixedpoint
 from fedhpg.common.privacy.contribution import WEIGHT_UNIT
 from fedhpg.server.pools import SecureSum

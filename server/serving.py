@@ -22,14 +22,14 @@ from typing import Any
 import torch
 import zmq
 
-from fedhpg.common.components import agent_profile, resolve_algorithm
-from fedhpg.common.config import RunConfig, attacking_agents
-from fedhpg.common.config_error import ConfigError
-from fedhpg.common.placement import agents_per_host
-from fedhpg.common.run_roles import dictated_settings
+from fedhpg.common.configuration.config import RunConfig, attacking_agents
+from fedhpg.common.configuration.config_error import ConfigError
+from fedhpg.common.configuration.placement import agents_per_host
+from fedhpg.common.configuration.run_roles import dictated_settings
+from fedhpg.common.heterogeneity.variants import discount, run_variants, variant_digest, variant_of
+from fedhpg.common.learning.components import agent_profile, resolve_algorithm
+from fedhpg.common.records.types import EvaluationStats
 from fedhpg.common.runtime.progress import Progress
-from fedhpg.common.types import EvaluationStats
-from fedhpg.common.variants import discount, run_variants, variant_digest, variant_of
 from fedhpg.common.wire.codec import MAX_HEADER_BYTES
 from fedhpg.common.wire.security import (
     ServerGuard,

@@ -16,8 +16,8 @@ from typing import Any
 
 import torch
 
-from fedhpg.common.config import RunConfig, to_dict
-from fedhpg.common.run_keys import flatten
+from fedhpg.common.configuration.config import RunConfig, to_dict
+from fedhpg.common.configuration.run_keys import flatten
 from fedhpg.common.runtime.run_files import WANDB_DIR
 from fedhpg.server.coordinator import RoundRecord
 from fedhpg.server.metrics import RoundValues

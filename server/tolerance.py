@@ -19,8 +19,8 @@ from __future__ import annotations
 
 from typing import Protocol
 
-from fedhpg.common.config import RunConfig
-from fedhpg.common.vocabularies import ROUND_POLICIES
+from fedhpg.common.configuration.config import RunConfig
+from fedhpg.common.configuration.vocabularies import ROUND_POLICIES
 from fedhpg.server.participation import smallest_participation
 
 

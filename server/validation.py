@@ -15,7 +15,7 @@ from typing import Any
 
 import numpy as np
 
-from fedhpg.common.types import UpdateStats
+from fedhpg.common.records.types import UpdateStats
 
 NON_FINITE = "parameters contain NaN or Inf"
 """The reason of a :attr:`Reject.NON_FINITE` rejection."""

@@ -1,6 +1,6 @@
 """Any test environment as agents' variants on the real engine (its gymnasium path).
 
-:func:`mdp_engine` gives an :class:`~fedhpg.common.engine.engine.Engine` of ``rows`` agents
+:func:`mdp_engine` gives an :class:`~fedhpg.common.learning.engine.engine.Engine` of ``rows`` agents
 that all step copies of one :class:`~fedhpg.envs.base.BatchEnv` (a tabular MDP with an exact
 gradient, say), so a test samples thousands of independent batches in one call and checks
 what the algorithms are built of against exact answers.
@@ -13,7 +13,7 @@ from dataclasses import dataclass
 
 import gymnasium as gym
 
-from fedhpg.common.engine.engine import Engine
+from fedhpg.common.learning.engine.engine import Engine
 from fedhpg.common.runtime.cli import compose
 from fedhpg.envs.base import BatchEnv, EnvVariant
 

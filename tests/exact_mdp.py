@@ -14,8 +14,8 @@ import numpy as np
 import torch
 from oracle import TrajectoryBatch, sample_trajectories
 
-from fedhpg.common.estimators import per_trajectory_gradients
-from fedhpg.common.policies import TabularSoftmaxPolicy
+from fedhpg.common.learning.estimators import per_trajectory_gradients
+from fedhpg.common.learning.policies import TabularSoftmaxPolicy
 from fedhpg.envs.base import BatchStep
 
 BATCH = 8

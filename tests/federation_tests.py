@@ -31,7 +31,7 @@ STARTS_FEDERATIONS = re.compile(
 )
 """What a test module that starts federations uses somewhere in its text."""
 
-FEDERATION_MODULES = ("procs", "fedhpg.server.launcher", "multiprocessing", "submitit")
+FEDERATION_MODULES = ("procs", "fedhpg.server.commands.launcher", "multiprocessing", "submitit")
 """Modules whose names, in a test's code, mean it may start processes."""
 
 BESIDE_THE_TEST = ("Process", "Popen")

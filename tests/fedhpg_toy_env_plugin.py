@@ -17,8 +17,8 @@ import numpy as np
 import torch
 from torch import nn
 
-from fedhpg.common.policies import Policy, register_policy
-from fedhpg.common.settings.policy import PolicyConfig
+from fedhpg.common.configuration.settings.policy import PolicyConfig
+from fedhpg.common.learning.policies import Policy, register_policy
 from fedhpg.envs.base import EnvVariant
 from fedhpg.envs.gym_variant import GymVariant
 from fedhpg.envs.registry import register_family

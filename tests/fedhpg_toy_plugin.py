@@ -17,10 +17,10 @@ from dataclasses import dataclass
 
 import torch
 
-from fedhpg.common.algorithms import Algorithm, at_least_one, register_algorithm
-from fedhpg.common.engine.round import Round
-from fedhpg.common.registry import OptionError
-from fedhpg.common.settings.algo import AlgoConfig
+from fedhpg.common.configuration.registry import OptionError
+from fedhpg.common.configuration.settings.algo import AlgoConfig
+from fedhpg.common.learning.algorithms import Algorithm, at_least_one, register_algorithm
+from fedhpg.common.learning.engine.round import Round
 from fedhpg.server.strategies import CoordinateRule, NoParams, register_strategy
 
 

@@ -1,7 +1,7 @@
 """The per-agent reference path, kept for tests: one agent's batch sampled step by step and
-its gradient by autograd (``common/estimators.py``'s ``estimate_gradient``).
+its gradient by autograd (``common/learning/estimators.py``'s ``estimate_gradient``).
 
-The engine (``common/engine``) is what runs; this is what it is checked against: a plain
+The engine (``common/learning/engine``) is what runs; this is what it is checked against: a plain
 loop over time steps for B copies of one environment, the policy's own ``act`` with uniforms
 from a numpy ``Generator``, and one autograd pass over the batch.
 """
@@ -13,14 +13,14 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from fedhpg.common.bounds import bound_stats, gradient_moments
-from fedhpg.common.estimators import (
+from fedhpg.common.configuration.settings.algo import AlgoConfig
+from fedhpg.common.learning.bounds import bound_stats, gradient_moments
+from fedhpg.common.learning.estimators import (
     estimate_gradient,
     estimator_coefficients,
     per_trajectory_gradients,
 )
-from fedhpg.common.policies import Policy
-from fedhpg.common.settings.algo import AlgoConfig
+from fedhpg.common.learning.policies import Policy
 from fedhpg.envs.base import BatchEnv
 
 

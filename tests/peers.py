@@ -22,10 +22,10 @@ import numpy as np
 import torch
 import zmq
 
-from fedhpg.common.config import RunConfig
-from fedhpg.common.group import make_agent_group
-from fedhpg.common.types import EvaluationStats
-from fedhpg.common.variants import range_digest, run_variants, variant_digest
+from fedhpg.common.configuration.config import RunConfig
+from fedhpg.common.heterogeneity.variants import range_digest, run_variants, variant_digest
+from fedhpg.common.learning.group import make_agent_group
+from fedhpg.common.records.types import EvaluationStats
 from fedhpg.common.wire.codec import decode, encode
 from fedhpg.common.wire.protocol import (
     MSG_TYPE_OF,

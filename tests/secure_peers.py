@@ -21,9 +21,9 @@ import numpy as np
 import torch
 
 from fedhpg.agent.work import SecureAgents
-from fedhpg.common.config import RunConfig
+from fedhpg.common.configuration.config import RunConfig
 from fedhpg.common.privacy.contribution import RoundPrivacy
-from fedhpg.common.types import RoundResult, UpdateColumns, UpdateStats
+from fedhpg.common.records.types import RoundResult, UpdateColumns, UpdateStats
 from fedhpg.common.wire.codec import ProtocolError, decode, encode
 from fedhpg.common.wire.protocol import (
     KeyShares,

@@ -26,7 +26,7 @@ import numpy as np
 import torch
 from oracle import TrajectoryBatch, sample_trajectories
 
-from fedhpg.common.policies import TabularSoftmaxPolicy
+from fedhpg.common.learning.policies import TabularSoftmaxPolicy
 from fedhpg.envs.base import BatchStep
 
 NUM_STATES = 5  # 0..3 live, 4 terminal (absorbing)

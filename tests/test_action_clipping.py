@@ -13,7 +13,7 @@ import pytest
 import torch
 from oracle import sample_trajectories
 
-from fedhpg.common.policies import GaussianMLPPolicy, PolicyConfig, make_policy
+from fedhpg.common.learning.policies import GaussianMLPPolicy, PolicyConfig, make_policy
 from fedhpg.envs.base import BatchEnv
 from fedhpg.envs.gym_adapter import GymLoopBatchEnv, GymVectorBatchEnv
 from fedhpg.envs.gym_variant import GymVariant

@@ -9,8 +9,8 @@ from pathlib import Path
 import pytest
 from procs import free_port, processes, start
 
-from fedhpg.common.config_error import ConfigError
-from fedhpg.common.run_roles import adopt_settings, dictated_settings
+from fedhpg.common.configuration.config_error import ConfigError
+from fedhpg.common.configuration.run_roles import adopt_settings, dictated_settings
 from fedhpg.common.runtime.cli import compose
 
 TIMEOUT_S = 90

@@ -1,5 +1,5 @@
-"""The Python API (``fedhpg.server.api``; its guide's examples run in tests/test_docs.py): a
-policy loaded from a run directory reproduces the server's own evaluation in ``summary.json``
+"""The Python API (``fedhpg.server.commands.api``; its guide's examples run in tests/test_docs.py):
+a policy loaded from a run directory reproduces the server's own evaluation in ``summary.json``
 exactly; in-process and distributed runs agree; mistakes raise exceptions naming the key."""
 
 from __future__ import annotations
@@ -12,8 +12,8 @@ import pytest
 import torch
 
 from fedhpg.common.runtime.cli import compose
-from fedhpg.server import api
 from fedhpg.server.assembly import run_in_process
+from fedhpg.server.commands import api
 
 GRID = ["rounds=3", "seed=1", "eval.every=2", "eval.episodes=6"]
 

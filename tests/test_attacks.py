@@ -7,13 +7,13 @@ import gymnasium as gym
 import pytest
 import torch
 
-from fedhpg.common.attacks import corrupt_rows
-from fedhpg.common.engine.engine import Engine
-from fedhpg.common.engine.sampling import _random_actions
+from fedhpg.common.configuration.settings.attack import AttackConfig
+from fedhpg.common.heterogeneity.variants import variants_of
+from fedhpg.common.learning.attacks import corrupt_rows
+from fedhpg.common.learning.engine.engine import Engine
+from fedhpg.common.learning.engine.sampling import _random_actions
+from fedhpg.common.learning.worker import initial_theta
 from fedhpg.common.runtime.cli import compose
-from fedhpg.common.settings.attack import AttackConfig
-from fedhpg.common.variants import variants_of
-from fedhpg.common.worker import initial_theta
 from fedhpg.server.assembly import run_in_process
 from fedhpg.server.coordinator import RoundRecord
 

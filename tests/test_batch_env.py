@@ -9,7 +9,7 @@ import pytest
 import torch
 from oracle import TrajectoryBatch, sample_trajectories
 
-from fedhpg.common.policies import PolicyConfig, make_policy
+from fedhpg.common.learning.policies import PolicyConfig, make_policy
 from fedhpg.envs.gym_adapter import GymLoopBatchEnv, GymVectorBatchEnv
 from fedhpg.envs.gym_variant import GymVariant
 from fedhpg.envs.registry import make_variants

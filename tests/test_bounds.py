@@ -1,6 +1,6 @@
-"""Theorem 1's constants from an agent's own trajectories (common/bounds.py), checked against
-their exact values on the tabular MDP of tests/tabular_mdp.py, where every trajectory and its
-probability can be enumerated: σ² = Σ_τ p(τ) ‖g(τ) − ∇J‖², M = Σ_τ p(τ) ‖g(τ)‖², ‖∇J‖² from
+"""Theorem 1's constants from an agent's own trajectories (common/learning/bounds.py), checked
+against their exact values on the tabular MDP of tests/tabular_mdp.py, where every trajectory and
+its probability can be enumerated: σ² = Σ_τ p(τ) ‖g(τ) − ∇J‖², M = Σ_τ p(τ) ‖g(τ)‖², ‖∇J‖² from
 the exact objective. The Monte-Carlo means of the per-batch estimates must land within 4
 standard errors (from the estimates' own spread) of the exact values, and a variance formula
 with the classic bias (dividing by B instead of B − 1) must not."""
@@ -20,14 +20,14 @@ from tabular_mdp import (
     seeded_policy,
 )
 
-from fedhpg.common.bounds import (
+from fedhpg.common.learning.bounds import (
     gradient_moments,
     moments_from_sums,
     secant_smoothness,
     theorem1_terms,
 )
-from fedhpg.common.estimators import estimator_coefficients, per_trajectory_gradients
-from fedhpg.common.policies import TabularSoftmaxPolicy
+from fedhpg.common.learning.estimators import estimator_coefficients, per_trajectory_gradients
+from fedhpg.common.learning.policies import TabularSoftmaxPolicy
 
 GAMMA = 0.9
 BATCH = 8
@@ -157,7 +157,7 @@ def test_a_run_reports_the_estimates_per_agent_and_theta_is_unchanged() -> None:
     """algo.bound_estimates through a whole run: in process (GridWorld's tabular policy, the
     loop path) and over the wire (real agent processes): every agent's three figures in its
     round record, and θ̃ bit for bit that of the same run without them."""
-    from fedhpg.server import api
+    from fedhpg.server.commands import api
 
     keys = ["rounds=2", "eval.every=10", "agents=homogeneous4", "agents.budget.batch_size=[4]"]
     plain = api.run(overrides=keys)

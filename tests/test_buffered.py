@@ -13,14 +13,14 @@ from typing import Any
 import pytest
 import torch
 
-from fedhpg.common.config_error import ConfigError
-from fedhpg.common.group import TIMING_STATS
-from fedhpg.common.settings.server import ServerConfig
-from fedhpg.common.types import UpdateStats
-from fedhpg.server import api
+from fedhpg.common.configuration.config_error import ConfigError
+from fedhpg.common.configuration.settings.server import ServerConfig
+from fedhpg.common.learning.group import TIMING_STATS
+from fedhpg.common.records.types import UpdateStats
 from fedhpg.server.buffered import BufferedSchedule, InFlight, buffer_rows
+from fedhpg.server.commands import api
+from fedhpg.server.commands.plot import Run, series
 from fedhpg.server.coordinator import RoundRecord
-from fedhpg.server.plot import Run, series
 
 COUNTED = ["agents.clock=counted", "agents.virtual_clock=true", "server.tensorboard=false"]
 BASE = [*COUNTED, "seed=3", "rounds=8", "eval.every=8", "eval.episodes=2"]

@@ -14,10 +14,10 @@ import numpy as np
 import pytest
 import torch
 
-from fedhpg.common.config import to_dict
-from fedhpg.common.config_error import ConfigError
+from fedhpg.common.configuration.config import to_dict
+from fedhpg.common.configuration.config_error import ConfigError
+from fedhpg.common.records.types import SavedState
 from fedhpg.common.runtime.cli import compose
-from fedhpg.common.types import SavedState
 from fedhpg.server.assembly import resume_point
 from fedhpg.server.checkpoint import (
     Checkpoint,
@@ -295,7 +295,7 @@ def _version_3_file(directory: Path, checkpoint: Checkpoint) -> Path:
 def test_a_run_checkpointed_in_the_previous_format_resumes_exactly(tmp_path: Path) -> None:
     """A run whose newest checkpoint is a version-3 msgpack file continues from it, bit for
     bit, and its next checkpoints are safetensors."""
-    from fedhpg.server import api
+    from fedhpg.server.commands import api
 
     keys = ["rounds=4", "seed=2", "agents=homogeneous4", "eval.every=4", "eval.episodes=2",
             "strategy=fedadam"]  # fmt: skip

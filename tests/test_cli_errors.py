@@ -19,7 +19,7 @@ from pathlib import Path
 
 import pytest
 
-from fedhpg.common.config import to_dict
+from fedhpg.common.configuration.config import to_dict
 from fedhpg.common.runtime.cli import compose
 from tests.procs import BIN, QUIET
 

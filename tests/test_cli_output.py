@@ -16,8 +16,8 @@ from pathlib import Path
 
 import pytest
 
+from fedhpg.common.records.types import EvaluationStats
 from fedhpg.common.runtime.progress import Progress
-from fedhpg.common.types import EvaluationStats
 from fedhpg.server.report import evaluation_table
 from tests.procs import BIN, free_port
 
@@ -202,7 +202,7 @@ def test_a_busy_port_leaves_no_run_directory_behind(tmp_path: Path) -> None:
 
 
 def test_resuming_a_complete_run_says_so_and_starts_nothing(tmp_path: Path) -> None:
-    from fedhpg.server import api
+    from fedhpg.server.commands import api
 
     api.run(overrides=[*SMALL, "rounds=2"], out_dir=tmp_path / "done")
     before = (tmp_path / "done/metrics.jsonl").read_text()
@@ -303,7 +303,7 @@ def test_the_demo_says_it_sleeps_and_a_preset_says_what_it_changed(tmp_path: Pat
 
 
 def test_fedpgbr_brings_its_strategy_unless_one_is_named() -> None:
-    from fedhpg.common.config_error import ConfigError
+    from fedhpg.common.configuration.config_error import ConfigError
     from fedhpg.common.runtime.cli import compose
 
     assert compose(["algo=fedpgbr"]).strategy.name == "fedpgbr"

@@ -24,11 +24,11 @@ import pytest
 import torch
 from procs import BIN, child_pids, sigint_ignored, wait_until
 
-from fedhpg.common.config_error import ConfigError
+from fedhpg.common.configuration.config_error import ConfigError
 from fedhpg.common.runtime.cli import compose
-from fedhpg.server import api
 from fedhpg.server.checkpoint import latest_valid_checkpoint
-from fedhpg.server.cluster import check_placement
+from fedhpg.server.commands import api
+from fedhpg.server.commands.cluster.main import check_placement
 
 REAPER = Path(__file__).parent / "reaper.py"
 TIMEOUT_S = 120
@@ -116,7 +116,7 @@ def test_the_driver_shows_each_round_and_ends_with_the_servers_final_table(
     the server prints, from summary.json."""
     import logging
 
-    from fedhpg.server.cluster import RoundProgress
+    from fedhpg.server.commands.cluster.main import RoundProgress
     from fedhpg.server.serving import final_report
 
     run_dir = tmp_path / "run"
@@ -418,7 +418,7 @@ import fedhpg.agent, fedhpg.common, fedhpg.envs, fedhpg.server
 names = [m.name for p in (fedhpg.agent, fedhpg.common, fedhpg.envs, fedhpg.server)
          for m in pkgutil.walk_packages(p.__path__, p.__name__ + ".")]
 for name in names:
-    if name != "fedhpg.server.cluster_ray":
+    if name != "fedhpg.server.commands.cluster.ray_engine":
         importlib.import_module(name)
 print(len(names))
 """

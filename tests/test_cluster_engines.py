@@ -36,8 +36,8 @@ import pytest
 import torch
 from procs import BIN, child_pids, sigint_ignored, wait_until
 
-from fedhpg.server import api
 from fedhpg.server.checkpoint import latest_valid_checkpoint
+from fedhpg.server.commands import api
 
 ROOT = Path(__file__).parents[1]
 REAPER = Path(__file__).parent / "reaper.py"

@@ -18,12 +18,12 @@ from hypothesis import HealthCheck, example, given, settings
 from hypothesis import strategies as st
 from hypothesis.extra import numpy as hnp
 
-from fedhpg.common import limits
-from fedhpg.common.columns import Columns, columns_of
 from fedhpg.common.privacy.contribution import RoundPrivacy
 from fedhpg.common.privacy.secagg import SEALED_BYTES
 from fedhpg.common.privacy.shamir import SHARE_BYTES
-from fedhpg.common.types import EvaluationStats, UpdateColumns, UpdateStats
+from fedhpg.common.records import limits
+from fedhpg.common.records.columns import Columns, columns_of
+from fedhpg.common.records.types import EvaluationStats, UpdateColumns, UpdateStats
 from fedhpg.common.wire import codec, protocol
 from fedhpg.common.wire.codec import ProtocolError, decode, encode
 from fedhpg.common.wire.protocol import (
@@ -439,7 +439,7 @@ _PLAIN = st.recursive(
     max_leaves=12,
 )
 _STATS = st.dictionaries(_KEYS, _PLAIN, max_size=6)
-# Within the fields' bounds (common/limits.py), extremes included.
+# Within the fields' bounds (common/records/limits.py), extremes included.
 _COUNTS = st.integers(0, limits.MAX_COUNT)
 _FINITE = st.floats(allow_nan=False, allow_infinity=False)
 _SECONDS = st.floats(0.0, limits.MAX_SECONDS)

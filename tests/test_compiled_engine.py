@@ -1,5 +1,5 @@
-"""The compiled backend (common/batched/backend.py, kernels.py, envs/compiled.py) against
-independent references: the engine's own random draws (common/randomness.py), gymnasium's
+"""The compiled backend (common/learning/batched/backend.py, kernels.py, envs/compiled.py) against
+independent references: the engine's own random draws (common/learning/randomness.py), gymnasium's
 CartPole constants and dynamics, float64 tanh, torch's policy and autograd for every
 estimator option, and the torch engine's episode statistics. Company independence through
 real processes is in test_hosts.py, for every algorithm."""
@@ -14,19 +14,19 @@ import numpy as np
 import pytest
 import torch
 
-from fedhpg.common.batched import compiled_agents, compiled_backend, kernels
-from fedhpg.common.batched.backend import CompiledBackend
-from fedhpg.common.batched.mlp import MLPShape
-from fedhpg.common.engine.backend import Draws
-from fedhpg.common.engine.engine import Engine
-from fedhpg.common.estimators import estimate_gradient, estimator_coefficients
-from fedhpg.common.group import EngineGroup, SplitGroup, make_agent_group
-from fedhpg.common.policies import set_flat_params
-from fedhpg.common.randomness import Purpose, trajectory_keys, uniforms, uniforms64
-from fedhpg.common.variants import variants_of
-from fedhpg.common.worker import build_policy, initial_theta
+from fedhpg.common.heterogeneity.variants import variants_of
+from fedhpg.common.learning.batched import compiled_agents, compiled_backend, kernels
+from fedhpg.common.learning.batched.backend import CompiledBackend
+from fedhpg.common.learning.batched.mlp import MLPShape
+from fedhpg.common.learning.engine.backend import Draws
+from fedhpg.common.learning.engine.engine import Engine
+from fedhpg.common.learning.estimators import estimate_gradient, estimator_coefficients
+from fedhpg.common.learning.group import EngineGroup, SplitGroup, make_agent_group
+from fedhpg.common.learning.policies import set_flat_params
+from fedhpg.common.learning.randomness import Purpose, trajectory_keys, uniforms, uniforms64
+from fedhpg.common.learning.worker import build_policy, initial_theta
 from fedhpg.envs.compiled import CARTPOLE_DEFAULTS, CARTPOLE_PHYSICS, cartpole_step, cartpole_table
-from fedhpg.server.api import resolve_config
+from fedhpg.server.commands.api import resolve_config
 
 POPULATION = ["env=cartpole", "agents=population", "policy.hidden=[16,16]"]
 
@@ -50,8 +50,8 @@ def _away_from_the_start(run):
 
 
 def test_the_kernels_draw_the_engines_numbers() -> None:
-    """The compiled hash is common/randomness.py's: the same uniforms, bit for bit, for keys
-    and counters of every sign."""
+    """The compiled hash is common/learning/randomness.py's: the same uniforms, bit for bit, for
+    keys and counters of every sign."""
     keys = trajectory_keys(3, torch.arange(40), 7, Purpose.TRAIN, 2, torch.arange(40) % 5)
     for counter in (-4, -1, 0, 1, 499, 2**31):
         ours24 = np.array([kernels.uniform24(int(k), counter) for k in keys.tolist()])
@@ -80,7 +80,7 @@ def test_the_compiled_keys_are_the_engines_words() -> None:
 
 
 def test_tanh32_is_within_seven_ulps_of_tanh() -> None:
-    """The float32 rational function (common/batched/kernels.py's docstring: every float32
+    """The float32 rational function (common/learning/batched/kernels.py's docstring: every float32
     in [2⁻³⁰, 10.5] measured, at most 7 ulps off, 0.28 % three or more); a fixed sample of
     them here (the function is deterministic, so are its errors: the bounds are this
     sample's figures, rounded up). A coefficient 0.1 % off fails it."""
@@ -213,7 +213,7 @@ def test_the_kernels_forward_is_torchs_policy() -> None:
 
 
 def _shape(run):
-    from fedhpg.common.batched import mlp_shape
+    from fedhpg.common.learning.batched import mlp_shape
 
     return mlp_shape(build_policy(variants_of(run, [0])[0], run))
 
@@ -348,7 +348,7 @@ GRADIENT_PROBE = """
 import hashlib
 import numpy as np
 from numba import njit
-from fedhpg.common.batched import kernels
+from fedhpg.common.learning.batched import kernels
 
 
 @njit(cache=True, error_model="numpy")

@@ -1,6 +1,6 @@
-"""The compiled estimator (common/batched/estimator.py) against its definition, the torch
-estimator (common/estimators.py through common/engine/estimate.py) on the padded batch: the
-same bits (``np.array_equal`` on float64) for every option the torch
+"""The compiled estimator (common/learning/batched/estimator.py) against its definition, the torch
+estimator (common/learning/estimators.py through common/learning/engine/estimate.py) on the padded
+batch: the same bits (``np.array_equal`` on float64) for every option the torch
 code takes, on random staircases of rows (single trajectories, empty rows between others, a
 lone row), CartPole's rewards and signed ones, per-row discounts, importance weights, and any
 order of the packed steps; the same ValueErrors where it refuses; a row's numbers the same in
@@ -15,9 +15,9 @@ import numpy as np
 import pytest
 import torch
 
-from fedhpg.common.batched.estimator import packed_coefficients
-from fedhpg.common.engine.estimate import EstimatorOptions, batch_coefficients
-from fedhpg.common.engine.trajectories import StepRows, Trajectories
+from fedhpg.common.learning.batched.estimator import packed_coefficients
+from fedhpg.common.learning.engine.estimate import EstimatorOptions, batch_coefficients
+from fedhpg.common.learning.engine.trajectories import StepRows, Trajectories
 
 WEIGHTINGS = ("none", "trajectory", "decision")
 

@@ -1,7 +1,7 @@
-"""The compiled backend's fused calls (common/batched/fused.py) against their definitions: a
-sample drawn with its keys in one call is the sample the separate key and sampling kernels
-give, and a batch's mean-gradient sums in one call are
-:func:`~fedhpg.common.engine.backend.coefficients_then_gradients` (the backend's own
+"""The compiled backend's fused calls (common/learning/batched/fused.py) against their
+definitions: a sample drawn with its keys in one call is the sample the separate key and
+sampling kernels give, and a batch's mean-gradient sums in one call are
+:func:`~fedhpg.common.learning.engine.backend.coefficients_then_gradients` (the backend's own
 coefficients and gradients, one call each, which test_compiled_engine.py and
 test_compiled_estimator.py hold to gymnasium, autograd and the torch estimator), bit for bit:
 random rows, budgets, horizons, discounts and θ, every estimator option (standardised ones
@@ -16,17 +16,17 @@ import numpy as np
 import pytest
 import torch
 
-from fedhpg.common.batched import compiled_agents, compiled_backend, kernels
-from fedhpg.common.batched.backend import CompiledBackend
-from fedhpg.common.engine.backend import Draws, coefficients_then_gradients
-from fedhpg.common.engine.engine import Engine
-from fedhpg.common.engine.estimate import EstimatorOptions
-from fedhpg.common.engine.trajectories import Trajectories
-from fedhpg.common.group import make_agent_group
-from fedhpg.common.randomness import Purpose
-from fedhpg.common.variants import variants_of
+from fedhpg.common.heterogeneity.variants import variants_of
+from fedhpg.common.learning.batched import compiled_agents, compiled_backend, kernels
+from fedhpg.common.learning.batched.backend import CompiledBackend
+from fedhpg.common.learning.engine.backend import Draws, coefficients_then_gradients
+from fedhpg.common.learning.engine.engine import Engine
+from fedhpg.common.learning.engine.estimate import EstimatorOptions
+from fedhpg.common.learning.engine.trajectories import Trajectories
+from fedhpg.common.learning.group import make_agent_group
+from fedhpg.common.learning.randomness import Purpose
 from fedhpg.envs.compiled import CARTPOLE_STEP_LIMIT
-from fedhpg.server.api import resolve_config
+from fedhpg.server.commands.api import resolve_config
 
 AGENTS = 7
 PARAMS = (4 * 16 + 16) + (16 * 16 + 16) + (16 * 2 + 2)

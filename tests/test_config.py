@@ -8,14 +8,14 @@ import sys
 
 import pytest
 
-from fedhpg.common.components import agent_profile, validate_run
-from fedhpg.common.config import RunConfig, from_dict, to_dict
-from fedhpg.common.config_error import ConfigError
-from fedhpg.common.run_keys import fixed_difference, unknown_key
-from fedhpg.common.run_roles import GROUPS
+from fedhpg.common.configuration.config import RunConfig, from_dict, to_dict
+from fedhpg.common.configuration.config_error import ConfigError
+from fedhpg.common.configuration.run_keys import fixed_difference, unknown_key
+from fedhpg.common.configuration.run_roles import GROUPS
+from fedhpg.common.configuration.settings.agents import AgentsConfig
+from fedhpg.common.configuration.settings.algo import AlgoConfig
+from fedhpg.common.learning.components import agent_profile, validate_run
 from fedhpg.common.runtime.cli import compose, compose_sweep, repeated_key
-from fedhpg.common.settings.agents import AgentsConfig
-from fedhpg.common.settings.algo import AlgoConfig
 
 
 def test_default_config_composes_and_validates() -> None:
@@ -128,9 +128,10 @@ def test_the_config_module_imports_no_heavy_library() -> None:
     """Every process imports the config first: it must not pull torch, zmq or gymnasium
     (import-linter checks the static imports; this checks what really gets loaded)."""
     probe = (
-        "import sys, fedhpg.common.config, fedhpg.common.registry, fedhpg.common.types, "
-        "fedhpg.common.vocabularies, fedhpg.common.run_keys, fedhpg.common.run_roles, "
-        "fedhpg.common.placement; "
+        "import sys, fedhpg.common.configuration.config, fedhpg.common.configuration.registry, "
+        "fedhpg.common.records.types, fedhpg.common.configuration.vocabularies, "
+        "fedhpg.common.configuration.run_keys, fedhpg.common.configuration.run_roles, "
+        "fedhpg.common.configuration.placement; "
         "print([m for m in ('torch', 'zmq', 'gymnasium', 'hydra') if m in sys.modules])"
     )
     result = subprocess.run(

@@ -20,14 +20,19 @@ import pytest
 import torch
 from procs import processes, start
 
-from fedhpg.common.config import RunConfig, validate
-from fedhpg.common.config_error import ConfigError
-from fedhpg.common.device import GRAD_PARAMS_UNIT, DeviceColumns, DeviceModel, message_bytes
-from fedhpg.common.group import make_agent_group
-from fedhpg.common.round_columns import IterationColumns
+from fedhpg.common.configuration.config import RunConfig, validate
+from fedhpg.common.configuration.config_error import ConfigError
+from fedhpg.common.heterogeneity.device import (
+    GRAD_PARAMS_UNIT,
+    DeviceColumns,
+    DeviceModel,
+    message_bytes,
+)
+from fedhpg.common.heterogeneity.variants import run_variants
+from fedhpg.common.learning.group import make_agent_group
+from fedhpg.common.learning.worker import initial_theta
+from fedhpg.common.records.round_columns import IterationColumns
 from fedhpg.common.runtime.cli import compose
-from fedhpg.common.variants import run_variants
-from fedhpg.common.worker import initial_theta
 from fedhpg.server.assembly import run_in_process
 from fedhpg.server.coordinator import RoundRecord
 

@@ -52,6 +52,8 @@ def test_fedhpg_run_on_the_cpu_never_asks_cuda(tmp_path: Path, overrides: list[s
 
 
 def test_a_distributed_api_run_never_asks_cuda(tmp_path: Path) -> None:
-    code = "from fedhpg.server import api\napi.run(overrides=['rounds=1'], distributed=True)"
+    code = (
+        "from fedhpg.server.commands import api\napi.run(overrides=['rounds=1'], distributed=True)"
+    )
     trace = _traced([sys.executable, "-c", code], tmp_path)
     assert trace == "", f"a process of the run asked CUDA:\n{trace[:4000]}"

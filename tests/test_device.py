@@ -8,8 +8,8 @@ import time
 import pytest
 import torch
 
-from fedhpg.common.device import DeviceModel
-from fedhpg.common.estimators import clip_by_norm
+from fedhpg.common.heterogeneity.device import DeviceModel
+from fedhpg.common.learning.estimators import clip_by_norm
 
 
 def test_virtual_clock_accounts_without_sleeping() -> None:

@@ -1,18 +1,18 @@
 """Whether this machine can run the engine on ``algo.device=cuda…``, asked the
 way CUDA allows: the process that forks the agents (``fedhpg-run``'s launcher,
 ``api.run(distributed=True)``) never asks CUDA itself, since CUDA refuses every process forked
-after its parent used it; a fresh interpreter asks instead (common/engine/devices.py)."""
+after its parent used it; a fresh interpreter asks instead (common/learning/engine/devices.py)."""
 
 from __future__ import annotations
 
 import pytest
 import torch
 
-from fedhpg.common.config_error import ConfigError
-from fedhpg.common.engine import devices as maths
-from fedhpg.common.engine.devices import DeviceUnavailable, check_device
-from fedhpg.server import api
-from fedhpg.server.api import resolve_config
+from fedhpg.common.configuration.config_error import ConfigError
+from fedhpg.common.learning.engine import devices as maths
+from fedhpg.common.learning.engine.devices import DeviceUnavailable, check_device
+from fedhpg.server.commands import api
+from fedhpg.server.commands.api import resolve_config
 
 
 def _run(device: str):
@@ -38,7 +38,7 @@ def test_the_launcher_checks_the_device_without_touching_cuda(
 ) -> None:
     # CUDA refuses a process forked after its parent asked it anything (torch poisons the
     # fork), and fedhpg-run forks the agents after its checks: a fresh interpreter asks
-    from fedhpg.server.launcher import check_launch
+    from fedhpg.server.commands.launcher import check_launch
 
     maths.cuda_devices_in_a_fresh_process.cache_clear()
     _cuda_forbidden(monkeypatch)

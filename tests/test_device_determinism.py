@@ -16,14 +16,14 @@ import numpy as np
 import pytest
 import torch
 
-from fedhpg.common.engine.devices import deterministic_off_cpu
-from fedhpg.common.engine.memory import packed_elements
-from fedhpg.common.engine.sampling import ACT_TILE, act_tiles_per_call
-from fedhpg.common.group import EngineGroup
-from fedhpg.common.policies import Params
+from fedhpg.common.heterogeneity.variants import variants_of
+from fedhpg.common.learning.engine.devices import deterministic_off_cpu
+from fedhpg.common.learning.engine.memory import packed_elements
+from fedhpg.common.learning.engine.sampling import ACT_TILE, act_tiles_per_call
+from fedhpg.common.learning.group import EngineGroup
+from fedhpg.common.learning.policies import Params
+from fedhpg.common.learning.worker import initial_theta
 from fedhpg.common.runtime.cli import compose
-from fedhpg.common.variants import variants_of
-from fedhpg.common.worker import initial_theta
 from fedhpg.envs.tensor_writes import put_distinct
 
 FAMILIES = {

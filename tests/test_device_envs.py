@@ -18,11 +18,11 @@ import numpy as np
 import pytest
 import torch
 
-from fedhpg.common.engine.engine import Engine
-from fedhpg.common.randomness import Purpose, trajectory_keys, uniforms64
+from fedhpg.common.heterogeneity.variants import variants_of
+from fedhpg.common.learning.engine.engine import Engine
+from fedhpg.common.learning.randomness import Purpose, trajectory_keys, uniforms64
+from fedhpg.common.learning.worker import initial_theta
 from fedhpg.common.runtime.cli import compose
-from fedhpg.common.variants import variants_of
-from fedhpg.common.worker import initial_theta
 from fedhpg.envs.device import device_copies, device_family
 from fedhpg.envs.device.cartpole import CartPoleCopies
 from fedhpg.envs.device.tensors import TensorCopies

@@ -14,10 +14,10 @@ import numpy as np
 import pytest
 import torch
 
-from fedhpg.common.group import TIMING_STATS, EngineGroup
+from fedhpg.common.heterogeneity.variants import variants_of
+from fedhpg.common.learning.group import TIMING_STATS, EngineGroup
+from fedhpg.common.learning.worker import initial_theta
 from fedhpg.common.runtime.cli import compose
-from fedhpg.common.variants import variants_of
-from fedhpg.common.worker import initial_theta
 
 FAMILIES = {
     "cartpole": ["env=cartpole", "policy.hidden=[16,16]"],

@@ -1,8 +1,8 @@
 """The pages name only what exists: every repository path, ``fedhpg.*`` name and class a page
 puts in backquotes is in the tree, so a rename or a removal that forgets the docs fails here.
 
-Paths (``common/engine/round.py``) must exist from the repository root; dotted names
-(``fedhpg.server.api.run``) must import (a module, or an attribute of one); a backquoted
+Paths (``common/learning/engine/round.py``) must exist from the repository root; dotted names
+(``fedhpg.server.commands.api.run``) must import (a module, or an attribute of one); a backquoted
 class name (``RoundResult``, ``Strategy.aggregate``) must be defined in the package, its tests
 or its benchmarks. Names that belong to other projects or to examples are listed below, each
 with where it comes from.
@@ -29,7 +29,7 @@ NOT_OURS = {
     "KillWait": "a SLURM setting",
     "fedhpg.env_families": "an entry-point group, not a module",
     "fedhpg.timeline": "a logger name",
-    "fedhpg.py": "the FedHPG algorithm's file, common/algorithms/fedhpg.py",
+    "fedhpg.py": "the FedHPG algorithm's file, common/learning/algorithms/fedhpg.py",
 }
 """Backquoted names that are not this package's modules, files or classes."""
 
@@ -100,10 +100,13 @@ def test_the_pages_name_paths_modules_and_classes() -> None:
 
 
 @pytest.mark.parametrize(
-    "text", ["`common/no_such_module.py`", "`fedhpg.common.types.AgentUpdate`", "`LocalResult`"]
+    "text",
+    ["`common/no_such_module.py`", "`fedhpg.common.records.types.AgentUpdate`", "`LocalResult`"],
 )
 def test_a_removed_name_is_caught(text: str, tmp_path: Path) -> None:
     """The check finds a name that is gone (here: ones the round result replaced)."""
     page = tmp_path / "page.md"
-    page.write_text(f"See {text}, beside `common/types.py` and `RoundResult`.\n", encoding="utf-8")
+    page.write_text(
+        f"See {text}, beside `common/records/types.py` and `RoundResult`.\n", encoding="utf-8"
+    )
     assert _missing(_names([page])) == [f"page.md: {text}"]

@@ -23,12 +23,12 @@ from engine_mdp import mdp_engine
 from tabular_mdp import HORIZON as TABULAR_HORIZON
 from tabular_mdp import TabularMDPBatchEnv, exact_gradient, seeded_policy
 
-from fedhpg.common.engine.engine import Engine
-from fedhpg.common.estimators import estimate_gradient, estimator_coefficients
-from fedhpg.common.group import TIMING_STATS, EngineGroup
+from fedhpg.common.heterogeneity.variants import variants_of
+from fedhpg.common.learning.engine.engine import Engine
+from fedhpg.common.learning.estimators import estimate_gradient, estimator_coefficients
+from fedhpg.common.learning.group import TIMING_STATS, EngineGroup
+from fedhpg.common.learning.worker import initial_theta
 from fedhpg.common.runtime.cli import compose
-from fedhpg.common.variants import variants_of
-from fedhpg.common.worker import initial_theta
 from fedhpg.envs.base import BatchStep
 
 ROWS = 3000
@@ -223,7 +223,7 @@ def test_an_agents_theta_does_not_depend_on_its_company(overrides: list[str]) ->
 def test_trajectory_keys_are_the_same_hashed_per_agent_or_per_trajectory(agents: int) -> None:
     """The keys of an agent's trajectories, its part hashed once per agent or with every
     trajectory: the same words."""
-    from fedhpg.common.randomness import Purpose, trajectory_keys
+    from fedhpg.common.learning.randomness import Purpose, trajectory_keys
 
     ids = torch.arange(agents) * 37 + 5
     owner = torch.repeat_interleave(torch.arange(agents), 3)

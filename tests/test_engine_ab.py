@@ -26,14 +26,20 @@ pytestmark = pytest.mark.skipif(not _in_git_checkout(), reason="needs the projec
 
 def test_the_folder_holds_the_commits_package() -> None:
     folder = engine_ab.checkout("HEAD")
-    for path in ("common/group.py", "common/engine/engine.py", "common/batched/kernels.py"):
+    for path in (
+        "common/learning/group.py",
+        "common/learning/engine/engine.py",
+        "common/learning/batched/kernels.py",
+    ):
         shown = subprocess.run(["git", "show", f"HEAD:{path}"], cwd=ROOT, capture_output=True,
                                text=True, check=True).stdout  # fmt: skip
         assert (folder / "fedhpg" / path).read_text() == shown
-    found = "import importlib.util as u; print(u.find_spec('fedhpg.common.limits').origin)"
+    found = "import importlib.util as u; print(u.find_spec('fedhpg.common.records.limits').origin)"
     worker = subprocess.run([sys.executable, "-c", found], env={"PYTHONPATH": str(folder)},
                             capture_output=True, text=True, cwd=folder)  # fmt: skip
-    assert worker.stdout.strip() == str(folder / "fedhpg" / "common" / "limits.py"), worker.stderr
+    assert worker.stdout.strip() == str(folder / "fedhpg" / "common" / "records" / "limits.py"), (
+        worker.stderr
+    )
 
 
 def test_an_unknown_revision_is_a_one_line_error() -> None:

@@ -10,8 +10,8 @@ import itertools
 import pytest
 import torch
 
-from fedhpg.common import estimators
-from fedhpg.common.staircase import Staircase
+from fedhpg.common.learning import estimators
+from fedhpg.common.learning.staircase import Staircase
 
 OPTIONS = [
     (estimator, baseline, to_go, normalize)

@@ -39,18 +39,18 @@ from test_estimators_exact import (
     max_standard_errors,
 )
 
-from fedhpg.common.config_error import ConfigError
-from fedhpg.common.engine.engine import Engine
-from fedhpg.common.estimators import (
+from fedhpg.common.configuration.config_error import ConfigError
+from fedhpg.common.heterogeneity.variants import variants_of
+from fedhpg.common.learning.engine.engine import Engine
+from fedhpg.common.learning.estimators import (
     estimate_gradient,
     estimator_coefficients,
     normalize_coefficients,
     per_trajectory_gradients,
 )
-from fedhpg.common.policies import TabularSoftmaxPolicy, set_flat_params
-from fedhpg.common.variants import variants_of
-from fedhpg.common.worker import build_policy, initial_theta
-from fedhpg.server.api import resolve_config
+from fedhpg.common.learning.policies import TabularSoftmaxPolicy, set_flat_params
+from fedhpg.common.learning.worker import build_policy, initial_theta
+from fedhpg.server.commands.api import resolve_config
 
 GAMMA = 0.9
 BATCH_SIZE = 8

@@ -42,12 +42,12 @@ from tabular_mdp import (
     seeded_policy,
 )
 
-from fedhpg.common.estimators import (
+from fedhpg.common.learning.estimators import (
     estimate_gradient,
     estimator_coefficients,
     per_trajectory_gradients,
 )
-from fedhpg.common.policies import TabularSoftmaxPolicy
+from fedhpg.common.learning.policies import TabularSoftmaxPolicy
 
 GAMMA = 0.9
 GAMMAS = (0.9, 1.0)

@@ -8,11 +8,11 @@ from pathlib import Path
 import pytest
 from procs import BIN, processes, start
 
-from fedhpg.common.config import to_dict
-from fedhpg.common.config_error import ConfigError
+from fedhpg.common.configuration.config import to_dict
+from fedhpg.common.configuration.config_error import ConfigError
 from fedhpg.common.runtime.cli import compose
-from fedhpg.server.api import resolve_config
-from fedhpg.server.plot import main as plot_main
+from fedhpg.server.commands.api import resolve_config
+from fedhpg.server.commands.plot import main as plot_main
 
 CONF = Path(__file__).parents[1] / "conf"
 PRESETS = sorted(p.stem for p in (CONF / "experiment").glob("*.yaml"))

@@ -15,14 +15,14 @@ import pytest
 import torch
 from procs import processes, start
 
-from fedhpg.common.config_error import ConfigError
-from fedhpg.common.group import EngineGroup, make_agent_group
+from fedhpg.common.configuration.config_error import ConfigError
+from fedhpg.common.heterogeneity.variants import run_variants
+from fedhpg.common.learning.group import EngineGroup, make_agent_group
 from fedhpg.common.runtime.cli import compose
-from fedhpg.common.variants import run_variants
 from fedhpg.envs.registry import make_variants
-from fedhpg.server import api
 from fedhpg.server.assembly import run_in_process
 from fedhpg.server.checkpoint import latest_valid_checkpoint
+from fedhpg.server.commands import api
 
 TESTS = Path(__file__).parent
 OVERRIDES = [
@@ -119,7 +119,7 @@ def test_a_strategy_declares_the_updates_it_takes_and_whether_rounds_may_be_buff
     ``Algorithm.strategy``), and one that is not ``buffered`` refuses buffered rounds."""
     from fedhpg_toy_plugin import ToySign
 
-    from fedhpg.common.algorithms import ALGORITHMS
+    from fedhpg.common.learning.algorithms import ALGORITHMS
     from fedhpg.server.assembly import check_run
     from fedhpg.server.strategies import STRATEGIES, CoordinateRule, NoParams
 
@@ -245,7 +245,7 @@ def test_a_policy_that_is_no_policy_subclass_is_refused() -> None:
     [("gridworld", "tabular"), ("cartpole", "mlp_categorical"), ("pendulum", "gaussian_mlp")],
 )
 def test_built_in_policies_by_name_are_the_auto_choice_bit_for_bit(env: str, name: str) -> None:
-    from fedhpg.common.worker import initial_theta
+    from fedhpg.common.learning.worker import initial_theta
 
     run = compose([f"env={env}", "agents=homogeneous4"])
     variant = run_variants(run)[0]

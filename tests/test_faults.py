@@ -13,9 +13,9 @@ import torch
 import zmq
 from procs import BIN, free_port, processes, start, wait_until
 
+from fedhpg.common.heterogeneity.variants import run_variants
+from fedhpg.common.records.types import UpdateColumns, UpdateStats
 from fedhpg.common.runtime.cli import compose
-from fedhpg.common.types import UpdateColumns, UpdateStats
-from fedhpg.common.variants import run_variants
 from fedhpg.common.wire.codec import decode, encode
 from fedhpg.common.wire.protocol import PROTOCOL_VERSION, Error, Hello, Update
 from fedhpg.server.assembly import run_in_process

@@ -11,18 +11,18 @@ from itertools import pairwise
 import pytest
 import torch
 
-from fedhpg.common.algorithms.fedhpgvr import (
+from fedhpg.common.heterogeneity.variants import variants_of
+from fedhpg.common.learning.algorithms.fedhpgvr import (
     FedHPGVRParams,
     importance_weights,
     semi_stochastic_gradient,
 )
-from fedhpg.common.engine.engine import Engine
-from fedhpg.common.engine.round import Round
-from fedhpg.common.engine.trajectories import Trajectories
-from fedhpg.common.importance import self_normalise
+from fedhpg.common.learning.engine.engine import Engine
+from fedhpg.common.learning.engine.round import Round
+from fedhpg.common.learning.engine.trajectories import Trajectories
+from fedhpg.common.learning.importance import self_normalise
+from fedhpg.common.learning.worker import initial_theta
 from fedhpg.common.runtime.cli import compose
-from fedhpg.common.variants import variants_of
-from fedhpg.common.worker import initial_theta
 
 
 def _cartpole(estimator: str = "gpomdp") -> tuple[Engine, Round, torch.Tensor, Trajectories]:

@@ -22,12 +22,12 @@ from exact_mdp import (
     trajectory_log_probability,
 )
 
-from fedhpg.common.algorithms.fedhpgvr import (
+from fedhpg.common.learning.algorithms.fedhpgvr import (
     FedHPGVRParams,
     importance_weights,
     semi_stochastic_gradient,
 )
-from fedhpg.common.engine.engine import Engine
+from fedhpg.common.learning.engine.engine import Engine
 
 GAMMA = 0.9
 DRAWS = 3000

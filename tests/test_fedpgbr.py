@@ -21,11 +21,11 @@ from exact_mdp import (
     max_standard_errors,
 )
 
-from fedhpg.common.algorithms.fedhpgvr import FedHPGVRParams, semi_stochastic_gradient
-from fedhpg.common.algorithms.fedpgbr import FedPGBRParams, round_schedule
-from fedhpg.common.byzantine_filter import byzantine_filter, neighbour_distance
-from fedhpg.common.config_error import ConfigError
-from fedhpg.server import api
+from fedhpg.common.configuration.config_error import ConfigError
+from fedhpg.common.learning.algorithms.fedhpgvr import FedHPGVRParams, semi_stochastic_gradient
+from fedhpg.common.learning.algorithms.fedpgbr import FedPGBRParams, round_schedule
+from fedhpg.common.learning.byzantine_filter import byzantine_filter, neighbour_distance
+from fedhpg.server.commands import api
 
 K, DIM, BATCH = 10, 400, 16
 SIGMA = 3.0  # per-trajectory deviation: each coordinate's std is SIGMA / √DIM
@@ -42,7 +42,7 @@ def _honest(count: int, seed: int, signal: float = 1.0) -> torch.Tensor:
 
 
 def _attacked(kind: str, seed: int, signal: float = 2.0) -> torch.Tensor:
-    """3 Byzantine rows (0-2) as common/attacks.py makes them, then 7 honest ones."""
+    """3 Byzantine rows (0-2) as common/learning/attacks.py makes them, then 7 honest ones."""
     honest = _honest(K, seed, signal)
     rows = honest.clone()
     rng = np.random.default_rng(seed)

@@ -27,10 +27,10 @@ import torch
 import zmq
 from procs import free_port, processes, start
 
+from fedhpg.common.configuration.settings.server import ServerConfig
+from fedhpg.common.heterogeneity.variants import range_digest
+from fedhpg.common.records.types import UpdateColumns, UpdateStats
 from fedhpg.common.runtime.cli import compose
-from fedhpg.common.settings.server import ServerConfig
-from fedhpg.common.types import UpdateColumns, UpdateStats
-from fedhpg.common.variants import range_digest
 from fedhpg.common.wire.codec import MAX_HEADER_BYTES, decode, encode
 from fedhpg.common.wire.protocol import Heartbeat, Hello, Message, Train, Update, Welcome
 from fedhpg.common.wire.transport import (
@@ -81,8 +81,8 @@ def _host_federation(tmp_path: Path, keys: list[str], k: int) -> tuple[dict, lis
 
 
 def _num_params(keys: list[str]) -> int:
-    from fedhpg.common.variants import variant_of
-    from fedhpg.common.worker import initial_theta
+    from fedhpg.common.heterogeneity.variants import variant_of
+    from fedhpg.common.learning.worker import initial_theta
 
     run = compose(keys)
     return int(initial_theta(variant_of(run, 0), run).numel())

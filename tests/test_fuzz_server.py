@@ -20,9 +20,9 @@ from hypothesis import strategies as st
 from peers import HonestAgent, raw_frames
 from procs import free_port, processes, start, wait_until
 
+from fedhpg.common.heterogeneity.variants import run_variants
+from fedhpg.common.records.types import EvaluationStats, UpdateColumns, UpdateStats
 from fedhpg.common.runtime.cli import compose
-from fedhpg.common.types import EvaluationStats, UpdateColumns, UpdateStats
-from fedhpg.common.variants import run_variants
 from fedhpg.common.wire.protocol import (
     Error,
     Evaluate,

@@ -17,9 +17,9 @@ import pytest
 from gymnasium.utils.env_checker import check_env
 from procs import BIN
 
-from fedhpg.common.config_error import ConfigError
+from fedhpg.common.configuration.config_error import ConfigError
+from fedhpg.common.heterogeneity.variants import run_variants, variant_of
 from fedhpg.common.runtime.cli import compose
-from fedhpg.common.variants import run_variants, variant_of
 from fedhpg.envs.gym_variant import GymVariant
 
 MOUNTAIN_CAR = [

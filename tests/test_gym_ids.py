@@ -15,8 +15,8 @@ import numpy as np
 import pytest
 from gymnasium.utils.env_checker import check_env
 
+from fedhpg.common.heterogeneity.variants import run_variants
 from fedhpg.common.runtime.cli import compose
-from fedhpg.common.variants import run_variants
 from fedhpg.envs.families import GYM_FAMILIES
 from fedhpg.envs.gym_ids import GYM_IDS
 

@@ -12,7 +12,7 @@ import time
 import zmq
 
 from fedhpg.agent.host import AgentHost
-from fedhpg.common.run_roles import dictated_settings
+from fedhpg.common.configuration.run_roles import dictated_settings
 from fedhpg.common.runtime.cli import compose
 from fedhpg.common.wire.codec import decode
 from fedhpg.common.wire.protocol import Error, Heartbeat, Welcome

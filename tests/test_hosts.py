@@ -22,10 +22,16 @@ import zmq
 from peers import raw_frames
 from procs import child_pids, free_port, processes, start, wait_until
 
-from fedhpg.common.group import make_agent_group
+from fedhpg.common.heterogeneity.variants import (
+    range_digest,
+    run_variants,
+    variant_digest,
+    variant_of,
+)
+from fedhpg.common.learning.group import make_agent_group
+from fedhpg.common.learning.worker import initial_theta
+from fedhpg.common.records.types import UpdateColumns
 from fedhpg.common.runtime.cli import compose
-from fedhpg.common.types import UpdateColumns
-from fedhpg.common.variants import range_digest, run_variants, variant_digest, variant_of
 from fedhpg.common.wire.codec import decode, encode
 from fedhpg.common.wire.protocol import (
     MAX_BATCH_ANSWERS,
@@ -39,7 +45,6 @@ from fedhpg.common.wire.protocol import (
     Update,
     Welcome,
 )
-from fedhpg.common.worker import initial_theta
 from fedhpg.server.assembly import run_in_process
 from fedhpg.server.checkpoint import latest_valid_checkpoint
 
@@ -98,8 +103,8 @@ def test_theta_does_not_depend_on_the_placement_of_the_agents(
     tmp_path: Path, algorithm: str
 ) -> None:
     """Nor does any agent's emulated time on the counted clock: a host emulates its agents'
-    devices column-wise (common/device.py's DeviceColumns), a lone agent and the in-process
-    pool one DeviceModel at a time."""
+    devices column-wise (common/heterogeneity/device.py's DeviceColumns), a lone agent and the
+    in-process pool one DeviceModel at a time."""
     keys_of_run = ALGORITHM_RUNS[algorithm]
     run = compose(keys_of_run)
     records: list = []
@@ -326,9 +331,9 @@ def test_a_host_claiming_foreign_agents_or_a_huge_batch_is_refused_and_the_run_g
 
 
 def test_placement_is_neither_fixed_on_resume_nor_an_experiment_difference() -> None:
-    from fedhpg.common.config import to_dict
-    from fedhpg.common.run_keys import fixed_difference
-    from fedhpg.server.plot import _compared
+    from fedhpg.common.configuration.config import to_dict
+    from fedhpg.common.configuration.run_keys import fixed_difference
+    from fedhpg.server.commands.plot import _compared
 
     run = to_dict(compose(["agents.per_host=1"]))
     assert fixed_difference(run, to_dict(compose(["agents.per_host=500"]))) is None

@@ -33,24 +33,26 @@ OPTIONAL_DEPENDENCIES = {
     "matplotlib": "fedhpg-plot's figures alone: about half a second to import",
     "hydra": "commands that read a command line alone: the library and the agents never load it",
     "omegaconf": "commands that read a command line alone (Hydra's configs)",
-    "fedhpg.common.batched.backend": "numba's import and its kernels: runs on the compiled "
-    "backend alone",
+    "fedhpg.common.learning.batched.backend": "numba's import and its kernels: runs on the "
+    "compiled backend alone",
 }
 """What a module may import inside a function (a module or a package and what is under it),
 and why its import waits for the call."""
 
 STARTS_WITHOUT_TORCH = {
-    "fedhpg.server.cluster": "fedhpg-cluster answers --help and checks keys before torch loads",
-    "fedhpg.server.plot": "fedhpg-plot reads metrics files; torch only to rebuild a variant",
-    "fedhpg.server.record": "fedhpg-record answers a usage error before torch loads",
-    "fedhpg.common.engine.devices": "the launcher checks a device before it forks: no torch, "
-    "no CUDA in the parent",
+    "fedhpg.server.commands.cluster.main": "fedhpg-cluster answers --help and checks keys before "
+    "torch loads",
+    "fedhpg.server.commands.plot": "fedhpg-plot reads metrics files; torch only to rebuild a "
+    "variant",
+    "fedhpg.server.commands.record": "fedhpg-record answers a usage error before torch loads",
+    "fedhpg.common.learning.engine.devices": "the launcher checks a device before it forks: no "
+    "torch, no CUDA in the parent",
     "fedhpg.common.runtime.cli": "every entry point answers --help, --version and a mistyped "
     "key before torch, zmq or Hydra loads",
     "fedhpg.common.runtime.composition": "composing a config loads Hydra, checking it the "
     "registries' plugins: only when a command composes",
-    "fedhpg.server.launcher": "fedhpg-run checks the whole config and the run directory before "
-    "it loads torch, compiles the kernels or forks the agents",
+    "fedhpg.server.commands.launcher": "fedhpg-run checks the whole config and the run directory "
+    "before it loads torch, compiles the kernels or forks the agents",
 }
 """Modules that import without torch (checked below): they may defer torch and the modules
 that bring it."""
@@ -128,7 +130,7 @@ def test_cycles_finds_a_cycle_and_only_the_cycle() -> None:
 @pytest.mark.parametrize("type_checking", [False, True], ids=["run-time", "type-checking"])
 def test_no_module_imports_itself_back(layout: Path, type_checking: bool) -> None:
     edges = _edges(layout, type_checking=type_checking)
-    assert "fedhpg.common.engine.engine" in edges  # the whole package was read
+    assert "fedhpg.common.learning.engine.engine" in edges  # the whole package was read
     assert cycles(edges) == []
 
 

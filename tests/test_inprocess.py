@@ -7,15 +7,15 @@ import platform
 import pytest
 import torch
 
-from fedhpg.common.config import RunConfig
+from fedhpg.common.configuration.config import RunConfig
+from fedhpg.common.configuration.settings.agents import AgentsConfig
+from fedhpg.common.configuration.settings.algo import AlgoConfig
+from fedhpg.common.configuration.settings.env import EnvConfig
+from fedhpg.common.configuration.settings.policy import EvalConfig
+from fedhpg.common.configuration.settings.strategy import StrategyConfig
+from fedhpg.common.heterogeneity.variants import run_variants
+from fedhpg.common.learning.worker import initial_theta
 from fedhpg.common.runtime.memory import pin_malloc_mmap_threshold
-from fedhpg.common.settings.agents import AgentsConfig
-from fedhpg.common.settings.algo import AlgoConfig
-from fedhpg.common.settings.env import EnvConfig
-from fedhpg.common.settings.policy import EvalConfig
-from fedhpg.common.settings.strategy import StrategyConfig
-from fedhpg.common.variants import run_variants
-from fedhpg.common.worker import initial_theta
 from fedhpg.server.assembly import run_in_process
 from fedhpg.server.coordinator import RoundRecord
 

@@ -179,7 +179,7 @@ def test_the_kernels_are_compiled_before_the_server_starts_its_clock(
 ) -> None:
     """The server's clock for registrations starts when it listens: numba's compilation (tens
     of seconds on a cold cache) happens before the server is forked, not while it waits."""
-    from fedhpg.server import launcher
+    from fedhpg.server.commands import launcher
 
     events: list[str] = []
 
@@ -206,7 +206,7 @@ def test_a_failed_start_removes_the_run_directory_hydra_made_for_it(
     writes anything there takes it away, unless it was there before the command."""
     import sys
 
-    from fedhpg.server import launcher
+    from fedhpg.server.commands import launcher
 
     out_dir = tmp_path / "run"
     if existed:
@@ -239,7 +239,7 @@ def test_after_a_completed_run_the_agents_get_a_grace_then_are_stopped(
     """The server ended the run well: an agent process still running after FINISH_GRACE_S
     (a host that missed the shutdown while reconnecting) is stopped with a warning, and the
     launch succeeds; one that ended with an error fails it."""
-    from fedhpg.server import launcher
+    from fedhpg.server.commands import launcher
 
     monkeypatch.setattr(launcher, "FINISH_GRACE_S", 1.0)
     supervisor = launcher.Supervisor()

@@ -21,9 +21,14 @@ import gymnasium as gym
 import numpy as np
 import pytest
 
-from fedhpg.common.config import RunConfig
+from fedhpg.common.configuration.config import RunConfig
+from fedhpg.common.heterogeneity.variants import (
+    ITERATION_CHUNK,
+    run_variants,
+    variant_of,
+    variants_of,
+)
 from fedhpg.common.runtime.cli import compose
-from fedhpg.common.variants import ITERATION_CHUNK, run_variants, variant_of, variants_of
 from fedhpg.envs import registry
 from fedhpg.envs.base import BatchEnv, EnvVariant
 from fedhpg.envs.families import GYM_FAMILIES, _rows

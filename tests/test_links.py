@@ -11,8 +11,8 @@ from collections.abc import Iterator
 import pytest
 import zmq
 
-from fedhpg.common.settings.server import ServerConfig
-from fedhpg.common.variants import range_digest
+from fedhpg.common.configuration.settings.server import ServerConfig
+from fedhpg.common.heterogeneity.variants import range_digest
 from fedhpg.common.wire.codec import decode, encode
 from fedhpg.common.wire.protocol import Error, Heartbeat, Hello, Message, Welcome
 from fedhpg.server.pools.zmq_pool import ZmqAgentPool

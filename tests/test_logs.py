@@ -17,8 +17,8 @@ import pytest
 from procs import BIN
 
 from fedhpg.common.runtime.cli import compose
-from fedhpg.server import api
 from fedhpg.server.checkpoint import checkpoint_path
+from fedhpg.server.commands import api
 from fedhpg.server.run_dir import new_run_dir
 
 RUN = ["rounds=4", "seed=3", "eval.every=2", "eval.episodes=4", "agents=homogeneous4"]

@@ -1,5 +1,5 @@
-"""The engine's memory plan (common/engine/memory.py): what a round holds, where it peaks, and
-the chunks of agents that keep it under a budget.
+"""The engine's memory plan (common/learning/engine/memory.py): what a round holds, where it peaks,
+and the chunks of agents that keep it under a budget.
 
 - The issue's case, K = 65,536 agents of B = 16 CartPole trajectories of H = 500 steps with a
   16-16 MLP, fits a 24 GiB card in chunks whose planned peak stays under 80% of it.
@@ -22,12 +22,12 @@ import textwrap
 import numpy as np
 import torch
 
-from fedhpg.common.engine.memory import GIB, StepBytes, plan_round
-from fedhpg.common.engine.torch_backend import TorchBackend
-from fedhpg.common.group import TIMING_STATS, EngineGroup
+from fedhpg.common.heterogeneity.variants import variants_of
+from fedhpg.common.learning.engine.memory import GIB, StepBytes, plan_round
+from fedhpg.common.learning.engine.torch_backend import TorchBackend
+from fedhpg.common.learning.group import TIMING_STATS, EngineGroup
+from fedhpg.common.learning.worker import initial_theta
 from fedhpg.common.runtime.cli import compose
-from fedhpg.common.variants import variants_of
-from fedhpg.common.worker import initial_theta
 
 CUDA = torch.device("cuda")  # a device name only: nothing here asks CUDA anything
 
@@ -93,11 +93,11 @@ def test_chunks_of_agents_change_no_bit_of_theta_or_statistics() -> None:
 
 MEASURE = """
 import json, sys, torch
-from fedhpg.common.group import EngineGroup
+from fedhpg.common.learning.group import EngineGroup
 from fedhpg.common.runtime.cli import compose
-from fedhpg.common.variants import variants_of
+from fedhpg.common.heterogeneity.variants import variants_of
 from fedhpg.common.runtime.memory import pin_malloc_mmap_threshold
-from fedhpg.common.worker import initial_theta
+from fedhpg.common.learning.worker import initial_theta
 torch.set_num_threads(1)
 pin_malloc_mmap_threshold()  # large blocks mapped and returned: resident memory is what lives
 agents = list(range(400))

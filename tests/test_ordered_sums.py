@@ -2,9 +2,9 @@
 
 A GPU's ``index_add_`` adds float64 with atomics in whatever order its threads arrive, so the
 estimator's baselines, normalisations and per-row statistics would change from run to run
-there, and θ with them. :func:`fedhpg.common.staircase.ordered_sums` adds each group's entries
-in index order without atomics off the CPU. Here that formulation runs on the CPU: bit for bit
-``index_add_``'s sums, alone and inside every estimator option; a sum in another order
+there, and θ with them. :func:`fedhpg.common.learning.staircase.ordered_sums` adds each group's
+entries in index order without atomics off the CPU. Here that formulation runs on the CPU: bit for
+bit ``index_add_``'s sums, alone and inside every estimator option; a sum in another order
 (reversed) does not match, so the check can tell. On a machine with CUDA the same holds on the
 device (skipped elsewhere).
 """
@@ -14,13 +14,13 @@ from __future__ import annotations
 import pytest
 import torch
 
-from fedhpg.common import estimators, importance, staircase
-from fedhpg.common.engine import torch_backend, trajectories
-from fedhpg.common.group import EngineGroup
+from fedhpg.common.heterogeneity.variants import variants_of
+from fedhpg.common.learning import estimators, importance, staircase
+from fedhpg.common.learning.engine import torch_backend, trajectories
+from fedhpg.common.learning.group import EngineGroup
+from fedhpg.common.learning.staircase import Staircase, _summed_by_columns, ordered_sums
+from fedhpg.common.learning.worker import initial_theta
 from fedhpg.common.runtime.cli import compose
-from fedhpg.common.staircase import Staircase, _summed_by_columns, ordered_sums
-from fedhpg.common.variants import variants_of
-from fedhpg.common.worker import initial_theta
 
 
 def _values(count: int, *shape: int, seed: int = 0) -> torch.Tensor:

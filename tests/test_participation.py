@@ -21,12 +21,12 @@ import pytest
 import torch
 from procs import BIN, QUIET, processes, start
 
-from fedhpg.common.config_error import ConfigError
+from fedhpg.common.configuration.config_error import ConfigError
+from fedhpg.common.configuration.settings.strategy import ParticipationConfig
 from fedhpg.common.runtime.cli import compose
-from fedhpg.common.settings.strategy import ParticipationConfig
-from fedhpg.server import api
 from fedhpg.server.assembly import run_in_process
 from fedhpg.server.checkpoint import latest_valid_checkpoint
+from fedhpg.server.commands import api
 from fedhpg.server.participation import Participation
 from fedhpg.server.strategies import validate_strategy
 

@@ -1,4 +1,4 @@
-"""Theorem 1 as a planner (common/planning.py, fedhpg-plan).
+"""Theorem 1 as a planner (common/learning/planning.py, fedhpg-plan).
 
 - The search is exact where it says it is: on small boxes its bound equals the minimum over
   every integer (B_k, τ_k) found by brute force through the same eq. 7.
@@ -18,8 +18,8 @@ import sys
 
 import pytest
 
-from fedhpg.common.device import device_for
-from fedhpg.common.planning import (
+from fedhpg.common.heterogeneity.device import device_for
+from fedhpg.common.learning.planning import (
     Constants,
     Limits,
     plan_budgets,
@@ -27,8 +27,8 @@ from fedhpg.common.planning import (
     theorem2_shape,
 )
 from fedhpg.common.runtime.cli import compose
-from fedhpg.server import api
-from fedhpg.server.plan import (
+from fedhpg.server.commands import api
+from fedhpg.server.commands.plan import (
     horizon_seconds_per_trajectory,
     main,
     observed_seconds_per_trajectory,

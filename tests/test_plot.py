@@ -16,10 +16,9 @@ import numpy as np
 import pytest
 from procs import BIN
 
-from fedhpg.common.config import to_dict
+from fedhpg.common.configuration.config import to_dict
 from fedhpg.common.runtime.cli import compose
-from fedhpg.server.metrics import MetricsWriter
-from fedhpg.server.plot import (
+from fedhpg.server.commands.plot import (
     Run,
     draw,
     draw_band,
@@ -30,7 +29,13 @@ from fedhpg.server.plot import (
     relabel,
     series,
 )
-from fedhpg.server.plot_stats import aggregate, band_over_seeds, iqm, stratified_bootstrap_ci
+from fedhpg.server.commands.plot_stats import (
+    aggregate,
+    band_over_seeds,
+    iqm,
+    stratified_bootstrap_ci,
+)
+from fedhpg.server.metrics import MetricsWriter
 
 TINY = ["experiment=fig1_batch_size", "eval.episodes=4", "eval.every=1"]
 

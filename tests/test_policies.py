@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 import torch
 
-from fedhpg.common.policies import (
+from fedhpg.common.learning.policies import (
     GaussianMLPPolicy,
     MLPCategoricalPolicy,
     PolicyConfig,

@@ -15,11 +15,11 @@ import pytest
 import torch
 from procs import processes, start
 
-from fedhpg.common.components import agent_profile, validate_run
-from fedhpg.common.config import RunConfig
-from fedhpg.common.config_error import ConfigError
-from fedhpg.common.device import device_for
-from fedhpg.common.population import population_value
+from fedhpg.common.configuration.config import RunConfig
+from fedhpg.common.configuration.config_error import ConfigError
+from fedhpg.common.heterogeneity.device import device_for
+from fedhpg.common.heterogeneity.population import population_value
+from fedhpg.common.learning.components import agent_profile, validate_run
 from fedhpg.common.runtime.cli import compose
 from fedhpg.server.assembly import run_in_process
 from fedhpg.server.checkpoint import latest_valid_checkpoint

@@ -48,10 +48,10 @@ import numpy as np
 import pytest
 import torch
 
-from fedhpg.common.config import RunConfig
+from fedhpg.common.configuration.config import RunConfig
+from fedhpg.common.heterogeneity.variants import run_variants
+from fedhpg.common.learning.worker import initial_theta
 from fedhpg.common.runtime.cli import compose
-from fedhpg.common.variants import run_variants
-from fedhpg.common.worker import initial_theta
 from fedhpg.server.assembly import run_in_process
 from fedhpg.server.coordinator import RoundRecord
 from fedhpg.server.pools import FederationError

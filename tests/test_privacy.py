@@ -13,10 +13,10 @@ from pathlib import Path
 import pytest
 import torch
 
-from fedhpg.common.config_error import ConfigError
+from fedhpg.common.configuration.config_error import ConfigError
 from fedhpg.common.privacy import accounting
-from fedhpg.server import api
 from fedhpg.server.checkpoint import latest_valid_checkpoint
+from fedhpg.server.commands import api
 from fedhpg.server.metrics import read_metrics
 from fedhpg.server.privacy import BudgetExhausted, sampling_of
 
@@ -220,8 +220,8 @@ class Missing(importlib.abc.MetaPathFinder):
         if name.split(".")[0] in ("cryptography", "dp_accounting"):
             raise ImportError(f"No module named {name!r}")
 sys.meta_path.insert(0, Missing())
-import fedhpg.agent.main, fedhpg.server.launcher, fedhpg.server.main
-from fedhpg.common.config import ConfigError
+import fedhpg.agent.main, fedhpg.server.commands.launcher, fedhpg.server.commands.server
+from fedhpg.common.configuration.config import ConfigError
 from fedhpg.common.runtime.cli import compose
 from fedhpg.server.strategies import validate_strategy
 from fedhpg.server.assembly import _check_privacy

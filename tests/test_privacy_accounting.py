@@ -21,12 +21,12 @@ import torch
 from scipy.optimize import brentq
 from scipy.stats import kstest, norm
 
-from fedhpg.common.config_error import ConfigError
+from fedhpg.common.configuration.config_error import ConfigError
+from fedhpg.common.configuration.settings.strategy import ParticipationConfig
 from fedhpg.common.privacy import accounting, dp
 from fedhpg.common.privacy.contribution import EXTRA, RoundPrivacy, contribution
-from fedhpg.common.settings.strategy import ParticipationConfig
-from fedhpg.server import api
 from fedhpg.server.checkpoint import latest_valid_checkpoint
+from fedhpg.server.commands import api
 from fedhpg.server.participation import Participation
 from fedhpg.server.pools.inprocess import InProcessPool
 from fedhpg.server.privacy import PrivateRounds, sampling_of

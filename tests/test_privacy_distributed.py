@@ -17,8 +17,8 @@ import zmq
 from procs import BIN, free_port, processes, start
 
 from fedhpg.agent.work import AgentWork
-from fedhpg.common.group import make_agent_group
-from fedhpg.common.run_roles import adopt_settings
+from fedhpg.common.configuration.run_roles import adopt_settings
+from fedhpg.common.learning.group import make_agent_group
 from fedhpg.common.runtime.cli import compose
 from fedhpg.common.wire.codec import decode, encode
 from fedhpg.common.wire.protocol import (
@@ -34,8 +34,8 @@ from fedhpg.common.wire.protocol import (
     UnmaskRequest,
     Welcome,
 )
-from fedhpg.server import api
 from fedhpg.server.checkpoint import latest_valid_checkpoint
+from fedhpg.server.commands import api
 from fedhpg.server.metrics import read_metrics
 
 TIMEOUT_S = 120

@@ -10,8 +10,8 @@ from pathlib import Path
 
 import pytest
 
-from fedhpg.server import api
-from fedhpg.server.record import main
+from fedhpg.server.commands import api
+from fedhpg.server.commands.record import main
 from tests.procs import BIN, QUIET
 
 pytest.importorskip("moviepy")

@@ -11,13 +11,10 @@ from typing import Any
 import pytest
 import torch
 
-from fedhpg.common import estimators
-from fedhpg.common.attacks import corrupt_rows
-from fedhpg.common.config import RunConfig, validate
-from fedhpg.common.config_error import ConfigError
-from fedhpg.common.settings.attack import AttackConfig
-from fedhpg.common.staircase import Staircase
-from fedhpg.common.vocabularies import (
+from fedhpg.common.configuration.config import RunConfig, validate
+from fedhpg.common.configuration.config_error import ConfigError
+from fedhpg.common.configuration.settings.attack import AttackConfig
+from fedhpg.common.configuration.vocabularies import (
     ATTACKS,
     BASELINES,
     CLOCKS,
@@ -30,7 +27,10 @@ from fedhpg.common.vocabularies import (
     RoundPolicy,
     UpdateToCorrupt,
 )
-from fedhpg.server import api
+from fedhpg.common.learning import estimators
+from fedhpg.common.learning.attacks import corrupt_rows
+from fedhpg.common.learning.staircase import Staircase
+from fedhpg.server.commands import api
 from fedhpg.server.coordinator import RoundRecord
 
 

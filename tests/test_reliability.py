@@ -18,8 +18,8 @@ import torch
 from peers import ScriptedAgent, hello_for
 from procs import free_port, processes, start, start_federation, wait_until
 
+from fedhpg.common.records.types import UpdateColumns, UpdateStats
 from fedhpg.common.runtime.cli import compose
-from fedhpg.common.types import UpdateColumns, UpdateStats
 from fedhpg.common.wire.protocol import (
     Train,
     Update,

@@ -18,10 +18,10 @@ from pathlib import Path
 import pytest
 import torch
 
-from fedhpg.common.bounds import theorem1_terms
-from fedhpg.common.planning import Constants, Limits, plan_for_rounds
-from fedhpg.server import api
-from fedhpg.server.plan import configured_budgets, observed_seconds_per_trajectory
+from fedhpg.common.learning.bounds import theorem1_terms
+from fedhpg.common.learning.planning import Constants, Limits, plan_for_rounds
+from fedhpg.server.commands import api
+from fedhpg.server.commands.plan import configured_budgets, observed_seconds_per_trajectory
 
 COUNTED = ["agents.clock=counted", "agents.virtual_clock=true"]
 PLAN = ["agents.plan=theorem1", "algo.bound_estimates=true"]
@@ -77,7 +77,7 @@ def test_a_device_slowing_down_gets_a_smaller_budget_at_the_next_plan() -> None:
 
 
 # CartPole population (B_k, τ_k, speeds per agent): the compiled backend trains the honest
-# agents, agent 2 attacks and is trained by the engine beside it (common/group.py's
+# agents, agent 2 attacks and is trained by the engine beside it (common/learning/group.py's
 # SplitGroup). A plan needs one agent's L̂ > 0, and each agent's secant estimate is positive
 # about half the time early on: with 8 agents a round without a plan is a 1-in-200 event.
 WIRE_RUN = [

@@ -11,11 +11,11 @@ from pathlib import Path
 
 import pytest
 
-from fedhpg.common.placement import agents_per_host
+from fedhpg.common.configuration.placement import agents_per_host
+from fedhpg.common.records.types import EvaluationStats
 from fedhpg.common.runtime.cli import compose
-from fedhpg.common.types import EvaluationStats
-from fedhpg.server import api
-from fedhpg.server.launcher import agent_processes
+from fedhpg.server.commands import api
+from fedhpg.server.commands.launcher import agent_processes
 from fedhpg.server.serving import final_report
 
 TINY = ["rounds=2", "eval.every=2", "eval.episodes=2", "agents=homogeneous4"]

@@ -29,8 +29,8 @@ from peers import HonestAgent
 from procs import BIN, QUIET, free_port, processes, start, wait_until
 from wire_fuzz import frames_of, generate
 
+from fedhpg.common.heterogeneity.variants import run_variants
 from fedhpg.common.runtime.cli import compose
-from fedhpg.common.variants import run_variants
 from fedhpg.common.wire.codec import encode
 from fedhpg.common.wire.protocol import Evaluate, Heartbeat, Train
 from fedhpg.server.assembly import run_in_process

@@ -106,8 +106,8 @@ def test_resume_auto_starts_a_fresh_directory_and_resumes_one_that_holds_a_run(
     """resume=auto (what a supervisor's restart needs: one command for both cases): a fresh
     start where server.out_dir holds no run, resume=true where it does, with the same checks
     (a changed fixed key is refused); continuing in Python gives the uninterrupted θ̃."""
-    from fedhpg.common.config_error import ConfigError
-    from fedhpg.server import api
+    from fedhpg.common.configuration.config_error import ConfigError
+    from fedhpg.server.commands import api
 
     keys = ["seed=4", "agents=homogeneous4", "agents.budget.batch_size=[4]", "eval.every=10"]
     out_dir = tmp_path / "run"

@@ -12,8 +12,8 @@ from pathlib import Path
 import pytest
 
 from fedhpg.common.runtime.cli import compose
-from fedhpg.server import api, launcher
-from fedhpg.server.main import _main as serve_main
+from fedhpg.server.commands import api, launcher
+from fedhpg.server.commands.server import _main as serve_main
 
 SHORT = ["rounds=2", "eval.every=1", "eval.episodes=2", "agents.virtual_clock=true"]
 REACHED = "eval.stop_at=-1000"  # any evaluation reaches it: the run stops at round 1

@@ -9,9 +9,9 @@ import pytest
 import torch
 from engine_mdp import mdp_engine
 
-from fedhpg.common.engine.engine import Engine
-from fedhpg.common.engine.sampling import ACT_TILE, END_CHECK
-from fedhpg.common.randomness import Purpose
+from fedhpg.common.learning.engine.engine import Engine
+from fedhpg.common.learning.engine.sampling import ACT_TILE, END_CHECK
+from fedhpg.common.learning.randomness import Purpose
 from fedhpg.envs.base import BatchStep
 
 

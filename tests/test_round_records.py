@@ -9,10 +9,10 @@ from typing import Any
 import pytest
 import torch
 
+from fedhpg.common.heterogeneity.variants import variant_of
+from fedhpg.common.learning.worker import initial_theta
 from fedhpg.common.privacy.contribution import RoundPrivacy
 from fedhpg.common.runtime.cli import compose
-from fedhpg.common.variants import variant_of
-from fedhpg.common.worker import initial_theta
 from fedhpg.server.coordinator import Coordinator, RoundRecord
 from fedhpg.server.pools import FederationError, RoundAnswers
 from fedhpg.server.pools.inprocess import make_in_process_pool

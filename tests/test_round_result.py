@@ -1,4 +1,4 @@
-"""One round result from the engine to the strategy (common/types.py ``RoundResult``).
+"""One round result from the engine to the strategy (common/records/types.py ``RoundResult``).
 
 Parts of a round concatenate into agent order with every row's θ and statistics kept (map
 columns None where a part has no such key); a SplitGroup's round moves each iteration's
@@ -10,8 +10,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from fedhpg.common.round_columns import IterationColumns, TrainedRound
-from fedhpg.common.types import RoundResult, UpdateColumns, UpdateStats
+from fedhpg.common.records.round_columns import IterationColumns, TrainedRound
+from fedhpg.common.records.types import RoundResult, UpdateColumns, UpdateStats
 from fedhpg.common.wire.codec import decode, encode
 
 

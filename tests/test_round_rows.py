@@ -12,9 +12,9 @@ import numpy as np
 import torch
 import zmq
 
-from fedhpg.common.settings.server import ServerConfig
-from fedhpg.common.types import UpdateColumns, UpdateStats
-from fedhpg.common.variants import range_digest
+from fedhpg.common.configuration.settings.server import ServerConfig
+from fedhpg.common.heterogeneity.variants import range_digest
+from fedhpg.common.records.types import UpdateColumns, UpdateStats
 from fedhpg.common.wire.codec import decode, encode
 from fedhpg.common.wire.protocol import Error, Hello, Train, Update, Welcome
 from fedhpg.server.pools.zmq_pool import ZmqAgentPool

@@ -13,8 +13,8 @@ from pathlib import Path
 import pytest
 import torch
 
-from fedhpg.server import api
 from fedhpg.server.checkpoint import BEST_NAME, KEPT_DIR, load_checkpoint
+from fedhpg.server.commands import api
 from fedhpg.server.run_dir import RunDirectoryError, claimed
 from tests.procs import BIN, QUIET
 

@@ -8,7 +8,7 @@ from pathlib import Path
 
 import pytest
 
-from fedhpg.common.config_error import ConfigError
+from fedhpg.common.configuration.config_error import ConfigError
 from fedhpg.server.run_dir import LOCK_NAME, RunDirectory, claimed
 
 

@@ -19,12 +19,12 @@ from torch.utils._python_dispatch import TorchDispatchMode
 
 from benchmarks.device_reference import Reference
 from benchmarks.scale_device import balancing_theta
-from fedhpg.common.engine import copies as copies_module
-from fedhpg.common.engine.engine import Engine
-from fedhpg.common.engine.sampling import END_CHECK
+from fedhpg.common.heterogeneity.variants import variants_of
+from fedhpg.common.learning.engine import copies as copies_module
+from fedhpg.common.learning.engine.engine import Engine
+from fedhpg.common.learning.engine.sampling import END_CHECK
+from fedhpg.common.learning.worker import initial_theta
 from fedhpg.common.runtime.cli import compose
-from fedhpg.common.variants import variants_of
-from fedhpg.common.worker import initial_theta
 
 AGENTS, COPIES = 4, 16
 HORIZON = 64

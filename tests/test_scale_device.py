@@ -115,7 +115,7 @@ def test_the_profile_splits_a_round_into_sections_and_operators(tmp_path) -> Non
     """device_profile times each engine section of a real round (each > 0, together no more
     than the round), names torch's busiest operators, and leaves the engine as it was."""
     from benchmarks import device_profile
-    from fedhpg.common.engine.torch_backend import TorchBackend
+    from fedhpg.common.learning.engine.torch_backend import TorchBackend
 
     before = {
         name: inspect.getattr_static(TorchBackend, name)

@@ -164,7 +164,7 @@ def test_a_signature_binds_a_key_to_its_agent_round_and_purpose() -> None:
 
 
 def test_fedhpg_keys_writes_a_roster_that_binds_hosts_and_named_agents(tmp_path) -> None:
-    from fedhpg.server.keys import run
+    from fedhpg.server.commands.keys import run
 
     assert run([str(tmp_path / "k"), "--agents", "10", "--per-host", "5"]) == 0
     roster = signing.load_roster(tmp_path / "k" / signing.SIGNERS_DIR)

@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 from secure_peers import HonestSide, secure_round
 
-from fedhpg.common.config import RunConfig
+from fedhpg.common.configuration.config import RunConfig
 from fedhpg.common.privacy import masks
 from fedhpg.common.privacy.consent import least_noise_multiplier
 from fedhpg.common.privacy.contribution import RoundPrivacy
@@ -83,7 +83,7 @@ def test_a_budget_against_the_model_binds_no_server() -> None:
 
 @pytest.fixture(scope="module")
 def keys_dir(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    from fedhpg.server.keys import run as fedhpg_keys
+    from fedhpg.server.commands.keys import run as fedhpg_keys
 
     directory = tmp_path_factory.mktemp("keys") / "keys"
     assert fedhpg_keys([str(directory), "--agents", str(K)]) == 0

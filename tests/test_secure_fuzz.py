@@ -22,10 +22,10 @@ from peers import raw_frames
 from secure_peers import HonestSide, Reply, RogueSide, secure_round, step_of
 from wire_fuzz import WRONG
 
-from fedhpg.common.config import RunConfig
+from fedhpg.common.configuration.config import RunConfig
 from fedhpg.common.privacy.contribution import average
+from fedhpg.common.records.types import UpdateColumns
 from fedhpg.common.runtime.cli import compose
-from fedhpg.common.types import UpdateColumns
 from fedhpg.common.wire.protocol import (
     KeyShares,
     MaskedUpdate,

@@ -26,11 +26,11 @@ from secure_peers import (
     step_of,
 )
 
-from fedhpg.common.config import RunConfig
+from fedhpg.common.configuration.config import RunConfig
 from fedhpg.common.privacy import fixedpoint
 from fedhpg.common.privacy.secagg import SEALED_BYTES, noise_shares
+from fedhpg.common.records.types import UpdateColumns
 from fedhpg.common.runtime.cli import compose
-from fedhpg.common.types import UpdateColumns
 from fedhpg.common.wire.protocol import (
     KeyShares,
     MaskedUpdate,

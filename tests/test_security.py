@@ -22,9 +22,9 @@ import zmq
 import zmq.auth
 from procs import BIN, free_port, processes, start
 
-from fedhpg.common.config import RunConfig, from_dict, to_dict
-from fedhpg.common.config_error import ConfigError
-from fedhpg.common.run_roles import adopt_settings, dictated_settings
+from fedhpg.common.configuration.config import RunConfig, from_dict, to_dict
+from fedhpg.common.configuration.config_error import ConfigError
+from fedhpg.common.configuration.run_roles import adopt_settings, dictated_settings
 from fedhpg.common.runtime.cli import compose, validate_config
 from fedhpg.common.wire.codec import decode
 from fedhpg.common.wire.protocol import PROTOCOL_VERSION, Error

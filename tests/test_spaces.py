@@ -14,9 +14,11 @@ import numpy as np
 import pytest
 import torch
 
-from fedhpg.common.config_error import ConfigError
-from fedhpg.common.engine.policy_rows import PolicyRows
-from fedhpg.common.policies import (
+from fedhpg.common.configuration.config_error import ConfigError
+from fedhpg.common.configuration.settings.policy import PolicyConfig
+from fedhpg.common.heterogeneity.variants import variant_of
+from fedhpg.common.learning.engine.policy_rows import PolicyRows
+from fedhpg.common.learning.policies import (
     CNNPolicy,
     GaussianMLPPolicy,
     MLPCategoricalPolicy,
@@ -25,10 +27,8 @@ from fedhpg.common.policies import (
     make_policy,
     set_flat_params,
 )
+from fedhpg.common.learning.worker import build_policy
 from fedhpg.common.runtime.cli import compose
-from fedhpg.common.settings.policy import PolicyConfig
-from fedhpg.common.variants import variant_of
-from fedhpg.common.worker import build_policy
 from fedhpg.envs.spaces import is_flattened, is_image, policy_observation_space
 from fedhpg.server.assembly import run_in_process
 

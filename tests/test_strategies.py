@@ -9,9 +9,9 @@ import numpy as np
 import pytest
 import torch
 
-from fedhpg.common.config_error import ConfigError
-from fedhpg.common.settings.strategy import StrategyConfig
-from fedhpg.common.types import RoundResult, UpdateColumns, UpdateStats
+from fedhpg.common.configuration.config_error import ConfigError
+from fedhpg.common.configuration.settings.strategy import StrategyConfig
+from fedhpg.common.records.types import RoundResult, UpdateColumns, UpdateStats
 from fedhpg.server.strategies import STRATEGIES, make_strategy
 
 SHIPPED = ["fedadam", "mean", "median", "trimmed_mean", "weighted"]
@@ -190,7 +190,7 @@ def test_a_rule_on_a_cuda_device_agrees_with_the_cpu(name: str) -> None:
 def test_strategy_device_is_checked() -> None:
     """strategy.device takes cpu, cuda, cuda:N (a typo is refused naming the key), and a
     server whose torch sees no such device is refused before it starts."""
-    from fedhpg.common.config import validate
+    from fedhpg.common.configuration.config import validate
     from fedhpg.common.runtime.cli import compose
     from fedhpg.server.strategies import validate_strategy
 

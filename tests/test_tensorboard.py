@@ -13,8 +13,8 @@ import numpy as np
 import pytest
 from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
 
-from fedhpg.server import api
 from fedhpg.server.checkpoint import checkpoint_path
+from fedhpg.server.commands import api
 
 RUN = ["rounds=4", "seed=3", "eval.every=2", "eval.episodes=4"]
 
@@ -189,7 +189,7 @@ def test_update_norms_are_each_agents_own(monkeypatch: pytest.MonkeyPatch) -> No
     """‖θ_k − θ̃‖ per agent, taken a slab of rows at a time (2 here) over the result's rows:
     each agent's norm is its own row's."""
 
-    from fedhpg.common.types import RoundResult, UpdateColumns, UpdateStats
+    from fedhpg.common.records.types import RoundResult, UpdateColumns, UpdateStats
     from fedhpg.server import metrics
 
     monkeypatch.setattr(metrics, "NORM_ROWS", 2)

@@ -20,7 +20,7 @@ from benchmarks.thresholds import (
     outcome,
     sampled_per_agent,
 )
-from fedhpg.server.api import resolve_config
+from fedhpg.server.commands.api import resolve_config
 
 LOGGED = Path(__file__).parent / "fedpgbr_code_run"
 """FedPG-BR's code, seed 0, server step 1e-2, to 200 trajectories per agent: the log of

@@ -17,9 +17,9 @@ import pytest
 import torch
 from procs import BIN
 
-from fedhpg.common.config_error import ConfigError
+from fedhpg.common.configuration.config_error import ConfigError
 from fedhpg.common.runtime.cli import compose
-from fedhpg.server import api
+from fedhpg.server.commands import api
 from fedhpg.server.strategies import make_strategy, validate_strategy
 from fedhpg.server.tolerance import smallest_set
 

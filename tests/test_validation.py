@@ -8,7 +8,7 @@ import dataclasses
 import numpy as np
 import pytest
 
-from fedhpg.common.types import UpdateStats
+from fedhpg.common.records.types import UpdateStats
 from fedhpg.server.validation import (
     NON_FINITE,
     Reject,

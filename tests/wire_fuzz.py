@@ -13,7 +13,7 @@ from hypothesis import HealthCheck, Phase, given, settings
 from hypothesis import strategies as st
 from peers import Frames, raw_frames
 
-from fedhpg.common.types import EvaluationStats, UpdateColumns, UpdateStats
+from fedhpg.common.records.types import EvaluationStats, UpdateColumns, UpdateStats
 from fedhpg.common.wire.protocol import Error, Evaluation, Heartbeat, Hello, Update
 
 INTS = st.integers(-(2**63), 2**64 - 1)

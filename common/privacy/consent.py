@@ -22,11 +22,11 @@ from __future__ import annotations
 
 import math
 
+from fedhpg.common.configuration.settings.privacy import PrivacyConfig
 from fedhpg.common.privacy import accounting
 from fedhpg.common.privacy.accounting import Sampling
 from fedhpg.common.privacy.contribution import RoundPrivacy
 from fedhpg.common.privacy.secagg import noise_shares
-from fedhpg.common.settings.privacy import PrivacyConfig
 
 RELATIVE_SLACK = 1e-9
 """Float round-off allowed between the server's figures and the agent's own."""

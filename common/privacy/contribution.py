@@ -16,7 +16,7 @@ import numpy as np
 import torch
 
 from fedhpg.common.privacy import dp
-from fedhpg.common.types import RoundResult
+from fedhpg.common.records.types import RoundResult
 
 WEIGHT_UNIT = float(1 << 20)
 """Weighted averages: an agent's weight is its trajectories over this (so w ≤ 1 for any

@@ -41,7 +41,7 @@ import struct
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 
-from fedhpg.common.settings.privacy import SecAggConfig
+from fedhpg.common.configuration.settings.privacy import SecAggConfig
 
 PRIVACY_BITS = 40
 """P[some input exposed] ≤ 2^-PRIVACY_BITS in a round (Bell et al.'s σ)."""

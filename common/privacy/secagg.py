@@ -44,9 +44,9 @@ from enum import IntEnum
 
 import numpy as np
 
+from fedhpg.common.configuration.settings.privacy import SecAggConfig
 from fedhpg.common.privacy import fixedpoint, masks, shamir
 from fedhpg.common.privacy.graph import Tolerance, graph_seed, neighbour_graph
-from fedhpg.common.settings.privacy import SecAggConfig
 
 SHARE_PLAINTEXT = struct.Struct("<qqq")
 """A sealed share's header: sender, receiver, round; then the two shares."""

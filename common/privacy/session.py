@@ -10,7 +10,7 @@ from collections.abc import Mapping, Sequence
 
 import numpy as np
 
-from fedhpg.common.config import RunConfig
+from fedhpg.common.configuration.config import RunConfig
 from fedhpg.common.privacy import dp
 from fedhpg.common.privacy.graph import GraphError, round_plan
 from fedhpg.common.privacy.secagg import RoundSetup, SecAggAgent, SecAggError

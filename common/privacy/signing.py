@@ -23,9 +23,9 @@ from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
 
-from fedhpg.common.config_error import ConfigError
-from fedhpg.common.key_names import parse_binding
-from fedhpg.common.settings.privacy import SecurityConfig
+from fedhpg.common.configuration.config_error import ConfigError
+from fedhpg.common.configuration.key_names import parse_binding
+from fedhpg.common.configuration.settings.privacy import SecurityConfig
 
 try:  # the privacy extra (``cryptography``); without it privacy settings are refused at start
     from cryptography.exceptions import InvalidSignature

@@ -17,8 +17,8 @@ from collections.abc import Callable, Iterator, Sequence
 from importlib.metadata import PackageNotFoundError, version
 from typing import Any
 
-from fedhpg.common.config import RunConfig
-from fedhpg.common.config_error import ConfigError
+from fedhpg.common.configuration.config import RunConfig
+from fedhpg.common.configuration.config_error import ConfigError
 from fedhpg.common.runtime import timeline
 from fedhpg.common.runtime.composition import (
     compose_cfg,

@@ -1,6 +1,7 @@
 """Composition of a run's config: ``conf/config.yaml`` with the command line's overrides
-through Hydra, validated into a :class:`~fedhpg.common.config.RunConfig`, and Hydra's and
-OmegaConf's errors turned into one :class:`~fedhpg.common.config.ConfigError` naming the key.
+through Hydra, validated into a :class:`~fedhpg.common.configuration.config.RunConfig`, and Hydra's
+and OmegaConf's errors turned into one :class:`~fedhpg.common.configuration.config.ConfigError`
+naming the key.
 
 The layer under the entry points (:mod:`.cli`), resuming (:mod:`.resume`) and ``--help``
 (:mod:`.help`): it imports none of them. Hydra and OmegaConf are imported where they are used,
@@ -15,10 +16,10 @@ import difflib
 from collections.abc import Iterator, Sequence
 from typing import Any
 
-from fedhpg.common.config import RunConfig
-from fedhpg.common.config_error import ConfigError
-from fedhpg.common.registry import import_plugins
-from fedhpg.common.run_keys import FREE_DICTS, all_keys, flatten, unknown_key
+from fedhpg.common.configuration.config import RunConfig
+from fedhpg.common.configuration.config_error import ConfigError
+from fedhpg.common.configuration.registry import import_plugins
+from fedhpg.common.configuration.run_keys import FREE_DICTS, all_keys, flatten, unknown_key
 from fedhpg.common.runtime.run_files import hydra_run_dir
 
 CONFIG_MODULE = "fedhpg.conf"
@@ -68,7 +69,7 @@ def validate_config(config: RunConfig) -> RunConfig:
     """Every check a process can make of its own config: values, plugins, the environment
     family and its options, the algorithm and budgets, the key files it names. (The server
     also checks ``strategy``.)"""
-    from fedhpg.common.components import validate_run
+    from fedhpg.common.learning.components import validate_run
     from fedhpg.common.wire.security import validate_security
 
     validate_run(config)
@@ -229,7 +230,7 @@ def with_algorithm_strategy(overrides: Sequence[str]) -> list[str]:
         return overrides
     try:
         cfg = compose_cfg(overrides)
-        from fedhpg.common.algorithms import ALGORITHMS
+        from fedhpg.common.learning.algorithms import ALGORITHMS
 
         import_plugins(list(cfg.plugins))
         wanted = ALGORITHMS.get(str(cfg.algo.name)).strategy

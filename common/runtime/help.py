@@ -1,6 +1,6 @@
 """``--help`` of the entry points, generated at help time from the config itself: the
-docstring under each field of :mod:`fedhpg.common.config` and its sections
-(:mod:`fedhpg.common.settings`, read with ``ast``), the defaults of
+docstring under each field of :mod:`fedhpg.common.configuration.config` and its sections
+(:mod:`fedhpg.common.configuration.settings`, read with ``ast``), the defaults of
 the composed ``conf/config.yaml`` and the config groups in ``conf/``. New fields, groups and
 options appear by themselves."""
 
@@ -15,11 +15,10 @@ import textwrap
 import typing
 from typing import Any
 
-from fedhpg.common import config as config_module
-from fedhpg.common.config import RunConfig
-from fedhpg.common.run_keys import flatten
-from fedhpg.common.runtime.composition import hydra_context
-from fedhpg.common.settings import (
+from fedhpg.common.configuration import config as config_module
+from fedhpg.common.configuration.config import RunConfig
+from fedhpg.common.configuration.run_keys import flatten
+from fedhpg.common.configuration.settings import (
     agent,
     agents,
     algo,
@@ -31,6 +30,7 @@ from fedhpg.common.settings import (
     server,
     strategy,
 )
+from fedhpg.common.runtime.composition import hydra_context
 
 USAGE = {
     "fedhpg-run": "[-m] [group=option ...] [key=value ...]",
@@ -176,8 +176,8 @@ def help_text(program: str, width: int | None = None) -> str:
     values, groups, chosen = _defaults()
     about = (
         f"{WHAT.get(program, '')} Settings are Hydra overrides of conf/config.yaml, typed by "
-        "fedhpg.common.config. A bad value is one line on stderr and exit status 2; nothing "
-        "is started."
+        "fedhpg.common.configuration.config. A bad value is one line on stderr and exit status "
+        "2; nothing is started."
     )
     lines = [
         f"usage: {program} {USAGE.get(program, '[key=value ...]')}",

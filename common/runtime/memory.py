@@ -7,7 +7,7 @@ import functools
 import gc
 import sys
 
-from fedhpg.common.group import SplitGroup
+from fedhpg.common.learning.group import SplitGroup
 
 M_TRIM_THRESHOLD = -1  # glibc's mallopt parameter numbers
 M_MMAP_THRESHOLD = -3

@@ -8,9 +8,9 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
-from fedhpg.common.config import RunConfig, to_dict
-from fedhpg.common.config_error import ConfigError
-from fedhpg.common.run_keys import fixed_difference, flatten
+from fedhpg.common.configuration.config import RunConfig, to_dict
+from fedhpg.common.configuration.config_error import ConfigError
+from fedhpg.common.configuration.run_keys import fixed_difference, flatten
 from fedhpg.common.runtime.composition import NO_RESUME, compose_cfg, hydra_errors, to_run_config
 from fedhpg.common.runtime.run_files import holds_run
 

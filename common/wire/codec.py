@@ -29,7 +29,7 @@ from typing import TYPE_CHECKING, Any, TypeAlias
 import msgpack
 import numpy as np
 
-from fedhpg.common.limits import bounds_of
+from fedhpg.common.records.limits import bounds_of
 from fedhpg.common.wire.protocol import (
     HEADER_LIMITS,
     HEADER_PER_AGENT,

@@ -4,7 +4,7 @@ Every message is one frozen dataclass below. :mod:`fedhpg.common.wire.codec` tur
 ZeroMQ frames (a msgpack header, then one raw frame per array field) and back; nothing here
 knows about bytes. Fields typed ``np.ndarray`` travel as raw frames, every other field in the
 header as plain msgpack values (None, bool, int, float, str, list, dict) or, for the typed
-results of :mod:`fedhpg.common.types`, as maps of exactly their fields.
+results of :mod:`fedhpg.common.records.types`, as maps of exactly their fields.
 
 One family of messages serves every placement: a connection registers a range of logical
 agents (``Hello.first``, ``Hello.count``), and a lone agent is a range of one. Requests name
@@ -20,7 +20,8 @@ from typing import Annotated, Any
 
 import numpy as np
 
-from fedhpg.common.limits import (
+from fedhpg.common.privacy.contribution import RoundPrivacy
+from fedhpg.common.records.limits import (
     MAX_BATCH_ANSWERS,
     MAX_HOST_AGENTS,
     AgentIndex,
@@ -29,8 +30,7 @@ from fedhpg.common.limits import (
     Round,
     Text,
 )
-from fedhpg.common.privacy.contribution import RoundPrivacy
-from fedhpg.common.types import EvaluationStats, RoundResult, UpdateColumns
+from fedhpg.common.records.types import EvaluationStats, RoundResult, UpdateColumns
 
 PROTOCOL_VERSION = 10
 """Bumped whenever a message changes; a peer of another version is refused with a reason."""
@@ -76,9 +76,10 @@ class MsgType(StrEnum):
 class Hello:
     """Agent → server: registration of the logical agents ``first`` .. ``first + count - 1``
     over this connection (a lone agent is a range of one). The environment spaces are the
-    run's, computed once; ``variant_digest`` is :func:`fedhpg.common.variants.range_digest` of
-    the agents' variant digests (family, parameters, γ_k, horizon), which the server
-    recomputes for the range, so no agent trains on another MDP."""
+    run's, computed once; ``variant_digest`` is
+    :func:`fedhpg.common.heterogeneity.variants.range_digest` of the agents' variant digests
+    (family, parameters, γ_k, horizon), which the server recomputes for the range, so no agent
+    trains on another MDP."""
 
     id: Name
     """The connection's id: a lone agent's own (``agent-<k>`` by default), an agent host's
@@ -109,7 +110,7 @@ def no_keys(rows: int = 0) -> np.ndarray:
 @dataclass(frozen=True, kw_only=True)
 class Welcome:
     """Server → agent: every agent of the range is registered; ``run`` holds the settings the
-    server dictates (``fedhpg.common.run_roles.GROUPS``)."""
+    server dictates (``fedhpg.common.configuration.run_roles.GROUPS``)."""
 
     run_id: Name
     first: AgentIndex
@@ -149,7 +150,7 @@ class Train:
 
 Update = RoundResult
 """Agent → server: the results of ``agents`` for ``round``, the engine's
-:class:`~fedhpg.common.types.RoundResult` itself (at most ``MAX_BATCH_ANSWERS`` rows)."""
+:class:`~fedhpg.common.records.types.RoundResult` itself (at most ``MAX_BATCH_ANSWERS`` rows)."""
 
 
 # --- secure aggregation: the exchanges of a private round (common/privacy/secagg.py) ---------

@@ -20,7 +20,7 @@ import numpy as np
 from fedhpg.common.privacy import masks, shamir
 from fedhpg.common.privacy.secagg import SEALED_BYTES, KeyShares, Revealed
 from fedhpg.common.privacy.signing import SIGNATURE_BYTES
-from fedhpg.common.types import UpdateStats
+from fedhpg.common.records.types import UpdateStats
 from fedhpg.common.wire import protocol
 
 COMMITMENT_BYTES = 32

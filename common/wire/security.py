@@ -11,8 +11,8 @@ refuses any hello (and any later message) whose id or agent range differs from i
 Each agent's DEALER socket is a CURVE client with its own key pair and the server's public
 key; a monitor on it turns a refused handshake into one clear error instead of a silent wait.
 
-``fedhpg-keys`` (:mod:`fedhpg.server.keys`) writes the files this module reads. Everything the
-entry points need lives here, so that the wiring into the server, the pool and the agent is a
+``fedhpg-keys`` (:mod:`fedhpg.server.commands.keys`) writes the files this module reads. Everything
+the entry points need lives here, so that the wiring into the server, the pool and the agent is a
 few call lines:
 
 * server: :func:`secure_server_socket` before ``bind`` (returns a :class:`ServerGuard` to stop);
@@ -38,12 +38,12 @@ from zmq.auth.thread import ThreadAuthenticator
 from zmq.utils import z85
 from zmq.utils.monitor import recv_monitor_message
 
-from fedhpg.common.config import RunConfig
-from fedhpg.common.config_error import ConfigError
-from fedhpg.common.key_names import KeyBinding, parse_binding
-from fedhpg.common.placement import agents_per_host, host_ranges
-from fedhpg.common.settings.ids import agent_id_of, host_id_of
-from fedhpg.common.settings.privacy import SecurityConfig
+from fedhpg.common.configuration.config import RunConfig
+from fedhpg.common.configuration.config_error import ConfigError
+from fedhpg.common.configuration.key_names import KeyBinding, parse_binding
+from fedhpg.common.configuration.placement import agents_per_host, host_ranges
+from fedhpg.common.configuration.settings.ids import agent_id_of, host_id_of
+from fedhpg.common.configuration.settings.privacy import SecurityConfig
 
 logger = logging.getLogger(__name__)
 

@@ -6,7 +6,7 @@ import logging
 
 import zmq
 
-from fedhpg.common.settings.server import ServerConfig
+from fedhpg.common.configuration.settings.server import ServerConfig
 from fedhpg.common.wire.codec import MAX_HEADER_BYTES, ProtocolError, decode, encode
 from fedhpg.common.wire.protocol import BATCH_THETA_BYTES, MAX_BATCH_ANSWERS, Message
 

@@ -8,7 +8,7 @@ tensors of their own, so a whole federation's environments live on a GPU beside 
   constants as a table on the device, built once; it hands out :class:`DeviceCopies` of any of
   them (``copies(rows, counts)``) without touching the host again. None where the family has
   no torch implementation (those step through gymnasium on the CPU:
-  ``fedhpg.common.engine.copies``).
+  ``fedhpg.common.learning.engine.copies``).
 - CartPole, Acrobot, Pendulum, MountainCar and GridWorld are built in, one module each, listed
   in :mod:`fedhpg.envs.device.registry`; each is checked step for step against its gymnasium
   environment (``tests/test_device_envs.py``). A plugin adds one with

@@ -14,9 +14,9 @@ from typing import Protocol
 import numpy as np
 import torch
 
+from fedhpg.common.configuration.settings.ids import agent_id_of
 from fedhpg.common.privacy.contribution import RoundPrivacy
-from fedhpg.common.settings.ids import agent_id_of
-from fedhpg.common.types import EvaluationStats, RoundResult
+from fedhpg.common.records.types import EvaluationStats, RoundResult
 from fedhpg.server.validation import Rejection
 
 

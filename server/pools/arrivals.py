@@ -20,8 +20,8 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from fedhpg.common.settings.server import ServerConfig
-from fedhpg.common.types import UpdateStats
+from fedhpg.common.configuration.settings.server import ServerConfig
+from fedhpg.common.records.types import UpdateStats
 from fedhpg.common.wire.protocol import Train, Update
 from fedhpg.server.pools import FederationError
 from fedhpg.server.pools.links import Link, Links, Outbox

@@ -13,8 +13,8 @@ Every row of an ``Update`` passes the same :class:`~fedhpg.server.validation.Upd
 in the in-process pool, each pass over the [A, d] matrix made once for all its rows; a bad row
 rejects that agent only. Accepted θ_k are copied once, on arrival, into the round's
 :class:`~fedhpg.server.round_rows.RoundRows` (the frames are then let go); the round's
-:class:`~fedhpg.common.types.RoundResult` holds that matrix (or a compact copy of its accepted
-rows) and the statistics of its rows, gathered from each message's columns.
+:class:`~fedhpg.common.records.types.RoundResult` holds that matrix (or a compact copy of its
+accepted rows) and the statistics of its rows, gathered from each message's columns.
 """
 
 from __future__ import annotations
@@ -25,9 +25,9 @@ from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
+from fedhpg.common.configuration.settings.server import ServerConfig
+from fedhpg.common.records.types import RoundResult, UpdateColumns
 from fedhpg.common.runtime import timeline
-from fedhpg.common.settings.server import ServerConfig
-from fedhpg.common.types import RoundResult, UpdateColumns
 from fedhpg.common.wire.protocol import (
     Evaluation,
     KeyShares,

@@ -16,18 +16,18 @@ from collections.abc import Callable, Mapping, Sequence
 import numpy as np
 import torch
 
-from fedhpg.common.config import RunConfig
-from fedhpg.common.device import DeviceColumns, DeviceModel, device_for, message_bytes
-from fedhpg.common.group import AgentGroup, make_agent_group
+from fedhpg.common.configuration.config import RunConfig
+from fedhpg.common.configuration.settings.ids import agent_id_of
+from fedhpg.common.configuration.vocabularies import ROUND_POLICIES
+from fedhpg.common.heterogeneity.device import DeviceColumns, DeviceModel, device_for, message_bytes
+from fedhpg.common.heterogeneity.variants import variants_of
+from fedhpg.common.learning.group import AgentGroup, make_agent_group
 from fedhpg.common.privacy import fixedpoint
 from fedhpg.common.privacy.contribution import EXTRA, RoundPrivacy, contribution, redacted
 from fedhpg.common.privacy.secagg import SecAggError, SecAggRound, fewest_inputs
 from fedhpg.common.privacy.session import LocalSecAgg
+from fedhpg.common.records.types import EvaluationStats, RoundResult
 from fedhpg.common.runtime.memory import pin_malloc_mmap_threshold, tune_malloc_for
-from fedhpg.common.settings.ids import agent_id_of
-from fedhpg.common.types import EvaluationStats, RoundResult
-from fedhpg.common.variants import variants_of
-from fedhpg.common.vocabularies import ROUND_POLICIES
 from fedhpg.envs.base import EnvVariant
 from fedhpg.server.pools import RoundAnswers, SecureSum
 from fedhpg.server.validation import Rejection, UpdateCheck

@@ -33,9 +33,9 @@ from dataclasses import dataclass, field
 
 import zmq
 
-from fedhpg.common.settings.ids import agent_id_of
-from fedhpg.common.settings.server import ServerConfig
-from fedhpg.common.variants import range_digest
+from fedhpg.common.configuration.settings.ids import agent_id_of
+from fedhpg.common.configuration.settings.server import ServerConfig
+from fedhpg.common.heterogeneity.variants import range_digest
 from fedhpg.common.wire.protocol import (
     KEY_BYTES,
     Error,

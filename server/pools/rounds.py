@@ -13,8 +13,8 @@ from __future__ import annotations
 
 from collections.abc import Callable, Collection, Mapping
 
-from fedhpg.common.settings.server import ServerConfig
-from fedhpg.common.vocabularies import ROUND_POLICIES
+from fedhpg.common.configuration.settings.server import ServerConfig
+from fedhpg.common.configuration.vocabularies import ROUND_POLICIES
 from fedhpg.server.pools import FederationError
 
 

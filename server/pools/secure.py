@@ -30,7 +30,7 @@ from collections.abc import Callable, Iterator, Mapping, Sequence
 import numpy as np
 import torch
 
-from fedhpg.common.config import RunConfig
+from fedhpg.common.configuration.config import RunConfig
 from fedhpg.common.privacy import fixedpoint, masks, shamir
 from fedhpg.common.privacy.contribution import EXTRA, RoundPrivacy
 from fedhpg.common.privacy.graph import GraphError, round_plan
@@ -41,7 +41,7 @@ from fedhpg.common.privacy.secagg import (
     SecAggRound,
     fewest_inputs,
 )
-from fedhpg.common.types import RoundResult, UpdateStats
+from fedhpg.common.records.types import RoundResult, UpdateStats
 from fedhpg.common.wire import secure_rows as read
 from fedhpg.common.wire.protocol import (
     KEY_BYTES,

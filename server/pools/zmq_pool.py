@@ -34,10 +34,10 @@ from typing import Any
 import torch
 import zmq
 
+from fedhpg.common.configuration.settings.server import ServerConfig
+from fedhpg.common.configuration.vocabularies import ROUND_POLICIES
 from fedhpg.common.privacy.contribution import RoundPrivacy
-from fedhpg.common.settings.server import ServerConfig
-from fedhpg.common.types import EvaluationStats
-from fedhpg.common.vocabularies import ROUND_POLICIES
+from fedhpg.common.records.types import EvaluationStats
 from fedhpg.common.wire.codec import ProtocolError
 from fedhpg.common.wire.protocol import (
     Error,

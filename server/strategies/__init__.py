@@ -18,7 +18,7 @@ A strategy declares what it can take instead of being named in checks elsewhere:
 :attr:`Strategy.takes` (the kind of update it aggregates, matched against what the run's
 algorithm sends, :func:`sent_by`) and :attr:`Strategy.buffered` (whether it can aggregate
 buffered, asynchronous rounds' updates).
-``result`` is the round's accepted updates, one :class:`~fedhpg.common.types.RoundResult`
+``result`` is the round's accepted updates, one :class:`~fedhpg.common.records.types.RoundResult`
 whose rows are in agent-index order (arrival order never changes a bit of θ̃; :func:`rows_of`
 gives its θ_k as a [K, d] tensor); ``failures`` names the agents whose update was rejected,
 and why. A strategy with state across rounds (fedadam's moments) returns it from
@@ -35,19 +35,19 @@ from typing import TYPE_CHECKING, Any, ClassVar, Generic, TypeVar
 
 import torch
 
-from fedhpg.common.algorithms import ALGORITHMS, PARAMETERS
-from fedhpg.common.components import resolve_algorithm
-from fedhpg.common.config import RunConfig
-from fedhpg.common.config_error import ConfigError
-from fedhpg.common.engine.devices import device_problem
-from fedhpg.common.registry import Registry, import_plugins, parse_options
-from fedhpg.common.settings.strategy import StrategyConfig
-from fedhpg.common.types import RoundResult, SavedState
+from fedhpg.common.configuration.config import RunConfig
+from fedhpg.common.configuration.config_error import ConfigError
+from fedhpg.common.configuration.registry import Registry, import_plugins, parse_options
+from fedhpg.common.configuration.settings.strategy import StrategyConfig
+from fedhpg.common.learning.algorithms import ALGORITHMS, PARAMETERS
+from fedhpg.common.learning.components import resolve_algorithm
+from fedhpg.common.learning.engine.devices import device_problem
+from fedhpg.common.records.types import RoundResult, SavedState
 from fedhpg.server.participation import validate_participation
 from fedhpg.server.tolerance import REMEDY, tolerance_shortfall
 
 if TYPE_CHECKING:
-    from fedhpg.common.algorithms import Algorithm
+    from fedhpg.common.learning.algorithms import Algorithm
 
 P = TypeVar("P")
 
@@ -64,8 +64,8 @@ class Strategy(abc.ABC, Generic[P]):
     Params: ClassVar[type[Any]] = NoParams
     takes: ClassVar[str] = PARAMETERS
     """The kind of update the rule aggregates, matched against ``Algorithm.sends``:
-    :data:`~fedhpg.common.algorithms.PARAMETERS` (each agent's θ_k) or
-    :data:`~fedhpg.common.algorithms.GRADIENTS` (fedpgbr's)."""
+    :data:`~fedhpg.common.learning.algorithms.PARAMETERS` (each agent's θ_k) or
+    :data:`~fedhpg.common.learning.algorithms.GRADIENTS` (fedpgbr's)."""
     buffered: ClassVar[bool] = True
     """Whether it can aggregate buffered rounds' updates (``server.round_policy=buffered``:
     each from its own θ̃ version, weighted by staleness); False for a rule that needs every

@@ -15,10 +15,10 @@ from typing import Any
 
 import torch
 
-from fedhpg.common.optim import AdamAscent
-from fedhpg.common.registry import OptionError
-from fedhpg.common.settings.strategy import StrategyConfig
-from fedhpg.common.types import RoundResult, SavedState
+from fedhpg.common.configuration.registry import OptionError
+from fedhpg.common.configuration.settings.strategy import StrategyConfig
+from fedhpg.common.learning.optim import AdamAscent
+from fedhpg.common.records.types import RoundResult, SavedState
 from fedhpg.server.strategies import Strategy, make_strategy, register_strategy
 
 INNER = "inner."

@@ -2,7 +2,7 @@
 
 Each round t, from the agents' gradients μ_t^(k) = θ_k − θ̃_0^t (``algo=fedpgbr``):
 
-μ_t = mean of the gradients the Byzantine filter keeps  (common/byzantine_filter.py)
+μ_t = mean of the gradients the Byzantine filter keeps  (common/learning/byzantine_filter.py)
 for n = 0 … N_t − 1:                                     (SCSG, N_t ~ Geom(b / (B_t + b)))
     v_n = (1/b) Σ_j [g(τ_j|θ_n) − ω_j g(τ_j|θ_0)] + μ_t,   τ_j ~ p(·|θ_n), b of them
     θ_{n+1} = θ_n + Adam_η(v_n)
@@ -13,7 +13,7 @@ environment variant (agent 0's by default: the federation's agents all share it 
 homogeneous run), sampled on the engine as a batch of one row, from keys of their own (the
 server's purpose, the round, the inner step), so a run is reproducible and a resumed run
 continues bit for bit. ω_j = p(τ_j|θ_0) / p(τ_j|θ_n) (FedHPGVR's weights,
-:mod:`fedhpg.common.algorithms.fedhpgvr`). The step is Adam, as in FedPG-BR's code; its
+:mod:`fedhpg.common.learning.algorithms.fedhpgvr`). The step is Adam, as in FedPG-BR's code; its
 moments persist across rounds and checkpoints keep them. Where the filter keeps no gradient,
 the round's inner steps are plain GPOMDP steps on the server's samples (FedPG-BR's code does
 the same).
@@ -28,18 +28,18 @@ from typing import Any, Literal
 
 import torch
 
-from fedhpg.common.algorithms import GRADIENTS
-from fedhpg.common.algorithms.fedhpgvr import FedHPGVRParams, semi_stochastic_gradient
-from fedhpg.common.algorithms.fedpgbr import FedPGBRParams, round_schedule
-from fedhpg.common.byzantine_filter import byzantine_filter
-from fedhpg.common.config import RunConfig
-from fedhpg.common.config_error import ConfigError
-from fedhpg.common.engine.engine import Engine, engine_settings
-from fedhpg.common.optim import AdamAscent
-from fedhpg.common.randomness import Purpose
-from fedhpg.common.registry import OptionError, parse_options
-from fedhpg.common.types import RoundResult, SavedState
-from fedhpg.common.variants import variant_of
+from fedhpg.common.configuration.config import RunConfig
+from fedhpg.common.configuration.config_error import ConfigError
+from fedhpg.common.configuration.registry import OptionError, parse_options
+from fedhpg.common.heterogeneity.variants import variant_of
+from fedhpg.common.learning.algorithms import GRADIENTS
+from fedhpg.common.learning.algorithms.fedhpgvr import FedHPGVRParams, semi_stochastic_gradient
+from fedhpg.common.learning.algorithms.fedpgbr import FedPGBRParams, round_schedule
+from fedhpg.common.learning.byzantine_filter import byzantine_filter
+from fedhpg.common.learning.engine.engine import Engine, engine_settings
+from fedhpg.common.learning.optim import AdamAscent
+from fedhpg.common.learning.randomness import Purpose
+from fedhpg.common.records.types import RoundResult, SavedState
 from fedhpg.server.strategies import Strategy, register_strategy, rows_of
 
 logger = logging.getLogger(__name__)
@@ -58,7 +58,7 @@ class FedPGBRStrategyParams:
     """σ, the bound on a single trajectory's gradient deviation (E‖g − ∇J‖² ≤ σ²) the filter's
     thresholds scale with; null = set each round from the agents' gradients so that rule 1's
     threshold is ``margin`` × the distance between two honest ones (a departure from the
-    paper, which assumes σ known: common/byzantine_filter.py, estimated_sigma)."""
+    paper, which assumes σ known: common/learning/byzantine_filter.py, estimated_sigma)."""
     margin: float = 1.5
     """With sigma null: rule 1's threshold over the median honest distance (> 1)."""
     delta: float = 0.6

@@ -8,7 +8,7 @@ from dataclasses import dataclass
 
 import torch
 
-from fedhpg.common.registry import OptionError
+from fedhpg.common.configuration.registry import OptionError
 from fedhpg.server.strategies import CoordinateRule, by_columns, register_strategy
 
 

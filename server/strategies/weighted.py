@@ -6,7 +6,7 @@ from collections.abc import Mapping
 
 import torch
 
-from fedhpg.common.types import RoundResult
+from fedhpg.common.records.types import RoundResult
 from fedhpg.server.strategies import NoParams, Strategy, register_strategy, rows_of
 
 

@@ -1,0 +1,340 @@
+"""A round of some agents' local updates: their rows, the primitives an algorithm's loop is
+written with, and what the round did.
+
+:meth:`Engine.begin <fedhpg.common.learning.engine.engine.Engine.begin>` returns a :class:`Round`;
+an algorithm (``common/learning/algorithms/<name>.py``) runs its one loop over the round's θ rows
+[A, d] with:
+
+- :meth:`Round.sample`: B trajectories per row, drawn at each row's own θ from its own
+  environment variant (keys: seed, agent, round, purpose, iteration, trajectory);
+- :meth:`Round.coefficients`: the run's estimator (``common/learning/engine/estimate.py``) for them;
+- :meth:`Round.gradients`, :meth:`Round.log_probs`, :meth:`Round.trajectory_gradients`: the
+  policy's score-function maths per row;
+- :meth:`Round.mean_gradients`: a batch's mean gradient with the run's estimator (its
+  coefficients, then its gradients, in one backend call);
+- :meth:`Round.finished`: the bookkeeping of an iteration (its statistics, kept where the rows
+  are; cancellation), and :meth:`Round.report` for the algorithm's own statistics.
+
+What the round did comes to the host once, when the round's :attr:`Round.tally` is first read
+after its loop: every iteration's per-row counts in one copy and their returns in another
+(nothing waits on a device inside the loop).
+
+The primitives are the backend's (:class:`~fedhpg.common.learning.engine.backend.Backend`), chosen
+once per group; the round adds whose draws they are and the tally. Rows are placement-free: what
+a row computes depends on its agent, round and θ alone.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from collections.abc import Callable, Iterator, Sequence
+from contextlib import contextmanager
+from dataclasses import dataclass, field, fields, replace
+from typing import NamedTuple
+
+import numpy as np
+import torch
+
+from fedhpg.common.learning.engine.backend import Backend, Draws
+from fedhpg.common.learning.engine.estimate import EstimatorOptions
+from fedhpg.common.learning.engine.trajectories import Trajectories
+from fedhpg.common.learning.randomness import Purpose
+from fedhpg.common.records.round_columns import IterationColumns
+
+
+@dataclass
+class Tally:
+    """Per-row totals of a round (``UpdateStats``) as host arrays, and its work per
+    iteration."""
+
+    trajectories: np.ndarray
+    env_steps: np.ndarray
+    return_sum: np.ndarray
+    compute_s: np.ndarray
+    clipped: np.ndarray
+    sample_s: np.ndarray
+    """Each row's share of the CPU time spent sampling (the rest of ``compute_s`` went to
+    its gradients and steps)."""
+    algorithm: dict[str, np.ndarray] = field(default_factory=dict)
+    """Per-row algorithm statistics (float64); NaN where a row has none."""
+    work: list[IterationColumns] = field(default_factory=list)
+
+    @classmethod
+    def zeros(cls, rows: int) -> Tally:
+        trajectories, env_steps, clipped = np.zeros((3, rows), dtype=np.int64)
+        return_sum, compute_s, sample_s = np.zeros((3, rows), dtype=np.float64)
+        return cls(trajectories, env_steps, return_sum, compute_s, clipped, sample_s)
+
+    @classmethod
+    def concatenated(cls, parts: Sequence[Tally]) -> Tally:
+        """The tallies of consecutive chunks of a round's rows as one (its works' rows
+        renumbered in the whole round)."""
+        if len(parts) == 1:
+            return parts[0]
+        names = list(dict.fromkeys(name for part in parts for name in part.algorithm))
+
+        def stat(part: Tally, name: str) -> np.ndarray:
+            values = part.algorithm.get(name)
+            return values if values is not None else np.full_like(part.sample_s, math.nan)
+
+        starts = [0]
+        for part in parts[:-1]:
+            starts.append(starts[-1] + int(part.trajectories.shape[0]))
+        return cls(
+            **{
+                name: np.concatenate([getattr(p, name) for p in parts])
+                for name in (f.name for f in fields(cls))
+                if name not in ("algorithm", "work")
+            },
+            algorithm={name: np.concatenate([stat(p, name) for p in parts]) for name in names},
+            work=[
+                replace(work, positions=work.positions + start)
+                for part, start in zip(parts, starts, strict=True)
+                for work in part.work
+            ],
+        )
+
+
+Interrupt = Callable[[], None]
+"""Called after each iteration; it may raise to cancel the round."""
+
+
+@dataclass(frozen=True)
+class RowConstants:
+    """What sampling and the estimator read of each row, [A] tensors on the device (made once
+    for a list of agents, not at every iteration)."""
+
+    agent: torch.Tensor
+    gamma: torch.Tensor
+    """float64."""
+    horizon: torch.Tensor
+
+
+class _Draw(NamedTuple):
+    """The rows of a :meth:`Round.sample` call that sample, and whose draws they make."""
+
+    theta: torch.Tensor
+    counts: torch.Tensor
+    horizons: torch.Tensor
+    agents: Sequence[int]
+    draws: Draws
+    positions: torch.Tensor | None
+    """Their rows in the round (None: all of them, in order)."""
+
+    def whole(self, batch: Trajectories, rows: int) -> Trajectories:
+        """``batch`` with its rows named as in the round."""
+        return batch if self.positions is None else batch.regrouped(self.positions, rows)
+
+
+class Round:
+    """The rows of one round's agents and the primitives their algorithm's loop uses (see the
+    module docstring)."""
+
+    def __init__(
+        self,
+        *,
+        backend: Backend,
+        options: EstimatorOptions,
+        seed: int,
+        round_index: int,
+        agents: Sequence[int],
+        theta: torch.Tensor,
+        budgets: dict[str, torch.Tensor],
+        constants: RowConstants,
+        interrupt: Interrupt | None = None,
+    ) -> None:
+        self.backend = backend
+        self.options = options
+        self.seed = seed
+        """The run's seed (an algorithm's own draws, e.g. FedPG-BR's B_t, are keyed by it)."""
+        self.round_index = round_index
+        self.agents = list(agents)
+        self.theta = theta
+        """[A, d]: every row starts from θ̃."""
+        self.budgets = budgets
+        """Each budget field as [A] int64 (the configured budget, or the round's plan); read-only:
+        the next round of the same agents shares them."""
+        self.constants = constants
+        self._tally = Tally.zeros(len(self.agents))
+        self._interrupt = interrupt
+        self._pending: list[tuple[torch.Tensor, ...]] = []
+        """Each finished iteration's numbers per row, [A] each, where the rows are: its
+        trajectories, env steps, differentiated steps and whether its gradient was clipped
+        (int64), and its sum of undiscounted returns (float64)."""
+        self._times: list[tuple[float, float]] = []
+        """Each finished iteration's CPU seconds, and those of them spent sampling."""
+        self._reported: dict[str, torch.Tensor] = {}
+        self._clock = time.thread_time()
+        self._sampling_s = 0.0
+        """Thread CPU seconds spent sampling since the last :meth:`finished`."""
+
+    @property
+    def size(self) -> int:
+        return len(self.agents)
+
+    def budget(self, name: str) -> torch.Tensor:
+        return self.budgets[name]
+
+    @property
+    def gammas(self) -> torch.Tensor:
+        """γ_k of every row, [A] float64."""
+        return self.constants.gamma
+
+    # -- the primitives ----------------------------------------------------------------------
+
+    def sample(
+        self,
+        theta: torch.Tensor,
+        counts: torch.Tensor,
+        *,
+        iteration: int,
+        purpose: Purpose = Purpose.TRAIN,
+        greedy: bool = False,
+        horizons: torch.Tensor | None = None,
+    ) -> Trajectories:
+        """``counts[a]`` trajectories of row a at θ row ``theta[a]`` (0: none)."""
+        draw = self._draw(theta, counts, iteration, purpose, horizons)
+        started = time.thread_time()
+        try:
+            batch = self.backend.sample(draw.theta, draw.counts, draw.draws, draw.horizons,
+                                        draw.agents, greedy=greedy)  # fmt: skip
+        finally:
+            self._sampling_s += time.thread_time() - started
+        return draw.whole(batch, self.size)
+
+    def _draw(
+        self,
+        theta: torch.Tensor,
+        counts: torch.Tensor,
+        iteration: int,
+        purpose: Purpose,
+        horizons: torch.Tensor | None,
+    ) -> _Draw:
+        """The rows that sample (``counts`` > 0) and whose draws they make."""
+        constants = self.constants
+        limit = constants.horizon if horizons is None else horizons
+        positions = None
+        agents, agent_ids = self.agents, constants.agent
+        if int(counts.min()) == 0:  # some rows sample nothing: the others only
+            positions = torch.nonzero(counts > 0).squeeze(1)
+            theta, counts, limit = theta[positions], counts[positions], limit[positions]
+            agents = [self.agents[i] for i in positions.tolist()]
+            agent_ids = agent_ids[positions]
+        draws = Draws(self.seed, agent_ids, self.round_index, purpose, iteration)
+        return _Draw(theta, counts, limit, agents, draws, positions)
+
+    def coefficients(
+        self, batch: Trajectories, weights: torch.Tensor | None = None
+    ) -> torch.Tensor:
+        """The run's estimator coefficients of ``batch`` (per-row baselines and discounts;
+        ``weights`` [N] or [T, N] importance weights), in the backend's own layout: what
+        :meth:`gradients` and :meth:`trajectory_gradients` take."""
+        return self.backend.coefficients(batch, self.options, self.gammas, weights)
+
+    def gradients(
+        self, theta: torch.Tensor, batch: Trajectories, coefficients: torch.Tensor
+    ) -> torch.Tensor:
+        """Σ_n Σ_t coef[t, n] ∇ log π_θa(a_t|s_t) over each row a's trajectories n, [A, d]
+        (zero for a row without trajectories)."""
+        return self.backend.gradients(theta, batch, coefficients)
+
+    def mean_gradients(
+        self, theta: torch.Tensor, batch: Trajectories, weights: torch.Tensor | None = None
+    ) -> torch.Tensor:
+        """(1/B_a) Σ_n g(τ_n | θ_a) with the run's estimator, per row [A, d]."""
+        sums = self.backend.mean_gradient_sums(theta, batch, self.options, self.gammas, weights)
+        return sums.div_(batch.counts.clamp_min(1).unsqueeze(1))
+
+    def log_probs(self, theta: torch.Tensor, batch: Trajectories) -> torch.Tensor:
+        """log π_θa(a_t|s_t) of every alive step under its row's θ row, [T, N] float64 (0
+        elsewhere)."""
+        return self.backend.log_probs(theta, batch)
+
+    def trajectory_gradients(
+        self, theta: torch.Tensor, batch: Trajectories, coefficients: torch.Tensor
+    ) -> torch.Tensor:
+        """g(τ_n | θ_{owner(n)}) of every trajectory, [N, d]."""
+        return self.backend.trajectory_gradients(theta, batch, coefficients)
+
+    # -- bookkeeping -------------------------------------------------------------------------
+
+    def finished(
+        self,
+        batch: Trajectories,
+        *,
+        clipped: torch.Tensor | None = None,
+        grad_steps: torch.Tensor | None = None,
+    ) -> None:
+        """An iteration is done for the rows that sampled ``batch``: its per-row numbers are
+        kept where the rows are (the :attr:`tally` takes them to the host once), its CPU time
+        noted; then the round may be cancelled."""
+        now = time.thread_time()
+        elapsed, self._clock = now - self._clock, now
+        sampled, self._sampling_s = min(self._sampling_s, elapsed), 0.0
+        steps = batch.steps_per_row()
+        self._pending.append((
+            batch.counts, steps, steps if grad_steps is None else grad_steps,
+            torch.zeros_like(steps) if clipped is None else clipped.to(steps.dtype),
+            batch.returns_per_row(),
+        ))  # fmt: skip
+        self._times.append((elapsed, sampled))
+        if self._interrupt is not None:
+            self._interrupt()
+            self._clock = time.thread_time()
+
+    @property
+    def tally(self) -> Tally:
+        """What the round did so far: the finished iterations' numbers brought to the host (the
+        counts in one copy, the returns in another), added to the totals in the order they
+        ran, and each one's work per row (its share of the iteration's CPU time, by env
+        steps)."""
+        if self._pending:
+            counts = torch.stack([number for numbers in self._pending for number in numbers[:4]])
+            returns = torch.stack([numbers[4] for numbers in self._pending])
+            self._add(counts.numpy(force=True).reshape(len(self._pending), 4, -1),
+                      returns.numpy(force=True), np.asarray(self._times))  # fmt: skip
+            self._pending, self._times = [], []
+        if self._reported:
+            for name, values in self._reported.items():
+                self._tally.algorithm[name] = values.cpu().numpy()
+            self._reported = {}
+        return self._tally
+
+    def _add(self, numbers: np.ndarray, returns: np.ndarray, times: np.ndarray) -> None:
+        """Iterations' per-row counts [I, 4, A] and return sums [I, A] and their (elapsed,
+        sampling) CPU seconds [I, 2] into the totals, iteration after iteration in the order
+        they ran (the float totals' order of additions)."""
+        counts, steps, grads, _ = numbers.transpose(1, 0, 2)
+        shares = steps / np.maximum(steps.sum(axis=1, keepdims=True), 1)
+        compute, sampled = shares * times[:, :1], shares * times[:, 1:]
+        tally = self._tally
+        trajectories, env_steps, _, clips = numbers.sum(axis=0)  # integers: in any order
+        tally.trajectories += trajectories
+        tally.env_steps += env_steps
+        tally.clipped += clips
+        everyone = np.arange(counts.shape[1])
+        for i, every in enumerate(counts.all(axis=1).tolist()):
+            tally.return_sum += returns[i]
+            tally.compute_s += compute[i]
+            tally.sample_s += sampled[i]
+            if every:  # every row ran: whole rows, no indexing
+                work = IterationColumns(everyone, compute[i], steps[i], grads[i])
+            else:
+                at = np.flatnonzero(counts[i])
+                work = IterationColumns(at, compute[i][at], steps[i][at], grads[i][at])
+            tally.work.append(work)
+
+    @contextmanager
+    def untimed(self) -> Iterator[None]:
+        """Work inside is left out of the rows' compute time (diagnostics)."""
+        started = time.thread_time()
+        try:
+            yield
+        finally:
+            self._clock += time.thread_time() - started
+
+    def report(self, name: str, values: torch.Tensor) -> None:
+        """An algorithm statistic of every row, [A] (NaN: none for that row); it reaches the
+        host with the :attr:`tally`."""
+        self._reported[name] = values.detach().double()
