@@ -95,7 +95,10 @@ ALGORITHM_RUNS = {
     "algorithm",
     [
         "fedhpg",
-        "fedhpgvr",
+        # ~16 s: make test-long. fast cover: tests/test_hosts.py::
+        # test_theta_does_not_depend_on_the_placement_of_the_agents[fedhpg] (placement) and
+        # tests/test_hosts.py::test_fedhpgvr_on_hosts_mixed_with_a_lone_agent_is_the_in_process_run
+        pytest.param("fedhpgvr", marks=pytest.mark.slow),
         pytest.param("fedpgbr", marks=pytest.mark.slow),  # the longest (~14 s): make test-long
     ],
 )
