@@ -33,7 +33,7 @@ docs: $(STAMP)
 
 # Two xdist workers: the tests that start federations run one after another on one of them
 # (tests/federation_tests.py picks them test by test); both share the rest. From a fresh clone
-# on 2 cores: ~13 min in all, ~11 of them the tests.
+# on 2 cores: ~12 min in all, ~9 of them the tests.
 test: $(STAMP) typecheck contracts docs
 	$(BIN)/ruff check .
 	$(BIN)/python -m benchmarks.render --check
@@ -41,7 +41,7 @@ test: $(STAMP) typecheck contracts docs
 
 # The long tier (marked slow): every shipped env preset learns, every docs page's code runs as
 # printed, the longest integration runs, the resource attacks and the 10,000-frame fuzz of a
-# live server (~14 min on 2 cores). One worker: the resource attacks time how many connections
+# live server (~15 min on 2 cores). One worker: the resource attacks time how many connections
 # a server sheds, which a learning run on the other core would starve. .ci/run runs it after
 # make test.
 test-long: $(STAMP)
