@@ -1,7 +1,7 @@
 """The compiled backend's fused calls (common/learning/batched/fused.py) against their
 definitions: a sample drawn with its keys in one call is the sample the separate key and
 sampling kernels give, and a batch's mean-gradient sums in one call are
-:func:`~fedhpg.common.learning.engine.backend.coefficients_then_gradients` (the backend's own
+:func:`~fedhpg.common.learning.engine.backend.defined_mean_gradients` (the backend's own
 coefficients and gradients, one call each, which test_compiled_engine.py and
 test_compiled_estimator.py hold to gymnasium, autograd and the torch estimator), bit for bit:
 random rows, budgets, horizons, discounts and θ, every estimator option (standardised ones
@@ -19,7 +19,7 @@ import torch
 from fedhpg.common.heterogeneity.variants import variants_of
 from fedhpg.common.learning.batched import compiled_agents, compiled_backend, kernels
 from fedhpg.common.learning.batched.backend import CompiledBackend
-from fedhpg.common.learning.engine.backend import Draws, coefficients_then_gradients
+from fedhpg.common.learning.engine.backend import Draws, defined_mean_gradients
 from fedhpg.common.learning.engine.engine import Engine
 from fedhpg.common.learning.engine.estimate import EstimatorOptions
 from fedhpg.common.learning.engine.trajectories import Trajectories
@@ -100,7 +100,7 @@ def _weights(rng: np.random.Generator, batch: Trajectories, kind: str) -> torch.
 
 
 @pytest.mark.parametrize("seed", range(4))
-def test_the_fused_gradient_sums_are_their_definition_to_the_bit(backend, seed: int) -> None:
+def test_the_fused_mean_gradients_are_their_definition_to_the_bit(backend, seed: int) -> None:
     rng = np.random.default_rng(seed)
     compared = 0
     for options, weighting in itertools.product(OPTIONS, ("none", "trajectory", "decision")):
@@ -110,8 +110,8 @@ def test_the_fused_gradient_sums_are_their_definition_to_the_bit(backend, seed: 
         gammas = torch.from_numpy(rng.choice([0.9, 0.97, 0.99, 1.0], size=len(agents)))
         batch = backend.sample(theta, counts, draws, horizons, agents, greedy=False)
         weights = _weights(rng, batch, weighting)
-        ours = backend.mean_gradient_sums(theta, batch, options, gammas, weights)
-        expected = coefficients_then_gradients(backend, theta, batch, options, gammas, weights)
+        ours = backend.mean_gradients(theta, batch, options, gammas, weights)
+        expected = defined_mean_gradients(backend, theta, batch, options, gammas, weights)
         assert torch.equal(ours, expected), (options, weighting)
         compared += int(options.normalize == "none" and bool(ours.abs().sum() > 0))
     assert compared >= 12, "too few of the 16 fused cases had a gradient to compare"
@@ -129,11 +129,11 @@ def test_renamed_rows_take_the_fused_path_to_the_same_bits(backend) -> None:
     wide[positions] = theta
     gammas = torch.tensor([0.5, 0.9, 0.6, 0.97, 0.99, 0.7], dtype=torch.float64)
     options = EstimatorOptions()
-    ours = backend.mean_gradient_sums(wide, renamed, options, gammas, None)
+    ours = backend.mean_gradients(wide, renamed, options, gammas, None)
     assert renamed.native is batch.native
-    expected = coefficients_then_gradients(backend, wide, renamed, options, gammas, None)
+    expected = defined_mean_gradients(backend, wide, renamed, options, gammas, None)
     assert torch.equal(ours, expected)
-    assert torch.equal(ours[positions], backend.mean_gradient_sums(
+    assert torch.equal(ours[positions], backend.mean_gradients(
         theta, batch, options, gammas[positions], None))  # fmt: skip
     assert not bool(ours[[0, 2, 5]].any()) and bool(ours[positions].any())
 
@@ -174,7 +174,7 @@ def test_a_round_is_the_composed_rounds_to_the_bit(monkeypatch, algo: list[str])
         return result.thetas, np.asarray(stats.env_steps), np.asarray(stats.trajectories)
 
     fused = trained()
-    monkeypatch.setattr(CompiledBackend, "mean_gradient_sums", coefficients_then_gradients)
+    monkeypatch.setattr(CompiledBackend, "mean_gradients", defined_mean_gradients)
     composed = trained()
     for ours, expected in zip(fused, composed, strict=True):
         assert np.array_equal(ours, expected)

@@ -51,8 +51,8 @@ class FedHPG(Algorithm[NoParams, FedHPGBudget]):
         ascent = make_optimizer(algo)
         local_iters, batch_size = rows.budget("local_iters"), rows.budget("batch_size")
         bounds = row_bound_statistics(rows.size) if algo.bound_estimates else None
-        fewest = int(local_iters.min())  # the budgets are host rows: no device wait
-        for iteration in range(int(local_iters.max())):
+        fewest, most = rows.budget_span("local_iters")
+        for iteration in range(most):
             if iteration < fewest:  # every row runs
                 counts, active = batch_size, None
             else:

@@ -169,7 +169,7 @@ class FedHPGVR(Algorithm[FedHPGVRParams, FedHPGVRBudget]):
         inner_steps, mini_batch = rows.budget("inner_steps"), rows.budget("mini_batch_size")
         # the weights' statistics stay where the rows are until the round reports them
         weight_sum, weight_max, clipped_sum = theta.new_zeros((3, rows.size), dtype=torch.float64)
-        for step in range(int(inner_steps.max())):
+        for step in range(rows.budget_span("inner_steps")[1]):
             active = inner_steps > step
             batch = rows.sample(theta, torch.where(active, mini_batch, 0), iteration=step + 1)
             direction, weights = semi_stochastic_gradient(

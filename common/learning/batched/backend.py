@@ -24,9 +24,13 @@ import torch
 
 from fedhpg.common.learning import randomness
 from fedhpg.common.learning.batched import fused, kernels
-from fedhpg.common.learning.batched.estimator import kernel_options, packed_coefficients
+from fedhpg.common.learning.batched.estimator import (
+    KernelOptions,
+    kernel_options,
+    packed_coefficients,
+)
 from fedhpg.common.learning.batched.mlp import MLPShape
-from fedhpg.common.learning.engine.backend import Draws, coefficients_then_gradients
+from fedhpg.common.learning.engine.backend import Draws, defined_mean_gradients
 from fedhpg.common.learning.engine.estimate import EstimatorOptions
 from fedhpg.common.learning.engine.torch_backend import TorchBackend
 from fedhpg.common.learning.engine.trajectories import StepRows, Trajectories
@@ -53,6 +57,13 @@ def _key_words(draws: Draws) -> tuple[int, np.ndarray, int, int]:
         randomness.signed(draws.round_index),
         randomness.signed(draws.iteration),
     )
+
+
+@functools.cache
+def _unweighted_options(options: EstimatorOptions) -> KernelOptions:
+    """The run's estimator options as the kernels take them, without importance weights
+    (made once: every iteration of a run asks for them)."""
+    return kernel_options(options)
 
 
 def covers(variant: EnvVariant) -> bool:
@@ -187,7 +198,7 @@ class CompiledBackend:
             row_start=torch.from_numpy(sampled.row_start),
         )
 
-    def mean_gradient_sums(
+    def mean_gradients(
         self,
         theta: torch.Tensor,
         batch: Trajectories,
@@ -195,15 +206,18 @@ class CompiledBackend:
         gammas: torch.Tensor,
         weights: torch.Tensor | None,
     ) -> torch.Tensor:
-        """:meth:`gradients` with :meth:`coefficients`, in one compiled call for a batch this
-        backend sampled and an unstandardised estimator
-        (:func:`~fedhpg.common.learning.batched.fused.estimated_gradients`: the same kernels, so the
-        same bits); composed otherwise."""
+        """:meth:`gradients` with :meth:`coefficients`, each row's divided by its
+        trajectories, in one compiled call for a batch this backend sampled and an
+        unstandardised estimator (:func:`~fedhpg.common.learning.batched.fused.
+        estimated_gradients`: the same kernels and the same float32 division, so the same
+        bits); composed otherwise."""
         sampled = batch.native
-        table = None if weights is None else weights.detach().double().numpy()
-        chosen = kernel_options(options, table)
+        if weights is None:
+            chosen = _unweighted_options(options)
+        else:
+            chosen = kernel_options(options, weights.detach().double().numpy())
         if not isinstance(sampled, _Sampled) or not chosen.plain:
-            return coefficients_then_gradients(self, theta, batch, options, gammas, weights)
+            return defined_mean_gradients(self, theta, batch, options, gammas, weights)
         positions = None
         if batch.num_rows != len(sampled.row_start) - 1:  # renamed rows: some sampled none
             positions = torch.nonzero(batch.counts).squeeze(1)
@@ -215,10 +229,10 @@ class CompiledBackend:
             sampled.owner, sampled.written, np.ascontiguousarray(theta.numpy(), dtype=np.float32),
             self.sizes, sampled.obs, sampled.actions, sampled.row_start, out,
         )  # fmt: skip
-        sums = torch.from_numpy(out)
+        means = torch.from_numpy(out)
         if positions is None:
-            return sums
-        return sums.new_zeros((batch.num_rows, out.shape[1])).index_copy_(0, positions, sums)
+            return means
+        return means.new_zeros((batch.num_rows, out.shape[1])).index_copy_(0, positions, means)
 
     def gradients(
         self, theta: torch.Tensor, batch: Trajectories, coefficients: torch.Tensor
@@ -399,7 +413,7 @@ def warm_up() -> float:
         coefficients = backend.coefficients(batch, options, gammas, None)
     backend.gradients(theta, batch, coefficients)
     backend.trajectory_gradients(theta, batch, coefficients)
-    backend.mean_gradient_sums(theta, batch, EstimatorOptions(), gammas, None)
+    backend.mean_gradients(theta, batch, EstimatorOptions(), gammas, None)
     return time.perf_counter() - started
 
 

@@ -1,5 +1,5 @@
 """The compiled backend's two calls a local iteration: its sample with the keys it is drawn
-from, and its mean-gradient sums with the estimator's coefficients.
+from, and its mean gradients with the estimator's coefficients.
 
 Each calls the kernels the separate steps would (``trajectory_keys``, ``sample_rows`` and
 ``row_gradients`` of :mod:`~fedhpg.common.learning.batched.kernels`, and
@@ -85,12 +85,20 @@ def estimated_gradients(
     row_start: np.ndarray,
     gradients: np.ndarray,
 ) -> None:
-    """Σ_n Σ_t coef_t,n ∇ log π_θa(a_t|s_t) of row a's trajectories into ``gradients[a]``: the
-    unstandardised estimator's coefficients of the ``written`` packed steps (a reward of 1
-    each, CartPole's), then the score gradients at ``thetas``."""
+    """(1/B_a) Σ_n Σ_t coef_t,n ∇ log π_θa(a_t|s_t) over row a's B_a trajectories into
+    ``gradients[a]``: the unstandardised estimator's coefficients of the ``written`` packed
+    steps (a reward of 1 each, CartPole's), the score gradients at ``thetas``, then each
+    row's sum divided by its trajectories in float32, as torch divides."""
     rewards = np.ones(written, dtype=np.float64)
     coefficients = plain_coefficients(gpomdp, mean_baseline, from_step, weighting, rewards,
                                       rows_time[:written], rows_column[:written], lengths,
                                       owner, gammas, weights)  # fmt: skip
     at = np.arange(written)
     row_gradients(thetas, sizes, rows_obs, rows_action, coefficients, at, row_start, gradients)
+    trajectories = np.zeros(gradients.shape[0], dtype=np.int64)
+    for n in range(owner.shape[0]):
+        trajectories[owner[n]] += 1
+    for a in range(gradients.shape[0]):
+        divisor = np.float32(max(trajectories[a], 1))
+        for j in range(gradients.shape[1]):
+            gradients[a, j] = gradients[a, j] / divisor

@@ -77,7 +77,7 @@ class Backend(Protocol):
         """Σ_n Σ_t coef[t, n] ∇ log π_θa(a_t|s_t) per row a, [A, d]."""
         ...
 
-    def mean_gradient_sums(
+    def mean_gradients(
         self,
         theta: torch.Tensor,
         batch: Trajectories,
@@ -85,8 +85,9 @@ class Backend(Protocol):
         gammas: torch.Tensor,
         weights: torch.Tensor | None,
     ) -> torch.Tensor:
-        """:meth:`gradients` of ``batch`` at ``theta`` with its :meth:`coefficients`: exactly
-        :func:`coefficients_then_gradients`, which a backend may do in one call."""
+        """Each row's mean gradient of ``batch`` at ``theta`` with the estimator's
+        :meth:`coefficients`, [A, d]: exactly :func:`defined_mean_gradients`, which a backend
+        may compute in one call."""
         ...
 
     def trajectory_gradients(
@@ -106,7 +107,7 @@ class Backend(Protocol):
     def close(self) -> None: ...
 
 
-def coefficients_then_gradients(
+def defined_mean_gradients(
     backend: Backend,
     theta: torch.Tensor,
     batch: Trajectories,
@@ -114,6 +115,8 @@ def coefficients_then_gradients(
     gammas: torch.Tensor,
     weights: torch.Tensor | None,
 ) -> torch.Tensor:
-    """:meth:`Backend.mean_gradient_sums` by its definition: Σ_n Σ_t coef[t, n]
-    ∇ log π_θa(a_t|s_t) of each row a's trajectories, [A, d], with the run's estimator."""
-    return backend.gradients(theta, batch, backend.coefficients(batch, options, gammas, weights))
+    """:meth:`Backend.mean_gradients` by its definition: (1/B_a) Σ_n Σ_t coef[t, n]
+    ∇ log π_θa(a_t|s_t) over each row a's B_a trajectories, [A, d] float32, with the run's
+    estimator (0 for a row without trajectories)."""
+    sums = backend.gradients(theta, batch, backend.coefficients(batch, options, gammas, weights))
+    return sums.div_(batch.counts.clamp_min(1).unsqueeze(1))

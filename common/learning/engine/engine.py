@@ -22,7 +22,7 @@ from fedhpg.common.learning.engine.devices import check_device, deterministic_of
 from fedhpg.common.learning.engine.estimate import EstimatorOptions
 from fedhpg.common.learning.engine.memory import RoundPlan, StepBytes, memory_budget, plan_round
 from fedhpg.common.learning.engine.policy_rows import PolicyRows
-from fedhpg.common.learning.engine.round import Interrupt, Round, RowConstants
+from fedhpg.common.learning.engine.round import BudgetRows, Interrupt, Round, RowConstants
 from fedhpg.common.learning.engine.torch_backend import TorchBackend
 from fedhpg.common.learning.policies import Policy
 from fedhpg.common.learning.randomness import Purpose
@@ -107,7 +107,7 @@ class Engine:
         self._horizon: dict[int, int] = {}
         self._own_budgets: tuple[tuple[int, ...], list[Any]] | None = None
         """The last :meth:`round_budgets` of agents running their own budgets."""
-        self._budget_rows: tuple[list[Any], dict[str, torch.Tensor], RowConstants] | None = None
+        self._budget_rows: tuple[list[Any], BudgetRows, RowConstants] | None = None
         """For the last list of budgets: its fields as rows and the rows' constants."""
 
     # -- per-agent constants ----------------------------------------------------------------
@@ -149,19 +149,24 @@ class Engine:
         chosen = self.round_budgets(agents, budgets)
         if self._budget_rows is None or self._budget_rows[0] is not chosen:  # a new list
             names = list(vars(chosen[0])) if chosen else []
-            as_rows = {
-                name: torch.tensor([int(getattr(b, name)) for b in chosen], dtype=torch.int64)
-                for name in names
-            }
-            self._budget_rows = (chosen, as_rows, self._constants(agents))
+            values = {name: [int(getattr(b, name)) for b in chosen] for name in names}
+            self._budget_rows = (
+                chosen,
+                BudgetRows(
+                    rows={name: torch.tensor(v, dtype=torch.int64) for name, v in values.items()},
+                    spans={name: (min(v), max(v)) for name, v in values.items()},
+                ),
+                self._constants(agents),
+            )
         _, budget_rows, constants = self._budget_rows
+        start = theta.detach().to(self.device, torch.float32)
         return Round(
             backend=self.backend,
             options=self.options,
             seed=self.run.seed,
             round_index=round_index,
             agents=agents,
-            theta=theta.detach().to(self.device, torch.float32).repeat(len(agents), 1),
+            theta=start.expand(len(agents), -1).clone(),
             budgets=budget_rows,
             constants=constants,
             interrupt=interrupt,

@@ -31,7 +31,6 @@ import time
 from collections.abc import Callable, Iterator, Sequence
 from contextlib import contextmanager
 from dataclasses import dataclass, field, fields, replace
-from typing import NamedTuple
 
 import numpy as np
 import torch
@@ -111,20 +110,17 @@ class RowConstants:
     horizon: torch.Tensor
 
 
-class _Draw(NamedTuple):
-    """The rows of a :meth:`Round.sample` call that sample, and whose draws they make."""
+@dataclass(frozen=True)
+class BudgetRows:
+    """The budgets of a round's rows (made once for a list of budgets, shared by the rounds
+    that repeat it; read-only)."""
 
-    theta: torch.Tensor
-    counts: torch.Tensor
-    horizons: torch.Tensor
-    agents: Sequence[int]
-    draws: Draws
-    positions: torch.Tensor | None
-    """Their rows in the round (None: all of them, in order)."""
-
-    def whole(self, batch: Trajectories, rows: int) -> Trajectories:
-        """``batch`` with its rows named as in the round."""
-        return batch if self.positions is None else batch.regrouped(self.positions, rows)
+    rows: dict[str, torch.Tensor]
+    """Each budget field as [A] int64 on the host (the configured budget, or the round's
+    plan)."""
+    spans: dict[str, tuple[int, int]]
+    """Each field's (least, most) over the rows: how many iterations every row runs and how
+    many some row does, known without reading a tensor."""
 
 
 class Round:
@@ -140,7 +136,7 @@ class Round:
         round_index: int,
         agents: Sequence[int],
         theta: torch.Tensor,
-        budgets: dict[str, torch.Tensor],
+        budgets: BudgetRows,
         constants: RowConstants,
         interrupt: Interrupt | None = None,
     ) -> None:
@@ -152,9 +148,7 @@ class Round:
         self.agents = list(agents)
         self.theta = theta
         """[A, d]: every row starts from θ̃."""
-        self.budgets = budgets
-        """Each budget field as [A] int64 (the configured budget, or the round's plan); read-only:
-        the next round of the same agents shares them."""
+        self._budgets = budgets
         self.constants = constants
         self._tally = Tally.zeros(len(self.agents))
         self._interrupt = interrupt
@@ -174,7 +168,12 @@ class Round:
         return len(self.agents)
 
     def budget(self, name: str) -> torch.Tensor:
-        return self.budgets[name]
+        """Budget field ``name`` of every row, [A] int64 on the host (read-only)."""
+        return self._budgets.rows[name]
+
+    def budget_span(self, name: str) -> tuple[int, int]:
+        """The least and the most of :meth:`budget` ``name`` over the rows."""
+        return self._budgets.spans[name]
 
     @property
     def gammas(self) -> torch.Tensor:
@@ -194,35 +193,22 @@ class Round:
         horizons: torch.Tensor | None = None,
     ) -> Trajectories:
         """``counts[a]`` trajectories of row a at θ row ``theta[a]`` (0: none)."""
-        draw = self._draw(theta, counts, iteration, purpose, horizons)
-        started = time.thread_time()
-        try:
-            batch = self.backend.sample(draw.theta, draw.counts, draw.draws, draw.horizons,
-                                        draw.agents, greedy=greedy)  # fmt: skip
-        finally:
-            self._sampling_s += time.thread_time() - started
-        return draw.whole(batch, self.size)
-
-    def _draw(
-        self,
-        theta: torch.Tensor,
-        counts: torch.Tensor,
-        iteration: int,
-        purpose: Purpose,
-        horizons: torch.Tensor | None,
-    ) -> _Draw:
-        """The rows that sample (``counts`` > 0) and whose draws they make."""
         constants = self.constants
         limit = constants.horizon if horizons is None else horizons
         positions = None
         agents, agent_ids = self.agents, constants.agent
-        if int(counts.min()) == 0:  # some rows sample nothing: the others only
+        if int(counts.min()) == 0:  # some rows sample nothing: the others only, renamed after
             positions = torch.nonzero(counts > 0).squeeze(1)
             theta, counts, limit = theta[positions], counts[positions], limit[positions]
             agents = [self.agents[i] for i in positions.tolist()]
             agent_ids = agent_ids[positions]
         draws = Draws(self.seed, agent_ids, self.round_index, purpose, iteration)
-        return _Draw(theta, counts, limit, agents, draws, positions)
+        started = time.thread_time()
+        try:
+            batch = self.backend.sample(theta, counts, draws, limit, agents, greedy=greedy)
+        finally:
+            self._sampling_s += time.thread_time() - started
+        return batch if positions is None else batch.regrouped(positions, self.size)
 
     def coefficients(
         self, batch: Trajectories, weights: torch.Tensor | None = None
@@ -242,9 +228,9 @@ class Round:
     def mean_gradients(
         self, theta: torch.Tensor, batch: Trajectories, weights: torch.Tensor | None = None
     ) -> torch.Tensor:
-        """(1/B_a) Σ_n g(τ_n | θ_a) with the run's estimator, per row [A, d]."""
-        sums = self.backend.mean_gradient_sums(theta, batch, self.options, self.gammas, weights)
-        return sums.div_(batch.counts.clamp_min(1).unsqueeze(1))
+        """(1/B_a) Σ_n g(τ_n | θ_a) with the run's estimator, per row [A, d] (0 for a row
+        without trajectories)."""
+        return self.backend.mean_gradients(theta, batch, self.options, self.gammas, weights)
 
     def log_probs(self, theta: torch.Tensor, batch: Trajectories) -> torch.Tensor:
         """log π_θa(a_t|s_t) of every alive step under its row's θ row, [T, N] float64 (0

@@ -18,7 +18,7 @@ import torch
 
 from fedhpg.common.configuration.config import RunConfig
 from fedhpg.common.learning.attacks import attack_of
-from fedhpg.common.learning.engine.backend import Draws, coefficients_then_gradients
+from fedhpg.common.learning.engine.backend import Draws, defined_mean_gradients
 from fedhpg.common.learning.engine.copies import make_copies
 from fedhpg.common.learning.engine.estimate import EstimatorOptions, batch_coefficients
 from fedhpg.common.learning.engine.memory import packed_elements
@@ -231,7 +231,7 @@ class TorchBackend:
         finally:
             copies.close()
 
-    def mean_gradient_sums(
+    def mean_gradients(
         self,
         theta: torch.Tensor,
         batch: Trajectories,
@@ -239,7 +239,7 @@ class TorchBackend:
         gammas: torch.Tensor,
         weights: torch.Tensor | None,
     ) -> torch.Tensor:
-        return coefficients_then_gradients(self, theta, batch, options, gammas, weights)
+        return defined_mean_gradients(self, theta, batch, options, gammas, weights)
 
     def coefficients(
         self,
