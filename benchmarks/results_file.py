@@ -34,7 +34,9 @@ A benchmark script calls :func:`write` with its tables; :func:`write` stamps the
 commit (``git rev-parse --short HEAD``) and the machine, unless they are given (a result
 transcribed from an earlier run keeps the ones it was measured with). A script whose section
 is described once in its result file (title, measured paths, set-up) calls :func:`refresh`
-instead, which keeps that description and replaces the tables and the stamps.
+instead, which keeps that description and replaces the tables and the stamps. Either way a
+table re-measured to the very same columns and rows keeps the summary stored with it (one
+written for those numbers), not the script's generic one.
 """
 
 from __future__ import annotations
@@ -271,12 +273,28 @@ def write(
         result["setup"] = setup
     if data is not None:
         result["data"] = data
-    result["tables"] = tables
     path = folder / f"{name}.json"
+    result["tables"] = _keeping_reviewed_summaries(tables, path)
     validate(result, str(path))
     folder.mkdir(parents=True, exist_ok=True)
     path.write_text(json.dumps(result, indent=2, ensure_ascii=False) + "\n")
     return path
+
+
+def _keeping_reviewed_summaries(tables: list[Table], path: Path) -> list[Table]:
+    """``tables``, each one whose columns and rows are those of the stored result's table at
+    the same place taking that table's summary: a re-run that reproduces a table exactly
+    (a learning result after a change that keeps every float) keeps the summary written for
+    those very numbers, in place of the script's generic one."""
+    try:
+        stored = load(path)["tables"]
+    except ResultError:  # none stored yet, or unreadable: the script's summaries
+        return tables
+    kept = []
+    for given, old in zip(tables, stored, strict=False):
+        same = (given["columns"], given["rows"]) == (old["columns"], old["rows"])
+        kept.append({**given, "summary": old["summary"]} if same else given)
+    return kept + tables[len(kept) :]
 
 
 def command_line(module: str) -> str:

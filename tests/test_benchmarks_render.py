@@ -203,3 +203,21 @@ def test_a_refreshed_result_keeps_its_description_and_takes_the_new_stamps(tmp_p
         "abc1234",
         "an old machine",
     )
+
+
+def test_a_table_measured_again_to_the_same_rows_keeps_its_reviewed_summary(
+    tmp_path: Path,
+) -> None:
+    """A re-run whose table comes out the same (a learning result after a change that keeps
+    every float) keeps the summary written for those numbers; one whose rows moved takes the
+    script's."""
+    reviewed: Table = {"columns": ["K", "s"], "rows": [["10", "1.5"]], "summary": "Reviewed."}
+    other: Table = {"columns": ["x"], "rows": [["1"]], "summary": "Also reviewed."}
+    stamps = {"date": "2026-01-01", "commit_hash": "abc1234", "machine_name": "a machine"}
+    write("tiny", title="Tiny", order=1, command="python -m benchmarks.tiny", measures=["code"],
+          tables=[reviewed, other], folder=tmp_path, **stamps)  # fmt: skip
+    same: Table = {**reviewed, "summary": "Generic."}
+    moved: Table = {**other, "rows": [["2"]], "summary": "Generic too."}
+    refresh("tiny", [same, moved], "python -m benchmarks.tiny", folder=tmp_path)
+    tables = load(tmp_path / "tiny.json")["tables"]
+    assert [table["summary"] for table in tables] == ["Reviewed.", "Generic too."]
