@@ -163,6 +163,7 @@ def test_operator_mistakes_end_in_one_line_and_touch_nothing(tmp_path: Path) -> 
 
 
 @pytest.mark.slow
+@pytest.mark.solo  # a second server's start-up races the live run's last rounds
 def test_a_second_server_cannot_take_a_live_run_directory(tmp_path: Path) -> None:
     out_dir = tmp_path / "run"
     port = free_port()

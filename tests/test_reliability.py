@@ -80,6 +80,7 @@ def test_agent_killed_mid_round_rejoins_and_theta_is_unchanged(tmp_path: Path) -
 
 
 @pytest.mark.slow
+@pytest.mark.solo  # agents 0 and 2 must make a 1.5 s round deadline every round
 def test_deadline_policy_aggregates_without_the_dead_and_the_slow(tmp_path: Path) -> None:
     """deadline: agent-1 is too slow for the round deadline and agent-2 is killed mid-run and
     never comes back; every round still completes, from the updates that arrived, and the
