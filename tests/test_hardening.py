@@ -262,6 +262,7 @@ def test_counters_survive_a_resume(tmp_path: Path) -> None:
 
 
 @pytest.mark.slow
+@pytest.mark.solo  # gives up within 30 s, timed
 def test_an_agent_pointed_at_no_fedhpg_server_says_so_quickly(tmp_path: Path) -> None:
     """A port where something accepts TCP but never speaks ZMTP: one line, long before
     agent.connect_timeout_s (60 s)."""

@@ -48,6 +48,7 @@ def _wait_for_round(metrics: Path, count: int) -> None:
 # rejoins, θ̃ the uninterrupted in-process one) and tests/test_hosts.py::
 # test_a_killed_host_is_restarted_and_its_agents_rejoin (presumed dead, rejoined, θ̃ the same)
 @pytest.mark.slow
+@pytest.mark.solo  # the kill must land inside round 4 (0.2 s after round 3), 1 s liveness
 def test_agent_killed_mid_round_rejoins_and_theta_is_unchanged(tmp_path: Path) -> None:
     """wait_all: kill -9 an agent in the middle of a round and start it again; it rejoins at
     the open round, redoes exactly the lost work, and the run ends with the θ of an
