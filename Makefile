@@ -41,11 +41,15 @@ test: $(STAMP) typecheck contracts docs
 
 # The long tier (marked slow): every shipped env preset learns, every docs page's code runs as
 # printed, the longest integration runs, the resource attacks and the 10,000-frame fuzz of a
-# live server (~15 min on 2 cores). One worker: the resource attacks time how many connections
-# a server sheds, which a learning run on the other core would starve. .ci/run runs it after
-# make test.
+# live server (~15 min on 2 cores). Two workers first, as make test shares them (the tests that
+# start federations one after another on one worker; the learning runs, and the docs pages one
+# page a unit, marked alongside, on either); then, on one worker, the tests marked solo: those
+# timed against the wall clock or counting what a server does under load (the resource attacks
+# time how many connections a server sheds), which a learning run on the other core would
+# starve. .ci/run runs it after make test.
 test-long: $(STAMP)
-	$(BIN)/python -m pytest -q -m slow
+	$(BIN)/python -m pytest -q -m "slow and not solo" -n 2 --dist loadscope
+	$(BIN)/python -m pytest -q -m "slow and solo"
 
 # The image without Docker Hub or an index: a debootstrap base, this machine's wheels, an offline
 # build (the running engine: DOCKER_HOST, or `docker/engine.sh start` prints one).

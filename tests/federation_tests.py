@@ -128,13 +128,17 @@ def module_source(path: Path) -> ModuleSource:
     )
 
 
-def _marked_slow(node: ast.AST) -> bool:
+def _marked(node: ast.AST | None, mark: str) -> bool:
     decorators = getattr(node, "decorator_list", [])
     return any(
-        isinstance(sub, ast.Attribute) and sub.attr == "slow"
+        isinstance(sub, ast.Attribute) and sub.attr == mark
         for deco in decorators
         for sub in ast.walk(deco)
     )
+
+
+def _marked_slow(node: ast.AST) -> bool:
+    return _marked(node, "slow")
 
 
 def _uses_federations(node: ast.AST, module: ModuleSource, seen: set[str]) -> bool:
@@ -198,3 +202,13 @@ def starts_federations(path: Path, nodeid: str) -> bool:
     if any(_uses_federations(module.definitions[a], module, seen) for a in module.autouse):
         return True
     return _uses_federations(node, module, seen)
+
+
+def runs_alongside(path: Path, nodeid: str) -> bool:
+    """Whether the test ``nodeid`` of the module at ``path`` is marked ``alongside``: it starts
+    federations, but only with the defaults' wide margins (every docs page run as printed), so
+    each of its cases is a work unit of its own that may run beside the federations' serial
+    unit on the other worker (tests/conftest.py)."""
+    parts = nodeid.split("::")
+    name = parts[1].split("[", 1)[0] if len(parts) > 1 else ""
+    return _marked(module_source(path).definitions.get(name), "alongside")

@@ -115,6 +115,7 @@ def _run(block: Block, cwd: Path) -> None:
 
 
 @pytest.mark.slow
+@pytest.mark.alongside  # the pages' federations keep the defaults' waits (60 s to register, …)
 @pytest.mark.parametrize("page", PAGES, ids=[p.name for p in PAGES])
 def test_the_pages_code_runs_as_printed(page: Path, tmp_path: Path) -> None:
     cwd = _workdir(tmp_path)

@@ -6,7 +6,7 @@ from __future__ import annotations
 from pathlib import Path
 
 import pytest
-from federation_tests import starts_federations
+from federation_tests import runs_alongside, starts_federations
 
 TESTS = Path(__file__).parent
 
@@ -82,3 +82,17 @@ def test_a_helper_or_fixture_that_starts_processes_or_a_shared_fixture_makes_a_f
         "TestGroup::test_method": True,
         "test_by_shared_fixture": True,
     }
+
+
+def test_the_docs_pages_run_alongside_the_federations_one_page_a_unit() -> None:
+    """The long tier's docs pages start federations, but may run beside the serial unit; the
+    other tests of the module, and the federations elsewhere, may not."""
+    pages = "tests/test_docs.py::test_the_pages_code_runs_as_printed[README.md]"
+    assert starts_federations(TESTS / "test_docs.py", pages)
+    assert runs_alongside(TESTS / "test_docs.py", pages)
+    for nodeid in (
+        "tests/test_docs.py::test_the_readmes_quickstart_output_is_what_the_demo_prints",
+        "tests/test_resources.py::test_resource_attacks_leave_the_run_intact",
+        "tests/test_hosts.py::test_theta_does_not_depend_on_the_placement_of_the_agents[fedhpg]",
+    ):
+        assert not runs_alongside(TESTS / nodeid.split("::")[0].removeprefix("tests/"), nodeid)

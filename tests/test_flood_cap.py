@@ -123,6 +123,7 @@ def test_a_secure_round_of_a_host_of_150_agents_one_row_per_message(tmp_path: Pa
 
 
 @pytest.mark.slow
+@pytest.mark.solo  # 1,000 agents' answers past the flood cap, each round within 20 s
 def test_a_host_of_1000_agents_is_aggregated_whole(tmp_path: Path) -> None:
     """67 messages of 15 agents each: three past the cap."""
     k = 1000

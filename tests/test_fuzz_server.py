@@ -219,6 +219,7 @@ def _fuzz(port: int, signature: dict[str, str]) -> int:
 
 
 @pytest.mark.slow
+@pytest.mark.solo  # rounds must go on while the fuzz floods the server
 def test_live_server_survives_ten_thousand_fuzzed_frames(tmp_path: Path) -> None:
     run_keys = [
         "rounds=40", "seed=11", "agents.num_agents=2", "agents.budget.batch_size=[6]",

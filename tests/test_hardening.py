@@ -163,6 +163,7 @@ def test_operator_mistakes_end_in_one_line_and_touch_nothing(tmp_path: Path) -> 
 
 
 @pytest.mark.slow
+@pytest.mark.solo  # a second server's start-up races the live run's last rounds
 def test_a_second_server_cannot_take_a_live_run_directory(tmp_path: Path) -> None:
     out_dir = tmp_path / "run"
     port = free_port()
@@ -261,6 +262,7 @@ def test_counters_survive_a_resume(tmp_path: Path) -> None:
 
 
 @pytest.mark.slow
+@pytest.mark.solo  # gives up within 30 s, timed
 def test_an_agent_pointed_at_no_fedhpg_server_says_so_quickly(tmp_path: Path) -> None:
     """A port where something accepts TCP but never speaks ZMTP: one line, long before
     agent.connect_timeout_s (60 s)."""

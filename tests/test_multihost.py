@@ -129,6 +129,7 @@ def _rounds(metrics: Path) -> list[int]:
 
 
 @pytest.mark.slow
+@pytest.mark.solo  # gives up within liveness + rejoin timeout + 10 s of the cut
 def test_cut_link_fails_the_run_naming_the_agent(hosts: dict[str, str], tmp_path: Path) -> None:
     with processes() as started:
         server, _, metrics = _federation(hosts, tmp_path, 1000, started)
@@ -147,6 +148,7 @@ def test_cut_link_fails_the_run_naming_the_agent(hosts: dict[str, str], tmp_path
 
 
 @pytest.mark.slow
+@pytest.mark.solo  # a link down for 2 s of heartbeats + 1.5 s, short of rejoin_timeout_s
 def test_healed_link_rejoins_and_the_run_finishes(hosts: dict[str, str], tmp_path: Path) -> None:
     rounds = 40
     with processes() as started:

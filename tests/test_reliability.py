@@ -43,6 +43,12 @@ def _wait_for_round(metrics: Path, count: int) -> None:
     )
 
 
+# ~21 s: make test-long. fast cover: tests/test_launcher.py::
+# test_a_killed_agent_is_restarted_and_the_run_ends_as_if_nothing_happened (a SIGKILLed agent
+# rejoins, θ̃ the uninterrupted in-process one) and tests/test_hosts.py::
+# test_a_killed_host_is_restarted_and_its_agents_rejoin (presumed dead, rejoined, θ̃ the same)
+@pytest.mark.slow
+@pytest.mark.solo  # the kill must land inside round 4 (0.2 s after round 3), 1 s liveness
 def test_agent_killed_mid_round_rejoins_and_theta_is_unchanged(tmp_path: Path) -> None:
     """wait_all: kill -9 an agent in the middle of a round and start it again; it rejoins at
     the open round, redoes exactly the lost work, and the run ends with the θ of an
@@ -80,6 +86,7 @@ def test_agent_killed_mid_round_rejoins_and_theta_is_unchanged(tmp_path: Path) -
 
 
 @pytest.mark.slow
+@pytest.mark.solo  # agents 0 and 2 must make a 1.5 s round deadline every round
 def test_deadline_policy_aggregates_without_the_dead_and_the_slow(tmp_path: Path) -> None:
     """deadline: agent-1 is too slow for the round deadline and agent-2 is killed mid-run and
     never comes back; every round still completes, from the updates that arrived, and the

@@ -103,6 +103,7 @@ def _rounds(metrics: Path) -> int:
 
 
 @pytest.mark.slow
+@pytest.mark.solo  # counts rounds in timed windows and the flood's messages sent
 def test_resource_attacks_leave_the_run_intact(tmp_path: Path) -> None:
     port = free_port()
     out_dir = tmp_path / "run"

@@ -67,6 +67,12 @@ def test_killed_server_resumes_to_the_same_theta(tmp_path: Path, strategy: list[
     assert torch.equal(checkpoint.theta, run_in_process(compose(run_keys)))
 
 
+# ~18 s: make test-long. fast cover: tests/test_resume.py::
+# test_killed_server_resumes_to_the_same_theta (kill -9 mid-run, resume, θ̃ the uninterrupted
+# one bit for bit), tests/test_cli_output.py::
+# test_named_port_one_log_format_and_resume_from_the_run_directory (fedhpg-run resume=DIR from
+# the run's config.json) and tests/test_launcher.py::test_children_die_with_a_killed_launcher
+@pytest.mark.slow
 def test_killed_launcher_resumes_with_fedhpg_run_resume_dir(tmp_path: Path) -> None:
     """``fedhpg-run resume=DIR``: the whole local federation is killed (its children die with
     it), then resumed from the run directory; the final θ̃ is the uninterrupted one."""

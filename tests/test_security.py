@@ -13,6 +13,7 @@ import subprocess
 import threading
 import time
 from collections.abc import Iterator
+from dataclasses import dataclass
 from pathlib import Path
 
 import msgpack
@@ -209,38 +210,99 @@ def test_launcher_checks_every_agent_key_before_starting(tmp_path: Path) -> None
 # --- refusals ---------------------------------------------------------------------------------
 
 
-@pytest.mark.timeout(TIMEOUT_S + 60)
-def test_unknown_key_cannot_register_and_is_logged(tmp_path: Path, started: list) -> None:
-    keys = _keys(tmp_path, "keys", "--agents", "1")
+@dataclass(frozen=True)
+class Refusal:
+    """A refused agent's stderr and how long it took to give up."""
+
+    stderr: str
+    elapsed: float
+
+
+@dataclass(frozen=True)
+class RefusedAtOneServer:
+    """One CURVE federation of two agents (both keys allowed) whose server first meets, one
+    after another, every agent it must refuse, then runs to its end with the two honest agents:
+    the refusals' outcomes, the server's stderr and the rounds it wrote."""
+
+    refused: dict[str, Refusal]
+    stranger_key: str
+    server_err: str
+    rounds: int
+
+
+REFUSED_AGENTS = ("unknown key", "plaintext agent", "lent key", "lone agent's key")
+SHARED_TIMEOUT_S = TIMEOUT_S + 60 + len(REFUSED_AGENTS) * REFUSAL_BOUND_S
+"""The refusals' tests: the first to run builds their shared federation, four refusals and a
+run (each test's own bound was TIMEOUT_S + 60, a refusal's REFUSAL_BOUND_S)."""
+
+
+@pytest.fixture(scope="module")
+def refused_at_one_server(tmp_path_factory: pytest.TempPathFactory) -> RefusedAtOneServer:
+    """The refusals a CURVE server makes, each as its own test once made a federation of its
+    own (a server, the refused agent, the honest agents, 3 rounds): here they share one, which
+    keeps serving after each and completes the run, which is what each test asserts besides
+    its refusal. ``server.register_timeout_s`` covers the refusals one after another, each
+    bounded by REFUSAL_BOUND_S."""
+    tmp_path = tmp_path_factory.mktemp("refusals")
+    keys = _keys(tmp_path, "keys", "--agents", "2")
     strangers = _keys(tmp_path, "strangers", "--agents", "1")  # valid pairs, never allowed
     port, out_dir = free_port(), tmp_path / "run"
-    overrides = _overrides(port, out_dir, agents=1)
-    server = start(started, "fedhpg-server", [*overrides, *_curve(keys)], cwd=tmp_path)
-
+    overrides = [
+        *_overrides(port, out_dir, agents=2),
+        f"server.register_timeout_s={len(REFUSED_AGENTS) * REFUSAL_BOUND_S + 60:g}",
+    ]
     secret = strangers / "agent-0.key_secret"
-    stderr, elapsed = _refused(started, [*overrides, *_lent_keys(keys, secret)], tmp_path)
-    stranger_key = zmq.auth.load_certificate(secret)[0].decode()
-    assert "the server refused this agent's CURVE key (not in its allow-list)" in stderr
-    assert stranger_key in stderr
-    assert elapsed < REFUSAL_BOUND_S, f"took {elapsed:.1f} s: waited for the connect timeout?"
+    attempts = {
+        "unknown key": [*overrides, *_lent_keys(keys, secret)],
+        "plaintext agent": overrides,
+        # agent-1's key (allowed) lent to agent-0's id
+        "lent key": [*overrides, "agent.index=0", *_lent_keys(keys, keys / "agent-1.key_secret")],
+        # agent-0's key, under agent-0's own id, claiming index 1
+        "lone agent's key": [*overrides, *_curve(keys), "agent.index=1", "agent.id=agent-0"],
+    }
+    assert tuple(attempts) == REFUSED_AGENTS
+    with processes() as started:
+        server = start(started, "fedhpg-server", [*overrides, *_curve(keys)], cwd=tmp_path)
+        refused = {}
+        for name, args in attempts.items():
+            stderr, elapsed = _refused(started, args, tmp_path)
+            refused[name] = Refusal(stderr, elapsed)
+        agents = [
+            start(
+                started,
+                "fedhpg-agent",
+                [*overrides, *_curve(keys), f"agent.index={k}"],
+                cwd=tmp_path,
+            )
+            for k in range(2)
+        ]
+        server_err = _finish(server, agents)
+    return RefusedAtOneServer(
+        refused,
+        zmq.auth.load_certificate(secret)[0].decode(),
+        server_err,
+        _metrics_rounds(out_dir),
+    )
 
-    # The server keeps serving: the allowed agent registers and the run completes.
-    agent = start(started, "fedhpg-agent", [*overrides, *_curve(keys)], cwd=tmp_path)
-    server_err = _finish(server, [agent])
-    assert f"refused CURVE key {stranger_key} from " in server_err
-    assert _metrics_rounds(out_dir) == 3
+
+@pytest.mark.timeout(SHARED_TIMEOUT_S)
+def test_unknown_key_cannot_register_and_is_logged(
+    refused_at_one_server: RefusedAtOneServer,
+) -> None:
+    shared = refused_at_one_server
+    refusal, stranger_key = shared.refused["unknown key"], shared.stranger_key
+    assert "the server refused this agent's CURVE key (not in its allow-list)" in refusal.stderr
+    assert stranger_key in refusal.stderr
+    assert refusal.elapsed < REFUSAL_BOUND_S, (
+        f"took {refusal.elapsed:.1f} s: waited for the connect timeout?"
+    )
+
+    # The server keeps serving: the allowed agents register and the run completes.
+    assert f"refused CURVE key {stranger_key} from " in shared.server_err
+    assert shared.rounds == 3
 
 
-@pytest.mark.timeout(TIMEOUT_S + 60)
-@pytest.mark.parametrize("curve_side", ["server", "agent"])
-def test_plaintext_and_curve_do_not_mix(tmp_path: Path, started: list, curve_side: str) -> None:
-    keys = _keys(tmp_path, "keys", "--agents", "1")
-    port, out_dir = free_port(), tmp_path / "run"
-    overrides = _overrides(port, out_dir, agents=1)
-    server_args = [*overrides, *(_curve(keys) if curve_side == "server" else [])]
-    agent_args = [*overrides, *(_curve(keys) if curve_side == "agent" else [])]
-    server = start(started, "fedhpg-server", server_args, cwd=tmp_path)
-    stderr, elapsed = _refused(started, agent_args, tmp_path)
+def _plaintext_and_curve_refusal(stderr: str, elapsed: float) -> None:
     assert elapsed < REFUSAL_BOUND_S, f"took {elapsed:.1f} s: waited for the connect timeout?"
     lines = [line for line in stderr.splitlines() if line.startswith("error:")]
     assert len(lines) == 1, stderr
@@ -249,28 +311,48 @@ def test_plaintext_and_curve_do_not_mix(tmp_path: Path, started: list, curve_sid
     # server logs the mismatch when it is the one to notice, so that is not asserted.)
     assert "CURVE" in lines[0] and ("mismatch" in lines[0] or "failed 3 times" in lines[0])
 
+
+@pytest.mark.parametrize(
+    "curve_side",
+    [
+        pytest.param("server", marks=pytest.mark.timeout(SHARED_TIMEOUT_S)),
+        pytest.param("agent", marks=pytest.mark.timeout(TIMEOUT_S + 60)),
+    ],
+)
+def test_plaintext_and_curve_do_not_mix(
+    tmp_path: Path, started: list, curve_side: str, request: pytest.FixtureRequest
+) -> None:
+    if curve_side == "server":  # a plaintext agent, at the CURVE server the refusals share
+        shared: RefusedAtOneServer = request.getfixturevalue("refused_at_one_server")
+        refusal = shared.refused["plaintext agent"]
+        _plaintext_and_curve_refusal(refusal.stderr, refusal.elapsed)
+        # The server keeps serving: agents with its settings register and the run completes.
+        assert shared.rounds == 3
+        return
+    keys = _keys(tmp_path, "keys", "--agents", "1")
+    port, out_dir = free_port(), tmp_path / "run"
+    server_args = _overrides(port, out_dir, agents=1)
+    agent_args = [*server_args, *_curve(keys)]
+    server = start(started, "fedhpg-server", server_args, cwd=tmp_path)
+    _plaintext_and_curve_refusal(*_refused(started, agent_args, tmp_path))
+
     # The server keeps serving: an agent with its settings registers and the run completes.
     agent = start(started, "fedhpg-agent", server_args, cwd=tmp_path)
     _finish(server, [agent])
     assert _metrics_rounds(out_dir) == 3
 
 
-@pytest.mark.timeout(TIMEOUT_S + 60)
-def test_allowed_key_lent_to_another_agent_id_is_rejected(tmp_path: Path, started: list) -> None:
-    keys = _keys(tmp_path, "keys", "--agents", "2")  # both keys allowed; a run of one agent
-    port, out_dir = free_port(), tmp_path / "run"
-    overrides = _overrides(port, out_dir, agents=1)
-    server = start(started, "fedhpg-server", [*overrides, *_curve(keys)], cwd=tmp_path)
-    impostor = [*overrides, "agent.index=0", *_lent_keys(keys, keys / "agent-1.key_secret")]
-    stderr, _ = _refused(started, impostor, tmp_path)
+@pytest.mark.timeout(SHARED_TIMEOUT_S)
+def test_allowed_key_lent_to_another_agent_id_is_rejected(
+    refused_at_one_server: RefusedAtOneServer,
+) -> None:
+    stderr = refused_at_one_server.refused["lent key"].stderr
     assert f"server refused registration ({KEY_MISMATCH})" in stderr
     assert "'agent-1'" in stderr and "'agent-0'" in stderr
 
     # agent-0 with its own key takes the place the impostor could not, and the run completes.
-    agent = start(started, "fedhpg-agent", [*overrides, *_curve(keys)], cwd=tmp_path)
-    server_err = _finish(server, [agent])
-    assert f"{KEY_MISMATCH}: the CURVE key of 'agent-1'" in server_err
-    assert _metrics_rounds(out_dir) == 3
+    assert f"{KEY_MISMATCH}: the CURVE key of 'agent-1'" in refused_at_one_server.server_err
+    assert refused_at_one_server.rounds == 3
 
 
 @pytest.mark.timeout(TIMEOUT_S + 60)
@@ -298,23 +380,16 @@ def test_a_hosts_key_cannot_register_another_range(tmp_path: Path, started: list
     assert _metrics_rounds(out_dir) == 3
 
 
-@pytest.mark.timeout(TIMEOUT_S + 60)
-def test_a_lone_agents_key_cannot_register_another_index(tmp_path: Path, started: list) -> None:
+@pytest.mark.timeout(SHARED_TIMEOUT_S)
+def test_a_lone_agents_key_cannot_register_another_index(
+    refused_at_one_server: RefusedAtOneServer,
+) -> None:
     """agent-0's key, under agent-0's own id, claiming index 1 (it took the index before, and
     the honest agent-1 was refused): refused; agent-1 then takes its place."""
-    keys = _keys(tmp_path, "keys", "--agents", "2")
-    port, out_dir = free_port(), tmp_path / "run"
-    overrides = [*_overrides(port, out_dir), *_curve(keys)]
-    server = start(started, "fedhpg-server", overrides, cwd=tmp_path)
-    stderr, _ = _refused(started, [*overrides, "agent.index=1", "agent.id=agent-0"], tmp_path)
+    stderr = refused_at_one_server.refused["lone agent's key"].stderr
     assert f"server refused registration ({KEY_MISMATCH})" in stderr
     assert "'agent-0' (agent 0)" in stderr and "'agent-0' (agent 1)" in stderr
-    agents = [
-        start(started, "fedhpg-agent", [*overrides, f"agent.index={k}"], cwd=tmp_path)
-        for k in range(2)
-    ]
-    _finish(server, agents)
-    assert _metrics_rounds(out_dir) == 3
+    assert refused_at_one_server.rounds == 3
 
 
 class _Frame:
