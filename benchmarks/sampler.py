@@ -235,7 +235,7 @@ def main() -> None:
             f"{REPEATS} slices, medians, on one thread; only steps of running episodes count. "
             "GridWorld and CartPole: the bare loop steps the same batched environment. "
             "LunarLander and HalfCheetah: the sampler on `GymLoopBatchEnv` (and on gymnasium's "
-            "`SyncVectorEnv`) against one `gym.make` environment stepped and reset in a loop."
+            "SyncVectorEnv) against one `gym.make` environment stepped and reset in a loop."
         ),
         tables=[
             results_file.table_from_markdown(
