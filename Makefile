@@ -33,7 +33,7 @@ docs: $(STAMP)
 
 # Two xdist workers: the tests that start federations run one after another on one of them
 # (tests/federation_tests.py picks them test by test); both share the rest. From a fresh clone
-# on 2 cores: ~12 min in all, ~9 of them the tests.
+# on 2 cores: ~13 min in all, ~10.5 of them the tests.
 test: $(STAMP) typecheck contracts docs
 	$(BIN)/ruff check .
 	$(BIN)/python -m benchmarks.render --check
@@ -41,7 +41,7 @@ test: $(STAMP) typecheck contracts docs
 
 # The long tier (marked slow): every shipped env preset learns, every docs page's code runs as
 # printed, the longest integration runs, the resource attacks and the 10,000-frame fuzz of a
-# live server (~15 min on 2 cores). Two workers first, as make test shares them (the tests that
+# live server (~12 min on 2 cores). Two workers first, as make test shares them (the tests that
 # start federations one after another on one worker; the learning runs, and the docs pages one
 # page a unit, marked alongside, on either); then, on one worker, the tests marked solo: those
 # timed against the wall clock or counting what a server does under load (the resource attacks
