@@ -255,7 +255,7 @@ def refused_at_one_server(tmp_path_factory: pytest.TempPathFactory) -> RefusedAt
     attempts = {
         "unknown key": [*overrides, *_lent_keys(keys, secret)],
         "plaintext agent": overrides,
-        # agent-1's key (allowed) lent to agent-0's id
+        # agent-1's key (allowed) presented under agent-0's id
         "lent key": [*overrides, "agent.index=0", *_lent_keys(keys, keys / "agent-1.key_secret")],
         # agent-0's key, under agent-0's own id, claiming index 1
         "lone agent's key": [*overrides, *_curve(keys), "agent.index=1", "agent.id=agent-0"],
