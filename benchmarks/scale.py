@@ -35,7 +35,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from benchmarks import engine_ab
+from benchmarks import engine_ab, results_file
 from benchmarks.runtime import _federation
 from benchmarks.scale_refs import bare_loop, cpu_description, forward_loop
 from fedhpg.common.learning.components import agent_profile
@@ -262,6 +262,86 @@ def table(results: list[CaseResult]) -> str:
     return "\n".join(lines)
 
 
+DEVICE_ROW = ("k1000", "device")
+"""The cases of the device-resident path's comparison with the compiled engine."""
+DEVICE_ROW_RESULTS = RESULTS.with_name("scale_device_row.json")
+
+
+def device_row_table(results: list[CaseResult]) -> str:
+    """The compiled engine's and the torch path's K = 1,000 federations, side by side."""
+    lines = [
+        "| case | env steps per round | sampling: steps per CPU-s | vs (b) | round: steps/s "
+        "| per core vs (b) |",
+        "|---|---|---|---|---|---|",
+    ]
+    for r in results:
+        b = r.refs["b_gym_plus_forward"]
+        cores = min(-(-r.case.agents // r.case.per_host), CORES)
+        lines.append(
+            f"| {_device_case(r)} | {r.env_steps_per_round:,.0f} | "
+            f"{r.sampling_steps_per_cpu_s / 1e6:.2f} M | {r.sampling_steps_per_cpu_s / b:.2f} | "
+            f"{r.round_steps_per_s / 1e6:.2f} M | {r.round_steps_per_s / cores / b:.2f} |"
+        )
+    return "\n".join(lines)
+
+
+def device_row_summary(results: list[CaseResult]) -> str:
+    compiled = next(r for r in results if "algo.engine=torch" not in r.case.extra)
+    torch_path = next(r for r in results if "algo.engine=torch" in r.case.extra)
+    sampling = compiled.sampling_steps_per_cpu_s / torch_path.sampling_steps_per_cpu_s
+    rounds = compiled.round_steps_per_s / torch_path.round_steps_per_s
+    return (
+        f"On the CPU the device-resident path samples {sampling:.0f}× slower than the compiled "
+        f"engine and runs whole rounds {rounds:.0f}× slower: it is for a GPU, and on a CPU the "
+        "compiled engine stays the default (`algo.engine=auto`)."
+    )
+
+
+def _relative(path: Path) -> str:
+    """``path`` from the repository's root where it lies inside it."""
+    root = RESULTS.parents[2].resolve()
+    full = path.resolve()
+    return str(full.relative_to(root)) if full.is_relative_to(root) else str(path)
+
+
+def _device_case(r: CaseResult) -> str:
+    runs = f" ({r.case.repeats} runs)" if r.case.repeats > 1 else ""
+    if "algo.engine=torch" in r.case.extra:
+        return f"torch CartPole, torch engine, CPU{runs}"
+    return f"compiled engine{runs}"
+
+
+def _write_device_row(results: list[CaseResult], data: Path, machine: str) -> None:
+    data.write_text(json.dumps({
+        "machine": machine,
+        "cases": [{**asdict(r), "case": asdict(r.case)} for r in results],
+        "against_baseline": [],
+    }, indent=1) + "\n")  # fmt: skip
+    results_file.write(
+        "scale_device_row",
+        title="Thousands of agents: the device-resident path on the CPU",
+        order=183,
+        command=results_file.command_line("benchmarks.scale"),
+        measures=[
+            "server",
+            "agent",
+            "common/runtime",
+            "common/wire",
+            "common/learning/engine",
+            "common/learning/batched",
+            "envs/device",
+        ],
+        setup=(
+            "The same federation (K = 1,000, 2 hosts of 500, population budgets) on the "
+            "compiled engine and on the torch engine with the torch CartPole."
+        ),
+        data=[_relative(data)],
+        tables=[
+            results_file.table_from_markdown(device_row_table(results), device_row_summary(results))
+        ],
+    )
+
+
 def figure(results: list[CaseResult], machine: str) -> None:
     """Left: the federation's throughput as a multiple of reference (b), sampling and whole
     round per core, against the issue's 0.7 and 0.3; right: peak PSS against 2 GB. The
@@ -362,6 +442,9 @@ def main() -> None:
     print(table(results))
     engine = [] if args.skip_baseline else against_baseline()
     print("\n".join(engine_ab.report(c) for c in engine))
+    if sorted(args.cases) == sorted(DEVICE_ROW):
+        _write_device_row(results, args.out or DEVICE_ROW_RESULTS, machine)
+        return
     if len(args.cases) < len(CASES):
         # a subset is a spot check: the results file and the figure hold the whole table
         if args.out is not None:

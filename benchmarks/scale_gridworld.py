@@ -17,6 +17,7 @@ from pathlib import Path
 
 import numpy as np
 
+from benchmarks import results_file
 from benchmarks.runtime import _federation
 
 RESULTS = Path(__file__).parent / "results" / "scale_gridworld.json"
@@ -92,18 +93,71 @@ def figure(result: dict) -> None:
     fig.savefig(FIGURE, dpi=120)
 
 
+def table(result: dict) -> str:
+    """Every evaluation of the run, the first with every environment solved in bold."""
+    curve = result["curve"]
+    first = next((p["round"] for p in curve if p["solved_share"] >= 1.0), None)
+    lines = [
+        "| round | emulated s | trajectories per agent "
+        f"| environments solved (success ≥ {THRESHOLD}) | mean greedy success |",
+        "|---|---|---|---|---|",
+    ]
+    for p in curve:
+        solved = f"{p['solved_share']:.3f}"
+        if p["round"] == first:
+            solved = f"**{solved}**"
+        lines.append(
+            f"| {p['round']} | {p['emulated_s']:.2f} | {p['trajectories_per_agent']:.1f} "
+            f"| {solved} | {p['mean_success']:.3f} |"
+        )
+    return "\n".join(lines)
+
+
+def summary(result: dict) -> str:
+    curve = result["curve"]
+    solved = next((p for p in curve if p["solved_share"] >= 1.0), None)
+    if solved is not None:
+        return (
+            f"All {AGENTS:,} environments are solved by round {solved['round']}, at "
+            f"{solved['trajectories_per_agent']:.1f} trajectories per agent."
+        )
+    best = max(curve, key=lambda p: p["solved_share"])
+    return (
+        f"At most {best['solved_share']:.1%} of the {AGENTS:,} environments are solved at once "
+        f"(round {best['round']}), never all of them in {ROUNDS} rounds."
+    )
+
+
 def main() -> None:
     result = run()
     RESULTS.parent.mkdir(parents=True, exist_ok=True)
     RESULTS.write_text(json.dumps(result, indent=1) + "\n")
     figure(result)
-    first = next((p for p in result["curve"] if p["solved_share"] >= 0.95), None)
-    print("| round | emulated s | trajectories/agent | share solved | mean success |")
-    print("|---|---|---|---|---|")
-    for p in result["curve"]:
-        print(f"| {p['round']} | {p['emulated_s']:.2f} | {p['trajectories_per_agent']:.1f} | "
-              f"{p['solved_share']:.3f} | {p['mean_success']:.3f} |")  # fmt: skip
-    print(f"first evaluation with ≥ 95 % solved: {first}")
+    results_file.write(
+        "scale_gridworld",
+        title="GridWorld, K = 1,000 on agent hosts",
+        order=161,
+        command="python -m benchmarks.scale_gridworld",
+        measures=["server", "agent", "common/runtime", "common/wire", *results_file.LEARNING_CODE],
+        setup=(
+            f"Two hosts of {AGENTS // 2}, {PER_ROUND} agents a round, the population's budgets "
+            f"and speeds, counted clock, greedy evaluation in all {AGENTS:,} environments every "
+            f"{EVERY} rounds."
+        ),
+        data=["benchmarks/results/scale_gridworld.json"],
+        tables=[
+            results_file.table_from_markdown(
+                table(result),
+                summary(result),
+                figure={
+                    "path": "docs/scale_gridworld.png",
+                    "caption": "environments solved against rounds",
+                },
+            )
+        ],
+    )
+    print(table(result))
+    print(summary(result))
 
 
 if __name__ == "__main__":
