@@ -223,6 +223,11 @@ def _transition_table(model: GridModel, slip: float) -> np.ndarray:
     return probs
 
 
+def slip_bounds(slip: float) -> list[float]:
+    """(slip/3, 2·slip/3, slip): a step's uniform u picks column j = #{bounds ≤ u}."""
+    return [slip / 3, 2 * slip / 3, slip]
+
+
 class GridWorldBatchEnv:
     """B copies of one GridWorld, stepped with a few numpy operations per step (no Python loop
     over copies), because the sampler spends most of its time here.
@@ -247,7 +252,7 @@ class GridWorldBatchEnv:
         self.num_envs = int(num_envs)
         self.single_observation_space = gym.spaces.Discrete(self.model.num_cells)
         self.single_action_space = gym.spaces.Discrete(NUM_ACTIONS)
-        self._slip_bounds = np.array([self.slip / 3, 2 * self.slip / 3, self.slip])
+        self._slip_bounds = np.array(slip_bounds(self.slip))
         columns = np.array([1, 2, 3, 0])
         directions = (np.arange(NUM_ACTIONS)[:, None] + columns[None, :]) % NUM_ACTIONS
         self._outcome = self.model.next_state[:, directions]  # [s, a, j]

@@ -20,11 +20,12 @@ import torch
 
 from fedhpg.envs.base import EnvVariant
 from fedhpg.envs.device.tensors import Params, TableFamily, TensorCopies
-from fedhpg.envs.gridworld import NUM_ACTIONS, GridWorldVariant, parse_layout
+from fedhpg.envs.gridworld import NUM_ACTIONS, GridWorldVariant, parse_layout, slip_bounds
 
 
 class GridWorldCopies(TensorCopies):
-    """GridWorld copies: state [cell] in int64; ``params["table"]`` each copy's layout."""
+    """GridWorld copies: state [cell] in int64; ``params["table"]`` each copy's layout,
+    ``params["bounds"]`` its :func:`~fedhpg.envs.gridworld.slip_bounds`."""
 
     state_size = 1
     state_dtype = torch.int64
@@ -38,11 +39,7 @@ class GridWorldCopies(TensorCopies):
         self, state: torch.Tensor, actions: torch.Tensor, p: Params, noise: torch.Tensor | None
     ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
         assert noise is not None, "GridWorld's steps take one uniform per copy"
-        u = noise[:, 0]
-        slip = p["slip"]
-        column = (
-            (u >= slip / 3).long() + (u >= 2 * slip / 3).long() + (u >= slip).long()
-        )  # searchsorted(bounds, u, side="right")
+        column = (noise[:, :1] >= p["bounds"]).sum(1)  # searchsorted(bounds, u, side="right")
         table = p["table"]
         cell = self.tables["outcome"][table, state[0], actions.reshape(-1).long(), column]
         reward = self.tables["reward"][table, cell]
@@ -82,9 +79,9 @@ def gridworld_family(variants: Sequence[EnvVariant], device: torch.device) -> Ta
     table = [distinct.setdefault(v.layout, len(distinct)) for v in grids]
     return TableFamily(
         GridWorldCopies,
-        {"slip": [v.slip for v in grids], "table": table},
+        {"bounds": [slip_bounds(v.slip) for v in grids], "table": table},
         [v.max_steps for v in grids],
         device,
-        dtypes={"slip": torch.float64, "table": torch.int64},
+        dtypes={"bounds": torch.float64, "table": torch.int64},
         tables=_layout_tables(list(distinct)),
     )

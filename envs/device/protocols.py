@@ -62,6 +62,8 @@ class DeviceFamily(Protocol):
     """The constants of some variants of one family, as tables on one device."""
 
     device: torch.device
+    step_noise: int
+    """Uniforms each of its copies' steps takes (0: deterministic steps)."""
 
     def copies(self, rows: torch.Tensor, counts: torch.Tensor) -> DeviceCopies:
         """``counts[i]`` copies of variant ``rows[i]`` (positions in the variants it was made

@@ -107,12 +107,13 @@ class TensorCopies(abc.ABC):
 
 
 class TableFamily:
-    """Variants' constants as [V] tensors on a device (one row per variant it was made of)."""
+    """Variants' constants as [V] (or [V, n]) tensors on a device (one row per variant it was
+    made of)."""
 
     def __init__(
         self,
         copies_class: type[TensorCopies],
-        constants: Mapping[str, Sequence[float] | Sequence[int]],
+        constants: Mapping[str, Sequence[float] | Sequence[int] | Sequence[Sequence[float]]],
         limits: Sequence[int],
         device: torch.device,
         *,
@@ -121,6 +122,7 @@ class TableFamily:
     ) -> None:
         self.copies_class = copies_class
         self.device = device
+        self.step_noise = copies_class.step_noise
         kinds = dict(dtypes or {})
         self.constants = {
             name: torch.tensor(list(values), dtype=kinds.get(name, torch.float32)).to(device)

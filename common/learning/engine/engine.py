@@ -88,15 +88,17 @@ class Engine:
         first = self.variants[min(self.variants)]
         template, observation_space, action_space = policy_and_spaces(first, run)
         self.policy = PolicyRows(template, self.device)
+        torch_backend = TorchBackend(
+            run, self.variants, self.policy, (observation_space, action_space), self.device
+        )
+        family = torch_backend.family()
         self.step_bytes = StepBytes.of(
             observation_space,
             action_space,
             self.policy.num_params,
             self.policy.noise_size,
             self.device,
-        )
-        torch_backend = TorchBackend(
-            run, self.variants, self.policy, (observation_space, action_space), self.device
+            step_noise=0 if family is None else family.step_noise,
         )
         self.backend: Backend = (
             torch_backend if backend is None else backend(template, self.variants, torch_backend)

@@ -12,10 +12,10 @@ the horizon H: the worst case, every episode running to its end):
   per 64 steps);
 
 plus, per copy, the sampler's state (keys, flags, the current observations, 32 steps of
-decision draws), and a fixed workspace: the packed tiles one autograd call differentiates at
-once, with their θ rows (:func:`packed_elements`). The peak comes at the gradient pass, with
-the batch still held; while sampling, the record's last doubling holds one and a half of its
-buffers.
+decision draws and of its environment's own draws), and a fixed workspace: the packed tiles
+one autograd call differentiates at once, with their θ rows (:func:`packed_elements`). The
+peak comes at the gradient pass, with the batch still held; while sampling, the record's last
+doubling holds one and a half of its buffers.
 
 :func:`plan_round` cuts a round's agents into consecutive chunks whose planned peak fits the
 budget (:func:`memory_budget`: ``algo.memory_gib``, else 80% of a CUDA device's free memory,
@@ -91,13 +91,16 @@ class StepBytes:
         num_params: int,
         noise_size: int,
         device: torch.device,
+        step_noise: int = 0,
     ) -> StepBytes:
+        """``noise_size``: the policy's decision draws per step (float32); ``step_noise``: the
+        environment's own (float64, a torch family's)."""
         obs, act = _itemsize(observation_space), _itemsize(action_space)
         return cls(
             trajectories=obs + act + 8 + 1,
             estimator=8 + 8 + 8 + 1 + 8,
             gradient=16 + 5 * 8 + 2 * 8 + obs + act + 2 * 8 + 4 * num_params / TILE,
-            per_copy=PER_COPY + 2 * obs + 32 * 4 * noise_size,
+            per_copy=PER_COPY + 2 * obs + 32 * (4 * noise_size + 8 * step_noise),
             workspace=4 * packed_elements(device),
         )
 

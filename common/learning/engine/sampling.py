@@ -43,7 +43,7 @@ class Faults:
 
 
 NOISE_CHUNK = 32
-"""Time steps of decision draws made at once for every copy."""
+"""Time steps of draws (decisions, and the environments' own) made at once for every copy."""
 ENV_COUNTERS = -(1 << 40)
 """Where the counters of an environment's own draws start (downwards), far below a reset's."""
 END_CHECK = 16
@@ -199,9 +199,10 @@ def sample(
     keyed = keys.unsqueeze(1)
     draws_at = torch.arange(NOISE_CHUNK * k, device=device).unsqueeze(0)
     env_noise = copies.step_noise
-    env_at = ENV_COUNTERS - torch.arange(env_noise, device=device).unsqueeze(0)
+    env_at = ENV_COUNTERS - torch.arange(NOISE_CHUNK * env_noise, device=device).unsqueeze(0)
     noise: tuple[torch.Tensor, ...] = ()  # the chunk's decision draws, a grid per step
     copy_noise: tuple[torch.Tensor, ...] = ()  # the same, [N, k] per step (attackers' draws)
+    env_draws: tuple[torch.Tensor, ...] = ()  # the chunk's environment draws, [N, s] per step
     t = 0
     with torch.no_grad():
         while t < horizon:
@@ -209,17 +210,20 @@ def sample(
                 if t and not bool(running.any()):  # the step's only wait, every end_check
                     break
                 record.reserve(t + end_check)
-            if not greedy and t % NOISE_CHUNK == 0:
-                drawn = uniforms(keyed, draws_at + t * k).view(total, NOISE_CHUNK, k)
-                noise = grid.draws(drawn.transpose(0, 1)).unbind(0)
-                if randomised is not None:
-                    copy_noise = drawn.unbind(1)
-            decisions = noise[t % NOISE_CHUNK] if noise else None
-            actions = grid.act(obs, decisions)
+            if t % NOISE_CHUNK == 0:
+                if not greedy:
+                    drawn = uniforms(keyed, draws_at + t * k).view(total, NOISE_CHUNK, k)
+                    noise = grid.draws(drawn.transpose(0, 1)).unbind(0)
+                    if randomised is not None:
+                        copy_noise = drawn.unbind(1)
+                if env_noise:  # step t + s, draw j: counter ENV_COUNTERS − (t + s)·s_n − j
+                    env_chunk = uniforms64(keyed, env_at - t * env_noise)
+                    env_draws = env_chunk.view(total, NOISE_CHUNK, env_noise).unbind(1)
+            at = t % NOISE_CHUNK
+            actions = grid.act(obs, noise[at] if noise else None)
             if randomised is not None:
-                actions = randomised(actions, copy_noise[t % NOISE_CHUNK])
-            env_draws = uniforms64(keyed, env_at - t * env_noise) if env_noise else None
-            step = copies.step(actions, running, env_draws)
+                actions = randomised(actions, copy_noise[at])
+            step = copies.step(actions, running, env_draws[at] if env_draws else None)
             record.add(t, obs, actions, step.reward)
             lengths += running
             success |= running & step.success
