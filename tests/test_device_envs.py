@@ -253,6 +253,41 @@ def test_gridworld_truncates_unless_terminated_and_resets_to_the_start() -> None
     assert bool(step.truncated.all()) and not bool(step.terminated.any())
 
 
+def test_gridworlds_draws_at_step_t_are_its_keys_counters_below_env_counters(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """The uniform a copy's step t takes is hash(its trajectory key, ENV_COUNTERS − t): the
+    sampler draws them a chunk of steps at a time, and what each step receives is that one
+    draw, across the chunks' boundary (a trajectory's slips depend on its key alone)."""
+    from fedhpg.common.learning.engine import copies as copies_module
+    from fedhpg.common.learning.engine.sampling import ENV_COUNTERS, NOISE_CHUNK
+
+    keys: list[torch.Tensor] = []
+    draws: list[torch.Tensor] = []
+    reset, step = copies_module.DeviceBlocks.reset, copies_module.DeviceBlocks.step
+
+    def spy_reset(self, given):  # type: ignore[no-untyped-def]
+        keys.append(given.clone())
+        return reset(self, given)
+
+    def spy_step(self, actions, running, noise=None):  # type: ignore[no-untyped-def]
+        draws.append(noise.clone())
+        return step(self, actions, running, noise)
+
+    monkeypatch.setattr(copies_module.DeviceBlocks, "reset", spy_reset)
+    monkeypatch.setattr(copies_module.DeviceBlocks, "step", spy_step)
+    run = compose(["env=gridworld", "algo.engine=torch", "agents=population",
+                   "agents.num_agents=3", "agents.budget.batch_size=[24]"])  # fmt: skip
+    agents = [0, 1, 2]
+    engine = Engine(run, variants_of(run, agents))
+    rows = engine.begin(2, initial_theta(variants_of(run, [0])[0], run), agents)
+    rows.sample(rows.theta, torch.full((3,), 24), iteration=1)
+    assert len(keys) == 1 and len(draws) > NOISE_CHUNK, "the batch crosses a chunk's end"
+    for t, drawn in enumerate(draws):
+        expected = uniforms64(keys[0].unsqueeze(1), torch.tensor([[ENV_COUNTERS - t]]))
+        assert torch.equal(drawn, expected), t
+
+
 def test_only_the_modelled_families_get_torch_copies() -> None:
     assert device_family(_variants("lunarlander", 2), CPU) is None
     assert device_family(_variants("cartpole", 2), CPU) is not None
