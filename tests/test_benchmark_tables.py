@@ -1,0 +1,36 @@
+"""Each benchmark script that writes its own table builds, from the data file it stores, the
+very table stored in ``benchmarks/results/tables/`` (its columns and rows): a change to a
+script that would change its table fails here, before the next measurement would show it."""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+
+import pytest
+
+from benchmarks import presets, results_file
+from benchmarks.results_file import TABLES, Table
+
+
+def _presets() -> list[Table]:
+    return presets.tables(presets.load(results_file.ROOT / presets.RESULTS))
+
+
+BUILDERS: dict[str, Callable[[], list[Table]]] = {
+    "presets": _presets,
+}
+
+
+@pytest.mark.parametrize("name", sorted(BUILDERS))
+def test_the_script_builds_the_stored_table(name: str) -> None:
+    stored = results_file.load(TABLES / f"{name}.json")["tables"]
+    built = BUILDERS[name]()
+    assert [(t["columns"], t["rows"]) for t in built] == [(t["columns"], t["rows"]) for t in stored]
+
+
+@pytest.mark.parametrize("name", sorted(BUILDERS))
+def test_the_stored_summary_is_the_scripts(name: str) -> None:
+    """The stored summary is the one the script computes from the data (none written by
+    hand), as ``--tables-only`` writes it."""
+    stored = results_file.load(TABLES / f"{name}.json")["tables"]
+    assert [t["summary"] for t in BUILDERS[name]()] == [t["summary"] for t in stored]
