@@ -8,17 +8,35 @@ from collections.abc import Callable
 
 import pytest
 
-from benchmarks import presets, results_file
+from benchmarks import presets, results_file, tuned_presets
 from benchmarks.results_file import TABLES, Table
 
 
 def _presets() -> list[Table]:
-    return presets.tables(presets.load(results_file.ROOT / presets.RESULTS))
+    return presets.tables(presets.load(presets.RESULTS))
+
+
+def _tuned(task_name: str) -> Callable[[], list[Table]]:
+    def build() -> list[Table]:
+        task = tuned_presets.TASKS[task_name]
+        return tuned_presets.result_tables(
+            task, tuned_presets.paper_curves(task) + tuned_presets.load(task)
+        )
+
+    return build
 
 
 BUILDERS: dict[str, Callable[[], list[Table]]] = {
     "presets": _presets,
+    "tuned_lunarlander": _tuned("lunarlander"),
+    "tuned_halfcheetah": _tuned("halfcheetah"),
 }
+
+
+@pytest.fixture(autouse=True)
+def _in_the_root(monkeypatch: pytest.MonkeyPatch) -> None:
+    """The scripts name their data relative to the repository root, where they are run."""
+    monkeypatch.chdir(results_file.ROOT)
 
 
 @pytest.mark.parametrize("name", sorted(BUILDERS))
