@@ -8,7 +8,7 @@ from collections.abc import Callable
 
 import pytest
 
-from benchmarks import presets, results_file, tuned_presets
+from benchmarks import learning_long, presets, results_file, tuned_presets
 from benchmarks.results_file import TABLES, Table
 
 
@@ -28,6 +28,7 @@ def _tuned(task_name: str) -> Callable[[], list[Table]]:
 
 BUILDERS: dict[str, Callable[[], list[Table]]] = {
     "presets": _presets,
+    "learning_long": lambda: learning_long.result_tables(learning_long.stored()),
     "tuned_lunarlander": _tuned("lunarlander"),
     "tuned_halfcheetah": _tuned("halfcheetah"),
 }
