@@ -8,7 +8,7 @@ from collections.abc import Callable
 
 import pytest
 
-from benchmarks import learning_long, presets, results_file, tuned_presets
+from benchmarks import learning_long, presets, results_file, thresholds, tuned_presets
 from benchmarks.results_file import TABLES, Table
 
 
@@ -26,8 +26,23 @@ def _tuned(task_name: str) -> Callable[[], list[Table]]:
     return build
 
 
+def _thresholds() -> list[Table]:
+    curves = thresholds.load(thresholds.RESULTS, thresholds.CODE_LOGS)
+    return thresholds.main_tables(curves, thresholds.stored_rows(curves), thresholds.CODE_LOGS)
+
+
+def _thresholds_search() -> list[Table]:
+    curves = thresholds.load(thresholds.SEARCH_RESULTS, None)
+    return thresholds.search_tables(curves, thresholds.stored_rows(curves))
+
+
 BUILDERS: dict[str, Callable[[], list[Table]]] = {
     "presets": _presets,
+    "thresholds": _thresholds,
+    "thresholds_search": _thresholds_search,
+    "thresholds_wall": lambda: thresholds.wall_tables(
+        thresholds.load(thresholds.RESULTS, thresholds.CODE_LOGS)
+    ),
     "learning_long": lambda: learning_long.result_tables(learning_long.stored()),
     "tuned_lunarlander": _tuned("lunarlander"),
     "tuned_halfcheetah": _tuned("halfcheetah"),
