@@ -8,7 +8,7 @@ from collections.abc import Callable
 
 import pytest
 
-from benchmarks import learning_long, presets, results_file, thresholds, tuned_presets
+from benchmarks import engine_ab, learning_long, presets, results_file, thresholds, tuned_presets
 from benchmarks.results_file import TABLES, Table
 
 
@@ -43,6 +43,7 @@ BUILDERS: dict[str, Callable[[], list[Table]]] = {
     "thresholds_wall": lambda: thresholds.wall_tables(
         thresholds.load(thresholds.RESULTS, thresholds.CODE_LOGS)
     ),
+    "engine_ab": lambda: engine_ab.tables(engine_ab.load()),
     "learning_long": lambda: learning_long.result_tables(learning_long.stored()),
     "tuned_lunarlander": _tuned("lunarlander"),
     "tuned_halfcheetah": _tuned("halfcheetah"),
