@@ -305,10 +305,16 @@ def command_line(module: str) -> str:
     return shlex.join(["python", "-m", module, *sys.argv[1:]])
 
 
-def refresh(name: str, tables: list[Table], command: str, folder: Path = TABLES) -> Path:
+def refresh(
+    name: str,
+    tables: list[Table],
+    command: str,
+    folder: Path = TABLES,
+    data: list[str] | None = None,
+) -> Path:
     """Replace the tables of the stored result ``<folder>/<name>.json`` with this run's,
-    stamped now; its title, order, measured paths, set-up and data stay. A table given without
-    a figure keeps the stored table's figure at the same place."""
+    stamped now; its title, order, measured paths, set-up and data (unless ``data`` is given)
+    stay. A table given without a figure keeps the stored table's figure at the same place."""
     stored = load(folder / f"{name}.json")
     for given, old in zip(tables, stored["tables"], strict=False):
         if "figure" not in given and "figure" in old:
@@ -321,17 +327,25 @@ def refresh(name: str, tables: list[Table], command: str, folder: Path = TABLES)
         measures=stored["measures"],
         tables=tables,
         setup=stored.get("setup"),
-        data=stored.get("data"),
+        data=data if data is not None else stored.get("data"),
         folder=folder,
     )
 
 
-def rerender(name: str, tables: list[Table], folder: Path = TABLES) -> Path:
+def rerender(
+    name: str,
+    tables: list[Table],
+    folder: Path = TABLES,
+    stamps: dict[str, str] | None = None,
+    data: list[str] | None = None,
+) -> Path:
     """Replace the tables of the stored result ``<folder>/<name>.json`` with ones rebuilt now
     from the data it stores (a script's ``--tables-only``), keeping everything else: title,
     order, command, measured paths, set-up, data, and the date, commit and machine of the run
-    the data was measured in. The summaries are the script's, computed from that data; a table
-    given without a figure keeps the stored table's figure at the same place."""
+    the data was measured in (``stamps``: ``date``, ``commit`` and ``machine`` where the data
+    file records them itself; ``data``: the files named, where given). The summaries are the
+    script's, computed from that data; a table given without a figure keeps the stored
+    table's figure at the same place."""
     stored = load(folder / f"{name}.json")
     for given, old in zip(tables, stored["tables"], strict=False):
         if "figure" not in given and "figure" in old:
@@ -344,10 +358,10 @@ def rerender(name: str, tables: list[Table], folder: Path = TABLES) -> Path:
         measures=stored["measures"],
         tables=tables,
         setup=stored.get("setup"),
-        data=stored.get("data"),
-        date=stored["date"],
-        commit_hash=stored["commit"],
-        machine_name=stored["machine"],
+        data=data if data is not None else stored.get("data"),
+        date=(stamps or stored)["date"],
+        commit_hash=(stamps or stored)["commit"],
+        machine_name=(stamps or stored)["machine"],
         folder=folder,
         keep_summaries=False,
     )

@@ -8,7 +8,15 @@ from collections.abc import Callable
 
 import pytest
 
-from benchmarks import engine_ab, learning_long, presets, results_file, thresholds, tuned_presets
+from benchmarks import (
+    engine_ab,
+    learning,
+    learning_long,
+    presets,
+    results_file,
+    thresholds,
+    tuned_presets,
+)
 from benchmarks.results_file import TABLES, Table
 
 
@@ -69,3 +77,27 @@ def test_the_stored_summary_is_the_scripts(name: str) -> None:
     hand), as ``--tables-only`` writes it."""
     stored = results_file.load(TABLES / f"{name}.json")["tables"]
     assert [t["summary"] for t in BUILDERS[name]()] == [t["summary"] for t in stored]
+
+
+@pytest.mark.parametrize("kind", learning.KINDS)
+def test_learning_builds_the_stored_columns(kind: str) -> None:
+    """benchmarks.learning stores no curves from the run its tables were transcribed from
+    (the next run writes ``benchmarks/results/learning_cartpole.json``): its table is checked
+    for the stored columns, on made-up curves, one of which never reaches the target."""
+
+    def curve(agents: int, label: str, seed: int, reach: bool) -> learning.Curve:
+        returns = [100.0, 480.0 if reach else 200.0]
+        return learning.Curve(agents, seed, label, [16.0, 32.0], returns, [1.0, 2.0], 50.0)
+
+    curves = [
+        curve(10, "fedhpg K=10", 0, True),
+        curve(10, "fedhpg K=10", 1, False),
+        curve(1, "fedhpgvr K=1", 0, True),
+    ]
+    built = learning.tables(kind, curves)
+    stored = results_file.load(TABLES / f"learning_{kind}.json")["tables"]
+    assert [t["columns"] for t in built] == [t["columns"] for t in stored]
+    rows = built[0]["rows"]
+    assert [row[1] for row in rows] == ["1/2", "1/1"]
+    assert rows[0][2] == "**32** (32, —)" and rows[1][2] == "**32** (32)"
+    assert "misses it on 1 of 2 seeds" in built[0]["summary"]
