@@ -10,6 +10,7 @@ import pytest
 
 from benchmarks import (
     engine_ab,
+    figures,
     learning,
     learning_long,
     presets,
@@ -52,6 +53,7 @@ BUILDERS: dict[str, Callable[[], list[Table]]] = {
         thresholds.load(thresholds.RESULTS, thresholds.CODE_LOGS)
     ),
     "engine_ab": lambda: engine_ab.tables(engine_ab.load()),
+    "figures": lambda: figures.result_tables((figures.FIGURES / "summary.md").read_text()),
     "learning_long": lambda: learning_long.result_tables(learning_long.stored()),
     "tuned_lunarlander": _tuned("lunarlander"),
     "tuned_halfcheetah": _tuned("halfcheetah"),
