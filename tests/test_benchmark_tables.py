@@ -4,11 +4,13 @@ script that would change its table fails here, before the next measurement would
 
 from __future__ import annotations
 
+import json
 from collections.abc import Callable
 
 import pytest
 
 from benchmarks import (
+    containers,
     engine_ab,
     figures,
     learning,
@@ -52,6 +54,7 @@ BUILDERS: dict[str, Callable[[], list[Table]]] = {
     "thresholds_wall": lambda: thresholds.wall_tables(
         thresholds.load(thresholds.RESULTS, thresholds.CODE_LOGS)
     ),
+    "containers": lambda: containers.tables(json.loads(containers.RESULTS.read_text())),
     "engine_ab": lambda: engine_ab.tables(engine_ab.load()),
     "figures": lambda: figures.result_tables((figures.FIGURES / "summary.md").read_text()),
     "learning_long": lambda: learning_long.result_tables(learning_long.stored()),
