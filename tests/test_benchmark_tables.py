@@ -4,6 +4,7 @@ script that would change its table fails here, before the next measurement would
 
 from __future__ import annotations
 
+import functools
 import json
 from collections.abc import Callable
 
@@ -11,6 +12,7 @@ import pytest
 
 from benchmarks import (
     containers,
+    device_tables,
     engine_ab,
     figures,
     learning,
@@ -55,6 +57,7 @@ BUILDERS: dict[str, Callable[[], list[Table]]] = {
         thresholds.load(thresholds.RESULTS, thresholds.CODE_LOGS)
     ),
     "containers": lambda: containers.tables(json.loads(containers.RESULTS.read_text())),
+    **{name: functools.partial(device_tables.stored_tables, name) for name in device_tables.NAMES},
     "engine_ab": lambda: engine_ab.tables(engine_ab.load()),
     "figures": lambda: figures.result_tables((figures.FIGURES / "summary.md").read_text()),
     "learning_long": lambda: learning_long.result_tables(learning_long.stored()),
