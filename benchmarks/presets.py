@@ -297,6 +297,7 @@ def main() -> None:
     parser.add_argument("--results", type=Path, default=RESULTS)
     parser.add_argument(
         "--tables-only",
+        "--table-only",
         action="store_true",
         help="rebuild the table from the stored runs, stamped with their measurement",
     )
