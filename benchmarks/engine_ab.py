@@ -13,6 +13,12 @@ hence steps per second, not seconds per round.
 
     python -m benchmarks.engine_ab --against 97553d4 [--algo fedhpgvr] [--agents 1000] \
         [--theta balancing]
+    python -m benchmarks.engine_ab --tables-only
+
+Each comparison is kept in ``benchmarks/results/engine_ab.json`` (one per algorithm, K and θ,
+the last run of each), and the result table ``benchmarks/results/tables/engine_ab.json`` is
+rebuilt from it: every comparison against :data:`BASELINE`. ``--tables-only`` rebuilds it
+without running, stamped with the date, commit and machine of the stored measurement.
 """
 
 from __future__ import annotations
@@ -29,6 +35,8 @@ import tempfile
 from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 from typing import Any
+
+from benchmarks import results_file
 
 log = logging.getLogger(__name__)
 
@@ -209,6 +217,119 @@ def save(comparisons: list[Comparison], path: Path = RESULTS) -> None:
     path.write_text(json.dumps(kept, indent=1, ensure_ascii=False) + "\n")
 
 
+def load(path: Path = RESULTS) -> list[Comparison]:
+    """The stored comparisons."""
+    if not path.exists():
+        return []
+    found = []
+    for entry in json.loads(path.read_text()).values():
+        found.append(
+            Comparison(
+                **{
+                    **entry,
+                    "setup": Setup(**entry["setup"]),
+                    "steps_per_round": tuple(entry["steps_per_round"]),
+                    "sample_ns": tuple(entry["sample_ns"]),
+                    "gradient_ns": tuple(entry["gradient_ns"]),
+                }
+            )
+        )
+    return found
+
+
+NAMES = {"fedhpg": "FedHPG", "fedhpgvr": "FedHPGVR"}
+THETAS = {
+    "θ̃_0": "θ̃₀",
+    "balancing": "a policy that balances for the 500-step horizon",
+}
+"""How the table names each starting θ (``--theta``'s label)."""
+
+
+def _order(c: Comparison) -> tuple[int, int, bool, str]:
+    return (list(NAMES).index(c.setup.algo), -c.setup.agents, c.setup.label != "θ̃_0",
+            c.setup.label)  # fmt: skip
+
+
+def _command(s: Setup) -> str:
+    """The command line that repeats a comparison (its rounds as run: made even)."""
+    default = Setup()
+    words = ["python -m benchmarks.engine_ab"]
+    if s.against != default.against:
+        words.append(f"--against {s.against}")
+    if s.algo != default.algo:
+        words.append(f"--algo {s.algo}")
+    if s.agents != default.agents:
+        words.append(f"--agents {s.agents}")
+    if s.label != default.label:
+        words.append(f"--theta {s.label}")
+    if s.rounds != default.rounds:
+        words.append(f"--rounds {s.rounds}")
+    return f"`{' '.join(words)}`"
+
+
+def _rate(steps_per_s: float) -> str:
+    millions = steps_per_s / 1e6
+    return f"{millions:.2f}" if millions >= 0.1 else f"{millions:.2g}"
+
+
+def _ratio(ratio: float) -> str:
+    return f"{ratio:.2f}" if ratio < 10 else f"{ratio:.1f}"
+
+
+def table(comparisons: list[Comparison], against: str = BASELINE) -> str:
+    """Every stored comparison against ``against``: FedHPG before FedHPGVR, more agents first,
+    θ̃₀ before another θ."""
+    lines = [
+        f"| command | algorithm, agents, θ | this tree (M steps/s) | {against} (M steps/s) "
+        f"| paired ratio | CPU a step, sampling / the rest (ns), this tree against {against} |",
+        "|---|---|---|---|---|---|",
+    ]
+    for c in sorted((c for c in comparisons if c.setup.against == against), key=_order):
+        s = c.setup
+        agents = f"{s.agents:,}" + (" (a lone agent)" if s.agents == 1 else "")
+        cpu = f"{c.sample_ns[0]:.0f} / {c.gradient_ns[0]:.0f}"
+        if c.sample_ns[1] == 0.0 and c.gradient_ns[1] == 0.0:
+            cpu += f" ({against}'s {c.that_group} does not report the split)"
+        else:
+            cpu += f" against {c.sample_ns[1]:.0f} / {c.gradient_ns[1]:.0f}"
+        lines.append(
+            f"| {_command(s)} | {NAMES[s.algo]}, {agents}, {THETAS.get(s.label, s.label)} "
+            f"| {_rate(c.this_steps_per_s)} | {_rate(c.that_steps_per_s)} "
+            f"| **{_ratio(c.ratio)}** | {cpu} |"
+        )
+    return "\n".join(lines)
+
+
+def summary(comparisons: list[Comparison], against: str = BASELINE) -> str:
+    """Each algorithm's paired ratios by the number of agents (a range over the θ measured),
+    against which of the commit's groups, and where this tree is the slower side."""
+    chosen = sorted((c for c in comparisons if c.setup.against == against), key=_order)
+    if not chosen:
+        return "No comparison stored."
+    parts, slower = [], []
+    for algo, name in NAMES.items():
+        runs = [c for c in chosen if c.setup.algo == algo]
+        if not runs:
+            continue
+        by_agents = []
+        for agents in sorted({c.setup.agents for c in runs}, reverse=True):
+            ratios = [c.ratio for c in runs if c.setup.agents == agents]
+            low, high = _ratio(min(ratios)), _ratio(max(ratios))
+            by_agents.append(f"{low if low == high else f'{low}–{high}'} at {agents:,}")
+            if float(high) < 1.0:
+                slower.append(f"{name} at {agents:,}")
+        groups = " and ".join(sorted({c.that_group for c in runs}))
+        parts.append(f"{name} {', '.join(by_agents)} agents (against its {groups})")
+    text = f"Paired ratios, this tree over {against}: {'; '.join(parts)}."
+    if slower:
+        text += f" This tree is the slower side for {' and '.join(slower)} agents."
+    return text
+
+
+def tables(comparisons: list[Comparison]) -> list[results_file.Table]:
+    return [results_file.table_from_markdown(table(comparisons), summary(comparisons))]
+
+
 def _balancing_theta(agents: int) -> str:
     """The balancing policy of the 16-16 MLP, saved where the workers can load it."""
     import torch
@@ -236,7 +357,16 @@ def main() -> None:
         "keeps the pole up for the whole horizon (benchmarks.scale_device.balancing_theta)",
     )
     parser.add_argument("--results", type=Path, default=RESULTS, help="JSON to add the result to")
+    parser.add_argument(
+        "--tables-only",
+        action="store_true",
+        help="only the result table from the stored comparisons, stamped with their measurement",
+    )
     args = parser.parse_args()
+    if args.tables_only:
+        print(table(load()))
+        results_file.rerender("engine_ab", tables(load()))
+        return
     if args.rounds < 1 or args.agents < 1:
         parser.error("--rounds and --agents must be at least 1")
     label = "θ̃_0"
@@ -258,6 +388,9 @@ def main() -> None:
     comparison = compare(setup)
     print(report(comparison))
     save([comparison], args.results)
+    if args.results == RESULTS:
+        command = results_file.command_line("benchmarks.engine_ab")
+        results_file.refresh("engine_ab", tables(load()), command)
 
 
 if __name__ == "__main__":

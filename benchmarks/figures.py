@@ -3,6 +3,9 @@ with ``fedhpg-run -m`` (real processes), then draw them with ``fedhpg-plot`` int
 ``docs/figures/fig{1,2,3}.png`` and summarise them in ``docs/figures/summary.md``: the mean
 over seeds and its 95% percentile-bootstrap CI, as every figure of the project shows.
 ``--plot-only`` redraws figures and summary from the sweeps already in ``runs/figures/``.
+The summary's table is also the result table ``benchmarks/results/tables/figures.json``;
+``--tables-only`` writes that again from ``docs/figures/summary.md`` alone, stamped with the
+date, commit and machine it was measured with.
 """
 
 from __future__ import annotations
@@ -18,6 +21,7 @@ from pathlib import Path
 
 import numpy as np
 
+from benchmarks import results_file
 from fedhpg.server.commands.plot import find_runs, group_runs
 from fedhpg.server.commands.plot import main as plot_main
 from fedhpg.server.commands.plot_stats import stratified_bootstrap_ci
@@ -87,10 +91,48 @@ def summary(name: str, directory: Path) -> list[str]:
     return rows
 
 
+def _seeds(cell: str) -> tuple[int, int]:
+    """(seeds reaching, seeds) from a reach cell, ``... (k/n)``."""
+    reached, _, seeds = cell.rsplit("(", 1)[1].rstrip(")").partition("/")
+    return int(reached), int(seeds)
+
+
+def table_summary(rows: list[list[str]]) -> str:
+    """Which settings reach the success threshold on every seed, and the lowest final return."""
+    missing = [f"{r[0]} {r[1]} ({'/'.join(map(str, _seeds(r[3])))})" for r in rows
+               if _seeds(r[3])[0] < _seeds(r[3])[1]]  # fmt: skip
+    seeds = sorted({_seeds(r[3])[1] for r in rows})
+    if missing:
+        text = f"Not every seed reaches a mean success of {SUCCESS}: {', '.join(missing)}"
+    else:
+        counts = " or ".join(map(str, seeds))
+        text = f"Every setting reaches a mean success of {SUCCESS} on all {counts} seeds"
+    lowest = min(rows, key=lambda r: float(r[2].split(" ")[0]))
+    return (
+        f"{text}; the lowest final greedy return is {lowest[0]}'s {lowest[1]} "
+        f"({lowest[2].split(' ')[0]})."
+    )
+
+
+def result_tables(markdown: str) -> list[results_file.Table]:
+    """The summary's table, with its summary computed from the rows."""
+    found = results_file.table_from_markdown(markdown, "")
+    found["summary"] = table_summary(found["rows"])
+    return [found]
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__)
     parser.add_argument("--plot-only", action="store_true", help=f"redraw from {SWEEPS}")
+    parser.add_argument(
+        "--tables-only",
+        action="store_true",
+        help="only the result table from docs/figures/summary.md, stamped with its measurement",
+    )
     args = parser.parse_args()
+    if args.tables_only:
+        results_file.rerender("figures", result_tables((FIGURES / "summary.md").read_text()))
+        return
     started = time.monotonic()
     FIGURES.mkdir(parents=True, exist_ok=True)
     lines = [
@@ -118,6 +160,9 @@ def main() -> None:
         "fedhpg.server.commands.plot_stats), the band drawn in every figure."
     )
     (FIGURES / "summary.md").write_text("\n".join(lines) + "\n")
+    if not args.plot_only:  # a redraw keeps the stamps of the sweeps it reads
+        command = results_file.command_line("benchmarks.figures")
+        results_file.refresh("figures", result_tables("\n".join(lines)), command)
     sys.stdout.write("\n".join(lines) + f"\n\nall figures in {time.monotonic() - started:.0f} s\n")
 
 

@@ -9,22 +9,31 @@ the server applies Adam to the average, as FedPG-BR's server does.
 run where not stored, beside FedPG-BR's own code's stored runs). ``--task lunarlander`` or
 ``--task halfcheetah`` runs the long benchmarks of :mod:`benchmarks.learning_long` instead
 (the other arguments go there).
+
+Every curve is kept in ``benchmarks/results/learning_cartpole.json``, and the two result
+tables (``benchmarks/results/tables/learning_homogeneous.json`` and
+``learning_heterogeneous.json``) are written from it; ``--tables-only`` writes them again from
+that file alone, stamped with the date, commit and machine it was measured with (stored in it).
 """
 
 from __future__ import annotations
 
 import argparse
+import datetime
+import json
 import statistics
 import tempfile
-from dataclasses import dataclass
+from dataclasses import asdict, dataclass
 from pathlib import Path
 
-from benchmarks import thresholds
+from benchmarks import results_file, thresholds
 from benchmarks.runtime import _federation
 
 TARGET = 475.0
 FIGURE = Path("docs/figures/cartpole_learning.png")
 HETEROGENEOUS_FIGURE = Path("docs/figures/cartpole_heterogeneous.png")
+RESULTS = Path("benchmarks/results/learning_cartpole.json")
+KINDS = ("homogeneous", "heterogeneous")
 
 
 @dataclass(frozen=True)
@@ -142,6 +151,118 @@ def table(curves: list[Curve]) -> str:
     return "\n".join(lines)
 
 
+NAMES = {"fedhpg": "FedHPG", "fedhpgvr": "FedHPGVR", "fedpgbr": "FedPG-BR"}
+
+
+def _group(kind: str, curve: Curve) -> str:
+    """A table row's name: the agents of a homogeneous run, the algorithm of a heterogeneous."""
+    if kind == "homogeneous":
+        return f"homogeneous, K = {curve.num_agents}"
+    algo = curve.label.split(" ")[0]
+    return f"heterogeneous, {NAMES.get(algo, algo)}"
+
+
+def _groups(kind: str, curves: list[Curve]) -> dict[str, list[Curve]]:
+    groups: dict[str, list[Curve]] = {}
+    for curve in curves:
+        groups.setdefault(_group(kind, curve), []).append(curve)
+    return {name: sorted(group, key=lambda c: c.seed) for name, group in groups.items()}
+
+
+def _reached(group: list[Curve]) -> list[float | None]:
+    return [hit[0] if (hit := c.first_reaching(TARGET)) else None for c in group]
+
+
+def _median(group: list[Curve]) -> float | None:
+    hits = [v for v in _reached(group) if v is not None]
+    return statistics.median(hits) if hits else None
+
+
+def summary_table(kind: str, curves: list[Curve]) -> str:
+    """One row per run (agents or algorithm): seeds reaching the target, the median and each
+    seed's trajectories per agent to it (the lowest median in bold), the peak memory."""
+    lines = [
+        f"| run | seeds reaching ≥ {TARGET:g} | trajectories per agent to ≥ {TARGET:g}, median "
+        "(per seed) | peak PSS |",
+        "|---|---|---|---|",
+    ]
+    groups = _groups(kind, curves)
+    medians = {name: m for name, group in groups.items() if (m := _median(group)) is not None}
+    best = min(medians.values()) if len(medians) > 1 else None
+    for name, group in groups.items():
+        reached = _reached(group)
+        per_seed = ", ".join("—" if v is None else f"{v:.0f}" for v in reached)
+        median = medians.get(name)
+        text = "never" if median is None else f"{median:.0f}"
+        if median is not None and median == best:
+            text = f"**{text}**"
+        low, high = (f"{f(c.peak_pss_mib for c in group):.0f}" for f in (min, max))
+        memory = low if low == high else f"{low}–{high}"
+        hits = sum(v is not None for v in reached)
+        lines.append(f"| {name} | {hits}/{len(group)} | {text} ({per_seed}) | {memory} MiB |")
+    return "\n".join(lines)
+
+
+def summary(kind: str, curves: list[Curve]) -> str:
+    """Each run's median trajectories per agent to the target, and which runs miss it on a
+    seed."""
+    groups = _groups(kind, curves)
+    where = "in every agent's environment" if kind == "heterogeneous" else "on average"
+    medians = []
+    missed = []
+    for name, group in groups.items():
+        run = name.split(", ", 1)[1]
+        median = _median(group)
+        medians.append(f"{run} in {'none' if median is None else f'{median:,.0f}'}")
+        reached = _reached(group)
+        if None in reached:
+            missed.append(f"{run} misses it on {reached.count(None)} of {len(group)} seeds")
+    text = (
+        f"Median trajectories per agent to a greedy return ≥ {TARGET:g} {where}: "
+        f"{', '.join(medians)}"
+    )
+    if missed:
+        return text + f"; {', '.join(missed)}."
+    return text + "; every run reaches it on every seed."
+
+
+def tables(kind: str, curves: list[Curve]) -> list[results_file.Table]:
+    return [results_file.table_from_markdown(summary_table(kind, curves), summary(kind, curves))]
+
+
+def save(curves: dict[str, list[Curve]], path: Path = RESULTS) -> None:
+    """The curves of both kinds with the stamps of this measurement."""
+    stamps = {
+        "date": datetime.datetime.now(datetime.UTC).strftime("%Y-%m-%d"),
+        "commit": results_file.commit(),
+        "machine": results_file.machine(),
+    }
+    data = {**stamps, **{kind: [asdict(c) for c in found] for kind, found in curves.items()}}
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(json.dumps(data, indent=1) + "\n")
+
+
+def load(path: Path = RESULTS) -> tuple[dict[str, str], dict[str, list[Curve]]]:
+    """(the measurement's stamps, the curves of each kind) from ``path``."""
+    data = json.loads(path.read_text())
+    stamps = {key: data[key] for key in ("date", "commit", "machine")}
+    return stamps, {kind: [Curve(**c) for c in data.get(kind, [])] for kind in KINDS}
+
+
+def write_tables(curves: dict[str, list[Curve]], command: str | None = None) -> None:
+    """Both result tables: from a run (``command``) stamped now, else from the stored file
+    with its stamps."""
+    for kind, found in curves.items():
+        if not found:
+            continue
+        name = f"learning_{kind}"
+        if command is not None:
+            results_file.refresh(name, tables(kind, found), command, data=[str(RESULTS)])
+        else:
+            stamps, _ = load()
+            results_file.rerender(name, tables(kind, found), stamps=stamps, data=[str(RESULTS)])
+
+
 def main() -> None:
     task = argparse.ArgumentParser(add_help=False)
     task.add_argument("--task", default="cartpole")
@@ -159,7 +280,17 @@ def main() -> None:
     # Every agent's environment must be solved, and FedHPGVR spends 2·B per round: 40 rounds
     # left a seed short of 475 in the worst agent's environment.
     parser.add_argument("--rounds-heterogeneous", type=int, default=80)
+    parser.add_argument(
+        "--tables-only",
+        action="store_true",
+        help=f"only the result tables from {RESULTS}, stamped with its measurement",
+    )
     args = parser.parse_args()
+    if args.tables_only:
+        if not RESULTS.exists():
+            parser.error(f"--tables-only: no {RESULTS} (run the benchmark once)")
+        write_tables(load()[1])
+        return
     seeds = range(args.seeds)
     homogeneous = [run_curve(10, s, args.rounds_k10, args.server_lr) for s in seeds]
     homogeneous += [run_curve(1, s, args.rounds_k1, args.server_lr) for s in seeds]
@@ -185,6 +316,9 @@ def main() -> None:
         "greedy return in the worst agent's environment",
     )
     print(f"\nfigures: {FIGURE}, {HETEROGENEOUS_FIGURE}")
+    measured = {"homogeneous": homogeneous, "heterogeneous": heterogeneous}
+    save(measured)
+    write_tables(measured, results_file.command_line("benchmarks.learning"))
     # trajectories per agent to a solved CartPole at server steps 1e-3 and 1e-2, beside
     # FedPG-BR's own code (benchmarks/thresholds.py)
     print()

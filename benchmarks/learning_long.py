@@ -8,7 +8,10 @@ published returns. Homogeneous variants (``env.level=0``), greedy evaluation.
 
 Each finished seed is stored in ``benchmarks/results/<task>.json`` (the whole curve, wall
 times, memory, the exact overrides), so an interrupted sweep keeps what it has and the table
-and figure (``docs/figures/<task>_learning.png``) are rebuilt from that file. ``--set k=v``
+and figure (``docs/figures/<task>_learning.png``) are rebuilt from that file, and so is the
+result table of both tasks, ``benchmarks/results/tables/learning_long.json`` (``--tables-only``:
+that table alone from the stored files, stamped with the date, commit and machine they were
+measured with). ``--set k=v``
 adds Hydra overrides (pilot runs); ``--results`` writes elsewhere. Every run takes 15–60 min
 on the project's 2-core machine: run it under ``nice``, one at a time.
 """
@@ -25,6 +28,7 @@ import time
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
+from benchmarks import results_file
 from benchmarks.runtime import _federation
 
 RESULTS = Path("benchmarks/results")
@@ -231,6 +235,69 @@ def table(task: Task, results: list[SeedResult]) -> str:
     return "\n".join(lines)
 
 
+def _median_range(values: list[float]) -> tuple[str, str]:
+    return f"{statistics.median(values):,.1f}", f"({min(values):,.1f}–{max(values):,.1f})"
+
+
+def _anchor(task: Task) -> str:
+    low, high = task.anchor
+    return f"≈ {low:,.0f}" if low == high else f"≈ {low:,.0f}–{high:,.0f}"
+
+
+def stored(folder: Path = RESULTS) -> dict[str, list[SeedResult]]:
+    """Each task's stored seeds (``<folder>/<task>.json``), in seed order; tasks with none left
+    out."""
+    found = {name: load(folder / f"{name}.json") for name in TASKS}
+    return {name: [r[s] for s in sorted(r)] for name, r in found.items() if r}
+
+
+def result_table(results: dict[str, list[SeedResult]]) -> str:
+    """Both tasks side by side: the greedy return at the end and the stochastic return of the
+    last round, median (range) over the seeds, beside FedPG-BR's published return; the
+    training episodes' length named where it is not the evaluation's."""
+    lines = [
+        "| task | greedy return at the end, median (range) "
+        "| stochastic return of the last round, median (range) | FedPG-BR's published |",
+        "|---|---|---|---|",
+    ]
+    for name, runs in results.items():
+        task = TASKS[name]
+        greedy, greedy_range = _median_range([r.final for r in runs])
+        stochastic = " ".join(_median_range([r.extra["train_returns"][-1] for r in runs]))
+        training, evaluation = task.horizons
+        if training != evaluation:
+            stochastic += f" ({training}-step episodes)"
+        lines.append(
+            f"| {task.title.split(',')[0]} | **{greedy}** {greedy_range} | {stochastic} "
+            f"| {_anchor(task)} |"
+        )
+    return "\n".join(lines)
+
+
+def summary(results: dict[str, list[SeedResult]]) -> str:
+    """Which tasks end above FedPG-BR's published return (the top of its range) on every seed,
+    on some, or on none."""
+    groups: dict[str, list[str]] = {"every": [], "some": [], "none": []}
+    for name, runs in results.items():
+        above = [r.final > TASKS[name].anchor[1] for r in runs]
+        where = "every" if all(above) else "some" if any(above) else "none"
+        groups[where].append(TASKS[name].title.split(",")[0])
+    parts = []
+    if groups["every"]:
+        both = len(groups["every"]) == len(TASKS)
+        who = "Both tasks" if both else " and ".join(groups["every"])
+        parts.append(f"{who} end above FedPG-BR's published returns on every seed")
+    if groups["some"]:
+        parts.append(f"{' and '.join(groups['some'])} on some seeds")
+    if groups["none"]:
+        parts.append(f"{' and '.join(groups['none'])} on no seed")
+    return "; ".join(parts) + "." if parts else "No run stored."
+
+
+def result_tables(results: dict[str, list[SeedResult]]) -> list[results_file.Table]:
+    return [results_file.table_from_markdown(result_table(results), summary(results))]
+
+
 def plot(task: Task, results: list[SeedResult], path: Path) -> None:
     """Greedy and stochastic return: the mean over seeds and its 95% percentile-bootstrap
     band (the project's one convention, :mod:`fedhpg.server.commands.plot`), FedPG-BR's return."""
@@ -274,7 +341,7 @@ def plot(task: Task, results: list[SeedResult], path: Path) -> None:
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__)
-    parser.add_argument("--task", choices=sorted(TASKS), required=True)
+    parser.add_argument("--task", choices=sorted(TASKS))
     parser.add_argument("--seeds", type=int, nargs="*", default=[0, 1, 2, 3, 4])
     parser.add_argument("--trajectories", type=int, default=10_000)
     parser.add_argument("--eval-every", type=int, default=None)
@@ -283,7 +350,18 @@ def main() -> None:
     parser.add_argument("--figure", type=Path, default=None)
     parser.add_argument("--plot-only", action="store_true")
     parser.add_argument("--keep-runs", type=Path, default=None, help="copy run directories here")
+    parser.add_argument(
+        "--tables-only",
+        action="store_true",
+        help="only the result table from the stored runs, stamped with their measurement",
+    )
     args = parser.parse_args()
+    if args.tables_only:
+        print(result_table(stored()))
+        results_file.rerender("learning_long", result_tables(stored()))
+        return
+    if args.task is None:
+        parser.error("--task is required (but with --tables-only)")
     task = TASKS[args.task]
     path = args.results or RESULTS / f"{task.name}.json"
     results = load(path)
@@ -304,6 +382,12 @@ def main() -> None:
     print(table(task, ordered))
     figure = args.figure or FIGURES / f"{task.name}_learning.png"
     plot(task, ordered, figure)
+    if args.results is None and not args.extra and not args.plot_only:  # the benchmark's set-up
+        results_file.refresh(
+            "learning_long",
+            result_tables(stored()),
+            results_file.command_line("benchmarks.learning_long"),
+        )
     print(f"\nresults: {path}; figure: {figure}")
 
 

@@ -6,13 +6,15 @@ and gymnasium's documented reward threshold where the task has one.
 
     python -m benchmarks.presets                       # every family, its default seeds
     python -m benchmarks.presets --only pendulum --seeds 0 1 2
-    python -m benchmarks.presets --table-only
+    python -m benchmarks.presets --tables-only          # the table again from the stored runs
 
 Each finished run is stored at once in ``benchmarks/results/presets.json`` (the curve, the
 exact overrides, wall time), so an interrupted sweep keeps what it has; the table is rebuilt
-from that file. The initial greedy return is θ̃₀'s, evaluated in-process with the final
-evaluation's seeds (an evaluation depends only on θ̃, seed, agent and round), so initial and
-final differ by learning alone. Run it under ``nice`` on a shared machine, one at a time.
+from that file and written to ``benchmarks/results/tables/presets.json`` (``--tables-only``:
+from the stored runs alone, stamped with the date, commit and machine they were measured with).
+The initial greedy return is θ̃₀'s, evaluated in-process with the final evaluation's seeds (an
+evaluation depends only on θ̃, seed, agent and round), so initial and final differ by learning
+alone. Run it under ``nice`` on a shared machine, one at a time.
 """
 
 from __future__ import annotations
@@ -27,6 +29,7 @@ import time
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
+from benchmarks import results_file
 from benchmarks.runtime import BIN
 
 RESULTS = Path("benchmarks/results/presets.json")
@@ -203,9 +206,8 @@ def _fmt(values: list[float]) -> str:
 
 def table(results: dict[str, RunResult]) -> str:
     lines = [
-        "| env= | seeds | rounds | trajectories per agent | greedy return of θ̃₀ (per seed) "
-        "| final greedy return (per seed) | best greedy evaluation (per seed) "
-        "| K=1, same preset: final (per seed) | gymnasium threshold | wall per run (s) |",
+        "| env= | seeds | rounds | trajectories per agent | θ̃₀ greedy return "
+        "| final greedy return | best evaluation | K = 1, final | threshold | wall per run (s) |",
         "|---|---|---|---|---|---|---|---|---|---|",
     ]
     for plan in PLANS.values():
@@ -231,33 +233,98 @@ def table(results: dict[str, RunResult]) -> str:
     return "\n".join(lines)
 
 
+def _federations(results: dict[str, RunResult], plan: Plan) -> list[RunResult]:
+    runs = [r for r in results.values() if r.name == plan.name and r.kind == "federation"]
+    return sorted(runs, key=lambda r: r.seed)
+
+
+def _names(names: list[str]) -> str:
+    return ", ".join(names[:-1]) + f" and {names[-1]}" if len(names) > 1 else "".join(names)
+
+
+def summary(results: dict[str, RunResult]) -> str:
+    """What the table says, from the runs: which presets end above their initial greedy return
+    on every seed, which end at or above gymnasium's threshold on every seed (or on some), and
+    which of those without a threshold end at the same return on every seed."""
+    families = {plan.name: plan for plan in PLANS.values() if _federations(results, plan)}
+    if not families:
+        return "No run stored."
+
+    def label(name: str) -> str:
+        return f"`{name}`"
+
+    improved = [
+        n
+        for n, plan in families.items()
+        if all(r.returns[-1] > r.initial for r in _federations(results, plan))
+    ]
+    if len(improved) == len(families):
+        sentence = "Every preset ends above its initial policy's greedy return on every seed"
+    else:
+        others = [label(n) for n in families if n not in improved]
+        sentence = f"{_names(others)} do not end above their initial greedy return on every seed"
+    every, some = [], []
+    for name, plan in families.items():
+        if plan.threshold is None:
+            continue
+        above = [r.returns[-1] >= plan.threshold for r in _federations(results, plan)]
+        if all(above):
+            every.append(label(name))
+        elif any(above):
+            some.append(label(name))
+    if every:
+        sentence += f"; {_names(every)} end at or above gymnasium's threshold on every seed"
+    if some:
+        sentence += f", {_names(some)} on some seeds"
+    for name, plan in families.items():
+        finals = {f"{r.returns[-1]:,.1f}" for r in _federations(results, plan)}
+        if plan.threshold is not None or len(finals) != 1:
+            continue
+        (final,) = finals
+        sentence += f"; {label(name)}'s greedy return ends at {final} on every seed"
+    return sentence + "."
+
+
+def tables(results: dict[str, RunResult]) -> list[results_file.Table]:
+    return [results_file.table_from_markdown(table(results), summary(results))]
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__)
     parser.add_argument("--only", choices=sorted(PLANS), nargs="*", default=None)
     parser.add_argument("--seeds", type=int, nargs="*", default=None)
     parser.add_argument("--no-single", action="store_true", help="skip the K=1 baselines")
     parser.add_argument("--results", type=Path, default=RESULTS)
-    parser.add_argument("--table-only", action="store_true")
+    parser.add_argument(
+        "--tables-only",
+        "--table-only",
+        action="store_true",
+        help="rebuild the table from the stored runs, stamped with their measurement",
+    )
     args = parser.parse_args()
     results = load(args.results)
-    if not args.table_only:
-        for name in args.only or list(PLANS):
-            plan = PLANS[name]
-            kinds = ["federation"] + (
-                ["single"] if plan.single_agent and not args.no_single else []
-            )
-            for seed in args.seeds if args.seeds is not None else plan.seeds:
-                for kind in kinds:
-                    result = run_one(plan, seed, kind)
-                    results[key(name, kind, seed)] = result
-                    save(args.results, results)
-                    print(
-                        f"{name} {kind} seed {seed}: greedy {result.initial:,.1f} → "
-                        f"{result.returns[-1]:,.1f} after {result.trajectories[-1]:,.0f} "
-                        f"trajectories per agent, {result.wall_s:.0f} s",
-                        flush=True,
-                    )
+    if args.tables_only:
+        print(table(results))
+        results_file.rerender("presets", tables(results))
+        return
+    for name in args.only or list(PLANS):
+        plan = PLANS[name]
+        kinds = ["federation"] + (["single"] if plan.single_agent and not args.no_single else [])
+        for seed in args.seeds if args.seeds is not None else plan.seeds:
+            for kind in kinds:
+                result = run_one(plan, seed, kind)
+                results[key(name, kind, seed)] = result
+                save(args.results, results)
+                print(
+                    f"{name} {kind} seed {seed}: greedy {result.initial:,.1f} → "
+                    f"{result.returns[-1]:,.1f} after {result.trajectories[-1]:,.0f} "
+                    f"trajectories per agent, {result.wall_s:.0f} s",
+                    flush=True,
+                )
     print(table(results))
+    results_file.refresh(
+        "presets", tables(results), results_file.command_line("benchmarks.presets")
+    )
 
 
 if __name__ == "__main__":

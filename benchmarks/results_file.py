@@ -257,9 +257,12 @@ def write(
     commit_hash: str | None = None,
     machine_name: str | None = None,
     folder: Path = TABLES,
+    keep_summaries: bool = True,
 ) -> Path:
     """Write ``<folder>/<name>.json``, stamped with today's date, this commit and this machine
-    unless they are given, and checked against the shape above before anything is written."""
+    unless they are given, and checked against the shape above before anything is written.
+    ``keep_summaries=False`` writes the given summaries even where the stored table has the
+    same columns and rows (a table rebuilt from its data, whose summary is the script's)."""
     result: dict[str, Any] = {
         "title": title,
         "order": order,
@@ -274,7 +277,7 @@ def write(
     if data is not None:
         result["data"] = data
     path = folder / f"{name}.json"
-    result["tables"] = _keeping_reviewed_summaries(tables, path)
+    result["tables"] = _keeping_reviewed_summaries(tables, path) if keep_summaries else tables
     validate(result, str(path))
     folder.mkdir(parents=True, exist_ok=True)
     path.write_text(json.dumps(result, indent=2, ensure_ascii=False) + "\n")
@@ -302,10 +305,16 @@ def command_line(module: str) -> str:
     return shlex.join(["python", "-m", module, *sys.argv[1:]])
 
 
-def refresh(name: str, tables: list[Table], command: str, folder: Path = TABLES) -> Path:
+def refresh(
+    name: str,
+    tables: list[Table],
+    command: str,
+    folder: Path = TABLES,
+    data: list[str] | None = None,
+) -> Path:
     """Replace the tables of the stored result ``<folder>/<name>.json`` with this run's,
-    stamped now; its title, order, measured paths, set-up and data stay. A table given without
-    a figure keeps the stored table's figure at the same place."""
+    stamped now; its title, order, measured paths, set-up and data (unless ``data`` is given)
+    stay. A table given without a figure keeps the stored table's figure at the same place."""
     stored = load(folder / f"{name}.json")
     for given, old in zip(tables, stored["tables"], strict=False):
         if "figure" not in given and "figure" in old:
@@ -318,6 +327,41 @@ def refresh(name: str, tables: list[Table], command: str, folder: Path = TABLES)
         measures=stored["measures"],
         tables=tables,
         setup=stored.get("setup"),
-        data=stored.get("data"),
+        data=data if data is not None else stored.get("data"),
         folder=folder,
+    )
+
+
+def rerender(
+    name: str,
+    tables: list[Table],
+    folder: Path = TABLES,
+    stamps: dict[str, str] | None = None,
+    data: list[str] | None = None,
+) -> Path:
+    """Replace the tables of the stored result ``<folder>/<name>.json`` with ones rebuilt now
+    from the data it stores (a script's ``--tables-only``), keeping everything else: title,
+    order, command, measured paths, set-up, data, and the date, commit and machine of the run
+    the data was measured in (``stamps``: ``date``, ``commit`` and ``machine`` where the data
+    file records them itself; ``data``: the files named, where given). The summaries are the
+    script's, computed from that data; a table given without a figure keeps the stored
+    table's figure at the same place."""
+    stored = load(folder / f"{name}.json")
+    for given, old in zip(tables, stored["tables"], strict=False):
+        if "figure" not in given and "figure" in old:
+            given["figure"] = old["figure"]
+    return write(
+        name,
+        title=stored["title"],
+        order=stored["order"],
+        command=stored["command"],
+        measures=stored["measures"],
+        tables=tables,
+        setup=stored.get("setup"),
+        data=data if data is not None else stored.get("data"),
+        date=(stamps or stored)["date"],
+        commit_hash=(stamps or stored)["commit"],
+        machine_name=(stamps or stored)["machine"],
+        folder=folder,
+        keep_summaries=False,
     )

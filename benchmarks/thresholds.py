@@ -31,6 +31,11 @@ stable preset, fedhpg's FedPG-BR and FedPG-BR's code back to back, seed after se
 fresh process (the wall-time comparison, and FedPG-BR's code's rows). ``--search`` runs the
 preset search on seeds of its own. ``--table-only`` prints the tables and draws
 ``docs/figures/solved_cartpole.png`` from what is stored.
+
+Each run writes its result tables (``benchmarks/results/tables/``): ``thresholds`` (the rows,
+per seed, FedPG-BR's counter), ``thresholds_search`` (``--search``) and ``thresholds_wall``
+(``--wall``). ``--tables-only`` writes all three again from the stored runs alone, stamped with
+the date, commit and machine they were measured with.
 """
 
 from __future__ import annotations
@@ -50,6 +55,8 @@ from collections.abc import Sequence
 from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any
+
+from benchmarks import results_file
 
 TARGET = 475.0
 HOLD = 256.0
@@ -375,6 +382,25 @@ def _ratio(theirs: float | None, ours: float | None) -> str:
     return "—" if theirs is None or ours is None else f"{theirs / ours:.0f}×"
 
 
+TIMED = ("stable", "fedpgbr", "fedpgbr_code")
+"""The rows ``--wall`` times back to back: the B = 2 preset, fedhpg's FedPG-BR, its own code."""
+
+
+def timed_runs(curves: list[Curve]) -> list[tuple[float, int, dict[str, Outcome]]]:
+    """(server step, seed, each timed row's outcome) for every step and seed with all three."""
+    found_all = []
+    for lr in sorted({c.server_lr for c in curves}):
+        for seed in sorted({c.seed for c in curves if c.row == "fedpgbr_code"}):
+            found = {}
+            for row in TIMED:
+                match = [c for c in curves if (c.row, c.server_lr, c.seed) == (row, lr, seed)]
+                if match:
+                    found[row] = outcome(match[0])
+            if len(found) == len(TIMED):
+                found_all.append((lr, seed, found))
+    return found_all
+
+
 def wall_table(curves: list[Curve]) -> str:
     """Seconds to solved and to the budget of the runs timed back to back (``--wall``)."""
     lines = [
@@ -383,28 +409,83 @@ def wall_table(curves: list[Curve]) -> str:
         "≥ 475 / to solved / whole run |",
         "|---|---|---|---|---|---|",
     ]
-    timed = ("stable", "fedpgbr", "fedpgbr_code")
-    for lr in sorted({c.server_lr for c in curves}):
-        for seed in sorted({c.seed for c in curves if c.row == "fedpgbr_code"}):
-            found = {}
-            for row in timed:
-                match = [c for c in curves if (c.row, c.server_lr, c.seed) == (row, lr, seed)]
-                if match:
-                    found[row] = outcome(match[0])
-            if len(found) < len(timed):
-                continue
-            cells = [
-                f"{_seconds(o.first_wall_s)} / {_seconds(o.wall_s)} / {o.end_wall_s:.1f}"
-                for o in (found[row] for row in timed)
-            ]
-            ours, theirs = found["stable"], found["fedpgbr_code"]
-            ratios = [
-                _ratio(theirs.first_wall_s, ours.first_wall_s),
-                _ratio(theirs.wall_s, ours.wall_s),
-                _ratio(theirs.end_wall_s, ours.end_wall_s),
-            ]
-            lines.append(f"| {lr:g} | {seed} | {' | '.join(cells)} | {' / '.join(ratios)} |")
+    for lr, seed, found in timed_runs(curves):
+        cells = [
+            f"{_seconds(o.first_wall_s)} / {_seconds(o.wall_s)} / {o.end_wall_s:.1f}"
+            for o in (found[row] for row in TIMED)
+        ]
+        ours, theirs = found["stable"], found["fedpgbr_code"]
+        ratios = [
+            _ratio(theirs.first_wall_s, ours.first_wall_s),
+            _ratio(theirs.wall_s, ours.wall_s),
+            _ratio(theirs.end_wall_s, ours.end_wall_s),
+        ]
+        lines.append(f"| {lr:g} | {seed} | {' | '.join(cells)} | {' / '.join(ratios)} |")
     return "\n".join(lines)
+
+
+def wall_summary(curves: list[Curve]) -> str:
+    """The B = 2 preset's seconds to solved and FedPG-BR's code's ratios to it, over the
+    seeds and steps timed."""
+    runs = [found for _, _, found in timed_runs(curves)]
+    if not runs:
+        return "No run timed."
+    solved = [f["stable"].wall_s for f in runs]
+    first = [
+        theirs / ours
+        for f in runs
+        if (theirs := f["fedpgbr_code"].first_wall_s) is not None
+        and (ours := f["stable"].first_wall_s) is not None
+    ]
+    whole = [f["fedpgbr_code"].end_wall_s / f["stable"].end_wall_s for f in runs]
+    hits = [v for v in solved if v is not None]
+    text = "Across seeds the B = 2 preset is solved in " + (
+        f"{min(hits):.1f}–{max(hits):.1f} s" if hits else "no run"
+    )
+    if len(hits) < len(solved):
+        text += f" ({len(solved) - len(hits)} of {len(solved)} runs never)"
+    if first:
+        text += (
+            f"; FedPG-BR's code reaches its first {TARGET:g} {min(first):.0f}–{max(first):.0f}× "
+            "later"
+        )
+    return text + f" and takes {min(whole):.0f}–{max(whole):.0f}× the preset's whole run."
+
+
+@dataclass(frozen=True)
+class Conversion:
+    """One logged run of FedPG-BR's code at its end: its printed counter and what it sampled."""
+
+    server_lr: float
+    seed: int
+    rounds: int
+    aborted: int
+    """Rounds with an aborted inner step."""
+    counter: int
+    converted: float
+    """:func:`from_counter` of the counter."""
+    sampled: float
+    """Trajectories per agent counted from the log."""
+
+
+def conversions(folder: Path = CODE_LOGS) -> list[Conversion]:
+    found = []
+    for log in sorted(folder.glob("*.jsonl")):
+        rows = [json.loads(line) for line in log.read_text().splitlines() if line.strip()]
+        header, rounds = rows[0], rows[1:]
+        counter = rounds[-1]["counter"]
+        found.append(
+            Conversion(
+                server_lr=header["server_lr"],
+                seed=header["seed"],
+                rounds=len(rounds),
+                aborted=sum(r["inner_batches"] > r["inner_steps"] for r in rounds),
+                counter=counter,
+                converted=from_counter(counter, header["K"]),
+                sampled=code_curve(log).trajectories[-1],
+            )
+        )
+    return found
 
 
 def conversion_table(folder: Path = CODE_LOGS) -> str:
@@ -415,17 +496,201 @@ def conversion_table(folder: Path = CODE_LOGS) -> str:
         "| counter · 11/10 | trajectories per agent sampled |",
         "|---|---|---|---|---|---|---|",
     ]
-    for log in sorted(folder.glob("*.jsonl")):
-        rows = [json.loads(line) for line in log.read_text().splitlines() if line.strip()]
-        header, rounds = rows[0], rows[1:]
-        aborted = sum(r["inner_batches"] > r["inner_steps"] for r in rounds)
-        counter = rounds[-1]["counter"]
+    for c in conversions(folder):
         lines.append(
-            f"| {header['server_lr']:g} | {header['seed']} | {len(rounds)} | {aborted} "
-            f"| {counter:,} | {from_counter(counter, header['K']):,.1f} "
-            f"| {code_curve(log).trajectories[-1]:,.1f} |"
+            f"| {c.server_lr:g} | {c.seed} | {c.rounds} | {c.aborted} | {c.counter:,} "
+            f"| {c.converted:,.1f} | {c.sampled:,.1f} |"
         )
     return "\n".join(lines)
+
+
+def conversion_summary(folder: Path = CODE_LOGS) -> str:
+    """How far the converted counter is from what the runs sampled, and on which side."""
+    found = conversions(folder)
+    if not found:
+        return "No logged run."
+    gaps = [c.sampled - c.converted for c in found]
+    low = sum(g > 0 for g in gaps)
+    return (
+        f"Its counter · 11/10 is within {max(abs(g) for g in gaps):.1f} trajectories per agent "
+        f"of what its runs sampled, below it in {low} of {len(found)} runs: it leaves out the "
+        f"batches of aborted inner steps (b/K = {MINI_BATCH / AGENTS:g} each) and is rounded "
+        "every round."
+    )
+
+
+def _outcomes(curves: list[Curve], row: str, lr: float) -> list[Outcome]:
+    group = sorted((c for c in curves if (c.row, c.server_lr) == (row, lr)), key=lambda c: c.seed)
+    return [outcome(c) for c in group]
+
+
+def _reached(values: Sequence[float | None]) -> list[float]:
+    """``values`` where none is missing (every seed reached), else none."""
+    return [v for v in values if v is not None] if None not in values else []
+
+
+def _short(row: str) -> str:
+    return ROWS[row].label.split(" (")[0]
+
+
+def _steps(curves: list[Curve]) -> list[float]:
+    return sorted({c.server_lr for c in curves})
+
+
+def _step_names(steps: Sequence[float], every: Sequence[float]) -> str:
+    if len(steps) == len(every) > 1:
+        return "both steps" if len(every) == 2 else "every step"
+    return " and ".join(f"{lr:g}" for lr in steps)
+
+
+def summary(curves: list[Curve], rows: Sequence[str]) -> str:
+    """What the main table says, from the runs: at which steps the B = 2 preset is solved
+    before FedPG-BR's own code on every seed and whether it stays solved, which rows never
+    reach the target within the budget, and which row reaches a first one soonest at each
+    step, with how well it holds it."""
+    steps = _steps(curves)
+    sentences = []
+    stable = f"{_short('stable')} preset (`{ROWS['stable'].overrides[0]}`)"
+    if "stable" in rows and "fedpgbr_code" in rows:
+        sooner = []
+        for lr in steps:
+            ours, theirs = _outcomes(curves, "stable", lr), _outcomes(curves, "fedpgbr_code", lr)
+            if (
+                ours
+                and len(ours) == len(theirs)
+                and all(
+                    o.solved is not None and (t.solved is None or o.solved < t.solved)
+                    for o, t in zip(ours, theirs, strict=True)
+                )
+            ):
+                sooner.append(lr)
+        held = [o.held for lr in steps for o in _outcomes(curves, "stable", lr)]
+        if sooner:
+            text = (
+                f"The {stable} is solved sooner than FedPG-BR's own code on every seed "
+                f"at {_step_names(sooner, steps)}"
+            )
+            if all(h == 1.0 for h in held):
+                text += f", and stays solved (every evaluation ≥ {TARGET:g} after its first)"
+            sentences.append(text + ".")
+    never = [
+        f"{ROWS[row].label} does not reach {TARGET:g} within {BUDGET:,} at {lr:g}"
+        for row in rows
+        for lr in steps
+        if (found := _outcomes(curves, row, lr)) and all(o.first is None for o in found)
+    ]
+    if never:
+        sentences.append("; ".join(never) + ".")
+    soonest = []
+    for lr in steps:
+        firsts: dict[str, float] = {}
+        for row in rows:
+            reached = _reached([o.first for o in _outcomes(curves, row, lr)])
+            if reached:
+                firsts[row] = statistics.median(reached)
+        if firsts:
+            row = min(firsts, key=lambda r: firsts[r])
+            found = _outcomes(curves, row, lr)
+            held_median = statistics.median(_reached([o.held for o in found]))
+            solved = sum(o.solved is not None for o in found)
+            soonest.append(
+                f"at {lr:g} {ROWS[row].label} ({firsts[row]:,.0f} at the median), solved on "
+                f"{solved} of {len(found)} seeds, {100 * held_median:.0f} % of its evaluations "
+                "after the first at the median"
+            )
+    if soonest:
+        sentences.append(f"First ≥ {TARGET:g} soonest: " + "; ".join(soonest) + ".")
+    return " ".join(sentences) or "No run stored."
+
+
+PER_SEED_SUMMARY = (
+    "Each seed's solved point, the share of evaluations ≥ {target:g} after the first, and the "
+    "return at {budget:,} trajectories per agent."
+)
+
+
+def search_summary(curves: list[Curve], rows: Sequence[str]) -> str:
+    """For each searched row beside the B = 2 preset: on how many seeds it is solved at each
+    step where it is not on all, else its trajectories to solved against the preset's."""
+    steps = _steps(curves)
+    sentences = []
+    for row in rows:
+        if row == "stable":
+            continue
+        counts = {lr: _outcomes(curves, row, lr) for lr in steps}
+        short = [
+            f"{sum(o.solved is not None for o in found)} of {len(found)} seeds at {lr:g}"
+            for lr, found in counts.items()
+            if found and any(o.solved is None for o in found)
+        ]
+        if short:
+            sentences.append(f"{_short(row)} is not held: solved on {', '.join(short)}")
+            continue
+        ratios = []
+        for lr, found in counts.items():
+            ours = _reached([o.solved for o in found])
+            base = _reached([o.solved for o in _outcomes(curves, "stable", lr)])
+            if ours and base:
+                ratios.append(statistics.median(ours) / statistics.median(base))
+        if ratios:
+            sentences.append(
+                f"{_short(row)} is held on every seed but needs {min(ratios):.1f}–"
+                f"{max(ratios):.1f}× {_short('stable')}'s trajectories to solved (medians)"
+            )
+    varied = ", ".join(_short(row) for row in rows)
+    return (
+        "; ".join(sentences)
+        + f". Only B was searched ({varied}): a step-size decay, a larger B later in training, "
+        "the planner's B_k and FedHPGVR were not tried."
+    )
+
+
+def main_tables(
+    curves: list[Curve], rows: Sequence[str], folder: Path | None
+) -> list[results_file.Table]:
+    """The ``thresholds`` result: the rows, per seed, and FedPG-BR's counter where its logs
+    are stored."""
+    tables = [
+        results_file.table_from_markdown(table(curves, rows), summary(curves, rows)),
+        results_file.table_from_markdown(
+            per_seed(curves, rows),
+            PER_SEED_SUMMARY.format(target=TARGET, budget=BUDGET),
+            title="Per seed",
+        ),
+    ]
+    if folder is not None and conversions(folder):
+        tables.append(
+            results_file.table_from_markdown(
+                conversion_table(folder),
+                conversion_summary(folder),
+                title="FedPG-BR's printed counter against the trajectories its runs sampled "
+                "(the last round of each logged run)",
+            )
+        )
+    return tables
+
+
+def search_tables(curves: list[Curve], rows: Sequence[str]) -> list[results_file.Table]:
+    return [results_file.table_from_markdown(table(curves, rows), search_summary(curves, rows))]
+
+
+def wall_tables(curves: list[Curve]) -> list[results_file.Table]:
+    return [results_file.table_from_markdown(wall_table(curves), wall_summary(curves))]
+
+
+def stored_rows(curves: list[Curve]) -> list[str]:
+    """The rows stored, in the tables' order."""
+    rows = [r for r in TABLE_ROWS if any(c.row == r for c in curves)]
+    return rows + [r for r in ROWS if r not in rows and any(c.row == r for c in curves)]
+
+
+def write_tables() -> None:
+    """The three result tables again from the stored runs, stamped with their measurement."""
+    curves = load(RESULTS, CODE_LOGS)
+    results_file.rerender("thresholds", main_tables(curves, stored_rows(curves), CODE_LOGS))
+    results_file.rerender("thresholds_wall", wall_tables(curves))
+    search = load(SEARCH_RESULTS, None)
+    results_file.rerender("thresholds_search", search_tables(search, stored_rows(search)))
 
 
 def plot(curves: list[Curve], path: Path = FIGURE, rows: Sequence[str] = TABLE_ROWS) -> None:
@@ -537,6 +802,11 @@ def main(argv: Sequence[str] | None = None) -> None:
     parser.add_argument("--rows", nargs="+", choices=fedhpg_rows, default=fedhpg_rows[:-1])
     parser.add_argument("--rerun", action="store_true", help="rerun the stored runs asked for")
     parser.add_argument("--table-only", action="store_true", help="tables and figure only")
+    parser.add_argument(
+        "--tables-only",
+        action="store_true",
+        help="only the result tables from the stored runs, stamped with their measurement",
+    )
     parser.add_argument("--results", type=Path, default=RESULTS)
     parser.add_argument("--code-logs", type=Path, default=CODE_LOGS)
     parser.add_argument("--figure", type=Path, default=FIGURE)
@@ -552,6 +822,9 @@ def main(argv: Sequence[str] | None = None) -> None:
     parser.add_argument("--one", choices=fedhpg_rows, help=argparse.SUPPRESS)
     parser.add_argument("--out", type=Path, help=argparse.SUPPRESS)
     args = parser.parse_args(argv)
+    if args.tables_only:
+        write_tables()
+        return
     if args.one is not None:  # one run for --wall, in its own process
         curve = run_curve(args.one, args.server_lr[0], args.seeds[0])
         args.out.write_text(json.dumps(asdict(curve)))
@@ -584,8 +857,7 @@ def main(argv: Sequence[str] | None = None) -> None:
                     curves = replace(curves, curve)
                     save(curves, args.results)
     curves = load(args.results, args.code_logs)
-    rows = [r for r in TABLE_ROWS if any(c.row == r for c in curves)]
-    rows += [r for r in ROWS if r not in rows and any(c.row == r for c in curves)]
+    rows = stored_rows(curves)
     print(table(curves, rows))
     print()
     print(per_seed(curves, rows))
@@ -595,6 +867,14 @@ def main(argv: Sequence[str] | None = None) -> None:
         print()
         print(conversion_table(args.code_logs))
     plot(curves, args.figure, rows)
+    command = results_file.command_line("benchmarks.thresholds")
+    if args.search and args.results == SEARCH_RESULTS:
+        results_file.refresh("thresholds_search", search_tables(curves, rows), command)
+    elif args.results == RESULTS and not args.search:
+        if not args.table_only:
+            results_file.refresh("thresholds", main_tables(curves, rows, args.code_logs), command)
+        if args.wall:
+            results_file.refresh("thresholds_wall", wall_tables(curves), command)
     print(f"\nfigure: {args.figure}")
 
 

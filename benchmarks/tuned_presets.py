@@ -19,7 +19,10 @@ trajectories per agent.
 ``python -m benchmarks.tuned_presets --task lunarlander [--settings ...] [--seeds 0 1 2 3 4]``
 prints the table, keeps every curve in ``benchmarks/results/tuned_<task>.json`` (``--resume``
 keeps those there and runs the missing ones; ``--table-only`` prints the table and redraws
-``docs/figures/tuned_<task>.png`` from it). Hours per task on 2 cores: run it under ``nice``.
+``docs/figures/tuned_<task>.png`` from it) and writes the tuned preset against the paper-faithful
+set-up to ``benchmarks/results/tables/tuned_<task>.json`` (``--tables-only``: only that, from the
+stored curves, stamped with the date, commit and machine they were measured with). Hours per
+task on 2 cores: run it under ``nice``.
 """
 
 from __future__ import annotations
@@ -29,12 +32,14 @@ import contextlib
 import json
 import logging
 import math
+import re
 import statistics
 from collections.abc import Sequence
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
 
+from benchmarks import results_file
 from fedhpg.common.runtime.cli import limit_threads
 
 LOG = logging.getLogger("benchmarks.tuned_presets")
@@ -335,6 +340,101 @@ def table(task: Task, curves: list[Curve]) -> str:
     return "\n".join(lines)
 
 
+def _median(values: Sequence[float | None]) -> float:
+    """The median over the seeds, a seed that did not reach counting as later than any that
+    did (infinite where those move the median)."""
+    return statistics.median(v if v is not None else math.inf for v in values)
+
+
+def _setting_text(task: Task, label: str) -> str:
+    """A setting as the result table names it: its B and the keys it changes on its preset."""
+    batch = re.search(r"B=(\d+)", label)
+    text = f"B = {batch.group(1)}" if batch else label
+    if label == task.paper:
+        text += " (paper-faithful)"
+    extra = [o for o in task.settings[label].overrides if not o.startswith(_batch(0)[:-3])]
+    return text + "".join(f", `{o}`" for o in extra)
+
+
+def _measure(task: Task, curves: list[Curve], label: str, sustained: bool) -> list[float | None]:
+    group = sorted((c for c in curves if c.setting == label), key=lambda c: c.seed)
+    return [c.sustained(task.threshold) if sustained else c.first(task.threshold) for c in group]
+
+
+def _bold_where(text: str, better: bool) -> str:
+    """``text`` with its median (range) in bold where ``better``; a note on seeds that did not
+    reach stays outside."""
+    if not better:
+        return text
+    head, comma, note = text.partition(", ")
+    return f"**{head}**{comma}{note}"
+
+
+def result_table(task: Task, curves: list[Curve]) -> str:
+    """The tuned preset against the paper-faithful set-up, trajectories per agent to the first
+    and to a sustained greedy ≥ the threshold; the tuned preset's figure in bold where its
+    median is below the paper-faithful one's."""
+    lines = [
+        "| preset | setting | first: median (range) | sustained: median (range) |",
+        "|---|---|---|---|",
+    ]
+    for label, preset in ((task.paper, task.preset.removesuffix("_tuned")), (task.tuned, None)):
+        cells = []
+        for sustained in (False, True):
+            values = _measure(task, curves, label, sustained)
+            better = preset is None and _median(values) < _median(
+                _measure(task, curves, task.paper, sustained)
+            )
+            cells.append(_bold_where(_spread(values), better))
+        lines.append(
+            f"| `experiment={preset or task.preset}` | {_setting_text(task, label)} "
+            f"| {cells[0]} | {cells[1]} |"
+        )
+    return "\n".join(lines)
+
+
+def summary(task: Task, curves: list[Curve]) -> str:
+    """The tuned preset's median trajectories per agent against the paper-faithful set-up's,
+    to the first and to a sustained greedy ≥ the threshold, and which set-ups do not sustain
+    it on every seed."""
+
+    def against(sustained: bool) -> str:
+        tuned = _median(_measure(task, curves, task.tuned, sustained))
+        paper = _median(_measure(task, curves, task.paper, sustained))
+        if math.isinf(tuned) or math.isinf(paper):
+            late = " and ".join(
+                name
+                for name, m in (("the tuned preset", tuned), ("the paper-faithful set-up", paper))
+                if math.isinf(m)
+            )
+            return f"{late} not reached at the median"
+        return f"{tuned / paper:.2f}×"
+
+    threshold = f"{task.threshold:,.0f}"
+    sentence = (
+        f"At the median over seeds the tuned preset needs {against(False)} the paper-faithful "
+        f"set-up's trajectories per agent to a first greedy ≥ {threshold}, and {against(True)} "
+        "to a sustained one"
+    )
+    unsustained = [
+        name
+        for name, label in (
+            ("the paper-faithful set-up", task.paper),
+            ("the tuned preset", task.tuned),
+        )
+        if None in _measure(task, curves, label, True)
+    ]
+    if len(unsustained) == 2:
+        sentence += "; neither set-up sustains it on every seed"
+    elif unsustained:
+        sentence += f"; {unsustained[0]} does not sustain it on every seed"
+    return sentence + "."
+
+
+def result_tables(task: Task, curves: list[Curve]) -> list[results_file.Table]:
+    return [results_file.table_from_markdown(result_table(task, curves), summary(task, curves))]
+
+
 def plot(task: Task, curves: list[Curve], path: Path, budget: float) -> None:
     """The greedy return of every setting with at least two seeds: the mean over seeds and its
     95% percentile-bootstrap band (the project's convention), up to ``budget``."""
@@ -375,11 +475,21 @@ def main(argv: Sequence[str] | None = None) -> None:
     parser.add_argument("--no-stop", action="store_true", help="run to the budget")
     parser.add_argument("--resume", action="store_true", help="keep the stored curves")
     parser.add_argument("--table-only", action="store_true", help="the table from the stored")
+    parser.add_argument(
+        "--tables-only",
+        action="store_true",
+        help="only the result table from the stored curves, stamped with their measurement",
+    )
     args = parser.parse_args(argv)
+    task = TASKS[args.task]
+    if args.tables_only:
+        stored = paper_curves(task) + load(task)
+        print(result_table(task, stored))
+        results_file.rerender(f"tuned_{task.name}", result_tables(task, stored))
+        return
     # Each evaluation on stderr: a run takes tens of minutes.
     logging.basicConfig(format="%(asctime)s %(message)s")
     LOG.setLevel(logging.INFO)
-    task = TASKS[args.task]
     budget = args.budget or task.budget
     if not args.table_only:
         # One torch thread, as each process of fedhpg-run has: how a sum is split over threads
@@ -411,6 +521,11 @@ def main(argv: Sequence[str] | None = None) -> None:
     everything = paper_curves(task) + curves
     print(table(task, everything))
     plot(task, everything, task.figure, budget)
+    results_file.refresh(
+        f"tuned_{task.name}",
+        result_tables(task, everything),
+        results_file.command_line("benchmarks.tuned_presets"),
+    )
     print(f"\nresults: {task.results}; figure: {task.figure}")
 
 
