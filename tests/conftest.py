@@ -8,9 +8,10 @@ work unit, ``federations``, which one worker starts first and runs in order, as 
 would: no two of them share the two cores, and their deadlines keep the margins they were
 set with. The other tests (in-process tests, also those in a module that starts federations
 elsewhere) are spread over both workers a module at a time, so a module's fixtures are built
-once per worker that runs it. A test marked ``alongside`` (the long tier's docs pages, whose
-federations wait with the defaults' wide margins) is spread one case a work unit, beside the
-federations: ``make test-long`` runs the pages on both workers. xdist's own ``xdist_group``
+once per worker that runs it. A test marked ``alongside`` (the long tier's docs pages, make
+test's fedhpg-run runs of plugins and a sweep: federations on free ports that wait with the
+defaults' wide margins, checked by their outputs alone) is spread one case a work unit, beside
+the federations: ``make test-long`` runs the pages on both workers. xdist's own ``xdist_group``
 mark would say the same, but with pytest 9 its nodeid suffix no longer takes effect.
 """
 

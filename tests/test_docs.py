@@ -9,6 +9,10 @@ block that cannot run here is marked right before it, ``<!-- not run: why -->``,
 reason must be given. ``text`` blocks are output, and the README's quickstart output is
 checked against what the demo prints. Running the pages takes minutes, so it is in the long
 tier (``make test-long``); that every block runs or says why not is checked in ``make test``.
+
+A page in :data:`ONE_BLOCK_A_CASE` (its blocks need nothing from each other's runs, only the
+files the page wrote before them) runs one block a case, each in a fresh working directory
+holding the page's files written before it, so ``make test-long``'s two workers share it.
 """
 
 from __future__ import annotations
@@ -20,6 +24,7 @@ import sys
 import tomllib
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import pytest
 import yaml
@@ -35,6 +40,9 @@ RUN = {"bash", "python"}
 PARSED = {"yaml", "toml"}
 OUTPUT = {"text"}
 BLOCK_TIMEOUT_S = 300
+ONE_BLOCK_A_CASE = {"environments.md"}
+"""Pages whose blocks each need only the files the page wrote before them: the longest page
+(about 2 min on one core) becomes one case a block."""
 
 
 @dataclass(frozen=True)
@@ -114,16 +122,49 @@ def _run(block: Block, cwd: Path) -> None:
     )
 
 
+def _checked(block: Block) -> bool:
+    """Whether the page's test runs or parses ``block`` (a file block is written, not run)."""
+    return block.mark is None and block.language in RUN | PARSED
+
+
+def _page_cases() -> list[Any]:
+    """One case a page, or, for a page of :data:`ONE_BLOCK_A_CASE`, one a checked block
+    (``environments.md:14``: the block's line)."""
+    cases: list[Any] = []
+    for page in PAGES:
+        if page.name in ONE_BLOCK_A_CASE:
+            lines = [b.line for b in blocks(page) if _checked(b)]
+            cases += [pytest.param(page, n, id=f"{page.name}:{n}") for n in lines]
+        else:
+            cases.append(pytest.param(page, None, id=page.name))
+    return cases
+
+
+def test_a_page_run_one_block_a_case_has_a_case_for_every_block_it_checks() -> None:
+    """The split drops no block: every run or parsed block of those pages is a case."""
+    split = [p for p in PAGES if p.name in ONE_BLOCK_A_CASE]
+    assert [p.name for p in split] == sorted(ONE_BLOCK_A_CASE), "a split page is missing"
+    cased = {tuple(c.values) for c in _page_cases() if c.values[1] is not None}
+    checked = {(p, b.line) for p in split for b in blocks(p) if _checked(b)}
+    assert cased == checked and len(checked) > 1
+
+
 @pytest.mark.slow
 @pytest.mark.alongside  # the pages' federations keep the defaults' waits (60 s to register, …)
-@pytest.mark.parametrize("page", PAGES, ids=[p.name for p in PAGES])
-def test_the_pages_code_runs_as_printed(page: Path, tmp_path: Path) -> None:
+@pytest.mark.parametrize(("page", "line"), _page_cases())
+def test_the_pages_code_runs_as_printed(page: Path, line: int | None, tmp_path: Path) -> None:
+    """The page's blocks in order in one working directory; with ``line``, the block there
+    alone, after the page's file blocks above it."""
     cwd = _workdir(tmp_path)
     for block in blocks(page):
+        if line is not None and block.line > line:
+            break
         if block.mark and block.mark[0] == "not run":
             continue
         if block.mark and block.mark[0] == "file":
             (cwd / block.mark[1]).write_text(block.body, encoding="utf-8")
+        elif line is not None and block.line != line:
+            continue  # another case runs it
         elif block.language in RUN:
             _run(block, cwd)
         elif block.language == "yaml":

@@ -64,6 +64,7 @@ def test_fedhpg_run_rejects_an_unknown_group_option_with_one_line(tmp_path: Path
     assert result.stderr.strip() == expected
 
 
+@pytest.mark.alongside  # fedhpg-run on a free port with the defaults' waits, checked by its outputs
 def test_tiny_multirun_then_plot(tmp_path: Path) -> None:
     sweep = tmp_path / "sweep"
     with processes() as started:

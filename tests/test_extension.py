@@ -67,6 +67,7 @@ def fedhpg_run(overrides: list[str], tmp_path: Path) -> tuple[Path, str]:
     return out_dir, stdout
 
 
+@pytest.mark.alongside  # fedhpg-run on a free port with the defaults' waits, checked by its outputs
 def test_a_plugin_algorithm_and_strategy_run_through_fedhpg_run(tmp_path: Path) -> None:
     out_dir, stdout = fedhpg_run(OVERRIDES, tmp_path)
     assert "B=4" not in stdout and "batch_size=4 steps=2" in stdout, "the plugin's budget label"
@@ -81,6 +82,7 @@ def test_a_plugin_algorithm_and_strategy_run_through_fedhpg_run(tmp_path: Path) 
     assert torch.equal(checkpoint.theta, run_in_process(compose(OVERRIDES)))
 
 
+@pytest.mark.alongside  # fedhpg-run on a free port with the defaults' waits, checked by its outputs
 def test_a_plugin_algorithm_runs_batched_for_a_thousand_agents_on_two_hosts(
     tmp_path: Path,
 ) -> None:
@@ -179,6 +181,7 @@ BY_PATH = [
 ]
 
 
+@pytest.mark.alongside  # fedhpg-run on a free port with the defaults' waits, checked by its outputs
 def test_a_plugin_env_family_and_policy_run_through_fedhpg_run(tmp_path: Path) -> None:
     out_dir, _ = fedhpg_run([*TOY_RUN, *BY_NAME], tmp_path)
     checkpoint = latest_valid_checkpoint(out_dir / "checkpoints")

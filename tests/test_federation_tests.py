@@ -87,12 +87,28 @@ def test_a_helper_or_fixture_that_starts_processes_or_a_shared_fixture_makes_a_f
 def test_the_docs_pages_run_alongside_the_federations_one_page_a_unit() -> None:
     """The long tier's docs pages start federations, but may run beside the serial unit; the
     other tests of the module, and the federations elsewhere, may not."""
-    pages = "tests/test_docs.py::test_the_pages_code_runs_as_printed[README.md]"
-    assert starts_federations(TESTS / "test_docs.py", pages)
-    assert runs_alongside(TESTS / "test_docs.py", pages)
+    for pages in (
+        "tests/test_docs.py::test_the_pages_code_runs_as_printed[README.md]",
+        "tests/test_docs.py::test_the_pages_code_runs_as_printed[environments.md:14]",  # a block
+    ):
+        assert starts_federations(TESTS / "test_docs.py", pages)
+        assert runs_alongside(TESTS / "test_docs.py", pages)
     for nodeid in (
         "tests/test_docs.py::test_the_readmes_quickstart_output_is_what_the_demo_prints",
         "tests/test_resources.py::test_resource_attacks_leave_the_run_intact",
         "tests/test_hosts.py::test_theta_does_not_depend_on_the_placement_of_the_agents[fedhpg]",
     ):
         assert not runs_alongside(TESTS / nodeid.split("::")[0].removeprefix("tests/"), nodeid)
+
+
+def test_a_fast_run_checked_only_by_its_outputs_may_run_alongside_too() -> None:
+    """make test's fedhpg-run runs on a free port with the defaults' waits, marked alongside,
+    leave the serial unit; an unmarked test of the same module stays in it."""
+    marked = "tests/test_experiments.py::test_tiny_multirun_then_plot"
+    assert starts_federations(TESTS / "test_experiments.py", marked)
+    assert runs_alongside(TESTS / "test_experiments.py", marked)
+    other = (
+        "tests/test_experiments.py::test_fedhpg_run_rejects_an_unknown_group_option_with_one_line"
+    )
+    assert starts_federations(TESTS / "test_experiments.py", other)
+    assert not runs_alongside(TESTS / "test_experiments.py", other)
