@@ -357,9 +357,9 @@ def _plain_sum(inputs: dict[int, np.ndarray], included: list[int]) -> np.ndarray
         (20, {1, 7}, set(), None),  # 10 %
         (10, {0, 5, 9}, set(), None),  # 30 %
         (10, {2}, {6, 8}, None),  # and two that never sent an input
-        # SecAgg+: 10 neighbours each, t = 6; 4 silent ≤ k − t, so every agent keeps t
+        # SecAgg+: 10 neighbours each, t = 6; 4 dropped ≤ k − t, so every agent keeps t
         # answering neighbours whatever ring the round's keys draw (with 8 neighbours,
-        # t = 5, a draw placing all 4 silent agents beside one agent fails the round)
+        # t = 5, a draw placing all 4 dropped agents beside one agent fails the round)
         (30, {3, 11, 29}, {17}, 10),
     ],
 )
