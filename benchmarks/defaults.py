@@ -28,10 +28,7 @@ from benchmarks.runtime import BIN, _children, _pss_bytes
 RESULTS = Path("benchmarks/results/defaults.json")
 TITLE = "Defaults at K = 1,000"
 MEASURES = [
-    "server",
-    "agent",
-    "common/runtime",
-    "common/wire",
+    *results_file.RUNTIME_CODE,
     "common/learning/engine",
     "common/learning/batched",
     "common/heterogeneity/population.py",

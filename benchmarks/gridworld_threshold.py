@@ -120,7 +120,7 @@ def main() -> None:
         title="GridWorld: trajectories until every environment is solved",
         order=100,
         command="python -m benchmarks.gridworld_threshold",
-        measures=[*results_file.LEARNING_CODE, "server", "agent", "common/runtime", "common/wire"],
+        measures=[*results_file.LEARNING_CODE, *results_file.RUNTIME_CODE],
         setup=(
             "The demo federation (4 heterogeneous GridWorlds, B = 8/12/16/20, τ = 2/2/3/3 for "
             "FedHPG; N = 3, b_k = 5 for FedHPGVR; η = 0.5), in process (which the distributed "

@@ -68,7 +68,7 @@ EPSILONS = (1.0, 4.0, 8.0)
 
 
 LEARNING = list(results_file.LEARNING_CODE)
-FEDERATION = ["server", "agent", "common/runtime", "common/wire"]
+FEDERATION = list(results_file.RUNTIME_CODE)
 PARTS: dict[str, dict[str, Any]] = {
     "utility": {
         "title": "Privacy: what DP costs in return",

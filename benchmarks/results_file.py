@@ -63,6 +63,8 @@ LEARNING_CODE = (
     "envs",
 )
 """What a learning benchmark measures: a change here may change its returns."""
+RUNTIME_CODE = ("server", "agent", "common/runtime", "common/wire")
+"""What a benchmark of real federations measures besides the learning: processes and wire."""
 
 
 class Figure(TypedDict):
@@ -305,6 +307,27 @@ def command_line(module: str) -> str:
     return shlex.join(["python", "-m", module, *sys.argv[1:]])
 
 
+def _kept_fields(
+    name: str, tables: list[Table], folder: Path, data: list[str] | None
+) -> tuple[Result, dict[str, Any]]:
+    """The stored result ``<folder>/<name>.json`` and what a new version of it keeps: its
+    title, order, measured paths, set-up and data (unless ``data`` is given), with ``tables``
+    in place of its own (a table given without a figure keeps the stored one's at its place)."""
+    stored = load(folder / f"{name}.json")
+    for given, old in zip(tables, stored["tables"], strict=False):
+        if "figure" not in given and "figure" in old:
+            given["figure"] = old["figure"]
+    return stored, {
+        "title": stored["title"],
+        "order": stored["order"],
+        "measures": stored["measures"],
+        "tables": tables,
+        "setup": stored.get("setup"),
+        "data": data if data is not None else stored.get("data"),
+        "folder": folder,
+    }
+
+
 def refresh(
     name: str,
     tables: list[Table],
@@ -315,21 +338,8 @@ def refresh(
     """Replace the tables of the stored result ``<folder>/<name>.json`` with this run's,
     stamped now; its title, order, measured paths, set-up and data (unless ``data`` is given)
     stay. A table given without a figure keeps the stored table's figure at the same place."""
-    stored = load(folder / f"{name}.json")
-    for given, old in zip(tables, stored["tables"], strict=False):
-        if "figure" not in given and "figure" in old:
-            given["figure"] = old["figure"]
-    return write(
-        name,
-        title=stored["title"],
-        order=stored["order"],
-        command=command,
-        measures=stored["measures"],
-        tables=tables,
-        setup=stored.get("setup"),
-        data=data if data is not None else stored.get("data"),
-        folder=folder,
-    )
+    _, kept = _kept_fields(name, tables, folder, data)
+    return write(name, command=command, **kept)
 
 
 def rerender(
@@ -346,22 +356,14 @@ def rerender(
     file records them itself; ``data``: the files named, where given). The summaries are the
     script's, computed from that data; a table given without a figure keeps the stored
     table's figure at the same place."""
-    stored = load(folder / f"{name}.json")
-    for given, old in zip(tables, stored["tables"], strict=False):
-        if "figure" not in given and "figure" in old:
-            given["figure"] = old["figure"]
+    stored, kept = _kept_fields(name, tables, folder, data)
+    measured = stamps or stored
     return write(
         name,
-        title=stored["title"],
-        order=stored["order"],
         command=stored["command"],
-        measures=stored["measures"],
-        tables=tables,
-        setup=stored.get("setup"),
-        data=data if data is not None else stored.get("data"),
-        date=(stamps or stored)["date"],
-        commit_hash=(stamps or stored)["commit"],
-        machine_name=(stamps or stored)["machine"],
-        folder=folder,
+        date=measured["date"],
+        commit_hash=measured["commit"],
+        machine_name=measured["machine"],
         keep_summaries=False,
+        **kept,
     )

@@ -126,10 +126,7 @@ def report(curves: list[Curve], rounds: int, summary: str | None = None, **stamp
         + (f" --rounds {rounds}" if rounds != 30 else ""),
         measures=[
             *results_file.LEARNING_CODE,
-            "server",
-            "agent",
-            "common/runtime",
-            "common/wire",
+            *results_file.RUNTIME_CODE,
             "common/learning/attacks.py",
             "common/learning/byzantine_filter.py",
         ],

@@ -249,7 +249,7 @@ def main() -> None:
         title="Coordination overhead per round",
         order=190,
         command=results_file.command_line("benchmarks.runtime"),
-        measures=["server", "agent", "common/runtime", "common/wire"],
+        measures=list(results_file.RUNTIME_CODE),
         setup=setup,
         tables=[{
             "columns": ["K", "parameters", "fedhpg overhead (ms)", "bare pyzmq + msgpack (ms)",

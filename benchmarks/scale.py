@@ -323,10 +323,7 @@ def _write_device_row(results: list[CaseResult], data: Path, machine: str) -> No
         order=183,
         command=results_file.command_line("benchmarks.scale"),
         measures=[
-            "server",
-            "agent",
-            "common/runtime",
-            "common/wire",
+            *results_file.RUNTIME_CODE,
             "common/learning/engine",
             "common/learning/batched",
             "envs/device",

@@ -138,7 +138,7 @@ def main() -> None:
         title="GridWorld, K = 1,000 on agent hosts",
         order=161,
         command="python -m benchmarks.scale_gridworld",
-        measures=["server", "agent", "common/runtime", "common/wire", *results_file.LEARNING_CODE],
+        measures=[*results_file.RUNTIME_CODE, *results_file.LEARNING_CODE],
         setup=(
             f"Two hosts of {AGENTS // 2}, {PER_ROUND} agents a round, the population's budgets "
             f"and speeds, counted clock, greedy evaluation in all {AGENTS:,} environments every "
