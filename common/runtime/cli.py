@@ -21,8 +21,10 @@ from fedhpg.common.configuration.config import RunConfig
 from fedhpg.common.configuration.config_error import ConfigError
 from fedhpg.common.runtime import timeline
 from fedhpg.common.runtime.composition import (
-    compose_cfg,
+    compose_run_cfg,
+    group_choices,
     hydra_context,
+    named,
     own_overrides,
     preset_changes,
     sweep_points,
@@ -111,7 +113,7 @@ def compose(overrides: Sequence[str], *, resumable: bool = False, report: bool =
     with hydra_context():
         if resumable and resume_value(overrides) is not None:
             return compose_resume(overrides)
-        return to_run_config(compose_cfg(with_algorithm_strategy(overrides)))
+        return to_run_config(compose_run_cfg(overrides))
 
 
 def report_presets(overrides: Sequence[str]) -> None:
@@ -122,6 +124,8 @@ def report_presets(overrides: Sequence[str]) -> None:
     if resume_value(overrides) is not None:
         return  # a resume runs its own config.json
     with hydra_context():
+        if not group_choices(overrides) and not named(overrides, "algo.name"):
+            return  # no group chosen, and none the algorithm could add: nothing to report
         for line in preset_changes(with_algorithm_strategy(overrides)):
             logger.info("%s", line)
 
@@ -142,7 +146,7 @@ def compose_sweep(overrides: Sequence[str]) -> list[RunConfig]:
         swept = {key for key, seen in values.items() if len(seen) > 1}
         for number, point in enumerate(points, 1):
             try:
-                runs.append(to_run_config(compose_cfg(with_algorithm_strategy(point))))
+                runs.append(to_run_config(compose_run_cfg(point)))
             except ConfigError as error:
                 where = " ".join(p for p in point if p.split("=", 1)[0] in swept)
                 label = f"sweep point {number}/{len(points)}" + (f" ({where})" if where else "")

@@ -216,32 +216,62 @@ def own_overrides(args: Sequence[str]) -> list[str]:
     ]
 
 
-def _named(overrides: Sequence[str], key: str) -> bool:
+def named(overrides: Sequence[str], key: str) -> bool:
+    """Whether an override sets ``key`` (``key=...``, ``+key=...``, ``~key``)."""
     return any(o.split("=", 1)[0].lstrip("+~") == key for o in overrides)
 
 
-def with_algorithm_strategy(overrides: Sequence[str]) -> list[str]:
-    """The overrides, plus ``strategy=S`` when the composed algorithm names the one strategy
-    its updates mean anything to (``Algorithm.strategy``: fedpgbr's) and the command line
-    names no strategy: ``algo=fedpgbr`` brings its server also where an env preset picked
-    another (inside :func:`hydra_context`)."""
-    overrides = list(overrides)
-    if _named(overrides, "strategy") or _named(overrides, "strategy.name"):
-        return overrides
+def group_choices(overrides: Sequence[str]) -> list[str]:
+    """The overrides that choose an option of a config group (``env=cartpole``), inside
+    :func:`hydra_context`."""
+    from hydra.core.global_hydra import GlobalHydra
+
+    loader = GlobalHydra.instance().config_loader()
+    group_names = {name for name in loader.list_groups("") if name != "hydra"}
+    return [o for o in overrides if "=" in o and o.split("=", 1)[0] in group_names]
+
+
+def algorithm_strategy(cfg: Any, overrides: Sequence[str]) -> str | None:
+    """The override that adds ``strategy=S`` to ``overrides`` (composed as ``cfg``) when the
+    composed algorithm names the one strategy its updates mean anything to
+    (``Algorithm.strategy``: fedpgbr's) and the command line names no strategy: ``algo=fedpgbr``
+    brings its server also where an env preset picked another. None where nothing is added
+    (inside :func:`hydra_context`)."""
+    if named(overrides, "strategy") or named(overrides, "strategy.name"):
+        return None
     try:
-        cfg = compose_cfg(overrides)
         from fedhpg.common.learning.algorithms import ALGORITHMS
 
         import_plugins(list(cfg.plugins))
         wanted = ALGORITHMS.get(str(cfg.algo.name)).strategy
     except (ConfigError, ImportError, KeyError, ValueError):
-        return overrides  # validation names what is wrong
+        return None  # validation names what is wrong
     if wanted is None or wanted == cfg.strategy.name:
-        return overrides
+        return None
     from hydra.core.global_hydra import GlobalHydra
 
     groups = GlobalHydra.instance().config_loader().get_group_options("strategy")
-    return [*overrides, f"strategy={wanted}" if wanted in groups else f"strategy.name={wanted}"]
+    return f"strategy={wanted}" if wanted in groups else f"strategy.name={wanted}"
+
+
+def with_algorithm_strategy(overrides: Sequence[str]) -> list[str]:
+    """The overrides, plus the one :func:`algorithm_strategy` adds (inside
+    :func:`hydra_context`)."""
+    overrides = list(overrides)
+    try:
+        extra = algorithm_strategy(compose_cfg(overrides), overrides)
+    except ConfigError:
+        return overrides  # validation names what is wrong
+    return overrides if extra is None else [*overrides, extra]
+
+
+def compose_run_cfg(overrides: Sequence[str]) -> Any:
+    """The composed DictConfig of :func:`with_algorithm_strategy`'s overrides, composed once
+    where the algorithm adds no strategy (inside :func:`hydra_context`)."""
+    overrides = list(overrides)
+    cfg = compose_cfg(overrides)
+    extra = algorithm_strategy(cfg, overrides)
+    return cfg if extra is None else compose_cfg([*overrides, extra])
 
 
 PRESET_SECTIONS = {
@@ -266,7 +296,7 @@ def preset_changes(overrides: Sequence[str]) -> list[str]:
 
     loader = GlobalHydra.instance().config_loader()
     group_names = {name for name in loader.list_groups("") if name != "hydra"}
-    chosen = [o for o in overrides if "=" in o and o.split("=", 1)[0] in group_names]
+    chosen = group_choices(overrides)
     if not chosen:
         return []
     explicit = {o.split("=", 1)[0].lstrip("+~") for o in overrides if o not in chosen}

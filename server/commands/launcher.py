@@ -48,11 +48,11 @@ from fedhpg.common.runtime.cli import (
     unknown_flag,
 )
 from fedhpg.common.runtime.composition import (
+    algorithm_strategy,
     compose_cfg,
     own_overrides,
     register_schema,
     to_run_config,
-    with_algorithm_strategy,
 )
 from fedhpg.common.runtime.help import help_text
 from fedhpg.common.runtime.progress import announced_if_slow
@@ -400,9 +400,9 @@ def _hydra_task(cfg: object) -> None:
     task = list(overrides.task)
     composing = own_overrides([*task, *overrides.hydra])  # with hydra.searchpath
     try:  # checked before Hydra started; again here for what only the job sees
-        fixed = with_algorithm_strategy(composing)
-        if fixed != composing:  # the algorithm's own strategy (algo=fedpgbr's)
-            cfg = compose_cfg(fixed)
+        extra = algorithm_strategy(cfg, composing)
+        if extra is not None:  # the algorithm's own strategy (algo=fedpgbr's)
+            cfg = compose_cfg([*composing, extra])
         run = to_run_config(cfg)
         check_launch(run)
     except ConfigError as error:
