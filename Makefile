@@ -10,7 +10,7 @@ export MKL_NUM_THREADS ?= 1
 # first import of a module writes its .pyc instead, so only what runs is compiled, once.
 unexport PYTHONDONTWRITEBYTECODE
 
-.PHONY: setup demo docs test test-long image test-containers test-cluster bench-cluster bench-containers clean-containers lint typecheck contracts bench bench-learning bench-learning-long bench-tuned bench-robustness bench-presets bench-scale bench-device bench-plan bench-async bench-privacy figures clean
+.PHONY: setup demo docs test test-long image test-containers test-cluster bench-cluster bench-containers clean-containers lint tables typecheck contracts bench bench-learning bench-learning-long bench-tuned bench-robustness bench-presets bench-scale bench-device bench-plan bench-async bench-privacy figures clean
 
 setup: $(STAMP)
 
@@ -47,9 +47,8 @@ docs: $(INSTALLED)
 # first): a sub-make with -j2, each one's output printed whole when it ends (--output-sync),
 # and one that fails fails make test once the other running one has ended.
 test: $(INSTALLED)
-	$(MAKE) --no-print-directory -j2 --output-sync=target typecheck $(STAMP) docs contracts
-	$(BIN)/ruff check .
-	$(BIN)/python -m benchmarks.render --check
+	$(MAKE) --no-print-directory -j2 --output-sync=target typecheck $(STAMP) docs contracts lint \
+		tables
 	$(BIN)/python -m pytest -q -m "not slow" -n 2 --dist loadscope
 
 # The long tier (marked slow): every shipped env preset learns, every docs page's code runs as
@@ -123,6 +122,10 @@ contracts: $(INSTALLED)
 lint: $(INSTALLED)
 	$(BIN)/ruff check .
 	$(BIN)/ruff format --check .
+
+# BENCHMARKS.md is the rendering of benchmarks/results (python -m benchmarks.render writes it).
+tables: $(INSTALLED)
+	$(BIN)/python -m benchmarks.render --check
 
 figures: $(STAMP)
 	$(BIN)/python -m benchmarks.figures

@@ -34,7 +34,7 @@ def test_killed_server_resumes_to_the_same_theta(tmp_path: Path, strategy: list[
     out_dir = tmp_path / "run"
     run_keys = [
         f"rounds={ROUNDS}", "seed=5", "agents.num_agents=2", "agents.budget.batch_size=[6]",
-        "agents.budget.local_iters=[2]", "agents.speeds=[1]", "agents.step_delays_s=[0.003]",
+        "agents.budget.local_iters=[2]", "agents.speeds=[1]", "agents.step_delays_s=[0.002]",
         "eval.every=5", "eval.episodes=5", *strategy,
     ]  # fmt: skip
     if "strategy=fedadam" in strategy:
