@@ -21,7 +21,8 @@
 #      agents (16,000 on a GPU): by section of the engine, and torch's top operators;
 #   4. a whole fedhpg-run federation of FED_AGENTS agents (65,536 on a GPU) on one host, 3
 #      rounds, θ̃ evaluated in every agent's environment at the end;
-#   5. the report: one table, bench_device.json.
+#   5. the report: one table, bench_device.json; in `local` mode, when every part finished,
+#      BENCHMARKS.md's tables of it (record, below).
 # Results: OUT if set (bench_device.json, device_profile.json, bench_device.log,
 # federation.log), else benchmarks/results/device/. DEVICE=cpu is the rehearsal: K = 100 and
 # 1,000, a profile of 200 agents, 2,000 agents in the federation (~5 min on 2 cores). The exit
@@ -137,10 +138,38 @@ logged() {
     return "${PIPESTATUS[0]}"
 }
 
+# record PYTHON OUT: a finished run's report as BENCHMARKS.md's device tables (the data files
+# copied where the tables name them): DEVICE=cpu the CPU rehearsal's, an H200 the GPU's; another
+# GPU's report stays in OUT (its table names the H200 it was measured on).
+record() {
+    local python=$1 out=$2 name
+    if [ "${DEVICE:-cuda}" = cpu ]; then
+        cp "$out/bench_device.json" benchmarks/results/bench_device_cpu.json
+        cp "$out/device_profile.json" benchmarks/results/device_profile_cpu.json
+        "$python" -m benchmarks.device_tables device_cpu_rehearsal \
+            benchmarks/results/bench_device_cpu.json benchmarks/results/device_profile_cpu.json
+        echo "[bench-device] BENCHMARKS tables written: python -m benchmarks.render to show them"
+        return
+    fi
+    name=$("$python" -c 'import json, sys; print(json.load(open(sys.argv[1]))["device_name"])' \
+        "$out/bench_device.json")
+    case "$name" in
+    *H200*)
+        cp "$out/bench_device.json" benchmarks/results/device/bench_device_h200.json
+        cp "$out/bench_device.log" benchmarks/results/device/bench_device_h200.log
+        "$python" -m benchmarks.device_tables device_h200 \
+            benchmarks/results/device/bench_device_h200.json
+        echo "[bench-device] BENCHMARKS tables written: python -m benchmarks.render to show them"
+        ;;
+    *) echo "[bench-device] $name: no BENCHMARKS table for it; the report stays in $out" ;;
+    esac
+}
+
 started_at=$SECONDS
 case "$mode" in
 local)
     logged "${PYTHON:-.venv/bin/python}" "$@"
+    record "${PYTHON:-.venv/bin/python}" "${OUT:-benchmarks/results/device}"
     ;;
 fetch)
     mkdir -p "$WHEELS"
