@@ -260,7 +260,7 @@ def test_gridworlds_draws_at_step_t_are_its_keys_counters_below_env_counters(
     sampler draws them a chunk of steps at a time, and what each step receives is that one
     draw, across the chunks' boundary (a trajectory's slips depend on its key alone)."""
     from fedhpg.common.learning.engine import copies as copies_module
-    from fedhpg.common.learning.engine.sampling import ENV_COUNTERS, NOISE_CHUNK
+    from fedhpg.common.learning.engine.sampling import ENV_CHUNK, ENV_COUNTERS
 
     keys: list[torch.Tensor] = []
     draws: list[torch.Tensor] = []
@@ -282,7 +282,7 @@ def test_gridworlds_draws_at_step_t_are_its_keys_counters_below_env_counters(
     engine = Engine(run, variants_of(run, agents))
     rows = engine.begin(2, initial_theta(variants_of(run, [0])[0], run), agents)
     rows.sample(rows.theta, torch.full((3,), 24), iteration=1)
-    assert len(keys) == 1 and len(draws) > NOISE_CHUNK, "the batch crosses a chunk's end"
+    assert len(keys) == 1 and len(draws) > ENV_CHUNK, "the batch crosses a chunk's end"
     for t, drawn in enumerate(draws):
         expected = uniforms64(keys[0].unsqueeze(1), torch.tensor([[ENV_COUNTERS - t]]))
         assert torch.equal(drawn, expected), t

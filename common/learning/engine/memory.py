@@ -73,6 +73,14 @@ def _itemsize(space: gym.Space) -> int:
     return int(np.prod(shape, dtype=np.int64)) * max(dtype.itemsize, 4)
 
 
+NOISE_CHUNK = 32
+"""Time steps of the policy's decision draws the sampler makes at once for every copy."""
+ENV_CHUNK = 8
+"""Time steps of the environments' own draws (float64, a torch family's) made at once: fewer
+than the decisions', as each is twice their size and their hashing's temporaries are as
+large (the peak of a host's sampler)."""
+
+
 @dataclass(frozen=True)
 class StepBytes:
     """Bytes per copy-step of each part a round holds (see the module docstring)."""
@@ -100,7 +108,7 @@ class StepBytes:
             trajectories=obs + act + 8 + 1,
             estimator=8 + 8 + 8 + 1 + 8,
             gradient=16 + 5 * 8 + 2 * 8 + obs + act + 2 * 8 + 4 * num_params / TILE,
-            per_copy=PER_COPY + 2 * obs + 32 * (4 * noise_size + 8 * step_noise),
+            per_copy=PER_COPY + 2 * obs + NOISE_CHUNK * 4 * noise_size + ENV_CHUNK * 8 * step_noise,
             workspace=4 * packed_elements(device),
         )
 

@@ -26,7 +26,12 @@ import numpy as np
 import torch
 
 from fedhpg.common.learning.engine.copies import Copies
-from fedhpg.common.learning.engine.memory import RECORD_START, packed_elements
+from fedhpg.common.learning.engine.memory import (
+    ENV_CHUNK,
+    NOISE_CHUNK,
+    RECORD_START,
+    packed_elements,
+)
 from fedhpg.common.learning.engine.policy_rows import PolicyRows
 from fedhpg.common.learning.engine.trajectories import Trajectories
 from fedhpg.common.learning.randomness import uniforms, uniforms64
@@ -42,8 +47,6 @@ class Faults:
     """[B] bool: learn from negated rewards."""
 
 
-NOISE_CHUNK = 32
-"""Time steps of draws (decisions, and the environments' own) made at once for every copy."""
 ENV_COUNTERS = -(1 << 40)
 """Where the counters of an environment's own draws start (downwards), far below a reset's."""
 END_CHECK = 16
@@ -199,7 +202,7 @@ def sample(
     keyed = keys.unsqueeze(1)
     draws_at = torch.arange(NOISE_CHUNK * k, device=device).unsqueeze(0)
     env_noise = copies.step_noise
-    env_at = ENV_COUNTERS - torch.arange(NOISE_CHUNK * env_noise, device=device).unsqueeze(0)
+    env_at = ENV_COUNTERS - torch.arange(ENV_CHUNK * env_noise, device=device).unsqueeze(0)
     noise: tuple[torch.Tensor, ...] = ()  # the chunk's decision draws, a grid per step
     copy_noise: tuple[torch.Tensor, ...] = ()  # the same, [N, k] per step (attackers' draws)
     env_draws: tuple[torch.Tensor, ...] = ()  # the chunk's environment draws, [N, s] per step
@@ -210,20 +213,20 @@ def sample(
                 if t and not bool(running.any()):  # the step's only wait, every end_check
                     break
                 record.reserve(t + end_check)
-            if t % NOISE_CHUNK == 0:
-                if not greedy:
-                    drawn = uniforms(keyed, draws_at + t * k).view(total, NOISE_CHUNK, k)
-                    noise = grid.draws(drawn.transpose(0, 1)).unbind(0)
-                    if randomised is not None:
-                        copy_noise = drawn.unbind(1)
-                if env_noise:  # step t + s, draw j: counter ENV_COUNTERS − (t + s)·s_n − j
-                    env_chunk = uniforms64(keyed, env_at - t * env_noise)
-                    env_draws = env_chunk.view(total, NOISE_CHUNK, env_noise).unbind(1)
+            if t % NOISE_CHUNK == 0 and not greedy:
+                drawn = uniforms(keyed, draws_at + t * k).view(total, NOISE_CHUNK, k)
+                noise = grid.draws(drawn.transpose(0, 1)).unbind(0)
+                if randomised is not None:
+                    copy_noise = drawn.unbind(1)
+            if env_noise and t % ENV_CHUNK == 0:
+                # step t + s, draw j: counter ENV_COUNTERS − (t + s)·s_n − j
+                env_chunk = uniforms64(keyed, env_at - t * env_noise)
+                env_draws = env_chunk.view(total, ENV_CHUNK, env_noise).unbind(1)
             at = t % NOISE_CHUNK
             actions = grid.act(obs, noise[at] if noise else None)
             if randomised is not None:
                 actions = randomised(actions, copy_noise[at])
-            step = copies.step(actions, running, env_draws[at] if env_draws else None)
+            step = copies.step(actions, running, env_draws[t % ENV_CHUNK] if env_draws else None)
             record.add(t, obs, actions, step.reward)
             lengths += running
             success |= running & step.success
