@@ -42,7 +42,7 @@ docs: $(INSTALLED)
 
 # Two xdist workers: the tests that start federations run one after another on one of them
 # (tests/federation_tests.py picks them test by test); both share the rest. From a fresh clone
-# on 2 cores: ~11 min in all, ~9.5 of them the tests. Before them the static checks and the
+# on 2 cores: ~10 min in all, ~8.5 of them the tests. Before them the static checks and the
 # kernel cache, each one thread and independent of the others, two at a time (the longest
 # first): a sub-make with -j2, each one's output printed whole when it ends (--output-sync),
 # and one that fails fails make test once the other running one has ended.
