@@ -154,13 +154,15 @@ bench-presets: $(STAMP)
 
 # CartPole K=10 with 3 sign-flipping agents: mean, median, trimmed mean (~10 min).
 # Thousands of agents on agent hosts: CartPole K = 1,000 and 10,000, one process per
-# agent for comparison, the coordination cost at 10^4 parameters, GridWorld K = 1,000. Minutes on
-# 2 cores; results in benchmarks/results/scale*.json, figures in docs/scale*.png.
+# agent for comparison (also against the fused engine's commit, run by run), the coordination
+# cost at 10^4 parameters, GridWorld K = 1,000. Minutes on 2 cores; results in
+# benchmarks/results/scale*.json and engine_ab_processes.json, figures in docs/scale*.png.
 # numba's kernel cache, filled at setup, is emptied by any edit of kernels.py: refilled first,
 # or the first case's start-up would time a compilation.
 bench-scale: $(STAMP)
 	$(BIN)/python -m fedhpg.common.learning.batched.backend
 	OMP_NUM_THREADS=1 $(BIN)/python -m benchmarks.scale
+	OMP_NUM_THREADS=1 $(BIN)/python -m benchmarks.processes_ab
 	OMP_NUM_THREADS=1 $(BIN)/python -m benchmarks.scale_gridworld
 
 # A federation on one GPU (docs/gpu.md), one script within 8 minutes (benchmarks/on_device.sh),

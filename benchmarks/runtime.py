@@ -69,12 +69,14 @@ def _federation(
     sample_memory: bool = False,
     poll_s: float = 0.01,
     env: dict[str, str] | None = None,
+    command: list[str] | None = None,
 ) -> tuple[list[dict], float, int]:
     """Run fedhpg-run; returns (metrics records, seconds to the end of round 1, peak PSS).
 
     ``poll_s`` is how often the metrics file and the memory are looked at: reading
     ``smaps_rollup`` of a dozen processes costs CPU, so long runs poll less often. ``env``:
-    more environment variables for the federation's processes.
+    more environment variables for the federation's processes; ``command``: what starts the
+    federation instead of this environment's ``fedhpg-run`` (another commit's, say).
     """
     metrics = out_dir / "metrics.jsonl"
     started = time.monotonic()
@@ -82,7 +84,7 @@ def _federation(
     stderr = (out_dir / "fedhpg-run.stderr").open("w+")
     process = subprocess.Popen(
         [
-            str(BIN / "fedhpg-run"),
+            *(command or [str(BIN / "fedhpg-run")]),
             *overrides,
             f"server.out_dir={out_dir}",
             f"hydra.run.dir={out_dir / 'hydra'}",

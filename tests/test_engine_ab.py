@@ -1,6 +1,7 @@
-"""benchmarks.engine_ab runs a commit's package beside this tree's: the folder it puts on the
-worker's path must hold that commit's files (or the comparison would measure this tree
-against itself), and a revision the clone does not have is a one-line error."""
+"""benchmarks.engine_ab and benchmarks.processes_ab run a commit's package beside this tree's:
+the folder put on the worker's path must hold that commit's files (or the comparison would
+measure this tree against itself), and a revision the clone does not have is a one-line
+error."""
 
 from __future__ import annotations
 
@@ -10,7 +11,7 @@ from pathlib import Path
 
 import pytest
 
-from benchmarks import engine_ab
+from benchmarks import engine_ab, processes_ab
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -62,3 +63,12 @@ def test_the_commits_worker_imports_the_commits_package(monkeypatch: pytest.Monk
 def test_a_worker_that_imports_another_package_is_a_one_line_error(tmp_path: Path) -> None:
     with pytest.raises(SystemExit, match=r"^engine_ab: the empty's worker imported .*, not the "):
         engine_ab.Side("empty's", tmp_path, engine_ab.Setup(agents=1))
+
+
+def test_the_commits_federation_starts_the_commits_package(monkeypatch: pytest.MonkeyPatch) -> None:
+    """benchmarks.processes_ab starts a commit's own fedhpg-run from this repository's root,
+    where ``python -c`` would put this tree's package first: the check behind it passes."""
+    monkeypatch.chdir(ROOT)
+    tree = processes_ab.baseline_tree("HEAD")
+    assert tree.env == {"PYTHONPATH": str(engine_ab.checkout("HEAD"))}
+    assert tree.command is not None and tree.command[1] == "-P"

@@ -1,0 +1,194 @@
+"""One process per agent against the fused engine: K = 100 federations of one agent process
+each (``benchmarks.scale``'s ``processes`` case), at this tree and at
+:data:`benchmarks.engine_ab.BASELINE`, the two alternated run by run on the same machine.
+
+Each agent of such a federation is a lone agent, so the comparison follows the lone agent's
+row of :mod:`benchmarks.engine_ab`, with the processes' start-up and messages around it. The
+commit's federation is its own ``fedhpg-run`` (the entry point its ``pyproject.toml`` names)
+run with its package alone on the path; this tree's harness reads both federations' metrics.
+Per run: whole-round env steps per second over rounds 2 to the last (from one θ̃ to the next,
+evaluations excluded) and the peak PSS of the whole federation.
+
+    OMP_NUM_THREADS=1 python -m benchmarks.processes_ab             # 3 runs a side, 6 rounds
+    python -m benchmarks.processes_ab --runs 1 --rounds 3 --no-table  # a spot check
+    python -m benchmarks.processes_ab --tables-only                  # the table again
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import subprocess
+import sys
+import tempfile
+import tomllib
+from dataclasses import asdict, dataclass, replace
+from pathlib import Path
+
+from benchmarks import engine_ab, results_file
+from benchmarks.runtime import _federation
+from benchmarks.scale import CASES, round_walls
+
+NAME = "engine_ab_processes"
+RESULTS = Path(__file__).parent / "results" / f"{NAME}.json"
+MEASURES = [
+    "server",
+    "agent",
+    "common/runtime",
+    "common/wire",
+    "common/learning/engine",
+    "common/learning/batched",
+    "common/learning/algorithms",
+]
+
+
+@dataclass(frozen=True)
+class Run:
+    """One federation's figures."""
+
+    steps_per_s: float
+    """Whole-round env steps per second, rounds 2 to the last."""
+    peak_pss_mib: float
+
+
+@dataclass(frozen=True)
+class Tree:
+    """What starts one side's federation."""
+
+    label: str
+    command: list[str] | None
+    """None: this environment's ``fedhpg-run``."""
+    env: dict[str, str]
+
+
+def baseline_tree(revision: str) -> Tree:
+    """``revision``'s own ``fedhpg-run``, its package alone on the path (checked)."""
+    folder = engine_ab.checkout(revision)
+    scripts = tomllib.loads((folder / "fedhpg" / "pyproject.toml").read_text())["project"]
+    module, function = scripts["scripts"]["fedhpg-run"].split(":")
+    env = {"PYTHONPATH": str(folder)}
+    where = subprocess.run(
+        [sys.executable, "-P", "-c", f"import {module} as m; print(m.__file__)"],
+        capture_output=True,
+        text=True,
+        env={**os.environ, **env},
+    )
+    if where.returncode or folder not in Path(where.stdout.strip()).parents:
+        raise SystemExit(
+            f"processes_ab: {revision}'s {module} did not import from {folder}: "
+            f"{(where.stderr or where.stdout).strip()[-300:]}"
+        )
+    # -P: the working folder (this tree's, say) is not put before the commit's package
+    command = [sys.executable, "-P", "-c", f"import sys; from {module} import {function}; "
+               f"sys.exit({function}())"]  # fmt: skip
+    return Tree(revision, command, env)
+
+
+def federation(tree: Tree, rounds: int) -> Run:
+    """One K = 100 federation of one process per agent at ``tree``."""
+    case = replace(CASES["processes"], rounds=rounds)
+    with tempfile.TemporaryDirectory() as tmp:
+        records, _, peak = _federation(
+            case.overrides(), Path(tmp), sample_memory=True, poll_s=0.05,
+            env=tree.env, command=tree.command,
+        )  # fmt: skip
+    round_walls(records)
+    trained = [r for r in records if r["agents"]][1:]  # round 1 is start-up
+    steps = sum(a["env_steps"] for r in trained for a in r["agents"])
+    return Run(steps / sum(r["round_wall_s"] for r in trained), peak / 2**20)
+
+
+def _span(values: list[float], form: str) -> str:
+    low, high = format(min(values), form), format(max(values), form)
+    return low if low == high else f"{low}–{high}"
+
+
+def save(this: list[Run], that: list[Run], against: str, rounds: int) -> None:
+    RESULTS.write_text(json.dumps({
+        "against": against, "rounds": rounds,
+        "this": [asdict(r) for r in this], "that": [asdict(r) for r in that],
+    }, indent=1) + "\n")  # fmt: skip
+
+
+def load(path: Path = RESULTS) -> tuple[list[Run], list[Run], str]:
+    """The stored runs (this tree's, the commit's) and the commit."""
+    stored = json.loads(path.read_text())
+    runs = [[Run(**r) for r in stored[side]] for side in ("this", "that")]
+    return runs[0], runs[1], stored["against"]
+
+
+def table(this: list[Run], that: list[Run], against: str) -> results_file.Table:
+    ratios = [a.steps_per_s / b.steps_per_s for a, b in zip(this, that, strict=True)]
+    rates = [[r.steps_per_s / 1e6 for r in runs] for runs in (this, that)]
+    pss = [[r.peak_pss_mib for r in runs] for runs in (this, that)]
+    rows = [
+        ["whole-round env steps per second", f"{_span(rates[0], '.3f')} M",
+         f"{_span(rates[1], '.3f')} M", f"{_span(ratios, '.2f')}×"],
+        ["peak PSS of the whole federation (MiB)", _span(pss[0], ',.0f'),
+         _span(pss[1], ',.0f'), ""],
+    ]  # fmt: skip
+    faster = "faster" if min(ratios) >= 1.0 else "slower" if max(ratios) < 1.0 else "level"
+    summary = (
+        f"Run by run, this tree is {faster} than {against} ({_span(ratios, '.2f')}×); "
+        f"peak PSS {_span(pss[0], ',.0f')} MiB against {_span(pss[1], ',.0f')}. Each agent "
+        "there is a lone agent, so the figure follows the lone agent's row of the engine "
+        "comparison above."
+    )
+    return {"columns": ["", "this tree", against, "ratio"], "rows": rows, "summary": summary}
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser.add_argument("--against", default=engine_ab.BASELINE, help="the commit to compare with")
+    parser.add_argument("--runs", type=int, default=3, help="federations a side (≥ 1)")
+    parser.add_argument("--rounds", type=int, default=6, help="rounds a federation (≥ 2)")
+    parser.add_argument("--no-table", action="store_true", help="print, write no table")
+    parser.add_argument("--tables-only", action="store_true",
+                        help="the table again from the stored runs")  # fmt: skip
+    args = parser.parse_args()
+    if args.runs < 1 or args.rounds < 2:
+        parser.error("--runs ≥ 1 and --rounds ≥ 2")
+    if args.tables_only:
+        result = table(*load())
+        results_file.rerender(NAME, [result])
+        print(result["summary"])
+        return
+    this, that = Tree("this tree", None, {}), baseline_tree(args.against)
+    runs: dict[str, list[Run]] = {this.label: [], that.label: []}
+    for index in range(args.runs):
+        order = (this, that) if index % 2 == 0 else (that, this)
+        for tree in order:
+            run = federation(tree, args.rounds)
+            runs[tree.label].append(run)
+            print(f"run {index + 1}, {tree.label}: {run.steps_per_s / 1e6:.3f} M env steps/s, "
+                  f"peak PSS {run.peak_pss_mib:,.0f} MiB", flush=True)  # fmt: skip
+    result = table(runs[this.label], runs[that.label], args.against)
+    print(result["summary"])
+    if args.no_table:
+        return
+    save(runs[this.label], runs[that.label], args.against, args.rounds)
+    default = args.runs == 3 and args.rounds == 6 and args.against == engine_ab.BASELINE
+    words = ["OMP_NUM_THREADS=1 python -m benchmarks.processes_ab"]
+    if not default:
+        words.append(f"--against {args.against} --runs {args.runs} --rounds {args.rounds}")
+    path = results_file.write(
+        NAME,
+        title="One process per agent against the fused engine",
+        order=171,
+        command=" ".join(words),
+        measures=MEASURES,
+        setup=(
+            f"A federation of one process per agent, K = 100, {args.rounds} rounds, at this "
+            f"commit and at {args.against} (the fused engine) alternated, {args.runs} runs "
+            "each, the same machine; rounds 2 to the last."
+        ),
+        data=[str(RESULTS.relative_to(results_file.ROOT))],
+        tables=[result],
+        keep_summaries=False,
+    )
+    print(f"wrote {path}")
+
+
+if __name__ == "__main__":
+    main()
