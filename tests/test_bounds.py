@@ -8,6 +8,7 @@ with the classic bias (dividing by B instead of B − 1) must not."""
 from __future__ import annotations
 
 import functools
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -153,7 +154,7 @@ def test_theorem1_terms() -> None:
     ).step_size_ok
 
 
-def test_a_run_reports_the_estimates_per_agent_and_theta_is_unchanged() -> None:
+def test_a_run_reports_the_estimates_per_agent_and_theta_is_unchanged(tmp_path: Path) -> None:
     """algo.bound_estimates through a whole run: in process (GridWorld's tabular policy, the
     loop path) and over the wire (real agent processes): every agent's three figures in its
     round record, and θ̃ bit for bit that of the same run without them."""
@@ -163,7 +164,11 @@ def test_a_run_reports_the_estimates_per_agent_and_theta_is_unchanged() -> None:
     plain = api.run(overrides=keys)
     assert all("bound" not in record for record in plain.records)
     for distributed in (False, True):
-        measured = api.run(overrides=[*keys, "algo.bound_estimates=true"], distributed=distributed)
+        measured = api.run(
+            overrides=[*keys, "algo.bound_estimates=true"],
+            distributed=distributed,
+            out_dir=tmp_path / f"distributed-{distributed}",
+        )
         assert torch.equal(measured.theta, plain.theta)
         for record in measured.records:
             for agent in record["agents"]:

@@ -87,7 +87,7 @@ WIRE_RUN = [
 ]  # fmt: skip
 
 
-def test_a_plan_gives_the_same_theta_in_process_and_over_the_wire() -> None:
+def test_a_plan_gives_the_same_theta_in_process_and_over_the_wire(tmp_path: Path) -> None:
     here = api.run(overrides=WIRE_RUN)
     plans = _plans(here.records)
     assert sorted(plans) == [1, 2]
@@ -96,7 +96,11 @@ def test_a_plan_gives_the_same_theta_in_process_and_over_the_wire() -> None:
     assert ran[2] == _work(plans[1]) and ran[3] == _work(plans[2]) and ran[1] != ran[2]
     # one process per agent (one Train.budgets entry); hosts of 3 + 3 + 2 (one per agent)
     for per_host in (1, 3):
-        wire = api.run(overrides=[*WIRE_RUN, f"agents.per_host={per_host}"], distributed=True)
+        wire = api.run(
+            overrides=[*WIRE_RUN, f"agents.per_host={per_host}"],
+            distributed=True,
+            out_dir=tmp_path / f"per-host-{per_host}",
+        )
         assert torch.equal(here.theta, wire.theta), per_host
         assert _plans(wire.records) == plans, per_host
 
