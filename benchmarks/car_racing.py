@@ -120,6 +120,24 @@ def main() -> None:
     )
 
 
+def _verdict(outcome: dict[str, Any]) -> str:
+    """Whether the run ends above the random policy, by both returns, from its figures."""
+    random = outcome["random_return"]
+    ends = {
+        "training return": outcome["train_return_last"],
+        "greedy return": outcome["final_greedy_return"],
+    }
+    above = [name for name, value in ends.items() if value > random]
+    figures = " and ".join(f"the {name} ends at {value:.1f}" for name, value in ends.items())
+    if len(above) == len(ends):
+        verdict = "The CNN policy learns above random on image observations"
+    elif above:
+        verdict = f"Only the {above[0]} ends above random"
+    else:
+        verdict = "The CNN policy does not end above random on this run"
+    return f"{verdict}: {figures}, against the random policy's {random:.1f}."
+
+
 def report(outcome: dict[str, Any], summary: str | None = None) -> None:
     """The run's table, as a result for BENCHMARKS.md (stamped with the run's own date,
     commit and machine)."""
@@ -143,6 +161,7 @@ def report(outcome: dict[str, Any], summary: str | None = None) -> None:
         date=outcome["date"],
         commit_hash=outcome["commit"],
         machine_name=outcome["machine"],
+        keep_summaries=summary is not None,
         tables=[
             {
                 "columns": [
@@ -153,10 +172,7 @@ def report(outcome: dict[str, Any], summary: str | None = None) -> None:
                     "wall (s)",
                 ],
                 "rows": [row],
-                "summary": summary
-                or "The CNN policy on image observations against a uniformly random policy in "
-                "the same environments: its sampled training return over the run and its greedy "
-                "return before and after.",
+                "summary": summary or _verdict(outcome),
                 "figure": {"path": str(FIGURE), "caption": "sampled training return per round"},
             }
         ],
