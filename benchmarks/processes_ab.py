@@ -28,15 +28,12 @@ from pathlib import Path
 
 from benchmarks import engine_ab, results_file
 from benchmarks.runtime import _federation
-from benchmarks.scale import CASES, round_walls
+from benchmarks.scale import CASES, round_walls, whole_round_rate
 
 NAME = "engine_ab_processes"
 RESULTS = Path(__file__).parent / "results" / f"{NAME}.json"
 MEASURES = [
-    "server",
-    "agent",
-    "common/runtime",
-    "common/wire",
+    *results_file.RUNTIME_CODE,
     "common/learning/engine",
     "common/learning/batched",
     "common/learning/algorithms",
@@ -95,8 +92,7 @@ def federation(tree: Tree, rounds: int) -> Run:
         )  # fmt: skip
     round_walls(records)
     trained = [r for r in records if r["agents"]][1:]  # round 1 is start-up
-    steps = sum(a["env_steps"] for r in trained for a in r["agents"])
-    return Run(steps / sum(r["round_wall_s"] for r in trained), peak / 2**20)
+    return Run(whole_round_rate(trained), peak / 2**20)
 
 
 def _span(values: list[float], form: str) -> str:

@@ -129,6 +129,13 @@ def _sampled_copies(case: Case) -> list[int]:
     return [agent_profile(run, int(k)).budget.batch_size for k in chosen]  # type: ignore[attr-defined]
 
 
+def whole_round_rate(rounds: list[dict]) -> float:
+    """Env steps per second of wall time from one θ̃ to the next over ``rounds`` (records
+    with :func:`round_walls`' ``round_wall_s``), all hosts together."""
+    steps = sum(a["env_steps"] for r in rounds for a in r["agents"])
+    return steps / sum(r["round_wall_s"] for r in rounds)
+
+
 def _summary(case: Case, name: str, rounds: list[dict], refs: dict[str, list[float]],
              copies: int, first_round_s: float, peak: int) -> CaseResult:  # fmt: skip
     steps = [sum(a["env_steps"] for a in r["agents"]) for r in rounds]
@@ -144,7 +151,7 @@ def _summary(case: Case, name: str, rounds: list[dict], refs: dict[str, list[flo
         participants=statistics.median(len(r["agents"]) for r in rounds),
         env_steps_per_round=statistics.mean(steps),
         sampling_steps_per_cpu_s=sum(steps) / sum(sample_s),
-        round_steps_per_s=sum(steps) / sum(r["round_wall_s"] for r in rounds),
+        round_steps_per_s=whole_round_rate(rounds),
         round_time_s=statistics.median(r["round_wall_s"] for r in rounds),
         coordination_us_per_agent=1e6 * statistics.median(overhead),
         copies_per_host=copies,
