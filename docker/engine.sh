@@ -11,6 +11,8 @@
 # before it starts and put back by `stop`. Exit 3 with one line on stderr when no engine can run
 # here (the tests then skip, saying why).
 set -euo pipefail
+# shellcheck source=cluster/apt_install.sh
+source "$(dirname "${BASH_SOURCE[0]}")/../cluster/apt_install.sh"
 
 STATE=${FEDHPG_DOCKER_STATE:-/run/fedhpg-docker}
 SOCKET=$STATE/docker.sock
@@ -31,23 +33,8 @@ install_packages() {
     [ "$(id -u)" -eq 0 ] || cannot "${missing[*]} not installed and not root to install them"
     command -v apt-get >/dev/null || cannot "${missing[*]} not installed and no apt-get"
     echo "installing ${missing[*]} (apt-get)" >&2
-    # One installer at a time: the container and cluster scripts may run side by side, and apt
-    # takes its lock without waiting (the other fails at once); policy-rc.d is shared too.
-    local lock
-    exec {lock}>/run/fedhpg-apt.lock
-    flock -w 1200 "$lock" || cannot "another installer held /run/fedhpg-apt.lock for 20 min"
-    # policy-rc.d 101: the packages' scripts must not start a daemon; this script starts its own.
-    local policy=/usr/sbin/policy-rc.d made_policy=0
-    if [ ! -e $policy ]; then printf '#!/bin/sh\nexit 101\n' > $policy; chmod +x $policy; made_policy=1; fi
     local status=0
-    mkdir -p "$STATE"
-    { timeout 300 apt-get -o DPkg::Lock::Timeout=240 update -qq \
-        && DEBIAN_FRONTEND=noninteractive timeout 600 \
-        apt-get -o DPkg::Lock::Timeout=240 install -y -qq --no-install-recommends \
-        "${missing[@]}"; } >"$STATE/apt.log" 2>&1 \
-        || status=$?
-    [ $made_policy -eq 1 ] && rm -f $policy
-    exec {lock}>&-
+    apt_install "$STATE/apt.log" "${missing[@]}" || status=$?
     [ $status -eq 0 ] || cannot "apt-get install ${missing[*]} failed (exit $status, $STATE/apt.log)"
 }
 
