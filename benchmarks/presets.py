@@ -228,9 +228,14 @@ def table(results: dict[str, RunResult]) -> str:
             f"| `{plan.name}` | {', '.join(str(r.seed) for r in runs)} | {plan.rounds} "
             f"| {runs[0].trajectories[-1]:,.0f} | {_fmt([r.initial for r in runs])} "
             f"| **{_fmt([r.returns[-1] for r in runs])}** | {_fmt([max(r.returns) for r in runs])} "
-            f"| {single} | {threshold} | {min(walls):.0f}–{max(walls):.0f}{hung_note} |"
+            f"| {single} | {threshold} | {_span(walls)}{hung_note} |"
         )
     return "\n".join(lines)
+
+
+def _span(values: list[float]) -> str:
+    low, high = f"{min(values):.0f}", f"{max(values):.0f}"
+    return low if low == high else f"{low}–{high}"
 
 
 def _federations(results: dict[str, RunResult], plan: Plan) -> list[RunResult]:
@@ -261,8 +266,21 @@ def summary(results: dict[str, RunResult]) -> str:
     if len(improved) == len(families):
         sentence = "Every preset ends above its initial policy's greedy return on every seed"
     else:
-        others = [label(n) for n in families if n not in improved]
-        sentence = f"{_names(others)} do not end above their initial greedy return on every seed"
+        others = [n for n in families if n not in improved]
+        sentence = (
+            f"Every preset but {_names([label(n) for n in others])} ends above its initial "
+            "policy's greedy return on every seed"
+            if improved
+            else "No preset ends above its initial policy's greedy return on every seed"
+        )
+        for name in others:
+            below = [r for r in _federations(results, families[name]) if r.returns[-1] <= r.initial]
+            plural = "s" if len(below) > 1 else ""
+            sentence += (
+                f"; {label(name)} ends at or below it on seed{plural} "
+                f"{_names([str(r.seed) for r in below])} (best evaluation{plural} "
+                f"{_names([f'{max(r.returns):,.1f}' for r in below])})"
+            )
     every, some = [], []
     for name, plan in families.items():
         if plan.threshold is None:
