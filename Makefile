@@ -154,8 +154,9 @@ bench-presets: $(STAMP)
 
 # CartPole K=10 with 3 sign-flipping agents: mean, median, trimmed mean (~10 min).
 # Thousands of agents on agent hosts: CartPole K = 1,000 and 10,000, one process per
-# agent for comparison (also against the fused engine's commit, run by run), the coordination
-# cost at 10^4 parameters, GridWorld K = 1,000. Minutes on 2 cores; results in
+# agent, the coordination cost at 10^4 parameters, each case again right after at the fused
+# engine's commit (and one process per agent against it run by run), GridWorld K = 1,000.
+# Tens of minutes on 2 cores; results in
 # benchmarks/results/scale*.json and engine_ab_processes.json, figures in docs/scale*.png.
 # numba's kernel cache, filled at setup, is emptied by any edit of kernels.py: refilled first,
 # or the first case's start-up would time a compilation.

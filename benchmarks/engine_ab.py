@@ -32,6 +32,7 @@ import subprocess
 import sys
 import tarfile
 import tempfile
+import tomllib
 from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 from typing import Any
@@ -75,6 +76,43 @@ def checkout(revision: str) -> Path:
             with tarfile.open(fileobj=raw) as tar:
                 tar.extractall(package, filter="data")
     return folder
+
+
+@dataclass(frozen=True)
+class Tree:
+    """What starts one side's federation."""
+
+    label: str
+    command: list[str] | None
+    """None: this environment's ``fedhpg-run``."""
+    env: dict[str, str]
+
+
+def baseline_tree(revision: str) -> Tree:
+    """``revision``'s own ``fedhpg-run``, its package alone on the path (checked)."""
+    folder = checkout(revision)
+    scripts = tomllib.loads((folder / "fedhpg" / "pyproject.toml").read_text())["project"]
+    module, function = scripts["scripts"]["fedhpg-run"].split(":")
+    env = {"PYTHONPATH": str(folder)}
+    where = subprocess.run(
+        [sys.executable, "-P", "-c", f"import {module} as m; print(m.__file__)"],
+        capture_output=True,
+        text=True,
+        env={**os.environ, **env},
+    )
+    if where.returncode or folder not in Path(where.stdout.strip()).parents:
+        raise SystemExit(
+            f"engine_ab: {revision}'s {module} did not import from {folder}: "
+            f"{(where.stderr or where.stdout).strip()[-300:]}"
+        )
+    # -P: the working folder (this tree's, say) is not put before the commit's package
+    command = [sys.executable, "-P", "-c", f"import sys; from {module} import {function}; "
+               f"sys.exit({function}())"]  # fmt: skip
+    return Tree(revision, command, env)
+
+
+THIS_TREE = Tree("this tree", None, {})
+"""This environment's own ``fedhpg-run``."""
 
 
 @dataclass(frozen=True)

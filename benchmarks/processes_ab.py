@@ -18,26 +18,16 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
-import subprocess
-import sys
 import tempfile
-import tomllib
 from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 
 from benchmarks import engine_ab, results_file
 from benchmarks.runtime import _federation
-from benchmarks.scale import CASES, round_walls, whole_round_rate
+from benchmarks.scale import CASES, MEASURES, round_walls, whole_round_rate
 
 NAME = "engine_ab_processes"
 RESULTS = Path(__file__).parent / "results" / f"{NAME}.json"
-MEASURES = [
-    *results_file.RUNTIME_CODE,
-    "common/learning/engine",
-    "common/learning/batched",
-    "common/learning/algorithms",
-]
 
 
 @dataclass(frozen=True)
@@ -49,40 +39,7 @@ class Run:
     peak_pss_mib: float
 
 
-@dataclass(frozen=True)
-class Tree:
-    """What starts one side's federation."""
-
-    label: str
-    command: list[str] | None
-    """None: this environment's ``fedhpg-run``."""
-    env: dict[str, str]
-
-
-def baseline_tree(revision: str) -> Tree:
-    """``revision``'s own ``fedhpg-run``, its package alone on the path (checked)."""
-    folder = engine_ab.checkout(revision)
-    scripts = tomllib.loads((folder / "fedhpg" / "pyproject.toml").read_text())["project"]
-    module, function = scripts["scripts"]["fedhpg-run"].split(":")
-    env = {"PYTHONPATH": str(folder)}
-    where = subprocess.run(
-        [sys.executable, "-P", "-c", f"import {module} as m; print(m.__file__)"],
-        capture_output=True,
-        text=True,
-        env={**os.environ, **env},
-    )
-    if where.returncode or folder not in Path(where.stdout.strip()).parents:
-        raise SystemExit(
-            f"processes_ab: {revision}'s {module} did not import from {folder}: "
-            f"{(where.stderr or where.stdout).strip()[-300:]}"
-        )
-    # -P: the working folder (this tree's, say) is not put before the commit's package
-    command = [sys.executable, "-P", "-c", f"import sys; from {module} import {function}; "
-               f"sys.exit({function}())"]  # fmt: skip
-    return Tree(revision, command, env)
-
-
-def federation(tree: Tree, rounds: int) -> Run:
+def federation(tree: engine_ab.Tree, rounds: int) -> Run:
     """One K = 100 federation of one process per agent at ``tree``."""
     case = replace(CASES["processes"], rounds=rounds)
     with tempfile.TemporaryDirectory() as tmp:
@@ -150,7 +107,7 @@ def main() -> None:
         results_file.rerender(NAME, [result])
         print(result["summary"])
         return
-    this, that = Tree("this tree", None, {}), baseline_tree(args.against)
+    this, that = engine_ab.THIS_TREE, engine_ab.baseline_tree(args.against)
     runs: dict[str, list[Run]] = {this.label: [], that.label: []}
     for index in range(args.runs):
         order = (this, that) if index % 2 == 0 else (that, this)

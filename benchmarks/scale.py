@@ -29,6 +29,7 @@ import json
 import os
 import statistics
 import tempfile
+from collections.abc import Callable
 from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 
@@ -43,6 +44,13 @@ from fedhpg.common.runtime.cli import compose
 from fedhpg.server.checkpoint import latest_valid_checkpoint
 
 RESULTS = Path(__file__).parent / "results" / "scale.json"
+MEASURES = [
+    *results_file.RUNTIME_CODE,
+    "common/learning/engine",
+    "common/learning/batched",
+    "common/learning/algorithms",
+]
+"""What a federation of CartPole agents on the compiled engine runs through."""
 FIGURE = Path(__file__).parents[1] / "docs" / "scale.png"
 CORES = os.cpu_count() or 1
 
@@ -101,6 +109,10 @@ class CaseResult:
     copies_per_host: int
     refs: dict[str, float] = field(default_factory=dict)
     ref_ranges: dict[str, tuple[float, float]] = field(default_factory=dict)
+    key: str = ""
+    """The case's name in :data:`CASES`."""
+    window: str = ""
+    """The rounds pooled, first–last (1-based)."""
 
 
 def round_walls(records: list[dict]) -> None:
@@ -172,9 +184,10 @@ def _references(case: Case, copies: list[int], refs: dict[str, list[float]]) -> 
         refs["b_gym_plus_forward"].append(forward_loop(copies, (case.hidden, case.hidden), 300))
 
 
-def measure(case: Case) -> list[CaseResult]:
+def measure(case: Case, key: str, tree: engine_ab.Tree = engine_ab.THIS_TREE) -> list[CaseResult]:
     """The case's figures over all its rounds, or, for a case that trains long enough for
-    the episodes to lengthen, over its first and its last three rounds separately."""
+    the episodes to lengthen, over its first and its last three rounds separately, with
+    ``tree``'s ``fedhpg-run`` (this environment's, or a commit's)."""
     copies = _sampled_copies(case)
     refs: dict[str, list[float]] = {"a_bare_gym": [], "b_gym_plus_forward": []}
     _references(case, copies, refs)
@@ -183,12 +196,15 @@ def measure(case: Case) -> list[CaseResult]:
     peak = 0
     for _ in range(case.repeats):
         with tempfile.TemporaryDirectory() as tmp:
-            env = {"NUMBA_CACHE_DIR": str(Path(tmp) / "numba")} if case.cold_cache else None
+            env = dict(tree.env)
+            if case.cold_cache:
+                env["NUMBA_CACHE_DIR"] = str(Path(tmp) / "numba")
             records, first_round_s, run_peak = _federation(
-                case.overrides(), Path(tmp), sample_memory=True, poll_s=0.05, env=env
-            )
+                case.overrides(), Path(tmp), sample_memory=True, poll_s=0.05, env=env,
+                command=tree.command,
+            )  # fmt: skip
             checkpoint = latest_valid_checkpoint(Path(tmp) / "checkpoints")
-            if checkpoint is not None:  # the same θ̃ in every run: the runs are seeded alike
+            if checkpoint is not None and tree.command is None:  # the runs are seeded alike
                 FINAL_THETA[case.name] = checkpoint.theta
         round_walls(records)
         # Round 1 is start-up (first messages, first-touch of the buffers; the start-up column
@@ -204,7 +220,8 @@ def measure(case: Case) -> list[CaseResult]:
     def window(label: str, first: int, last: int) -> CaseResult:
         """Rounds ``first``..``last`` (1-based) of every run, pooled."""
         pooled = [r for rounds in runs for r in rounds[first - 1 : last]]
-        return _summary(case, label, pooled, refs, sum(copies), first_round_s, peak)
+        result = _summary(case, label, pooled, refs, sum(copies), first_round_s, peak)
+        return replace(result, key=key, window=f"{first}–{last}")
 
     if length < 10:
         return [window(name, min(2, length), length)]
@@ -269,6 +286,138 @@ def table(results: list[CaseResult]) -> str:
     return "\n".join(lines)
 
 
+def _b(r: CaseResult) -> float:
+    return r.refs["b_gym_plus_forward"]
+
+
+def per_core(r: CaseResult) -> float:
+    """Whole-round env steps per second per core the hosts use, as a multiple of (b)."""
+    return r.round_steps_per_s / min(-(-r.case.agents // r.case.per_host), CORES) / _b(r)
+
+
+def sampling(r: CaseResult) -> float:
+    """Env steps per CPU second of sampling, as a multiple of (b)."""
+    return r.sampling_steps_per_cpu_s / _b(r)
+
+
+class _Picked:
+    """One tree's results by case: a case's windows are early, late and all rounds, in that
+    order (a short case has one window, which is all three)."""
+
+    def __init__(self, results: list[CaseResult]) -> None:
+        self.windows: dict[str, list[CaseResult]] = {}
+        for r in results:
+            self.windows.setdefault(r.key, []).append(r)
+
+    def get(self, key: str, which: str = "all") -> CaseResult | None:
+        found = self.windows.get(key)
+        if not found:
+            return None
+        return found[{"early": 0, "late": 1 if len(found) > 1 else 0, "all": -1}[which]]
+
+    def cell(self, *parts: tuple[str, str, Callable[[CaseResult], float], str]) -> str:
+        """The values of (case, window, figure, format) joined by " / ", "—" for a case this
+        tree did not run."""
+        values = []
+        for key, which, value, form in parts:
+            r = self.get(key, which)
+            values.append("—" if r is None else format(value(r), form))
+        return " / ".join(values)
+
+
+def _window(picked: _Picked, key: str, which: str) -> str:
+    r = picked.get(key, which)
+    return "" if r is None else r.window
+
+
+TARGETS: list[tuple[str, str, str, Callable[[CaseResult], float], float, bool]] = [
+    ("the whole round per core at K = 1,000 (early rounds)", "k1000", "early", per_core, 0.3,
+     True),
+    ("the whole round per core at K = 10,000", "k10000", "all", per_core, 0.3, True),
+    ("sampling at K = 1,000", "k1000", "all", sampling, 0.7, True),
+    ("sampling at K = 10,000", "k10000", "all", sampling, 0.7, True),
+    ("start-up at K = 10,000", "k10000", "all", lambda r: r.start_to_round_1_s, 10.0, False),
+    ("peak PSS at K = 10,000", "k10000", "all", lambda r: r.peak_pss_mib, 2048.0, False),
+    ("coordination at d ≈ 10⁴", "overhead", "all", lambda r: r.coordination_us_per_agent, 50.0,
+     False),
+]  # fmt: skip
+"""(what, case, window, figure, target, whether the target is a floor)."""
+
+
+def _met(picked: _Picked) -> tuple[list[str], list[str]]:
+    met: list[str] = []
+    missed: list[str] = []
+    for what, key, which, value, target, floor in TARGETS:
+        r = picked.get(key, which)
+        if r is not None:
+            ok = value(r) >= target if floor else value(r) <= target
+            (met if ok else missed).append(what)
+    return met, missed
+
+
+def _listed(names: list[str]) -> str:
+    return names[0] if len(names) == 1 else ", ".join(names[:-1]) + " and " + names[-1]
+
+
+def summary_table(
+    this: list[CaseResult], that: list[CaseResult], against: str | None
+) -> results_file.Table:
+    """The cases at their targets, this tree beside ``against`` (``that``: its results, run
+    on the same machine the same hour; none: not run)."""
+    sides = [_Picked(this), _Picked(that)]
+    mine = sides[0]
+    early, late, whole = (_window(mine, "k1000", w) for w in ("early", "late", "all"))
+    device = _window(mine, "device", "all")
+    rows = [
+        (f"K = 1,000, whole round per core vs (b), rounds {early}",
+         [("k1000", "early", per_core, ".2f")], "0.3"),
+        (f"K = 1,000, rounds {late} / {whole}",
+         [("k1000", "late", per_core, ".2f"), ("k1000", "all", per_core, ".2f")], ""),
+        ("K = 10,000 (1,000 a round), whole round per core",
+         [("k10000", "all", per_core, ".2f")], "0.3"),
+        (f"sampling vs (b), K = 1,000 (rounds {whole}) / 10,000",
+         [("k1000", "all", sampling, ".2f"), ("k10000", "all", sampling, ".2f")], "0.7"),
+        ("start-up, K = 1,000 / 10,000 (s)",
+         [(k, "all", lambda r: r.start_to_round_1_s, ".1f") for k in ("k1000", "k10000")], "10"),
+        ("start-up with numba's cache empty, K = 1,000 (s)",
+         [("cold", "all", lambda r: r.start_to_round_1_s, ".1f")], ""),
+        ("peak PSS, K = 1,000 / 10,000 (MiB)",
+         [(k, "all", lambda r: r.peak_pss_mib, ",.0f") for k in ("k1000", "k10000")], "2,048"),
+        ("one process per agent, K = 100: whole round per core vs (b) / peak PSS (MiB)",
+         [("processes", "all", per_core, ".2f"),
+          ("processes", "all", lambda r: r.peak_pss_mib, ",.0f")], ""),
+        ("d ≈ 10⁴: whole round per core vs (b) / coordination (µs an agent)",
+         [("overhead", "all", per_core, ".2f"),
+          ("overhead", "all", lambda r: r.coordination_us_per_agent, ".0f")], "— / 50"),
+        (f"K = 1,000 on the torch CartPole (the device-resident path, on the CPU), rounds "
+         f"{device}: whole round per core / sampling vs (b)",
+         [("device", "all", per_core, ".2f"), ("device", "all", sampling, ".2f")], ""),
+        ("(b), K = 1,000 / 10,000 (M steps/s, median)",
+         [(k, "all", lambda r: _b(r) / 1e6, ".2f") for k in ("k1000", "k10000")], ""),
+    ]  # fmt: skip
+    built = [[label, *(side.cell(*parts) for side in sides), target]
+             for label, parts, target in rows]  # fmt: skip
+    met, missed = _met(mine)
+    sentences = []
+    if met:
+        sentences.append(f"At this tree {_listed(met)} meet their targets")
+    if missed:
+        sentences.append(f"{_listed(missed)} do not")
+    summary = "; ".join(sentences) + "."
+    if that and against:
+        theirs_met, _ = _met(sides[1])
+        summary += (
+            f" At {against}, on the same machine: {_listed(theirs_met)} meet theirs."
+            if theirs_met
+            else f" At {against}, on the same machine, none of them does."
+        )
+    column = f"{against}, same machine" if against else "no commit run"
+    summary = summary[0].upper() + summary[1:]
+    figure = results_file.Figure(path=_relative(FIGURE), caption="the cases against their targets")
+    return {"columns": ["case", "this tree", column, "target"], "rows": built,
+            "summary": summary, "figure": figure}  # fmt: skip
+
+
 DEVICE_ROW = ("k1000", "device")
 """The cases of the device-resident path's comparison with the compiled engine."""
 DEVICE_ROW_RESULTS = RESULTS.with_name("scale_device_row.json")
@@ -321,7 +470,7 @@ def _device_case(r: CaseResult) -> str:
 def _write_device_row(results: list[CaseResult], data: Path, machine: str) -> None:
     data.write_text(json.dumps({
         "machine": machine,
-        "cases": [{**asdict(r), "case": asdict(r.case)} for r in results],
+        "cases": _stored(results),
         "against_baseline": [],
     }, indent=1) + "\n")  # fmt: skip
     results_file.write(
@@ -388,15 +537,43 @@ def figure(results: list[CaseResult], machine: str) -> None:
     fig.savefig(FIGURE, dpi=120)
 
 
-def _load() -> tuple[list[CaseResult], str]:
-    stored = json.loads(RESULTS.read_text())
+def _results(entries: list[dict]) -> list[CaseResult]:
     out = []
-    for entry in stored["cases"]:
+    for entry in entries:
         case = Case(**{**entry["case"], "extra": tuple(entry["case"]["extra"])})
         fields = {k: v for k, v in entry.items() if k != "case"}
         fields["ref_ranges"] = {k: tuple(v) for k, v in fields["ref_ranges"].items()}
         out.append(CaseResult(case=case, **fields))
-    return out, stored.get("machine", "CPU not recorded")
+    return out
+
+
+def _stored(results: list[CaseResult]) -> list[dict]:
+    return [{**asdict(r), "case": asdict(r.case)} for r in results]
+
+
+def _load(path: Path = RESULTS) -> tuple[list[CaseResult], str]:
+    stored = json.loads(path.read_text())
+    return _results(stored["cases"]), stored.get("machine", "CPU not recorded")
+
+
+def stored_table(path: Path = RESULTS) -> results_file.Table:
+    """The summary table from the stored runs of both trees."""
+    stored = json.loads(path.read_text())
+    return summary_table(
+        _results(stored["cases"]), _results(stored.get("baseline_cases", [])), stored.get("against")
+    )
+
+
+SETUP = (
+    "Real `fedhpg-run` federations on loopback: CartPole variants, 16-16 MLP, B_k and τ_k from "
+    '`agents=population`, counted clock, two agent hosts. "Sampling" is env steps per '
+    'CPU-second of the hosts\' sampling; "whole round per core" is env steps per second of wall '
+    "time from one θ̃ to the next, divided by the hosts' cores (at most the machine's), against "
+    "reference (b): `gym.make_vec` CartPole with every agent's own MLP forward and draw per "
+    "step, in the benchmark's process. The commit's column is every case run again with that "
+    "commit's own `fedhpg-run` right after this tree's, the same harness reading its metrics. "
+    "Ratios to (b) do not carry from one machine to another. `make bench-scale` runs it."
+)
 
 
 def against_baseline() -> list[engine_ab.Comparison]:
@@ -420,57 +597,89 @@ def main() -> None:
     parser.add_argument("cases", nargs="*", choices=[[], *CASES], help="default: all")
     parser.add_argument("--plot-only", action="store_true", help="redraw from scale.json")
     parser.add_argument("--out", type=Path, help="write a subset's results here (JSON)")
-    parser.add_argument("--skip-baseline", action="store_true",
-                        help="leave out the comparison with the baseline commit")  # fmt: skip
+    parser.add_argument(
+        "--against",
+        default=engine_ab.BASELINE,
+        help="the commit every case runs at too (default %(default)s)",
+    )
+    parser.add_argument(
+        "--skip-baseline",
+        action="store_true",
+        help="run no case at the commit and no engine comparison with it",
+    )
+    parser.add_argument("--tables-only", action="store_true",
+                        help="the summary table again from scale.json")  # fmt: skip
     parser.add_argument("--rounds", type=int, help="a subset's cases run this many rounds")
     args = parser.parse_args()
     if args.rounds is not None and (not args.cases or args.rounds < 2):
         parser.error("--rounds: a subset of cases only, and at least 2 rounds")
+    if args.tables_only:
+        rebuilt = stored_table()
+        results_file.rerender("scale", [rebuilt])
+        print(rebuilt["summary"])
+        return
     if args.plot_only:
-        results, machine = _load()
+        stored, machine = _load()
         print(f"machine: {machine}")
-        print(table(results))
-        figure(results, machine)
+        print(table(stored))
+        figure(stored, machine)
         return
     args.cases = args.cases or list(CASES)
     machine = cpu_description()
     print(f"machine: {machine}", flush=True)
-    results = []
+    # the device row compares two engines of this tree; every other run compares the commit
+    alone = args.skip_baseline or sorted(args.cases) == sorted(DEVICE_ROW)
+    that = None if alone else engine_ab.baseline_tree(args.against)
+    results: list[CaseResult] = []
+    theirs: list[CaseResult] = []
     for name in args.cases:
         case = CASES[name]
         if args.rounds is not None:
             case = replace(case, name=f"{case.name} ({args.rounds} rounds)", rounds=args.rounds)
-        measured = measure(case)
+        measured = measure(case, name)
         results += measured
         print("\n".join(table(measured).splitlines()[2:]), flush=True)
+        if that is not None:  # the same case at the commit, right after
+            try:
+                at_commit = measure(case, name, that)
+            except RuntimeError as error:  # a case the commit cannot run: "—" in its column
+                print(f"{name} at {that.label}: {str(error).splitlines()[-1]}", flush=True)
+                continue
+            theirs += at_commit
+            print(f"at {that.label}:", flush=True)
+            print("\n".join(table(at_commit).splitlines()[2:]), flush=True)
     print(table(results))
     engine = [] if args.skip_baseline else against_baseline()
     print("\n".join(engine_ab.report(c) for c in engine))
+    against = None if that is None else args.against
+    print(summary_table(results, theirs, against)["summary"])
+    data = json.dumps({
+        "machine": machine, "cases": _stored(results), "against": against,
+        "baseline_cases": _stored(theirs), "against_baseline": [asdict(c) for c in engine],
+    }, indent=1) + "\n"  # fmt: skip
     if sorted(args.cases) == sorted(DEVICE_ROW):
         _write_device_row(results, args.out or DEVICE_ROW_RESULTS, machine)
         return
     if len(args.cases) < len(CASES):
         # a subset is a spot check: the results file and the figure hold the whole table
         if args.out is not None:
-            args.out.write_text(json.dumps({
-                "machine": machine,
-                "cases": [{**asdict(r), "case": asdict(r.case)} for r in results],
-                "against_baseline": [asdict(c) for c in engine],
-            }, indent=1) + "\n")  # fmt: skip
+            args.out.write_text(data)
         return
     RESULTS.parent.mkdir(parents=True, exist_ok=True)
-    RESULTS.write_text(
-        json.dumps(
-            {
-                "machine": machine,
-                "cases": [{**asdict(r), "case": asdict(r.case)} for r in results],
-                "against_baseline": [asdict(c) for c in engine],
-            },
-            indent=1,
-        )
-        + "\n"
-    )
+    RESULTS.write_text(data)
     figure(results, machine)
+    path = results_file.write(
+        "scale",
+        title="Thousands of agents on agent hosts",
+        order=160,
+        command=results_file.command_line("benchmarks.scale"),
+        measures=MEASURES,
+        setup=SETUP,
+        data=[_relative(RESULTS)],
+        tables=[stored_table()],
+        keep_summaries=False,
+    )
+    print(f"wrote {path}")
 
 
 if __name__ == "__main__":

@@ -20,6 +20,7 @@ from benchmarks import (
     presets,
     processes_ab,
     results_file,
+    scale,
     thresholds,
     tuned_presets,
 )
@@ -111,3 +112,53 @@ def test_learning_builds_the_stored_columns(kind: str) -> None:
     assert [row[1] for row in rows] == ["1/2", "1/1"]
     assert rows[0][2] == "**32** (32, —)" and rows[1][2] == "**32** (32)"
     assert "misses it on 1 of 2 seeds" in built[0]["summary"]
+
+
+def _case_result(
+    key: str, window: str, per_core_steps: float, **figures: float
+) -> scale.CaseResult:
+    """A made-up result of ``key``: (b) at 1 M steps/s, the whole round at ``per_core_steps``
+    per core of the hosts it uses."""
+    case = scale.CASES[key]
+    cores = min(-(-case.agents // case.per_host), scale.CORES)
+    given = {"start_to_round_1_s": 3.0, "peak_pss_mib": 900.0, "sampling": 0.5e6} | figures
+    return scale.CaseResult(
+        case=case,
+        start_to_round_1_s=given["start_to_round_1_s"],
+        peak_pss_mib=given["peak_pss_mib"],
+        participants=case.per_round or case.agents,
+        env_steps_per_round=1e4,
+        sampling_steps_per_cpu_s=given["sampling"],
+        round_steps_per_s=per_core_steps * cores,
+        round_time_s=0.1,
+        coordination_us_per_agent=given.get("coordination", 30.0),
+        copies_per_host=100,
+        refs={"a_bare_gym": 2e6, "b_gym_plus_forward": 1e6},
+        key=key,
+        window=window,
+    )
+
+
+def test_scale_puts_the_commits_runs_beside_this_trees_and_dashes_what_it_did_not_run() -> None:
+    this = [
+        _case_result("k1000", "2–4", 0.35e6),
+        _case_result("k1000", "28–30", 0.5e6),
+        _case_result("k1000", "2–30", 0.4e6),
+        _case_result("k10000", "2–4", 0.2e6, sampling=0.8e6, peak_pss_mib=600.0),
+        _case_result("overhead", "2–4", 0.1e6, coordination=60.0),
+    ]
+    that = [_case_result("k1000", "2–4", 0.1e6), _case_result("k10000", "2–4", 0.25e6)]
+    built = scale.summary_table(this, that, "abc1234")
+    assert built["columns"] == ["case", "this tree", "abc1234, same machine", "target"]
+    rows = {row[0]: row[1:] for row in built["rows"]}
+    assert rows["K = 1,000, whole round per core vs (b), rounds 2–4"] == ["0.35", "0.10", "0.3"]
+    assert rows["K = 1,000, rounds 28–30 / 2–30"] == ["0.50 / 0.40", "0.10 / 0.10", ""]
+    assert rows["K = 10,000 (1,000 a round), whole round per core"] == ["0.20", "0.25", "0.3"]
+    assert rows["peak PSS, K = 1,000 / 10,000 (MiB)"] == ["900 / 600", "900 / 900", "2,048"]
+    device = next(cells for label, cells in rows.items() if "torch CartPole" in label)
+    assert device == ["— / —", "— / —", ""]
+    summary = built["summary"]
+    assert summary.startswith("At this tree the whole round per core at K = 1,000 (early rounds)")
+    assert "the whole round per core at K = 10,000" in summary.split(";")[1]  # missed: 0.20 < 0.3
+    assert "coordination at d ≈ 10⁴" in summary.split(";")[1]  # missed: 60 µs > 50
+    assert "At abc1234, on the same machine:" in summary

@@ -11,7 +11,7 @@ from pathlib import Path
 
 import pytest
 
-from benchmarks import engine_ab, processes_ab
+from benchmarks import engine_ab
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -66,9 +66,10 @@ def test_a_worker_that_imports_another_package_is_a_one_line_error(tmp_path: Pat
 
 
 def test_the_commits_federation_starts_the_commits_package(monkeypatch: pytest.MonkeyPatch) -> None:
-    """benchmarks.processes_ab starts a commit's own fedhpg-run from this repository's root,
-    where ``python -c`` would put this tree's package first: the check behind it passes."""
+    """benchmarks.processes_ab and benchmarks.scale start a commit's own fedhpg-run from this
+    repository's root, where ``python -c`` would put this tree's package first: the check
+    behind it passes."""
     monkeypatch.chdir(ROOT)
-    tree = processes_ab.baseline_tree("HEAD")
+    tree = engine_ab.baseline_tree("HEAD")
     assert tree.env == {"PYTHONPATH": str(engine_ab.checkout("HEAD"))}
     assert tree.command is not None and tree.command[1] == "-P"
