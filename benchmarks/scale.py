@@ -184,12 +184,19 @@ def _references(case: Case, copies: list[int], refs: dict[str, list[float]]) -> 
         refs["b_gym_plus_forward"].append(forward_loop(copies, (case.hidden, case.hidden), 300))
 
 
-def measure(case: Case, key: str, tree: engine_ab.Tree = engine_ab.THIS_TREE) -> list[CaseResult]:
+def measure(
+    case: Case,
+    key: str,
+    tree: engine_ab.Tree = engine_ab.THIS_TREE,
+    refs: dict[str, list[float]] | None = None,
+) -> list[CaseResult]:
     """The case's figures over all its rounds, or, for a case that trains long enough for
     the episodes to lengthen, over its first and its last three rounds separately, with
-    ``tree``'s ``fedhpg-run`` (this environment's, or a commit's)."""
+    ``tree``'s ``fedhpg-run`` (this environment's, or a commit's). The references measured
+    around it are added to ``refs`` (where given, another tree's too: :func:`with_refs`)."""
     copies = _sampled_copies(case)
-    refs: dict[str, list[float]] = {"a_bare_gym": [], "b_gym_plus_forward": []}
+    if refs is None:
+        refs = {"a_bare_gym": [], "b_gym_plus_forward": []}
     _references(case, copies, refs)
     runs: list[list[dict]] = []
     starts: list[float] = []
@@ -284,6 +291,14 @@ def table(results: list[CaseResult]) -> str:
             f"{r.coordination_us_per_agent:.0f} |"
         )
     return "\n".join(lines)
+
+
+def with_refs(results: list[CaseResult], refs: dict[str, list[float]]) -> list[CaseResult]:
+    """``results`` against the median of ``refs`` (both trees' measurements of a case pooled:
+    one yardstick, so that the trees' ratios to it compare as their throughputs do)."""
+    medians = {name: statistics.median(values) for name, values in refs.items()}
+    ranges = {name: (min(values), max(values)) for name, values in refs.items()}
+    return [replace(r, refs=medians, ref_ranges=ranges) for r in results]
 
 
 def _b(r: CaseResult) -> float:
@@ -411,6 +426,16 @@ def summary_table(
             if theirs_met
             else f" At {against}, on the same machine, none of them does."
         )
+    ratios = []
+    for what, key, which in (("at K = 1,000 (rounds 2–4)", "k1000", "early"),
+                             ("at K = 10,000", "k10000", "all"),
+                             ("with one process per agent", "processes", "all")):  # fmt: skip
+        mine_r, theirs_r = sides[0].get(key, which), sides[1].get(key, which)
+        if mine_r is not None and theirs_r is not None:
+            ratio = mine_r.round_steps_per_s / theirs_r.round_steps_per_s
+            ratios.append(f"{ratio:.2f} {what}")
+    if ratios and against:
+        summary += f" Whole-round env steps per second, this tree ÷ {against}: {_listed(ratios)}."
     column = f"{against}, same machine" if against else "no commit run"
     summary = summary[0].upper() + summary[1:]
     figure = results_file.Figure(path=_relative(FIGURE), caption="the cases against their targets")
@@ -636,18 +661,20 @@ def main() -> None:
         case = CASES[name]
         if args.rounds is not None:
             case = replace(case, name=f"{case.name} ({args.rounds} rounds)", rounds=args.rounds)
-        measured = measure(case, name)
-        results += measured
-        print("\n".join(table(measured).splitlines()[2:]), flush=True)
+        refs: dict[str, list[float]] = {"a_bare_gym": [], "b_gym_plus_forward": []}
+        measured = measure(case, name, refs=refs)
+        at_commit: list[CaseResult] = []
         if that is not None:  # the same case at the commit, right after
             try:
-                at_commit = measure(case, name, that)
+                at_commit = measure(case, name, that, refs)
             except RuntimeError as error:  # a case the commit cannot run: "—" in its column
                 print(f"{name} at {that.label}: {str(error).splitlines()[-1]}", flush=True)
-                continue
-            theirs += at_commit
-            print(f"at {that.label}:", flush=True)
-            print("\n".join(table(at_commit).splitlines()[2:]), flush=True)
+        results += with_refs(measured, refs)
+        theirs += with_refs(at_commit, refs)
+        print("\n".join(table(with_refs(measured, refs)).splitlines()[2:]), flush=True)
+        if at_commit:
+            print(f"at {that.label}:" if that else "", flush=True)
+            print("\n".join(table(with_refs(at_commit, refs)).splitlines()[2:]), flush=True)
     print(table(results))
     engine = [] if args.skip_baseline else against_baseline()
     print("\n".join(engine_ab.report(c) for c in engine))

@@ -62,6 +62,7 @@ BUILDERS: dict[str, Callable[[], list[Table]]] = {
     **{name: functools.partial(device_tables.stored_tables, name) for name in device_tables.NAMES},
     "engine_ab": lambda: engine_ab.tables(engine_ab.load()),
     "engine_ab_processes": lambda: [processes_ab.table(*processes_ab.load())],
+    "scale": lambda: [scale.stored_table()],
     "figures": lambda: figures.result_tables((figures.FIGURES / "summary.md").read_text()),
     "learning_long": lambda: learning_long.result_tables(learning_long.stored()),
     "tuned_lunarlander": _tuned("lunarlander"),
@@ -162,3 +163,6 @@ def test_scale_puts_the_commits_runs_beside_this_trees_and_dashes_what_it_did_no
     assert "the whole round per core at K = 10,000" in summary.split(";")[1]  # missed: 0.20 < 0.3
     assert "coordination at d ≈ 10⁴" in summary.split(";")[1]  # missed: 60 µs > 50
     assert "At abc1234, on the same machine:" in summary
+    assert summary.endswith(
+        "this tree ÷ abc1234: 3.50 at K = 1,000 (rounds 2–4) and 0.80 at K = 10,000."
+    )
