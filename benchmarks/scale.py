@@ -596,7 +596,9 @@ SETUP = (
     "time from one θ̃ to the next, divided by the hosts' cores (at most the machine's), against "
     "reference (b): `gym.make_vec` CartPole with every agent's own MLP forward and draw per "
     "step, in the benchmark's process. The commit's column is every case run again with that "
-    "commit's own `fedhpg-run` right after this tree's, the same harness reading its metrics. "
+    "commit's own `fedhpg-run` right after this tree's, the same harness reading its metrics, "
+    "and both trees' runs of a case are against one (b): the median of the references measured "
+    "around both. "
     "Ratios to (b) do not carry from one machine to another. `make bench-scale` runs it."
 )
 
