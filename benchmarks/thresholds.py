@@ -845,7 +845,8 @@ def main(argv: Sequence[str] | None = None) -> None:
             args.results,
             args.code_logs or CODE_LOGS,
         )
-    elif not args.table_only:
+    ran = bool(args.wall)
+    if not args.wall and not args.table_only:
         done = set() if args.rerun else {(c.row, c.server_lr, c.seed) for c in curves}
         for lr in args.server_lr:
             for row in args.rows:
@@ -853,6 +854,7 @@ def main(argv: Sequence[str] | None = None) -> None:
                     if (row, lr, seed) in done:
                         continue
                     curve = run_curve(row, lr, seed)
+                    ran = True
                     print(f"{row} lr={lr:g} seed {seed}: {outcome(curve)}", flush=True)
                     curves = replace(curves, curve)
                     save(curves, args.results)
@@ -868,11 +870,12 @@ def main(argv: Sequence[str] | None = None) -> None:
         print(conversion_table(args.code_logs))
     plot(curves, args.figure, rows)
     command = results_file.command_line("benchmarks.thresholds")
-    if args.search and args.results == SEARCH_RESULTS:
+    if not ran:  # every run asked for was stored: the tables keep their measurement's stamps
+        write_tables()
+    elif args.search and args.results == SEARCH_RESULTS:
         results_file.refresh("thresholds_search", search_tables(curves, rows), command)
     elif args.results == RESULTS and not args.search:
-        if not args.table_only:
-            results_file.refresh("thresholds", main_tables(curves, rows, args.code_logs), command)
+        results_file.refresh("thresholds", main_tables(curves, rows, args.code_logs), command)
         if args.wall:
             results_file.refresh("thresholds_wall", wall_tables(curves), command)
     print(f"\nfigure: {args.figure}")
