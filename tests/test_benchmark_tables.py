@@ -166,3 +166,22 @@ def test_scale_puts_the_commits_runs_beside_this_trees_and_dashes_what_it_did_no
     assert summary.endswith(
         "this tree ÷ abc1234: 3.50 at K = 1,000 (rounds 2–4) and 0.80 at K = 10,000."
     )
+
+
+def test_a_thresholds_call_that_runs_nothing_keeps_its_tables_stamps(
+    monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """Every run asked for is stored (as ``benchmarks.learning``'s closing call asks): the
+    tables are rebuilt with their measurement's stamps, not stamped with this commit."""
+    rebuilt: list[bool] = []
+
+    def refresh(*args: object, **kwargs: object) -> None:
+        raise AssertionError("stored runs stamped as measured now")
+
+    monkeypatch.setattr(thresholds.results_file, "refresh", refresh)
+    monkeypatch.setattr(thresholds, "write_tables", lambda: rebuilt.append(True))
+    monkeypatch.setattr(thresholds, "plot", lambda *args, **kwargs: None)
+    monkeypatch.setattr(thresholds, "run_curve", refresh)
+    thresholds.main(["--seeds", "0", "1"])
+    assert rebuilt == [True]
+    assert "| run |" in capsys.readouterr().out
