@@ -42,7 +42,7 @@ docs: $(INSTALLED)
 
 # Two xdist workers: the tests that start federations run one after another on one of them
 # (tests/federation_tests.py picks them test by test); both share the rest. From a fresh clone
-# on 2 cores: ~10 min in all, ~8.5 of them the tests. Before them the static checks and the
+# on 2 cores: ~7 min in all, ~6 of them the tests. Before them the static checks and the
 # kernel cache, each one thread and independent of the others, two at a time (the longest
 # first): a sub-make with -j2, each one's output printed whole when it ends (--output-sync),
 # and one that fails fails make test once the other running one has ended.
@@ -53,7 +53,7 @@ test: $(INSTALLED)
 
 # The long tier (marked slow): every shipped env preset learns, every docs page's code runs as
 # printed, the longest integration runs, the resource attacks and the 10,000-frame fuzz of a
-# live server (~12 min on 2 cores). Two workers first, as make test shares them (the tests that
+# live server (~8 min on 2 cores). Two workers first, as make test shares them (the tests that
 # start federations one after another on one worker; the learning runs, and the docs pages one
 # page a unit, marked alongside, on either); then, on one worker, the tests marked solo: those
 # timed against the wall clock or counting what a server does under load (the resource attacks

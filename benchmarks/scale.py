@@ -427,7 +427,7 @@ def summary_table(
             else f" At {against}, on the same machine, none of them does."
         )
     ratios = []
-    for what, key, which in (("at K = 1,000 (rounds 2–4)", "k1000", "early"),
+    for what, key, which in ((f"at K = 1,000 (rounds {early})", "k1000", "early"),
                              ("at K = 10,000", "k10000", "all"),
                              ("with one process per agent", "processes", "all")):  # fmt: skip
         mine_r, theirs_r = sides[0].get(key, which), sides[1].get(key, which)
