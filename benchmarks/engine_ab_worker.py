@@ -20,7 +20,7 @@ from fedhpg.common.runtime.cli import compose
 # The layout is read from the revision's own folder, not found by trying imports: under an
 # editable install a module this revision lacks would be found in the working tree instead.
 SPLIT = os.path.isdir(os.path.join(os.path.dirname(fedhpg.common.__file__), "learning"))
-"""Whether this revision's common/ is split by role (issue 55)."""
+"""Whether this revision's common/ is split by role (learning/, records/, ... beneath it)."""
 if SPLIT:
     from fedhpg.common.learning.group import make_agent_group
     from fedhpg.common.learning.worker import initial_theta

@@ -6,7 +6,7 @@ start-up to the end of round 1, peak PSS of the whole federation (server, hosts,
 env steps per second while the hosts sample (from the engine's own split of its CPU time,
 reported per agent in metrics.jsonl), per second of round wall time (from one round's θ̃ to
 the next's), and the server's coordination time per participating agent. The cases at the
-issue's targets run :attr:`Case.repeats` times, and each window pools the same rounds of every
+targets run :attr:`Case.repeats` times, and each window pools the same rounds of every
 run. The two references run in this same process on
 the same number of env copies as one host steps: (a) a bare ``gym.make_vec`` CartPole loop,
 (b) the same plus one stacked forward and draw of every agent's own MLP per step; each is
@@ -522,7 +522,7 @@ def _write_device_row(results: list[CaseResult], data: Path, machine: str) -> No
 
 def figure(results: list[CaseResult], machine: str) -> None:
     """Left: the federation's throughput as a multiple of reference (b), sampling and whole
-    round per core, against the issue's 0.7 and 0.3; right: peak PSS against 2 GB. The
+    round per core, against their targets 0.7 and 0.3; right: peak PSS against 2 GB. The
     one-process-per-agent case is left out of the ratios (its (b) is one agent's copies)."""
     import matplotlib
 
