@@ -268,6 +268,20 @@ CASES = {
 }
 
 
+def _b(r: CaseResult) -> float:
+    return r.refs["b_gym_plus_forward"]
+
+
+def per_core(r: CaseResult) -> float:
+    """Whole-round env steps per second per core the hosts use, as a multiple of (b)."""
+    return r.round_steps_per_s / min(-(-r.case.agents // r.case.per_host), CORES) / _b(r)
+
+
+def sampling(r: CaseResult) -> float:
+    """Env steps per CPU second of sampling, as a multiple of (b)."""
+    return r.sampling_steps_per_cpu_s / _b(r)
+
+
 def table(results: list[CaseResult]) -> str:
     lines = [
         "| case | start → end of round 1 (s) | peak PSS (MiB) | agents per round | env steps "
@@ -277,15 +291,13 @@ def table(results: list[CaseResult]) -> str:
         "|---|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     for r in results:
-        b = r.refs["b_gym_plus_forward"]
+        b = _b(r)
         low, high = r.ref_ranges.get("b_gym_plus_forward", (b, b))
-        hosts = -(-r.case.agents // r.case.per_host)
-        cores = min(hosts, CORES)
         lines.append(
             f"| {r.case.name} | {r.start_to_round_1_s:.1f} | {r.peak_pss_mib:,.0f} | "
             f"{r.participants:,.0f} | {r.env_steps_per_round:,.0f} | "
-            f"{r.sampling_steps_per_cpu_s / 1e6:.2f} M | {r.sampling_steps_per_cpu_s / b:.2f} | "
-            f"{r.round_steps_per_s / 1e6:.2f} M | {r.round_steps_per_s / cores / b:.2f} | "
+            f"{r.sampling_steps_per_cpu_s / 1e6:.2f} M | {sampling(r):.2f} | "
+            f"{r.round_steps_per_s / 1e6:.2f} M | {per_core(r):.2f} | "
             f"{r.refs['a_bare_gym'] / 1e6:.1f} | {b / 1e6:.2f} "
             f"({low / 1e6:.2f}–{high / 1e6:.2f}) | "
             f"{r.coordination_us_per_agent:.0f} |"
@@ -299,20 +311,6 @@ def with_refs(results: list[CaseResult], refs: dict[str, list[float]]) -> list[C
     medians = {name: statistics.median(values) for name, values in refs.items()}
     ranges = {name: (min(values), max(values)) for name, values in refs.items()}
     return [replace(r, refs=medians, ref_ranges=ranges) for r in results]
-
-
-def _b(r: CaseResult) -> float:
-    return r.refs["b_gym_plus_forward"]
-
-
-def per_core(r: CaseResult) -> float:
-    """Whole-round env steps per second per core the hosts use, as a multiple of (b)."""
-    return r.round_steps_per_s / min(-(-r.case.agents // r.case.per_host), CORES) / _b(r)
-
-
-def sampling(r: CaseResult) -> float:
-    """Env steps per CPU second of sampling, as a multiple of (b)."""
-    return r.sampling_steps_per_cpu_s / _b(r)
 
 
 class _Picked:
@@ -456,12 +454,10 @@ def device_row_table(results: list[CaseResult]) -> str:
         "|---|---|---|---|---|---|",
     ]
     for r in results:
-        b = r.refs["b_gym_plus_forward"]
-        cores = min(-(-r.case.agents // r.case.per_host), CORES)
         lines.append(
             f"| {_device_case(r)} | {r.env_steps_per_round:,.0f} | "
-            f"{r.sampling_steps_per_cpu_s / 1e6:.2f} M | {r.sampling_steps_per_cpu_s / b:.2f} | "
-            f"{r.round_steps_per_s / 1e6:.2f} M | {r.round_steps_per_s / cores / b:.2f} |"
+            f"{r.sampling_steps_per_cpu_s / 1e6:.2f} M | {sampling(r):.2f} | "
+            f"{r.round_steps_per_s / 1e6:.2f} M | {per_core(r):.2f} |"
         )
     return "\n".join(lines)
 
@@ -533,15 +529,10 @@ def figure(results: list[CaseResult], machine: str) -> None:
     names = [r.case.name for r in results]
     y = np.arange(len(results))
     hosted = [r.case.per_host > 1 for r in results]
-    sampling = [r.sampling_steps_per_cpu_s / r.refs["b_gym_plus_forward"] for r in results]
-    rounds = [
-        r.round_steps_per_s / min(-(-r.case.agents // r.case.per_host), CORES)
-        / r.refs["b_gym_plus_forward"]
-        for r in results
-    ]  # fmt: skip
-    for offset, (label, values, target) in enumerate(
-        [("sampling", sampling, 0.7), ("whole round, per core", rounds, 0.3)]
-    ):
+    for offset, (label, values, target) in enumerate([
+        ("sampling", [sampling(r) for r in results], 0.7),
+        ("whole round, per core", [per_core(r) for r in results], 0.3),
+    ]):  # fmt: skip
         bars = left.barh(y[hosted] + 0.2 - 0.4 * offset, np.asarray(values)[hosted], height=0.4,
                          label=f"{label} (target {target})")  # fmt: skip
         left.axvline(target, color=bars.patches[0].get_facecolor(), linestyle="--", lw=1)
