@@ -196,8 +196,7 @@ def summary_table(kind: str, curves: list[Curve]) -> str:
         text = "never" if median is None else f"{median:.0f}"
         if median is not None and median == best:
             text = f"**{text}**"
-        low, high = (f"{f(c.peak_pss_mib for c in group):.0f}" for f in (min, max))
-        memory = low if low == high else f"{low}–{high}"
+        memory = results_file.span(c.peak_pss_mib for c in group)
         hits = sum(v is not None for v in reached)
         lines.append(f"| {name} | {hits}/{len(group)} | {text} ({per_seed}) | {memory} MiB |")
     return "\n".join(lines)

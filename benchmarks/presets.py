@@ -228,14 +228,9 @@ def table(results: dict[str, RunResult]) -> str:
             f"| `{plan.name}` | {', '.join(str(r.seed) for r in runs)} | {plan.rounds} "
             f"| {runs[0].trajectories[-1]:,.0f} | {_fmt([r.initial for r in runs])} "
             f"| **{_fmt([r.returns[-1] for r in runs])}** | {_fmt([max(r.returns) for r in runs])} "
-            f"| {single} | {threshold} | {_span(walls)}{hung_note} |"
+            f"| {single} | {threshold} | {results_file.span(walls)}{hung_note} |"
         )
     return "\n".join(lines)
-
-
-def _span(values: list[float]) -> str:
-    low, high = f"{min(values):.0f}", f"{max(values):.0f}"
-    return low if low == high else f"{low}–{high}"
 
 
 def _federations(results: dict[str, RunResult], plan: Plan) -> list[RunResult]:

@@ -23,6 +23,7 @@ from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 
 from benchmarks import engine_ab, results_file
+from benchmarks.results_file import span
 from benchmarks.runtime import _federation
 from benchmarks.scale import CASES, MEASURES, round_walls, whole_round_rate
 
@@ -52,11 +53,6 @@ def federation(tree: engine_ab.Tree, rounds: int) -> Run:
     return Run(whole_round_rate(trained), peak / 2**20)
 
 
-def _span(values: list[float], form: str) -> str:
-    low, high = format(min(values), form), format(max(values), form)
-    return low if low == high else f"{low}–{high}"
-
-
 def save(this: list[Run], that: list[Run], against: str, rounds: int) -> None:
     RESULTS.write_text(json.dumps({
         "against": against, "rounds": rounds,
@@ -76,15 +72,15 @@ def table(this: list[Run], that: list[Run], against: str) -> results_file.Table:
     rates = [[r.steps_per_s / 1e6 for r in runs] for runs in (this, that)]
     pss = [[r.peak_pss_mib for r in runs] for runs in (this, that)]
     rows = [
-        ["whole-round env steps per second", f"{_span(rates[0], '.3f')} M",
-         f"{_span(rates[1], '.3f')} M", f"{_span(ratios, '.2f')}×"],
-        ["peak PSS of the whole federation (MiB)", _span(pss[0], ',.0f'),
-         _span(pss[1], ',.0f'), ""],
+        ["whole-round env steps per second", f"{span(rates[0], '.3f')} M",
+         f"{span(rates[1], '.3f')} M", f"{span(ratios, '.2f')}×"],
+        ["peak PSS of the whole federation (MiB)", span(pss[0], ',.0f'),
+         span(pss[1], ',.0f'), ""],
     ]  # fmt: skip
     faster = "faster" if min(ratios) >= 1.0 else "slower" if max(ratios) < 1.0 else "level"
     summary = (
-        f"Run by run, this tree is {faster} than {against} ({_span(ratios, '.2f')}×); "
-        f"peak PSS {_span(pss[0], ',.0f')} MiB against {_span(pss[1], ',.0f')}. Each agent "
+        f"Run by run, this tree is {faster} than {against} ({span(ratios, '.2f')}×); "
+        f"peak PSS {span(pss[0], ',.0f')} MiB against {span(pss[1], ',.0f')}. Each agent "
         "there is a lone agent, so the figure follows the lone agent's row of the engine "
         "comparison above."
     )

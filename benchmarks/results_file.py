@@ -48,6 +48,7 @@ import shlex
 import shutil
 import subprocess
 import sys
+from collections.abc import Iterable
 from pathlib import Path
 from typing import Any, NotRequired, TypedDict
 
@@ -300,6 +301,14 @@ def _keeping_reviewed_summaries(tables: list[Table], path: Path) -> list[Table]:
         same = (given["columns"], given["rows"]) == (old["columns"], old["rows"])
         kept.append({**given, "summary": old["summary"]} if same else given)
     return kept + tables[len(kept) :]
+
+
+def span(values: Iterable[float], form: str = ".0f") -> str:
+    """The least and the most of ``values`` formatted with ``form``, as "low–high", or one
+    figure where both read the same."""
+    listed = list(values)
+    low, high = format(min(listed), form), format(max(listed), form)
+    return low if low == high else f"{low}–{high}"
 
 
 def command_line(module: str) -> str:

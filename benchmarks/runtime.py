@@ -205,11 +205,6 @@ def summary(runs: list[list[OverheadResult]]) -> str:
     )
 
 
-def _range(values: list[float]) -> str:
-    low, high = f"{min(values):.0f}", f"{max(values):.0f}"
-    return low if low == high else f"{low}–{high}"
-
-
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--repeats", type=int, default=3, help="runs of every cell (≥ 1)")
@@ -244,7 +239,7 @@ def main() -> None:
         "and checkpoint are written while the agents train, inside the next round. Start-up "
         "to the end of round 1 with K = 8 (demo GridWorld): "
         f"{', '.join(f'{seconds:.2f}' for seconds, _ in starts)} s; peak PSS of the whole "
-        f"federation: {_range(memories)} MiB."
+        f"federation: {results_file.span(memories)} MiB."
     )
     results_file.write(
         "runtime",
