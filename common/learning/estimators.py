@@ -279,11 +279,13 @@ def per_trajectory_gradients(
     return torch.cat([grads[name].reshape(coefficients.shape[1], -1) for name in params], dim=1)
 
 
-def clip_rows(gradient: torch.Tensor, max_norm: float | None) -> tuple[torch.Tensor, torch.Tensor]:
+def clip_rows(
+    gradient: torch.Tensor, max_norm: float | None
+) -> tuple[torch.Tensor, torch.Tensor | None]:
     """Scale each row of [A, d] down to norm ``max_norm`` (Assumption 3); returns the rows and
-    which were clipped [A]."""
+    which were clipped [A] (None without a ``max_norm``: none)."""
     if max_norm is None:
-        return gradient, torch.zeros(gradient.shape[0], dtype=torch.bool, device=gradient.device)
+        return gradient, None
     norms = gradient.double().norm(dim=1)
     clipped = norms > max_norm
     scale = torch.where(clipped, max_norm / norms.clamp_min(1e-300), torch.ones_like(norms))
@@ -293,4 +295,4 @@ def clip_rows(gradient: torch.Tensor, max_norm: float | None) -> tuple[torch.Ten
 def clip_by_norm(gradient: torch.Tensor, max_norm: float | None) -> tuple[torch.Tensor, bool]:
     """Scale ``gradient`` down to norm ``max_norm`` (Assumption 3); returns (g, was_clipped)."""
     rows, clipped = clip_rows(gradient.unsqueeze(0), max_norm)
-    return (rows[0], True) if bool(clipped[0]) else (gradient, False)
+    return (rows[0], True) if clipped is not None and bool(clipped[0]) else (gradient, False)

@@ -164,7 +164,7 @@ class EngineGroup:
                     round_index, theta, order[chunk.start : chunk.stop], budgets, interrupt
                 )
                 update = self.algorithm.local_update(rows, self.run.algo, self.params)
-                honest.append(update.detach().cpu())
+                honest.append(update.cpu())  # detached below, with the attack's rows
             tallies.append(rows.tally)
         sent = corrupt_rows(
             self.run.attack,

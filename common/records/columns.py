@@ -46,10 +46,13 @@ class Columns(Sequence[R], Generic[R]):
         def __init__(self, **columns: Any) -> None: ...
 
     def __post_init__(self) -> None:
-        lengths = {name: len(getattr(self, name)) for name in self.scalar_fields}
+        sizes = {len(getattr(self, name)) for name in self.scalar_fields}
         for name in self.map_fields:
-            lengths |= {f"{name}[{k!r}]": len(c) for k, c in getattr(self, name).items()}
-        if len(set(lengths.values())) > 1:
+            sizes.update(map(len, getattr(self, name).values()))
+        if len(sizes) > 1:  # named only then: every result is checked, few fail
+            lengths = {name: len(getattr(self, name)) for name in self.scalar_fields}
+            for name in self.map_fields:
+                lengths |= {f"{name}[{k!r}]": len(c) for k, c in getattr(self, name).items()}
             raise ValueError(f"columns of different lengths: {lengths}")
 
     @classmethod

@@ -32,11 +32,21 @@ from fedhpg.common.learning.batched.estimator import (
 from fedhpg.common.learning.batched.mlp import MLPShape
 from fedhpg.common.learning.engine.backend import Draws, defined_mean_gradients
 from fedhpg.common.learning.engine.estimate import EstimatorOptions
+from fedhpg.common.learning.engine.host_arrays import HostArrays
 from fedhpg.common.learning.engine.torch_backend import TorchBackend
 from fedhpg.common.learning.engine.trajectories import StepRows, Trajectories
 from fedhpg.common.learning.randomness import Purpose
 from fedhpg.envs.base import EnvVariant
 from fedhpg.envs.compiled import CARTPOLE_DEFAULTS, CARTPOLE_STEP_LIMIT, cartpole_table
+
+ACTION, COLUMN, TIME = np.int8, np.int32, np.int16
+"""The sampler's packed steps' action (CartPole's two), trajectory (of one call) and time
+(under CartPole's 500-step limit) as stored: with the float32 observation, 23 bytes a step
+(against 40 in int64), the most of a host's memory in a round of long episodes."""
+assert np.iinfo(TIME).max >= CARTPOLE_STEP_LIMIT
+
+_ONE = np.ones(1, dtype=np.float64)
+"""CartPole's reward, every step's: a batch's rewards are a read-only view of it."""
 
 RECENT_ROWS = 8
 """Sets of rows :meth:`CompiledBackend._physics_rows` keeps (a round's local iterations)."""
@@ -46,24 +56,6 @@ RECENT_ROWS = 8
 def _run_key(seed: int, purpose: int) -> int:
     """The (seed, purpose) part of every trajectory key, hashed once."""
     return randomness.key_of(seed, purpose)
-
-
-def _key_words(draws: Draws) -> tuple[int, np.ndarray, int, int]:
-    """``draws`` as the key kernels take them: the run's key, the agents, the round and the
-    iteration as signed 64-bit words."""
-    return (
-        _run_key(draws.seed, int(draws.purpose)),
-        draws.agents.numpy(),
-        randomness.signed(draws.round_index),
-        randomness.signed(draws.iteration),
-    )
-
-
-@functools.cache
-def _unweighted_options(options: EstimatorOptions) -> KernelOptions:
-    """The run's estimator options as the kernels take them, without importance weights
-    (made once: every iteration of a run asks for them)."""
-    return kernel_options(options)
 
 
 def covers(variant: EnvVariant) -> bool:
@@ -85,12 +77,18 @@ class CompiledBackend:
         self.variants = variants or {}
         self._torch = torch_backend
         self.sizes = np.asarray(shape.sizes, dtype=np.int64)
+        self._obs_size = int(shape.sizes[0])
         self._row_of: dict[int, int] = {}
         self._tables: list[np.ndarray] = []
         self._table: np.ndarray | None = None
         self._recent: dict[tuple[int, ...], np.ndarray] = {}
         """The physics rows of recent calls' agents (a round's iterations repeat them)."""
         self._buffers = _RowBuffers()
+        self._host = HostArrays()
+        """Host views of the tensors the engine passes again and again (budgets, constants,
+        a round's θ rows)."""
+        self._unweighted: tuple[EstimatorOptions, KernelOptions] | None = None
+        """The run's estimator options and their kernels' form without importance weights."""
         self._constants = _Constants()
 
     def _physics_rows(self, agents: Sequence[int]) -> np.ndarray:
@@ -119,9 +117,9 @@ class CompiledBackend:
         """:func:`~fedhpg.common.learning.randomness.trajectory_keys` of trajectories 0 …
         ``counts[a]`` − 1 of every row a, row after row: the same words, in one compiled
         call."""
-        wanted = counts.numpy()
+        wanted = self._host(counts)
         out = np.empty(int(wanted.sum()), dtype=np.int64)
-        base, agents, round_word, iteration_word = _key_words(draws)
+        base, agents, round_word, iteration_word = self._key_words(draws)
         kernels.trajectory_keys(base, agents, wanted, round_word, iteration_word, out)
         return torch.from_numpy(out)
 
@@ -161,39 +159,58 @@ class CompiledBackend:
         """One episode per copy of every row, as the engine's ``sample`` returns them, drawn
         with their keys in one compiled call (:func:`~fedhpg.common.learning.batched.fused.
         keyed_sample`)."""
-        count = counts.numpy()  # int64 rows, as the engine makes them
-        limits = np.minimum(horizons.numpy(), CARTPOLE_STEP_LIMIT)
-        obs, actions, columns, times = self._buffers.take(int(count @ limits), int(self.sizes[0]))
-        lengths = np.zeros(int(count.sum()), dtype=np.int64)
-        owner = np.empty(len(lengths), dtype=np.int64)
+        count = self._host(counts)  # int64 rows, as the engine makes them
+        limits = np.minimum(self._host(horizons), CARTPOLE_STEP_LIMIT)
+        trajectories = int(count.sum())
+        obs, actions, columns, times = self._buffers.take(int(count @ limits), self._obs_size)
+        lengths = np.zeros(trajectories, dtype=np.int64)
+        owner = np.empty(trajectories, dtype=np.int64)
         row_start = np.empty(len(count) + 1, dtype=np.int64)
         written = fused.keyed_sample(
-            *_key_words(draws), np.ascontiguousarray(theta.numpy(), dtype=np.float32),
-            self.sizes, self._physics_rows(agents), count, limits, greedy, obs, actions,
-            columns, times, lengths, owner, row_start,
+            *self._key_words(draws), self._thetas(theta), self.sizes, self._physics_rows(agents),
+            count, limits, greedy, obs, actions, columns, times, lengths, owner, row_start,
         )  # fmt: skip
         sampled = _Sampled(obs, actions, columns, times, written, lengths, owner, row_start)
-        steps = torch.from_numpy(lengths)
-        per_row = torch.from_numpy(row_start[1:] - row_start[:-1])
+        per_row = row_start[1:] - row_start[:-1]
+        # the tensors as a loop first reads them: a lone agent's FedHPG reads none of them
         return Trajectories(
-            success=self._constants.false(len(lengths)),  # CartPole has no goal
-            owner=torch.from_numpy(owner),
+            success=lambda: self._constants.false(trajectories),  # CartPole has no goal
+            owner=lambda: torch.from_numpy(owner),
             counts=counts,
-            lengths=steps,
-            steps=lambda: self._packed(sampled),  # as tensors when first read
-            returns=steps.double(),  # a reward of 1 a step, summed exactly
-            row_sums=(per_row, per_row.double()),
+            lengths=lambda: torch.from_numpy(lengths),
+            steps=lambda: self._packed(sampled),
+            returns=lambda: torch.from_numpy(lengths.astype(np.float64)),  # 1 a step, exactly
+            row_sums=(per_row, per_row.astype(np.float64)),
             native=sampled,
         )
 
+    def _thetas(self, theta: torch.Tensor) -> np.ndarray:
+        """θ rows as the kernels read them: float32, C-ordered (a view where they are)."""
+        return np.ascontiguousarray(self._host(theta), dtype=np.float32)
+
+    def _key_words(self, draws: Draws) -> tuple[int, np.ndarray, int, int]:
+        """``draws`` as the key kernels take them: the run's key, the agents, the round and
+        the iteration as signed 64-bit words."""
+        return (
+            _run_key(draws.seed, int(draws.purpose)),
+            self._host(draws.agents),
+            randomness.signed(draws.round_index),
+            randomness.signed(draws.iteration),
+        )
+
     def _packed(self, sampled: _Sampled) -> StepRows:
+        """The batch's steps as the torch maths takes them (int64 actions and indices)."""
         written = sampled.written
+
+        def wide(values: np.ndarray) -> torch.Tensor:
+            return torch.from_numpy(values[:written].astype(np.int64))
+
         return StepRows(
             obs=torch.from_numpy(sampled.obs[:written]),
-            actions=torch.from_numpy(sampled.actions[:written]),
+            actions=wide(sampled.actions),
             rewards=self._constants.ones(written),  # CartPole: 1 a step, the last too
-            time=torch.from_numpy(sampled.times[:written]),
-            column=torch.from_numpy(sampled.columns[:written]),
+            time=wide(sampled.times),
+            column=wide(sampled.columns),
             rows=self._constants.arange(len(sampled.row_start) - 1),
             row_start=torch.from_numpy(sampled.row_start),
         )
@@ -213,7 +230,9 @@ class CompiledBackend:
         bits); composed otherwise."""
         sampled = batch.native
         if weights is None:
-            chosen = _unweighted_options(options)
+            if self._unweighted is None or self._unweighted[0] is not options:
+                self._unweighted = (options, kernel_options(options))
+            chosen = self._unweighted[1]  # made once: every iteration asks for the same
         else:
             chosen = kernel_options(options, weights.detach().double().numpy())
         if not isinstance(sampled, _Sampled) or not chosen.plain:
@@ -225,8 +244,8 @@ class CompiledBackend:
         out = np.zeros((theta.shape[0], theta.shape[1]), dtype=np.float32)
         fused.estimated_gradients(
             chosen.gpomdp, chosen.mean_baseline, chosen.from_step, chosen.weighting,
-            chosen.weights, gammas.numpy(), sampled.times, sampled.columns, sampled.lengths,
-            sampled.owner, sampled.written, np.ascontiguousarray(theta.numpy(), dtype=np.float32),
+            chosen.weights, self._host(gammas), sampled.times, sampled.columns, sampled.lengths,
+            sampled.owner, np.broadcast_to(_ONE, sampled.written), self._thetas(theta),
             self.sizes, sampled.obs, sampled.actions, sampled.row_start, out,
         )  # fmt: skip
         means = torch.from_numpy(out)
@@ -370,27 +389,30 @@ class _RowBuffers:
         self, capacity: int, obs_dim: int
     ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         for i, arrays in enumerate(self.sets):
-            if max(_holders(arrays)) == _UNREFERENCED:
+            if _holders(arrays) == _UNREFERENCED:
                 if arrays[0].shape[0] >= capacity and arrays[0].shape[1] == obs_dim:
                     return arrays
                 del self.sets[i]  # free, but too small: replaced by a larger set
                 break
         arrays = (
             np.empty((capacity, obs_dim), dtype=np.float32),
-            np.empty(capacity, dtype=np.int64),
-            np.empty(capacity, dtype=np.int64),
-            np.empty(capacity, dtype=np.int64),
+            np.empty(capacity, dtype=ACTION),
+            np.empty(capacity, dtype=COLUMN),
+            np.empty(capacity, dtype=TIME),
         )
         self.sets.append(arrays)
         return arrays
 
 
-def _holders(arrays: tuple[np.ndarray, ...]) -> list[int]:
-    return [sys.getrefcount(array) for array in arrays]
+def _holders(arrays: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]) -> tuple[int, ...]:
+    """The references to each array of a set (a batch holds them, and each view of one)."""
+    obs, actions, columns, times = arrays
+    count = sys.getrefcount
+    return count(obs), count(actions), count(columns), count(times)
 
 
-_UNREFERENCED = _holders((np.empty(0),))[0]
-"""What :func:`_holders` counts for an array that only its tuple holds."""
+_UNREFERENCED = _holders((np.empty(0), np.empty(0), np.empty(0), np.empty(0)))
+"""What :func:`_holders` counts for a set that only its tuple holds."""
 
 
 def warm_up() -> float:

@@ -252,6 +252,29 @@ def _cells(
 
 
 @kernel()
+def plain_cells(
+    gpomdp: bool,
+    mean_baseline: bool,
+    from_step: bool,
+    weighting: int,
+    rewards: np.ndarray,
+    time: np.ndarray,
+    column: np.ndarray,
+    lengths: np.ndarray,
+    owner: np.ndarray,
+    gammas: np.ndarray,
+    weights: np.ndarray,
+) -> tuple[np.ndarray, np.ndarray]:
+    """The coefficients without standardisation on every row's cells [S], and each packed
+    step's cell [R]: step i's coefficient is ``grid[cell[i]]`` (what
+    :func:`plain_coefficients` gathers into one array, and a gradient kernel can read in
+    place)."""
+    grid, cell, _, _ = _cells(gpomdp, mean_baseline, from_step, _NONE, weighting, rewards,
+                              time, column, lengths, owner, gammas, weights)  # fmt: skip
+    return grid, cell
+
+
+@kernel()
 def plain_coefficients(
     gpomdp: bool,
     mean_baseline: bool,
@@ -268,8 +291,8 @@ def plain_coefficients(
     """Each packed step's coefficient, without standardisation (one array back: boxing the
     others would cost more than computing them); :func:`packed_coefficients` checks the
     options and inputs it is given."""
-    grid, cell, _, _ = _cells(gpomdp, mean_baseline, from_step, _NONE, weighting, rewards,
-                              time, column, lengths, owner, gammas, weights)  # fmt: skip
+    grid, cell = plain_cells(gpomdp, mean_baseline, from_step, weighting, rewards, time,
+                             column, lengths, owner, gammas, weights)  # fmt: skip
     out = np.empty(cell.shape[0], dtype=np.float64)
     for i in range(cell.shape[0]):
         out[i] = grid[cell[i]]

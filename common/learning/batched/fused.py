@@ -15,7 +15,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from fedhpg.common.learning.batched.estimator import plain_coefficients
+from fedhpg.common.learning.batched.estimator import plain_cells
 from fedhpg.common.learning.batched.kernels import (
     kernel,
     row_gradients,
@@ -77,7 +77,7 @@ def estimated_gradients(
     rows_column: np.ndarray,
     lengths: np.ndarray,
     owner: np.ndarray,
-    written: int,
+    rewards: np.ndarray,
     thetas: np.ndarray,
     sizes: np.ndarray,
     rows_obs: np.ndarray,
@@ -86,15 +86,17 @@ def estimated_gradients(
     gradients: np.ndarray,
 ) -> None:
     """(1/B_a) Σ_n Σ_t coef_t,n ∇ log π_θa(a_t|s_t) over row a's B_a trajectories into
-    ``gradients[a]``: the unstandardised estimator's coefficients of the ``written`` packed
-    steps (a reward of 1 each, CartPole's), the score gradients at ``thetas``, then each
-    row's sum divided by its trajectories in float32, as torch divides."""
-    rewards = np.ones(written, dtype=np.float64)
-    coefficients = plain_coefficients(gpomdp, mean_baseline, from_step, weighting, rewards,
-                                      rows_time[:written], rows_column[:written], lengths,
-                                      owner, gammas, weights)  # fmt: skip
-    at = np.arange(written)
-    row_gradients(thetas, sizes, rows_obs, rows_action, coefficients, at, row_start, gradients)
+    ``gradients[a]``: the unstandardised estimator's coefficients of the packed steps, one
+    reward of ``rewards`` each (CartPole's: a read-only view of one 1.0, no array a step),
+    the score gradients at ``thetas``, then each row's sum divided by its trajectories in
+    float32, as torch divides."""
+    written = rewards.shape[0]
+    # the coefficients read where the estimator puts them (step r's: grid[cell[r]]), not
+    # gathered into an array a step: at a host's million steps, two arrays fewer
+    grid, cell = plain_cells(gpomdp, mean_baseline, from_step, weighting, rewards,
+                             rows_time[:written], rows_column[:written], lengths, owner, gammas,
+                             weights)  # fmt: skip
+    row_gradients(thetas, sizes, rows_obs, rows_action, grid, cell, row_start, gradients)
     trajectories = np.zeros(gradients.shape[0], dtype=np.int64)
     for n in range(owner.shape[0]):
         trajectories[owner[n]] += 1

@@ -20,6 +20,7 @@ from fedhpg.common.learning.components import AgentProfile, agent_profile, plann
 from fedhpg.common.learning.engine.backend import Backend
 from fedhpg.common.learning.engine.devices import check_device, deterministic_off_cpu
 from fedhpg.common.learning.engine.estimate import EstimatorOptions
+from fedhpg.common.learning.engine.host_arrays import HostArrays
 from fedhpg.common.learning.engine.memory import RoundPlan, StepBytes, memory_budget, plan_round
 from fedhpg.common.learning.engine.policy_rows import PolicyRows
 from fedhpg.common.learning.engine.round import BudgetRows, Interrupt, Round, RowConstants
@@ -111,6 +112,8 @@ class Engine:
         """The last :meth:`round_budgets` of agents running their own budgets."""
         self._budget_rows: tuple[list[Any], BudgetRows, RowConstants] | None = None
         """For the last list of budgets: its fields as rows and the rows' constants."""
+        self._host = HostArrays()
+        """Host views of the budget rows the rounds' loops pass back (made once a list)."""
 
     # -- per-agent constants ----------------------------------------------------------------
 
@@ -172,6 +175,7 @@ class Engine:
             budgets=budget_rows,
             constants=constants,
             interrupt=interrupt,
+            host=self._host,
         )
 
     def plan(
@@ -189,7 +193,7 @@ class Engine:
         """Each agent's budget for the round: its own, or with the server's plan put in. The
         list is kept, the same object, while the agents repeat and run their own budgets."""
         key = tuple(agents)
-        own = not any((budgets or {}).get(k) for k in key)
+        own = not budgets or not any(budgets.get(k) for k in key)
         if own and self._own_budgets is not None and self._own_budgets[0] == key:
             return self._own_budgets[1]
         chosen = [planned_budget(self.profile(k).budget, (budgets or {}).get(k)) for k in key]

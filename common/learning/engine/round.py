@@ -37,6 +37,7 @@ import torch
 
 from fedhpg.common.learning.engine.backend import Backend, Draws
 from fedhpg.common.learning.engine.estimate import EstimatorOptions
+from fedhpg.common.learning.engine.host_arrays import HostArrays
 from fedhpg.common.learning.engine.trajectories import Trajectories
 from fedhpg.common.learning.randomness import Purpose
 from fedhpg.common.records.round_columns import IterationColumns
@@ -61,9 +62,18 @@ class Tally:
 
     @classmethod
     def zeros(cls, rows: int) -> Tally:
+        """Zero totals, whose arrays are rows of two blocks (:meth:`blocks`)."""
         trajectories, env_steps, clipped = np.zeros((3, rows), dtype=np.int64)
         return_sum, compute_s, sample_s = np.zeros((3, rows), dtype=np.float64)
         return cls(trajectories, env_steps, return_sum, compute_s, clipped, sample_s)
+
+    def blocks(self) -> tuple[np.ndarray, np.ndarray]:
+        """The integer totals (trajectories, env steps, clipped) and the float ones (return
+        sum, compute, sampling) as [3, A] arrays whose rows are the fields: one addition
+        updates three fields. Only for a :meth:`zeros` tally."""
+        ints, floats = self.trajectories.base, self.return_sum.base
+        assert isinstance(ints, np.ndarray) and isinstance(floats, np.ndarray)
+        return ints, floats
 
     @classmethod
     def concatenated(cls, parts: Sequence[Tally]) -> Tally:
@@ -95,8 +105,21 @@ class Tally:
         )
 
 
+Numbers = torch.Tensor | np.ndarray
+"""A row's numbers of an iteration: a tensor, or a host array where the backend has them so."""
+
 Interrupt = Callable[[], None]
 """Called after each iteration; it may raise to cancel the round."""
+
+
+def _held_on_host(numbers: Numbers) -> bool:
+    """Whether a round's numbers are on the host (a round's are all where its rows are)."""
+    return isinstance(numbers, np.ndarray) or numbers.device.type == "cpu"
+
+
+def _copied_to_host(values: list[Numbers]) -> np.ndarray:
+    """Device tensors [A] each stacked as one host array [len(values), A], in one copy."""
+    return torch.stack([torch.as_tensor(v) for v in values]).numpy(force=True)
 
 
 @dataclass(frozen=True)
@@ -139,8 +162,12 @@ class Round:
         budgets: BudgetRows,
         constants: RowConstants,
         interrupt: Interrupt | None = None,
+        host: HostArrays | None = None,
     ) -> None:
         self.backend = backend
+        self._host = HostArrays() if host is None else host
+        """Host views of the counts the loop passes (its budgets: the same tensors every
+        iteration)."""
         self.options = options
         self.seed = seed
         """The run's seed (an algorithm's own draws, e.g. FedPG-BR's B_t, are keyed by it)."""
@@ -151,11 +178,13 @@ class Round:
         self._budgets = budgets
         self.constants = constants
         self._tally = Tally.zeros(len(self.agents))
+        self._totals = self._tally.blocks()
         self._interrupt = interrupt
-        self._pending: list[tuple[torch.Tensor, ...]] = []
-        """Each finished iteration's numbers per row, [A] each, where the rows are: its
-        trajectories, env steps, differentiated steps and whether its gradient was clipped
-        (int64), and its sum of undiscounted returns (float64)."""
+        self._pending: list[tuple[Numbers, Numbers, Numbers, torch.Tensor | None, Numbers]] = []
+        """Each finished iteration's numbers per row, [A] each, where the rows are (tensors,
+        or host arrays where the backend sampled on the host): its trajectories, env steps
+        and differentiated steps (int64), whether its gradient was clipped (bool; None: none
+        was) and its sum of undiscounted returns (float64)."""
         self._times: list[tuple[float, float]] = []
         """Each finished iteration's CPU seconds, and those of them spent sampling."""
         self._reported: dict[str, torch.Tensor] = {}
@@ -197,7 +226,7 @@ class Round:
         limit = constants.horizon if horizons is None else horizons
         positions = None
         agents, agent_ids = self.agents, constants.agent
-        if int(counts.min()) == 0:  # some rows sample nothing: the others only, renamed after
+        if self._fewest(counts) == 0:  # some rows sample nothing: the others only, renamed after
             positions = torch.nonzero(counts > 0).squeeze(1)
             theta, counts, limit = theta[positions], counts[positions], limit[positions]
             agents = [self.agents[i] for i in positions.tolist()]
@@ -209,6 +238,12 @@ class Round:
         finally:
             self._sampling_s += time.thread_time() - started
         return batch if positions is None else batch.regrouped(positions, self.size)
+
+    def _fewest(self, counts: torch.Tensor) -> int:
+        """The least of ``counts``, read from its host view where it is on the host."""
+        if counts.device.type == "cpu":
+            return int(self._host(counts).min())
+        return int(counts.min())
 
     def coefficients(
         self, batch: Trajectories, weights: torch.Tensor | None = None
@@ -258,11 +293,9 @@ class Round:
         now = time.thread_time()
         elapsed, self._clock = now - self._clock, now
         sampled, self._sampling_s = min(self._sampling_s, elapsed), 0.0
-        steps = batch.steps_per_row()
+        steps, returns = batch.row_totals()
         self._pending.append((
-            batch.counts, steps, steps if grad_steps is None else grad_steps,
-            torch.zeros_like(steps) if clipped is None else clipped.to(steps.dtype),
-            batch.returns_per_row(),
+            batch.counts, steps, steps if grad_steps is None else grad_steps, clipped, returns,
         ))  # fmt: skip
         self._times.append((elapsed, sampled))
         if self._interrupt is not None:
@@ -276,40 +309,59 @@ class Round:
         ran, and each one's work per row (its share of the iteration's CPU time, by env
         steps)."""
         if self._pending:
-            counts = torch.stack([number for numbers in self._pending for number in numbers[:4]])
-            returns = torch.stack([numbers[4] for numbers in self._pending])
-            self._add(counts.numpy(force=True).reshape(len(self._pending), 4, -1),
-                      returns.numpy(force=True), np.asarray(self._times))  # fmt: skip
-            self._pending, self._times = [], []
+            pending, self._pending = self._pending, []
+            times, self._times = np.asarray(self._times), []
+            host = self._on_host if _held_on_host(pending[0][4]) else _copied_to_host
+            counts = host([number for numbers in pending for number in numbers[:3]])
+            clips = [numbers[3] for numbers in pending if numbers[3] is not None]
+            clipped = (
+                torch.stack(clips).sum(dim=0, dtype=torch.int64).numpy(force=True)
+                if clips
+                else None
+            )
+            returns = host([numbers[4] for numbers in pending])
+            self._add(counts.reshape(len(pending), 3, -1), clipped, returns, times)
         if self._reported:
             for name, values in self._reported.items():
                 self._tally.algorithm[name] = values.cpu().numpy()
             self._reported = {}
         return self._tally
 
-    def _add(self, numbers: np.ndarray, returns: np.ndarray, times: np.ndarray) -> None:
-        """Iterations' per-row counts [I, 4, A] and return sums [I, A] and their (elapsed,
-        sampling) CPU seconds [I, 2] into the totals, iteration after iteration in the order
-        they ran (the float totals' order of additions)."""
-        counts, steps, grads, _ = numbers.transpose(1, 0, 2)
-        shares = steps / np.maximum(steps.sum(axis=1, keepdims=True), 1)
-        compute, sampled = shares * times[:, :1], shares * times[:, 1:]
-        tally = self._tally
-        trajectories, env_steps, _, clips = numbers.sum(axis=0)  # integers: in any order
-        tally.trajectories += trajectories
-        tally.env_steps += env_steps
-        tally.clipped += clips
-        everyone = np.arange(counts.shape[1])
-        for i, every in enumerate(counts.all(axis=1).tolist()):
-            tally.return_sum += returns[i]
-            tally.compute_s += compute[i]
-            tally.sample_s += sampled[i]
+    def _on_host(self, values: list[Numbers]) -> np.ndarray:
+        """Host ``values`` [A] each stacked as one array [len(values), A] through their
+        views."""
+        host = self._host
+        return np.array([v if isinstance(v, np.ndarray) else host(v) for v in values])
+
+    def _add(
+        self,
+        numbers: np.ndarray,
+        clipped: np.ndarray | None,
+        returns: np.ndarray,
+        times: np.ndarray,
+    ) -> None:
+        """Iterations' per-row counts [I, 3, A] (trajectories, env steps, differentiated
+        steps), clipped gradients [A] (None: none) and return sums [I, A], and their
+        (elapsed, sampling) CPU seconds [I, 2], into the totals, iteration after iteration in
+        the order they ran (the float totals' order of additions)."""
+        ints, floats = self._totals
+        ints[:2] += np.add.reduce(numbers[:, :2], axis=0)  # integers: in any order
+        if clipped is not None:
+            ints[2] += clipped
+        steps = numbers[:, 1]
+        shares = steps / np.maximum(np.add.reduce(steps, axis=1, keepdims=True), 1)
+        spent = shares[:, None] * times[:, :, None]  # [I, 2, A]: elapsed, sampling, by share
+        positions = np.arange(numbers.shape[2])
+        for i, every in enumerate(np.logical_and.reduce(numbers[:, 0], axis=1).tolist()):
+            floats[0] += returns[i]
+            floats[1:] += spent[i]
+            compute = spent[i, 0]
             if every:  # every row ran: whole rows, no indexing
-                work = IterationColumns(everyone, compute[i], steps[i], grads[i])
+                work = IterationColumns(positions, compute, steps[i], numbers[i, 2])
             else:
-                at = np.flatnonzero(counts[i])
-                work = IterationColumns(at, compute[i][at], steps[i][at], grads[i][at])
-            tally.work.append(work)
+                at = np.flatnonzero(numbers[i, 0])
+                work = IterationColumns(at, compute[at], steps[i][at], numbers[i, 2][at])
+            self._tally.work.append(work)
 
     @contextmanager
     def untimed(self) -> Iterator[None]:

@@ -16,7 +16,9 @@ from __future__ import annotations
 from collections.abc import Callable
 from dataclasses import dataclass, replace
 from functools import cached_property
+from typing import TypeAlias, TypeVar
 
+import numpy as np
 import torch
 
 from fedhpg.common.learning.staircase import Staircase, ordered_sums
@@ -42,32 +44,46 @@ class StepRows:
     """[m + 1] block i is steps ``row_start[i]`` … ``row_start[i + 1]`` − 1."""
 
 
+T = TypeVar("T")
+
+Later: TypeAlias = "T | Callable[[], T]"
+"""A value, or what makes it when it is first read (a backend that holds its batch in its own
+form makes the tensors a loop reads only if one does)."""
+
+
+def _made(value: Later[T]) -> T:
+    return value() if callable(value) else value  # a tensor is not callable
+
+
+RowSums = tuple[torch.Tensor | np.ndarray, torch.Tensor | np.ndarray]
+"""Each row's (alive steps, sum of undiscounted returns): tensors, or host arrays where the
+backend sampled on the host."""
+
+
 class Trajectories:
     """Several rows' trajectories, time-major (see the module docstring)."""
 
     def __init__(
         self,
         *,
-        success: torch.Tensor,
-        owner: torch.Tensor,
+        success: Later[torch.Tensor],
+        owner: Later[torch.Tensor],
         counts: torch.Tensor,
-        lengths: torch.Tensor | None = None,
+        lengths: Later[torch.Tensor] | None = None,
         rewards: torch.Tensor | None = None,
         alive: torch.Tensor | None = None,
         obs: torch.Tensor | None = None,
         actions: torch.Tensor | None = None,
-        steps: StepRows | Callable[[], StepRows] | None = None,
-        returns: torch.Tensor | None = None,
-        row_sums: tuple[torch.Tensor, torch.Tensor] | None = None,
+        steps: Later[StepRows] | None = None,
+        returns: Later[torch.Tensor] | None = None,
+        row_sums: RowSums | None = None,
         native: object = None,
     ) -> None:
         padded = rewards is not None and alive is not None and obs is not None
         if not padded and (steps is None or lengths is None):
             raise ValueError("a batch needs its steps, padded or packed with their lengths")
-        self.success = success
-        """[N] bool: the episode ended in the task's goal."""
-        self.owner = owner
-        """[N] int64: the row each trajectory belongs to."""
+        self._success = success
+        self._owner = owner
         self.counts = counts
         """[A] int64: trajectories per row (0 for a row that sampled none)."""
         self._steps = steps
@@ -86,10 +102,22 @@ class Trajectories:
         self._obs, self._actions = obs, actions
 
     @property
+    def success(self) -> torch.Tensor:
+        """[N] bool: the episode ended in the task's goal."""
+        self._success = _made(self._success)
+        return self._success
+
+    @property
+    def owner(self) -> torch.Tensor:
+        """[N] int64: the row each trajectory belongs to."""
+        self._owner = _made(self._owner)
+        return self._owner
+
+    @property
     def steps(self) -> StepRows | None:
         """The alive steps packed row after row, where the backend packs them."""
-        if callable(self._steps):
-            self._steps = self._steps()
+        if self._steps is not None:
+            self._steps = _made(self._steps)
         return self._steps
 
     # -- padded views ------------------------------------------------------------------------
@@ -173,7 +201,8 @@ class Trajectories:
             steps = lambda: _renamed(make(), positions)  # noqa: E731
         elif steps is not None:
             steps = _renamed(steps, positions)
-        out = Trajectories(success=self.success, owner=positions[self.owner], counts=counts,
+        out = Trajectories(success=self._success, owner=lambda: positions[self.owner],
+                           counts=counts,
                            lengths=self._lengths, rewards=self._rewards, alive=self._alive,
                            obs=self._obs, actions=self._actions, steps=steps,
                            returns=self._returns, native=self.native)  # fmt: skip
@@ -189,20 +218,27 @@ class Trajectories:
 
     def lengths(self) -> torch.Tensor:
         """Each trajectory's alive steps, [N]."""
-        if self._lengths is None:
-            self._lengths = self.alive.sum(dim=0)
+        self._lengths = self.alive.sum(dim=0) if self._lengths is None else _made(self._lengths)
         return self._lengths
 
     def steps_per_row(self) -> torch.Tensor:
         """Alive steps of each row, [A] int64."""
         if self._row_sums is not None:
-            return self._row_sums[0]
+            return torch.as_tensor(self._row_sums[0])
         return torch.zeros_like(self.counts).index_add_(0, self.owner, self.lengths())
+
+    def row_totals(self) -> RowSums:
+        """(:meth:`steps_per_row`, :meth:`returns_per_row`) as the backend holds them: host
+        arrays where it sampled on the host (a round's tally reads them there)."""
+        if self._row_sums is not None:
+            return self._row_sums
+        return self.steps_per_row(), self.returns_per_row()
 
     def returns(self, gammas: torch.Tensor | None = None) -> torch.Tensor:
         """Each trajectory's return Σ_t γ^t r_t, [N] float64 (undiscounted without
         ``gammas``, else each column discounted by its row's γ, ``gammas`` [A])."""
         if gammas is None and self._returns is not None:
+            self._returns = _made(self._returns)
             return self._returns
         rewards, _ = self.cells
         if gammas is None:  # each column's own cells in order: the same sums in any company
@@ -217,7 +253,7 @@ class Trajectories:
     def returns_per_row(self) -> torch.Tensor:
         """Each row's sum of its trajectories' undiscounted returns, [A] float64."""
         if self._row_sums is not None:
-            return self._row_sums[1]
+            return torch.as_tensor(self._row_sums[1])
         return self.per_row(self.returns())
 
 
