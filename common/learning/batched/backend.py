@@ -46,7 +46,14 @@ ACTION, COLUMN, TIME = np.int8, np.int32, np.int16
 assert np.iinfo(TIME).max >= CARTPOLE_STEP_LIMIT
 
 _ONE = np.ones(1, dtype=np.float64)
-"""CartPole's reward, every step's: a batch's rewards are a read-only view of it."""
+"""CartPole's reward, every step's."""
+
+
+def _ones(size: int) -> np.ndarray:
+    """``size`` rewards of 1 as a view of one (stride 0: no memory a step; read, never
+    written)."""
+    return np.ndarray((size,), np.float64, _ONE, 0, (0,))
+
 
 RECENT_ROWS = 8
 """Sets of rows :meth:`CompiledBackend._physics_rows` keeps (a round's local iterations)."""
@@ -245,7 +252,7 @@ class CompiledBackend:
         fused.estimated_gradients(
             chosen.gpomdp, chosen.mean_baseline, chosen.from_step, chosen.weighting,
             chosen.weights, self._host(gammas), sampled.times, sampled.columns, sampled.lengths,
-            sampled.owner, np.broadcast_to(_ONE, sampled.written), self._thetas(theta),
+            sampled.owner, _ones(sampled.written), self._thetas(theta),
             self.sizes, sampled.obs, sampled.actions, sampled.row_start, out,
         )  # fmt: skip
         means = torch.from_numpy(out)

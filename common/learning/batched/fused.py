@@ -87,7 +87,7 @@ def estimated_gradients(
 ) -> None:
     """(1/B_a) Σ_n Σ_t coef_t,n ∇ log π_θa(a_t|s_t) over row a's B_a trajectories into
     ``gradients[a]``: the unstandardised estimator's coefficients of the packed steps, one
-    reward of ``rewards`` each (CartPole's: a read-only view of one 1.0, no array a step),
+    reward of ``rewards`` each (CartPole's: a view of one 1.0, no array a step),
     the score gradients at ``thetas``, then each row's sum divided by its trajectories in
     float32, as torch divides."""
     written = rewards.shape[0]
