@@ -36,6 +36,10 @@ class Bound:
         kind = type(value)
         if kind is bool:
             return None
+        if kind is list:  # a column: its length is all there is to bound
+            if self.max_len is not None and len(value) > self.max_len:
+                return f"{len(value)} long, more than {self.max_len}"
+            return None
         if kind is float or kind is int or isinstance(value, int | float):  # the hot path
             if self.finite and not math.isfinite(value):
                 return f"{value!r} is not finite"

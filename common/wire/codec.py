@@ -293,6 +293,8 @@ def _check_bool(value: Any, where: str, depth: int) -> Any:
 
 
 def _check_union(options: tuple[Any, ...], value: Any, where: str, depth: int) -> Any:
+    if value is None and type(None) in options:  # an optional value left out: the usual case
+        return None
     others = [o for o in options if o is not None and o is not type(None)]
     if value is not None and len(others) == 1:  # an optional value: its own check says why
         return _check(value, others[0], where, depth)
@@ -408,8 +410,8 @@ def _all_fit(values: list[Any], rule: _NumberRule) -> bool:
     and of floats where the field must be finite, are decided so; any other (a None of an
     optional column, ints mixed with floats, a float field that admits NaN, which min and
     max cannot order) is tested item by item."""
-    if not values:
-        return True
+    if len(values) < 2:  # a lone agent's column: one test, not four passes
+        return not values or _fits(values[0], rule)
     is_float, _, low, high, finite = rule
     kinds = set(map(type, values))
     if kinds == _INT_KINDS:
@@ -460,9 +462,18 @@ def _compile_record(cls: type) -> Checker:
 _PLAIN_SCALARS = frozenset({int, float, str, bytes, bool, type(None)})
 
 
-@functools.cache
-def _field_names(cls: type) -> tuple[str, ...]:
-    return tuple(f.name for f in dataclasses.fields(cls))
+_RECORD_FIELDS: dict[type, tuple[str, ...] | None] = {}
+"""Each type of a header value seen: its dataclass fields' names, or None for no dataclass."""
+
+
+def _record_fields(kind: type) -> tuple[str, ...] | None:
+    """The field names of dataclass ``kind`` (None: not a dataclass), found once a type."""
+    if kind not in _RECORD_FIELDS:
+        is_record = dataclasses.is_dataclass(kind)
+        _RECORD_FIELDS[kind] = (
+            tuple(f.name for f in dataclasses.fields(kind)) if is_record else None
+        )
+    return _RECORD_FIELDS[kind]
 
 
 def _to_wire(value: Any, where: str, depth: int = 0) -> Any:
@@ -474,12 +485,13 @@ def _to_wire(value: Any, where: str, depth: int = 0) -> Any:
         raise _bad(where, f"nested deeper than {MAX_NESTING} levels")
     if isinstance(value, np.generic):
         return value.item()
-    if dataclasses.is_dataclass(value) and not isinstance(value, type):
+    names = _record_fields(type(value))
+    if names is not None:
         return {
             name: item
             if type(item := getattr(value, name)) in _PLAIN_SCALARS
             else _to_wire(item, f"{where}.{name}", depth + 1)
-            for name in _field_names(type(value))
+            for name in names
         }
     if isinstance(value, list | tuple):
         return [
