@@ -173,9 +173,7 @@ class AgentWork:
         if self.sleeps:
             result = self._train_sleeping(group, request, theta, planned, cancel)
         else:
-            result = self._train_columns(group, request, theta, agents, planned, cancel)
-            # each answer leaves with the batch: the round's wall time is each agent's
-            result = result.with_stats(local_wall_s=[time.perf_counter() - started] * len(result))
+            result = self._train_columns(group, request, theta, agents, planned, cancel, started)
         timeline.mark(self.label, "trained", request.round)
         if self.private:  # what the agents' data decides directly stays here
             result = redacted(result)
@@ -185,6 +183,8 @@ class AgentWork:
             return self.secure.share(request, theta, result, max_bytes)
         num_params = result.thetas.shape[1]
         per_message = answers_per_message(batch_message_cap(max_bytes, num_params), num_params)
+        if len(result) <= per_message:  # one message (a lone agent's always)
+            return [result]
         return [result[start : start + per_message] for start in range(0, len(result), per_message)]
 
     def _train_columns(
@@ -195,8 +195,11 @@ class AgentWork:
         agents: list[int],
         planned: Mapping[int, Mapping[str, int]],
         cancel: threading.Event,
+        started: float,
     ) -> RoundResult:
-        """The round as columns, every agent's device priced at once (the virtual clock)."""
+        """The round as columns, every agent's device priced at once (the virtual clock);
+        each answer leaves with the batch, so the round's wall time since ``started``
+        (``perf_counter``) is each agent's."""
         assert self._columns is not None
 
         trained = group.train(
@@ -208,7 +211,11 @@ class AgentWork:
         emulated, speeds = self._columns.round(
             rows, request.round, message_bytes(num_params), trained.iterations, num_params
         )
-        return result.with_stats(emulated_s=emulated.tolist(), speed=speeds.tolist())
+        return result.with_stats(
+            emulated_s=emulated.tolist(),
+            speed=speeds.tolist(),
+            local_wall_s=[time.perf_counter() - started] * len(result),
+        )
 
     def _train_sleeping(
         self,

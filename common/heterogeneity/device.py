@@ -99,10 +99,11 @@ def transfer_seconds(
     if not counted:
         return latency_s
     if isinstance(bandwidth_mbps, np.ndarray):
-        # where the bandwidth is 0 the quotient is not used (np.where), only silenced
-        with np.errstate(divide="ignore"):
-            priced = latency_s + 8.0 * num_bytes / (bandwidth_mbps * 1e6)
-        return np.where(bandwidth_mbps > 0, priced, latency_s)
+        # the transfer where the bandwidth is set, 0 where it is unlimited (never divided)
+        limited = bandwidth_mbps > 0
+        transfer = np.divide(8.0 * num_bytes, bandwidth_mbps * 1e6,
+                             out=np.zeros(limited.shape), where=limited)  # fmt: skip
+        return latency_s + transfer
     if bandwidth_mbps <= 0:
         return latency_s
     return latency_s + 8.0 * num_bytes / (bandwidth_mbps * 1e6)
