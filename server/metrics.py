@@ -3,15 +3,19 @@ the same rounds as TensorBoard scalars beside it."""
 
 from __future__ import annotations
 
+import functools
 import itertools
 import json
 import logging
+import math
 import operator
 import os
 import socket
+import struct
 import time
+from collections.abc import Callable
 from pathlib import Path
-from typing import Any
+from typing import Any, cast
 
 import numpy as np
 import orjson
@@ -136,7 +140,7 @@ class RoundValues:
         after = theta.detach().numpy().astype(np.float64)
         values = self._values(record, after)
         self._previous = after
-        return {key: float(value) for key, value in values.items() if np.isfinite(value)}
+        return {key: float(value) for key, value in values.items() if math.isfinite(value)}
 
     def _values(self, record: RoundRecord, after: np.ndarray) -> dict[str, float]:
         before = self._previous
@@ -211,13 +215,13 @@ def hyperparameters(run: RunConfig) -> dict[str, int | float | str | bool]:
 
 
 class EventFile:
-    """One TensorBoard event file, its records framed by tensorboard's own ``RecordWriter``
-    and written on the caller's thread, flushed as each is written: a disk that fills up is an
-    OSError here (the run directory's one-line error), not a traceback in a writer thread."""
+    """One TensorBoard event file, its records written on the caller's thread, flushed as each
+    is written: a disk that fills up is an OSError here (the run directory's one-line error),
+    not a traceback in a writer thread. Each record is framed as tensorboard's own
+    ``RecordWriter`` frames it, byte for byte (:func:`tf_record`)."""
 
     def __init__(self, directory: Path) -> None:
         from tensorboard.compat.proto.event_pb2 import Event
-        from tensorboard.summary.writer.record_writer import RecordWriter
 
         directory.mkdir(parents=True, exist_ok=True)
         name = (
@@ -225,12 +229,11 @@ class EventFile:
             f"{os.getpid()}.{next(_files_opened)}"
         )
         self._file = (directory / name).open("wb")
-        self._records = RecordWriter(self._file)
         self._event = Event
         self.add(Event(wall_time=time.time(), file_version="brain.Event:2"))
 
     def add(self, event: Any) -> None:
-        self._records.write(event.SerializeToString())
+        self._file.write(tf_record(event.SerializeToString()))
         self._file.flush()
 
     def close(self) -> None:
@@ -238,6 +241,39 @@ class EventFile:
 
 
 _files_opened = itertools.count()
+
+
+def tf_record(data: bytes) -> bytes:
+    """``data`` as one TFRecord: its length (uint64), the length's masked CRC-32C, the data,
+    the data's masked CRC-32C (little-endian), as tensorboard's ``RecordWriter`` writes it."""
+    masked_crc32c = _masked_crc32c()
+    length = struct.pack("<Q", len(data))
+    return b"".join((length, struct.pack("<I", masked_crc32c(length)), data,
+                     struct.pack("<I", masked_crc32c(data))))  # fmt: skip
+
+
+@functools.cache
+def _masked_crc32c() -> Callable[[bytes], int]:
+    """TFRecord's masked CRC-32C, with google-crc32c's compiled CRC where it is installed (the
+    tensorboard extra). Tensorboard's own is pure Python (TensorFlow's is not a dependency):
+    about 0.1 µs a byte, 3 ms of the server's round for the 30 KB event of 100 agents'
+    values, against 1 µs."""
+    try:
+        import google_crc32c
+    except ImportError:  # tensorboard alone: its own
+        from tensorboard.compat.tensorflow_stub.pywrap_tensorflow import masked_crc32c
+
+        return cast(Callable[[bytes], int], masked_crc32c)
+
+    def masked(data: bytes) -> int:
+        crc = google_crc32c.value(data)
+        return (((crc >> 15) | (crc << 17)) + _CRC_MASK_DELTA) & 0xFFFFFFFF
+
+    return masked
+
+
+_CRC_MASK_DELTA = 0xA282EAD8
+"""TFRecord's CRC mask: rotate right by 15 bits, add this."""
 
 
 def _sorting_stamp(directory: Path) -> int:

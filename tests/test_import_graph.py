@@ -24,6 +24,7 @@ OPTIONAL_DEPENDENCIES = {
     "submitit": "fedhpg-cluster's local and Slurm engines alone (the cluster extra)",
     "wandb": "server.wandb=true alone (the wandb extra)",
     "tensorboard": "server.tensorboard alone (the tensorboard extra)",
+    "google_crc32c": "server.tensorboard's record checksums alone (the tensorboard extra)",
     "cryptography": "privacy=secagg alone (the privacy extra)",
     "dp_accounting": "privacy=dp alone (the privacy extra)",
     "scipy": "the secure-aggregation graph's bound alone (it comes with the privacy extra)",
