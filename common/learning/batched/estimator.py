@@ -53,6 +53,8 @@ _NORMALIZE = {"none": 0, "batch": 1, "episode": 2}
 _NO_WEIGHTS = np.zeros((0, 0), dtype=np.float64)
 
 _NONE, _BATCH, _EPISODE = 0, 1, 2
+NO_STANDARDISATION = _NONE
+""":func:`coefficient_cells`' ``normalize`` for coefficients left unstandardised."""
 _UNWEIGHTED, _PER_TRAJECTORY, _PER_DECISION = 0, 1, 2
 
 
@@ -171,7 +173,7 @@ def _moments(
 
 
 @kernel()
-def _cells(
+def coefficient_cells(
     gpomdp: bool,
     mean_baseline: bool,
     from_step: bool,
@@ -187,7 +189,8 @@ def _cells(
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """(the coefficients before any standardisation on every row's cells [S], each packed
     step's cell [R], the standardisation's means and mean squares, one per row or per
-    trajectory)."""
+    trajectory): step i's unstandardised coefficient is ``grid[cell[i]]``, which a gradient
+    kernel reads in place."""
     packed, columns, rows = rewards.shape[0], lengths.shape[0], gammas.shape[0]
     if time.shape[0] != packed or column.shape[0] != packed or owner.shape[0] != columns:
         raise ValueError("rewards, time and column need one entry a step, owner one a column")
@@ -252,54 +255,6 @@ def _cells(
 
 
 @kernel()
-def plain_cells(
-    gpomdp: bool,
-    mean_baseline: bool,
-    from_step: bool,
-    weighting: int,
-    rewards: np.ndarray,
-    time: np.ndarray,
-    column: np.ndarray,
-    lengths: np.ndarray,
-    owner: np.ndarray,
-    gammas: np.ndarray,
-    weights: np.ndarray,
-) -> tuple[np.ndarray, np.ndarray]:
-    """The coefficients without standardisation on every row's cells [S], and each packed
-    step's cell [R]: step i's coefficient is ``grid[cell[i]]`` (what
-    :func:`plain_coefficients` gathers into one array, and a gradient kernel can read in
-    place)."""
-    grid, cell, _, _ = _cells(gpomdp, mean_baseline, from_step, _NONE, weighting, rewards,
-                              time, column, lengths, owner, gammas, weights)  # fmt: skip
-    return grid, cell
-
-
-@kernel()
-def plain_coefficients(
-    gpomdp: bool,
-    mean_baseline: bool,
-    from_step: bool,
-    weighting: int,
-    rewards: np.ndarray,
-    time: np.ndarray,
-    column: np.ndarray,
-    lengths: np.ndarray,
-    owner: np.ndarray,
-    gammas: np.ndarray,
-    weights: np.ndarray,
-) -> np.ndarray:
-    """Each packed step's coefficient, without standardisation (one array back: boxing the
-    others would cost more than computing them); :func:`packed_coefficients` checks the
-    options and inputs it is given."""
-    grid, cell = plain_cells(gpomdp, mean_baseline, from_step, weighting, rewards, time,
-                             column, lengths, owner, gammas, weights)  # fmt: skip
-    out = np.empty(cell.shape[0], dtype=np.float64)
-    for i in range(cell.shape[0]):
-        out[i] = grid[cell[i]]
-    return out
-
-
-@kernel()
 def _standardised(
     grid: np.ndarray, cell: np.ndarray, column: np.ndarray, owner: np.ndarray, episode: bool,
     means: np.ndarray, roots: np.ndarray, eps: float,
@@ -334,8 +289,8 @@ class KernelOptions(NamedTuple):
 
     @property
     def plain(self) -> bool:
-        """No standardisation: the coefficients in one compiled pass
-        (:func:`plain_coefficients`)."""
+        """No standardisation: the coefficients are the grid's (:func:`coefficient_cells`),
+        read in place."""
         return self.normalize == _NONE
 
 
@@ -396,12 +351,12 @@ def packed_coefficients(
         np.ascontiguousarray(gammas, dtype=np.float64),
         table,
     )
-    if normalize == _NONE:
-        out: np.ndarray = plain_coefficients(gpomdp, mean_baseline, from_step, weighting, *packed)
-        return out
-    grid, cell, means, spreads = _cells(
+    grid, cell, means, spreads = coefficient_cells(
         gpomdp, mean_baseline, from_step, normalize, weighting, *packed
     )
+    if normalize == _NONE:
+        plain: np.ndarray = grid[cell]
+        return plain
     # torch's sqrt on the CPU is MKL's (vdSqrt), which is not always the correctly rounded
     # root (~1 % of float64 inputs one ulp away): the definition's roots are torch's own
     roots = torch.from_numpy(spreads).sqrt().numpy()

@@ -3,7 +3,7 @@ from, and its mean gradients with the estimator's coefficients.
 
 Each calls the kernels the separate steps would (``trajectory_keys``, ``sample_rows`` and
 ``row_gradients`` of :mod:`~fedhpg.common.learning.batched.kernels`, and
-:func:`~fedhpg.common.learning.batched.estimator.plain_coefficients`) on the same arrays in the same
+:func:`~fedhpg.common.learning.batched.estimator.coefficient_cells`) on the same arrays in the same
 order, so its numbers are theirs, bit for bit (``tests/test_compiled_fused.py``). What it
 saves is the Python between them (wrapping each call's arrays as tensors and back), which a
 lone agent's round otherwise pays at every iteration. The sampling and the gradient stay two
@@ -15,7 +15,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from fedhpg.common.learning.batched.estimator import plain_cells
+from fedhpg.common.learning.batched.estimator import NO_STANDARDISATION, coefficient_cells
 from fedhpg.common.learning.batched.kernels import (
     kernel,
     row_gradients,
@@ -93,9 +93,10 @@ def estimated_gradients(
     written = rewards.shape[0]
     # the coefficients read where the estimator puts them (step r's: grid[cell[r]]), not
     # gathered into an array a step: at a host's million steps, two arrays fewer
-    grid, cell = plain_cells(gpomdp, mean_baseline, from_step, weighting, rewards,
-                             rows_time[:written], rows_column[:written], lengths, owner, gammas,
-                             weights)  # fmt: skip
+    grid, cell, _, _ = coefficient_cells(gpomdp, mean_baseline, from_step, NO_STANDARDISATION,
+                                         weighting, rewards, rows_time[:written],
+                                         rows_column[:written], lengths, owner, gammas,
+                                         weights)  # fmt: skip
     row_gradients(thetas, sizes, rows_obs, rows_action, grid, cell, row_start, gradients)
     trajectories = np.zeros(gradients.shape[0], dtype=np.int64)
     for n in range(owner.shape[0]):
