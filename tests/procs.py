@@ -31,6 +31,20 @@ def child_pids(pid: int) -> list[int]:
         return []
 
 
+def child_named(pid: int, name: str) -> int:
+    """The direct child of ``pid`` whose /proc/PID/comm is ``name`` (fedhpg-run names each
+    process it forks: "server", "agent-2"); pids wrap, so the newest child need not be the
+    highest."""
+    for child in child_pids(pid):
+        try:
+            with open(f"/proc/{child}/comm") as handle:
+                if handle.read().strip() == name:
+                    return child
+        except FileNotFoundError:
+            continue
+    raise LookupError(f"no child of {pid} is named {name!r}")
+
+
 @contextmanager
 def sigint_ignored(ignored: bool = True) -> Iterator[None]:
     """Within the block, SIGINT is ignored (when ``ignored``), so a process started there

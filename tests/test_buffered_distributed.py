@@ -14,7 +14,7 @@ from pathlib import Path
 from typing import Any
 
 import torch
-from procs import child_pids, free_port, processes, start, wait_until
+from procs import child_named, free_port, processes, start, wait_until
 
 from fedhpg.common.runtime.cli import compose
 from fedhpg.server.assembly import run_in_process
@@ -123,7 +123,7 @@ def test_a_killed_agent_is_restarted_rejoins_and_the_run_ends(tmp_path: Path) ->
         metrics = out_dir / "metrics.jsonl"
         assert wait_until(lambda: metrics.exists() and len(_lines(metrics)) >= 3, 60)
         killed_after = len(_lines(metrics))
-        os.kill(max(child_pids(launcher.pid)), signal.SIGKILL)  # the last agent forked
+        os.kill(child_named(launcher.pid, "agent-2"), signal.SIGKILL)
         stdout, stderr = launcher.communicate(timeout=TIMEOUT_S)
     logs = stdout + stderr
     assert launcher.returncode == 0, logs[-3000:]

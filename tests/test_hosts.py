@@ -20,7 +20,7 @@ import pytest
 import torch
 import zmq
 from peers import raw_frames
-from procs import child_pids, free_port, processes, start, wait_until
+from procs import child_named, child_pids, free_port, processes, start, wait_until
 
 from fedhpg.common.heterogeneity.variants import (
     range_digest,
@@ -147,7 +147,7 @@ def test_a_killed_host_is_restarted_and_its_agents_rejoin(tmp_path: Path) -> Non
         assert wait_until(lambda: metrics.exists() and len(metrics.read_text().split()) >= 2, 60)
         children = child_pids(launcher.pid)
         assert len(children) == 3, children  # the server and two hosts
-        os.kill(max(children), signal.SIGKILL)  # the last host forked: agents 3..5
+        os.kill(child_named(launcher.pid, "host-3-5"), signal.SIGKILL)
         stdout, stderr = launcher.communicate(timeout=TIMEOUT_S)
     logs = stdout + stderr
     assert launcher.returncode == 0, logs[-3000:]

@@ -10,7 +10,7 @@ from pathlib import Path
 
 import pytest
 import torch
-from procs import alive, child_pids, processes, sigint_ignored, start, wait_until
+from procs import alive, child_named, child_pids, processes, sigint_ignored, start, wait_until
 
 from fedhpg.common.runtime.cli import compose
 from fedhpg.server.assembly import run_in_process
@@ -48,7 +48,7 @@ def _running_federation(started: list, tmp_path: Path, *extra: str):
 def test_a_crashed_agent_without_restarts_left_stops_the_federation(tmp_path: Path) -> None:
     with processes() as started:
         launcher, children = _running_federation(started, tmp_path, "agent.max_restarts=0")
-        os.kill(max(children), signal.SIGKILL)  # the last agent forked
+        os.kill(child_named(launcher.pid, "agent-2"), signal.SIGKILL)
         out, err = launcher.communicate(timeout=30)
         stderr = err + out
     assert launcher.returncode == 1
@@ -115,7 +115,7 @@ def test_a_killed_agent_is_restarted_and_the_run_ends_as_if_nothing_happened(
         )
         metrics = out_dir / "metrics.jsonl"
         assert wait_until(lambda: metrics.exists() and len(metrics.read_text().split()) >= 3, 60)
-        os.kill(max(child_pids(launcher.pid)), signal.SIGKILL)  # the last agent forked
+        os.kill(child_named(launcher.pid, "agent-2"), signal.SIGKILL)
         stdout, stderr = launcher.communicate(timeout=120)
     logs = stdout + stderr  # Hydra's job logging writes to stdout
     assert launcher.returncode == 0, logs[-3000:]

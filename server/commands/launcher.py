@@ -61,6 +61,7 @@ from fedhpg.server.run_dir import RunDirectory, RunDirectoryError, new_run_dir
 
 logger = logging.getLogger(__name__)
 
+PR_SET_NAME = 15
 PR_SET_PDEATHSIG = 1
 STOP_GRACE_S = 3.0
 FINISH_GRACE_S = 10.0
@@ -78,8 +79,19 @@ def _die_with_parent() -> None:
         pass
 
 
+def _name_process(name: str) -> None:
+    """The child's name in ``ps -o comm``, ``top`` and /proc/PID/comm ("agent-2", "server"; the
+    kernel keeps 15 bytes), where a forked child would otherwise show the launcher's."""
+    try:
+        libc = ctypes.CDLL(None, use_errno=True)
+        libc.prctl(PR_SET_NAME, ctypes.c_char_p(name.encode()[:15]))
+    except (OSError, AttributeError):  # not Linux: the name is only cosmetic
+        pass
+
+
 def _child_setup() -> None:
     _die_with_parent()
+    _name_process(multiprocessing.current_process().name)
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # the launcher decides how to stop
     signal.signal(signal.SIGTERM, signal.SIG_DFL)
 
