@@ -44,6 +44,7 @@ from fedhpg.common.learning.batched.backend import CompiledBackend
 from fedhpg.common.learning.engine.torch_backend import TorchBackend
 from fedhpg.common.learning.group import EngineGroup, make_agent_group
 from fedhpg.common.learning.worker import initial_theta
+from fedhpg.common.runtime.memory import tune_malloc_for_engine
 
 logger = logging.getLogger("benchmarks.device_profile")
 
@@ -193,6 +194,7 @@ def main(argv: list[str] | None = None) -> None:
         sys.exit("error: need --agents >= 1 and --policies from initial,balancing")
     check_device_argument(args.device)
     torch.set_num_threads(1)
+    tune_malloc_for_engine()  # as an engine's agent process runs (benchmarks/scale_device.py)
     record: dict[str, object] = {"part": "profile", **_header(args.device), "rounds": []}
     for name in policies:
         entry = profile_round(args.agents, args.device, name)

@@ -261,7 +261,7 @@ def tables(
         found.append(
             md(profile_table(profile), profile_summary(profile), title=profile_title(profile))
         )
-    if name == "device_h200":
+    if name in ("device_h200", "device_cpu_rehearsal"):
         if record.get("placement"):
             found.append(
                 md(

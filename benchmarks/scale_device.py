@@ -12,7 +12,7 @@ CartPole stepping on the device), K ∈ ``--agents``. For each K:
   balances every pole for the 500 steps (every copy alive to the horizon: the reference's
   regime);
 - the device's peak memory (CUDA: torch's peak allocation; the CPU: the growth of the
-  process's peak resident memory, malloc's large blocks returned) beside the memory plan's;
+  process's peak resident memory) beside the memory plan's;
 - the reference (:mod:`benchmarks.device_reference`: K × 16 copies, 64 steps with auto-reset,
   sampling alone and with its REINFORCE gradient and step), measured in the same process, and
   up to ``--compare-up-to`` agents the same round on the compiled engine on this machine's CPU.
@@ -58,7 +58,7 @@ from fedhpg.common.learning.group import EngineGroup, make_agent_group
 from fedhpg.common.learning.policies import get_flat_params
 from fedhpg.common.learning.worker import build_policy, initial_theta
 from fedhpg.common.runtime.cli import compose
-from fedhpg.common.runtime.memory import pin_malloc_mmap_threshold
+from fedhpg.common.runtime.memory import tune_malloc_for_engine
 
 logger = logging.getLogger("benchmarks.scale_device")
 
@@ -86,8 +86,9 @@ class Row:
     steps_per_s: float
     device_peak_mib: float | None
     """CUDA: the peak allocation during the measured rounds; the CPU: how far the process's
-    peak resident memory lies above its resident memory before them (malloc's large blocks
-    are returned on free, so resident memory follows what lives)."""
+    peak resident memory lies above its resident memory before them. The process's malloc is
+    tuned as an engine's agent process tunes it (blocks of 16 MiB and more returned on free,
+    up to 64 MiB of freed heap kept), so this overstates what lives by at most that."""
     planned_peak_mib: float
     chunks: int
     compiled_steps_per_s: float | None
@@ -537,7 +538,10 @@ def main(argv: list[str] | None = None) -> None:
         sys.exit(f"error: --families: unknown {unknown}, allowed: {', '.join(PLACEMENT_FAMILIES)}")
     check_device_argument(args.device)
     torch.set_num_threads(1)
-    pin_malloc_mmap_threshold()  # large blocks returned on free: resident memory is live memory
+    # malloc as in an engine's agent process (common/runtime/memory.py), for the reference
+    # too: at glibc's default 128 KiB threshold every step's [K·16, 16] activations would be
+    # mmapped and faulted in again, which no agent process pays
+    tune_malloc_for_engine()
     if args.only == "placement":
         run_placement(args.device, families, args.out)
         return
