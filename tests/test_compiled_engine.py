@@ -316,14 +316,16 @@ def test_every_algorithm_runs_on_the_backend() -> None:
 def test_an_algorithm_holds_one_batch_at_a_time(algo: list[str]) -> None:
     """The memory plan counts one batch per agent at a time: each algorithm lets its batch
     go before it samples the next, so the sampler reuses one set of row buffers for a whole
-    round of several iterations instead of holding two."""
+    round of several iterations instead of holding two. FedHPG's batches are drawn with their
+    gradients a few agents at a time, into no row buffers at all."""
     run = _run(*algo, agents=3)
     group = make_agent_group(run, [0, 1, 2])
     assert isinstance(group, EngineGroup) and isinstance(group.engine.backend, CompiledBackend)
     theta = initial_theta(variants_of(run, [0])[0], run)
     for round_index in (1, 2):
         group.train(round_index, theta, [0, 1, 2])
-    assert len(group.engine.backend._buffers.sets)  # type: ignore[attr-defined] == 1
+    held = len(group.engine.backend._buffers.sets)  # type: ignore[attr-defined]
+    assert held == (0 if algo[0] == "algo=fedhpg" else 1)
 
 
 def test_episode_statistics_match_the_torch_engine() -> None:

@@ -17,7 +17,7 @@ import pytest
 import torch
 
 from fedhpg.common.heterogeneity.variants import variants_of
-from fedhpg.common.learning.batched import compiled_agents, compiled_backend, kernels
+from fedhpg.common.learning.batched import compiled_agents, compiled_backend, fused, kernels
 from fedhpg.common.learning.batched.backend import CompiledBackend
 from fedhpg.common.learning.engine.backend import Draws, defined_mean_gradients
 from fedhpg.common.learning.engine.engine import Engine
@@ -181,3 +181,62 @@ def test_a_round_is_the_composed_rounds_to_the_bit(monkeypatch, algo: list[str])
     assert fused[1].sum() > 0
     if algo == ["algo=fedhpg"]:  # budgets differ, so some rows sit out a later iteration
         assert len(set(fused[2].tolist())) > 1
+
+
+@pytest.mark.parametrize("chunk_steps", [1, 60, 8192])
+@pytest.mark.parametrize("seed", range(3))
+def test_drawn_with_their_gradients_a_chunk_at_a_time_is_the_whole_batch_to_the_bit(
+    backend, chunk_steps: int, seed: int
+) -> None:
+    """The sample drawn a few rows at a time with its gradients (a chunk of 1 step: every
+    row alone) writes the lengths, rows and row starts the whole sample writes and gives the
+    gradients the drawn batch gives, at a θ other than the one it was drawn at; its sampling
+    time is counted."""
+    rng = np.random.default_rng(100 + seed)
+    rows = int(rng.integers(2, AGENTS + 1))
+    theta, counts, draws, horizons, agents = _draw(rng, rows)
+    at = theta + torch.from_numpy(rng.normal(0, 0.1, size=theta.shape).astype(np.float32))
+    gammas = torch.from_numpy(rng.choice([0.9, 0.97, 0.99, 1.0], size=rows))
+    for options in (EstimatorOptions(), EstimatorOptions(estimator="reinforce", baseline="none")):
+        whole = backend.sample(theta, counts, draws, horizons, agents, greedy=False)
+        assert whole.steps is not None  # drawn whole first
+        expected = backend.mean_gradients(at, whole, options, gammas, None)
+        draw = backend.sample(theta, counts, draws, horizons, agents, greedy=False).native
+        kernel = backend._unweighted
+        assert kernel is not None and kernel[0] is options
+        out = np.zeros(tuple(at.shape), dtype=np.float32)
+        capacity = fused.chunk_capacity(draw.count, draw.limits, chunk_steps)
+        types = (kernels.ACTION, kernels.COLUMN, kernels.TIME)
+        drawn, seconds = fused.sampled_gradients(
+            *draw.words, draw.thetas, at.numpy(), backend.sizes, draw.physics, draw.count,
+            draw.limits, False, kernel[1].gpomdp, kernel[1].mean_baseline, kernel[1].from_step,
+            kernel[1].weights, gammas.numpy(), chunk_steps, np.ones(capacity),
+            np.empty((capacity, 4), np.float32), *(np.empty(capacity, t) for t in types),
+            draw.lengths, draw.owner, draw.row_start, out,
+        )  # fmt: skip
+        assert np.array_equal(out, expected.numpy()), options
+        assert bool(out.any())
+        assert drawn == len(whole.steps.obs) and seconds > 0
+        assert np.array_equal(draw.lengths, whole.lengths().numpy())
+        assert np.array_equal(draw.owner, whole.owner.numpy())
+        assert np.array_equal(draw.row_start, whole.steps.row_start.numpy())
+
+
+def test_a_batch_drawn_with_its_gradients_is_drawn_whole_when_its_steps_are_read(backend) -> None:
+    """mean_gradients draws a batch with its gradients; reading its steps afterwards draws it
+    whole, the same trajectories; the batch reports the CPU time of both as sampling."""
+    rng = np.random.default_rng(5)
+    theta, counts, draws, horizons, agents = _draw(rng, 4)
+    gammas = torch.full((4,), 0.99, dtype=torch.float64)
+    batch = backend.sample(theta, counts, draws, horizons, agents, greedy=False)
+    assert batch.late_sampling_s() == 0.0 and batch.native.whole is None
+    first = backend.mean_gradients(theta, batch, EstimatorOptions(), gammas, None)
+    assert batch.native.whole is None and batch.late_sampling_s() > 0
+    lengths = batch.lengths().clone()
+    drawn = batch.late_sampling_s()
+    assert batch.steps is not None and batch.native.whole is not None
+    assert batch.late_sampling_s() > drawn
+    assert torch.equal(batch.lengths(), lengths)
+    assert torch.equal(
+        backend.mean_gradients(theta, batch, EstimatorOptions(), gammas, None), first
+    )

@@ -29,6 +29,7 @@ from fedhpg.common.learning.batched.estimator import (
     kernel_options,
     packed_coefficients,
 )
+from fedhpg.common.learning.batched.kernels import ACTION, COLUMN, TIME
 from fedhpg.common.learning.batched.mlp import MLPShape
 from fedhpg.common.learning.engine.backend import Draws, defined_mean_gradients
 from fedhpg.common.learning.engine.estimate import EstimatorOptions
@@ -38,12 +39,6 @@ from fedhpg.common.learning.engine.trajectories import StepRows, Trajectories
 from fedhpg.common.learning.randomness import Purpose
 from fedhpg.envs.base import EnvVariant
 from fedhpg.envs.compiled import CARTPOLE_DEFAULTS, CARTPOLE_STEP_LIMIT, cartpole_table
-
-ACTION, COLUMN, TIME = np.int8, np.int32, np.int16
-"""The sampler's packed steps' action (CartPole's two), trajectory (of one call) and time
-(under CartPole's 500-step limit) as stored: with the float32 observation, 23 bytes a step
-(against 40 in int64), the most of a host's memory in a round of long episodes."""
-assert np.iinfo(TIME).max >= CARTPOLE_STEP_LIMIT
 
 _ONE = np.ones(1, dtype=np.float64)
 """CartPole's reward, every step's."""
@@ -91,6 +86,7 @@ class CompiledBackend:
         self._recent: dict[tuple[int, ...], np.ndarray] = {}
         """The physics rows of recent calls' agents (a round's iterations repeat them)."""
         self._buffers = _RowBuffers()
+        self._chunk = _ChunkArrays()
         self._host = HostArrays()
         """Host views of the tensors the engine passes again and again (budgets, constants,
         a round's θ rows)."""
@@ -163,33 +159,59 @@ class CompiledBackend:
         *,
         greedy: bool,
     ) -> Trajectories:
-        """One episode per copy of every row, as the engine's ``sample`` returns them, drawn
-        with their keys in one compiled call (:func:`~fedhpg.common.learning.batched.fused.
-        keyed_sample`)."""
+        """One episode per copy of every row, as the engine's ``sample`` returns them. Drawn
+        when first needed (:class:`_Draw`): by :meth:`mean_gradients` with the gradients, a
+        few agents at a time, or whole (:func:`~fedhpg.common.learning.batched.fused.
+        keyed_sample`) when a primitive reads the steps; the same numbers either way."""
         count = self._host(counts)  # int64 rows, as the engine makes them
         limits = np.minimum(self._host(horizons), CARTPOLE_STEP_LIMIT)
-        trajectories = int(count.sum())
-        obs, actions, columns, times = self._buffers.take(int(count @ limits), self._obs_size)
-        lengths = np.zeros(trajectories, dtype=np.int64)
-        owner = np.empty(trajectories, dtype=np.int64)
-        row_start = np.empty(len(count) + 1, dtype=np.int64)
-        written = fused.keyed_sample(
-            *self._key_words(draws), self._thetas(theta), self.sizes, self._physics_rows(agents),
-            count, limits, greedy, obs, actions, columns, times, lengths, owner, row_start,
-        )  # fmt: skip
-        sampled = _Sampled(obs, actions, columns, times, written, lengths, owner, row_start)
-        per_row = row_start[1:] - row_start[:-1]
+        draw = _Draw(
+            self._key_words(draws),
+            np.array(self._host(theta), dtype=np.float32, order="C"),  # θ as it is now
+            self._physics_rows(agents),
+            count,
+            limits,
+            greedy,
+        )
+        trajectories = len(draw.lengths)
         # the tensors as a loop first reads them: a lone agent's FedHPG reads none of them
         return Trajectories(
             success=lambda: self._constants.false(trajectories),  # CartPole has no goal
-            owner=lambda: torch.from_numpy(owner),
+            owner=lambda: torch.from_numpy(self._summary(draw).owner),
             counts=counts,
-            lengths=lambda: torch.from_numpy(lengths),
-            steps=lambda: self._packed(sampled),
-            returns=lambda: torch.from_numpy(lengths.astype(np.float64)),  # 1 a step, exactly
-            row_sums=(per_row, per_row.astype(np.float64)),
-            native=sampled,
+            lengths=lambda: torch.from_numpy(self._summary(draw).lengths),
+            steps=lambda: self._packed(self._whole(draw)),
+            # 1 a step, exactly
+            returns=lambda: torch.from_numpy(self._summary(draw).lengths.astype(np.float64)),
+            row_sums=lambda: self._summary(draw).row_sums(),
+            sampling_s=lambda: draw.seconds,
+            native=draw,
         )
+
+    def _summary(self, draw: _Draw) -> _Draw:
+        """``draw`` with its lengths, rows and row starts written (drawn whole if nothing
+        drew it yet)."""
+        if not draw.summarised:
+            self._whole(draw)
+        return draw
+
+    def _whole(self, draw: _Draw) -> _Sampled:
+        """Every step of ``draw``, drawn in one compiled call the first time."""
+        if draw.whole is None:
+            started = time.thread_time()
+            capacity = int(draw.count @ draw.limits)
+            obs, actions, columns, times = self._buffers.take(capacity, self._obs_size)
+            written = fused.keyed_sample(
+                *draw.words, draw.thetas, self.sizes, draw.physics, draw.count, draw.limits,
+                draw.greedy, obs, actions, columns, times, draw.lengths, draw.owner,
+                draw.row_start,
+            )  # fmt: skip
+            draw.whole = _Sampled(
+                obs, actions, columns, times, written, draw.lengths, draw.owner, draw.row_start
+            )
+            draw.summarised = True
+            draw.seconds += time.thread_time() - started
+        return draw.whole
 
     def _thetas(self, theta: torch.Tensor) -> np.ndarray:
         """θ rows as the kernels read them: float32, C-ordered (a view where they are)."""
@@ -232,29 +254,44 @@ class CompiledBackend:
     ) -> torch.Tensor:
         """:meth:`gradients` with :meth:`coefficients`, each row's divided by its
         trajectories, in one compiled call for a batch this backend sampled and an
-        unstandardised estimator (:func:`~fedhpg.common.learning.batched.fused.
-        estimated_gradients`: the same kernels and the same float32 division, so the same
-        bits); composed otherwise."""
-        sampled = batch.native
+        unstandardised estimator: a batch not drawn yet drawn with them a chunk of rows at a
+        time (:func:`~fedhpg.common.learning.batched.fused.sampled_gradients`, without
+        importance weights), else on its steps (:func:`~fedhpg.common.learning.batched.fused.
+        estimated_gradients`); the same kernels and the same float32 division, so the same
+        bits. Composed otherwise."""
+        draw = batch.native
         if weights is None:
             if self._unweighted is None or self._unweighted[0] is not options:
                 self._unweighted = (options, kernel_options(options))
             chosen = self._unweighted[1]  # made once: every iteration asks for the same
         else:
             chosen = kernel_options(options, weights.detach().double().numpy())
-        if not isinstance(sampled, _Sampled) or not chosen.plain:
+        if not isinstance(draw, _Draw) or not chosen.plain:
             return defined_mean_gradients(self, theta, batch, options, gammas, weights)
         positions = None
-        if batch.num_rows != len(sampled.row_start) - 1:  # renamed rows: some sampled none
+        if batch.num_rows != len(draw.count):  # renamed rows: some sampled none
             positions = torch.nonzero(batch.counts).squeeze(1)
             theta, gammas = theta[positions], gammas[positions]
         out = np.zeros((theta.shape[0], theta.shape[1]), dtype=np.float32)
-        fused.estimated_gradients(
-            chosen.gpomdp, chosen.mean_baseline, chosen.from_step, chosen.weighting,
-            chosen.weights, self._host(gammas), sampled.times, sampled.columns, sampled.lengths,
-            sampled.owner, _ones(sampled.written), self._thetas(theta),
-            self.sizes, sampled.obs, sampled.actions, sampled.row_start, out,
-        )  # fmt: skip
+        if not draw.summarised and weights is None:  # drawn here, a chunk at a time
+            capacity = fused.chunk_capacity(draw.count, draw.limits, fused.CHUNK_STEPS)
+            _, seconds = fused.sampled_gradients(
+                *draw.words, draw.thetas, self._thetas(theta), self.sizes, draw.physics,
+                draw.count, draw.limits, draw.greedy, chosen.gpomdp, chosen.mean_baseline,
+                chosen.from_step, chosen.weights, self._host(gammas), fused.CHUNK_STEPS,
+                *self._chunk.take(capacity, self._obs_size), draw.lengths,
+                draw.owner, draw.row_start, out,
+            )  # fmt: skip
+            draw.summarised = True
+            draw.seconds += seconds
+        else:
+            sampled = self._whole(draw)
+            fused.estimated_gradients(
+                chosen.gpomdp, chosen.mean_baseline, chosen.from_step, chosen.weighting,
+                chosen.weights, self._host(gammas), sampled.times, sampled.columns,
+                sampled.lengths, sampled.owner, _ones(sampled.written), self._thetas(theta),
+                self.sizes, sampled.obs, sampled.actions, sampled.row_start, out,
+            )  # fmt: skip
         means = torch.from_numpy(out)
         if positions is None:
             return means
@@ -338,6 +375,42 @@ class CompiledBackend:
             self._torch.close()
 
 
+class _Draw:
+    """A sample asked for and not yet drawn whole: what draws it (its keys' words, the θ rows
+    as they were when it was asked for, the rows' physics, trajectories and step limits) and
+    what drawing it writes (each trajectory's length and row, each row's first step).
+    :meth:`CompiledBackend.mean_gradients` draws it a few agents at a time with their
+    gradients, never holding every step at once; a primitive that reads the steps draws it
+    whole. The keys fix every draw, so both give the same numbers."""
+
+    def __init__(
+        self,
+        words: tuple[int, np.ndarray, int, int],
+        thetas: np.ndarray,
+        physics: np.ndarray,
+        count: np.ndarray,
+        limits: np.ndarray,
+        greedy: bool,
+    ) -> None:
+        self.words, self.thetas, self.physics = words, thetas, physics
+        self.count, self.limits, self.greedy = count, limits, greedy
+        trajectories = int(count.sum())
+        self.lengths = np.zeros(trajectories, dtype=np.int64)
+        self.owner = np.empty(trajectories, dtype=np.int64)
+        self.row_start = np.empty(len(count) + 1, dtype=np.int64)
+        self.summarised = False
+        """Whether :attr:`lengths`, :attr:`owner` and :attr:`row_start` are written."""
+        self.whole: _Sampled | None = None
+        """Every step, once drawn whole."""
+        self.seconds = 0.0
+        """Thread CPU seconds spent drawing it so far."""
+
+    def row_sums(self) -> tuple[np.ndarray, np.ndarray]:
+        """Each row's steps and undiscounted return (CartPole: 1 a step)."""
+        per_row = self.row_start[1:] - self.row_start[:-1]
+        return per_row, per_row.astype(np.float64)
+
+
 class _Sampled(NamedTuple):
     """A batch as the sampler wrote it: the output arrays of its packed steps (reused by a
     later call only once no batch holds them: :class:`_RowBuffers`), the steps written, each
@@ -411,6 +484,27 @@ class _RowBuffers:
         return arrays
 
 
+class _ChunkArrays:
+    """The arrays :func:`~fedhpg.common.learning.batched.fused.sampled_gradients` draws a
+    chunk's steps into (no batch holds them), kept from call to call and grown when a call
+    needs more: rewards (a view of one 1), observations, actions, trajectories, times."""
+
+    def __init__(self) -> None:
+        self.arrays: tuple[np.ndarray, ...] = ()
+
+    def take(self, capacity: int, obs_dim: int) -> tuple[np.ndarray, ...]:
+        if not self.arrays or self.arrays[1].shape[0] < capacity:
+            size = max(capacity, 2 * self.arrays[1].shape[0] if self.arrays else 0)
+            self.arrays = (
+                _ones(size),
+                np.empty((size, obs_dim), dtype=np.float32),
+                np.empty(size, dtype=ACTION),
+                np.empty(size, dtype=COLUMN),
+                np.empty(size, dtype=TIME),
+            )
+        return self.arrays
+
+
 def _holders(arrays: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]) -> tuple[int, ...]:
     """The references to each array of a set (a batch holds them, and each view of one)."""
     obs, actions, columns, times = arrays
@@ -434,10 +528,12 @@ def warm_up() -> float:
     theta = torch.zeros((2, 16))
     draws = Draws(0, torch.tensor([0, 1]), 0, Purpose.TRAIN, 0)
     counts, horizons = torch.tensor([1, 2]), torch.tensor([3, 3])
-    for greedy in (False, True):
-        batch = backend.sample(theta, counts, draws, horizons, [0, 0], greedy=greedy)
-    # the estimator, plain and standardised (its second kernel), and both gradient kernels
     gammas = torch.full((2,), 0.99, dtype=torch.float64)
+    fresh = backend.sample(theta, counts, draws, horizons, [0, 0], greedy=False)
+    backend.mean_gradients(theta, fresh, EstimatorOptions(), gammas, None)  # drawn with them
+    batch = backend.sample(theta, counts, draws, horizons, [0, 0], greedy=True)
+    # drawn whole: the estimator, plain and standardised (its second kernel), and both
+    # gradient kernels
     for options in (EstimatorOptions(), EstimatorOptions(normalize="batch")):
         coefficients = backend.coefficients(batch, options, gammas, None)
     backend.gradients(theta, batch, coefficients)

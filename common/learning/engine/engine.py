@@ -12,6 +12,7 @@ from collections.abc import Callable, Iterator, Mapping, Sequence
 from contextlib import AbstractContextManager, contextmanager, nullcontext
 from typing import Any
 
+import numpy as np
 import torch
 
 from fedhpg.common.configuration.config import RunConfig
@@ -164,19 +165,27 @@ class Engine:
                 self._constants(agents),
             )
         _, budget_rows, constants = self._budget_rows
-        start = theta.detach().to(self.device, torch.float32)
         return Round(
             backend=self.backend,
             options=self.options,
             seed=self.run.seed,
             round_index=round_index,
             agents=agents,
-            theta=start.expand(len(agents), -1).clone(),
+            theta=self._theta_rows(theta, len(agents)),
             budgets=budget_rows,
             constants=constants,
             interrupt=interrupt,
             host=self._host,
         )
+
+    def _theta_rows(self, theta: torch.Tensor, count: int) -> torch.Tensor:
+        """θ̃ [d] as ``count`` float32 rows [count, d] on the device, each its own copy (the
+        loop steps them in place); on the host one numpy copy, where torch would take four
+        calls (detach, to, expand, clone), each dearer than the copy for a few agents."""
+        plain = theta.dtype == torch.float32 and theta.dim() == 1 and not theta.requires_grad
+        if plain and self.device.type == "cpu" and theta.device.type == "cpu":
+            return torch.from_numpy(np.repeat(theta.numpy()[None], count, axis=0))
+        return theta.detach().to(self.device, torch.float32).expand(count, -1).clone()
 
     def plan(
         self, agents: Sequence[int], copies: Sequence[int], horizons: Sequence[int]

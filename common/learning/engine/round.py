@@ -240,7 +240,12 @@ class Round:
         return batch if positions is None else batch.regrouped(positions, self.size)
 
     def _fewest(self, counts: torch.Tensor) -> int:
-        """The least of ``counts``, read from its host view where it is on the host."""
+        """The least of ``counts``: its span where it is a budget row (as a loop passes its
+        budget), else read from its host view where it is on the host."""
+        budgets = self._budgets
+        for name, row in budgets.rows.items():
+            if counts is row:
+                return budgets.spans[name][0]
         if counts.device.type == "cpu":
             return int(self._host(counts).min())
         return int(counts.min())
@@ -292,7 +297,8 @@ class Round:
         noted; then the round may be cancelled."""
         now = time.thread_time()
         elapsed, self._clock = now - self._clock, now
-        sampled, self._sampling_s = min(self._sampling_s, elapsed), 0.0
+        sampled = min(self._sampling_s + batch.late_sampling_s(), elapsed)
+        self._sampling_s = 0.0
         steps, returns = batch.row_totals()
         self._pending.append((
             batch.counts, steps, steps if grad_steps is None else grad_steps, clipped, returns,

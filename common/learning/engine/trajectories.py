@@ -76,7 +76,8 @@ class Trajectories:
         actions: torch.Tensor | None = None,
         steps: Later[StepRows] | None = None,
         returns: Later[torch.Tensor] | None = None,
-        row_sums: RowSums | None = None,
+        row_sums: Later[RowSums] | None = None,
+        sampling_s: Callable[[], float] | None = None,
         native: object = None,
     ) -> None:
         padded = rewards is not None and alive is not None and obs is not None
@@ -96,6 +97,7 @@ class Trajectories:
         """(steps, undiscounted returns) of each row, where the backend knows them as it
         samples (the sums :meth:`steps_per_row` and :meth:`returns_per_row` would add, to the
         bit)."""
+        self._sampling_s = sampling_s
         self.native = native
         """The batch in its backend's own form, which only that backend reads (None: none)."""
         self._rewards, self._alive = rewards, alive
@@ -205,7 +207,8 @@ class Trajectories:
                            counts=counts,
                            lengths=self._lengths, rewards=self._rewards, alive=self._alive,
                            obs=self._obs, actions=self._actions, steps=steps,
-                           returns=self._returns, native=self.native)  # fmt: skip
+                           returns=self._returns, sampling_s=self._sampling_s,
+                           native=self.native)  # fmt: skip
         # renaming rows moves no cell
         for kept in ("layout", "cells"):
             if kept in self.__dict__:
@@ -221,9 +224,15 @@ class Trajectories:
         self._lengths = self.alive.sum(dim=0) if self._lengths is None else _made(self._lengths)
         return self._lengths
 
+    def late_sampling_s(self) -> float:
+        """CPU seconds the backend spent drawing the batch after its ``sample`` returned (a
+        backend that draws it with its gradients, or when its steps are first read)."""
+        return 0.0 if self._sampling_s is None else self._sampling_s()
+
     def steps_per_row(self) -> torch.Tensor:
         """Alive steps of each row, [A] int64."""
         if self._row_sums is not None:
+            self._row_sums = _made(self._row_sums)
             return torch.as_tensor(self._row_sums[0])
         return torch.zeros_like(self.counts).index_add_(0, self.owner, self.lengths())
 
@@ -231,6 +240,7 @@ class Trajectories:
         """(:meth:`steps_per_row`, :meth:`returns_per_row`) as the backend holds them: host
         arrays where it sampled on the host (a round's tally reads them there)."""
         if self._row_sums is not None:
+            self._row_sums = _made(self._row_sums)
             return self._row_sums
         return self.steps_per_row(), self.returns_per_row()
 
@@ -253,6 +263,7 @@ class Trajectories:
     def returns_per_row(self) -> torch.Tensor:
         """Each row's sum of its trajectories' undiscounted returns, [A] float64."""
         if self._row_sums is not None:
+            self._row_sums = _made(self._row_sums)
             return torch.as_tensor(self._row_sums[1])
         return self.per_row(self.returns())
 
