@@ -484,16 +484,19 @@ class _RowBuffers:
         return arrays
 
 
+_Arrays5 = tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]
+
+
 class _ChunkArrays:
     """The arrays :func:`~fedhpg.common.learning.batched.fused.sampled_gradients` draws a
     chunk's steps into (no batch holds them), kept from call to call and grown when a call
     needs more: rewards (a view of one 1), observations, actions, trajectories, times."""
 
     def __init__(self) -> None:
-        self.arrays: tuple[np.ndarray, ...] = ()
+        self.arrays: _Arrays5 | None = None
 
-    def take(self, capacity: int, obs_dim: int) -> tuple[np.ndarray, ...]:
-        if not self.arrays or self.arrays[1].shape[0] < capacity:
+    def take(self, capacity: int, obs_dim: int) -> _Arrays5:
+        if self.arrays is None or self.arrays[1].shape[0] < capacity:
             size = max(capacity, 2 * self.arrays[1].shape[0] if self.arrays else 0)
             self.arrays = (
                 _ones(size),
