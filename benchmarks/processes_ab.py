@@ -77,9 +77,14 @@ def table(this: list[Run], that: list[Run], against: str) -> results_file.Table:
         ["peak PSS of the whole federation (MiB)", span(pss[0], ',.0f'),
          span(pss[1], ',.0f'), ""],
     ]  # fmt: skip
-    faster = "faster" if min(ratios) >= 1.0 else "slower" if max(ratios) < 1.0 else "level"
+    if min(ratios) >= 1.0:
+        verdict = f"faster than {against}"
+    elif max(ratios) < 1.0:
+        verdict = f"slower than {against}"
+    else:
+        verdict = f"on either side of {against}"
     summary = (
-        f"Run by run, this tree is {faster} than {against} ({span(ratios, '.2f')}×); "
+        f"Run by run, this tree is {verdict} ({span(ratios, '.2f')}×); "
         f"peak PSS {span(pss[0], ',.0f')} MiB against {span(pss[1], ',.0f')}. Each agent "
         "there is a lone agent, so the figure follows the lone agent's row of the engine "
         "comparison above."

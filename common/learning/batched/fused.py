@@ -16,10 +16,7 @@ gradients as the round reports it (``engine_sample_s``, ``engine_gradient_s``).
 
 from __future__ import annotations
 
-import time
-
 import numpy as np
-from numba import objmode
 
 from fedhpg.common.learning.batched.estimator import NO_STANDARDISATION, coefficient_cells
 from fedhpg.common.learning.batched.kernels import (
@@ -28,6 +25,7 @@ from fedhpg.common.learning.batched.kernels import (
     rollout_workspace,
     row_gradients,
     sample_rows,
+    thread_seconds,
     trajectory_keys,
 )
 
@@ -219,6 +217,7 @@ def sampled_gradients(
     for a in range(rows):
         most = max(most, counts[a])
     workspace = rollout_workspace(sizes, most)
+    timespec = np.empty(2, dtype=np.int64)
     sampling = 0.0
     drawn = 0
     row_start[0] = 0
@@ -226,15 +225,13 @@ def sampled_gradients(
     column = 0
     while a < rows:
         first_row, first_column = a, column
-        with objmode(started="float64"):
-            started = time.thread_time()
+        started = thread_seconds(timespec)
         a, written = _draw_chunk(sample_thetas, sizes, physics, counts, horizons, greedy, keys,
                                  first_row, first_column, chunk_steps, rows_obs, rows_action,
                                  rows_column, rows_time, lengths, workspace)  # fmt: skip
         for row in range(first_row, a):
             column += counts[row]
-        with objmode(ended="float64"):
-            ended = time.thread_time()
+        ended = thread_seconds(timespec)
         sampling += ended - started
         chunk_owner = np.empty(column - first_column, dtype=np.int64)
         chunk_start = np.empty(a - first_row + 1, dtype=np.int64)

@@ -39,11 +39,12 @@ rounded up to :data:`LANES`, the padding zeros).
 from __future__ import annotations
 
 import math
+import time
 from collections.abc import Callable
 from typing import Any, TypeVar, cast
 
 import numpy as np
-from numba import njit
+from numba import njit, types
 from numba.extending import register_jitable
 
 from fedhpg.common.learning import randomness
@@ -106,6 +107,19 @@ def kernel(*, inline: bool = False, fastmath: set[str] | None = None) -> Callabl
         )
 
     return compile_lazily
+
+
+_clock_gettime = types.ExternalFunction("clock_gettime", types.int32(types.int32, types.voidptr))
+_THREAD_CLOCK = time.CLOCK_THREAD_CPUTIME_ID
+
+
+@kernel(inline=True)
+def thread_seconds(timespec: np.ndarray) -> float:
+    """The calling thread's CPU seconds, the clock ``time.thread_time`` reads (libc's
+    ``clock_gettime``, tens of nanoseconds, where numba's object mode would take
+    microseconds); ``timespec``: an int64 [2] to read it into."""
+    _clock_gettime(_THREAD_CLOCK, timespec.ctypes)
+    return timespec[0] + timespec[1] * 1e-9
 
 
 GRADIENT_FASTMATH = {"reassoc", "contract"}
