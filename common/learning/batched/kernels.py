@@ -109,7 +109,9 @@ def kernel(*, inline: bool = False, fastmath: set[str] | None = None) -> Callabl
     return compile_lazily
 
 
-_clock_gettime = types.ExternalFunction("clock_gettime", types.int32(types.int32, types.voidptr))
+_clock_gettime: Any = types.ExternalFunction(
+    "clock_gettime", types.int32(types.int32, types.voidptr)
+)
 _THREAD_CLOCK = time.CLOCK_THREAD_CPUTIME_ID
 
 
