@@ -169,10 +169,11 @@ def test_sampling_draws_from_each_copys_key_in_the_documented_order() -> None:
         t = 0
         while True:
             obs = state.astype(np.float32)
-            even, odd = np.zeros((1, 16), np.float32), np.zeros((1, 16), np.float32)
-            logits = even if kernels.forward(forward_w, sizes, obs, even, odd, 1) else odd
+            acts = np.zeros((3, 1, kernels.padded_width(sizes)), np.float32)
+            acts[kernels.INPUTS, :, :4] = obs
+            kernels.forward(forward_w, sizes, acts, 1)
             draw = kernels.uniform24(key, t)
-            action = kernels.draw_action(logits, 0, 2, draw, np.zeros(2, np.float32))
+            action = kernels.draw_action(acts, 0, 2, draw, np.zeros(2, np.float32))
             assert bool(batch.alive[t, n])
             assert np.array_equal(batch.obs[t, n].numpy(), obs[0])
             assert int(batch.actions[t, n]) == action
@@ -205,8 +206,10 @@ def test_the_kernels_forward_is_torchs_policy() -> None:
     sizes = CompiledBackend(_shape(run)).sizes
     obs = np.random.default_rng(0).normal(0, 1, (50, 4)).astype(np.float32)
     forward_w, _ = kernels.padded_weights(theta.numpy(), sizes)
-    even, odd = np.zeros((50, 16), np.float32), np.zeros((50, 16), np.float32)
-    logits = even if kernels.forward(forward_w, sizes, obs, even, odd, 50) else odd
+    acts = np.zeros((3, 50, kernels.padded_width(sizes)), np.float32)
+    acts[kernels.INPUTS, :, :4] = obs
+    kernels.forward(forward_w, sizes, acts, 50)
+    logits = acts[0]
     with torch.no_grad():
         reference = policy.net(torch.from_numpy(obs)).numpy()
     np.testing.assert_allclose(logits[:, :2], reference, rtol=0, atol=2e-6)
@@ -231,16 +234,16 @@ def test_the_lanes_forward_gives_the_row_forwards_numbers(hidden: list[int]) -> 
     width, lanes = forward_w.shape[2], kernels.LANES
     for columns in (1, 5, 12, 16, 17, 40):
         obs = (rng.standard_normal((columns, 4)) * 2).astype(np.float32)
-        even, odd = np.zeros((columns, width), np.float32), np.zeros((columns, width), np.float32)
-        rows = even if kernels.forward(forward_w, sizes, obs, even, odd, columns) else odd
+        acts = np.zeros((3, columns, width), np.float32)
+        acts[kernels.INPUTS, :, :4] = obs
+        kernels.forward(forward_w, sizes, acts, columns)
+        rows = acts[0]
         chunks = -(-columns // lanes)
-        first = np.zeros((chunks, width, lanes), np.float32)
+        slots = np.zeros((3, chunks, width, lanes), np.float32)
         for c in range(columns):
-            first[c // lanes, :4, c % lanes] = obs[c]
-        even_l, odd_l = np.zeros_like(first), np.zeros_like(first)
-        in_even = kernels.forward_lanes(forward_w, sizes, first, even_l, odd_l, columns)
-        out = even_l if in_even else odd_l
-        got = np.stack([out[c // lanes, :2, c % lanes] for c in range(columns)])
+            slots[kernels.INPUTS, c // lanes, :4, c % lanes] = obs[c]
+        kernels.forward_lanes(forward_w, sizes, slots, columns)
+        got = np.stack([slots[0, c // lanes, :2, c % lanes] for c in range(columns)])
         assert np.array_equal(got, rows[:, :2]), (hidden, columns)
 
 

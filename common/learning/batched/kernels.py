@@ -34,6 +34,12 @@ away): ``forward_weights`` [L, w + 1, w] holds layer l's weight as [in, out] wit
 the last row (the forward loops over contiguous outputs), ``backward_weights`` [L, w, w] as
 [out, in] (the backward loops over contiguous inputs), w the widest layer (for the gradient,
 rounded up to :data:`LANES`, the padding zeros).
+
+Reference counts. numba counts a reference, an atomic add, wherever an array variable is bound:
+a view (``acts[0]``), an array picked by a condition, an array parameter of a function inlined
+into a loop, the arguments of a call to a kernel that calls others. Inside the sampler's time
+loop there is none of these (a lone agent's round paid some 2,500 before): its helpers take
+whole arrays and the slot to use (:data:`INPUTS`), and are called as leaf functions.
 """
 
 from __future__ import annotations
@@ -236,66 +242,64 @@ def padded_weights(theta: np.ndarray, sizes: np.ndarray) -> tuple[np.ndarray, np
     return forward_w, backward_w
 
 
+INPUTS = 2
+"""The slot of an activations array ([3, …]) that holds the inputs: the layers write slots 0
+and 1 in turn, the last (the logits) slot 0."""
+
+
 @kernel(inline=True)
-def dense(
-    weights: np.ndarray,
-    layer: int,
-    n_in: int,
-    n_out: int,
-    below: np.ndarray,
-    above: np.ndarray,
-    rows: int,
-    activate: bool,
-) -> None:
-    """above[r, :n_out] = tanh?(below[r, :n_in] · W + b) for the first ``rows`` rows."""
+def _slots(layers: int, layer: int) -> tuple[int, int]:
+    """The slots layer ``layer`` of ``layers`` reads and writes. Slots, not arrays: numba
+    counts a reference (an atomic add) each time an array variable is bound, so a layer loop
+    that picked its arrays would pay a few at every layer of every step."""
+    written = (layers - 1 - layer) % 2
+    return (INPUTS if layer == 0 else 1 - written), written
+
+
+@kernel()
+def dense(weights: np.ndarray, sizes: np.ndarray, layer: int, acts: np.ndarray, rows: int) -> None:
+    """Layer ``layer`` of :func:`forward` on the first ``rows`` rows: above[r, :n_out] =
+    tanh?(below[r, :n_in] · W + b), ``below`` and ``above`` slots of ``acts`` (:func:`_slots`);
+    tanh on every layer but the last."""
+    layers = len(sizes) - 1
+    below, above = _slots(layers, layer)
+    n_in, n_out = sizes[layer], sizes[layer + 1]
     bias_row = weights.shape[1] - 1
     for r in range(rows):
         for o in range(n_out):
-            above[r, o] = weights[layer, bias_row, o]
+            acts[above, r, o] = weights[layer, bias_row, o]
         for i in range(n_in):
-            value = below[r, i]
+            value = acts[below, r, i]
             for o in range(n_out):
-                above[r, o] += value * weights[layer, i, o]
-    if activate:
+                acts[above, r, o] += value * weights[layer, i, o]
+    if layer < layers - 1:
         for r in range(rows):
             for o in range(n_out):
-                above[r, o] = tanh32(above[r, o])
+                acts[above, r, o] = tanh32(acts[above, r, o])
 
 
-@kernel(inline=True)
-def forward(
-    weights: np.ndarray, sizes: np.ndarray, first: np.ndarray, even: np.ndarray,
-    odd: np.ndarray, rows: int,
-) -> bool:  # fmt: skip
-    """The MLP on the first ``rows`` rows of ``first`` (the inputs), tanh between layers,
-    ping-ponging between ``even`` and ``odd``; True if the logits ended in ``even``."""
-    layers = len(sizes) - 1
-    below = first
-    for layer in range(layers):
-        above = even if layer % 2 == 0 else odd
-        dense(weights, layer, sizes[layer], sizes[layer + 1], below, above, rows,
-              layer < layers - 1)  # fmt: skip
-        below = above
-    return (layers - 1) % 2 == 0
+@kernel()
+def forward(weights: np.ndarray, sizes: np.ndarray, acts: np.ndarray, rows: int) -> None:
+    """The MLP on the first ``rows`` rows of ``acts[INPUTS]`` (the inputs), tanh between
+    layers: the logits end in ``acts[0]`` (``acts``: [3, rows, padded width])."""
+    for layer in range(len(sizes) - 1):
+        dense(weights, sizes, layer, acts, rows)
 
 
-@kernel(inline=True)
+@kernel()
 def dense_lanes(
-    weights: np.ndarray,
-    layer: int,
-    n_in: int,
-    n_out: int,
-    below: np.ndarray,
-    above: np.ndarray,
-    chunks: int,
-    activate: bool,
+    weights: np.ndarray, sizes: np.ndarray, layer: int, lanes: np.ndarray, chunks: int
 ) -> None:
     """:func:`dense` on columns: above[k, o, c] = tanh?(b_o + Σ_i W[i, o] · below[k, i, c]) for
-    the first ``chunks`` chunks of :data:`LANES` columns ([chunk, unit, lane], a lane a copy).
-    The terms are added in input order after the bias, each rounded as :func:`dense` rounds it
-    (strict IEEE), so a column is exactly what :func:`dense` gives that row; the padding inputs
-    add 0 · 0 (``above``'s padding units are zeroed for the layer above). The lanes are a
-    constant count at a constant offset, which is what lets LLVM keep the sums in registers."""
+    the first ``chunks`` chunks of :data:`LANES` columns ([chunk, unit, lane], a lane a copy;
+    ``below`` and ``above`` slots of ``lanes``). The terms are added in input order after the
+    bias, each rounded as :func:`dense` rounds it (strict IEEE), so a column is exactly what
+    :func:`dense` gives that row; the padding inputs add 0 · 0 (``above``'s padding units are
+    zeroed for the layer above). The lanes are a constant count at a constant offset, which is
+    what lets LLVM keep the sums in registers."""
+    layers = len(sizes) - 1
+    below, above = _slots(layers, layer)
+    n_in, n_out = sizes[layer], sizes[layer + 1]
     bias_row = weights.shape[1] - 1
     for k in range(chunks):
         for first in range(0, n_in, LANES):
@@ -304,56 +308,49 @@ def dense_lanes(
                 bias = weights[layer, bias_row, o]
                 if narrow:
                     for c in range(LANES):
-                        value = bias if first == 0 else above[k, o, c]
+                        value = bias if first == 0 else lanes[above, k, o, c]
                         for i in range(NARROW):
-                            value += weights[layer, first + i, o] * below[k, first + i, c]
-                        above[k, o, c] = value
+                            value += weights[layer, first + i, o] * lanes[below, k, first + i, c]
+                        lanes[above, k, o, c] = value
                 else:
                     for c in range(LANES):
-                        value = bias if first == 0 else above[k, o, c]
+                        value = bias if first == 0 else lanes[above, k, o, c]
                         for i in range(LANES):
-                            value += weights[layer, first + i, o] * below[k, first + i, c]
-                        above[k, o, c] = value
-        if activate:
+                            value += weights[layer, first + i, o] * lanes[below, k, first + i, c]
+                        lanes[above, k, o, c] = value
+        if layer < layers - 1:
             for o in range(n_out):
                 for c in range(LANES):
-                    above[k, o, c] = tanh32(above[k, o, c])
+                    lanes[above, k, o, c] = tanh32(lanes[above, k, o, c])
         for o in range(n_out, (n_out + LANES - 1) // LANES * LANES):
             for c in range(LANES):
-                above[k, o, c] = 0.0
+                lanes[above, k, o, c] = 0.0
 
 
-@kernel(inline=True)
-def forward_lanes(
-    weights: np.ndarray, sizes: np.ndarray, first: np.ndarray, even: np.ndarray,
-    odd: np.ndarray, columns: int,
-) -> bool:  # fmt: skip
-    """:func:`forward` on the first ``columns`` columns of ``first`` ([chunk, feature, lane],
-    zero past the input's features; the weights padded to :data:`LANES` units)."""
-    chunks = (columns + LANES - 1) // LANES
-    layers = len(sizes) - 1
-    below = first
-    for layer in range(layers):
-        above = even if layer % 2 == 0 else odd
-        dense_lanes(weights, layer, sizes[layer], sizes[layer + 1], below, above, chunks,
-                    layer < layers - 1)  # fmt: skip
-        below = above
-    return (layers - 1) % 2 == 0
+@kernel()
+def forward_lanes(weights: np.ndarray, sizes: np.ndarray, lanes: np.ndarray, columns: int) -> None:
+    """:func:`forward` on the first ``columns`` columns of ``lanes[INPUTS]`` ([chunk, feature,
+    lane], zero past the input's features; the weights padded to :data:`LANES` units): the
+    logits end in ``lanes[0]``."""
+    for layer in range(len(sizes) - 1):
+        dense_lanes(weights, sizes, layer, lanes, (columns + LANES - 1) // LANES)
 
 
-@kernel(inline=True)
-def draw_action(logits: np.ndarray, row: int, n_actions: int, uniform: float | np.float32,
+@kernel()
+def draw_action(acts: np.ndarray, row: int, n_actions: int, uniform: float | np.float32,
                 scratch: np.ndarray) -> int:  # fmt: skip
-    """Inverse-CDF categorical draw, one row (common/learning/policies.py's ``categorical_act``)."""
+    """Inverse-CDF categorical draw (common/learning/policies.py's ``categorical_act``) from
+    row ``row`` of the logits ``acts[0]`` (:func:`forward`'s; indexed, not sliced: a view
+    would count a reference at every step)."""
     best = 0
     for j in range(1, n_actions):
-        if logits[row, j] > logits[row, best]:
+        if acts[0, row, j] > acts[0, row, best]:
             best = j
-    top = logits[row, best]
+    top = acts[0, row, best]
     total = np.float32(0.0)
     for j in range(n_actions):
         # exp(0) is exactly 1: the largest logit's term needs no call
-        scratch[j] = np.float32(1.0) if j == best else np.float32(math.exp(logits[row, j] - top))
+        scratch[j] = np.float32(1.0) if j == best else np.float32(math.exp(acts[0, row, j] - top))
         total += scratch[j]
     threshold = uniform * total
     cumulative = np.float32(0.0)
@@ -365,11 +362,12 @@ def draw_action(logits: np.ndarray, row: int, n_actions: int, uniform: float | n
     return action
 
 
-@kernel(inline=True)
-def greedy_action(logits: np.ndarray, row: int, n_actions: int) -> int:
+@kernel()
+def greedy_action(acts: np.ndarray, row: int, n_actions: int) -> int:
+    """The most likely action of row ``row`` of the logits ``acts[0]``."""
     best = 0
     for j in range(1, n_actions):
-        if logits[row, j] > logits[row, best]:
+        if acts[0, row, j] > acts[0, row, best]:
             best = j
     return best
 
@@ -384,15 +382,11 @@ def rollout_workspace(sizes: np.ndarray, copies: int) -> tuple[np.ndarray, ...]:
     return (
         np.zeros((len(sizes) - 1, width + 1, width), dtype=np.float32),  # forward weights
         np.zeros((len(sizes) - 1, width, width), dtype=np.float32),  # backward weights
-        np.zeros((copies, sizes[0]), dtype=np.float32),  # observations
-        np.zeros((copies, width), dtype=np.float32),  # activations, even layers
-        np.zeros((copies, width), dtype=np.float32),  # activations, odd layers
+        np.zeros((3, copies, width), dtype=np.float32),  # inputs and activations (slots)
         np.zeros(sizes[len(sizes) - 1], dtype=np.float32),  # the draw's exponentials
         np.zeros((copies, 4), dtype=np.float64),  # CartPole states
         np.zeros(copies, dtype=np.int64),  # the copies still running
-        np.zeros((chunks, width, LANES), dtype=np.float32),  # observations as lanes
-        np.zeros((chunks, width, LANES), dtype=np.float32),  # lanes, even layers
-        np.zeros((chunks, width, LANES), dtype=np.float32),  # lanes, odd layers
+        np.zeros((3, chunks, width, LANES), dtype=np.float32),  # the same as lanes
     )
 
 
@@ -421,8 +415,7 @@ def rollout_agent(
     on, time-major, and each column's length. Returns the row after the last written. Every
     draw is the copy's own (common/learning/randomness.py's hash of its key): the start's four
     uniforms from counters −1 … −4, the decision at step t from counter t."""
-    weights, backward_w, obs, even, odd, scratch, state, running = workspace[:8]
-    obs_lanes, even_lanes, odd_lanes = workspace[8:]
+    weights, backward_w, acts, scratch, state, running, lanes = workspace
     obs_dim = sizes[0]
     n_actions = sizes[len(sizes) - 1]
     fill_weights(theta, sizes, weights, backward_w)
@@ -435,34 +428,34 @@ def rollout_agent(
     limit = min(horizon, CARTPOLE_STEP_LIMIT)
     row = first_row
     for t in range(limit):
+        # forward's layers in line: a call of forward would count references at every step
         if alive >= LANES_FROM:
             for slot in range(alive):
                 for i in range(obs_dim):
                     value = np.float32(state[running[slot], i])
-                    obs[slot, i] = value
-                    obs_lanes[slot // LANES, i, slot % LANES] = value
-            in_even = forward_lanes(weights, sizes, obs_lanes, even_lanes, odd_lanes, alive)
-            lanes = even_lanes if in_even else odd_lanes
+                    acts[INPUTS, slot, i] = value
+                    lanes[INPUTS, slot // LANES, i, slot % LANES] = value
+            for layer in range(len(sizes) - 1):
+                dense_lanes(weights, sizes, layer, lanes, (alive + LANES - 1) // LANES)
             for slot in range(alive):  # the same numbers as rows, for the draw
                 for j in range(n_actions):
-                    even[slot, j] = lanes[slot // LANES, j, slot % LANES]
-            logits = even
+                    acts[0, slot, j] = lanes[0, slot // LANES, j, slot % LANES]
         else:
             for slot in range(alive):
                 for i in range(obs_dim):
-                    obs[slot, i] = np.float32(state[running[slot], i])
-            in_even = forward(weights, sizes, obs, even, odd, alive)
-            logits = even if in_even else odd
+                    acts[INPUTS, slot, i] = np.float32(state[running[slot], i])
+            for layer in range(len(sizes) - 1):
+                dense(weights, sizes, layer, acts, alive)
         kept = 0
         for slot in range(alive):
             c = running[slot]
             if greedy:
-                action = greedy_action(logits, slot, n_actions)
+                action = greedy_action(acts, slot, n_actions)
             else:
                 draw = uniform24(keys[first_copy + c], t)
-                action = draw_action(logits, slot, n_actions, draw, scratch)
+                action = draw_action(acts, slot, n_actions, draw, scratch)
             for i in range(obs_dim):
-                rows_obs[row, i] = obs[slot, i]
+                rows_obs[row, i] = acts[INPUTS, slot, i]
             rows_action[row] = action
             rows_column[row] = first_copy + c
             rows_time[row] = t

@@ -12,11 +12,12 @@ an algorithm (``common/learning/algorithms/<name>.py``) runs its one loop over t
   policy's score-function maths per row;
 - :meth:`Round.mean_gradients`: a batch's mean gradient with the run's estimator (its
   coefficients, then its gradients, in one backend call);
-- :meth:`Round.finished`: the bookkeeping of an iteration (its statistics, kept where the rows
-  are; cancellation), and :meth:`Round.report` for the algorithm's own statistics.
+- :meth:`Round.finished`: the bookkeeping of an iteration (its statistics; cancellation), and
+  :meth:`Round.report` for the algorithm's own statistics.
 
-What the round did comes to the host once, when the round's :attr:`Round.tally` is first read
-after its loop: every iteration's per-row counts in one copy and their returns in another
+On the host an iteration's statistics go into the round's totals as it finishes. On a device
+they stay there until the round's :attr:`Round.tally` is first read after its loop, then come
+to the host once: every iteration's per-row counts in one copy and their returns in another
 (nothing waits on a device inside the loop).
 
 The primitives are the backend's (:class:`~fedhpg.common.learning.engine.backend.Backend`), chosen
@@ -112,12 +113,7 @@ Interrupt = Callable[[], None]
 """Called after each iteration; it may raise to cancel the round."""
 
 
-def _held_on_host(numbers: Numbers) -> bool:
-    """Whether a round's numbers are on the host (a round's are all where its rows are)."""
-    return isinstance(numbers, np.ndarray) or numbers.device.type == "cpu"
-
-
-def _copied_to_host(values: list[Numbers]) -> np.ndarray:
+def _copied_to_host(values: Sequence[Numbers]) -> np.ndarray:
     """Device tensors [A] each stacked as one host array [len(values), A], in one copy."""
     return torch.stack([torch.as_tensor(v) for v in values]).numpy(force=True)
 
@@ -180,14 +176,17 @@ class Round:
         self._tally = Tally.zeros(len(self.agents))
         self._totals = self._tally.blocks()
         self._interrupt = interrupt
+        self._on_device = theta.device.type != "cpu"
+        """Whether the rows' numbers are on a device (else on the host, added as they come)."""
         self._pending: list[tuple[Numbers, Numbers, Numbers, torch.Tensor | None, Numbers]] = []
-        """Each finished iteration's numbers per row, [A] each, where the rows are (tensors,
-        or host arrays where the backend sampled on the host): its trajectories, env steps
-        and differentiated steps (int64), whether its gradient was clipped (bool; None: none
-        was) and its sum of undiscounted returns (float64)."""
+        """On a device, each finished iteration's numbers per row, [A] each: its trajectories,
+        env steps and differentiated steps (int64), whether its gradient was clipped (bool;
+        None: none was) and its sum of undiscounted returns (float64)."""
         self._times: list[tuple[float, float]] = []
-        """Each finished iteration's CPU seconds, and those of them spent sampling."""
+        """On a device, each finished iteration's CPU seconds, and those of them spent
+        sampling."""
         self._reported: dict[str, torch.Tensor] = {}
+        self._every_row: np.ndarray | None = None
         self._clock = time.thread_time()
         self._sampling_s = 0.0
         """Thread CPU seconds spent sampling since the last :meth:`finished`."""
@@ -292,82 +291,104 @@ class Round:
         clipped: torch.Tensor | None = None,
         grad_steps: torch.Tensor | None = None,
     ) -> None:
-        """An iteration is done for the rows that sampled ``batch``: its per-row numbers are
-        kept where the rows are (the :attr:`tally` takes them to the host once), its CPU time
-        noted; then the round may be cancelled."""
+        """An iteration is done for the rows that sampled ``batch``: its per-row numbers and
+        its CPU time go into the totals (on a device they wait there, and the :attr:`tally`
+        takes them to the host in one copy); then the round may be cancelled."""
         now = time.thread_time()
         elapsed, self._clock = now - self._clock, now
         sampled = min(self._sampling_s + batch.late_sampling_s(), elapsed)
         self._sampling_s = 0.0
         steps, returns = batch.row_totals()
-        self._pending.append((
-            batch.counts, steps, steps if grad_steps is None else grad_steps, clipped, returns,
-        ))  # fmt: skip
-        self._times.append((elapsed, sampled))
+        differentiated = steps if grad_steps is None else grad_steps
+        if self._on_device:  # brought to the host with the tally, in one copy
+            self._pending.append((batch.counts, steps, differentiated, clipped, returns))
+            self._times.append((elapsed, sampled))
+        else:
+            self._add(
+                self._array(batch.counts),
+                self._array(steps),
+                self._array(differentiated),
+                None if clipped is None else clipped.numpy(force=True),
+                self._array(returns),
+                elapsed,
+                sampled,
+            )
         if self._interrupt is not None:
             self._interrupt()
             self._clock = time.thread_time()
 
     @property
     def tally(self) -> Tally:
-        """What the round did so far: the finished iterations' numbers brought to the host (the
-        counts in one copy, the returns in another), added to the totals in the order they
-        ran, and each one's work per row (its share of the iteration's CPU time, by env
-        steps)."""
+        """What the round did so far: the finished iterations' totals and each one's work per
+        row (its share of the iteration's CPU time, by env steps); on a device, the numbers
+        waiting there brought to the host first (the counts in one copy, the returns in
+        another) and added in the order they ran."""
         if self._pending:
             pending, self._pending = self._pending, []
-            times, self._times = np.asarray(self._times), []
-            host = self._on_host if _held_on_host(pending[0][4]) else _copied_to_host
-            counts = host([number for numbers in pending for number in numbers[:3]])
-            clips = [numbers[3] for numbers in pending if numbers[3] is not None]
-            clipped = (
-                torch.stack(clips).sum(dim=0, dtype=torch.int64).numpy(force=True)
-                if clips
-                else None
-            )
-            returns = host([numbers[4] for numbers in pending])
-            self._add(counts.reshape(len(pending), 3, -1), clipped, returns, times)
+            times, self._times = self._times, []
+            counts = _copied_to_host([number for numbers in pending for number in numbers[:3]])
+            returns = _copied_to_host([numbers[4] for numbers in pending])
+            clips: list[Numbers] = [numbers[3] for numbers in pending if numbers[3] is not None]
+            clipped = iter(_copied_to_host(clips) if clips else [])
+            for i, (numbers, (elapsed, sampled)) in enumerate(zip(pending, times, strict=True)):
+                trajectories, steps, differentiated = counts[3 * i : 3 * i + 3]
+                self._add(
+                    trajectories,
+                    steps,
+                    differentiated,
+                    None if numbers[3] is None else next(clipped),
+                    returns[i],
+                    elapsed,
+                    sampled,
+                )
         if self._reported:
             for name, values in self._reported.items():
                 self._tally.algorithm[name] = values.cpu().numpy()
             self._reported = {}
         return self._tally
 
-    def _on_host(self, values: list[Numbers]) -> np.ndarray:
-        """Host ``values`` [A] each stacked as one array [len(values), A] through their
-        views."""
-        host = self._host
-        return np.array([v if isinstance(v, np.ndarray) else host(v) for v in values])
-
     def _add(
         self,
-        numbers: np.ndarray,
+        counts: np.ndarray,
+        steps: np.ndarray,
+        grad_steps: np.ndarray,
         clipped: np.ndarray | None,
         returns: np.ndarray,
-        times: np.ndarray,
+        elapsed: float,
+        sampled: float,
     ) -> None:
-        """Iterations' per-row counts [I, 3, A] (trajectories, env steps, differentiated
-        steps), clipped gradients [A] (None: none) and return sums [I, A], and their
-        (elapsed, sampling) CPU seconds [I, 2], into the totals, iteration after iteration in
-        the order they ran (the float totals' order of additions)."""
+        """An iteration's per-row trajectories, env steps and differentiated steps (int64
+        [A]), whether each row's gradient was clipped ([A] bool; None: none was) and its
+        return sums (float64 [A]), with its (elapsed, sampling) CPU seconds shared by env
+        steps, into the totals; iterations come in the order they ran (the float totals'
+        order of additions)."""
         ints, floats = self._totals
-        ints[:2] += np.add.reduce(numbers[:, :2], axis=0)  # integers: in any order
+        ints[0] += counts
+        ints[1] += steps
         if clipped is not None:
             ints[2] += clipped
-        steps = numbers[:, 1]
-        shares = steps / np.maximum(np.add.reduce(steps, axis=1, keepdims=True), 1)
-        spent = shares[:, None] * times[:, :, None]  # [I, 2, A]: elapsed, sampling, by share
-        positions = np.arange(numbers.shape[2])
-        for i, every in enumerate(np.logical_and.reduce(numbers[:, 0], axis=1).tolist()):
-            floats[0] += returns[i]
-            floats[1:] += spent[i]
-            compute = spent[i, 0]
-            if every:  # every row ran: whole rows, no indexing
-                work = IterationColumns(positions, compute, steps[i], numbers[i, 2])
-            else:
-                at = np.flatnonzero(numbers[i, 0])
-                work = IterationColumns(at, compute[at], steps[i][at], numbers[i, 2][at])
-            self._tally.work.append(work)
+        shares = steps / max(int(steps.sum()), 1)
+        compute = shares * elapsed
+        floats[0] += returns
+        floats[1] += compute
+        floats[2] += shares * sampled
+        if counts.all():  # every row ran: whole rows, no indexing
+            work = IterationColumns(self._positions(), compute, steps, grad_steps)
+        else:
+            at = np.flatnonzero(counts)
+            work = IterationColumns(at, compute[at], steps[at], grad_steps[at])
+        self._tally.work.append(work)
+
+    def _array(self, numbers: Numbers) -> np.ndarray:
+        """Host ``numbers`` as an array (a tensor's view; the same one while it is the same
+        tensor, as the budget rows are)."""
+        return numbers if isinstance(numbers, np.ndarray) else self._host(numbers)
+
+    def _positions(self) -> np.ndarray:
+        """0 … A − 1, made once a round."""
+        if self._every_row is None:
+            self._every_row = np.arange(len(self.agents))
+        return self._every_row
 
     @contextmanager
     def untimed(self) -> Iterator[None]:
