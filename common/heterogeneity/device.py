@@ -66,6 +66,11 @@ same operation on one float, so a host's column of agents prices each exactly as
 device would."""
 
 
+def _joined(parts: list[np.ndarray]) -> np.ndarray:
+    """``parts`` end to end (the one part itself where there is one)."""
+    return parts[0] if len(parts) == 1 else np.concatenate(parts)
+
+
 def compute_seconds(
     counted: bool,
     real_s: Number,
@@ -266,12 +271,22 @@ class DeviceColumns:
         self.step_cost_s = np.array([d.step_cost_s for d in devices], dtype=np.float64)
         self.grad_cost_s = np.array([d.grad_cost_s for d in devices], dtype=np.float64)
         self.bandwidth_mbps = np.array([d.bandwidth_mbps for d in devices], dtype=np.float64)
+        self._transfer: tuple[tuple[bytes, int], np.ndarray] | None = None
 
     def transfer_s(self, rows: np.ndarray, num_bytes: int) -> np.ndarray:
-        """:meth:`DeviceModel.transfer_s` of the devices at ``rows``."""
-        return transfer_seconds(
-            self.counted, self.latency_s[rows], self.bandwidth_mbps[rows], num_bytes
-        )
+        """:meth:`DeviceModel.transfer_s` of the devices at ``rows`` (read-only; kept for the
+        next round, which asks the same of the same rows while the host's agents repeat)."""
+        key = (rows.tobytes(), num_bytes)
+        if self._transfer is None or self._transfer[0] != key:
+            seconds = np.asarray(
+                transfer_seconds(
+                    self.counted, self.latency_s[rows], self.bandwidth_mbps[rows], num_bytes
+                ),
+                dtype=np.float64,
+            )
+            seconds.flags.writeable = False
+            self._transfer = (key, seconds)
+        return self._transfer[1]
 
     def round(
         self,
@@ -292,12 +307,18 @@ class DeviceColumns:
         message = self.transfer_s(rows, num_bytes) if messages else np.zeros(len(rows))
         emulated = np.zeros(len(rows), dtype=np.float64)
         emulated += message
-        for ran in iterations:
-            at = ran.positions
-            steps = ran.env_steps.astype(np.float64)
-            compute = compute_seconds(self.counted, ran.compute_s, steps,
-                                      ran.grad_steps.astype(np.float64), step_cost[at],
-                                      grad_cost[at], num_params)  # fmt: skip
-            emulated[at] += iteration_seconds(compute, speeds[at], steps, delay[at])
+        if iterations:  # every iteration priced at once, added to its row in the order run
+            at = _joined([ran.positions for ran in iterations])
+            steps = _joined([ran.env_steps for ran in iterations]).astype(np.float64)
+            compute = compute_seconds(
+                self.counted,
+                _joined([ran.compute_s for ran in iterations]),
+                steps,
+                _joined([ran.grad_steps for ran in iterations]).astype(np.float64),
+                step_cost[at],
+                grad_cost[at],
+                num_params,
+            )
+            np.add.at(emulated, at, iteration_seconds(compute, speeds[at], steps, delay[at]))
         emulated += message
         return emulated, speeds

@@ -220,7 +220,12 @@ class RoundResult:
 
     def with_stats(self, **columns: Any) -> RoundResult:
         """This result with ``columns`` in place of those of its statistics."""
-        return dataclasses.replace(self, stats=self.stats.replaced(**columns))
+        return RoundResult(
+            round=self.round,
+            agents=self.agents,
+            thetas=self.thetas,
+            stats=self.stats.replaced(**columns),
+        )
 
     @staticmethod
     def concatenated(parts: Sequence[RoundResult]) -> RoundResult:

@@ -479,13 +479,16 @@ def _record_fields(kind: type) -> tuple[str, ...] | None:
 def _to_wire(value: Any, where: str, depth: int = 0) -> Any:
     """Outgoing header values as decode will see them: numpy scalars become Python scalars and
     tuples lists, so statistics computed with numpy can be sent as they are."""
-    if type(value) in _PLAIN_SCALARS:  # the common case, first: nothing to convert
+    kind = type(value)
+    if kind in _PLAIN_SCALARS:  # the common case, first: nothing to convert
         return value
     if depth > MAX_NESTING:
         raise _bad(where, f"nested deeper than {MAX_NESTING} levels")
+    if kind is list and all(type(item) in _PLAIN_SCALARS for item in value):
+        return value  # a column of plain numbers (the statistics): sent as it is
     if isinstance(value, np.generic):
         return value.item()
-    names = _record_fields(type(value))
+    names = _record_fields(kind)
     if names is not None:
         return {
             name: item

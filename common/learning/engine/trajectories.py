@@ -229,20 +229,25 @@ class Trajectories:
         backend that draws it with its gradients, or when its steps are first read)."""
         return 0.0 if self._sampling_s is None else self._sampling_s()
 
-    def steps_per_row(self) -> torch.Tensor:
-        """Alive steps of each row, [A] int64."""
+    def _known_row_sums(self) -> RowSums | None:
+        """The backend's own (steps, returns) of each row, made on first read (None: it has
+        none)."""
         if self._row_sums is not None:
             self._row_sums = _made(self._row_sums)
-            return torch.as_tensor(self._row_sums[0])
+        return self._row_sums
+
+    def steps_per_row(self) -> torch.Tensor:
+        """Alive steps of each row, [A] int64."""
+        known = self._known_row_sums()
+        if known is not None:
+            return torch.as_tensor(known[0])
         return torch.zeros_like(self.counts).index_add_(0, self.owner, self.lengths())
 
     def row_totals(self) -> RowSums:
         """(:meth:`steps_per_row`, :meth:`returns_per_row`) as the backend holds them: host
         arrays where it sampled on the host (a round's tally reads them there)."""
-        if self._row_sums is not None:
-            self._row_sums = _made(self._row_sums)
-            return self._row_sums
-        return self.steps_per_row(), self.returns_per_row()
+        known = self._known_row_sums()
+        return (self.steps_per_row(), self.returns_per_row()) if known is None else known
 
     def returns(self, gammas: torch.Tensor | None = None) -> torch.Tensor:
         """Each trajectory's return Σ_t γ^t r_t, [N] float64 (undiscounted without
@@ -262,9 +267,9 @@ class Trajectories:
 
     def returns_per_row(self) -> torch.Tensor:
         """Each row's sum of its trajectories' undiscounted returns, [A] float64."""
-        if self._row_sums is not None:
-            self._row_sums = _made(self._row_sums)
-            return torch.as_tensor(self._row_sums[1])
+        known = self._known_row_sums()
+        if known is not None:
+            return torch.as_tensor(known[1])
         return self.per_row(self.returns())
 
 
