@@ -22,7 +22,7 @@ import sys
 import time
 from collections.abc import Callable
 from dataclasses import replace
-from multiprocessing.connection import Connection
+from multiprocessing.connection import Connection, wait
 from pathlib import Path
 
 from fedhpg.common.configuration.config import RunConfig
@@ -64,6 +64,9 @@ logger = logging.getLogger(__name__)
 PR_SET_NAME = 15
 PR_SET_PDEATHSIG = 1
 STOP_GRACE_S = 3.0
+SUPERVISE_S = 1.0
+"""The longest the launcher waits between looks at its processes (it wakes at once when one
+ends)."""
 FINISH_GRACE_S = 10.0
 """After the server completed the run, how long the agent processes may take to end."""
 EXIT_INTERRUPTED = 130
@@ -218,7 +221,9 @@ class Supervisor:
                     return 1
             if server.exitcode == 0:
                 return self._finish()
-            time.sleep(0.05)
+            # asleep until a process ends: looking at a hundred agents' exit codes twenty
+            # times a second took a tenth of a core from the federation
+            wait([c.sentinel for c in self.children if c.exitcode is None], SUPERVISE_S)
 
 
 def check_launch(run: RunConfig) -> None:
