@@ -4,6 +4,8 @@ VENV := .venv
 BIN := $(VENV)/bin
 INSTALLED := $(VENV)/.pip-installed
 STAMP := $(VENV)/.installed
+KERNEL_SOURCES := $(wildcard common/learning/batched/*.py) envs/compiled.py \
+	common/learning/randomness.py
 export OMP_NUM_THREADS ?= 1
 export MKL_NUM_THREADS ?= 1
 # pip installs without compiling every module to bytecode (torch alone has ~16,000: ~40 s); the
@@ -22,7 +24,7 @@ $(INSTALLED): pyproject.toml constraints.txt
 	$(BIN)/python -m pip install --quiet --no-compile -c constraints.txt -e ".[envs,dev]"
 	touch $(INSTALLED)
 
-$(STAMP): $(INSTALLED)
+$(STAMP): $(INSTALLED) $(KERNEL_SOURCES)
 	$(BIN)/python -m fedhpg.common.learning.batched.backend
 	touch $(STAMP)
 
@@ -158,8 +160,8 @@ bench-presets: $(STAMP)
 # engine's commit (and one process per agent against it run by run), GridWorld K = 1,000.
 # Tens of minutes on 2 cores; results in
 # benchmarks/results/scale*.json and engine_ab_processes.json, figures in docs/scale*.png.
-# numba's kernel cache, filled at setup, is emptied by any edit of kernels.py: refilled first,
-# or the first case's start-up would time a compilation.
+# numba's kernel cache, filled at setup, is filled afresh first (numba would not notice that
+# a kernel another file calls changed), or the first case's start-up would time a compilation.
 bench-scale: $(STAMP)
 	$(BIN)/python -m fedhpg.common.learning.batched.backend
 	OMP_NUM_THREADS=1 $(BIN)/python -m benchmarks.scale
