@@ -63,7 +63,7 @@ ENV PATH=/opt/fedhpg/bin:$PATH \
     NUMBA_CACHE_DIR=/opt/fedhpg-numba
 # The compiled engine's kernels, compiled once here (numba caches per CPU type: a host of
 # another type compiles them again on first use, into the same directory).
-RUN python -m fedhpg.common.learning.batched.backend && chown -R fedhpg /opt/fedhpg-numba
+RUN python -m fedhpg.common.learning.kernel_cache && chown -R fedhpg /opt/fedhpg-numba
 USER fedhpg
 WORKDIR /home/fedhpg
 EXPOSE 5555

@@ -25,7 +25,7 @@ $(INSTALLED): pyproject.toml constraints.txt
 	touch $(INSTALLED)
 
 $(STAMP): $(INSTALLED) $(KERNEL_SOURCES)
-	$(BIN)/python -m fedhpg.common.learning.batched.backend
+	$(BIN)/python -m fedhpg.common.learning.kernel_cache
 	touch $(STAMP)
 
 demo: $(STAMP)
@@ -163,7 +163,7 @@ bench-presets: $(STAMP)
 # numba's kernel cache, filled at setup, is filled afresh first (numba would not notice that
 # a kernel another file calls changed), or the first case's start-up would time a compilation.
 bench-scale: $(STAMP)
-	$(BIN)/python -m fedhpg.common.learning.batched.backend
+	$(BIN)/python -m fedhpg.common.learning.kernel_cache
 	OMP_NUM_THREADS=1 $(BIN)/python -m benchmarks.scale
 	OMP_NUM_THREADS=1 $(BIN)/python -m benchmarks.processes_ab
 	OMP_NUM_THREADS=1 $(BIN)/python -m benchmarks.scale_gridworld

@@ -545,27 +545,5 @@ def warm_up() -> float:
     return time.perf_counter() - started
 
 
-def forget_compiled() -> int:
-    """Empty numba's cache of every kernel of the compiled backend; returns how many kernels.
-
-    numba keys a kernel's cache by its own file alone: a kernel in ``fused.py`` loaded from the
-    cache keeps the code it was compiled with of the kernels it calls in ``kernels.py``, even
-    after that file changed. Whoever fills the cache (:func:`warm_up` as a script, after an
-    edit of any of these files) empties it first."""
-    import fedhpg.envs.compiled as environment
-    from fedhpg.common.learning.batched import estimator
-
-    dispatchers = [
-        value
-        for module in (kernels, fused, estimator, environment)
-        for value in vars(module).values()
-        if hasattr(value, "_cache") and hasattr(value, "py_func")  # a numba kernel
-    ]
-    for dispatcher in dispatchers:
-        dispatcher._cache.flush()
-    return len(dispatchers)
-
-
-if __name__ == "__main__":  # make setup, or an edit of a kernel: fill numba's cache afresh
-    forget_compiled()
+if __name__ == "__main__":  # fill numba's cache (make setup: fedhpg.common.learning.kernel_cache)
     print(f"compiled backend ready ({warm_up():.1f} s)")
