@@ -258,24 +258,34 @@ def test_gridworlds_draws_at_step_t_are_its_keys_counters_below_env_counters(
 ) -> None:
     """The uniform a copy's step t takes is hash(its trajectory key, ENV_COUNTERS − t): the
     sampler draws them a chunk of steps at a time, and what each step receives is that one
-    draw, across the chunks' boundary (a trajectory's slips depend on its key alone)."""
+    draw, across the chunks' boundary and after the batch narrows to the copies that still
+    run (a trajectory's slips depend on its key alone)."""
     from fedhpg.common.learning.engine import copies as copies_module
     from fedhpg.common.learning.engine.sampling import ENV_CHUNK, ENV_COUNTERS
 
     keys: list[torch.Tensor] = []
     draws: list[torch.Tensor] = []
-    reset, step = copies_module.DeviceBlocks.reset, copies_module.DeviceBlocks.step
+    stepped: list[torch.Tensor] = []  # each step's copies, as the batch's columns
+    blocks = copies_module.DeviceBlocks
+    reset, step, keep = blocks.reset, blocks.step, blocks.keep
 
     def spy_reset(self, given):  # type: ignore[no-untyped-def]
         keys.append(given.clone())
+        self.columns = torch.arange(len(given))
         return reset(self, given)
 
     def spy_step(self, actions, running, noise=None):  # type: ignore[no-untyped-def]
         draws.append(noise.clone())
+        stepped.append(self.columns)
         return step(self, actions, running, noise)
 
-    monkeypatch.setattr(copies_module.DeviceBlocks, "reset", spy_reset)
-    monkeypatch.setattr(copies_module.DeviceBlocks, "step", spy_step)
+    def spy_keep(self, columns):  # type: ignore[no-untyped-def]
+        self.columns = self.columns[columns]
+        return keep(self, columns)
+
+    monkeypatch.setattr(blocks, "reset", spy_reset)
+    monkeypatch.setattr(blocks, "step", spy_step)
+    monkeypatch.setattr(blocks, "keep", spy_keep)
     run = compose(["env=gridworld", "algo.engine=torch", "agents=population",
                    "agents.num_agents=3", "agents.budget.batch_size=[24]"])  # fmt: skip
     agents = [0, 1, 2]
@@ -283,8 +293,9 @@ def test_gridworlds_draws_at_step_t_are_its_keys_counters_below_env_counters(
     rows = engine.begin(2, initial_theta(variants_of(run, [0])[0], run), agents)
     rows.sample(rows.theta, torch.full((3,), 24), iteration=1)
     assert len(keys) == 1 and len(draws) > ENV_CHUNK, "the batch crosses a chunk's end"
-    for t, drawn in enumerate(draws):
-        expected = uniforms64(keys[0].unsqueeze(1), torch.tensor([[ENV_COUNTERS - t]]))
+    assert len(stepped[-1]) < len(stepped[0]), "the batch narrowed"
+    for t, (drawn, columns) in enumerate(zip(draws, stepped, strict=True)):
+        expected = uniforms64(keys[0][columns].unsqueeze(1), torch.tensor([[ENV_COUNTERS - t]]))
         assert torch.equal(drawn, expected), t
 
 

@@ -21,6 +21,7 @@ from benchmarks.device_reference import Reference
 from benchmarks.scale_device import balancing_theta
 from fedhpg.common.heterogeneity.variants import variants_of
 from fedhpg.common.learning.engine import copies as copies_module
+from fedhpg.common.learning.engine import sampling
 from fedhpg.common.learning.engine.engine import Engine
 from fedhpg.common.learning.engine.sampling import END_CHECK
 from fedhpg.common.learning.worker import initial_theta
@@ -137,12 +138,11 @@ def test_a_step_waits_for_nothing_and_costs_what_the_reference_costs(
     assert ours <= 1.5 * reference, (ours, reference)
 
 
-def test_copies_that_ended_are_stepped_masked_and_the_batch_cut_at_its_longest(
-    monkeypatch: pytest.MonkeyPatch,
-) -> None:
-    """At θ̃₀ episodes end at very different steps: every copy is still stepped at every step
-    (no synchronisation between checks), the loop stops at the first end check with none
-    running, and the batch is as long as its longest episode."""
+def _initial_batch(
+    monkeypatch: pytest.MonkeyPatch, *, narrow_at: float | None = None
+) -> tuple[Any, list[int]]:
+    """Six CartPole agents' 16 copies each at θ̃₀, and the number of copies each step of the
+    copies stepped (``narrow_at``: the sampler's :data:`NARROW_AT` instead of its own)."""
     widths: list[int] = []
     step = copies_module.DeviceBlocks.step
 
@@ -151,6 +151,8 @@ def test_copies_that_ended_are_stepped_masked_and_the_batch_cut_at_its_longest(
         return step(self, actions, *args, **kwargs)
 
     monkeypatch.setattr(copies_module.DeviceBlocks, "step", spy)
+    if narrow_at is not None:
+        monkeypatch.setattr(sampling, "NARROW_AT", narrow_at)
     run = compose([
         "env=cartpole", "algo.engine=torch", "policy.hidden=[8]", "agents.num_agents=6",
         "agents.budget.batch_size=[16]", "agents.speeds=[1]", "agents.step_delays_s=[0]",
@@ -158,11 +160,48 @@ def test_copies_that_ended_are_stepped_masked_and_the_batch_cut_at_its_longest(
     agents = list(range(6))
     engine = Engine(run, variants_of(run, agents))
     rows = engine.begin(1, initial_theta(variants_of(run, [0])[0], run), agents)
-    batch = rows.sample(rows.theta, torch.full((6,), 16), iteration=0)
+    return rows.sample(rows.theta, torch.full((6,), 16), iteration=0), widths
+
+
+def test_tiles_whose_copies_all_ended_are_dropped_at_the_checks_and_the_batch_cut_at_its_longest(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """At θ̃₀ episodes end at very different steps. Between two end checks every copy of the
+    batch's current width is stepped (no synchronisation inside a step); at a check the batch
+    keeps exactly the tiles (here an agent's 16 copies each) that hold a running copy, once
+    they are at most NARROW_AT of those stepped; the loop stops at the first check with none
+    running, and the batch is as long as its longest episode."""
+    batch, widths = _initial_batch(monkeypatch)
     lengths = batch.alive.sum(0)
     longest = int(lengths.max())
     assert int(lengths.min()) < longest // 2  # episodes of very different lengths
     assert batch.alive.shape[0] == longest
-    assert set(widths) == {96}, "every copy stepped at every step"
     assert len(widths) == -(-longest // END_CHECK) * END_CHECK, "up to the next end check"
     assert torch.equal(batch.rewards != 0, batch.alive), "rewards where a copy ran, only"
+    agent_longest = lengths.view(6, 16).max(1).values
+    width = 96
+    for t, stepped in enumerate(widths):
+        if t % END_CHECK == 0 and t:
+            running = 16 * int((agent_longest > t).sum())
+            if running <= sampling.NARROW_AT * width:
+                width = running
+        assert stepped == width, (t, stepped, width)
+    assert widths[-1] < widths[0], "the batch narrowed"
+
+
+def test_a_narrowed_batch_is_the_batch_every_copy_stepped_to_the_end(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """Dropping the tiles whose copies have all ended changes no trajectory: the same
+    observations, actions, rewards, lengths and successes as a sampler that never narrows."""
+    narrowed, widths = _initial_batch(monkeypatch)
+    assert min(widths) < max(widths), "the batch narrowed"
+    whole, widths = _initial_batch(monkeypatch, narrow_at=0.0)
+    assert set(widths) == {96}, "never narrowed"
+    alive = whole.alive
+    assert torch.equal(narrowed.alive, alive)
+    assert torch.equal(narrowed.lengths(), whole.lengths())
+    assert torch.equal(narrowed.success, whole.success)
+    assert torch.equal(narrowed.rewards, whole.rewards)
+    assert torch.equal(narrowed.obs[alive], whole.obs[alive])
+    assert torch.equal(narrowed.actions[alive], whole.actions[alive])

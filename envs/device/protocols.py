@@ -57,6 +57,10 @@ class DeviceCopies(Protocol):
         ``step_noise`` is 0)."""
         ...
 
+    def keep(self, columns: torch.Tensor) -> None:
+        """Keep only the copies ``columns`` (increasing), renumbered 0 … m − 1 in order."""
+        ...
+
 
 class DeviceFamily(Protocol):
     """The constants of some variants of one family, as tables on one device."""

@@ -79,6 +79,15 @@ class TensorCopies(abc.ABC):
         put_distinct(self.steps, columns, 0)
         return self.observe(state, p)
 
+    def keep(self, columns: torch.Tensor) -> None:
+        """Keep only the copies ``columns`` (increasing), in that order: they become copies
+        0 … m − 1 (an end check's narrowing of the batch to the copies that still run)."""
+        self.params = self._params(columns)
+        self.limit = self.limit[columns]
+        self.state = self.state[:, columns]
+        self.steps = self.steps[columns]
+        self.num_copies = int(columns.shape[0])
+
     def step(
         self, actions: torch.Tensor, columns: torch.Tensor | None, noise: torch.Tensor | None
     ) -> CopyStep:

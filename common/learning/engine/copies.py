@@ -42,6 +42,9 @@ class Copies(Protocol):
     offsets: torch.Tensor
     step_noise: int
     """Uniforms each copy's environment draws per step (0: none)."""
+    narrows: bool
+    """Whether :meth:`keep` can drop copies (the sampler then steps only the tiles of copies
+    that still run)."""
 
     def reset(self, keys: torch.Tensor) -> torch.Tensor:
         """Start an episode in every copy, the copies' keys ``keys`` [N]; their first
@@ -57,12 +60,19 @@ class Copies(Protocol):
         be stepped or not (its row is then any value): the sampler masks it out."""
         ...
 
+    def keep(self, columns: torch.Tensor) -> None:
+        """Step only the copies ``columns`` (increasing) from now on, renumbered 0 … m − 1 in
+        order (where :attr:`narrows`)."""
+        ...
+
     def close(self) -> None: ...
 
 
 class DeviceBlocks:
     """Blocks over a family's torch copies, every copy stepped at every step: a step's shapes
     are the batch's, whatever has ended (no count, no index to wait for)."""
+
+    narrows = True
 
     def __init__(self, copies: DeviceCopies, offsets: torch.Tensor) -> None:
         self.copies = copies
@@ -78,6 +88,9 @@ class DeviceBlocks:
     ) -> CopyStep:
         return self.copies.step(actions, None, noise)
 
+    def keep(self, columns: torch.Tensor) -> None:
+        self.copies.keep(columns)
+
     def close(self) -> None:
         pass
 
@@ -89,6 +102,10 @@ class GymBlocks:
     autoresets, no one reads); the other blocks' rows repeat their last observation."""
 
     step_noise = 0  # gymnasium environments draw from their own generators
+    narrows = False  # a gymnasium batch environment keeps all its copies
+
+    def keep(self, columns: torch.Tensor) -> None:
+        raise NotImplementedError("gymnasium's batch environments keep all their copies")
 
     def __init__(self, envs: Sequence[BatchEnv], device: torch.device) -> None:
         self.envs = list(envs)

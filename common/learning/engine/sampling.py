@@ -7,19 +7,25 @@ t, where a family has them, from :data:`ENV_COUNTERS` − t · step_noise − j)
 is the same in any company and any layout.
 
 Every step is the same function of the batch's shapes alone: every copy acts, in one call of
-the policy on a grid of tiles built once per call (:class:`_Grid`, each tile one block's
-copies under its θ row), every copy is stepped (the torch families; gymnasium's batch
-environments skip the blocks whose copies have all ended), and a copy whose episode has ended
-is masked out (``running``), never recorded as alive. Nothing inside a step waits for the
-device: whether any copy still runs is asked every :data:`END_CHECK` steps, and the batch's
-length (its longest episode) is read once at the end. A step holds no data-dependent shape, no
-index found on the host and no allocation (the record buffers grow at those checks only), so
-a GPU runs it without waiting, and it could be captured as one graph.
+the policy on a grid of tiles (:class:`_Grid`, each tile one block's copies under its θ row),
+every copy is stepped (the torch families; gymnasium's batch environments skip the blocks
+whose copies have all ended), and a copy whose episode has ended is masked out (``running``),
+never recorded as alive. Nothing inside a step waits for the device: every :data:`END_CHECK`
+steps the sampler asks how many tiles still hold a running copy, stops when none does, and
+once at most :data:`NARROW_AT` of the tiles do, drops the others (every copy of a tile whose
+copies have all ended: the policy's calls keep their tiles' shapes, so no float changes); the
+batch's length (its longest episode) is read once at the end. Between two checks a step holds
+no data-dependent shape, no index found on the host and no allocation (the record buffers
+grow at the checks only), so a GPU runs it without waiting, and each width's step could be
+captured as one graph. With short episodes of very different lengths (a policy that has not
+learnt yet) the narrowing is what keeps a step's cost near the copies that may still run.
 """
 
 from __future__ import annotations
 
+import copy
 from dataclasses import dataclass
+from functools import cached_property
 
 import gymnasium as gym
 import numpy as np
@@ -35,6 +41,7 @@ from fedhpg.common.learning.engine.memory import (
 from fedhpg.common.learning.engine.policy_rows import PolicyRows
 from fedhpg.common.learning.engine.trajectories import Trajectories
 from fedhpg.common.learning.randomness import uniforms, uniforms64
+from fedhpg.envs.tensor_writes import put_distinct
 
 
 @dataclass(frozen=True)
@@ -50,10 +57,18 @@ class Faults:
 ENV_COUNTERS = -(1 << 40)
 """Where the counters of an environment's own draws start (downwards), far below a reset's."""
 END_CHECK = 16
-"""Steps between two checks whether any copy still runs (the sampler's only waits for the
-device while it steps). A batch steps at most ``END_CHECK − 1`` steps past its longest
-episode, whose results are masked and cut off; :data:`RECORD_START` is a multiple of it, so
-the record buffers grow at checks only."""
+"""Steps between two checks of which tiles still hold a running copy (the sampler's only
+waits for the device while it steps, and the only steps where the batch narrows). A batch
+steps at most ``END_CHECK − 1`` steps past its longest episode, whose results are masked and
+cut off; :data:`RECORD_START` is a multiple of it, so the record buffers grow at checks
+only."""
+
+
+NARROW_AT = 0.75
+"""At an end check, the batch narrows to the tiles of copies that still run once they are at
+most this share of the tiles stepped (every copy of a tile whose copies have all ended
+dropped): a step then costs what the copies that may still run cost. The drop's gathers
+cost about a step, so a narrowing that would save little is not made."""
 
 
 ACT_TILE = 16
@@ -84,13 +99,13 @@ class _Grid:
     copy), one policy call for all of them, or calls of exactly ``tiles_per_call`` tiles (the
     grid then padded with empty tiles, copy 0 under the first block's θ, to whole calls), and
     each call's θ rows, split into the policy's parameters once. A copy's action depends on
-    its own observation, draws and θ row alone: which copies share its tile does not change
-    it."""
+    its own observation, draws and θ row alone: which copies share its tile, and how many
+    tiles a call takes, does not change it."""
 
     def __init__(
         self,
         policy: PolicyRows,
-        counts: list[int],
+        counts: list[int] | np.ndarray,
         theta: torch.Tensor,
         tiles_per_call: int | None,
     ) -> None:
@@ -104,6 +119,13 @@ class _Grid:
         valid = slots < sizes[block_of_tile][:, None]
         base = (np.cumsum(sizes) - sizes)[block_of_tile][:, None]
         grid = np.where(valid, base + slots, base)
+        self.real = len(block_of_tile)
+        """Tiles that hold copies (the first ones)."""
+        self.copy_of_slot, self.valid = grid, valid
+        """Each real tile's copies ([real, ACT_TILE], padding repeats a copy) and which slots
+        hold their own copy."""
+        self.block_theta, self.block_of_tile = theta, block_of_tile
+        self.tiles_per_call = tiles_per_call
         extra = 0 if tiles_per_call is None else -len(block_of_tile) % tiles_per_call
         if extra:  # empty tiles (copy 0, the first block's θ) to whole calls
             valid = np.concatenate([valid, np.zeros((extra, ACT_TILE), dtype=bool)])
@@ -125,6 +147,25 @@ class _Grid:
         """The copy in each slot; None when the grid is every copy in order (a view)."""
         self.slots = torch.from_numpy(np.flatnonzero(valid)).to(device) if padded else None
         """The slots that hold a copy, in order (None: every slot)."""
+
+    def running_tiles(self, running: torch.Tensor) -> torch.Tensor:
+        """[real] whether each real tile holds a copy that still runs (on the device)."""
+        if self.index is None:
+            return running.view(self.tiles, ACT_TILE).any(1)
+        return (running[self.index[: self.real]] & self.flags).any(1)
+
+    @cached_property
+    def flags(self) -> torch.Tensor:
+        """[real, ACT_TILE] the real tiles' slots that hold their own copy, on the device."""
+        return torch.from_numpy(self.valid).to(self.block_theta.device)
+
+    def narrowed(self, kept_tiles: np.ndarray) -> tuple[_Grid, np.ndarray]:
+        """The grid of the tiles ``kept_tiles`` (increasing) alone, each its own block, and
+        the copies they hold (increasing): the kept copies are the new grid's 0 … m − 1."""
+        valid = self.valid[kept_tiles]
+        copies = self.copy_of_slot[kept_tiles][valid]
+        theta = self.block_theta[torch.from_numpy(self.block_of_tile[kept_tiles])]
+        return _Grid(self.policy, valid.sum(1), theta, self.tiles_per_call), copies
 
     def draws(self, noise: torch.Tensor) -> torch.Tensor:
         """Decision draws [..., N, k] of every copy as the grid's [..., tiles, ACT_TILE, k]."""
@@ -186,59 +227,84 @@ def sample(
     grid = _Grid(policy, sizes, theta, tiles_per_call)
     obs = copies.reset(keys)
     horizon = int(horizons.max())
-    # each copy's horizon, where the rows' differ (else the loop's bound is every row's)
-    stop_at = horizons[owner] if bool((horizons < horizon).any()) else None
     record = _Record(total, obs, device)
-    success = torch.zeros(total, dtype=torch.bool, device=device)
-    running = torch.ones(total, dtype=torch.bool, device=device)
-    lengths = torch.zeros(total, dtype=torch.int64, device=device)
     flipped = None
     if faults is not None and bool(faults.flipped_rewards.any()):
         flipped = faults.flipped_rewards[owner]
     randomised = None
     if faults is not None and not greedy and bool(faults.random_actions.any()):
         randomised = _RandomActions(faults.random_actions[owner], action_space, device)
+    now = _Stepped(
+        obs=obs,
+        running=torch.ones(total, dtype=torch.bool, device=device),
+        lengths=torch.zeros(total, dtype=torch.int64, device=device),
+        success=torch.zeros(total, dtype=torch.bool, device=device),
+        keyed=keys.unsqueeze(1),
+        stop_at=horizons[owner] if bool((horizons < horizon).any()) else None,
+        randomised=randomised,
+    )  # stop_at: each copy's horizon, where the rows' differ (else the loop's bound is theirs)
     k = policy.noise_size
-    keyed = keys.unsqueeze(1)
     draws_at = torch.arange(NOISE_CHUNK * k, device=device).unsqueeze(0)
     env_noise = copies.step_noise
     env_at = ENV_COUNTERS - torch.arange(ENV_CHUNK * env_noise, device=device).unsqueeze(0)
     noise: tuple[torch.Tensor, ...] = ()  # the chunk's decision draws, a grid per step
     copy_noise: tuple[torch.Tensor, ...] = ()  # the same, [N, k] per step (attackers' draws)
-    env_draws: tuple[torch.Tensor, ...] = ()  # the chunk's environment draws, [N, s] per step
+    narrowing = _Narrowing(now)
     t = 0
     with torch.no_grad():
         while t < horizon:
             if t % end_check == 0:
-                if t and not bool(running.any()):  # the step's only wait, every end_check
-                    break
+                if t:  # the step's only wait, every end_check
+                    tiles_running = grid.running_tiles(now.running)
+                    live = int(tiles_running.sum())
+                    if not live:
+                        break
+                    if copies.narrows and live <= NARROW_AT * grid.real:
+                        kept = np.flatnonzero(tiles_running.cpu().numpy())
+                        grid, kept_copies = grid.narrowed(kept)
+                        keep = torch.from_numpy(kept_copies).to(device)
+                        now = narrowing.keep(now, keep, t)
+                        copies.keep(keep)
+                        record.keep(keep)
+                        if now.drawn is not None:  # the rest of the chunk's draws
+                            noise = grid.draws(now.drawn.transpose(0, 1)).unbind(0)
+                            copy_noise = now.drawn.unbind(1) if now.randomised else ()
                 record.reserve(t + end_check)
             if t % NOISE_CHUNK == 0 and not greedy:
-                drawn = uniforms(keyed, draws_at + t * k).view(total, NOISE_CHUNK, k)
+                count = now.keyed.shape[0]
+                drawn = uniforms(now.keyed, draws_at + t * k).view(count, NOISE_CHUNK, k)
                 noise = grid.draws(drawn.transpose(0, 1)).unbind(0)
-                if randomised is not None:
-                    copy_noise = drawn.unbind(1)
+                copy_noise = drawn.unbind(1) if now.randomised else ()
+                now.drawn = drawn
             if env_noise and t % ENV_CHUNK == 0:
                 # step t + s, draw j: counter ENV_COUNTERS − (t + s)·s_n − j
-                env_chunk = uniforms64(keyed, env_at - t * env_noise)
-                env_draws = env_chunk.view(total, ENV_CHUNK, env_noise).unbind(1)
+                now.env_draws = uniforms64(now.keyed, env_at - t * env_noise).view(
+                    now.keyed.shape[0], ENV_CHUNK, env_noise
+                )
             at = t % NOISE_CHUNK
-            actions = grid.act(obs, noise[at] if noise else None)
-            if randomised is not None:
-                actions = randomised(actions, copy_noise[at])
-            step = copies.step(actions, running, env_draws[t % ENV_CHUNK] if env_draws else None)
-            record.add(t, obs, actions, step.reward)
-            lengths += running
-            success |= running & step.success
+            actions = grid.act(now.obs, noise[at] if noise else None)
+            if now.randomised is not None:
+                actions = now.randomised(actions, copy_noise[at])
+            env_draws = None if now.env_draws is None else now.env_draws[:, t % ENV_CHUNK]
+            step = copies.step(actions, now.running, env_draws)
+            record.add(t, now.obs, actions, step.reward)
+            running = now.running
+            now.lengths += running
+            now.success |= running & step.success
             running.masked_fill_(step.terminated | step.truncated, False)
             t += 1
-            if stop_at is not None:
-                running &= stop_at > t
-            obs = step.obs
+            if now.stop_at is not None:
+                running &= now.stop_at > t
+            now.obs = step.obs
+    lengths, success = narrowing.every_copy(now)
     steps = int(lengths.max())  # the batch's longest episode: its length
     alive = torch.arange(steps, device=device).unsqueeze(1) < lengths
     obs_seen, actions_taken, rewards = record.taken(steps)
     rewards.masked_fill_(~alive, 0.0)  # the record's own buffer: zeroed where nothing ran
+    if narrowing.first is not None:  # the dropped copies' cells were never written: zeros
+        dead = ~alive[narrowing.first :]
+        for values in (obs_seen[narrowing.first :], actions_taken[narrowing.first :]):
+            values.masked_fill_(dead.view(*dead.shape, *[1] * (values.dim() - 2)), 0)
     if flipped is not None:
         rewards.mul_(torch.where(flipped, -1.0, 1.0).to(rewards.dtype))
     return Trajectories(
@@ -253,13 +319,83 @@ def sample(
     )
 
 
+@dataclass
+class _Stepped:
+    """What the sampler holds of each copy it steps, [M, ...] each (narrowed together)."""
+
+    obs: torch.Tensor
+    running: torch.Tensor
+    lengths: torch.Tensor
+    success: torch.Tensor
+    keyed: torch.Tensor
+    """[M, 1] the copies' trajectory keys."""
+    stop_at: torch.Tensor | None
+    randomised: _RandomActions | None
+    drawn: torch.Tensor | None = None
+    """The decision draws of the current chunk, [M, NOISE_CHUNK, k]."""
+    env_draws: torch.Tensor | None = None
+    """The environments' draws of the current chunk, [M, ENV_CHUNK, s]."""
+
+    def kept(self, keep: torch.Tensor) -> _Stepped:
+        """The copies ``keep`` alone."""
+
+        def part(values: torch.Tensor | None) -> torch.Tensor | None:
+            return None if values is None else values[keep]
+
+        return _Stepped(
+            obs=self.obs[keep],
+            running=self.running[keep],
+            lengths=self.lengths[keep],
+            success=self.success[keep],
+            keyed=self.keyed[keep],
+            stop_at=part(self.stop_at),
+            randomised=None if self.randomised is None else self.randomised.kept(keep),
+            drawn=part(self.drawn),
+            env_draws=part(self.env_draws),
+        )
+
+
+class _Narrowing:
+    """Every copy's length and success, kept for the copies a narrowing drops (the sampler
+    carries on with the kept copies' own)."""
+
+    def __init__(self, stepped: _Stepped) -> None:
+        self.lengths, self.success = stepped.lengths, stepped.success
+        self.columns: torch.Tensor | None = None
+        """The batch's column of each copy still stepped (None: copy n is column n)."""
+        self.first: int | None = None
+        """The step of the first narrowing (None: none yet)."""
+
+    def keep(self, stepped: _Stepped, keep: torch.Tensor, t: int) -> _Stepped:
+        """Record the ``stepped`` copies' lengths and successes at step ``t``; the copies
+        ``keep`` of them, which alone go on."""
+        self._store(stepped)
+        self.columns = keep if self.columns is None else self.columns[keep]
+        self.first = t if self.first is None else self.first
+        return stepped.kept(keep)
+
+    def _store(self, stepped: _Stepped) -> None:
+        if self.columns is None:
+            self.lengths, self.success = stepped.lengths, stepped.success
+        else:
+            put_distinct(self.lengths, self.columns, stepped.lengths)
+            put_distinct(self.success, self.columns, stepped.success)
+
+    def every_copy(self, stepped: _Stepped) -> tuple[torch.Tensor, torch.Tensor]:
+        """Every column's length and success, the ``stepped`` copies' included."""
+        self._store(stepped)
+        return self.lengths, self.success
+
+
 class _Record:
     """The steps taken so far, time-major, in buffers that double as episodes grow (a batch
-    of short episodes never holds a horizon's worth of memory), at the end checks only. Each
-    step's row is written whole, a stepped copy's raw results whether it runs or not (the
-    rewards of the steps that did not happen are zeroed at the end), so the buffers are never
-    filled beforehand. Every step's rows are views made when the buffers are (a step writes
-    into its views: no indexing)."""
+    of short episodes never holds a horizon's worth of memory), at the end checks only. A
+    step writes the columns of every copy stepped, its raw results whether it runs or not
+    (the rewards of the steps that did not happen are zeroed at the end, and from the first
+    narrowing on, whose dropped copies' cells are never written, their observations and
+    actions too), so the buffers are never filled beforehand. Every step's
+    rows are views made when the buffers are; until the batch narrows, a step writes into its
+    views whole (no indexing), then into the kept copies' columns."""
 
     def __init__(self, total: int, obs: torch.Tensor, device: torch.device) -> None:
         self.total, self.device = total, device
@@ -268,6 +404,12 @@ class _Record:
         self.rewards = torch.empty((RECORD_START, total), dtype=torch.float64, device=device)
         self.rows: list[tuple[torch.Tensor, ...]] = []
         """Each buffer's rows (obs, rewards, then actions once their type is known)."""
+        self.columns: torch.Tensor | None = None
+        """The column of each copy a step writes (None: copy n writes column n)."""
+
+    def keep(self, keep: torch.Tensor) -> None:
+        """Only the copies ``keep`` of those written so far write from now on."""
+        self.columns = keep if self.columns is None else self.columns[keep]
 
     def reserve(self, steps: int) -> None:
         """Room for ``steps`` steps (doubling)."""
@@ -299,9 +441,18 @@ class _Record:
             )
             self.rows.append(self.actions.unbind(0))
         obs_rows, reward_rows, action_rows = self.rows
-        obs_rows[t].copy_(obs)
-        action_rows[t].copy_(actions)
-        reward_rows[t].copy_(reward)
+        if self.columns is None:
+            obs_rows[t].copy_(obs)
+            action_rows[t].copy_(actions)
+            reward_rows[t].copy_(reward)
+        elif self.device.type == "cpu":
+            obs_rows[t].index_copy_(0, self.columns, obs)
+            action_rows[t].index_copy_(0, self.columns, actions)
+            reward_rows[t].index_copy_(0, self.columns, reward)
+        else:  # each column named once: no deterministic sort needed
+            for row, values in ((obs_rows[t], obs), (action_rows[t], actions),
+                                (reward_rows[t], reward)):  # fmt: skip
+                put_distinct(row, self.columns, values)
 
     def taken(self, steps: int) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         assert self.actions is not None, "a batch takes at least one step"
@@ -321,6 +472,12 @@ class _RandomActions:
             self.high = torch.as_tensor(space.high, dtype=torch.float32, device=device)
         elif not isinstance(space, gym.spaces.Discrete):
             raise ValueError(f"random actions need a Discrete or bounded Box space, got {space}")
+
+    def kept(self, keep: torch.Tensor) -> _RandomActions:
+        """The same for the copies ``keep`` alone."""
+        narrowed = copy.copy(self)
+        narrowed.chosen = self.chosen[keep]
+        return narrowed
 
     def __call__(self, actions: torch.Tensor, u: torch.Tensor) -> torch.Tensor:
         """``actions`` [N, ...] with the chosen copies' replaced, from ``u`` [N, k]."""

@@ -46,13 +46,12 @@ class _Places:
     """Where a batch's alive steps go in tiles of :data:`TILE` steps of one group each: each
     group's steps packed column after column (a column's in time order) from its first tile
     on, its last tile padded with zeros; the tiles past ``real`` (a GPU's last call's
-    padding) hold nothing."""
+    padding) hold nothing. Every move touches the alive steps alone, never the padded batch's
+    dead cells (with short episodes of very different lengths, most of them)."""
 
-    place: torch.Tensor | None
-    """Each cell of the padded [T, N] batch (time-major, [T·N]): its slot in the tiles' flat
-    [tiles · TILE] slots, or the one slot past them where no step happened. None: the tiles
-    are the batch's columns in order, cut in tiles (every step happened and every group
-    fills whole tiles): a transpose, no index."""
+    steps: _AliveSteps | None
+    """Each alive step's cell and slot; None: the tiles are the batch's columns in order, cut
+    in tiles (every step happened and every group fills whole tiles): a transpose, no index."""
     tiles: int
     real: int
     """Tiles that hold a group's steps."""
@@ -61,28 +60,52 @@ class _Places:
         """A padded [T, N, ...] tensor's alive cells in the tiles, [tiles, TILE, ...] (zero in
         the slots that hold no step)."""
         steps, columns, *rest = padded.shape
-        if self.place is None:
+        if self.steps is None:
             # contiguous, as the indexed tiles are: a reduction's order follows the strides
             out = padded.transpose(0, 1).contiguous().view(self.real, TILE, *rest)
             if self.tiles > self.real:
                 out = torch.cat([out, out.new_zeros((self.tiles - self.real, TILE, *rest))])
             return out
-        slots = self.tiles * TILE
-        out = padded.new_zeros((slots + 1, *rest))  # the last slot takes every dead cell
         flat = padded.reshape(steps * columns, *rest)
+        return self.placed(flat.index_select(0, self.steps.cell))
+
+    def placed(self, values: torch.Tensor) -> torch.Tensor:
+        """Each alive step's ``values`` [R, ...] (in :class:`_AliveSteps`' order) in the
+        tiles, [tiles, TILE, ...], zero in the slots that hold no step."""
+        assert self.steps is not None
+        out = values.new_zeros((self.tiles * TILE, *values.shape[1:]))
         if out.device.type == "cpu":
-            out.index_copy_(0, self.place, flat)
-        else:  # each slot but the last is named once: no deterministic sort needed
-            put_distinct(out, self.place, flat)
-        return out[:slots].view(self.tiles, TILE, *rest)
+            out.index_copy_(0, self.steps.slot, values)
+        else:  # each slot is named once: no deterministic sort needed
+            put_distinct(out, self.steps.slot, values)
+        return out.view(self.tiles, TILE, *values.shape[1:])
 
     def out_of(self, values: torch.Tensor, steps: int, columns: int) -> torch.Tensor:
         """Per-slot ``values`` [tiles, TILE] as the padded batch's [T, N] (zero where no step
         happened)."""
-        if self.place is None:
+        if self.steps is None:
             return values[: self.real].reshape(columns, steps).T.contiguous()
-        flat = torch.cat([values.reshape(-1), values.new_zeros(1)])
-        return flat.index_select(0, self.place).view(steps, columns)
+        out = values.new_zeros(steps * columns)
+        taken = values.reshape(-1).index_select(0, self.steps.slot)
+        if out.device.type == "cpu":
+            out.index_copy_(0, self.steps.cell, taken)
+        else:  # each cell is named once
+            put_distinct(out, self.steps.cell, taken)
+        return out.view(steps, columns)
+
+
+@dataclass(frozen=True)
+class _AliveSteps:
+    """A batch's alive steps, column after column (a column's in time order)."""
+
+    time: torch.Tensor
+    """[R] each step's t."""
+    column: torch.Tensor
+    """[R] each step's column of the batch."""
+    cell: torch.Tensor
+    """[R] its cell of the padded [T, N] batch, flat (t · N + n)."""
+    slot: torch.Tensor
+    """[R] its slot in the tiles' flat [tiles · TILE] slots."""
 
 
 @dataclass(frozen=True)
@@ -262,7 +285,8 @@ class TorchBackend:
         groups = int(group.max()) + 1 if columns else 0
         columns_per_group = torch.bincount(group, minlength=groups)
         group_end = torch.cumsum(columns_per_group, 0)
-        taken = torch.cat([group_end.new_zeros(1), torch.cumsum(batch.lengths(), 0)])
+        lengths = batch.lengths()
+        taken = torch.cat([group_end.new_zeros(1), torch.cumsum(lengths, 0)])
         per_group = taken[group_end] - taken[group_end - columns_per_group]
         tiles_per_group = (per_group + TILE - 1) // TILE
         tile_start = torch.cumsum(tiles_per_group, 0) - tiles_per_group
@@ -270,14 +294,23 @@ class TorchBackend:
         total = real
         if self.device.type != "cpu" and total:  # whole calls only (``tiles_per_call``)
             total = -(-total // self.tiles_per_call) * self.tiles_per_call
-        place = None
+        alive_at = None
         if alive_steps != steps * columns or real * TILE != alive_steps:
-            # each alive cell's rank among the alive cells, column after column
-            rank = torch.cumsum(alive.T.reshape(-1), 0).view(columns, steps) - 1
+            # a column's alive steps are its first lengths[n]: step r of the packed order is
+            # column n's step r − taken[n], and its group's tiles start TILE · tile_start
+            column = torch.repeat_interleave(
+                torch.arange(columns, device=alive.device), lengths, output_size=alive_steps
+            )
+            rank = torch.arange(alive_steps, device=alive.device)
+            time = rank - taken.index_select(0, column)
             shift = TILE * tile_start - (torch.cumsum(per_group, 0) - per_group)
-            slot = rank + shift.index_select(0, group).unsqueeze(1)
-            place = torch.where(alive.T, slot, total * TILE).T.reshape(-1)
-        places = _Places(place, total, real)
+            alive_at = _AliveSteps(
+                time=time,
+                column=column,
+                cell=time * columns + column,
+                slot=rank + shift.index_select(0, group).index_select(0, column),
+            )
+        places = _Places(alive_at, total, real)
         tile_group = torch.repeat_interleave(
             torch.arange(groups, device=alive.device), tiles_per_group
         )
@@ -299,7 +332,14 @@ class TorchBackend:
         """Each tile's Σ coef ∇ log π under its θ row ``theta[row_of_tile]``, [tiles, d], in
         chunks (the θ rows of one chunk's tiles at a time); ``values`` per cell of
         ``batch.layout``."""
-        coef = tiles.places.into(_padded(batch, values.to(torch.float64)))
+        values = values.to(torch.float64)
+        alive_at = tiles.places.steps
+        if alive_at is None:
+            coef = tiles.places.into(_padded(batch, values))
+        else:  # each alive step's cell of the layout, straight into its slot
+            coef = tiles.places.placed(
+                values.index_select(0, batch.layout.cell(alive_at.time, alive_at.column))
+            )
         out = theta.new_empty((tiles.obs.shape[0], self.policy.num_params))
         return self._over_tiles(tiles, out, lambda block: self.policy.score_gradients(
             theta[row_of_tile[block]], tiles.obs[block], tiles.act[block], coef[block]

@@ -3,8 +3,9 @@
 Column n is one trajectory of row ``owner[n]`` (a row is one agent of the batch); every row's
 columns are contiguous. The torch backend records steps padded to the longest trajectory T:
 ``alive[t, n]`` says whether step t of trajectory n happened, and everything at a dead step is
-padding (reward 0). The compiled backend hands over the alive steps packed row by row
-(:class:`StepRows`), and the padded tensors are built only if a primitive asks for them.
+padding (reward 0; observation and action read by no estimator). The compiled backend hands
+over the alive steps packed row by row (:class:`StepRows`), and the padded tensors are built
+only if a primitive asks for them.
 
 The torch estimator computes on :attr:`Trajectories.layout`, a
 :class:`~fedhpg.common.learning.staircase.Staircase` without the padding to the batch's longest:
