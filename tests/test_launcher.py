@@ -12,9 +12,10 @@ import pytest
 import torch
 from procs import alive, child_named, child_pids, processes, sigint_ignored, start, wait_until
 
-from fedhpg.common.runtime.cli import compose
+from fedhpg.common.runtime.cli import EXIT_RUN_ABORTED, compose
 from fedhpg.server.assembly import run_in_process
 from fedhpg.server.checkpoint import latest_valid_checkpoint
+from fedhpg.server.commands import launcher
 
 LONG_RUN = [
     "rounds=1000",
@@ -250,3 +251,47 @@ def test_after_a_completed_run_the_agents_get_a_grace_then_are_stopped(
         assert not agent.is_alive()
     finally:
         supervisor.stop_all()
+
+
+class _Ending:
+    """A child process as the supervisor reads it: running for its first ``running`` reads
+    of the exit status, ended with ``code`` from then on (a process that ends while the
+    supervisor looks at it)."""
+
+    def __init__(self, name: str, code: int, running: int) -> None:
+        self.name, self.code, self.running, self.reads = name, code, running, 0
+        self.sentinel = -1
+
+    @property
+    def exitcode(self) -> int | None:
+        self.reads += 1
+        return None if self.reads <= self.running else self.code
+
+    def is_alive(self) -> bool:
+        return self.exitcode is None
+
+    def join(self, timeout: float | None = None) -> None:
+        pass
+
+    def terminate(self) -> None:
+        pass
+
+    def kill(self) -> None:
+        pass
+
+
+def test_an_agent_that_ends_as_the_run_is_aborted_is_not_restarted(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """The agent exits with the aborted-run status just after the supervisor first reads
+    its status: the supervisor acts on one reading per process and pass, so it neither
+    restarts the agent nor blames it; the server's own status ends the federation."""
+    supervisor = launcher.Supervisor(max_restarts=2)
+    agent = _Ending("agent-0", EXIT_RUN_ABORTED, running=1)
+    server = _Ending("server", 1, running=2)
+    supervisor.children = [agent, server]  # type: ignore[list-item]
+    started: list[str] = []
+    monkeypatch.setattr(supervisor, "start", lambda target, args, name: started.append(name))
+    monkeypatch.setattr(launcher, "wait", lambda sentinels, timeout: None)
+    assert supervisor.wait(server) == 1  # type: ignore[arg-type]
+    assert started == [], "the agent of an aborted run was restarted"

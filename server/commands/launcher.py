@@ -165,8 +165,9 @@ class Supervisor:
                 child.kill()
                 child.join()
 
-    def _restart(self, child: multiprocessing.process.BaseProcess) -> bool:
-        """Start a crashed agent (or agent host) again if it has restarts left."""
+    def _restart(self, child: multiprocessing.process.BaseProcess, code: int) -> bool:
+        """Start a crashed agent (or agent host), which exited with ``code``, again if it has
+        restarts left."""
         used = self._restarts.get(child.name, 0)
         if child.name == "server" or used >= self.max_restarts:
             return False
@@ -174,7 +175,7 @@ class Supervisor:
         logger.warning(
             "%s exited with status %s; restarting it (%d of %d restarts, agent.max_restarts)",
             child.name,
-            child.exitcode,
+            code,
             used + 1,
             self.max_restarts,
         )
@@ -209,13 +210,13 @@ class Supervisor:
         """Until the server ends: 0 if every process ended well, else 1."""
         while True:
             for child in list(self.children):
-                if child.exitcode == EXIT_RUN_ABORTED:
+                # read once: each read polls the process, which may end between two reads
+                code = child.exitcode
+                if code == EXIT_RUN_ABORTED:
                     continue  # the server ended the run: its own exit status tells how
-                if child.exitcode not in (None, 0) and not self._restart(child):
+                if code not in (None, 0) and not self._restart(child, code):
                     logger.error(
-                        "%s exited with status %s; stopping the federation",
-                        child.name,
-                        child.exitcode,
+                        "%s exited with status %s; stopping the federation", child.name, code
                     )
                     self.stop_all()
                     return 1
