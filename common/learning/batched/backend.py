@@ -543,7 +543,3 @@ def warm_up() -> float:
     backend.trajectory_gradients(theta, batch, coefficients)
     backend.mean_gradients(theta, batch, EstimatorOptions(), gammas, None)
     return time.perf_counter() - started
-
-
-if __name__ == "__main__":  # fill numba's cache (make setup: fedhpg.common.learning.kernel_cache)
-    print(f"compiled backend ready ({warm_up():.1f} s)")

@@ -69,8 +69,9 @@ class Copies(Protocol):
 
 
 class DeviceBlocks:
-    """Blocks over a family's torch copies, every copy stepped at every step: a step's shapes
-    are the batch's, whatever has ended (no count, no index to wait for)."""
+    """Blocks over a family's torch copies: every copy is stepped at every step until
+    :meth:`keep` drops some, so a step's shapes are the kept copies', whatever has ended
+    since (no count, no index to wait for)."""
 
     narrows = True
 

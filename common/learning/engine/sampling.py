@@ -265,7 +265,7 @@ def sample(
                         keep = torch.from_numpy(kept_copies).to(device)
                         now = narrowing.keep(now, keep, t)
                         copies.keep(keep)
-                        record.keep(keep)
+                        record.columns = narrowing.columns
                         if now.drawn is not None:  # the rest of the chunk's draws
                             noise = grid.draws(now.drawn.transpose(0, 1)).unbind(0)
                             copy_noise = now.drawn.unbind(1) if now.randomised else ()
@@ -390,12 +390,12 @@ class _Narrowing:
 class _Record:
     """The steps taken so far, time-major, in buffers that double as episodes grow (a batch
     of short episodes never holds a horizon's worth of memory), at the end checks only. A
-    step writes the columns of every copy stepped, its raw results whether it runs or not
-    (the rewards of the steps that did not happen are zeroed at the end, and from the first
-    narrowing on, whose dropped copies' cells are never written, their observations and
-    actions too), so the buffers are never filled beforehand. Every step's
-    rows are views made when the buffers are; until the batch narrows, a step writes into its
-    views whole (no indexing), then into the kept copies' columns."""
+    step writes the raw results of every copy stepped, whether it runs or not, so the
+    buffers are never filled beforehand; the sampler zeroes at the end the rewards of the
+    steps that did not happen and, from the first narrowing on (the dropped copies' cells are
+    never written), their observations and actions too. Every step's rows are views made
+    when the buffers are: until the batch narrows a step writes its views whole, then the
+    kept copies' columns of them."""
 
     def __init__(self, total: int, obs: torch.Tensor, device: torch.device) -> None:
         self.total, self.device = total, device
@@ -405,11 +405,8 @@ class _Record:
         self.rows: list[tuple[torch.Tensor, ...]] = []
         """Each buffer's rows (obs, rewards, then actions once their type is known)."""
         self.columns: torch.Tensor | None = None
-        """The column of each copy a step writes (None: copy n writes column n)."""
-
-    def keep(self, keep: torch.Tensor) -> None:
-        """Only the copies ``keep`` of those written so far write from now on."""
-        self.columns = keep if self.columns is None else self.columns[keep]
+        """The column of each copy a step writes (None: copy n writes column n; after a
+        narrowing, :attr:`_Narrowing.columns`)."""
 
     def reserve(self, steps: int) -> None:
         """Room for ``steps`` steps (doubling)."""
