@@ -7,7 +7,8 @@ row of :mod:`benchmarks.engine_ab`, with the processes' start-up and messages ar
 commit's federation is its own ``fedhpg-run`` (the entry point its ``pyproject.toml`` names)
 run with its package alone on the path; this tree's harness reads both federations' metrics.
 Per run: whole-round env steps per second over rounds 2 to the last (from one θ̃ to the next,
-evaluations excluded) and the peak PSS of the whole federation.
+evaluations excluded), the peak PSS of the whole federation, and where the CPU time of those
+rounds went (:class:`CpuSplit`, from each thread's ``/proc/<pid>/task/<tid>/schedstat``).
 
     OMP_NUM_THREADS=1 python -m benchmarks.processes_ab             # 3 runs a side, 6 rounds
     python -m benchmarks.processes_ab --runs 1 --rounds 3 --no-table  # a spot check
@@ -18,17 +19,118 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
+import statistics
 import tempfile
-from dataclasses import asdict, dataclass, replace
+import time
+from collections import Counter
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from benchmarks import engine_ab, results_file
 from benchmarks.results_file import span
-from benchmarks.runtime import _federation
+from benchmarks.runtime import _children, _federation
 from benchmarks.scale import CASES, MEASURES, round_walls, whole_round_rate
+
+if TYPE_CHECKING:
+    from collections.abc import Callable
 
 NAME = "engine_ab_processes"
 RESULTS = Path(__file__).parent / "results" / f"{NAME}.json"
+
+
+PARTS = {
+    "server": "the server process",
+    "main": "the agents' main threads (the socket: requests decoded, answers encoded)",
+    "work": "the agents' job threads (the round: the engine, the result, the device's price)",
+    "zmq": "the agents' ZeroMQ I/O threads",
+}
+"""Where a round's CPU time goes, :class:`CpuSplit`'s keys."""
+
+
+@dataclass
+class CpuSplit:
+    """CPU milliseconds a round of the federation's processes, by :data:`PARTS`, over rounds
+    2 to the last but one (from the end of round 1 to the end of that round: once the last
+    round's record is written the processes begin to exit)."""
+
+    ms: dict[str, float] = field(default_factory=dict)
+
+    def watch(self, rounds: int) -> Callable[[int, Path], None]:
+        """What :func:`~benchmarks.runtime._federation` runs beside the federation: the
+        threads' CPU times read when the metrics file gets its first line and its last."""
+
+        def watch(launcher: int, metrics: Path) -> None:
+            if rounds < 3:
+                return
+            before = _at_line(launcher, metrics, 1)
+            after = _at_line(launcher, metrics, rounds - 1)
+            if before is not None and after is not None:
+                spent = Counter({key: after[key] - before[key] for key in before if key in after})
+                parts: Counter[str] = Counter()
+                for (_, _, part), ns in spent.items():
+                    parts[part] += ns
+                self.ms = {part: parts[part] / 1e6 / (rounds - 2) for part in PARTS}
+
+        return watch
+
+
+def _at_line(launcher: int, metrics: Path, lines: int) -> dict[tuple[int, int, str], int] | None:
+    """Every thread's CPU nanoseconds once ``metrics`` holds ``lines`` lines (None: the
+    federation ended first), keyed (pid, tid, part)."""
+    size = -1
+    while True:
+        try:
+            now = metrics.stat().st_size
+        except FileNotFoundError:
+            now = 0
+        if now != size:  # read only when it grew: it holds every agent's record
+            size = now
+            if now and metrics.read_bytes().count(b"\n") >= lines:
+                return _thread_times(launcher)
+        elif not _running(launcher):
+            return None
+        time.sleep(0.002)
+
+
+def _running(pid: int) -> bool:
+    try:
+        return Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0] != "Z"
+    except (OSError, IndexError):
+        return False
+
+
+def _thread_times(launcher: int) -> dict[tuple[int, int, str], int]:
+    """The launcher's children's threads' CPU nanoseconds; its first child is the server
+    (it is started before the agents), the others the agents."""
+
+    def started(pid: int) -> int:
+        try:  # field 22 of stat, the start time, the 20th after the command's ")"
+            return int(Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[19])
+        except (OSError, IndexError, ValueError):
+            return 0
+
+    times = {}
+    for rank, pid in enumerate(sorted(_children(launcher), key=started)):
+        try:
+            tids = [int(tid) for tid in os.listdir(f"/proc/{pid}/task")]
+        except OSError:
+            continue
+        for tid in tids:
+            try:
+                ns = int(Path(f"/proc/{pid}/task/{tid}/schedstat").read_text().split()[0])
+                name = Path(f"/proc/{pid}/task/{tid}/comm").read_text().strip()
+            except (OSError, IndexError, ValueError):
+                continue
+            if rank == 0:
+                part = "server"
+            elif tid == pid:
+                part = "main"
+            else:
+                part = "zmq" if name.startswith("ZMQbg") else "work"
+            times[(pid, tid, part)] = ns
+    return times
 
 
 @dataclass(frozen=True)
@@ -38,19 +140,24 @@ class Run:
     steps_per_s: float
     """Whole-round env steps per second, rounds 2 to the last."""
     peak_pss_mib: float
+    cpu_ms: dict[str, float] = field(default_factory=dict)
+    """CPU milliseconds a round by :data:`PARTS` (:class:`CpuSplit`; empty: not read)."""
 
 
-def federation(tree: engine_ab.Tree, rounds: int) -> Run:
-    """One K = 100 federation of one process per agent at ``tree``."""
+def federation(tree: engine_ab.Tree, rounds: int, agents: int | None = None) -> Run:
+    """One federation of one process per agent at ``tree`` (K = 100 unless ``agents``)."""
     case = replace(CASES["processes"], rounds=rounds)
+    if agents is not None:
+        case = replace(case, agents=agents)
+    split = CpuSplit()
     with tempfile.TemporaryDirectory() as tmp:
         records, _, peak = _federation(
             case.overrides(), Path(tmp), sample_memory=True, poll_s=0.05,
-            env=tree.env, command=tree.command,
+            env=tree.env, command=tree.command, watch=split.watch(rounds),
         )  # fmt: skip
     round_walls(records)
     trained = [r for r in records if r["agents"]][1:]  # round 1 is start-up
-    return Run(whole_round_rate(trained), peak / 2**20)
+    return Run(whole_round_rate(trained), peak / 2**20, split.ms)
 
 
 def save(this: list[Run], that: list[Run], against: str, rounds: int) -> None:
@@ -77,6 +184,12 @@ def table(this: list[Run], that: list[Run], against: str) -> results_file.Table:
         ["peak PSS of the whole federation (MiB)", span(pss[0], ',.0f'),
          span(pss[1], ',.0f'), ""],
     ]  # fmt: skip
+    split = all(r.cpu_ms for r in (*this, *that))
+    more: dict[str, float] = {}
+    for part, what in PARTS.items() if split else ():
+        ms = [[r.cpu_ms[part] for r in runs] for runs in (this, that)]
+        rows.append([f"CPU ms a round: {what}", span(ms[0], ".1f"), span(ms[1], ".1f"), ""])
+        more[part] = statistics.median(ms[0]) - statistics.median(ms[1])
     if min(ratios) >= 1.0:
         verdict = f"faster than {against}"
     elif max(ratios) < 1.0:
@@ -89,6 +202,12 @@ def table(this: list[Run], that: list[Run], against: str) -> results_file.Table:
         "there is a lone agent, so the figure follows the lone agent's row of the engine "
         "comparison above."
     )
+    if more:
+        summary += (
+            " CPU a round, this tree's median minus the commit's: "
+            + ", ".join(f"{PARTS[part].split(' (')[0]} {ms:+.1f} ms" for part, ms in more.items())
+            + "."
+        )
     return {"columns": ["", "this tree", against, "ratio"], "rows": rows, "summary": summary}
 
 
@@ -115,8 +234,10 @@ def main() -> None:
         for tree in order:
             run = federation(tree, args.rounds)
             runs[tree.label].append(run)
+            cpu = ", ".join(f"{part} {ms:.1f}" for part, ms in run.cpu_ms.items())
             print(f"run {index + 1}, {tree.label}: {run.steps_per_s / 1e6:.3f} M env steps/s, "
-                  f"peak PSS {run.peak_pss_mib:,.0f} MiB", flush=True)  # fmt: skip
+                  f"peak PSS {run.peak_pss_mib:,.0f} MiB, CPU ms a round: {cpu or 'not read'}",
+                  flush=True)  # fmt: skip
     result = table(runs[this.label], runs[that.label], args.against)
     print(result["summary"])
     if args.no_table:

@@ -14,7 +14,9 @@ import statistics
 import subprocess
 import sys
 import tempfile
+import threading
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -70,13 +72,16 @@ def _federation(
     poll_s: float = 0.01,
     env: dict[str, str] | None = None,
     command: list[str] | None = None,
+    watch: Callable[[int, Path], None] | None = None,
 ) -> tuple[list[dict], float, int]:
     """Run fedhpg-run; returns (metrics records, seconds to the end of round 1, peak PSS).
 
     ``poll_s`` is how often the metrics file and the memory are looked at: reading
     ``smaps_rollup`` of a dozen processes costs CPU, so long runs poll less often. ``env``:
     more environment variables for the federation's processes; ``command``: what starts the
-    federation instead of this environment's ``fedhpg-run`` (another commit's, say).
+    federation instead of this environment's ``fedhpg-run`` (another commit's, say);
+    ``watch(pid, metrics)``: run in a thread of its own while the federation runs (its
+    launcher's pid and the metrics file it appends to), joined before this returns.
     """
     metrics = out_dir / "metrics.jsonl"
     started = time.monotonic()
@@ -96,6 +101,10 @@ def _federation(
     )
     first_round_s = float("nan")
     peak = 0
+    watcher = None
+    if watch is not None:
+        watcher = threading.Thread(target=watch, args=(process.pid, metrics), daemon=True)
+        watcher.start()
     try:
         while process.poll() is None:
             if first_round_s != first_round_s and metrics.exists() and metrics.read_text().strip():
@@ -108,6 +117,8 @@ def _federation(
         if process.poll() is None:
             process.kill()
         process.wait()
+        if watcher is not None:
+            watcher.join()
         stderr.seek(0)
         log = stderr.read()
         stderr.close()

@@ -73,3 +73,15 @@ def test_the_commits_federation_starts_the_commits_package(monkeypatch: pytest.M
     tree = engine_ab.baseline_tree("HEAD")
     assert tree.env == {"PYTHONPATH": str(engine_ab.checkout("HEAD"))}
     assert tree.command is not None and tree.command[1] == "-P"
+
+
+def test_a_federations_round_cpu_is_split_by_process_and_thread() -> None:
+    """processes_ab reads where a round's CPU time went: the server, the agents' socket
+    threads, their job threads and ZeroMQ's: those that work in a real federation's rounds
+    are found working."""
+    from benchmarks import processes_ab
+
+    run = processes_ab.federation(engine_ab.THIS_TREE, rounds=4, agents=3)
+    assert set(run.cpu_ms) == set(processes_ab.PARTS)
+    assert run.cpu_ms["server"] > 0 and run.cpu_ms["main"] > 0 and run.cpu_ms["work"] > 0
+    assert run.steps_per_s > 0 and run.peak_pss_mib > 0
