@@ -26,15 +26,11 @@ import time
 from collections import Counter
 from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
-from typing import TYPE_CHECKING
 
 from benchmarks import engine_ab, results_file
 from benchmarks.results_file import span
 from benchmarks.runtime import _children, _federation
 from benchmarks.scale import CASES, MEASURES, round_walls, whole_round_rate
-
-if TYPE_CHECKING:
-    from collections.abc import Callable
 
 NAME = "engine_ab_processes"
 RESULTS = Path(__file__).parent / "results" / f"{NAME}.json"
@@ -49,31 +45,29 @@ PARTS = {
 """Where a round's CPU time goes, :class:`CpuSplit`'s keys."""
 
 
-@dataclass
 class CpuSplit:
     """CPU milliseconds a round of the federation's processes, by :data:`PARTS`, over rounds
     2 to the last but one (from the end of round 1 to the end of that round: once the last
-    round's record is written the processes begin to exit)."""
+    round's record is written the processes begin to exit). Called by
+    :func:`~benchmarks.runtime._federation` in a thread beside the federation."""
 
-    ms: dict[str, float] = field(default_factory=dict)
+    def __init__(self, rounds: int) -> None:
+        self.rounds = rounds
+        self.ms: dict[str, float] = {}
+        """Empty until read (never with fewer than 3 rounds)."""
 
-    def watch(self, rounds: int) -> Callable[[int, Path], None]:
-        """What :func:`~benchmarks.runtime._federation` runs beside the federation: the
-        threads' CPU times read when the metrics file gets its first line and its last."""
-
-        def watch(launcher: int, metrics: Path) -> None:
-            if rounds < 3:
-                return
-            before = _at_line(launcher, metrics, 1)
-            after = _at_line(launcher, metrics, rounds - 1)
-            if before is not None and after is not None:
-                spent = Counter({key: after[key] - before[key] for key in before if key in after})
-                parts: Counter[str] = Counter()
-                for (_, _, part), ns in spent.items():
-                    parts[part] += ns
-                self.ms = {part: parts[part] / 1e6 / (rounds - 2) for part in PARTS}
-
-        return watch
+    def __call__(self, launcher: int, metrics: Path) -> None:
+        if self.rounds < 3:
+            return
+        before = _at_line(launcher, metrics, 1)
+        after = _at_line(launcher, metrics, self.rounds - 1)
+        if before is None or after is None:
+            return
+        spent: Counter[str] = Counter()
+        for (pid, tid, part), ns in after.items():
+            if (pid, tid, part) in before:
+                spent[part] += ns - before[pid, tid, part]
+        self.ms = {part: spent[part] / 1e6 / (self.rounds - 2) for part in PARTS}
 
 
 def _at_line(launcher: int, metrics: Path, lines: int) -> dict[tuple[int, int, str], int] | None:
@@ -89,16 +83,18 @@ def _at_line(launcher: int, metrics: Path, lines: int) -> dict[tuple[int, int, s
             size = now
             if now and metrics.read_bytes().count(b"\n") >= lines:
                 return _thread_times(launcher)
-        elif not _running(launcher):
+        elif (stat := _stat(launcher)) is None or stat[0] == "Z":
             return None
         time.sleep(0.002)
 
 
-def _running(pid: int) -> bool:
+def _stat(pid: int) -> list[str] | None:
+    """The fields of ``/proc/<pid>/stat`` after the command's ")" (None: no such process):
+    the state first, the start time 20th."""
     try:
-        return Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0] != "Z"
+        return Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
     except (OSError, IndexError):
-        return False
+        return None
 
 
 def _thread_times(launcher: int) -> dict[tuple[int, int, str], int]:
@@ -106,10 +102,8 @@ def _thread_times(launcher: int) -> dict[tuple[int, int, str], int]:
     (it is started before the agents), the others the agents."""
 
     def started(pid: int) -> int:
-        try:  # field 22 of stat, the start time, the 20th after the command's ")"
-            return int(Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[19])
-        except (OSError, IndexError, ValueError):
-            return 0
+        stat = _stat(pid)
+        return int(stat[19]) if stat is not None and len(stat) > 19 else 0
 
     times = {}
     for rank, pid in enumerate(sorted(_children(launcher), key=started)):
@@ -149,11 +143,11 @@ def federation(tree: engine_ab.Tree, rounds: int, agents: int | None = None) -> 
     case = replace(CASES["processes"], rounds=rounds)
     if agents is not None:
         case = replace(case, agents=agents)
-    split = CpuSplit()
+    split = CpuSplit(rounds)
     with tempfile.TemporaryDirectory() as tmp:
         records, _, peak = _federation(
             case.overrides(), Path(tmp), sample_memory=True, poll_s=0.05,
-            env=tree.env, command=tree.command, watch=split.watch(rounds),
+            env=tree.env, command=tree.command, watch=split,
         )  # fmt: skip
     round_walls(records)
     trained = [r for r in records if r["agents"]][1:]  # round 1 is start-up
@@ -184,12 +178,12 @@ def table(this: list[Run], that: list[Run], against: str) -> results_file.Table:
         ["peak PSS of the whole federation (MiB)", span(pss[0], ',.0f'),
          span(pss[1], ',.0f'), ""],
     ]  # fmt: skip
-    split = all(r.cpu_ms for r in (*this, *that))
     more: dict[str, float] = {}
-    for part, what in PARTS.items() if split else ():
-        ms = [[r.cpu_ms[part] for r in runs] for runs in (this, that)]
-        rows.append([f"CPU ms a round: {what}", span(ms[0], ".1f"), span(ms[1], ".1f"), ""])
-        more[part] = statistics.median(ms[0]) - statistics.median(ms[1])
+    if all(r.cpu_ms for r in (*this, *that)):
+        for part, what in PARTS.items():
+            ms = [[r.cpu_ms[part] for r in runs] for runs in (this, that)]
+            rows.append([f"CPU ms a round: {what}", span(ms[0], ".1f"), span(ms[1], ".1f"), ""])
+            more[part] = statistics.median(ms[0]) - statistics.median(ms[1])
     if min(ratios) >= 1.0:
         verdict = f"faster than {against}"
     elif max(ratios) < 1.0:
